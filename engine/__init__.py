@@ -1,0 +1,19 @@
+"""engine: a Warp rigid multi-body engine for batches of different closed-chain mechanisms.
+
+Maximal coordinates, every joint (loop closures included) a block of constraint rows, one
+Proximal-ADMM solve per world per step, all worlds of a padded batch stepped together on the
+CPU or a GPU. See engine.model for units, frames and array conventions.
+"""
+
+from engine.metrics import compute_metrics, metrics_numpy
+from engine.model import Control, Integrator, Model, SolverConfig, State
+from engine.pack import pack_worlds
+
+from engine.spec import Body, Joint, JointDrive, JointType, MechanismSpec, TrackedPoint
+from engine.step import step
+
+__all__ = [
+    "Body", "Control", "Integrator", "Joint", "JointDrive", "JointType", "MechanismSpec", "Model",
+    "SolverConfig", "State", "TrackedPoint", "compute_metrics", "metrics_numpy", "pack_worlds",
+    "step",
+]

@@ -1,0 +1,180 @@
+"""The dual problem of a step: free velocities, Delassus matrix, free row velocities, bounds.
+
+With u_free = u + dt M^-1 h (gravity, external wrenches, gyroscopic terms) the rows ask for
+J u+ + R lambda = c with u+ = u_free + M^-1 J^T lambda, i.e. D lambda + v_f = 0 (bilateral rows)
+with D = J M^-1 J^T + R and v_f = J u_free - c. The solver works in preconditioned variables
+x = P^-1 lambda with P = diag(D)^-1/2: matrix P D P (unit diagonal), vector P v_f, bounds lo / P.
+"""
+
+import warp as wp
+
+from engine.model import UNBOUNDED
+from engine.spatial import gyroscopic_implicit_midpoint, twist, world_inertia_inverse
+
+
+@wp.func
+def body_term(body_of_row: int, J: wp.spatial_vector, other_body: int, MJ_other: wp.spatial_vector):
+    """J_i,b . (M^-1 J_j,b^T) when both rows act on the same (non-world) body, else 0."""
+    if body_of_row >= 0 and body_of_row == other_body:
+        return wp.dot(J, MJ_other)
+    return 0.0
+
+
+@wp.kernel
+def free_velocity(
+    # model
+    body_count: wp.array(dtype=wp.int32),
+    body_inv_mass: wp.array2d(dtype=float),
+    body_inertia: wp.array2d(dtype=wp.mat33),
+    body_inv_inertia: wp.array2d(dtype=wp.mat33),
+    world_gravity: wp.array(dtype=wp.vec3),
+    world_dt: wp.array(dtype=float),
+    # in
+    body_q: wp.array2d(dtype=wp.transform),
+    body_qd: wp.array2d(dtype=wp.spatial_vector),
+    body_f: wp.array2d(dtype=wp.spatial_vector),
+    # out
+    body_qd_free_out: wp.array2d(dtype=wp.spatial_vector),
+):
+    """u_free = u + dt M^-1 (m g + f) with the gyroscopic torque integrated by the implicit midpoint rule."""
+    world, b = wp.tid()
+    if b >= body_count[world]:
+        return
+    dt = world_dt[world]
+    q = wp.transform_get_rotation(body_q[world, b])
+    u = body_qd[world, b]
+    f = body_f[world, b]
+    v = wp.spatial_top(u) + dt * (world_gravity[world] + body_inv_mass[world, b] * wp.spatial_top(f))
+    w_body = wp.quat_rotate_inv(q, wp.spatial_bottom(u))
+    w_body = gyroscopic_implicit_midpoint(w_body, body_inertia[world, b], dt)
+    w = wp.quat_rotate(q, w_body) + dt * (world_inertia_inverse(q, body_inv_inertia[world, b]) * wp.spatial_bottom(f))
+    body_qd_free_out[world, b] = twist(v, w)
+
+
+@wp.func
+def mass_weighted(body: int, J: wp.spatial_vector, inv_mass: float, inv_inertia_world: wp.mat33):
+    """M^-1 J^T for one body (zero for the world)."""
+    if body < 0:
+        return wp.spatial_vector()
+    return twist(inv_mass * wp.spatial_top(J), inv_inertia_world * wp.spatial_bottom(J))
+
+
+@wp.kernel
+def row_operators(
+    # model
+    row_count: wp.array(dtype=wp.int32),
+    row_body_p: wp.array2d(dtype=wp.int32),
+    row_body_c: wp.array2d(dtype=wp.int32),
+    body_inv_mass: wp.array2d(dtype=float),
+    body_inv_inertia: wp.array2d(dtype=wp.mat33),
+    # in
+    body_q: wp.array2d(dtype=wp.transform),
+    body_qd_free: wp.array2d(dtype=wp.spatial_vector),
+    row_J_c: wp.array2d(dtype=wp.spatial_vector),
+    row_J_p: wp.array2d(dtype=wp.spatial_vector),
+    row_bias: wp.array2d(dtype=float),
+    row_compliance: wp.array2d(dtype=float),
+    row_lo: wp.array2d(dtype=float),
+    row_hi: wp.array2d(dtype=float),
+    # out
+    row_MJ_c_out: wp.array2d(dtype=wp.spatial_vector),
+    row_MJ_p_out: wp.array2d(dtype=wp.spatial_vector),
+    row_precond_out: wp.array2d(dtype=float),
+    v_f_out: wp.array2d(dtype=float),
+    lo_out: wp.array2d(dtype=float),
+    hi_out: wp.array2d(dtype=float),
+):
+    """Per row: M^-1 J^T, the Jacobi preconditioner P, and the preconditioned v_f and bounds."""
+    world, i = wp.tid()
+    if i >= row_count[world]:
+        row_precond_out[world, i] = 1.0
+        v_f_out[world, i] = 0.0
+        lo_out[world, i] = 0.0
+        hi_out[world, i] = 0.0
+        return
+    c = row_body_c[world, i]
+    p = row_body_p[world, i]
+    J_c = row_J_c[world, i]
+    J_p = row_J_p[world, i]
+    MJ_c = mass_weighted(c, J_c, body_inv_mass[world, c],
+                         world_inertia_inverse(wp.transform_get_rotation(body_q[world, c]), body_inv_inertia[world, c]))
+    MJ_p = wp.spatial_vector()
+    v_free = wp.dot(J_c, body_qd_free[world, c])
+    if p >= 0:
+        MJ_p = mass_weighted(p, J_p, body_inv_mass[world, p],
+                             world_inertia_inverse(wp.transform_get_rotation(body_q[world, p]), body_inv_inertia[world, p]))
+        v_free += wp.dot(J_p, body_qd_free[world, p])
+    row_MJ_c_out[world, i] = MJ_c
+    row_MJ_p_out[world, i] = MJ_p
+    diagonal = wp.dot(J_c, MJ_c) + wp.dot(J_p, MJ_p) + row_compliance[world, i]
+    precond = 1.0 / wp.sqrt(wp.max(diagonal, 1.0e-20))
+    row_precond_out[world, i] = precond
+    v_f_out[world, i] = precond * (v_free - row_bias[world, i])
+    lo = row_lo[world, i]
+    hi = row_hi[world, i]
+    if lo > -UNBOUNDED:
+        lo = lo / precond
+    if hi < UNBOUNDED:
+        hi = hi / precond
+    lo_out[world, i] = lo
+    hi_out[world, i] = hi
+
+
+@wp.kernel
+def delassus(
+    # model
+    row_count: wp.array(dtype=wp.int32),
+    row_body_p: wp.array2d(dtype=wp.int32),
+    row_body_c: wp.array2d(dtype=wp.int32),
+    # in
+    row_J_c: wp.array2d(dtype=wp.spatial_vector),
+    row_J_p: wp.array2d(dtype=wp.spatial_vector),
+    row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
+    row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
+    row_compliance: wp.array2d(dtype=float),
+    row_precond: wp.array2d(dtype=float),
+    # out
+    delassus_out: wp.array3d(dtype=float),
+):
+    """Preconditioned Delassus matrix P (J M^-1 J^T + R) P; identity on padded rows."""
+    world, i, j = wp.tid()
+    n = row_count[world]
+    if i >= n or j >= n:
+        value = 0.0
+        if i == j:
+            value = 1.0
+        delassus_out[world, i, j] = value
+        return
+    ci = row_body_c[world, i]
+    pi = row_body_p[world, i]
+    cj = row_body_c[world, j]
+    pj = row_body_p[world, j]
+    Jci = row_J_c[world, i]
+    Jpi = row_J_p[world, i]
+    d = body_term(ci, Jci, cj, row_MJ_c[world, j]) + body_term(ci, Jci, pj, row_MJ_p[world, j])
+    d += body_term(pi, Jpi, cj, row_MJ_c[world, j]) + body_term(pi, Jpi, pj, row_MJ_p[world, j])
+    if i == j:
+        d += row_compliance[world, i]
+    delassus_out[world, i, j] = row_precond[world, i] * d * row_precond[world, j]
+
+
+def build_dual_problem(model, body_q, body_qd, body_f):
+    """Free velocities, row operators and the preconditioned Delassus matrix of every world."""
+    work = model.work
+    W, device = model.num_worlds, model.device
+    wp.launch(free_velocity, dim=(W, model.max_bodies), device=device,
+              inputs=[model.body_count, model.body_inv_mass, model.body_inertia, model.body_inv_inertia,
+                      model.world_gravity, model.world_dt, body_q, body_qd, body_f],
+              outputs=[work.body_qd_free])
+    wp.launch(row_operators, dim=(W, model.max_rows), device=device,
+              inputs=[model.row_count, model.row_body_p, model.row_body_c, model.body_inv_mass,
+                      model.body_inv_inertia, body_q, work.body_qd_free, work.row_J_c, work.row_J_p,
+                      work.row_bias, work.row_compliance, work.row_lo, work.row_hi],
+              outputs=[work.row_MJ_c, work.row_MJ_p, work.row_precond, work.v_f, work.lo, work.hi])
+    wp.launch(delassus, dim=(W, model.max_rows, model.max_rows), device=device,
+              inputs=[model.row_count, model.row_body_p, model.row_body_c, work.row_J_c, work.row_J_p,
+                      work.row_MJ_c, work.row_MJ_p, work.row_compliance, work.row_precond],
+              outputs=[work.delassus])
+
+
+__all__ = ["build_dual_problem"]

@@ -1,0 +1,195 @@
+"""Time integration: velocity update from the impulses, pose update on SE(3), projection of the
+poses back onto the constraint manifold, and the divergence guard.
+
+Semi-implicit Euler: u+ = u_free + M^-1 J^T lambda, then x+ = x + dt v+, q+ = exp(dt w+) q.
+Moreau-Jean: q_mid = q + dt/2 u; dynamics at q_mid; q+ = q_mid + dt/2 u+ (engine.step).
+Position projection (Gauss-Newton): with the residuals phi(q+) of the bilateral rows, solve
+(P D P + sigma I) x = -P phi with the factor the PADMM solve already holds and move every body by
+M^-1 J^T (P x): one damped Newton step on the constraint manifold per iteration, no new factor.
+"""
+
+import warp as wp
+
+from engine import linear
+from engine.model import ROW_DYNAMICS
+from engine.spatial import quat_integrate, quat_rotate_vector
+
+
+@wp.func
+def row_sum_for_body(world: int, b: int, n: int, row_body_c: wp.array2d(dtype=wp.int32),
+                     row_body_p: wp.array2d(dtype=wp.int32), row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
+                     row_MJ_p: wp.array2d(dtype=wp.spatial_vector), weight: wp.array2d(dtype=float),
+                     row_precond: wp.array2d(dtype=float), scale_by_precond: int):
+    """sum over rows touching body b of (M^-1 J^T)_b * weight (times P when asked); fixed row order."""
+    total = wp.spatial_vector()
+    for i in range(n):
+        s = weight[world, i]
+        if scale_by_precond != 0:
+            s = s * row_precond[world, i]
+        if row_body_c[world, i] == b:
+            total += s * row_MJ_c[world, i]
+        if row_body_p[world, i] == b:
+            total += s * row_MJ_p[world, i]
+    return total
+
+
+@wp.kernel
+def apply_impulses(
+    # model
+    body_count: wp.array(dtype=wp.int32),
+    row_count: wp.array(dtype=wp.int32),
+    row_body_c: wp.array2d(dtype=wp.int32),
+    row_body_p: wp.array2d(dtype=wp.int32),
+    # in
+    row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
+    row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
+    row_lambda: wp.array2d(dtype=float),
+    row_precond: wp.array2d(dtype=float),
+    body_qd_free: wp.array2d(dtype=wp.spatial_vector),
+    # out
+    body_qd_out: wp.array2d(dtype=wp.spatial_vector),
+):
+    """u+ = u_free + M^-1 J^T lambda."""
+    world, b = wp.tid()
+    if b >= body_count[world]:
+        return
+    body_qd_out[world, b] = body_qd_free[world, b] + row_sum_for_body(
+        world, b, row_count[world], row_body_c, row_body_p, row_MJ_c, row_MJ_p, row_lambda, row_precond, 0)
+
+
+@wp.kernel
+def integrate_poses(
+    body_count: wp.array(dtype=wp.int32),
+    world_dt: wp.array(dtype=float),
+    fraction: float,
+    body_q: wp.array2d(dtype=wp.transform),
+    body_qd: wp.array2d(dtype=wp.spatial_vector),
+    # out
+    body_q_out: wp.array2d(dtype=wp.transform),
+):
+    """x+ = x + h v, q+ = exp(h w) q with h = fraction * dt."""
+    world, b = wp.tid()
+    if b >= body_count[world]:
+        return
+    h = fraction * world_dt[world]
+    X = body_q[world, b]
+    u = body_qd[world, b]
+    body_q_out[world, b] = wp.transform(wp.transform_get_translation(X) + h * wp.spatial_top(u),
+                                        quat_integrate(wp.transform_get_rotation(X), wp.spatial_bottom(u), h))
+
+
+@wp.kernel
+def projection_rhs(
+    row_count: wp.array(dtype=wp.int32),
+    row_kind: wp.array2d(dtype=wp.int32),
+    valid: wp.array(dtype=wp.int32),
+    row_precond: wp.array2d(dtype=float),
+    row_residual: wp.array2d(dtype=float),
+    # out
+    rhs_out: wp.array2d(dtype=float),
+):
+    """rhs = -P phi on bilateral rows, 0 on dynamics and padded rows."""
+    world, i = wp.tid()
+    if valid[world] == 0:
+        return
+    value = 0.0
+    if i < row_count[world] and row_kind[world, i] != ROW_DYNAMICS:
+        value = -row_precond[world, i] * row_residual[world, i]
+    rhs_out[world, i] = value
+
+
+@wp.kernel
+def apply_projection(
+    body_count: wp.array(dtype=wp.int32),
+    row_count: wp.array(dtype=wp.int32),
+    row_body_c: wp.array2d(dtype=wp.int32),
+    row_body_p: wp.array2d(dtype=wp.int32),
+    valid: wp.array(dtype=wp.int32),
+    world_dt: wp.array(dtype=float),
+    velocity_update: int,
+    fraction: float,
+    row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
+    row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
+    row_precond: wp.array2d(dtype=float),
+    delta: wp.array2d(dtype=float),
+    # in/out
+    body_q: wp.array2d(dtype=wp.transform),
+    body_qd: wp.array2d(dtype=wp.spatial_vector),
+):
+    """Move each body by M^-1 J^T (P delta): translation [m] and rotation vector [rad]; with
+    velocity_update, add the same displacement / (fraction dt) to the twist (SHAKE: the step stays symplectic)."""
+    world, b = wp.tid()
+    if b >= body_count[world] or valid[world] == 0:
+        return
+    dx = row_sum_for_body(world, b, row_count[world], row_body_c, row_body_p, row_MJ_c, row_MJ_p, delta, row_precond, 1)
+    X = body_q[world, b]
+    body_q[world, b] = wp.transform(wp.transform_get_translation(X) + wp.spatial_top(dx),
+                                    quat_rotate_vector(wp.transform_get_rotation(X), wp.spatial_bottom(dx)))
+    if velocity_update != 0:
+        body_qd[world, b] = body_qd[world, b] + dx / (fraction * world_dt[world])
+
+
+@wp.func
+def transform_finite(X: wp.transform):
+    ok = True
+    for k in range(7):
+        if not wp.isfinite(X[k]):
+            ok = False
+    return ok
+
+
+@wp.func
+def twist_finite(u: wp.spatial_vector):
+    ok = True
+    for k in range(6):
+        if not wp.isfinite(u[k]):
+            ok = False
+    return ok
+
+
+@wp.kernel
+def guard_divergence(
+    body_count: wp.array(dtype=wp.int32),
+    body_q_in: wp.array2d(dtype=wp.transform),
+    body_qd_in: wp.array2d(dtype=wp.spatial_vector),
+    # in/out
+    body_q_out: wp.array2d(dtype=wp.transform),
+    body_qd_out: wp.array2d(dtype=wp.spatial_vector),
+    diverged: wp.array(dtype=wp.int32),
+):
+    """Flag a world whose new state is not finite and freeze it at its last state."""
+    world = wp.tid()
+    n = body_count[world]
+    bad = diverged[world] != 0
+    for b in range(n):
+        if not (transform_finite(body_q_out[world, b]) and twist_finite(body_qd_out[world, b])):
+            bad = True
+    if bad:
+        diverged[world] = 1
+        for b in range(n):
+            body_q_out[world, b] = body_q_in[world, b]
+            body_qd_out[world, b] = body_qd_in[world, b]
+
+
+def project_positions(model, body_q, body_qd, residual_fn, fraction=1.0):
+    """Gauss-Newton projection of body_q onto the joint constraints (config.position_iterations steps).
+
+    fraction: the share of dt over which the last pose update used the new velocities (1 for
+    semi-implicit Euler, 1/2 for Moreau-Jean), for the SHAKE velocity update.
+    """
+    work, device = model.work, model.device
+    grid_rows = (model.num_worlds, model.max_rows)
+    grid_bodies = (model.num_worlds, model.max_bodies)
+    for _ in range(model.config.position_iterations):
+        residual_fn(model, body_q, work.row_residual)
+        wp.launch(projection_rhs, dim=grid_rows, device=device,
+                  inputs=[model.row_count, model.row_kind, work.valid, work.row_precond, work.row_residual],
+                  outputs=[work.rhs])
+        linear.solve(work.factor, work.rhs, work.valid, work.delta)
+        wp.launch(apply_projection, dim=grid_bodies, device=device,
+                  inputs=[model.body_count, model.row_count, model.row_body_c, model.row_body_p, work.valid,
+                          model.world_dt, int(model.config.projection_velocity_update), fraction, work.row_MJ_c,
+                          work.row_MJ_p, work.row_precond, work.delta, body_q, body_qd])
+
+
+__all__ = ["apply_impulses", "guard_divergence", "integrate_poses", "project_positions"]

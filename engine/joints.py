@@ -1,0 +1,286 @@
+"""Joint constraint rows: position-level residuals and their velocity Jacobians, per joint type.
+
+Every bilateral row k of a joint has a residual phi_k(q) (zero when the joint is assembled) and a
+Jacobian row with d(phi_k)/dt = J_c . u_c + J_p . u_p exactly (tests check it against finite
+differences). Rows, in the order of engine.pack.ROW_KINDS:
+- position rows: the anchor separation d = p_c - p_p along the world axes (revolute, spherical,
+  universal, fixed) or along two parent-frame directions normal to the axis (prismatic,
+  cylindrical) [m];
+- angular rows: the child axis dotted with two parent directions normal to the parent axis
+  (revolute, cylindrical), parent axis . child axis2 (universal), or 2 vec(q_rel) of the
+  relative rotation in the parent anchor frame (prismatic, fixed) [rad].
+A joint with a drive, armature or damping adds one DYNAMICS row along its free coordinate with
+compliance 1/m_j and bias from the implicit PD law (see joint_rows).
+"""
+
+import warp as wp
+
+from engine.model import ROW_DYNAMICS, UNBOUNDED
+from engine.spatial import relative_rotation, twist, wrap_angle
+
+JOINT_REVOLUTE = wp.constant(0)
+JOINT_PRISMATIC = wp.constant(1)
+JOINT_SPHERICAL = wp.constant(2)
+JOINT_UNIVERSAL = wp.constant(3)
+JOINT_CYLINDRICAL = wp.constant(4)
+JOINT_FIXED = wp.constant(5)
+
+
+@wp.func
+def bilateral_row_count(joint_type: int):
+    """Number of bilateral rows of a joint type."""
+    if joint_type == JOINT_SPHERICAL:
+        return 3
+    if joint_type == JOINT_UNIVERSAL or joint_type == JOINT_CYLINDRICAL:
+        return 4
+    if joint_type == JOINT_FIXED:
+        return 6
+    return 5
+
+
+@wp.func
+def normal_basis(a: wp.vec3, k: int):
+    """Unit vector k (0 or 1) of an orthonormal pair normal to the unit vector a."""
+    helper = wp.vec3(1.0, 0.0, 0.0)
+    if wp.abs(a[0]) > 0.7:
+        helper = wp.vec3(0.0, 1.0, 0.0)
+    t1 = wp.normalize(wp.cross(a, helper))
+    if k == 0:
+        return t1
+    return wp.cross(a, t1)
+
+
+@wp.func
+def joint_frames(body_q: wp.array2d(dtype=wp.transform), world: int, parent: int, child: int,
+                 X_p: wp.transform, X_c: wp.transform):
+    """World anchor frames of a joint and the lever arms from each COM to its anchor [m]."""
+    X_wp = X_p
+    r_p = wp.vec3(0.0)
+    if parent >= 0:
+        X_wp = body_q[world, parent] * X_p
+        r_p = wp.transform_get_translation(X_wp) - wp.transform_get_translation(body_q[world, parent])
+    X_wc = body_q[world, child] * X_c
+    r_c = wp.transform_get_translation(X_wc) - wp.transform_get_translation(body_q[world, child])
+    return X_wp, X_wc, r_p, r_c
+
+
+@wp.func
+def position_row(n: wp.vec3, d: wp.vec3, r_p: wp.vec3, r_c: wp.vec3, parent_frame_direction: bool):
+    """Row phi = n . d; when n turns with the parent, its rotation adds n x d to J_p's angular part."""
+    extra = wp.vec3(0.0)
+    if parent_frame_direction:
+        extra = wp.cross(n, d)
+    return twist(n, wp.cross(r_c, n)), twist(-n, -wp.cross(r_p, n) + extra), wp.dot(n, d)
+
+
+@wp.func
+def alignment_row(u: wp.vec3, v: wp.vec3):
+    """Row phi = u . v with u turning with the parent and v with the child."""
+    g = wp.cross(v, u)
+    zero = wp.vec3(0.0)
+    return twist(zero, g), twist(zero, -g), wp.dot(u, v)
+
+
+@wp.func
+def bilateral_row(joint_type: int, k: int, X_wp: wp.transform, X_wc: wp.transform, r_p: wp.vec3,
+                  r_c: wp.vec3, axis: wp.vec3, axis2: wp.vec3):
+    """Jacobian (J_c, J_p) and residual phi of bilateral row k of a joint."""
+    q_p = wp.transform_get_rotation(X_wp)
+    q_c = wp.transform_get_rotation(X_wc)
+    d = wp.transform_get_translation(X_wc) - wp.transform_get_translation(X_wp)
+    sliding = joint_type == JOINT_PRISMATIC or joint_type == JOINT_CYLINDRICAL
+    n_position = 3
+    if sliding:
+        n_position = 2
+    if k < n_position:
+        if sliding:
+            return position_row(wp.quat_rotate(q_p, normal_basis(axis, k)), d, r_p, r_c, True)
+        n = wp.vec3(0.0)
+        n[k] = 1.0
+        return position_row(n, d, r_p, r_c, False)
+    a = k - n_position
+    if joint_type == JOINT_REVOLUTE or joint_type == JOINT_CYLINDRICAL:
+        return alignment_row(wp.quat_rotate(q_p, normal_basis(axis, a)), wp.quat_rotate(q_c, axis))
+    if joint_type == JOINT_UNIVERSAL:
+        return alignment_row(wp.quat_rotate(q_p, axis), wp.quat_rotate(q_c, axis2))
+    # prismatic and fixed: phi = 2 vec(q_rel), d(phi)/dt = (s I - [v]x) R_p^T (w_c - w_p)
+    q_rel = relative_rotation(q_p, q_c)
+    v = wp.vec3(q_rel[0], q_rel[1], q_rel[2])
+    s = q_rel[3]
+    e = wp.vec3(0.0)
+    e[a] = 1.0
+    row_parent_frame = s * e + wp.cross(e, v)  # row a of (s I - [v]x) is s e_a^T + (e_a x v)^T
+    g = wp.quat_rotate(q_p, row_parent_frame)
+    zero = wp.vec3(0.0)
+    return twist(zero, g), twist(zero, -g), 2.0 * v[a]
+
+
+@wp.func
+def joint_coordinate_row(joint_type: int, X_wp: wp.transform, X_wc: wp.transform, r_p: wp.vec3,
+                         r_c: wp.vec3, axis: wp.vec3):
+    """Jacobian (J_c, J_p) of the joint's free coordinate and its value q [rad] or [m]."""
+    q_p = wp.transform_get_rotation(X_wp)
+    a_w = wp.quat_rotate(q_p, axis)
+    zero = wp.vec3(0.0)
+    if joint_type == JOINT_PRISMATIC:
+        d = wp.transform_get_translation(X_wc) - wp.transform_get_translation(X_wp)
+        return twist(a_w, wp.cross(r_c, a_w)), twist(-a_w, -wp.cross(r_p, a_w) + wp.cross(a_w, d)), wp.dot(a_w, d)
+    q_rel = relative_rotation(q_p, wp.transform_get_rotation(X_wc))
+    angle = 2.0 * wp.atan2(wp.dot(wp.vec3(q_rel[0], q_rel[1], q_rel[2]), axis), q_rel[3])
+    return twist(zero, a_w), twist(zero, -a_w), angle
+
+
+@wp.func
+def body_twist(body_qd: wp.array2d(dtype=wp.spatial_vector), world: int, body: int):
+    """Twist of a body, zero for the world (-1)."""
+    if body < 0:
+        return wp.spatial_vector()
+    return body_qd[world, body]
+
+
+@wp.kernel
+def joint_rows(
+    # model
+    joint_count: wp.array(dtype=wp.int32),
+    joint_type: wp.array2d(dtype=wp.int32),
+    joint_parent: wp.array2d(dtype=wp.int32),
+    joint_child: wp.array2d(dtype=wp.int32),
+    joint_X_p: wp.array2d(dtype=wp.transform),
+    joint_X_c: wp.array2d(dtype=wp.transform),
+    joint_axis: wp.array2d(dtype=wp.vec3),
+    joint_axis2: wp.array2d(dtype=wp.vec3),
+    joint_row_start: wp.array2d(dtype=wp.int32),
+    joint_dynamics_row: wp.array2d(dtype=wp.int32),
+    joint_armature: wp.array2d(dtype=float),
+    joint_damping: wp.array2d(dtype=float),
+    joint_stiffness: wp.array2d(dtype=float),
+    joint_drive_damping: wp.array2d(dtype=float),
+    joint_effort_limit: wp.array2d(dtype=float),
+    world_dt: wp.array(dtype=float),
+    baumgarte: float,
+    # in
+    body_q: wp.array2d(dtype=wp.transform),
+    body_qd: wp.array2d(dtype=wp.spatial_vector),
+    joint_target_position: wp.array2d(dtype=float),
+    joint_target_velocity: wp.array2d(dtype=float),
+    joint_effort: wp.array2d(dtype=float),
+    # out
+    row_J_c_out: wp.array2d(dtype=wp.spatial_vector),
+    row_J_p_out: wp.array2d(dtype=wp.spatial_vector),
+    row_bias_out: wp.array2d(dtype=float),
+    row_compliance_out: wp.array2d(dtype=float),
+    row_lo_out: wp.array2d(dtype=float),
+    row_hi_out: wp.array2d(dtype=float),
+    row_residual_out: wp.array2d(dtype=float),
+):
+    """Rows of every joint: J, bias c, compliance R and bounds, so that J u+ + R lambda = c."""
+    world, j = wp.tid()
+    if j >= joint_count[world]:
+        return
+    jtype = joint_type[world, j]
+    parent = joint_parent[world, j]
+    child = joint_child[world, j]
+    X_wp, X_wc, r_p, r_c = joint_frames(body_q, world, parent, child, joint_X_p[world, j], joint_X_c[world, j])
+    dt = world_dt[world]
+    start = joint_row_start[world, j]
+    for k in range(bilateral_row_count(jtype)):
+        J_c, J_p, phi = bilateral_row(jtype, k, X_wp, X_wc, r_p, r_c, joint_axis[world, j], joint_axis2[world, j])
+        row = start + k
+        row_J_c_out[world, row] = J_c
+        row_J_p_out[world, row] = J_p
+        row_bias_out[world, row] = -baumgarte / dt * phi
+        row_compliance_out[world, row] = 0.0
+        row_lo_out[world, row] = -UNBOUNDED
+        row_hi_out[world, row] = UNBOUNDED
+        row_residual_out[world, row] = phi
+    row = joint_dynamics_row[world, j]
+    if row < 0:
+        return
+    # implicit joint-space dynamics: lambda = dt kp (q_t - q) + dt kd dq_t + dt tau + a dq - m_j dq+
+    J_c, J_p, q = joint_coordinate_row(jtype, X_wp, X_wc, r_p, r_c, joint_axis[world, j])
+    dq = wp.dot(J_c, body_twist(body_qd, world, child)) + wp.dot(J_p, body_twist(body_qd, world, parent))
+    kp = joint_stiffness[world, j]
+    kd = joint_drive_damping[world, j]
+    armature = joint_armature[world, j]
+    error = joint_target_position[world, j] - q
+    if jtype == JOINT_REVOLUTE:
+        error = wrap_angle(error)
+    m_j = armature + dt * (joint_damping[world, j] + kd) + dt * dt * kp
+    impulse = dt * (kp * error + kd * joint_target_velocity[world, j] + joint_effort[world, j]) + armature * dq
+    bound = dt * joint_effort_limit[world, j]
+    row_J_c_out[world, row] = J_c
+    row_J_p_out[world, row] = J_p
+    row_residual_out[world, row] = 0.0
+    if m_j > 0.0:
+        row_compliance_out[world, row] = 1.0 / m_j
+        row_bias_out[world, row] = impulse / m_j
+        row_lo_out[world, row] = -bound
+        row_hi_out[world, row] = bound
+    else:  # pure feed-forward effort: a fixed impulse
+        fixed = wp.clamp(impulse, -bound, bound)
+        row_compliance_out[world, row] = 1.0
+        row_bias_out[world, row] = 0.0
+        row_lo_out[world, row] = fixed
+        row_hi_out[world, row] = fixed
+
+
+@wp.kernel
+def joint_residuals(
+    # model
+    joint_count: wp.array(dtype=wp.int32),
+    joint_type: wp.array2d(dtype=wp.int32),
+    joint_parent: wp.array2d(dtype=wp.int32),
+    joint_child: wp.array2d(dtype=wp.int32),
+    joint_X_p: wp.array2d(dtype=wp.transform),
+    joint_X_c: wp.array2d(dtype=wp.transform),
+    joint_axis: wp.array2d(dtype=wp.vec3),
+    joint_axis2: wp.array2d(dtype=wp.vec3),
+    joint_row_start: wp.array2d(dtype=wp.int32),
+    joint_dynamics_row: wp.array2d(dtype=wp.int32),
+    # in
+    body_q: wp.array2d(dtype=wp.transform),
+    # out
+    row_residual_out: wp.array2d(dtype=float),
+):
+    """Position-level residuals of every joint's rows at body_q (0 for dynamics rows)."""
+    world, j = wp.tid()
+    if j >= joint_count[world]:
+        return
+    jtype = joint_type[world, j]
+    X_wp, X_wc, r_p, r_c = joint_frames(body_q, world, joint_parent[world, j], joint_child[world, j],
+                                        joint_X_p[world, j], joint_X_c[world, j])
+    start = joint_row_start[world, j]
+    for k in range(bilateral_row_count(jtype)):
+        J_c, J_p, phi = bilateral_row(jtype, k, X_wp, X_wc, r_p, r_c, joint_axis[world, j], joint_axis2[world, j])
+        row_residual_out[world, start + k] = phi
+    row = joint_dynamics_row[world, j]
+    if row >= 0:
+        row_residual_out[world, row] = 0.0
+
+
+def joint_model_inputs(model):
+    """The model arrays joint kernels take, in their order."""
+    return [model.joint_count, model.joint_type, model.joint_parent, model.joint_child, model.joint_X_p,
+            model.joint_X_c, model.joint_axis, model.joint_axis2, model.joint_row_start, model.joint_dynamics_row]
+
+
+def compute_joint_rows(model, body_q, body_qd, control):
+    """Launch joint_rows for the batch into model.work."""
+    work = model.work
+    wp.launch(joint_rows, dim=(model.num_worlds, model.max_joints), device=model.device,
+              inputs=[*joint_model_inputs(model), model.joint_armature, model.joint_damping,
+                      model.joint_stiffness, model.joint_drive_damping, model.joint_effort_limit,
+                      model.world_dt, float(model.config.baumgarte), body_q, body_qd,
+                      control.joint_target_position, control.joint_target_velocity, control.joint_effort],
+              outputs=[work.row_J_c, work.row_J_p, work.row_bias, work.row_compliance, work.row_lo,
+                       work.row_hi, work.row_residual])
+
+
+def compute_joint_residuals(model, body_q, residual_out):
+    """Launch joint_residuals for the batch."""
+    wp.launch(joint_residuals, dim=(model.num_worlds, model.max_joints), device=model.device,
+              inputs=[*joint_model_inputs(model), body_q], outputs=[residual_out])
+
+
+__all__ = ["JOINT_CYLINDRICAL", "JOINT_FIXED", "JOINT_PRISMATIC", "JOINT_REVOLUTE", "JOINT_SPHERICAL",
+           "JOINT_UNIVERSAL", "ROW_DYNAMICS", "compute_joint_residuals", "compute_joint_rows"]

@@ -1,0 +1,70 @@
+"""Dense batched linear algebra on the per-world Delassus matrices: one tile block per world.
+
+Each world's (max_rows x max_rows) matrix is loaded as one Warp tile, shifted by sigma I and
+factored with ``wp.tile_cholesky``; solves reuse the stored factor. Kernels are specialized per
+tile size by cached factories. Worlds whose mask entry is 0 return at once.
+"""
+
+import functools
+
+import warp as wp
+
+__all__ = ["cholesky_factor_kernel", "cholesky_solve_kernel", "factor", "solve"]
+
+BLOCK_DIM = 64
+
+
+@functools.cache
+def cholesky_factor_kernel(size: int):
+    """Kernel: factor_out[w] = chol(matrix[w] + sigma[w] I) for worlds with mask[w] != 0."""
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def cholesky_factor(
+        matrix: wp.array3d(dtype=float),
+        sigma: wp.array(dtype=float),
+        mask: wp.array(dtype=wp.int32),
+        factor_out: wp.array3d(dtype=float),
+    ):
+        world = wp.tid()
+        if mask[world] == 0:
+            return
+        a = wp.tile_load(matrix[world], shape=(size, size))
+        shifted = wp.tile_diag_add(a, wp.tile_full(shape=size, value=sigma[world], dtype=float))
+        wp.tile_store(factor_out[world], wp.tile_cholesky(shifted))
+
+    return cholesky_factor
+
+
+@functools.cache
+def cholesky_solve_kernel(size: int):
+    """Kernel: x_out[w] = (L L^T)^-1 rhs[w] with L = factor[w], for worlds with mask[w] != 0."""
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def cholesky_solve(
+        factor: wp.array3d(dtype=float),
+        rhs: wp.array2d(dtype=float),
+        mask: wp.array(dtype=wp.int32),
+        x_out: wp.array2d(dtype=float),
+    ):
+        world = wp.tid()
+        if mask[world] == 0:
+            return
+        lower = wp.tile_load(factor[world], shape=(size, size))
+        b = wp.tile_load(rhs[world], shape=size)
+        wp.tile_store(x_out[world], wp.tile_cholesky_solve(lower, b))
+
+    return cholesky_solve
+
+
+def factor(matrix, sigma, mask, factor_out):
+    """Factor every masked world's matrix + sigma I (shapes (W, R, R), (W,), (W,), (W, R, R))."""
+    size = matrix.shape[1]
+    wp.launch_tiled(cholesky_factor_kernel(size), dim=[matrix.shape[0]], inputs=[matrix, sigma, mask],
+                    outputs=[factor_out], block_dim=BLOCK_DIM, device=matrix.device)
+
+
+def solve(factor_matrix, rhs, mask, x_out):
+    """Solve with the stored factors (shapes (W, R, R), (W, R), (W,), (W, R))."""
+    size = factor_matrix.shape[1]
+    wp.launch_tiled(cholesky_solve_kernel(size), dim=[factor_matrix.shape[0]], inputs=[factor_matrix, rhs, mask],
+                    outputs=[x_out], block_dim=BLOCK_DIM, device=factor_matrix.device)

@@ -1,0 +1,217 @@
+"""Model, State, Control and the solver workspace of a padded batch of worlds.
+
+Conventions, used by every module of the engine:
+- SI units: [m], [kg], [s], [rad], [N], [N m]. Z up; default gravity (0, 0, -9.81) m/s^2.
+- Quaternions in Warp's (x, y, z, w) order. float32 on the device.
+- Body poses ``body_q`` are ``wp.transform`` of the body's centre-of-mass frame: the
+  translation is the centre of mass in the world frame [m], the rotation the body frame's
+  orientation. Twists ``body_qd`` are ``wp.spatial_vector`` (v, w): linear velocity of the
+  centre of mass then angular velocity, both world frame [m/s], [rad/s].
+- Batches are padded: every per-item array has shape (num_worlds, max_X); each world stores its
+  true count in ``X_count`` (num_worlds,); kernels run on (num_worlds, max_X) grids and return at
+  once past a world's count.
+- Constraint rows: each joint owns a fixed block of rows starting at ``joint_row_start``: its
+  bilateral rows (kind LINEAR [m] or ANGULAR [rad]) then, when it has a drive, armature or
+  damping, one DYNAMICS row. A row couples a child body and a parent body (-1 = world); its
+  velocity is J_c . u_c + J_p . u_p. The padded row count ``max_rows`` is the tile size of the
+  per-world dense Delassus matrix.
+- A world's dual problem (ENGINE.md): D lambda + v_f in the normal cone of the row bounds, with
+  D = J M^-1 J^T + R and v_f = J u_free - c, solved by PADMM in Jacobi-preconditioned variables
+  x = P^-1 lambda, P = diag(D)^-1/2.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+__all__ = ["Control", "Integrator", "Model", "SolverConfig", "State", "Workspace"]
+
+ROW_LINEAR = wp.constant(0)
+ROW_ANGULAR = wp.constant(1)
+ROW_DYNAMICS = wp.constant(2)
+UNBOUNDED = wp.constant(1.0e30)
+
+
+class Integrator(enum.Enum):
+    """Time-stepping scheme."""
+
+    SEMI_IMPLICIT_EULER = "euler"  # velocities implicit in the reactions, poses explicit
+    MOREAU_JEAN = "moreau"  # half pose step, dynamics at the midpoint, half pose step
+
+
+@dataclass(frozen=True)
+class SolverConfig:
+    """Solver settings of a batch (frozen; per-world numbers are copied to device arrays).
+
+    Attributes:
+        integrator: Integrator.SEMI_IMPLICIT_EULER or Integrator.MOREAU_JEAN.
+        max_iterations: PADMM iteration cap per step.
+        tolerance: primal and dual residual tolerance, in preconditioned units (sqrt of [J]).
+        eta: proximal weight (> 0; regularizes redundant constraints).
+        rho: initial ADMM penalty.
+        adaptive_rho: rescale rho (and refactor) when primal and dual residuals are unbalanced.
+        rho_update_interval: iterations between penalty updates.
+        acceleration: Nesterov momentum with restart.
+        warmstart: start each step from the last step's impulses.
+        baumgarte: velocity-level stabilization factor (bias = -baumgarte / dt * residual).
+        position_iterations: Gauss-Newton projections of the poses back onto the constraint
+            manifold after each step (0 disables; reuses the factored Delassus matrix).
+        projection_velocity_update: add each projection displacement / dt to the velocities, so
+            that the step is SHAKE-like (symplectic: energy stays bounded instead of draining).
+    """
+
+    integrator: Integrator = Integrator.MOREAU_JEAN
+    max_iterations: int = 50
+    tolerance: float = 1.0e-6
+    eta: float = 1.0e-5
+    rho: float = 1.0e-3
+    adaptive_rho: bool = True
+    rho_update_interval: int = 4
+    acceleration: bool = True
+    warmstart: bool = True
+    baumgarte: float = 0.0
+    position_iterations: int = 2
+    projection_velocity_update: bool = True
+
+    def __post_init__(self):
+        if not isinstance(self.integrator, Integrator):
+            try:
+                object.__setattr__(self, "integrator", Integrator(self.integrator))
+            except ValueError as exc:
+                raise ValueError(f"SolverConfig.integrator: expected one of "
+                                 f"{[i.value for i in Integrator]}, got {self.integrator!r}") from exc
+        checks = {
+            "max_iterations": self.max_iterations >= 1,
+            "tolerance": self.tolerance > 0.0,
+            "eta": self.eta > 0.0,
+            "rho": self.rho > 0.0,
+            "rho_update_interval": self.rho_update_interval >= 1,
+            "baumgarte": 0.0 <= self.baumgarte <= 1.0,
+            "position_iterations": self.position_iterations >= 0,
+        }
+        for name, ok in checks.items():
+            if not ok or not np.isfinite(float(getattr(self, name))):
+                raise ValueError(f"SolverConfig.{name}: invalid value {getattr(self, name)!r}")
+
+
+class Model:
+    """A padded batch of worlds on one device (built by engine.pack_worlds).
+
+    Host attributes: device, config, specs, num_worlds, max_bodies, max_joints, max_rows,
+    max_points, body_names / joint_names / point_names (lists per world).
+
+    Device arrays (shape, units, frame):
+        body_count, joint_count, row_count, point_count (W,) int32
+        body_mass, body_inv_mass (W, B) [kg], [1/kg]
+        body_inertia, body_inv_inertia (W, B) mat33, about the COM, body-frame axes [kg m^2]
+        joint_type, joint_parent, joint_child (W, J) int32 (parent -1 = world)
+        joint_X_p (W, J) transform: parent anchor in the parent COM frame (world frame if no parent)
+        joint_X_c (W, J) transform: child anchor in the child COM frame
+        joint_axis, joint_axis2 (W, J) vec3, in the anchor frames
+        joint_row_start (W, J) int32; joint_dynamics_row (W, J) int32, -1 when none
+        joint_armature [kg m^2]/[kg], joint_damping, joint_stiffness, joint_drive_damping,
+        joint_effort_limit [N m]/[N] (W, J) float32
+        row_kind, row_body_p, row_body_c (W, R) int32
+        world_gravity (W,) vec3 [m/s^2]; world_dt (W,) [s]
+        point_body (W, P) int32; point_local (W, P) vec3 in the COM frame [m]
+        padmm_eta, padmm_rho_init, padmm_tolerance (W,) float32
+    """
+
+    def __init__(self):
+        self.work: Workspace | None = None
+        self._dt_host: np.ndarray | None = None
+
+    def state(self) -> State:
+        """A new State holding the initial poses and twists of the specs."""
+        state = State()
+        state.body_q = wp.clone(self.body_q_init)
+        state.body_qd = wp.clone(self.body_qd_init)
+        state.row_lambda = wp.zeros((self.num_worlds, self.max_rows), dtype=float, device=self.device)
+        return state
+
+    def control(self) -> Control:
+        """A new Control holding the drive targets of the specs."""
+        control = Control()
+        control.joint_target_position = wp.clone(self.joint_target_position_init)
+        control.joint_target_velocity = wp.clone(self.joint_target_velocity_init)
+        control.joint_effort = wp.zeros((self.num_worlds, self.max_joints), dtype=float, device=self.device)
+        control.body_f = wp.zeros((self.num_worlds, self.max_bodies), dtype=wp.spatial_vector,
+                                  device=self.device)
+        return control
+
+    def set_dt(self, dt) -> None:
+        """Set the time step [s]: one float for all worlds or an array of num_worlds floats."""
+        values = np.broadcast_to(np.asarray(dt, dtype=np.float32), (self.num_worlds,))
+        if not np.all(np.isfinite(values)) or np.any(values <= 0.0):
+            raise ValueError(f"dt must be positive and finite, got {dt!r}")
+        if self._dt_host is not None and np.array_equal(values, self._dt_host):
+            return
+        self._dt_host = values.copy()
+        self.world_dt.assign(values)
+
+
+class State:
+    """Time-varying quantities, double-buffered by the caller.
+
+    body_q (W, B) transform: COM pose, world frame. body_qd (W, B) spatial_vector (v, w), world
+    frame. row_lambda (W, R): the last step's constraint impulses [N s] or [N m s] (warm start).
+    """
+
+    body_q: wp.array
+    body_qd: wp.array
+    row_lambda: wp.array
+
+
+class Control:
+    """Inputs set between steps.
+
+    joint_target_position (W, J) [rad]/[m]; joint_target_velocity (W, J) [rad/s]/[m/s];
+    joint_effort (W, J) feed-forward joint torque/force [N m]/[N]; body_f (W, B) external
+    wrench (force [N], torque [N m]) at the COM, world frame.
+    """
+
+    joint_target_position: wp.array
+    joint_target_velocity: wp.array
+    joint_effort: wp.array
+    body_f: wp.array
+
+
+class Workspace:
+    """Preallocated per-step scratch and per-world diagnostics (no allocation after pack_worlds).
+
+    Rows (W, R): row_J_c, row_J_p, row_MJ_c, row_MJ_p (spatial_vector; MJ = M^-1 J^T),
+    row_bias (c), row_compliance (R), row_lo, row_hi (physical impulse bounds), row_residual
+    (position-level residual [m]/[rad]), row_precond (P).
+    Matrices (W, R, R): delassus (P D P), factor (its Cholesky factor with (eta + rho) I added).
+    PADMM vectors (W, R): v_f, lo, hi (preconditioned), x, x_prev, y, y_prev, y_hat, z, z_prev,
+    z_hat, rhs, delta. Per world (W,): rho, sigma, valid, iterations, residual_primal, residual_dual, converged,
+    active, needs_factor, momentum, momentum_beta, merit, diverged; active_count (1,).
+    Metrics (W,): violation_linear [m], violation_angular [rad], energy [J].
+    """
+
+    def __init__(self, num_worlds: int, max_bodies: int, max_rows: int, device):
+        w, b, r = num_worlds, max_bodies, max_rows
+
+        def zeros(shape, dtype=float):
+            return wp.zeros(shape, dtype=dtype, device=device)
+
+        self.body_qd_free = zeros((w, b), wp.spatial_vector)
+        self.body_q_mid = zeros((w, b), wp.transform)
+        for name in ("row_J_c", "row_J_p", "row_MJ_c", "row_MJ_p"):
+            setattr(self, name, zeros((w, r), wp.spatial_vector))
+        for name in ("row_bias", "row_compliance", "row_lo", "row_hi", "row_residual", "row_precond",
+                     "v_f", "lo", "hi", "x", "x_prev", "y", "y_prev", "y_hat", "z", "z_prev", "z_hat",
+                     "rhs", "delta"):
+            setattr(self, name, zeros((w, r)))
+        self.delassus = zeros((w, r, r))
+        self.factor = zeros((w, r, r))
+        for name in ("rho", "sigma", "residual_primal", "residual_dual", "momentum", "momentum_beta", "merit",
+                     "violation_linear", "violation_angular", "energy"):
+            setattr(self, name, zeros(w))
+        for name in ("iterations", "converged", "valid", "active", "needs_factor", "diverged"):
+            setattr(self, name, zeros(w, wp.int32))
+        self.active_count = zeros(1, wp.int32)

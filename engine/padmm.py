@@ -1,0 +1,329 @@
+"""Proximal ADMM on every world's dual problem at once (ENGINE.md), one kernel per line.
+
+In preconditioned variables (engine.dynamics), with proximal weight eta, penalty rho and the
+factor L L^T = P D P + (eta + rho) I, each iteration of an active world does
+    padmm_rhs:        rhs = -v_f + eta x + rho y_hat + z_hat
+    linear.solve:     x = (L L^T)^-1 rhs
+    padmm_project:    y = clamp(x - z_hat / rho, lo, hi);  z = z_hat - rho (x - y)
+    padmm_convergence: residuals r_p = |x - y|_inf, r_d = |eta (x - x_prev) + rho (y - y_hat)|_inf;
+                      stop at tolerance or at the iteration cap; Nesterov momentum with restart;
+                      penalty update (which asks for a new factor)
+    padmm_accelerate: y_hat = y + beta (y - y_prev), z_hat = z + beta (z - z_prev)
+    linear.factor:    only for worlds whose penalty changed
+The loop runs under wp.capture_while on a device counter of active worlds, so it can be
+captured into a CUDA graph; converged, capped and diverged worlds do no more work.
+"""
+
+import warp as wp
+
+from engine import linear
+
+RHO_MIN = wp.constant(1.0e-5)
+RHO_MAX = wp.constant(1.0e3)
+RHO_FACTOR = wp.constant(4.0)
+RHO_BALANCE = wp.constant(10.0)
+RESTART_RATIO = wp.constant(0.999)
+
+
+@wp.kernel
+def padmm_setup(
+    # model
+    row_count: wp.array(dtype=wp.int32),
+    padmm_rho_init: wp.array(dtype=float),
+    # in
+    diverged: wp.array(dtype=wp.int32),
+    # out
+    rho_out: wp.array(dtype=float),
+    valid_out: wp.array(dtype=wp.int32),
+    active_out: wp.array(dtype=wp.int32),
+    converged_out: wp.array(dtype=wp.int32),
+    iterations_out: wp.array(dtype=wp.int32),
+    momentum_out: wp.array(dtype=float),
+    momentum_beta_out: wp.array(dtype=float),
+    merit_out: wp.array(dtype=float),
+    needs_factor_out: wp.array(dtype=wp.int32),
+    active_count_out: wp.array(dtype=wp.int32),
+):
+    """Per world: activate worlds with rows that have not diverged; keep the last penalty."""
+    world = wp.tid()
+    active = 0
+    if row_count[world] > 0 and diverged[world] == 0:
+        active = 1
+        wp.atomic_add(active_count_out, 0, 1)
+    active_out[world] = active
+    valid_out[world] = active
+    needs_factor_out[world] = active
+    converged_out[world] = 0
+    iterations_out[world] = 0
+    if rho_out[world] <= 0.0:
+        rho_out[world] = padmm_rho_init[world]
+    momentum_out[world] = 1.0
+    momentum_beta_out[world] = 0.0
+    merit_out[world] = 1.0e30
+
+
+@wp.kernel
+def padmm_warmstart(
+    warmstart_scale: float,
+    # in
+    row_lambda: wp.array2d(dtype=float),
+    row_precond: wp.array2d(dtype=float),
+    active: wp.array(dtype=wp.int32),
+    lo: wp.array2d(dtype=float),
+    hi: wp.array2d(dtype=float),
+    # out
+    x_out: wp.array2d(dtype=float),
+    y_out: wp.array2d(dtype=float),
+    y_hat_out: wp.array2d(dtype=float),
+    z_out: wp.array2d(dtype=float),
+    z_hat_out: wp.array2d(dtype=float),
+):
+    """Start from the last step's impulses, in this step's preconditioned variables."""
+    world, i = wp.tid()
+    if active[world] == 0:
+        return
+    x = wp.clamp(warmstart_scale * row_lambda[world, i] / row_precond[world, i], lo[world, i], hi[world, i])
+    x_out[world, i] = x
+    y_out[world, i] = x
+    y_hat_out[world, i] = x
+    z_out[world, i] = 0.0
+    z_hat_out[world, i] = 0.0
+
+
+@wp.kernel
+def padmm_rhs(
+    padmm_eta: wp.array(dtype=float),
+    rho: wp.array(dtype=float),
+    active: wp.array(dtype=wp.int32),
+    v_f: wp.array2d(dtype=float),
+    x: wp.array2d(dtype=float),
+    y_hat: wp.array2d(dtype=float),
+    z_hat: wp.array2d(dtype=float),
+    # out
+    x_prev_out: wp.array2d(dtype=float),
+    rhs_out: wp.array2d(dtype=float),
+):
+    """rhs = -v_f + eta x + rho y_hat + z_hat (and remember x)."""
+    world, i = wp.tid()
+    if active[world] == 0:
+        return
+    xi = x[world, i]
+    x_prev_out[world, i] = xi
+    rhs_out[world, i] = -v_f[world, i] + padmm_eta[world] * xi + rho[world] * y_hat[world, i] + z_hat[world, i]
+
+
+@wp.kernel
+def padmm_project(
+    rho: wp.array(dtype=float),
+    active: wp.array(dtype=wp.int32),
+    lo: wp.array2d(dtype=float),
+    hi: wp.array2d(dtype=float),
+    x: wp.array2d(dtype=float),
+    z_hat: wp.array2d(dtype=float),
+    # in/out
+    y: wp.array2d(dtype=float),
+    z: wp.array2d(dtype=float),
+    y_prev_out: wp.array2d(dtype=float),
+    z_prev_out: wp.array2d(dtype=float),
+):
+    """y = projection of x - z_hat / rho onto the row bounds; z = z_hat - rho (x - y)."""
+    world, i = wp.tid()
+    if active[world] == 0:
+        return
+    r = rho[world]
+    xi = x[world, i]
+    zh = z_hat[world, i]
+    yi = wp.clamp(xi - zh / r, lo[world, i], hi[world, i])
+    y_prev_out[world, i] = y[world, i]
+    z_prev_out[world, i] = z[world, i]
+    y[world, i] = yi
+    z[world, i] = zh - r * (xi - yi)
+
+
+@wp.kernel
+def padmm_convergence(
+    max_rows: int,
+    max_iterations: int,
+    rho_update_interval: int,
+    adaptive_rho: int,
+    acceleration: int,
+    # model
+    row_count: wp.array(dtype=wp.int32),
+    padmm_eta: wp.array(dtype=float),
+    padmm_tolerance: wp.array(dtype=float),
+    # in
+    x: wp.array2d(dtype=float),
+    x_prev: wp.array2d(dtype=float),
+    y: wp.array2d(dtype=float),
+    y_hat: wp.array2d(dtype=float),
+    z: wp.array2d(dtype=float),
+    z_hat: wp.array2d(dtype=float),
+    # in/out
+    rho: wp.array(dtype=float),
+    active: wp.array(dtype=wp.int32),
+    converged: wp.array(dtype=wp.int32),
+    iterations: wp.array(dtype=wp.int32),
+    momentum: wp.array(dtype=float),
+    momentum_beta: wp.array(dtype=float),
+    merit: wp.array(dtype=float),
+    needs_factor: wp.array(dtype=wp.int32),
+    residual_primal: wp.array(dtype=float),
+    residual_dual: wp.array(dtype=float),
+    active_count: wp.array(dtype=wp.int32),
+):
+    """Per world: residuals, stop test, Nesterov momentum with restart, penalty update."""
+    world = wp.tid()
+    if active[world] == 0:
+        return
+    r = rho[world]
+    eta = padmm_eta[world]
+    r_p = float(0.0)
+    r_d = float(0.0)
+    change = float(0.0)
+    for i in range(row_count[world]):
+        dy = y[world, i] - y_hat[world, i]
+        dz = z[world, i] - z_hat[world, i]
+        r_p = wp.max(r_p, wp.abs(x[world, i] - y[world, i]))
+        r_d = wp.max(r_d, wp.abs(eta * (x[world, i] - x_prev[world, i]) + r * dy))
+        change += r * dy * dy + dz * dz / r
+    its = iterations[world] + 1
+    iterations[world] = its
+    residual_primal[world] = r_p
+    residual_dual[world] = r_d
+    tol = padmm_tolerance[world]
+    done = r_p <= tol and r_d <= tol
+    if done or its >= max_iterations:
+        active[world] = 0
+        if done:
+            converged[world] = 1
+        wp.atomic_sub(active_count, 0, 1)
+        return
+    beta = float(0.0)
+    if acceleration != 0 and change < RESTART_RATIO * merit[world]:
+        a = momentum[world]
+        a_next = 0.5 * (1.0 + wp.sqrt(1.0 + 4.0 * a * a))
+        beta = (a - 1.0) / a_next
+        momentum[world] = a_next
+    else:
+        momentum[world] = 1.0
+    merit[world] = change
+    if adaptive_rho != 0 and its % rho_update_interval == 0:
+        new_rho = r
+        if r_p > RHO_BALANCE * r_d:
+            new_rho = wp.min(r * RHO_FACTOR, RHO_MAX)
+        elif r_d > RHO_BALANCE * r_p:
+            new_rho = wp.max(r / RHO_FACTOR, RHO_MIN)
+        if new_rho != r:
+            rho[world] = new_rho
+            needs_factor[world] = 1
+            momentum[world] = 1.0
+            merit[world] = 1.0e30
+            beta = 0.0
+    momentum_beta[world] = beta
+
+
+@wp.kernel
+def padmm_accelerate(
+    active: wp.array(dtype=wp.int32),
+    momentum_beta: wp.array(dtype=float),
+    y: wp.array2d(dtype=float),
+    y_prev: wp.array2d(dtype=float),
+    z: wp.array2d(dtype=float),
+    z_prev: wp.array2d(dtype=float),
+    # out
+    y_hat_out: wp.array2d(dtype=float),
+    z_hat_out: wp.array2d(dtype=float),
+):
+    """y_hat = y + beta (y - y_prev), z_hat = z + beta (z - z_prev)."""
+    world, i = wp.tid()
+    if active[world] == 0:
+        return
+    beta = momentum_beta[world]
+    y_hat_out[world, i] = y[world, i] + beta * (y[world, i] - y_prev[world, i])
+    z_hat_out[world, i] = z[world, i] + beta * (z[world, i] - z_prev[world, i])
+
+
+@wp.kernel
+def sigma_of(padmm_eta: wp.array(dtype=float), rho: wp.array(dtype=float), needs_factor: wp.array(dtype=wp.int32),
+             sigma_out: wp.array(dtype=float)):
+    """sigma = eta + rho: the shift of the factored matrix."""
+    world = wp.tid()
+    if needs_factor[world] != 0:
+        sigma_out[world] = padmm_eta[world] + rho[world]
+
+
+@wp.kernel
+def clear_flags(flags: wp.array(dtype=wp.int32)):
+    """flags[w] = 0."""
+    flags[wp.tid()] = 0
+
+
+@wp.kernel
+def padmm_output(
+    row_count: wp.array(dtype=wp.int32),
+    row_precond: wp.array2d(dtype=float),
+    y: wp.array2d(dtype=float),
+    diverged: wp.array(dtype=wp.int32),
+    # out
+    row_lambda_out: wp.array2d(dtype=float),
+):
+    """Impulses lambda = P y [N s]/[N m s]; zero on padded rows."""
+    world, i = wp.tid()
+    value = 0.0
+    if i < row_count[world] and diverged[world] == 0:
+        value = row_precond[world, i] * y[world, i]
+    row_lambda_out[world, i] = value
+
+
+def refactor(model):
+    """Factor P D P + (eta + rho) I for worlds flagged in needs_factor, then clear the flags."""
+    work, W = model.work, model.num_worlds
+    wp.launch(sigma_of, dim=W, inputs=[model.padmm_eta, work.rho, work.needs_factor], outputs=[work.sigma],
+              device=model.device)
+    linear.factor(work.delassus, work.sigma, work.needs_factor, work.factor)
+    wp.launch(clear_flags, dim=W, inputs=[work.needs_factor], device=model.device)
+
+
+def padmm_iteration(model):
+    """One PADMM iteration of every active world (the body of the captured loop)."""
+    work, cfg, device = model.work, model.config, model.device
+    grid = (model.num_worlds, model.max_rows)
+    wp.launch(padmm_rhs, dim=grid, device=device,
+              inputs=[model.padmm_eta, work.rho, work.active, work.v_f, work.x, work.y_hat, work.z_hat],
+              outputs=[work.x_prev, work.rhs])
+    linear.solve(work.factor, work.rhs, work.active, work.x)
+    wp.launch(padmm_project, dim=grid, device=device,
+              inputs=[work.rho, work.active, work.lo, work.hi, work.x, work.z_hat, work.y, work.z,
+                      work.y_prev, work.z_prev])
+    wp.launch(padmm_convergence, dim=model.num_worlds, device=device,
+              inputs=[model.max_rows, cfg.max_iterations, cfg.rho_update_interval, int(cfg.adaptive_rho),
+                      int(cfg.acceleration), model.row_count, model.padmm_eta, model.padmm_tolerance,
+                      work.x, work.x_prev, work.y, work.y_hat, work.z, work.z_hat, work.rho, work.active,
+                      work.converged, work.iterations, work.momentum, work.momentum_beta, work.merit,
+                      work.needs_factor, work.residual_primal, work.residual_dual, work.active_count])
+    wp.launch(padmm_accelerate, dim=grid, device=device,
+              inputs=[work.active, work.momentum_beta, work.y, work.y_prev, work.z, work.z_prev],
+              outputs=[work.y_hat, work.z_hat])
+    if cfg.adaptive_rho:
+        refactor(model)
+
+
+def solve_padmm(model, row_lambda_in, row_lambda_out):
+    """Solve every world's dual problem (built by engine.dynamics) into row_lambda_out."""
+    work, cfg, device = model.work, model.config, model.device
+    grid = (model.num_worlds, model.max_rows)
+    work.active_count.zero_()
+    wp.launch(padmm_setup, dim=model.num_worlds, device=device,
+              inputs=[model.row_count, model.padmm_rho_init, work.diverged],
+              outputs=[work.rho, work.valid, work.active, work.converged, work.iterations, work.momentum, work.momentum_beta,
+                       work.merit, work.needs_factor, work.active_count])
+    wp.launch(padmm_warmstart, dim=grid, device=device,
+              inputs=[1.0 if cfg.warmstart else 0.0, row_lambda_in, work.row_precond, work.active, work.lo, work.hi],
+              outputs=[work.x, work.y, work.y_hat, work.z, work.z_hat])
+    refactor(model)
+    wp.capture_while(work.active_count, padmm_iteration, model=model)
+    wp.launch(padmm_output, dim=grid, device=device,
+              inputs=[model.row_count, work.row_precond, work.y, work.diverged], outputs=[row_lambda_out])
+
+
+__all__ = ["padmm_iteration", "refactor", "solve_padmm"]

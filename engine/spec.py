@@ -1,0 +1,302 @@
+"""MechanismSpec: the host-side description of ONE world, validated on creation.
+
+A spec lists rigid bodies, joints between them (or between a body and the world), drives on
+joints and named tracked points. There is no spanning tree: any joint may close a loop.
+Everything is in SI units and the world frame is Z up (see engine.model for all conventions).
+
+Frames:
+- A body's *frame* has its origin at ``Body.position`` and orientation ``Body.orientation``;
+  ``Body.com`` is the centre of mass in that frame and ``Body.inertia`` the inertia tensor about
+  the centre of mass, in body-frame axes [kg m^2].
+- A joint connects an anchor frame on the parent (``parent_position``/``parent_orientation``,
+  in the parent body frame, or in the world frame when ``parent`` is None) to an anchor frame
+  on the child (``child_position``/``child_orientation``, in the child body frame). The joint
+  holds the two anchor frames together except for its free motions, which are expressed with
+  ``axis`` (and ``axis2`` for universal joints) in the anchor frames.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["Body", "Joint", "JointDrive", "JointType", "MechanismSpec", "TrackedPoint"]
+
+
+class JointType(enum.IntEnum):
+    """Joint types and the number of bilateral constraint rows each one contributes."""
+
+    REVOLUTE = 0  # rotation about axis: 3 position rows + 2 angular rows
+    PRISMATIC = 1  # translation along axis: 2 position rows + 3 angular rows
+    SPHERICAL = 2  # free rotation: 3 position rows
+    UNIVERSAL = 3  # rotation about axis (parent) and axis2 (child): 3 position rows + 1 angular row
+    CYLINDRICAL = 4  # rotation about and translation along axis: 2 position rows + 2 angular rows
+    FIXED = 5  # no relative motion: 3 position rows + 3 angular rows
+
+
+JOINT_ROW_COUNT = {
+    JointType.REVOLUTE: 5,
+    JointType.PRISMATIC: 5,
+    JointType.SPHERICAL: 3,
+    JointType.UNIVERSAL: 4,
+    JointType.CYLINDRICAL: 4,
+    JointType.FIXED: 6,
+}
+
+DRIVABLE = (JointType.REVOLUTE, JointType.PRISMATIC)
+
+
+def _vector(value, size: int, what: str) -> np.ndarray:
+    """Convert to a float64 vector of ``size`` entries, raising ValueError naming ``what``."""
+    try:
+        array = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{what}: expected {size} numbers, got {value!r}") from exc
+    if array.size != size:
+        raise ValueError(f"{what}: expected {size} numbers, got {array.size}")
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{what}: must be finite, got {array.tolist()}")
+    return array
+
+
+def _scalar(value, what: str, *, minimum: float | None = None, strict: bool = False,
+            allow_inf: bool = False) -> float:
+    """Convert to a float, checking finiteness and an optional lower bound."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{what}: expected a number, got {value!r}") from exc
+    if math.isnan(number) or (math.isinf(number) and not (allow_inf and number > 0)):
+        raise ValueError(f"{what}: must be finite, got {number}")
+    if minimum is not None and (number <= minimum if strict else number < minimum):
+        relation = ">" if strict else ">="
+        raise ValueError(f"{what}: must be {relation} {minimum}, got {number}")
+    return number
+
+
+def _quaternion(value, what: str) -> np.ndarray:
+    """A unit quaternion (x, y, z, w) from any non-zero finite 4-vector."""
+    quat = _vector(value, 4, what)
+    norm = np.linalg.norm(quat)
+    if norm < 1e-9:
+        raise ValueError(f"{what}: quaternion must be non-zero, got {quat.tolist()}")
+    return quat / norm
+
+
+@dataclass
+class Body:
+    """A rigid body.
+
+    Attributes:
+        name: unique name in the mechanism.
+        mass: [kg], > 0.
+        inertia: 3x3 inertia tensor about the centre of mass in body-frame axes [kg m^2],
+            symmetric positive definite (a 3-vector is taken as the diagonal).
+        com: centre of mass in the body frame [m].
+        position: body frame origin in the world frame [m].
+        orientation: body frame orientation, quaternion (x, y, z, w).
+        velocity: initial linear velocity of the centre of mass, world frame [m/s].
+        angular_velocity: initial angular velocity, world frame [rad/s].
+    """
+
+    name: str
+    mass: float
+    inertia: object
+    com: object = (0.0, 0.0, 0.0)
+    position: object = (0.0, 0.0, 0.0)
+    orientation: object = (0.0, 0.0, 0.0, 1.0)
+    velocity: object = (0.0, 0.0, 0.0)
+    angular_velocity: object = (0.0, 0.0, 0.0)
+
+    def __post_init__(self):
+        where = f"body '{self.name}'"
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"body name must be a non-empty string, got {self.name!r}")
+        self.mass = _scalar(self.mass, f"{where}: mass [kg]", minimum=0.0, strict=True)
+        inertia = np.asarray(self.inertia, dtype=np.float64)
+        if inertia.shape == (3,):
+            inertia = np.diag(inertia)
+        if inertia.shape != (3, 3):
+            raise ValueError(f"{where}: inertia must be 3x3 or a 3-vector, got shape {inertia.shape}")
+        if not np.all(np.isfinite(inertia)):
+            raise ValueError(f"{where}: inertia must be finite, got {inertia.tolist()}")
+        if not np.allclose(inertia, inertia.T, rtol=1e-6, atol=1e-12):
+            raise ValueError(f"{where}: inertia must be symmetric, got {inertia.tolist()}")
+        if np.linalg.eigvalsh(inertia).min() <= 0.0:
+            raise ValueError(f"{where}: inertia must be positive definite, got eigenvalues "
+                             f"{np.linalg.eigvalsh(inertia).tolist()}")
+        self.inertia = inertia
+        self.com = _vector(self.com, 3, f"{where}: com [m]")
+        self.position = _vector(self.position, 3, f"{where}: position [m]")
+        self.orientation = _quaternion(self.orientation, f"{where}: orientation")
+        self.velocity = _vector(self.velocity, 3, f"{where}: velocity [m/s]")
+        self.angular_velocity = _vector(self.angular_velocity, 3, f"{where}: angular_velocity [rad/s]")
+
+
+@dataclass
+class JointDrive:
+    """An implicit PD drive on a revolute or prismatic joint.
+
+    Joint torque (force) = stiffness (target_position - q) + damping (target_velocity - dq),
+    clamped to +/- effort_limit [N m] or [N]; integrated implicitly, so stiff drives are stable.
+    stiffness in [N m/rad] or [N/m], damping in [N m s/rad] or [N s/m].
+    """
+
+    stiffness: float = 0.0
+    damping: float = 0.0
+    target_position: float = 0.0
+    target_velocity: float = 0.0
+    effort_limit: float = math.inf
+
+    def validate(self, where: str):
+        self.stiffness = _scalar(self.stiffness, f"{where}: drive stiffness", minimum=0.0)
+        self.damping = _scalar(self.damping, f"{where}: drive damping", minimum=0.0)
+        self.target_position = _scalar(self.target_position, f"{where}: drive target_position")
+        self.target_velocity = _scalar(self.target_velocity, f"{where}: drive target_velocity")
+        self.effort_limit = _scalar(self.effort_limit, f"{where}: drive effort_limit", minimum=0.0,
+                                    strict=True, allow_inf=True)
+
+
+@dataclass
+class Joint:
+    """A joint between ``parent`` (a body name, or None for the world) and ``child``.
+
+    Attributes:
+        name: unique joint name.
+        type: JointType (or its name, e.g. "revolute").
+        parent, child: body names; parent None means the world.
+        parent_position, parent_orientation: anchor frame in the parent body frame (world frame
+            when parent is None) [m], quaternion (x, y, z, w).
+        child_position, child_orientation: anchor frame in the child body frame.
+        axis: joint axis in the anchor frame (revolute, prismatic, cylindrical; universal: the
+            parent-side axis); normalized on creation.
+        axis2: universal joints only: the child-side axis, in the child anchor frame.
+        armature: added joint-space inertia [kg m^2] or [kg] (revolute, prismatic).
+        damping: viscous joint damping [N m s/rad] or [N s/m] (revolute, prismatic).
+        drive: optional JointDrive (revolute, prismatic).
+    """
+
+    name: str
+    type: JointType
+    parent: str | None
+    child: str
+    parent_position: object = (0.0, 0.0, 0.0)
+    parent_orientation: object = (0.0, 0.0, 0.0, 1.0)
+    child_position: object = (0.0, 0.0, 0.0)
+    child_orientation: object = (0.0, 0.0, 0.0, 1.0)
+    axis: object = (0.0, 0.0, 1.0)
+    axis2: object = (0.0, 1.0, 0.0)
+    armature: float = 0.0
+    damping: float = 0.0
+    drive: JointDrive | None = None
+
+    def __post_init__(self):
+        where = f"joint '{self.name}'"
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"joint name must be a non-empty string, got {self.name!r}")
+        try:
+            self.type = JointType[self.type.upper()] if isinstance(self.type, str) else JointType(self.type)
+        except (KeyError, ValueError) as exc:
+            names = ", ".join(t.name.lower() for t in JointType)
+            raise ValueError(f"{where}: type must be one of {names}, got {self.type!r}") from exc
+        if not isinstance(self.child, str) or not self.child:
+            raise ValueError(f"{where}: child must be a body name, got {self.child!r}")
+        if self.parent is not None and not isinstance(self.parent, str):
+            raise ValueError(f"{where}: parent must be a body name or None (world), got {self.parent!r}")
+        if self.parent == self.child:
+            raise ValueError(f"{where}: parent and child are the same body '{self.child}'")
+        self.parent_position = _vector(self.parent_position, 3, f"{where}: parent_position [m]")
+        self.child_position = _vector(self.child_position, 3, f"{where}: child_position [m]")
+        self.parent_orientation = _quaternion(self.parent_orientation, f"{where}: parent_orientation")
+        self.child_orientation = _quaternion(self.child_orientation, f"{where}: child_orientation")
+        for attr in ("axis", "axis2"):
+            axis = _vector(getattr(self, attr), 3, f"{where}: {attr}")
+            if np.linalg.norm(axis) < 1e-9:
+                raise ValueError(f"{where}: {attr} must be non-zero, got {axis.tolist()}")
+            setattr(self, attr, axis / np.linalg.norm(axis))
+        self.armature = _scalar(self.armature, f"{where}: armature", minimum=0.0)
+        self.damping = _scalar(self.damping, f"{where}: damping", minimum=0.0)
+        drivable = self.type in DRIVABLE
+        if not drivable and (self.drive is not None or self.armature > 0.0 or self.damping > 0.0):
+            raise ValueError(f"{where}: drives, armature and damping need a revolute or prismatic "
+                             f"joint, this one is {self.type.name.lower()}")
+        if self.drive is not None:
+            if not isinstance(self.drive, JointDrive):
+                raise ValueError(f"{where}: drive must be a JointDrive, got {type(self.drive).__name__}")
+            self.drive.validate(where)
+
+
+@dataclass
+class TrackedPoint:
+    """A named point fixed on a body whose world trajectory is recorded.
+
+    position: in the body frame [m].
+    """
+
+    name: str
+    body: str
+    position: object = (0.0, 0.0, 0.0)
+
+    def __post_init__(self):
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"tracked point name must be a non-empty string, got {self.name!r}")
+        self.position = _vector(self.position, 3, f"tracked point '{self.name}': position [m]")
+
+
+@dataclass
+class MechanismSpec:
+    """One world: bodies, joints, tracked points and gravity, validated on creation.
+
+    Raises ValueError naming the body, joint or point and the field when anything is off.
+    """
+
+    bodies: list[Body]
+    joints: list[Joint] = field(default_factory=list)
+    points: list[TrackedPoint] = field(default_factory=list)
+    gravity: object = (0.0, 0.0, -9.81)
+    name: str = "mechanism"
+
+    def __post_init__(self):
+        self.bodies = list(self.bodies)
+        self.joints = list(self.joints)
+        self.points = list(self.points)
+        if not self.bodies:
+            raise ValueError(f"mechanism '{self.name}': needs at least one body")
+        self.gravity = _vector(self.gravity, 3, f"mechanism '{self.name}': gravity [m/s^2]")
+        for kind, items, cls in (("body", self.bodies, Body), ("joint", self.joints, Joint),
+                                 ("tracked point", self.points, TrackedPoint)):
+            seen = set()
+            for item in items:
+                if not isinstance(item, cls):
+                    raise ValueError(f"mechanism '{self.name}': expected a {cls.__name__} in the "
+                                     f"{kind} list, got {type(item).__name__}")
+                if item.name in seen:
+                    raise ValueError(f"mechanism '{self.name}': duplicate {kind} name '{item.name}'")
+                seen.add(item.name)
+        index = self.body_index
+        for joint in self.joints:
+            for role in ("parent", "child"):
+                name = getattr(joint, role)
+                if name is not None and name not in index:
+                    raise ValueError(f"joint '{joint.name}': {role} body '{name}' does not exist")
+        for point in self.points:
+            if point.body not in index:
+                raise ValueError(f"tracked point '{point.name}': body '{point.body}' does not exist")
+
+    @property
+    def body_index(self) -> dict[str, int]:
+        """Body name -> index in ``bodies``."""
+        return {body.name: i for i, body in enumerate(self.bodies)}
+
+    @property
+    def row_count(self) -> int:
+        """Number of constraint rows this world adds to the dual problem."""
+        return sum(JOINT_ROW_COUNT[j.type] + int(_has_joint_dynamics(j)) for j in self.joints)
+
+
+def _has_joint_dynamics(joint: Joint) -> bool:
+    """True when the joint gets a regularized row for its drive, armature or damping."""
+    return joint.drive is not None or joint.armature > 0.0 or joint.damping > 0.0

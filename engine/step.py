@@ -1,0 +1,63 @@
+"""step(model, state_in, state_out, control, dt): one time step of every world of a batch.
+
+The stages, in order (each a module of the engine):
+1. (Moreau-Jean only) half pose step to the midpoint configuration (engine.integrate)
+2. joint rows: Jacobians, biases, compliance and bounds (engine.joints)
+3. dual problem: free velocities, Delassus matrix, preconditioner (engine.dynamics)
+4. PADMM on all worlds, per-world early exit, warm-started (engine.padmm)
+5. velocity update and pose integration, then Gauss-Newton projection of the poses onto the
+   joint constraints (engine.integrate)
+6. divergence guard: a world with a non-finite state is flagged and frozen (engine.integrate)
+Everything that varies between steps lives in device arrays; nothing is allocated, so the whole
+step can be captured once (wp.ScopedCapture) and replayed.
+"""
+
+import warp as wp
+
+from engine.dynamics import build_dual_problem
+from engine.integrate import apply_impulses, guard_divergence, integrate_poses, project_positions
+from engine.joints import compute_joint_residuals, compute_joint_rows
+from engine.model import Control, Integrator, Model, State
+from engine.padmm import solve_padmm
+
+__all__ = ["step"]
+
+
+def step(model: Model, state_in: State, state_out: State, control: Control, dt: float | None = None) -> None:
+    """Advance every world by one step from state_in into state_out.
+
+    Args:
+        model: the batch (engine.pack_worlds).
+        state_in, state_out: two distinct State buffers; the caller swaps them between steps.
+        control: drive targets, feed-forward efforts and external wrenches.
+        dt: time step [s] for all worlds; None keeps model.world_dt (per-world device array).
+            Changing it writes the device array, so pass None inside a captured graph.
+    """
+    if state_in is state_out:
+        raise ValueError("step: state_in and state_out must be different State objects")
+    if dt is not None:
+        model.set_dt(dt)
+    work, device = model.work, model.device
+    bodies = (model.num_worlds, model.max_bodies)
+    moreau = model.config.integrator is Integrator.MOREAU_JEAN
+    fraction = 0.5 if moreau else 1.0
+    body_q = state_in.body_q
+    if moreau:
+        wp.launch(integrate_poses, dim=bodies, device=device,
+                  inputs=[model.body_count, model.world_dt, 0.5, state_in.body_q, state_in.body_qd],
+                  outputs=[work.body_q_mid])
+        body_q = work.body_q_mid
+    compute_joint_rows(model, body_q, state_in.body_qd, control)
+    build_dual_problem(model, body_q, state_in.body_qd, control.body_f)
+    solve_padmm(model, state_in.row_lambda, state_out.row_lambda)
+    wp.launch(apply_impulses, dim=bodies, device=device,
+              inputs=[model.body_count, model.row_count, model.row_body_c, model.row_body_p, work.row_MJ_c,
+                      work.row_MJ_p, state_out.row_lambda, work.row_precond, work.body_qd_free],
+              outputs=[state_out.body_qd])
+    wp.launch(integrate_poses, dim=bodies, device=device,
+              inputs=[model.body_count, model.world_dt, fraction, body_q, state_out.body_qd],
+              outputs=[state_out.body_q])
+    project_positions(model, state_out.body_q, state_out.body_qd, compute_joint_residuals, fraction)
+    wp.launch(guard_divergence, dim=model.num_worlds, device=device,
+              inputs=[model.body_count, state_in.body_q, state_in.body_qd],
+              outputs=[state_out.body_q, state_out.body_qd, work.diverged])
