@@ -8,12 +8,13 @@ CPU or a GPU. See engine.model for units, frames and array conventions.
 from engine.metrics import compute_metrics, metrics_numpy
 from engine.model import Control, Integrator, Model, SolverConfig, State
 from engine.pack import pack_worlds
+from engine.rollout import Stepper, Trace, rollout
 
 from engine.spec import Body, Joint, JointDrive, JointType, MechanismSpec, TrackedPoint
 from engine.step import step
 
 __all__ = [
     "Body", "Control", "Integrator", "Joint", "JointDrive", "JointType", "MechanismSpec", "Model",
-    "SolverConfig", "State", "TrackedPoint", "compute_metrics", "metrics_numpy", "pack_worlds",
+    "SolverConfig", "State", "Stepper", "Trace", "TrackedPoint", "compute_metrics", "metrics_numpy", "pack_worlds", "rollout",
     "step",
 ]

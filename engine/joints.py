@@ -109,7 +109,7 @@ def bilateral_row(joint_type: int, k: int, X_wp: wp.transform, X_wc: wp.transfor
     s = q_rel[3]
     e = wp.vec3(0.0)
     e[a] = 1.0
-    row_parent_frame = s * e + wp.cross(e, v)  # row a of (s I - [v]x) is s e_a^T + (e_a x v)^T
+    row_parent_frame = s * e - wp.cross(e, v)  # row a of (s I - [v]x) is s e_a^T - (e_a x v)^T
     g = wp.quat_rotate(q_p, row_parent_frame)
     zero = wp.vec3(0.0)
     return twist(zero, g), twist(zero, -g), 2.0 * v[a]

@@ -1,0 +1,171 @@
+"""Multi-step loops: a Stepper that replays captured chunks of steps, and rollout() -> Trace.
+
+On CUDA a chunk of steps (with the per-step solver statistics) is captured once into a CUDA graph
+and replayed; the two State buffers alternate inside the chunk, so a chunk of odd length gets
+one graph per starting buffer. Elsewhere the same calls run eagerly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from engine.metrics import compute_metrics
+from engine.model import Control, Model, State
+from engine.step import step
+
+__all__ = ["Stepper", "Trace", "rollout"]
+
+
+@wp.kernel
+def accumulate_solver_stats(
+    iterations: wp.array(dtype=wp.int32),
+    converged: wp.array(dtype=wp.int32),
+    valid: wp.array(dtype=wp.int32),
+    # in/out
+    iteration_sum: wp.array(dtype=wp.int32),
+    iteration_max: wp.array(dtype=wp.int32),
+    unconverged_steps: wp.array(dtype=wp.int32),
+    solved_steps: wp.array(dtype=wp.int32),
+):
+    """Per world: running sum and max of PADMM iterations, steps that hit the cap."""
+    world = wp.tid()
+    if valid[world] == 0:
+        return
+    its = iterations[world]
+    iteration_sum[world] = iteration_sum[world] + its
+    iteration_max[world] = wp.max(iteration_max[world], its)
+    solved_steps[world] = solved_steps[world] + 1
+    if converged[world] == 0:
+        unconverged_steps[world] = unconverged_steps[world] + 1
+
+
+class Stepper:
+    """Advance a batch chunk by chunk, replaying a captured graph on CUDA.
+
+    Attributes: state (the current State), steps_done, and per-world solver statistics
+    iteration_sum, iteration_max, unconverged_steps, solved_steps (device int arrays (W,)).
+    """
+
+    def __init__(self, model: Model, state: State, control: Control, chunk: int = 1, *,
+                 capture: bool | None = None):
+        if chunk < 1:
+            raise ValueError(f"Stepper: chunk must be >= 1, got {chunk}")
+        self.model, self.control, self.chunk = model, control, chunk
+        self._buffers = [state, model.state()]
+        self._current = 0
+        self.steps_done = 0
+        device = model.device
+        zeros = lambda: wp.zeros(model.num_worlds, dtype=wp.int32, device=device)  # noqa: E731
+        self.iteration_sum, self.iteration_max = zeros(), zeros()
+        self.unconverged_steps, self.solved_steps = zeros(), zeros()
+        self.capture = device.is_cuda if capture is None else (capture and device.is_cuda)
+        self._graphs: dict[int, wp.Graph] = {}
+
+    @property
+    def state(self) -> State:
+        return self._buffers[self._current]
+
+    def _run(self, start: int):
+        model = self.model
+        for k in range(self.chunk):
+            src = self._buffers[(start + k) % 2]
+            dst = self._buffers[(start + k + 1) % 2]
+            step(model, src, dst, self.control)
+            wp.launch(accumulate_solver_stats, dim=model.num_worlds, device=model.device,
+                      inputs=[model.work.iterations, model.work.converged, model.work.valid],
+                      outputs=[self.iteration_sum, self.iteration_max, self.unconverged_steps, self.solved_steps])
+
+    def advance(self) -> None:
+        """Run one chunk of steps."""
+        start = self._current
+        if self.capture:
+            if start not in self._graphs:
+                if not self._graphs:  # first use: run eagerly once to compile every kernel
+                    self._run(start)
+                    self._current = (start + self.chunk) % 2
+                    self.steps_done += self.chunk
+                    return
+                with wp.ScopedCapture(device=self.model.device) as capture:
+                    self._run(start)
+                self._graphs[start] = capture.graph
+            wp.capture_launch(self._graphs[start])
+        else:
+            self._run(start)
+        self._current = (start + self.chunk) % 2
+        self.steps_done += self.chunk
+
+
+@dataclass
+class Trace:
+    """What a rollout recorded, as NumPy arrays (T records, W worlds, P points).
+
+    time (T,) [s]; points (T, W, P, 3) tracked points, world frame [m];
+    violation_linear (T, W) [m]; violation_angular (T, W) [rad]; energy (T, W) [J];
+    iterations (T, W) PADMM iterations of the last step before the record; diverged (W,) bool;
+    point_names (list per world).
+    """
+
+    time: np.ndarray
+    points: np.ndarray
+    violation_linear: np.ndarray
+    violation_angular: np.ndarray
+    energy: np.ndarray
+    iterations: np.ndarray
+    diverged: np.ndarray
+    point_names: list
+
+
+@wp.kernel
+def tracked_points(
+    point_count: wp.array(dtype=wp.int32),
+    point_body: wp.array2d(dtype=wp.int32),
+    point_local: wp.array2d(dtype=wp.vec3),
+    body_q: wp.array2d(dtype=wp.transform),
+    points_out: wp.array2d(dtype=wp.vec3),
+):
+    """World positions of the tracked points [m]."""
+    world, p = wp.tid()
+    if p >= point_count[world]:
+        return
+    points_out[world, p] = wp.transform_point(body_q[world, point_body[world, p]], point_local[world, p])
+
+
+def rollout(model: Model, state: State, control: Control, steps: int, *, dt: float | None = None,
+            record_every: int = 1) -> tuple[Trace, State]:
+    """Run ``steps`` steps, recording tracked points and metrics every ``record_every`` steps.
+
+    Returns the Trace (record 0 is the initial state) and the final State.
+    """
+    if steps < 0 or record_every < 1:
+        raise ValueError(f"rollout: steps must be >= 0 and record_every >= 1, got {steps}, {record_every}")
+    if dt is not None:
+        model.set_dt(dt)
+    stepper = Stepper(model, state, control, chunk=record_every)
+    points = wp.zeros((model.num_worlds, model.max_points), dtype=wp.vec3, device=model.device)
+    records = {name: [] for name in ("points", "violation_linear", "violation_angular", "energy", "iterations")}
+    times = []
+
+    def record(current: State):
+        compute_metrics(model, current)
+        wp.launch(tracked_points, dim=(model.num_worlds, model.max_points), device=model.device,
+                  inputs=[model.point_count, model.point_body, model.point_local, current.body_q], outputs=[points])
+        records["points"].append(points.numpy().copy())
+        for name in ("violation_linear", "violation_angular", "energy", "iterations"):
+            records[name].append(getattr(model.work, name).numpy().copy())
+
+    record(stepper.state)
+    times.append(0.0)
+    dt_host = model._dt_host
+    for _ in range(steps // record_every):
+        stepper.advance()
+        record(stepper.state)
+        times.append(stepper.steps_done * float(dt_host[0]))
+    trace = Trace(time=np.asarray(times), points=np.stack(records["points"]),
+                  violation_linear=np.stack(records["violation_linear"]),
+                  violation_angular=np.stack(records["violation_angular"]), energy=np.stack(records["energy"]),
+                  iterations=np.stack(records["iterations"]),
+                  diverged=model.work.diverged.numpy().astype(bool), point_names=model.point_names)
+    return trace, stepper.state
