@@ -9,13 +9,15 @@ differences). Rows, in the order of engine.pack.ROW_KINDS:
 - angular rows: the child axis dotted with two parent directions normal to the parent axis
   (revolute, cylindrical), parent axis . child axis2 (universal), or 2 vec(q_rel) of the
   relative rotation in the parent anchor frame (prismatic, fixed) [rad].
-A joint with a drive, armature or damping adds one DYNAMICS row along its free coordinate with
-compliance 1/m_j and bias from the implicit PD law (see joint_rows).
+A joint with armature or viscous damping adds a DYNAMICS row along its free coordinate with
+compliance 1/(a + dt b); a drive adds another with compliance 1/(dt kd + dt^2 kp), the bias of
+the implicit PD law and the bounds +/- dt * effort_limit, so that only the motor's torque is
+clamped (the rotor inertia and joint friction act beside it).
 """
 
 import warp as wp
 
-from engine.model import ROW_DYNAMICS, UNBOUNDED
+from engine.model import UNBOUNDED
 from engine.spatial import relative_rotation, twist, wrap_angle
 
 JOINT_REVOLUTE = wp.constant(0)
@@ -138,6 +140,22 @@ def body_twist(body_qd: wp.array2d(dtype=wp.spatial_vector), world: int, body: i
     return body_qd[world, body]
 
 
+@wp.func
+def write_row(world: int, row: int, J_c: wp.spatial_vector, J_p: wp.spatial_vector, bias: float, compliance: float,
+              lo: float, hi: float, row_J_c_out: wp.array2d(dtype=wp.spatial_vector),
+              row_J_p_out: wp.array2d(dtype=wp.spatial_vector), row_bias_out: wp.array2d(dtype=float),
+              row_compliance_out: wp.array2d(dtype=float), row_lo_out: wp.array2d(dtype=float),
+              row_hi_out: wp.array2d(dtype=float), row_residual_out: wp.array2d(dtype=float)):
+    """Store one row; dynamics rows have no position residual."""
+    row_J_c_out[world, row] = J_c
+    row_J_p_out[world, row] = J_p
+    row_bias_out[world, row] = bias
+    row_compliance_out[world, row] = compliance
+    row_lo_out[world, row] = lo
+    row_hi_out[world, row] = hi
+    row_residual_out[world, row] = 0.0
+
+
 @wp.kernel
 def joint_rows(
     # model
@@ -150,7 +168,8 @@ def joint_rows(
     joint_axis: wp.array2d(dtype=wp.vec3),
     joint_axis2: wp.array2d(dtype=wp.vec3),
     joint_row_start: wp.array2d(dtype=wp.int32),
-    joint_dynamics_row: wp.array2d(dtype=wp.int32),
+    joint_inertia_row: wp.array2d(dtype=wp.int32),
+    joint_drive_row: wp.array2d(dtype=wp.int32),
     joint_armature: wp.array2d(dtype=float),
     joint_damping: wp.array2d(dtype=float),
     joint_stiffness: wp.array2d(dtype=float),
@@ -193,35 +212,36 @@ def joint_rows(
         row_lo_out[world, row] = -UNBOUNDED
         row_hi_out[world, row] = UNBOUNDED
         row_residual_out[world, row] = phi
-    row = joint_dynamics_row[world, j]
-    if row < 0:
+    inertia_row = joint_inertia_row[world, j]
+    drive_row = joint_drive_row[world, j]
+    if inertia_row < 0 and drive_row < 0:
         return
-    # implicit joint-space dynamics: lambda = dt kp (q_t - q) + dt kd dq_t + dt tau + a dq - m_j dq+
     J_c, J_p, q = joint_coordinate_row(jtype, X_wp, X_wc, r_p, r_c, joint_axis[world, j])
-    dq = wp.dot(J_c, body_twist(body_qd, world, child)) + wp.dot(J_p, body_twist(body_qd, world, parent))
-    kp = joint_stiffness[world, j]
-    kd = joint_drive_damping[world, j]
-    armature = joint_armature[world, j]
-    error = joint_target_position[world, j] - q
-    if jtype == JOINT_REVOLUTE:
-        error = wrap_angle(error)
-    m_j = armature + dt * (joint_damping[world, j] + kd) + dt * dt * kp
-    impulse = dt * (kp * error + kd * joint_target_velocity[world, j] + joint_effort[world, j]) + armature * dq
-    bound = dt * joint_effort_limit[world, j]
-    row_J_c_out[world, row] = J_c
-    row_J_p_out[world, row] = J_p
-    row_residual_out[world, row] = 0.0
-    if m_j > 0.0:
-        row_compliance_out[world, row] = 1.0 / m_j
-        row_bias_out[world, row] = impulse / m_j
-        row_lo_out[world, row] = -bound
-        row_hi_out[world, row] = bound
-    else:  # pure feed-forward effort: a fixed impulse
-        fixed = wp.clamp(impulse, -bound, bound)
-        row_compliance_out[world, row] = 1.0
-        row_bias_out[world, row] = 0.0
-        row_lo_out[world, row] = fixed
-        row_hi_out[world, row] = fixed
+    if inertia_row >= 0:
+        # armature a and damping b: lambda = a dq - (a + dt b) dq+
+        dq = wp.dot(J_c, body_twist(body_qd, world, child)) + wp.dot(J_p, body_twist(body_qd, world, parent))
+        armature = joint_armature[world, j]
+        m_a = armature + dt * joint_damping[world, j]
+        write_row(world, inertia_row, J_c, J_p, armature * dq / m_a, 1.0 / m_a, -UNBOUNDED, UNBOUNDED,
+                  row_J_c_out, row_J_p_out, row_bias_out, row_compliance_out, row_lo_out, row_hi_out, row_residual_out)
+    if drive_row >= 0:
+        # implicit PD: lambda = dt (kp (q_t - q) + kd dq_t + tau) - (dt kd + dt^2 kp) dq+, |lambda| <= dt effort
+        kp = joint_stiffness[world, j]
+        kd = joint_drive_damping[world, j]
+        error = joint_target_position[world, j] - q
+        if jtype == JOINT_REVOLUTE:
+            error = wrap_angle(error)
+        m_d = dt * kd + dt * dt * kp
+        impulse = dt * (kp * error + kd * joint_target_velocity[world, j] + joint_effort[world, j])
+        bound = dt * joint_effort_limit[world, j]
+        if m_d > 0.0:
+            write_row(world, drive_row, J_c, J_p, impulse / m_d, 1.0 / m_d, -bound, bound,
+                      row_J_c_out, row_J_p_out, row_bias_out, row_compliance_out, row_lo_out, row_hi_out,
+                      row_residual_out)
+        else:  # pure feed-forward effort: a fixed impulse
+            fixed = wp.clamp(impulse, -bound, bound)
+            write_row(world, drive_row, J_c, J_p, 0.0, 1.0, fixed, fixed, row_J_c_out, row_J_p_out, row_bias_out,
+                      row_compliance_out, row_lo_out, row_hi_out, row_residual_out)
 
 
 @wp.kernel
@@ -236,7 +256,8 @@ def joint_residuals(
     joint_axis: wp.array2d(dtype=wp.vec3),
     joint_axis2: wp.array2d(dtype=wp.vec3),
     joint_row_start: wp.array2d(dtype=wp.int32),
-    joint_dynamics_row: wp.array2d(dtype=wp.int32),
+    joint_inertia_row: wp.array2d(dtype=wp.int32),
+    joint_drive_row: wp.array2d(dtype=wp.int32),
     # in
     body_q: wp.array2d(dtype=wp.transform),
     # out
@@ -253,15 +274,17 @@ def joint_residuals(
     for k in range(bilateral_row_count(jtype)):
         J_c, J_p, phi = bilateral_row(jtype, k, X_wp, X_wc, r_p, r_c, joint_axis[world, j], joint_axis2[world, j])
         row_residual_out[world, start + k] = phi
-    row = joint_dynamics_row[world, j]
-    if row >= 0:
-        row_residual_out[world, row] = 0.0
+    if joint_inertia_row[world, j] >= 0:
+        row_residual_out[world, joint_inertia_row[world, j]] = 0.0
+    if joint_drive_row[world, j] >= 0:
+        row_residual_out[world, joint_drive_row[world, j]] = 0.0
 
 
 def joint_model_inputs(model):
     """The model arrays joint kernels take, in their order."""
     return [model.joint_count, model.joint_type, model.joint_parent, model.joint_child, model.joint_X_p,
-            model.joint_X_c, model.joint_axis, model.joint_axis2, model.joint_row_start, model.joint_dynamics_row]
+            model.joint_X_c, model.joint_axis, model.joint_axis2, model.joint_row_start, model.joint_inertia_row,
+            model.joint_drive_row]
 
 
 def compute_joint_rows(model, body_q, body_qd, control):
@@ -283,4 +306,4 @@ def compute_joint_residuals(model, body_q, residual_out):
 
 
 __all__ = ["JOINT_CYLINDRICAL", "JOINT_FIXED", "JOINT_PRISMATIC", "JOINT_REVOLUTE", "JOINT_SPHERICAL",
-           "JOINT_UNIVERSAL", "ROW_DYNAMICS", "compute_joint_residuals", "compute_joint_rows"]
+           "JOINT_UNIVERSAL", "compute_joint_residuals", "compute_joint_rows"]

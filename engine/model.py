@@ -11,8 +11,8 @@ Conventions, used by every module of the engine:
   true count in ``X_count`` (num_worlds,); kernels run on (num_worlds, max_X) grids and return at
   once past a world's count.
 - Constraint rows: each joint owns a fixed block of rows starting at ``joint_row_start``: its
-  bilateral rows (kind LINEAR [m] or ANGULAR [rad]) then, when it has a drive, armature or
-  damping, one DYNAMICS row. A row couples a child body and a parent body (-1 = world); its
+  bilateral rows (kind LINEAR [m] or ANGULAR [rad]) then DYNAMICS rows along its free
+  coordinate: one for armature and viscous damping, one for the drive (bounded by its effort). A row couples a child body and a parent body (-1 = world); its
   velocity is J_c . u_c + J_p . u_p. The padded row count ``max_rows`` is the tile size of the
   per-world dense Delassus matrix.
 - A world's dual problem (ENGINE.md): D lambda + v_f in the normal cone of the row bounds, with
@@ -112,7 +112,7 @@ class Model:
         joint_X_p (W, J) transform: parent anchor in the parent COM frame (world frame if no parent)
         joint_X_c (W, J) transform: child anchor in the child COM frame
         joint_axis, joint_axis2 (W, J) vec3, in the anchor frames
-        joint_row_start (W, J) int32; joint_dynamics_row (W, J) int32, -1 when none
+        joint_row_start (W, J) int32; joint_inertia_row, joint_drive_row (W, J) int32, -1 when none
         joint_armature [kg m^2]/[kg], joint_damping, joint_stiffness, joint_drive_damping,
         joint_effort_limit [N m]/[N] (W, J) float32
         row_kind, row_body_p, row_body_c (W, R) int32

@@ -8,7 +8,7 @@ import numpy as np
 import warp as wp
 
 from engine.model import Model, SolverConfig, Workspace
-from engine.spec import JOINT_ROW_COUNT, JointType, MechanismSpec, _has_joint_dynamics
+from engine.spec import JOINT_ROW_COUNT, JointType, MechanismSpec, joint_dynamics_rows
 
 __all__ = ["pack_worlds"]
 
@@ -75,7 +75,8 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         "joint_X_p": np.tile(np.array([0, 0, 0, 0, 0, 0, 1], f32), (W, J, 1)),
         "joint_X_c": np.tile(np.array([0, 0, 0, 0, 0, 0, 1], f32), (W, J, 1)),
         "joint_axis": np.zeros((W, J, 3), f32), "joint_axis2": np.zeros((W, J, 3), f32),
-        "joint_row_start": np.zeros((W, J), np.int32), "joint_dynamics_row": np.full((W, J), -1, np.int32),
+        "joint_row_start": np.zeros((W, J), np.int32), "joint_inertia_row": np.full((W, J), -1, np.int32),
+        "joint_drive_row": np.full((W, J), -1, np.int32),
         "joint_armature": np.zeros((W, J), f32), "joint_damping": np.zeros((W, J), f32),
         "joint_stiffness": np.zeros((W, J), f32), "joint_drive_damping": np.zeros((W, J), f32),
         "joint_effort_limit": np.full((W, J), 1.0e30, f32),
@@ -129,10 +130,11 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
                 h["joint_effort_limit"][w, j] = min(joint.drive.effort_limit, 1.0e30)
                 h["joint_target_position_init"][w, j] = joint.drive.target_position
                 h["joint_target_velocity_init"][w, j] = joint.drive.target_velocity
-            if _has_joint_dynamics(joint):
-                h["joint_dynamics_row"][w, j] = row
-                h["row_kind"][w, row], h["row_body_p"][w, row], h["row_body_c"][w, row] = 2, parent, child
-                row += 1
+            for name, present in zip(("joint_inertia_row", "joint_drive_row"), joint_dynamics_rows(joint)):
+                if present:
+                    h[name][w, j] = row
+                    h["row_kind"][w, row], h["row_body_p"][w, row], h["row_body_c"][w, row] = 2, parent, child
+                    row += 1
         h["row_count"][w] = row
         for p, point in enumerate(spec.points):
             b = index[point.body]

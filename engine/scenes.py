@@ -97,7 +97,7 @@ def _bar_potential(length: float, start: np.ndarray, end: np.ndarray, density: f
 
 def pendulum(length: float = 0.5, angle: float = math.radians(30.0)) -> Scene:
     """A bar hanging from a world pivot, released at ``angle`` from the downward vertical."""
-    phi = -0.5 * math.pi + angle
+    phi = 0.5 * math.pi - angle  # u(phi) = (sin angle, 0, -cos angle)
     spec = MechanismSpec([bar("rod", length, (0.0, 0.0, 0.0), phi)],
                          [pin("pivot", None, "rod", (0.0, 0.0, 0.0))],
                          [TrackedPoint("tip", "rod", (length, 0.0, 0.0))], name="pendulum")
@@ -192,7 +192,7 @@ def sixbar(crank_angle: float = math.radians(45.0), crank_speed: float = 3.0) ->
 
 def chain(links: int = 10, length: float = 0.1, angle: float = math.radians(30.0)) -> Scene:
     """An open chain of bars hanging from a world pivot, released straight at ``angle`` from vertical."""
-    phi = -0.5 * math.pi + angle
+    phi = 0.5 * math.pi - angle  # u(phi) = (sin angle, 0, -cos angle)
     bodies, joints = [], []
     origin = np.zeros(3)
     for k in range(links):

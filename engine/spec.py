@@ -294,9 +294,9 @@ class MechanismSpec:
     @property
     def row_count(self) -> int:
         """Number of constraint rows this world adds to the dual problem."""
-        return sum(JOINT_ROW_COUNT[j.type] + int(_has_joint_dynamics(j)) for j in self.joints)
+        return sum(JOINT_ROW_COUNT[j.type] + sum(joint_dynamics_rows(j)) for j in self.joints)
 
 
-def _has_joint_dynamics(joint: Joint) -> bool:
-    """True when the joint gets a regularized row for its drive, armature or damping."""
-    return joint.drive is not None or joint.armature > 0.0 or joint.damping > 0.0
+def joint_dynamics_rows(joint: Joint) -> tuple[bool, bool]:
+    """Which joint-space rows a joint adds: (inertia row for armature/damping, drive row)."""
+    return joint.armature > 0.0 or joint.damping > 0.0, joint.drive is not None
