@@ -64,7 +64,14 @@ def main(argv=None) -> int:
     parser.add_argument("--worlds", type=int, default=64, help="worlds per case unless the case sets them")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", default=None, help="folder for <suite>.csv (and .png)")
+    parser.add_argument("--plot-csv", default=None, help="only redraw the PNG of a scaling CSV written earlier")
     args = parser.parse_args(argv)
+    if args.plot_csv:
+        with open(args.plot_csv) as handle:
+            rows = [{k: (float(v) if k in ("num_worlds", "world_steps_per_s") else v) for k, v in row.items()}
+                    for row in csv.DictReader(handle)]
+        _plot_scaling(rows, args.plot_csv.replace(".csv", ".png"))
+        return 0
     wp.config.log_level = wp.LOG_WARNING
     rows = []
     for case in SUITES[args.suite]:
