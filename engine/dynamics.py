@@ -8,7 +8,7 @@ x = P^-1 lambda with P = diag(D)^-1/2: matrix P D P (unit diagonal), vector P v_
 
 import warp as wp
 
-from engine.model import UNBOUNDED
+from engine.model import ROW_CONTACT_NORMAL, ROW_CONTACT_TANGENT, UNBOUNDED
 from engine.spatial import gyroscopic_implicit_midpoint, twist, world_inertia_inverse
 
 
@@ -59,15 +59,43 @@ def mass_weighted(body: int, J: wp.spatial_vector, inv_mass: float, inv_inertia_
     return twist(inv_mass * wp.spatial_top(J), inv_inertia_world * wp.spatial_bottom(J))
 
 
+@wp.func
+def body_twist_or_zero(body_qd: wp.array2d(dtype=wp.spatial_vector), world: int, body: int):
+    if body < 0:
+        return wp.spatial_vector()
+    return body_qd[world, body]
+
+
+@wp.func
+def row_mass_weighted(world: int, i: int, row_body_c: wp.array2d(dtype=wp.int32),
+                      row_body_p: wp.array2d(dtype=wp.int32), row_J_c: wp.array2d(dtype=wp.spatial_vector),
+                      row_J_p: wp.array2d(dtype=wp.spatial_vector), body_inv_mass: wp.array2d(dtype=float),
+                      body_inv_inertia: wp.array2d(dtype=wp.mat33), body_q: wp.array2d(dtype=wp.transform)):
+    """M^-1 J^T of a row for its child and parent body, and the diagonal J M^-1 J^T."""
+    c = row_body_c[world, i]
+    p = row_body_p[world, i]
+    MJ_c = wp.spatial_vector()
+    MJ_p = wp.spatial_vector()
+    if c >= 0:
+        MJ_c = mass_weighted(c, row_J_c[world, i], body_inv_mass[world, c], world_inertia_inverse(
+            wp.transform_get_rotation(body_q[world, c]), body_inv_inertia[world, c]))
+    if p >= 0:
+        MJ_p = mass_weighted(p, row_J_p[world, i], body_inv_mass[world, p], world_inertia_inverse(
+            wp.transform_get_rotation(body_q[world, p]), body_inv_inertia[world, p]))
+    return MJ_c, MJ_p, wp.dot(row_J_c[world, i], MJ_c) + wp.dot(row_J_p[world, i], MJ_p)
+
+
 @wp.kernel
 def row_operators(
     # model
-    row_count: wp.array(dtype=wp.int32),
-    row_body_p: wp.array2d(dtype=wp.int32),
-    row_body_c: wp.array2d(dtype=wp.int32),
+    row_kind: wp.array2d(dtype=wp.int32),
+    contact_row_start: wp.array(dtype=wp.int32),
     body_inv_mass: wp.array2d(dtype=float),
     body_inv_inertia: wp.array2d(dtype=wp.mat33),
     # in
+    row_count: wp.array(dtype=wp.int32),
+    row_body_p: wp.array2d(dtype=wp.int32),
+    row_body_c: wp.array2d(dtype=wp.int32),
     body_q: wp.array2d(dtype=wp.transform),
     body_qd_free: wp.array2d(dtype=wp.spatial_vector),
     row_J_c: wp.array2d(dtype=wp.spatial_vector),
@@ -84,7 +112,8 @@ def row_operators(
     lo_out: wp.array2d(dtype=float),
     hi_out: wp.array2d(dtype=float),
 ):
-    """Per row: M^-1 J^T, the Jacobi preconditioner P, and the preconditioned v_f and bounds."""
+    """Per row: M^-1 J^T, the Jacobi preconditioner P (one value per contact triplet, so the
+    friction cone keeps its shape), and the preconditioned v_f and bounds."""
     world, i = wp.tid()
     if i >= row_count[world]:
         row_precond_out[world, i] = 1.0
@@ -92,21 +121,20 @@ def row_operators(
         lo_out[world, i] = 0.0
         hi_out[world, i] = 0.0
         return
-    c = row_body_c[world, i]
-    p = row_body_p[world, i]
-    J_c = row_J_c[world, i]
-    J_p = row_J_p[world, i]
-    MJ_c = mass_weighted(c, J_c, body_inv_mass[world, c],
-                         world_inertia_inverse(wp.transform_get_rotation(body_q[world, c]), body_inv_inertia[world, c]))
-    MJ_p = wp.spatial_vector()
-    v_free = wp.dot(J_c, body_qd_free[world, c])
-    if p >= 0:
-        MJ_p = mass_weighted(p, J_p, body_inv_mass[world, p],
-                             world_inertia_inverse(wp.transform_get_rotation(body_q[world, p]), body_inv_inertia[world, p]))
-        v_free += wp.dot(J_p, body_qd_free[world, p])
+    MJ_c, MJ_p, diagonal = row_mass_weighted(world, i, row_body_c, row_body_p, row_J_c, row_J_p, body_inv_mass,
+                                             body_inv_inertia, body_q)
+    diagonal += row_compliance[world, i]
+    kind = row_kind[world, i]
+    if kind == ROW_CONTACT_NORMAL or kind == ROW_CONTACT_TANGENT:
+        first = contact_row_start[world] + 3 * ((i - contact_row_start[world]) // 3)
+        for k in range(3):
+            _a, _b, other = row_mass_weighted(world, first + k, row_body_c, row_body_p, row_J_c, row_J_p,
+                                              body_inv_mass, body_inv_inertia, body_q)
+            diagonal = wp.max(diagonal, other + row_compliance[world, first + k])
     row_MJ_c_out[world, i] = MJ_c
     row_MJ_p_out[world, i] = MJ_p
-    diagonal = wp.dot(J_c, MJ_c) + wp.dot(J_p, MJ_p) + row_compliance[world, i]
+    v_free = wp.dot(row_J_c[world, i], body_twist_or_zero(body_qd_free, world, row_body_c[world, i]))
+    v_free += wp.dot(row_J_p[world, i], body_twist_or_zero(body_qd_free, world, row_body_p[world, i]))
     precond = 1.0 / wp.sqrt(wp.max(diagonal, 1.0e-20))
     row_precond_out[world, i] = precond
     v_f_out[world, i] = precond * (v_free - row_bias[world, i])
@@ -122,11 +150,10 @@ def row_operators(
 
 @wp.kernel
 def delassus(
-    # model
+    # in
     row_count: wp.array(dtype=wp.int32),
     row_body_p: wp.array2d(dtype=wp.int32),
     row_body_c: wp.array2d(dtype=wp.int32),
-    # in
     row_J_c: wp.array2d(dtype=wp.spatial_vector),
     row_J_p: wp.array2d(dtype=wp.spatial_vector),
     row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
@@ -167,12 +194,12 @@ def build_dual_problem(model, body_q, body_qd, body_f):
                       model.world_gravity, model.world_dt, body_q, body_qd, body_f],
               outputs=[work.body_qd_free])
     wp.launch(row_operators, dim=(W, model.max_rows), device=device,
-              inputs=[model.row_count, model.row_body_p, model.row_body_c, model.body_inv_mass,
-                      model.body_inv_inertia, body_q, work.body_qd_free, work.row_J_c, work.row_J_p,
-                      work.row_bias, work.row_compliance, work.row_lo, work.row_hi],
+              inputs=[model.row_kind, model.contact_row_start, model.body_inv_mass, model.body_inv_inertia,
+                      work.row_count, work.row_body_p, work.row_body_c, body_q, work.body_qd_free, work.row_J_c,
+                      work.row_J_p, work.row_bias, work.row_compliance, work.row_lo, work.row_hi],
               outputs=[work.row_MJ_c, work.row_MJ_p, work.row_precond, work.v_f, work.lo, work.hi])
     wp.launch(delassus, dim=(W, model.max_rows, model.max_rows), device=device,
-              inputs=[model.row_count, model.row_body_p, model.row_body_c, work.row_J_c, work.row_J_p,
+              inputs=[work.row_count, work.row_body_p, work.row_body_c, work.row_J_c, work.row_J_p,
                       work.row_MJ_c, work.row_MJ_p, work.row_compliance, work.row_precond],
               outputs=[work.delassus])
 

@@ -11,7 +11,7 @@ M^-1 J^T (P x): one damped Newton step on the constraint manifold per iteration,
 import warp as wp
 
 from engine import linear
-from engine.model import ROW_DYNAMICS
+from engine.model import ROW_ANGULAR, ROW_LINEAR
 from engine.spatial import quat_integrate, quat_rotate_vector
 
 
@@ -88,12 +88,13 @@ def projection_rhs(
     # out
     rhs_out: wp.array2d(dtype=float),
 ):
-    """rhs = -P phi on bilateral rows, 0 on dynamics and padded rows."""
+    """rhs = -P phi on bilateral joint rows; 0 on drive, limit, contact and padded rows."""
     world, i = wp.tid()
     if valid[world] == 0:
         return
     value = 0.0
-    if i < row_count[world] and row_kind[world, i] != ROW_DYNAMICS:
+    kind = row_kind[world, i]
+    if i < row_count[world] and (kind == ROW_LINEAR or kind == ROW_ANGULAR):
         value = -row_precond[world, i] * row_residual[world, i]
     rhs_out[world, i] = value
 
@@ -183,11 +184,11 @@ def project_positions(model, body_q, body_qd, residual_fn, fraction=1.0):
     for _ in range(model.config.position_iterations):
         residual_fn(model, body_q, work.row_residual)
         wp.launch(projection_rhs, dim=grid_rows, device=device,
-                  inputs=[model.row_count, model.row_kind, work.valid, work.row_precond, work.row_residual],
+                  inputs=[work.row_count, model.row_kind, work.valid, work.row_precond, work.row_residual],
                   outputs=[work.rhs])
         linear.solve(work.factor, work.rhs, work.valid, work.delta)
         wp.launch(apply_projection, dim=grid_bodies, device=device,
-                  inputs=[model.body_count, model.row_count, model.row_body_c, model.row_body_p, work.valid,
+                  inputs=[model.body_count, work.row_count, work.row_body_c, work.row_body_p, work.valid,
                           model.world_dt, int(model.config.projection_velocity_update), fraction, work.row_MJ_c,
                           work.row_MJ_p, work.row_precond, work.delta, body_q, body_qd])
 

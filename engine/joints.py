@@ -9,6 +9,8 @@ differences). Rows, in the order of engine.pack.ROW_KINDS:
 - angular rows: the child axis dotted with two parent directions normal to the parent axis
   (revolute, cylindrical), parent axis . child axis2 (universal), or 2 vec(q_rel) of the
   relative rotation in the parent anchor frame (prismatic, fixed) [rad].
+A joint with a finite lower (upper) limit adds a unilateral LIMIT row on q - lower (upper - q),
+active near the limit (see limit_row), inert (zero Jacobian, zero impulse) elsewhere.
 A joint with armature or viscous damping adds a DYNAMICS row along its free coordinate with
 compliance 1/(a + dt b); a drive adds another with compliance 1/(dt kd + dt^2 kp), the bias of
 the implicit PD law and the bounds +/- dt * effort_limit, so that only the motor's torque is
@@ -156,6 +158,27 @@ def write_row(world: int, row: int, J_c: wp.spatial_vector, J_p: wp.spatial_vect
     row_residual_out[world, row] = 0.0
 
 
+@wp.func
+def limit_row(world: int, row: int, side: float, gap: float, gap_rate: float, J_c: wp.spatial_vector,
+              J_p: wp.spatial_vector, dt: float, margin: float, stabilization: float,
+              row_J_c_out: wp.array2d(dtype=wp.spatial_vector), row_J_p_out: wp.array2d(dtype=wp.spatial_vector),
+              row_bias_out: wp.array2d(dtype=float), row_compliance_out: wp.array2d(dtype=float),
+              row_lo_out: wp.array2d(dtype=float), row_hi_out: wp.array2d(dtype=float),
+              row_residual_out: wp.array2d(dtype=float)):
+    """Unilateral limit row on gap = side (q - limit) >= 0, active within margin (+ one step of
+    approach); separated: the gap may close, no more; violated: pushed back by stabilization."""
+    if gap < margin + dt * wp.max(-gap_rate, 0.0):
+        bias = -gap / dt
+        if gap < 0.0:
+            bias = stabilization * (-gap) / dt
+        write_row(world, row, side * J_c, side * J_p, bias, 0.0, 0.0, UNBOUNDED, row_J_c_out, row_J_p_out,
+                  row_bias_out, row_compliance_out, row_lo_out, row_hi_out, row_residual_out)
+    else:  # inert row: no coupling, impulse fixed at zero
+        zero = wp.spatial_vector()
+        write_row(world, row, zero, zero, 0.0, 1.0, 0.0, 0.0, row_J_c_out, row_J_p_out, row_bias_out,
+                  row_compliance_out, row_lo_out, row_hi_out, row_residual_out)
+
+
 @wp.kernel
 def joint_rows(
     # model
@@ -175,8 +198,14 @@ def joint_rows(
     joint_stiffness: wp.array2d(dtype=float),
     joint_drive_damping: wp.array2d(dtype=float),
     joint_effort_limit: wp.array2d(dtype=float),
+    joint_limit_lower: wp.array2d(dtype=float),
+    joint_limit_upper: wp.array2d(dtype=float),
+    joint_limit_lower_row: wp.array2d(dtype=wp.int32),
+    joint_limit_upper_row: wp.array2d(dtype=wp.int32),
     world_dt: wp.array(dtype=float),
     baumgarte: float,
+    limit_margin: float,
+    limit_stabilization: float,
     # in
     body_q: wp.array2d(dtype=wp.transform),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
@@ -214,12 +243,22 @@ def joint_rows(
         row_residual_out[world, row] = phi
     inertia_row = joint_inertia_row[world, j]
     drive_row = joint_drive_row[world, j]
-    if inertia_row < 0 and drive_row < 0:
+    lower_row = joint_limit_lower_row[world, j]
+    upper_row = joint_limit_upper_row[world, j]
+    if inertia_row < 0 and drive_row < 0 and lower_row < 0 and upper_row < 0:
         return
     J_c, J_p, q = joint_coordinate_row(jtype, X_wp, X_wc, r_p, r_c, joint_axis[world, j])
+    dq = wp.dot(J_c, body_twist(body_qd, world, child)) + wp.dot(J_p, body_twist(body_qd, world, parent))
+    if lower_row >= 0:
+        limit_row(world, lower_row, 1.0, q - joint_limit_lower[world, j], dq, J_c, J_p, dt, limit_margin,
+                  limit_stabilization, row_J_c_out, row_J_p_out, row_bias_out, row_compliance_out, row_lo_out,
+                  row_hi_out, row_residual_out)
+    if upper_row >= 0:
+        limit_row(world, upper_row, -1.0, joint_limit_upper[world, j] - q, -dq, J_c, J_p, dt, limit_margin,
+                  limit_stabilization, row_J_c_out, row_J_p_out, row_bias_out, row_compliance_out, row_lo_out,
+                  row_hi_out, row_residual_out)
     if inertia_row >= 0:
         # armature a and damping b: lambda = a dq - (a + dt b) dq+
-        dq = wp.dot(J_c, body_twist(body_qd, world, child)) + wp.dot(J_p, body_twist(body_qd, world, parent))
         armature = joint_armature[world, j]
         m_a = armature + dt * joint_damping[world, j]
         write_row(world, inertia_row, J_c, J_p, armature * dq / m_a, 1.0 / m_a, -UNBOUNDED, UNBOUNDED,
@@ -293,7 +332,9 @@ def compute_joint_rows(model, body_q, body_qd, control):
     wp.launch(joint_rows, dim=(model.num_worlds, model.max_joints), device=model.device,
               inputs=[*joint_model_inputs(model), model.joint_armature, model.joint_damping,
                       model.joint_stiffness, model.joint_drive_damping, model.joint_effort_limit,
-                      model.world_dt, float(model.config.baumgarte), body_q, body_qd,
+                      model.joint_limit_lower, model.joint_limit_upper, model.joint_limit_lower_row,
+                      model.joint_limit_upper_row, model.world_dt, float(model.config.baumgarte),
+                      float(model.config.limit_margin), float(model.config.limit_stabilization), body_q, body_qd,
                       control.joint_target_position, control.joint_target_velocity, control.joint_effort],
               outputs=[work.row_J_c, work.row_J_p, work.row_bias, work.row_compliance, work.row_lo,
                        work.row_hi, work.row_residual])

@@ -28,11 +28,16 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from engine.collide import Candidates
+
 __all__ = ["Control", "Integrator", "Model", "SolverConfig", "State", "Workspace"]
 
 ROW_LINEAR = wp.constant(0)
 ROW_ANGULAR = wp.constant(1)
 ROW_DYNAMICS = wp.constant(2)
+ROW_LIMIT = wp.constant(3)
+ROW_CONTACT_NORMAL = wp.constant(4)
+ROW_CONTACT_TANGENT = wp.constant(5)
 UNBOUNDED = wp.constant(1.0e30)
 
 
@@ -62,6 +67,12 @@ class SolverConfig:
             manifold after each step (0 disables; reuses the factored Delassus matrix).
         projection_velocity_update: add each projection displacement / dt to the velocities, so
             that the step is SHAKE-like (symplectic: energy stays bounded instead of draining).
+        limit_margin: a joint limit row turns on within this distance of the limit [rad]/[m]
+            (plus the distance the joint covers in one step, so fast joints do not tunnel).
+        limit_stabilization: share of a limit violation pushed back per step.
+        contact_margin: contacts closer than this are kept (speculative) [m].
+        contact_stabilization: share of a penetration pushed out per step.
+        restitution_threshold: approach speeds below this bounce with no restitution [m/s].
     """
 
     integrator: Integrator = Integrator.MOREAU_JEAN
@@ -76,6 +87,11 @@ class SolverConfig:
     baumgarte: float = 0.0
     position_iterations: int = 2
     projection_velocity_update: bool = True
+    limit_margin: float = 0.02
+    limit_stabilization: float = 0.2
+    contact_margin: float = 0.01
+    contact_stabilization: float = 0.2
+    restitution_threshold: float = 0.05
 
     def __post_init__(self):
         if not isinstance(self.integrator, Integrator):
@@ -92,6 +108,11 @@ class SolverConfig:
             "rho_update_interval": self.rho_update_interval >= 1,
             "baumgarte": 0.0 <= self.baumgarte <= 1.0,
             "position_iterations": self.position_iterations >= 0,
+            "limit_margin": self.limit_margin >= 0.0,
+            "limit_stabilization": 0.0 <= self.limit_stabilization <= 1.0,
+            "contact_margin": self.contact_margin >= 0.0,
+            "contact_stabilization": 0.0 <= self.contact_stabilization <= 1.0,
+            "restitution_threshold": self.restitution_threshold >= 0.0,
         }
         for name, ok in checks.items():
             if not ok or not np.isfinite(float(getattr(self, name))):
@@ -119,6 +140,15 @@ class Model:
         world_gravity (W,) vec3 [m/s^2]; world_dt (W,) [s]
         point_body (W, P) int32; point_local (W, P) vec3 in the COM frame [m]
         padmm_eta, padmm_rho_init, padmm_tolerance (W,) float32
+        joint_limit_lower, joint_limit_upper (W, J) [rad]/[m]; joint_limit_lower_row,
+        joint_limit_upper_row (W, J) int32, -1 when none
+        shape_count (W,); shape_type, shape_body (W, S) int32; shape_X (W, S) transform in the
+        body's COM frame; shape_size (W, S) vec3 [m]; shape_friction, shape_restitution (W, S)
+        ground_normal (W,) vec3, ground_offset (W,) [m], ground_friction, ground_restitution (W,)
+        pair_count (W,); pair_shape_a, pair_shape_b (W, max_pairs) int32 (b = -1: ground plane)
+        contact_row_start (W,) int32: first contact row = number of joint, drive and limit rows
+    Host: contact_capacity (contacts per world, 0 when the batch has no shapes), max_pairs,
+    has_contacts, has_limits.
     """
 
     def __init__(self):
@@ -131,6 +161,10 @@ class Model:
         state.body_q = wp.clone(self.body_q_init)
         state.body_qd = wp.clone(self.body_qd_init)
         state.row_lambda = wp.zeros((self.num_worlds, self.max_rows), dtype=float, device=self.device)
+        capacity = max(self.contact_capacity, 1)
+        state.contact_count = wp.zeros(self.num_worlds, dtype=wp.int32, device=self.device)
+        state.contact_key = wp.zeros((self.num_worlds, capacity), dtype=wp.int32, device=self.device)
+        state.contact_impulse = wp.zeros((self.num_worlds, capacity), dtype=wp.vec3, device=self.device)
         return state
 
     def control(self) -> Control:
@@ -159,11 +193,16 @@ class State:
 
     body_q (W, B) transform: COM pose, world frame. body_qd (W, B) spatial_vector (v, w), world
     frame. row_lambda (W, R): the last step's constraint impulses [N s] or [N m s] (warm start).
+    contact_count (W,), contact_key (W, C), contact_impulse (W, C) vec3: the last step's contacts
+    and their impulses in the world frame [N s], matched by key to warm-start the next step.
     """
 
     body_q: wp.array
     body_qd: wp.array
     row_lambda: wp.array
+    contact_count: wp.array
+    contact_key: wp.array
+    contact_impulse: wp.array
 
 
 class Control:
@@ -191,9 +230,14 @@ class Workspace:
     z_hat, rhs, delta. Per world (W,): rho, sigma, valid, iterations, residual_primal, residual_dual, converged,
     active, needs_factor, momentum, momentum_beta, merit, diverged; active_count (1,).
     Metrics (W,): violation_linear [m], violation_angular [rad], energy [J].
+    Contacts: row_count (W,) rows of this step; candidates (collide.Candidates, (W, 4 max_pairs));
+    contact_* (W, C): bodies, points, normal (from b to a), distance [m], friction, restitution,
+    key; contact_count, contact_dropped (W,): kept and dropped (over capacity) contacts; warm
+    (W, R) warm-start impulses; row_friction (W, R) friction coefficient on contact normal rows.
     """
 
-    def __init__(self, num_worlds: int, max_bodies: int, max_rows: int, device):
+    def __init__(self, num_worlds: int, max_bodies: int, max_rows: int, device, *, max_pairs: int = 0,
+                 contact_capacity: int = 0):
         w, b, r = num_worlds, max_bodies, max_rows
 
         def zeros(shape, dtype=float):
@@ -205,13 +249,30 @@ class Workspace:
             setattr(self, name, zeros((w, r), wp.spatial_vector))
         for name in ("row_bias", "row_compliance", "row_lo", "row_hi", "row_residual", "row_precond",
                      "v_f", "lo", "hi", "x", "x_prev", "y", "y_prev", "y_hat", "z", "z_prev", "z_hat",
-                     "rhs", "delta"):
+                     "rhs", "delta", "warm", "row_friction"):
             setattr(self, name, zeros((w, r)))
         self.delassus = zeros((w, r, r))
         self.factor = zeros((w, r, r))
-        for name in ("rho", "sigma", "residual_primal", "residual_dual", "momentum", "momentum_beta", "merit",
+        for name in ("rho", "sigma", "residual_primal", "residual_dual", "residual_complementarity", "momentum", "momentum_beta", "merit",
                      "violation_linear", "violation_angular", "energy"):
             setattr(self, name, zeros(w))
         for name in ("iterations", "converged", "valid", "active", "needs_factor", "diverged"):
             setattr(self, name, zeros(w, wp.int32))
         self.active_count = zeros(1, wp.int32)
+        self.row_count = zeros(w, wp.int32)  # rows of this step: joint, drive, limit and 3 per contact
+        slots = max(4 * max_pairs, 1)
+        self.candidates = Candidates()
+        self.candidates.valid = zeros((w, slots), wp.int32)
+        self.candidates.point_a = zeros((w, slots), wp.vec3)
+        self.candidates.point_b = zeros((w, slots), wp.vec3)
+        self.candidates.normal = zeros((w, slots), wp.vec3)
+        self.candidates.distance = zeros((w, slots))
+        capacity = max(contact_capacity, 1)
+        for name in ("contact_body_a", "contact_body_b", "contact_key"):
+            setattr(self, name, zeros((w, capacity), wp.int32))
+        for name in ("contact_point_a", "contact_point_b", "contact_normal"):
+            setattr(self, name, zeros((w, capacity), wp.vec3))
+        for name in ("contact_distance", "contact_friction", "contact_restitution"):
+            setattr(self, name, zeros((w, capacity)))
+        self.contact_count = zeros(w, wp.int32)
+        self.contact_dropped = zeros(w, wp.int32)

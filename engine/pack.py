@@ -7,8 +7,9 @@ from collections.abc import Sequence
 import numpy as np
 import warp as wp
 
+from engine.collide import PAIR_CONTACTS, PLANE_CONTACTS
 from engine.model import Model, SolverConfig, Workspace
-from engine.spec import JOINT_ROW_COUNT, JointType, MechanismSpec, joint_dynamics_rows
+from engine.spec import JOINT_ROW_COUNT, JointType, MechanismSpec, ShapeType, joint_dynamics_rows
 
 __all__ = ["pack_worlds"]
 
@@ -29,8 +30,38 @@ def _rotate(quat: np.ndarray, vec: np.ndarray) -> np.ndarray:
     return vec + 2.0 * np.cross(u, np.cross(u, vec) + s * vec)
 
 
+def collision_pairs(spec: MechanismSpec) -> list[tuple[int, int]]:
+    """Shape pairs (a, b) that may touch, b = -1 for the ground plane, a of lower or equal type.
+
+    Filtered out: shapes of one body, bodies joined by a joint, shapes sharing a non-zero
+    collision group, and cylinders against anything but the plane.
+    """
+    index = spec.body_index
+    jointed = {frozenset((index[j.parent], index[j.child])) for j in spec.joints if j.parent is not None}
+    pairs = [(s, -1) for s in range(len(spec.shapes))] if spec.ground is not None else []
+    for i, a in enumerate(spec.shapes):
+        for j in range(i + 1, len(spec.shapes)):
+            b = spec.shapes[j]
+            ba, bb = index[a.body], index[b.body]
+            if ba == bb or frozenset((ba, bb)) in jointed:
+                continue
+            if a.collision_group and a.collision_group == b.collision_group:
+                continue
+            first, second = (i, j) if a.type <= b.type else (j, i)
+            types = (spec.shapes[first].type, spec.shapes[second].type)
+            if types in PAIR_CONTACTS:
+                pairs.append((first, second))
+    return pairs
+
+
+def contact_worst_case(spec: MechanismSpec, pairs) -> int:
+    """Most contacts the pairs of a world can produce at once."""
+    return sum(PLANE_CONTACTS[spec.shapes[a].type] if b < 0 else
+               PAIR_CONTACTS[(spec.shapes[a].type, spec.shapes[b].type)] for a, b in pairs)
+
+
 def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | None = None,
-                dt: float = 1.0e-3) -> Model:
+                dt: float = 1.0e-3, contact_capacity: int | None = None) -> Model:
     """Pack one world per spec into a padded batch on ``device``.
 
     Args:
@@ -38,6 +69,9 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         device: Warp device ("cpu", "cuda", "cuda:0", ...); None = Warp's default.
         config: SolverConfig (default settings when None).
         dt: initial time step of every world [s] (change it with Model.set_dt or step()).
+        contact_capacity: contacts kept per world and step; None = the smaller of what the
+            world's shape pairs can produce and 4 per shape + 8. A world that produces more is
+            counted in model.work.contact_dropped (never silently wrong, never a crash).
 
     Returns:
         Model with arrays of shape (num_worlds, max_X) and per-world counts.
@@ -57,10 +91,20 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     max_bodies = max(len(s.bodies) for s in specs)
     max_joints = max(1, max(len(s.joints) for s in specs))
     max_points = max(1, max(len(s.points) for s in specs))
-    max_rows = max(1, max(s.row_count for s in specs))
+    if contact_capacity is not None and (int(contact_capacity) != contact_capacity or contact_capacity < 0):
+        raise ValueError(f"pack_worlds: contact_capacity must be a non-negative integer, got {contact_capacity!r}")
+    pairs = [collision_pairs(s) for s in specs]
+    worst = [contact_worst_case(s, p) for s, p in zip(specs, pairs)]
+    if contact_capacity is None:
+        capacity = max(min(w, 4 * len(s.shapes) + 8) for s, w in zip(specs, worst))
+    else:
+        capacity = min(int(contact_capacity), max(worst))
+    max_pairs = max(len(p) for p in pairs)
+    max_shapes = max(1, max(len(s.shapes) for s in specs))
+    max_rows = max(1, max(s.row_count for s in specs) + 3 * capacity)
     max_rows = ROW_TILE * ((max_rows + ROW_TILE - 1) // ROW_TILE)
 
-    W, B, J, R, P = num_worlds, max_bodies, max_joints, max_rows, max_points
+    W, B, J, R, P, S, Q = num_worlds, max_bodies, max_joints, max_rows, max_points, max_shapes, max(max_pairs, 1)
     f32 = np.float32
     h = {
         "body_count": np.zeros(W, np.int32), "joint_count": np.zeros(W, np.int32),
@@ -88,6 +132,16 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         "point_body": np.zeros((W, P), np.int32), "point_local": np.zeros((W, P, 3), f32),
         "padmm_eta": np.full(W, config.eta, f32), "padmm_rho_init": np.full(W, config.rho, f32),
         "padmm_tolerance": np.full(W, config.tolerance, f32),
+        "joint_limit_lower": np.full((W, J), -1.0e30, f32), "joint_limit_upper": np.full((W, J), 1.0e30, f32),
+        "joint_limit_lower_row": np.full((W, J), -1, np.int32), "joint_limit_upper_row": np.full((W, J), -1, np.int32),
+        "shape_count": np.zeros(W, np.int32), "shape_type": np.zeros((W, S), np.int32),
+        "shape_body": np.zeros((W, S), np.int32), "shape_X": np.tile(np.array([0, 0, 0, 0, 0, 0, 1], f32), (W, S, 1)),
+        "shape_size": np.zeros((W, S, 3), f32), "shape_friction": np.zeros((W, S), f32),
+        "shape_restitution": np.zeros((W, S), f32),
+        "ground_normal": np.tile(np.array([0, 0, 1], f32), (W, 1)), "ground_offset": np.zeros(W, f32),
+        "ground_friction": np.zeros(W, f32), "ground_restitution": np.zeros(W, f32),
+        "pair_count": np.zeros(W, np.int32), "pair_shape_a": np.zeros((W, Q), np.int32),
+        "pair_shape_b": np.full((W, Q), -1, np.int32), "contact_row_start": np.zeros(W, np.int32),
     }
     for w, spec in enumerate(specs):
         index = spec.body_index
@@ -135,7 +189,33 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
                     h[name][w, j] = row
                     h["row_kind"][w, row], h["row_body_p"][w, row], h["row_body_c"][w, row] = 2, parent, child
                     row += 1
+            for side in joint.limit_sides:
+                name = "lower" if side > 0 else "upper"
+                h[f"joint_limit_{name}"][w, j] = getattr(joint, f"limit_{name}")
+                h[f"joint_limit_{name}_row"][w, j] = row
+                h["row_kind"][w, row], h["row_body_p"][w, row], h["row_body_c"][w, row] = 3, parent, child
+                row += 1
         h["row_count"][w] = row
+        h["contact_row_start"][w] = row
+        for k in range(capacity):  # contact rows: normal then two tangents; bodies are set per step
+            h["row_kind"][w, row + 3 * k:row + 3 * k + 3] = (4, 5, 5)
+        h["shape_count"][w] = len(spec.shapes)
+        for s_index, shape in enumerate(spec.shapes):
+            b = index[shape.body]
+            h["shape_type"][w, s_index] = int(shape.type)
+            h["shape_body"][w, s_index] = b
+            h["shape_X"][w, s_index] = np.concatenate([shape.position - coms[b], shape.orientation])
+            h["shape_size"][w, s_index] = shape.size
+            h["shape_friction"][w, s_index] = shape.friction
+            h["shape_restitution"][w, s_index] = shape.restitution
+        if spec.ground is not None:
+            h["ground_normal"][w] = spec.ground.normal
+            h["ground_offset"][w] = spec.ground.offset
+            h["ground_friction"][w] = spec.ground.friction
+            h["ground_restitution"][w] = spec.ground.restitution
+        h["pair_count"][w] = len(pairs[w])
+        for p_index, (a, b) in enumerate(pairs[w]):
+            h["pair_shape_a"][w, p_index], h["pair_shape_b"][w, p_index] = a, b
         for p, point in enumerate(spec.points):
             b = index[point.body]
             h["point_body"][w, p] = b
@@ -154,10 +234,18 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         "body_inertia": wp.mat33, "body_inv_inertia": wp.mat33, "body_q_init": wp.transform,
         "body_qd_init": wp.spatial_vector, "joint_X_p": wp.transform, "joint_X_c": wp.transform,
         "joint_axis": wp.vec3, "joint_axis2": wp.vec3, "world_gravity": wp.vec3, "point_local": wp.vec3,
+        "shape_X": wp.transform, "shape_size": wp.vec3, "ground_normal": wp.vec3,
     }
     for name, value in h.items():
         dtype = dtypes.get(name, wp.int32 if value.dtype == np.int32 else float)
         setattr(model, name, wp.array(value, dtype=dtype, device=device))
     model._dt_host = h["world_dt"].copy()
-    model.work = Workspace(W, B, R, device)
+    model.contact_capacity = capacity
+    model.max_pairs = max_pairs
+    model.has_contacts = capacity > 0
+    model.has_limits = any(j.has_limits for s in specs for j in s.joints)
+    model.work = Workspace(W, B, R, device, max_pairs=max_pairs, contact_capacity=capacity)
+    model.work.row_count.assign(h["row_count"])
+    model.work.row_body_c = wp.clone(model.row_body_c)  # contact rows rewrite their bodies every step
+    model.work.row_body_p = wp.clone(model.row_body_p)
     return model

@@ -2,10 +2,13 @@
 
 In preconditioned variables (engine.dynamics), with proximal weight eta, penalty rho and the
 factor L L^T = P D P + (eta + rho) I, each iteration of an active world does
-    padmm_rhs:        rhs = -v_f + eta x + rho y_hat + z_hat
+    padmm_rhs:        rhs = -v_f - s + eta x + rho y_hat + z_hat, with the De Saxce correction
+                      s = mu |z_hat_t| on contact normal rows
     linear.solve:     x = (L L^T)^-1 rhs
-    padmm_project:    y = clamp(x - z_hat / rho, lo, hi);  z = z_hat - rho (x - y)
-    padmm_convergence: residuals r_p = |x - y|_inf, r_d = |eta (x - x_prev) + rho (y - y_hat)|_inf;
+    padmm_project:    y = Pi(x - z_hat / rho): clamp to [lo, hi] (bilateral, drive, limit rows),
+                      Coulomb cone per contact triplet;  z = z_hat - rho (x - y)
+    padmm_convergence: residuals r_p = |x - y|_inf, r_d = |eta (x - x_prev) + rho (y - y_hat)|_inf,
+                      complementarity r_c = max |y . z| over limit rows and contact triplets;
                       stop at tolerance or at the iteration cap; Nesterov momentum with restart;
                       penalty update (which asks for a new factor)
     padmm_accelerate: y_hat = y + beta (y - y_prev), z_hat = z + beta (z - z_prev)
@@ -17,6 +20,7 @@ captured into a CUDA graph; converged, capped and diverged worlds do no more wor
 import warp as wp
 
 from engine import linear
+from engine.model import ROW_CONTACT_NORMAL, ROW_CONTACT_TANGENT, ROW_LIMIT
 
 RHO_MIN = wp.constant(1.0e-5)
 RHO_MAX = wp.constant(1.0e3)
@@ -93,8 +97,10 @@ def padmm_warmstart(
 @wp.kernel
 def padmm_rhs(
     padmm_eta: wp.array(dtype=float),
+    row_kind: wp.array2d(dtype=wp.int32),
     rho: wp.array(dtype=float),
     active: wp.array(dtype=wp.int32),
+    row_friction: wp.array2d(dtype=float),
     v_f: wp.array2d(dtype=float),
     x: wp.array2d(dtype=float),
     y_hat: wp.array2d(dtype=float),
@@ -109,11 +115,30 @@ def padmm_rhs(
         return
     xi = x[world, i]
     x_prev_out[world, i] = xi
-    rhs_out[world, i] = -v_f[world, i] + padmm_eta[world] * xi + rho[world] * y_hat[world, i] + z_hat[world, i]
+    de_saxce = float(0.0)
+    if row_kind[world, i] == ROW_CONTACT_NORMAL and i + 2 < row_friction.shape[1]:
+        de_saxce = row_friction[world, i] * wp.length(wp.vec2(z_hat[world, i + 1], z_hat[world, i + 2]))
+    rhs_out[world, i] = -v_f[world, i] - de_saxce + padmm_eta[world] * xi + rho[world] * y_hat[world, i] + z_hat[world, i]
+
+
+@wp.func
+def project_cone(normal: float, t1: float, t2: float, mu: float):
+    """Euclidean projection of (normal, t1, t2) onto the cone |t| <= mu normal."""
+    tangent = wp.sqrt(t1 * t1 + t2 * t2)
+    if tangent <= mu * normal:
+        return wp.vec3(normal, t1, t2)
+    if mu * tangent <= -normal:
+        return wp.vec3(0.0)
+    n = (normal + mu * tangent) / (1.0 + mu * mu)
+    scale = mu * n / tangent
+    return wp.vec3(n, scale * t1, scale * t2)
 
 
 @wp.kernel
 def padmm_project(
+    row_kind: wp.array2d(dtype=wp.int32),
+    row_count: wp.array(dtype=wp.int32),
+    row_friction: wp.array2d(dtype=float),
     rho: wp.array(dtype=float),
     active: wp.array(dtype=wp.int32),
     lo: wp.array2d(dtype=float),
@@ -126,11 +151,26 @@ def padmm_project(
     y_prev_out: wp.array2d(dtype=float),
     z_prev_out: wp.array2d(dtype=float),
 ):
-    """y = projection of x - z_hat / rho onto the row bounds; z = z_hat - rho (x - y)."""
+    """y = projection of x - z_hat / rho onto the row's set; z = z_hat - rho (x - y). The thread of
+    a contact normal row projects its whole triplet onto the friction cone."""
     world, i = wp.tid()
     if active[world] == 0:
         return
+    kind = row_kind[world, i]
+    if kind == ROW_CONTACT_TANGENT and i < row_count[world]:
+        return
     r = rho[world]
+    if kind == ROW_CONTACT_NORMAL and i < row_count[world]:
+        v = wp.vec3(0.0)
+        for k in range(3):
+            v[k] = x[world, i + k] - z_hat[world, i + k] / r
+        proj = project_cone(v[0], v[1], v[2], row_friction[world, i])
+        for k in range(3):
+            y_prev_out[world, i + k] = y[world, i + k]
+            z_prev_out[world, i + k] = z[world, i + k]
+            y[world, i + k] = proj[k]
+            z[world, i + k] = z_hat[world, i + k] - r * (x[world, i + k] - proj[k])
+        return
     xi = x[world, i]
     zh = z_hat[world, i]
     yi = wp.clamp(xi - zh / r, lo[world, i], hi[world, i])
@@ -148,10 +188,11 @@ def padmm_convergence(
     adaptive_rho: int,
     acceleration: int,
     # model
-    row_count: wp.array(dtype=wp.int32),
+    row_kind: wp.array2d(dtype=wp.int32),
     padmm_eta: wp.array(dtype=float),
     padmm_tolerance: wp.array(dtype=float),
     # in
+    row_count: wp.array(dtype=wp.int32),
     x: wp.array2d(dtype=float),
     x_prev: wp.array2d(dtype=float),
     y: wp.array2d(dtype=float),
@@ -169,6 +210,7 @@ def padmm_convergence(
     needs_factor: wp.array(dtype=wp.int32),
     residual_primal: wp.array(dtype=float),
     residual_dual: wp.array(dtype=float),
+    residual_complementarity: wp.array(dtype=float),
     active_count: wp.array(dtype=wp.int32),
 ):
     """Per world: residuals, stop test, Nesterov momentum with restart, penalty update."""
@@ -179,6 +221,7 @@ def padmm_convergence(
     eta = padmm_eta[world]
     r_p = float(0.0)
     r_d = float(0.0)
+    r_c = float(0.0)
     change = float(0.0)
     for i in range(row_count[world]):
         dy = y[world, i] - y_hat[world, i]
@@ -186,12 +229,19 @@ def padmm_convergence(
         r_p = wp.max(r_p, wp.abs(x[world, i] - y[world, i]))
         r_d = wp.max(r_d, wp.abs(eta * (x[world, i] - x_prev[world, i]) + r * dy))
         change += r * dy * dy + dz * dz / r
+        kind = row_kind[world, i]
+        if kind == ROW_LIMIT:
+            r_c = wp.max(r_c, wp.abs(y[world, i] * z[world, i]))
+        elif kind == ROW_CONTACT_NORMAL:
+            gap = y[world, i] * z[world, i] + y[world, i + 1] * z[world, i + 1] + y[world, i + 2] * z[world, i + 2]
+            r_c = wp.max(r_c, wp.abs(gap))
     its = iterations[world] + 1
     iterations[world] = its
     residual_primal[world] = r_p
     residual_dual[world] = r_d
+    residual_complementarity[world] = r_c
     tol = padmm_tolerance[world]
-    done = r_p <= tol and r_d <= tol
+    done = r_p <= tol and r_d <= tol and r_c <= tol
     if done or its >= max_iterations:
         active[world] = 0
         if done:
@@ -289,18 +339,20 @@ def padmm_iteration(model):
     work, cfg, device = model.work, model.config, model.device
     grid = (model.num_worlds, model.max_rows)
     wp.launch(padmm_rhs, dim=grid, device=device,
-              inputs=[model.padmm_eta, work.rho, work.active, work.v_f, work.x, work.y_hat, work.z_hat],
+              inputs=[model.padmm_eta, model.row_kind, work.rho, work.active, work.row_friction, work.v_f, work.x,
+                      work.y_hat, work.z_hat],
               outputs=[work.x_prev, work.rhs])
     linear.solve(work.factor, work.rhs, work.active, work.x)
     wp.launch(padmm_project, dim=grid, device=device,
-              inputs=[work.rho, work.active, work.lo, work.hi, work.x, work.z_hat, work.y, work.z,
+              inputs=[model.row_kind, work.row_count, work.row_friction, work.rho, work.active, work.lo, work.hi, work.x, work.z_hat, work.y, work.z,
                       work.y_prev, work.z_prev])
     wp.launch(padmm_convergence, dim=model.num_worlds, device=device,
               inputs=[model.max_rows, cfg.max_iterations, cfg.rho_update_interval, int(cfg.adaptive_rho),
-                      int(cfg.acceleration), model.row_count, model.padmm_eta, model.padmm_tolerance,
-                      work.x, work.x_prev, work.y, work.y_hat, work.z, work.z_hat, work.rho, work.active,
+                      int(cfg.acceleration), model.row_kind, model.padmm_eta, model.padmm_tolerance,
+                      work.row_count, work.x, work.x_prev, work.y, work.y_hat, work.z, work.z_hat, work.rho, work.active,
                       work.converged, work.iterations, work.momentum, work.momentum_beta, work.merit,
-                      work.needs_factor, work.residual_primal, work.residual_dual, work.active_count])
+                      work.needs_factor, work.residual_primal, work.residual_dual, work.residual_complementarity,
+                      work.active_count])
     wp.launch(padmm_accelerate, dim=grid, device=device,
               inputs=[work.active, work.momentum_beta, work.y, work.y_prev, work.z, work.z_prev],
               outputs=[work.y_hat, work.z_hat])
@@ -308,22 +360,23 @@ def padmm_iteration(model):
         refactor(model)
 
 
-def solve_padmm(model, row_lambda_in, row_lambda_out):
-    """Solve every world's dual problem (built by engine.dynamics) into row_lambda_out."""
+def solve_padmm(model, row_lambda_warm, row_lambda_out):
+    """Solve every world's dual problem (built by engine.dynamics) into row_lambda_out, starting
+    from the impulses row_lambda_warm (W, R)."""
     work, cfg, device = model.work, model.config, model.device
     grid = (model.num_worlds, model.max_rows)
     work.active_count.zero_()
     wp.launch(padmm_setup, dim=model.num_worlds, device=device,
-              inputs=[model.row_count, model.padmm_rho_init, work.diverged],
+              inputs=[work.row_count, model.padmm_rho_init, work.diverged],
               outputs=[work.rho, work.valid, work.active, work.converged, work.iterations, work.momentum, work.momentum_beta,
                        work.merit, work.needs_factor, work.active_count])
     wp.launch(padmm_warmstart, dim=grid, device=device,
-              inputs=[1.0 if cfg.warmstart else 0.0, row_lambda_in, work.row_precond, work.active, work.lo, work.hi],
+              inputs=[1.0 if cfg.warmstart else 0.0, row_lambda_warm, work.row_precond, work.active, work.lo, work.hi],
               outputs=[work.x, work.y, work.y_hat, work.z, work.z_hat])
     refactor(model)
     wp.capture_while(work.active_count, padmm_iteration, model=model)
     wp.launch(padmm_output, dim=grid, device=device,
-              inputs=[model.row_count, work.row_precond, work.y, work.diverged], outputs=[row_lambda_out])
+              inputs=[work.row_count, work.row_precond, work.y, work.diverged], outputs=[row_lambda_out])
 
 
 __all__ = ["padmm_iteration", "refactor", "solve_padmm"]

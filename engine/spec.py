@@ -23,7 +23,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Body", "Joint", "JointDrive", "JointType", "MechanismSpec", "TrackedPoint"]
+__all__ = ["Body", "GroundPlane", "Joint", "JointDrive", "JointType", "MechanismSpec", "Shape", "ShapeType",
+           "TrackedPoint"]
 
 
 class JointType(enum.IntEnum):
@@ -177,6 +178,8 @@ class Joint:
         armature: added joint-space inertia [kg m^2] or [kg] (revolute, prismatic).
         damping: viscous joint damping [N m s/rad] or [N s/m] (revolute, prismatic).
         drive: optional JointDrive (revolute, prismatic).
+        limit_lower, limit_upper: joint position limits [rad] or [m] (revolute, prismatic);
+            -inf / inf for none. Enforced as unilateral rows in the same solve.
     """
 
     name: str
@@ -192,6 +195,8 @@ class Joint:
     armature: float = 0.0
     damping: float = 0.0
     drive: JointDrive | None = None
+    limit_lower: float = -math.inf
+    limit_upper: float = math.inf
 
     def __post_init__(self):
         where = f"joint '{self.name}'"
@@ -223,10 +228,116 @@ class Joint:
         if not drivable and (self.drive is not None or self.armature > 0.0 or self.damping > 0.0):
             raise ValueError(f"{where}: drives, armature and damping need a revolute or prismatic "
                              f"joint, this one is {self.type.name.lower()}")
+        for attr in ("limit_lower", "limit_upper"):
+            value = getattr(self, attr)
+            try:
+                value = float(value)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"{where}: {attr}: expected a number, got {value!r}") from exc
+            if math.isnan(value):
+                raise ValueError(f"{where}: {attr} must not be NaN")
+            setattr(self, attr, value)
+        if self.has_limits and not drivable:
+            raise ValueError(f"{where}: limits need a revolute or prismatic joint, this one is {self.type.name.lower()}")
+        if self.limit_lower > self.limit_upper:
+            raise ValueError(f"{where}: limit_lower {self.limit_lower} is above limit_upper {self.limit_upper}")
         if self.drive is not None:
             if not isinstance(self.drive, JointDrive):
                 raise ValueError(f"{where}: drive must be a JointDrive, got {type(self.drive).__name__}")
             self.drive.validate(where)
+
+
+    @property
+    def has_limits(self) -> bool:
+        """True when either position limit is finite."""
+        return math.isfinite(self.limit_lower) or math.isfinite(self.limit_upper)
+
+    @property
+    def limit_sides(self) -> list[int]:
+        """+1 for a finite lower limit, -1 for a finite upper limit (one unilateral row each)."""
+        return [side for side, value in ((1, self.limit_lower), (-1, self.limit_upper)) if math.isfinite(value)]
+
+
+class ShapeType(enum.IntEnum):
+    """Collision primitives. Capsules and cylinders run along their local z axis."""
+
+    SPHERE = 0  # size[0] = radius
+    CAPSULE = 1  # size[0] = radius, size[1] = half length of the segment
+    BOX = 2  # size = half extents (x, y, z)
+    CYLINDER = 3  # size[0] = radius, size[1] = half height
+
+
+@dataclass
+class Shape:
+    """A collision primitive fixed on a body.
+
+    Attributes:
+        name: unique shape name.
+        type: ShapeType or its name ("sphere", "capsule", "box", "cylinder").
+        body: the body it is attached to.
+        size: sphere (radius,), capsule (radius, half_length), box (hx, hy, hz), cylinder
+            (radius, half_height) [m].
+        position, orientation: shape frame in the body frame [m], quaternion (x, y, z, w).
+        friction: Coulomb friction coefficient (combined per pair by the geometric mean).
+        restitution: Newton restitution coefficient in [0, 1] (combined per pair by the maximum).
+        collision_group: shapes sharing a non-zero group never collide with each other.
+    """
+
+    name: str
+    type: ShapeType
+    body: str
+    size: object
+    position: object = (0.0, 0.0, 0.0)
+    orientation: object = (0.0, 0.0, 0.0, 1.0)
+    friction: float = 0.8
+    restitution: float = 0.0
+    collision_group: int = 0
+
+    def __post_init__(self):
+        where = f"shape '{self.name}'"
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"shape name must be a non-empty string, got {self.name!r}")
+        try:
+            self.type = ShapeType[self.type.upper()] if isinstance(self.type, str) else ShapeType(self.type)
+        except (KeyError, ValueError) as exc:
+            names = ", ".join(t.name.lower() for t in ShapeType)
+            raise ValueError(f"{where}: type must be one of {names}, got {self.type!r}") from exc
+        count = {ShapeType.SPHERE: 1, ShapeType.CAPSULE: 2, ShapeType.BOX: 3, ShapeType.CYLINDER: 2}[self.type]
+        size = np.asarray(self.size, dtype=np.float64).reshape(-1) if np.ndim(self.size) else np.array([self.size], float)
+        if size.size != count:
+            raise ValueError(f"{where}: a {self.type.name.lower()} needs {count} size value(s), got {size.tolist()}")
+        if not np.all(np.isfinite(size)) or np.any(size <= 0.0):
+            raise ValueError(f"{where}: size values must be positive and finite, got {size.tolist()}")
+        self.size = np.concatenate([size, np.zeros(3 - count)])
+        self.position = _vector(self.position, 3, f"{where}: position [m]")
+        self.orientation = _quaternion(self.orientation, f"{where}: orientation")
+        self.friction = _scalar(self.friction, f"{where}: friction", minimum=0.0)
+        self.restitution = _scalar(self.restitution, f"{where}: restitution", minimum=0.0)
+        if self.restitution > 1.0:
+            raise ValueError(f"{where}: restitution must be <= 1, got {self.restitution}")
+        if int(self.collision_group) != self.collision_group or self.collision_group < 0:
+            raise ValueError(f"{where}: collision_group must be a non-negative integer, got {self.collision_group!r}")
+
+
+@dataclass
+class GroundPlane:
+    """A static plane {x : normal . x = offset}; bodies stay on the side the normal points to."""
+
+    normal: object = (0.0, 0.0, 1.0)
+    offset: float = 0.0
+    friction: float = 0.8
+    restitution: float = 0.0
+
+    def __post_init__(self):
+        normal = _vector(self.normal, 3, "ground plane: normal")
+        if np.linalg.norm(normal) < 1e-9:
+            raise ValueError("ground plane: normal must be non-zero")
+        self.normal = normal / np.linalg.norm(normal)
+        self.offset = _scalar(self.offset, "ground plane: offset [m]")
+        self.friction = _scalar(self.friction, "ground plane: friction", minimum=0.0)
+        self.restitution = _scalar(self.restitution, "ground plane: restitution", minimum=0.0)
+        if self.restitution > 1.0:
+            raise ValueError(f"ground plane: restitution must be <= 1, got {self.restitution}")
 
 
 @dataclass
@@ -258,16 +369,21 @@ class MechanismSpec:
     points: list[TrackedPoint] = field(default_factory=list)
     gravity: object = (0.0, 0.0, -9.81)
     name: str = "mechanism"
+    shapes: list[Shape] = field(default_factory=list)
+    ground: GroundPlane | None = None
 
     def __post_init__(self):
         self.bodies = list(self.bodies)
         self.joints = list(self.joints)
         self.points = list(self.points)
+        self.shapes = list(self.shapes)
+        if self.ground is not None and not isinstance(self.ground, GroundPlane):
+            raise ValueError(f"mechanism '{self.name}': ground must be a GroundPlane or None")
         if not self.bodies:
             raise ValueError(f"mechanism '{self.name}': needs at least one body")
         self.gravity = _vector(self.gravity, 3, f"mechanism '{self.name}': gravity [m/s^2]")
         for kind, items, cls in (("body", self.bodies, Body), ("joint", self.joints, Joint),
-                                 ("tracked point", self.points, TrackedPoint)):
+                                 ("tracked point", self.points, TrackedPoint), ("shape", self.shapes, Shape)):
             seen = set()
             for item in items:
                 if not isinstance(item, cls):
@@ -285,6 +401,9 @@ class MechanismSpec:
         for point in self.points:
             if point.body not in index:
                 raise ValueError(f"tracked point '{point.name}': body '{point.body}' does not exist")
+        for shape in self.shapes:
+            if shape.body not in index:
+                raise ValueError(f"shape '{shape.name}': body '{shape.body}' does not exist")
 
     @property
     def body_index(self) -> dict[str, int]:
@@ -293,8 +412,8 @@ class MechanismSpec:
 
     @property
     def row_count(self) -> int:
-        """Number of constraint rows this world adds to the dual problem."""
-        return sum(JOINT_ROW_COUNT[j.type] + sum(joint_dynamics_rows(j)) for j in self.joints)
+        """Number of joint, drive and limit rows of this world (contact rows come on top)."""
+        return sum(JOINT_ROW_COUNT[j.type] + sum(joint_dynamics_rows(j)) + len(j.limit_sides) for j in self.joints)
 
 
 def joint_dynamics_rows(joint: Joint) -> tuple[bool, bool]:

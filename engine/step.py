@@ -2,7 +2,9 @@
 
 The stages, in order (each a module of the engine):
 1. (Moreau-Jean only) half pose step to the midpoint configuration (engine.integrate)
-2. joint rows: Jacobians, biases, compliance and bounds (engine.joints)
+2. joint rows: Jacobians, biases, compliance and bounds, joint limits (engine.joints)
+   collision detection and contact rows, only when the batch has shapes (engine.collide,
+   engine.contacts); warm-start impulses gathered (contacts matched by key)
 3. dual problem: free velocities, Delassus matrix, preconditioner (engine.dynamics)
 4. PADMM on all worlds, per-world early exit, warm-started (engine.padmm)
 5. velocity update and pose integration, then Gauss-Newton projection of the poses onto the
@@ -14,13 +16,39 @@ step can be captured once (wp.ScopedCapture) and replayed.
 
 import warp as wp
 
+from engine.collide import compact_contacts, generate_candidates
+from engine.contacts import contact_rows, gather_warmstart, store_contacts
 from engine.dynamics import build_dual_problem
 from engine.integrate import apply_impulses, guard_divergence, integrate_poses, project_positions
 from engine.joints import compute_joint_residuals, compute_joint_rows
 from engine.model import Control, Integrator, Model, State
 from engine.padmm import solve_padmm
 
-__all__ = ["step"]
+__all__ = ["detect_contacts", "step"]
+
+
+def detect_contacts(model: Model, body_q, body_qd) -> None:
+    """Candidates per shape pair, compaction per world, and the contact rows."""
+    work, device, cfg = model.work, model.device, model.config
+    wp.launch(generate_candidates, dim=(model.num_worlds, model.max_pairs), device=device,
+              inputs=[model.pair_count, model.pair_shape_a, model.pair_shape_b, model.shape_type, model.shape_body,
+                      model.shape_X, model.shape_size, model.ground_normal, model.ground_offset,
+                      float(cfg.contact_margin), body_q],
+              outputs=[work.candidates])
+    wp.launch(compact_contacts, dim=model.num_worlds, device=device,
+              inputs=[model.pair_count, model.pair_shape_a, model.pair_shape_b, model.contact_row_start,
+                      model.shape_body, model.shape_friction, model.shape_restitution, model.ground_friction,
+                      model.ground_restitution, model.contact_capacity, float(cfg.contact_margin), work.candidates],
+              outputs=[work.row_count, work.contact_count, work.contact_dropped, work.contact_key, work.contact_body_a,
+                       work.contact_body_b, work.contact_point_a, work.contact_point_b, work.contact_normal,
+                       work.contact_distance, work.contact_friction, work.contact_restitution])
+    wp.launch(contact_rows, dim=(model.num_worlds, model.contact_capacity), device=device,
+              inputs=[model.contact_row_start, model.world_dt, float(cfg.contact_stabilization),
+                      float(cfg.restitution_threshold), body_q, body_qd, work.contact_count, work.contact_body_a,
+                      work.contact_body_b, work.contact_point_a, work.contact_point_b, work.contact_normal,
+                      work.contact_distance, work.contact_friction, work.contact_restitution],
+              outputs=[work.row_body_c, work.row_body_p, work.row_J_c, work.row_J_p, work.row_bias,
+                       work.row_compliance, work.row_lo, work.row_hi, work.row_friction])
 
 
 def step(model: Model, state_in: State, state_out: State, control: Control, dt: float | None = None) -> None:
@@ -48,10 +76,21 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
                   outputs=[work.body_q_mid])
         body_q = work.body_q_mid
     compute_joint_rows(model, body_q, state_in.body_qd, control)
+    if model.has_contacts:
+        detect_contacts(model, body_q, state_in.body_qd)
+    wp.launch(gather_warmstart, dim=(model.num_worlds, model.max_rows), device=device,
+              inputs=[model.contact_row_start, work.row_count, state_in.row_lambda, work.contact_key,
+                      work.contact_normal, state_in.contact_count, state_in.contact_key, state_in.contact_impulse],
+              outputs=[work.warm])
     build_dual_problem(model, body_q, state_in.body_qd, control.body_f)
-    solve_padmm(model, state_in.row_lambda, state_out.row_lambda)
+    solve_padmm(model, work.warm, state_out.row_lambda)
+    if model.has_contacts:
+        wp.launch(store_contacts, dim=(model.num_worlds, model.contact_capacity), device=device,
+                  inputs=[model.contact_row_start, work.contact_count, work.contact_key, work.contact_normal,
+                          state_out.row_lambda],
+                  outputs=[state_out.contact_count, state_out.contact_key, state_out.contact_impulse])
     wp.launch(apply_impulses, dim=bodies, device=device,
-              inputs=[model.body_count, model.row_count, model.row_body_c, model.row_body_p, work.row_MJ_c,
+              inputs=[model.body_count, work.row_count, work.row_body_c, work.row_body_p, work.row_MJ_c,
                       work.row_MJ_p, state_out.row_lambda, work.row_precond, work.body_qd_free],
               outputs=[state_out.body_qd])
     wp.launch(integrate_poses, dim=bodies, device=device,

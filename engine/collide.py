@@ -1,0 +1,345 @@
+"""Collision detection per world: candidate contacts for every static shape pair, then compaction.
+
+Pairs are fixed at pack time (engine.pack): every shape against the world's ground plane, and
+every two shapes of different bodies of the same world that are not joined by a joint and do not
+share a non-zero collision group. Pair (a, b) has shape a of lower or equal type than shape b
+(sphere < capsule < box < cylinder); b = -1 is the ground plane. Pair p owns candidate slots
+4p .. 4p + 3 (the slot is the contact's key for warm starting); the normal of a contact points from b to a, its distance is negative when the
+shapes overlap [m]. Supported: every primitive against the plane; sphere-sphere, sphere-capsule,
+capsule-capsule, sphere-box, capsule-box, box-box (vertex-face both ways, the 4 deepest kept);
+cylinders collide with the ground plane only.
+
+compact_contacts then keeps, per world and in slot order (deterministic), the candidates closer
+than the margin, up to the world's contact capacity, and counts the ones it had to drop.
+"""
+
+import warp as wp
+
+from engine.spec import ShapeType
+
+SPHERE = wp.constant(int(ShapeType.SPHERE))
+CAPSULE = wp.constant(int(ShapeType.CAPSULE))
+BOX = wp.constant(int(ShapeType.BOX))
+CYLINDER = wp.constant(int(ShapeType.CYLINDER))
+PAIR_SLOTS = wp.constant(4)  # candidate slots per pair (the most any pair emits)
+
+# contacts a pair can produce, by (type a, type b); against the plane by type a
+PLANE_CONTACTS = {ShapeType.SPHERE: 1, ShapeType.CAPSULE: 2, ShapeType.BOX: 4, ShapeType.CYLINDER: 4}
+PAIR_CONTACTS = {
+    (ShapeType.SPHERE, ShapeType.SPHERE): 1, (ShapeType.SPHERE, ShapeType.CAPSULE): 1,
+    (ShapeType.CAPSULE, ShapeType.CAPSULE): 2, (ShapeType.SPHERE, ShapeType.BOX): 1,
+    (ShapeType.CAPSULE, ShapeType.BOX): 2, (ShapeType.BOX, ShapeType.BOX): 4,
+}
+
+
+@wp.struct
+class Candidates:
+    """Candidate contacts (W, K): valid flag, points on a and b and normal (world frame), distance."""
+
+    valid: wp.array2d(dtype=wp.int32)
+    point_a: wp.array2d(dtype=wp.vec3)
+    point_b: wp.array2d(dtype=wp.vec3)
+    normal: wp.array2d(dtype=wp.vec3)
+    distance: wp.array2d(dtype=float)
+
+
+@wp.func
+def emit(c: Candidates, world: int, slot: int, point_a: wp.vec3, point_b: wp.vec3, normal: wp.vec3, distance: float):
+    c.valid[world, slot] = 1
+    c.point_a[world, slot] = point_a
+    c.point_b[world, slot] = point_b
+    c.normal[world, slot] = normal
+    c.distance[world, slot] = distance
+
+
+@wp.func
+def emit_spheres(c: Candidates, world: int, slot: int, center_a: wp.vec3, radius_a: float, center_b: wp.vec3,
+                 radius_b: float):
+    """Contact between two spheres (also the closest points of segments); normal from b to a."""
+    delta = center_a - center_b
+    length = wp.length(delta)
+    normal = wp.vec3(0.0, 0.0, 1.0)
+    if length > 1.0e-9:
+        normal = delta / length
+    emit(c, world, slot, center_a - radius_a * normal, center_b + radius_b * normal, normal,
+         length - radius_a - radius_b)
+
+
+@wp.func
+def closest_on_segment(p0: wp.vec3, p1: wp.vec3, q: wp.vec3):
+    """Closest point to q on the segment p0-p1."""
+    d = p1 - p0
+    t = wp.clamp(wp.dot(q - p0, d) / wp.max(wp.dot(d, d), 1.0e-12), 0.0, 1.0)
+    return p0 + t * d
+
+
+@wp.func
+def segment_segment(p0: wp.vec3, p1: wp.vec3, q0: wp.vec3, q1: wp.vec3):
+    """Closest points (on p, on q) of two segments."""
+    d1 = p1 - p0
+    d2 = q1 - q0
+    r = p0 - q0
+    a = wp.dot(d1, d1)
+    e = wp.dot(d2, d2)
+    f = wp.dot(d2, r)
+    c = wp.dot(d1, r)
+    b = wp.dot(d1, d2)
+    denom = a * e - b * b
+    s = float(0.0)
+    if denom > 1.0e-12 * a * e:
+        s = wp.clamp((b * f - c * e) / denom, 0.0, 1.0)
+    t = (b * s + f) / wp.max(e, 1.0e-12)
+    if t < 0.0:
+        t = 0.0
+        s = wp.clamp(-c / wp.max(a, 1.0e-12), 0.0, 1.0)
+    elif t > 1.0:
+        t = 1.0
+        s = wp.clamp((b - c) / wp.max(a, 1.0e-12), 0.0, 1.0)
+    return p0 + s * d1, q0 + t * d2
+
+
+@wp.func
+def point_box(p: wp.vec3, X_box: wp.transform, half: wp.vec3):
+    """Signed distance of p to a box, outward normal at the closest feature, closest surface point."""
+    local = wp.transform_point(wp.transform_inverse(X_box), p)
+    clamped = wp.vec3(wp.clamp(local[0], -half[0], half[0]), wp.clamp(local[1], -half[1], half[1]),
+                      wp.clamp(local[2], -half[2], half[2]))
+    delta = local - clamped
+    distance = wp.length(delta)
+    normal_local = wp.vec3(0.0, 0.0, 1.0)
+    surface = clamped
+    if distance > 1.0e-9:
+        normal_local = delta / distance
+    else:  # inside: leave through the nearest face
+        best = float(-1.0e30)
+        for k in range(3):
+            gap = wp.abs(local[k]) - half[k]
+            if gap > best:
+                best = gap
+                normal_local = wp.vec3(0.0)
+                normal_local[k] = wp.sign(local[k])
+        distance = best
+        surface = local
+        for k in range(3):
+            if normal_local[k] != 0.0:
+                surface[k] = normal_local[k] * half[k]
+    q = wp.transform_get_rotation(X_box)
+    return distance, wp.quat_rotate(q, normal_local), wp.transform_point(X_box, surface)
+
+
+@wp.func
+def box_corner(X: wp.transform, half: wp.vec3, k: int):
+    sx = float(1.0) if (k & 1) != 0 else float(-1.0)
+    sy = float(1.0) if (k & 2) != 0 else float(-1.0)
+    sz = float(1.0) if (k & 4) != 0 else float(-1.0)
+    return wp.transform_point(X, wp.vec3(sx * half[0], sy * half[1], sz * half[2]))
+
+
+@wp.func
+def plane_distance(p: wp.vec3, normal: wp.vec3, offset: float):
+    return wp.dot(normal, p) - offset
+
+
+@wp.func
+def keep_deepest(c: Candidates, world: int, base: int, point_a: wp.vec3, point_b: wp.vec3, normal: wp.vec3,
+                 distance: float):
+    """Insert a candidate into the pair's 4 slots, replacing the shallowest when they are full."""
+    worst = int(-1)
+    worst_distance = float(-1.0e30)
+    for k in range(PAIR_SLOTS):
+        slot = base + k
+        if c.valid[world, slot] == 0:
+            emit(c, world, slot, point_a, point_b, normal, distance)
+            return
+        if c.distance[world, slot] > worst_distance:
+            worst_distance = c.distance[world, slot]
+            worst = slot
+    if distance < worst_distance:
+        emit(c, world, worst, point_a, point_b, normal, distance)
+
+
+@wp.kernel
+def generate_candidates(
+    # model
+    pair_count: wp.array(dtype=wp.int32),
+    pair_shape_a: wp.array2d(dtype=wp.int32),
+    pair_shape_b: wp.array2d(dtype=wp.int32),
+    shape_type: wp.array2d(dtype=wp.int32),
+    shape_body: wp.array2d(dtype=wp.int32),
+    shape_X: wp.array2d(dtype=wp.transform),
+    shape_size: wp.array2d(dtype=wp.vec3),
+    ground_normal: wp.array(dtype=wp.vec3),
+    ground_offset: wp.array(dtype=float),
+    margin: float,
+    # in
+    body_q: wp.array2d(dtype=wp.transform),
+    # out
+    c: Candidates,
+):
+    """Candidate contacts of one shape pair."""
+    world, pair = wp.tid()
+    if pair >= pair_count[world]:
+        return
+    base = pair * PAIR_SLOTS
+    for k in range(PAIR_SLOTS):
+        c.valid[world, base + k] = 0
+    sa = pair_shape_a[world, pair]
+    sb = pair_shape_b[world, pair]
+    ta = shape_type[world, sa]
+    Xa = body_q[world, shape_body[world, sa]] * shape_X[world, sa]
+    size_a = shape_size[world, sa]
+    pa = wp.transform_get_translation(Xa)
+    axis_a = wp.quat_rotate(wp.transform_get_rotation(Xa), wp.vec3(0.0, 0.0, 1.0))
+    if sb < 0:  # against the ground plane
+        n = ground_normal[world]
+        off = ground_offset[world]
+        if ta == SPHERE:
+            d = plane_distance(pa, n, off) - size_a[0]
+            emit(c, world, base, pa - size_a[0] * n, pa - (size_a[0] + d) * n, n, d)
+        elif ta == CAPSULE:
+            for k in range(2):
+                end = pa + (2.0 * float(k) - 1.0) * size_a[1] * axis_a
+                d = plane_distance(end, n, off) - size_a[0]
+                emit(c, world, base + k, end - size_a[0] * n, end - (size_a[0] + d) * n, n, d)
+        elif ta == BOX:
+            for k in range(8):
+                corner = box_corner(Xa, size_a, k)
+                d = plane_distance(corner, n, off)
+                if d < margin:
+                    keep_deepest(c, world, base, corner, corner - d * n, n, d)
+        else:  # cylinder: rim points of both caps towards the plane
+            radial = -n - wp.dot(-n, axis_a) * axis_a
+            if wp.length(radial) < 1.0e-6:
+                radial = wp.cross(axis_a, wp.vec3(1.0, 0.0, 0.0))
+                if wp.length(radial) < 1.0e-6:
+                    radial = wp.cross(axis_a, wp.vec3(0.0, 1.0, 0.0))
+            u = wp.normalize(radial)
+            v = wp.cross(axis_a, u)
+            for cap in range(2):
+                center = pa + (2.0 * float(cap) - 1.0) * size_a[1] * axis_a
+                for k in range(4):
+                    angle = 0.5 * wp.pi * float(k)
+                    rim = center + size_a[0] * (wp.cos(angle) * u + wp.sin(angle) * v)
+                    d = plane_distance(rim, n, off)
+                    if d < margin:
+                        keep_deepest(c, world, base, rim, rim - d * n, n, d)
+        return
+    tb = shape_type[world, sb]
+    Xb = body_q[world, shape_body[world, sb]] * shape_X[world, sb]
+    size_b = shape_size[world, sb]
+    pb = wp.transform_get_translation(Xb)
+    axis_b = wp.quat_rotate(wp.transform_get_rotation(Xb), wp.vec3(0.0, 0.0, 1.0))
+    if ta == SPHERE and tb == SPHERE:
+        emit_spheres(c, world, base, pa, size_a[0], pb, size_b[0])
+    elif ta == SPHERE and tb == CAPSULE:
+        q = closest_on_segment(pb - size_b[1] * axis_b, pb + size_b[1] * axis_b, pa)
+        emit_spheres(c, world, base, pa, size_a[0], q, size_b[0])
+    elif ta == CAPSULE and tb == CAPSULE:
+        a0 = pa - size_a[1] * axis_a
+        a1 = pa + size_a[1] * axis_a
+        b0 = pb - size_b[1] * axis_b
+        b1 = pb + size_b[1] * axis_b
+        p, q = segment_segment(a0, a1, b0, b1)
+        emit_spheres(c, world, base, p, size_a[0], q, size_b[0])
+        # nearly parallel segments touch along a line: add the farthest endpoint pairing
+        if wp.abs(wp.dot(axis_a, axis_b)) > 0.99:
+            e0 = closest_on_segment(b0, b1, a0)
+            e1 = closest_on_segment(b0, b1, a1)
+            if wp.length(a0 - p) > wp.length(a1 - p):
+                emit_spheres(c, world, base + 1, a0, size_a[0], e0, size_b[0])
+            else:
+                emit_spheres(c, world, base + 1, a1, size_a[0], e1, size_b[0])
+    elif ta == SPHERE and tb == BOX:
+        d, n, q = point_box(pa, Xb, size_b)
+        emit(c, world, base, pa - size_a[0] * n, q, n, d - size_a[0])
+    elif ta == CAPSULE and tb == BOX:
+        for k in range(2):
+            p = pa + (2.0 * float(k) - 1.0) * size_a[1] * axis_a
+            for _it in range(4):  # alternate projections: segment point <-> box point
+                d, n, q = point_box(p, Xb, size_b)
+                p = closest_on_segment(pa - size_a[1] * axis_a, pa + size_a[1] * axis_a, q)
+            d, n, q = point_box(p, Xb, size_b)
+            emit(c, world, base + k, p - size_a[0] * n, q, n, d - size_a[0])
+    elif ta == BOX and tb == BOX:
+        for k in range(8):  # corners of a against b
+            corner = box_corner(Xa, size_a, k)
+            d, n, q = point_box(corner, Xb, size_b)
+            if d < margin:
+                keep_deepest(c, world, base, corner, q, n, d)
+        for k in range(8):  # corners of b against a (normal flipped to point from b to a)
+            corner = box_corner(Xb, size_b, k)
+            d, n, q = point_box(corner, Xa, size_a)
+            if d < margin:
+                keep_deepest(c, world, base, q, corner, -n, d)
+
+
+@wp.kernel
+def compact_contacts(
+    # model
+    pair_count: wp.array(dtype=wp.int32),
+    pair_shape_a: wp.array2d(dtype=wp.int32),
+    pair_shape_b: wp.array2d(dtype=wp.int32),
+    contact_row_start: wp.array(dtype=wp.int32),
+    shape_body: wp.array2d(dtype=wp.int32),
+    shape_friction: wp.array2d(dtype=float),
+    shape_restitution: wp.array2d(dtype=float),
+    ground_friction: wp.array(dtype=float),
+    ground_restitution: wp.array(dtype=float),
+    contact_capacity: int,
+    margin: float,
+    c: Candidates,
+    # out
+    row_count_out: wp.array(dtype=wp.int32),
+    contact_count_out: wp.array(dtype=wp.int32),
+    contact_dropped_out: wp.array(dtype=wp.int32),
+    contact_key_out: wp.array2d(dtype=wp.int32),
+    contact_body_a_out: wp.array2d(dtype=wp.int32),
+    contact_body_b_out: wp.array2d(dtype=wp.int32),
+    contact_point_a_out: wp.array2d(dtype=wp.vec3),
+    contact_point_b_out: wp.array2d(dtype=wp.vec3),
+    contact_normal_out: wp.array2d(dtype=wp.vec3),
+    contact_distance_out: wp.array2d(dtype=float),
+    contact_friction_out: wp.array2d(dtype=float),
+    contact_restitution_out: wp.array2d(dtype=float),
+):
+    """Per world, in slot order: keep candidates closer than the margin, up to the capacity."""
+    world = wp.tid()
+    count = int(0)
+    dropped = int(0)
+    for pair in range(pair_count[world]):
+        base = pair * PAIR_SLOTS
+        sa = pair_shape_a[world, pair]
+        sb = pair_shape_b[world, pair]
+        mu = float(0.0)
+        e = float(0.0)
+        body_b = int(-1)
+        if sb < 0:
+            mu = wp.sqrt(shape_friction[world, sa] * ground_friction[world])
+            e = wp.max(shape_restitution[world, sa], ground_restitution[world])
+        else:
+            mu = wp.sqrt(shape_friction[world, sa] * shape_friction[world, sb])
+            e = wp.max(shape_restitution[world, sa], shape_restitution[world, sb])
+            body_b = shape_body[world, sb]
+        for k in range(PAIR_SLOTS):
+            slot = base + k
+            if c.valid[world, slot] != 0:
+                if c.distance[world, slot] < margin:
+                    if count < contact_capacity:
+                        contact_key_out[world, count] = slot
+                        contact_body_a_out[world, count] = shape_body[world, sa]
+                        contact_body_b_out[world, count] = body_b
+                        contact_point_a_out[world, count] = c.point_a[world, slot]
+                        contact_point_b_out[world, count] = c.point_b[world, slot]
+                        contact_normal_out[world, count] = c.normal[world, slot]
+                        contact_distance_out[world, count] = c.distance[world, slot]
+                        contact_friction_out[world, count] = mu
+                        contact_restitution_out[world, count] = e
+                        count += 1
+                    else:
+                        dropped += 1
+    contact_count_out[world] = count
+    contact_dropped_out[world] = dropped
+    row_count_out[world] = contact_row_start[world] + 3 * count
+
+
+__all__ = ["Candidates", "PAIR_CONTACTS", "PLANE_CONTACTS", "compact_contacts", "generate_candidates"]
