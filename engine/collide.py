@@ -6,7 +6,8 @@ share a non-zero collision group. Pair (a, b) has shape a of lower or equal type
 (sphere < capsule < box < cylinder); b = -1 is the ground plane. Pair p owns candidate slots
 4p .. 4p + 3 (the slot is the contact's key for warm starting); the normal of a contact points from b to a, its distance is negative when the
 shapes overlap [m]. Supported: every primitive against the plane; sphere-sphere, sphere-capsule,
-capsule-capsule, sphere-box, capsule-box, box-box (vertex-face both ways, the 4 deepest kept);
+capsule-capsule, sphere-box, capsule-box, box-box (SAT face normal, corners over the other
+box's face both ways, the 4 deepest kept);
 cylinders collide with the ground plane only.
 
 compact_contacts then keeps, per world and in slot order (deterministic), the candidates closer
@@ -143,9 +144,16 @@ def plane_distance(p: wp.vec3, normal: wp.vec3, offset: float):
 @wp.func
 def keep_deepest(c: Candidates, world: int, base: int, point_a: wp.vec3, point_b: wp.vec3, normal: wp.vec3,
                  distance: float):
-    """Insert a candidate into the pair's 4 slots, replacing the shallowest when they are full."""
+    """Insert a candidate into the pair's 4 slots, replacing the shallowest when they are full; a
+    candidate within 0.5 mm of a kept one (the same corner seen from both boxes) merges into it."""
     worst = int(-1)
     worst_distance = float(-1.0e30)
+    for k in range(PAIR_SLOTS):
+        slot = base + k
+        if c.valid[world, slot] != 0 and wp.length(c.point_a[world, slot] - point_a) < 5.0e-4:
+            if distance < c.distance[world, slot]:
+                emit(c, world, slot, point_a, point_b, normal, distance)
+            return
     for k in range(PAIR_SLOTS):
         slot = base + k
         if c.valid[world, slot] == 0:
@@ -156,6 +164,68 @@ def keep_deepest(c: Candidates, world: int, base: int, point_a: wp.vec3, point_b
             worst = slot
     if distance < worst_distance:
         emit(c, world, worst, point_a, point_b, normal, distance)
+
+
+@wp.func
+def box_projection(q: wp.quat, half: wp.vec3, u: wp.vec3):
+    """Half the extent of a box along the unit vector u."""
+    return (half[0] * wp.abs(wp.dot(u, wp.quat_rotate(q, wp.vec3(1.0, 0.0, 0.0))))
+            + half[1] * wp.abs(wp.dot(u, wp.quat_rotate(q, wp.vec3(0.0, 1.0, 0.0))))
+            + half[2] * wp.abs(wp.dot(u, wp.quat_rotate(q, wp.vec3(0.0, 0.0, 1.0)))))
+
+
+@wp.func
+def within_face(X: wp.transform, half: wp.vec3, n: wp.vec3, p: wp.vec3):
+    """True when p projects, along n, into the box's face whose normal is closest to n."""
+    local = wp.transform_point(wp.transform_inverse(X), p)
+    n_local = wp.quat_rotate_inv(wp.transform_get_rotation(X), n)
+    axis = int(0)
+    for k in range(1, 3):
+        if wp.abs(n_local[k]) > wp.abs(n_local[axis]):
+            axis = k
+    inside = True
+    for k in range(3):
+        if k != axis and wp.abs(local[k]) > half[k] * 1.001 + 1.0e-5:
+            inside = False
+    return inside
+
+
+@wp.func
+def box_box(c: Candidates, world: int, base: int, Xa: wp.transform, ha: wp.vec3, Xb: wp.transform, hb: wp.vec3,
+            margin: float):
+    """Box-box manifold: the face axis of least penetration (SAT over the 6 face normals) is the
+    normal; corners of each box that lie over the other box's face and within the margin of its
+    supporting plane become contacts (the 4 deepest kept). Edge-edge touching is not detected."""
+    qa = wp.transform_get_rotation(Xa)
+    qb = wp.transform_get_rotation(Xb)
+    ca = wp.transform_get_translation(Xa)
+    cb = wp.transform_get_translation(Xb)
+    best = float(-1.0e30)
+    n = wp.vec3(0.0, 0.0, 1.0)
+    for k in range(6):
+        e = wp.vec3(0.0)
+        e[k % 3] = 1.0
+        u = wp.quat_rotate(qa, e)
+        if k >= 3:
+            u = wp.quat_rotate(qb, e)
+        separation = wp.abs(wp.dot(u, ca - cb)) - box_projection(qa, ha, u) - box_projection(qb, hb, u)
+        if separation > best:
+            best = separation
+            n = u
+    if wp.dot(n, ca - cb) < 0.0:
+        n = -n  # from b to a
+    plane_b = wp.dot(n, cb) + box_projection(qb, hb, n)  # b's supporting plane facing a
+    plane_a = wp.dot(n, ca) - box_projection(qa, ha, n)  # a's supporting plane facing b
+    for k in range(8):
+        corner = box_corner(Xa, ha, k)
+        d = wp.dot(n, corner) - plane_b
+        if d < margin and within_face(Xb, hb, n, corner):
+            keep_deepest(c, world, base, corner, corner - d * n, n, d)
+    for k in range(8):
+        corner = box_corner(Xb, hb, k)
+        d = plane_a - wp.dot(n, corner)
+        if d < margin and within_face(Xa, ha, n, corner):
+            keep_deepest(c, world, base, corner + d * n, corner, n, d)
 
 
 @wp.kernel
@@ -261,16 +331,7 @@ def generate_candidates(
             d, n, q = point_box(p, Xb, size_b)
             emit(c, world, base + k, p - size_a[0] * n, q, n, d - size_a[0])
     elif ta == BOX and tb == BOX:
-        for k in range(8):  # corners of a against b
-            corner = box_corner(Xa, size_a, k)
-            d, n, q = point_box(corner, Xb, size_b)
-            if d < margin:
-                keep_deepest(c, world, base, corner, q, n, d)
-        for k in range(8):  # corners of b against a (normal flipped to point from b to a)
-            corner = box_corner(Xb, size_b, k)
-            d, n, q = point_box(corner, Xa, size_a)
-            if d < margin:
-                keep_deepest(c, world, base, q, corner, -n, d)
+        box_box(c, world, base, Xa, size_a, Xb, size_b, margin)
 
 
 @wp.kernel

@@ -20,20 +20,38 @@ __all__ = ["Stepper", "Trace", "rollout"]
 
 
 @wp.kernel
-def accumulate_solver_stats(
+def accumulate_step_stats(
     iterations: wp.array(dtype=wp.int32),
     converged: wp.array(dtype=wp.int32),
     valid: wp.array(dtype=wp.int32),
+    residual_complementarity: wp.array(dtype=float),
+    contact_count: wp.array(dtype=wp.int32),
+    contact_dropped: wp.array(dtype=wp.int32),
+    contact_distance: wp.array2d(dtype=float),
     # in/out
     iteration_sum: wp.array(dtype=wp.int32),
     iteration_max: wp.array(dtype=wp.int32),
     unconverged_steps: wp.array(dtype=wp.int32),
     solved_steps: wp.array(dtype=wp.int32),
+    contact_sum: wp.array(dtype=wp.int32),
+    contact_max: wp.array(dtype=wp.int32),
+    overflow_steps: wp.array(dtype=wp.int32),
+    penetration_max: wp.array(dtype=float),
+    complementarity_max: wp.array(dtype=float),
 ):
-    """Per world: running sum and max of PADMM iterations, steps that hit the cap."""
+    """Per world: PADMM iterations (sum, max, capped steps), contacts (sum, max, steps with
+    dropped contacts), deepest penetration [m] and largest complementarity residual."""
     world = wp.tid()
+    count = contact_count[world]
+    contact_sum[world] = contact_sum[world] + count
+    contact_max[world] = wp.max(contact_max[world], count)
+    if contact_dropped[world] > 0:
+        overflow_steps[world] = overflow_steps[world] + 1
+    for k in range(count):
+        penetration_max[world] = wp.max(penetration_max[world], -contact_distance[world, k])
     if valid[world] == 0:
         return
+    complementarity_max[world] = wp.max(complementarity_max[world], residual_complementarity[world])
     its = iterations[world]
     iteration_sum[world] = iteration_sum[world] + its
     iteration_max[world] = wp.max(iteration_max[world], its)
@@ -45,8 +63,9 @@ def accumulate_solver_stats(
 class Stepper:
     """Advance a batch chunk by chunk, replaying a captured graph on CUDA.
 
-    Attributes: state (the current State), steps_done, and per-world solver statistics
-    iteration_sum, iteration_max, unconverged_steps, solved_steps (device int arrays (W,)).
+    Attributes: state (the current State), steps_done, and per-world statistics (device arrays
+    (W,)): iteration_sum, iteration_max, unconverged_steps, solved_steps, contact_sum,
+    contact_max, overflow_steps, penetration_max [m], complementarity_max.
     """
 
     def __init__(self, model: Model, state: State, control: Control, chunk: int = 1, *,
@@ -58,9 +77,11 @@ class Stepper:
         self._current = 0
         self.steps_done = 0
         device = model.device
-        zeros = lambda: wp.zeros(model.num_worlds, dtype=wp.int32, device=device)  # noqa: E731
+        zeros = lambda dtype=wp.int32: wp.zeros(model.num_worlds, dtype=dtype, device=device)  # noqa: E731
         self.iteration_sum, self.iteration_max = zeros(), zeros()
         self.unconverged_steps, self.solved_steps = zeros(), zeros()
+        self.contact_sum, self.contact_max, self.overflow_steps = zeros(), zeros(), zeros()
+        self.penetration_max, self.complementarity_max = zeros(float), zeros(float)
         self.capture = device.is_cuda if capture is None else (capture and device.is_cuda)
         self._graphs: dict[int, wp.Graph] = {}
 
@@ -74,9 +95,13 @@ class Stepper:
             src = self._buffers[(start + k) % 2]
             dst = self._buffers[(start + k + 1) % 2]
             step(model, src, dst, self.control)
-            wp.launch(accumulate_solver_stats, dim=model.num_worlds, device=model.device,
-                      inputs=[model.work.iterations, model.work.converged, model.work.valid],
-                      outputs=[self.iteration_sum, self.iteration_max, self.unconverged_steps, self.solved_steps])
+            work = model.work
+            wp.launch(accumulate_step_stats, dim=model.num_worlds, device=model.device,
+                      inputs=[work.iterations, work.converged, work.valid, work.residual_complementarity,
+                              work.contact_count, work.contact_dropped, work.contact_distance],
+                      outputs=[self.iteration_sum, self.iteration_max, self.unconverged_steps, self.solved_steps,
+                               self.contact_sum, self.contact_max, self.overflow_steps, self.penetration_max,
+                               self.complementarity_max])
 
     def advance(self) -> None:
         """Run one chunk of steps."""

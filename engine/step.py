@@ -14,6 +14,8 @@ Everything that varies between steps lives in device arrays; nothing is allocate
 step can be captured once (wp.ScopedCapture) and replayed.
 """
 
+import time
+
 import warp as wp
 
 from engine.collide import compact_contacts, generate_candidates
@@ -24,7 +26,7 @@ from engine.joints import compute_joint_residuals, compute_joint_rows
 from engine.model import Control, Integrator, Model, State
 from engine.padmm import solve_padmm
 
-__all__ = ["detect_contacts", "step"]
+__all__ = ["StageTimer", "detect_contacts", "step"]
 
 
 def detect_contacts(model: Model, body_q, body_qd) -> None:
@@ -51,7 +53,35 @@ def detect_contacts(model: Model, body_q, body_qd) -> None:
                        work.row_compliance, work.row_lo, work.row_hi, work.row_friction])
 
 
-def step(model: Model, state_in: State, state_out: State, control: Control, dt: float | None = None) -> None:
+class StageTimer:
+    """Wall time per stage of step() [s], accumulated over calls (synchronizes the device at every
+    stage boundary, so use it for profiling, never inside a captured graph)."""
+
+    STAGES = ("kinematics", "collision", "dual_problem", "padmm", "integrate", "projection")
+
+    def __init__(self, device):
+        self.device = device
+        self.seconds = dict.fromkeys(self.STAGES, 0.0)
+        self.calls = 0
+        self._last = None
+
+    def start(self):
+        wp.synchronize_device(self.device)
+        self._last = time.perf_counter()
+        self.calls += 1
+
+    def mark(self, stage: str):
+        wp.synchronize_device(self.device)
+        now = time.perf_counter()
+        self.seconds[stage] += now - self._last
+        self._last = now
+
+    def milliseconds_per_step(self) -> dict[str, float]:
+        return {k: 1e3 * v / max(self.calls, 1) for k, v in self.seconds.items()}
+
+
+def step(model: Model, state_in: State, state_out: State, control: Control, dt: float | None = None, *,
+         timer: StageTimer | None = None) -> None:
     """Advance every world by one step from state_in into state_out.
 
     Args:
@@ -60,7 +90,11 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
         control: drive targets, feed-forward efforts and external wrenches.
         dt: time step [s] for all worlds; None keeps model.world_dt (per-world device array).
             Changing it writes the device array, so pass None inside a captured graph.
+        timer: optional StageTimer collecting the wall time of every stage.
     """
+    mark = timer.mark if timer is not None else (lambda stage: None)
+    if timer is not None:
+        timer.start()
     if state_in is state_out:
         raise ValueError("step: state_in and state_out must be different State objects")
     if dt is not None:
@@ -76,19 +110,23 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
                   outputs=[work.body_q_mid])
         body_q = work.body_q_mid
     compute_joint_rows(model, body_q, state_in.body_qd, control)
+    mark("kinematics")
     if model.has_contacts:
         detect_contacts(model, body_q, state_in.body_qd)
+    mark("collision")
     wp.launch(gather_warmstart, dim=(model.num_worlds, model.max_rows), device=device,
               inputs=[model.contact_row_start, work.row_count, state_in.row_lambda, work.contact_key,
                       work.contact_normal, state_in.contact_count, state_in.contact_key, state_in.contact_impulse],
               outputs=[work.warm])
     build_dual_problem(model, body_q, state_in.body_qd, control.body_f)
+    mark("dual_problem")
     solve_padmm(model, work.warm, state_out.row_lambda)
     if model.has_contacts:
         wp.launch(store_contacts, dim=(model.num_worlds, model.contact_capacity), device=device,
                   inputs=[model.contact_row_start, work.contact_count, work.contact_key, work.contact_normal,
                           state_out.row_lambda],
                   outputs=[state_out.contact_count, state_out.contact_key, state_out.contact_impulse])
+    mark("padmm")
     wp.launch(apply_impulses, dim=bodies, device=device,
               inputs=[model.body_count, work.row_count, work.row_body_c, work.row_body_p, work.row_MJ_c,
                       work.row_MJ_p, state_out.row_lambda, work.row_precond, work.body_qd_free],
@@ -96,7 +134,9 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
     wp.launch(integrate_poses, dim=bodies, device=device,
               inputs=[model.body_count, model.world_dt, fraction, body_q, state_out.body_qd],
               outputs=[state_out.body_q])
+    mark("integrate")
     project_positions(model, state_out.body_q, state_out.body_qd, compute_joint_residuals, fraction)
     wp.launch(guard_divergence, dim=model.num_worlds, device=device,
               inputs=[model.body_count, state_in.body_q, state_in.body_qd],
               outputs=[state_out.body_q, state_out.body_qd, work.diverged])
+    mark("projection")
