@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from engine.scenes import GRAVITY, Scene, fourbar, fourbar_configuration
+from engine.scenes import GRAVITY, Scene, fourbar
 from engine.spec import Body, GroundPlane, Joint, JointDrive, MechanismSpec, Shape, TrackedPoint
 
 __all__ = ["CONTACT_SCENES", "ball_bounce", "box_on_plane", "box_slide", "box_stack", "fourbar_limits", "solid_box",
@@ -95,14 +95,13 @@ def walker_gait(time: float, amplitude: float = 0.3, frequency: float = 1.5) -> 
     return np.array([phase, -phase, -phase, phase])
 
 
-def fourbar_limits(limit: float = None) -> Scene:
-    """The passive fourbar of engine.scenes with an upper limit on its rocker's ground pivot,
-    inside the rocker's free swing, so the rocker hits it every cycle."""
+def fourbar_limits(limit: float = 1.85) -> Scene:
+    """The passive fourbar of engine.scenes with an upper limit [rad] on its rocker's ground pivot.
+
+    Free, the rocker swings between 1.52 and 1.92 rad about its equilibrium at 1.68 rad; the
+    default limit cuts the upper swing, so the rocker comes back to it every cycle."""
     scene = fourbar()
     spec = scene.spec
-    if limit is None:
-        start = fourbar_configuration(0.30, 0.10, 0.30, 0.25, math.radians(45.0), 0.0)["phi"][2]
-        limit = start + 0.15
     joints = []
     for joint in spec.joints:
         if joint.name == "ground_rocker":
