@@ -35,13 +35,17 @@ SUITES = {
         for integrator in ("euler", "moreau")
         for stab in ("shake", "projection", "baumgarte")
     ],
+    # contacts and limits (issue acceptance: walker and box_stack), fourbar for the skipped stages
+    "contact": [dict(scene=scene, steps=1000, dt=1e-3) for scene in
+                ("walker", "box_stack", "fourbar_limits", "ball_bounce", "box_slide", "box_on_plane", "fourbar")],
     # throughput against batch size
     "scaling": [dict(scene="fourbar", steps=200, dt=1e-3, worlds=n) for n in (1, 16, 256, 1024, 4096, 16384)],
 }
 
 FIELDS = ["scene", "num_worlds", "steps", "dt", "integrator", "stabilization", "step_ms_median", "world_steps_per_s",
           "max_constraint_violation_m", "max_constraint_violation_rad", "energy_drift_rel", "padmm_iterations_mean",
-          "padmm_iterations_max", "diverged_worlds", "compile_s", "device", "device_name", "repeats"]
+          "padmm_iterations_max", "diverged_worlds", "contacts_mean", "contacts_max", "contact_overflow_worlds",
+          "max_penetration_m", "complementarity_max", "stage_ms", "compile_s", "device", "device_name", "repeats"]
 
 
 def run_case(case: dict, device: str, worlds: int, repeats: int) -> dict:

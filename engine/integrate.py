@@ -172,6 +172,37 @@ def guard_divergence(
             body_qd_out[world, b] = body_qd_in[world, b]
 
 
+@wp.kernel
+def bilateral_block(row_kind: wp.array2d(dtype=wp.int32), row_count: wp.array(dtype=wp.int32),
+                    delassus: wp.array3d(dtype=float)):
+    """Keep the bilateral joint block of P D P; other rows and columns become the identity."""
+    world, i, j = wp.tid()
+    ki = row_kind[world, i]
+    kj = row_kind[world, j]
+    keep_i = i < row_count[world] and (ki == ROW_LINEAR or ki == ROW_ANGULAR)
+    keep_j = j < row_count[world] and (kj == ROW_LINEAR or kj == ROW_ANGULAR)
+    if not (keep_i and keep_j):
+        value = 0.0
+        if i == j:
+            value = 1.0
+        delassus[world, i, j] = value
+
+
+@wp.kernel
+def projection_shift(padmm_eta: wp.array(dtype=float), padmm_rho_init: wp.array(dtype=float),
+                     valid: wp.array(dtype=wp.int32), always: int, sigma: wp.array(dtype=float),
+                     needs_factor: wp.array(dtype=wp.int32)):
+    """Flag the worlds to refactor for the projection (all valid ones when ``always``, else those
+    whose shift exceeds eta + rho_init) and set their shift to that value."""
+    world = wp.tid()
+    target = padmm_eta[world] + padmm_rho_init[world]
+    flag = 0
+    if valid[world] != 0 and (always != 0 or sigma[world] > target):
+        sigma[world] = target
+        flag = 1
+    needs_factor[world] = flag
+
+
 def project_positions(model, body_q, body_qd, residual_fn, fraction=1.0):
     """Gauss-Newton projection of body_q onto the joint constraints (config.position_iterations steps).
 
@@ -181,6 +212,18 @@ def project_positions(model, body_q, body_qd, residual_fn, fraction=1.0):
     work, device = model.work, model.device
     grid_rows = (model.num_worlds, model.max_rows)
     grid_bodies = (model.num_worlds, model.max_bodies)
+    if model.config.position_iterations > 0:
+        # Only the bilateral joint rows are projected. Drive, limit and contact rows are decoupled
+        # from the projection (their rows and columns become identity) and a large ADMM penalty
+        # would damp the Gauss-Newton steps: such worlds get a factor of their own (the PADMM
+        # factor and matrix are free now, the next step rebuilds both).
+        if model.has_unilateral_or_drive_rows:
+            wp.launch(bilateral_block, dim=(model.num_worlds, model.max_rows, model.max_rows), device=device,
+                      inputs=[model.row_kind, work.row_count, work.delassus])
+        wp.launch(projection_shift, dim=model.num_worlds, device=device,
+                  inputs=[model.padmm_eta, model.padmm_rho_init, work.valid, int(model.has_unilateral_or_drive_rows),
+                          work.sigma, work.needs_factor])
+        linear.factor(work.delassus, work.sigma, work.needs_factor, work.factor)
     for _ in range(model.config.position_iterations):
         residual_fn(model, body_q, work.row_residual)
         wp.launch(projection_rhs, dim=grid_rows, device=device,

@@ -55,7 +55,8 @@ class SolverConfig:
     Attributes:
         integrator: Integrator.SEMI_IMPLICIT_EULER or Integrator.MOREAU_JEAN.
         max_iterations: PADMM iteration cap per step.
-        tolerance: primal and dual residual tolerance, in preconditioned units (sqrt of [J]).
+        tolerance: absolute primal and dual residual tolerance, in preconditioned units (sqrt of [J]).
+        relative_tolerance: added tolerance per unit of the largest preconditioned impulse.
         eta: proximal weight (> 0; regularizes redundant constraints).
         rho: initial ADMM penalty.
         adaptive_rho: rescale rho (and refactor) when primal and dual residuals are unbalanced.
@@ -76,8 +77,9 @@ class SolverConfig:
     """
 
     integrator: Integrator = Integrator.MOREAU_JEAN
-    max_iterations: int = 50
+    max_iterations: int = 100
     tolerance: float = 1.0e-6
+    relative_tolerance: float = 1.0e-4
     eta: float = 1.0e-5
     rho: float = 1.0e-3
     adaptive_rho: bool = True
@@ -103,6 +105,7 @@ class SolverConfig:
         checks = {
             "max_iterations": self.max_iterations >= 1,
             "tolerance": self.tolerance > 0.0,
+            "relative_tolerance": self.relative_tolerance >= 0.0,
             "eta": self.eta > 0.0,
             "rho": self.rho > 0.0,
             "rho_update_interval": self.rho_update_interval >= 1,

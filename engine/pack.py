@@ -244,6 +244,7 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     model.max_pairs = max_pairs
     model.has_contacts = capacity > 0
     model.has_limits = any(j.has_limits for s in specs for j in s.joints)
+    model.has_unilateral_or_drive_rows = bool(np.any(h["row_kind"] >= 2))
     model.work = Workspace(W, B, R, device, max_pairs=max_pairs, contact_capacity=capacity)
     model.work.row_count.assign(h["row_count"])
     model.work.row_body_c = wp.clone(model.row_body_c)  # contact rows rewrite their bodies every step

@@ -9,7 +9,8 @@ factor L L^T = P D P + (eta + rho) I, each iteration of an active world does
                       Coulomb cone per contact triplet;  z = z_hat - rho (x - y)
     padmm_convergence: residuals r_p = |x - y|_inf, r_d = |eta (x - x_prev) + rho (y - y_hat)|_inf,
                       complementarity r_c = max |y . z| over limit rows and contact triplets;
-                      stop at tolerance or at the iteration cap; Nesterov momentum with restart;
+                      stop when r_p, r_d <= tolerance + relative_tolerance * |y|_inf and
+                      r_c <= that times |y|_inf, or at the iteration cap; Nesterov momentum with restart;
                       penalty update (which asks for a new factor)
     padmm_accelerate: y_hat = y + beta (y - y_prev), z_hat = z + beta (z - z_prev)
     linear.factor:    only for worlds whose penalty changed
@@ -184,6 +185,7 @@ def padmm_project(
 def padmm_convergence(
     max_rows: int,
     max_iterations: int,
+    relative_tolerance: float,
     rho_update_interval: int,
     adaptive_rho: int,
     acceleration: int,
@@ -223,7 +225,9 @@ def padmm_convergence(
     r_d = float(0.0)
     r_c = float(0.0)
     change = float(0.0)
+    scale = float(0.0)
     for i in range(row_count[world]):
+        scale = wp.max(scale, wp.abs(y[world, i]))
         dy = y[world, i] - y_hat[world, i]
         dz = z[world, i] - z_hat[world, i]
         r_p = wp.max(r_p, wp.abs(x[world, i] - y[world, i]))
@@ -240,8 +244,8 @@ def padmm_convergence(
     residual_primal[world] = r_p
     residual_dual[world] = r_d
     residual_complementarity[world] = r_c
-    tol = padmm_tolerance[world]
-    done = r_p <= tol and r_d <= tol and r_c <= tol
+    tol = padmm_tolerance[world] + relative_tolerance * scale
+    done = r_p <= tol and r_d <= tol and r_c <= tol * scale
     if done or its >= max_iterations:
         active[world] = 0
         if done:
@@ -347,7 +351,7 @@ def padmm_iteration(model):
               inputs=[model.row_kind, work.row_count, work.row_friction, work.rho, work.active, work.lo, work.hi, work.x, work.z_hat, work.y, work.z,
                       work.y_prev, work.z_prev])
     wp.launch(padmm_convergence, dim=model.num_worlds, device=device,
-              inputs=[model.max_rows, cfg.max_iterations, cfg.rho_update_interval, int(cfg.adaptive_rho),
+              inputs=[model.max_rows, cfg.max_iterations, float(cfg.relative_tolerance), cfg.rho_update_interval, int(cfg.adaptive_rho),
                       int(cfg.acceleration), model.row_kind, model.padmm_eta, model.padmm_tolerance,
                       work.row_count, work.x, work.x_prev, work.y, work.y_hat, work.z, work.z_hat, work.rho, work.active,
                       work.converged, work.iterations, work.momentum, work.momentum_beta, work.merit,
