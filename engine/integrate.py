@@ -190,17 +190,22 @@ def bilateral_block(row_kind: wp.array2d(dtype=wp.int32), row_count: wp.array(dt
 
 @wp.kernel
 def projection_shift(padmm_eta: wp.array(dtype=float), padmm_rho_init: wp.array(dtype=float),
-                     valid: wp.array(dtype=wp.int32), always: int, sigma: wp.array(dtype=float),
-                     needs_factor: wp.array(dtype=wp.int32)):
-    """Flag the worlds to refactor for the projection (all valid ones when ``always``, else those
-    whose shift exceeds eta + rho_init) and set their shift to that value."""
+                     bilateral_row_count: wp.array(dtype=wp.int32), valid: wp.array(dtype=wp.int32), always: int,
+                     sigma: wp.array(dtype=float), needs_factor: wp.array(dtype=wp.int32),
+                     project_out: wp.array(dtype=wp.int32)):
+    """Worlds to project: valid ones with bilateral joint rows. Of those, flag for a new factor all
+    (when ``always``) or the ones whose shift exceeds eta + rho_init, with that shift."""
     world = wp.tid()
     target = padmm_eta[world] + padmm_rho_init[world]
+    project = int(0)
+    if valid[world] != 0 and bilateral_row_count[world] > 0:
+        project = 1
     flag = 0
-    if valid[world] != 0 and (always != 0 or sigma[world] > target):
+    if project != 0 and (always != 0 or sigma[world] > target):
         sigma[world] = target
         flag = 1
     needs_factor[world] = flag
+    project_out[world] = project
 
 
 def project_positions(model, body_q, body_qd, residual_fn, fraction=1.0):
@@ -212,26 +217,27 @@ def project_positions(model, body_q, body_qd, residual_fn, fraction=1.0):
     work, device = model.work, model.device
     grid_rows = (model.num_worlds, model.max_rows)
     grid_bodies = (model.num_worlds, model.max_bodies)
-    if model.config.position_iterations > 0:
-        # Only the bilateral joint rows are projected. Drive, limit and contact rows are decoupled
-        # from the projection (their rows and columns become identity) and a large ADMM penalty
-        # would damp the Gauss-Newton steps: such worlds get a factor of their own (the PADMM
-        # factor and matrix are free now, the next step rebuilds both).
-        if model.has_unilateral_or_drive_rows:
-            wp.launch(bilateral_block, dim=(model.num_worlds, model.max_rows, model.max_rows), device=device,
-                      inputs=[model.row_kind, work.row_count, work.delassus])
-        wp.launch(projection_shift, dim=model.num_worlds, device=device,
-                  inputs=[model.padmm_eta, model.padmm_rho_init, work.valid, int(model.has_unilateral_or_drive_rows),
-                          work.sigma, work.needs_factor])
-        linear.factor(work.delassus, work.sigma, work.needs_factor, work.factor)
+    if model.config.position_iterations == 0 or not model.has_bilateral_rows:
+        return  # nothing to project: no joints in the batch
+    # Only the bilateral joint rows are projected. Drive, limit and contact rows are decoupled from
+    # the projection (their rows and columns become identity) and a large ADMM penalty would damp
+    # the Gauss-Newton steps: such worlds get a factor of their own (the PADMM factor and matrix
+    # are free now, the next step rebuilds both).
+    if model.has_unilateral_or_drive_rows:
+        wp.launch(bilateral_block, dim=(model.num_worlds, model.max_rows, model.max_rows), device=device,
+                  inputs=[model.row_kind, work.row_count, work.delassus])
+    wp.launch(projection_shift, dim=model.num_worlds, device=device,
+              inputs=[model.padmm_eta, model.padmm_rho_init, model.bilateral_row_count, work.valid,
+                      int(model.has_unilateral_or_drive_rows), work.sigma, work.needs_factor, work.project])
+    linear.factor(work.delassus, work.sigma, work.needs_factor, work.factor)
     for _ in range(model.config.position_iterations):
         residual_fn(model, body_q, work.row_residual)
         wp.launch(projection_rhs, dim=grid_rows, device=device,
-                  inputs=[work.row_count, model.row_kind, work.valid, work.row_precond, work.row_residual],
+                  inputs=[work.row_count, model.row_kind, work.project, work.row_precond, work.row_residual],
                   outputs=[work.rhs])
-        linear.solve(work.factor, work.rhs, work.valid, work.delta)
+        linear.solve(work.factor, work.rhs, work.project, work.delta)
         wp.launch(apply_projection, dim=grid_bodies, device=device,
-                  inputs=[model.body_count, work.row_count, work.row_body_c, work.row_body_p, work.valid,
+                  inputs=[model.body_count, work.row_count, work.row_body_c, work.row_body_p, work.project,
                           model.world_dt, int(model.config.projection_velocity_update), fraction, work.row_MJ_c,
                           work.row_MJ_p, work.row_precond, work.delta, body_q, body_qd])
 

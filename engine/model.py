@@ -150,8 +150,9 @@ class Model:
         ground_normal (W,) vec3, ground_offset (W,) [m], ground_friction, ground_restitution (W,)
         pair_count (W,); pair_shape_a, pair_shape_b (W, max_pairs) int32 (b = -1: ground plane)
         contact_row_start (W,) int32: first contact row = number of joint, drive and limit rows
+        bilateral_row_count (W,) int32: joint rows the position projection works on
     Host: contact_capacity (contacts per world, 0 when the batch has no shapes), max_pairs,
-    has_contacts, has_limits.
+    has_contacts, has_limits, has_bilateral_rows, has_unilateral_or_drive_rows.
     """
 
     def __init__(self):
@@ -259,7 +260,7 @@ class Workspace:
         for name in ("rho", "sigma", "residual_primal", "residual_dual", "residual_complementarity", "momentum", "momentum_beta", "merit",
                      "violation_linear", "violation_angular", "energy"):
             setattr(self, name, zeros(w))
-        for name in ("iterations", "converged", "valid", "active", "needs_factor", "diverged"):
+        for name in ("iterations", "converged", "valid", "project", "active", "needs_factor", "diverged"):
             setattr(self, name, zeros(w, wp.int32))
         self.active_count = zeros(1, wp.int32)
         self.row_count = zeros(w, wp.int32)  # rows of this step: joint, drive, limit and 3 per contact

@@ -245,6 +245,9 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     model.has_contacts = capacity > 0
     model.has_limits = any(j.has_limits for s in specs for j in s.joints)
     model.has_unilateral_or_drive_rows = bool(np.any(h["row_kind"] >= 2))
+    bilateral = np.array([sum(JOINT_ROW_COUNT[j.type] for j in s.joints) for s in specs], np.int32)
+    model.bilateral_row_count = wp.array(bilateral, dtype=wp.int32, device=device)
+    model.has_bilateral_rows = bool(bilateral.any())
     model.work = Workspace(W, B, R, device, max_pairs=max_pairs, contact_capacity=capacity)
     model.work.row_count.assign(h["row_count"])
     model.work.row_body_c = wp.clone(model.row_body_c)  # contact rows rewrite their bodies every step
