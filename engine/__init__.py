@@ -10,11 +10,11 @@ from engine.model import Control, Integrator, Model, SolverConfig, State
 from engine.pack import pack_worlds
 from engine.rollout import Stepper, Trace, rollout
 
-from engine.spec import Body, Joint, JointDrive, JointType, MechanismSpec, TrackedPoint
-from engine.step import step
+from engine.spec import Body, GroundPlane, Joint, JointDrive, JointType, MechanismSpec, Shape, ShapeType, TrackedPoint
+from engine.step import StageTimer, step
 
 __all__ = [
-    "Body", "Control", "Integrator", "Joint", "JointDrive", "JointType", "MechanismSpec", "Model",
-    "SolverConfig", "State", "Stepper", "Trace", "TrackedPoint", "compute_metrics", "metrics_numpy", "pack_worlds", "rollout",
-    "step",
+    "Body", "Control", "GroundPlane", "Integrator", "Joint", "JointDrive", "JointType", "MechanismSpec", "Model",
+    "Shape", "ShapeType", "SolverConfig", "StageTimer", "State", "Stepper", "Trace", "TrackedPoint", "compute_metrics",
+    "metrics_numpy", "pack_worlds", "rollout", "step",
 ]

@@ -9,7 +9,7 @@ import warp as wp
 
 from engine.collide import PAIR_CONTACTS, PLANE_CONTACTS
 from engine.model import Model, SolverConfig, Workspace
-from engine.spec import JOINT_ROW_COUNT, JointType, MechanismSpec, ShapeType, joint_dynamics_rows
+from engine.spec import JOINT_ROW_COUNT, JointType, MechanismSpec, joint_dynamics_rows
 
 __all__ = ["pack_worlds"]
 

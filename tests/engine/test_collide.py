@@ -8,7 +8,7 @@ import pytest
 
 from engine import Body, Joint, MechanismSpec, pack_worlds, rollout
 from engine.scenes import fourbar
-from engine.spec import GroundPlane, Shape
+from engine import GroundPlane, Shape
 from engine.step import detect_contacts
 
 

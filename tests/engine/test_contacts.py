@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from engine import Body, MechanismSpec, SolverConfig, pack_worlds, rollout
+from engine import MechanismSpec, SolverConfig, pack_worlds, rollout
 from engine.scenes_contact import ball_bounce, box_on_plane, box_slide, box_stack, solid_box, walker, walker_gait
-from engine.spec import GroundPlane, Shape, TrackedPoint
+from engine import GroundPlane, Shape, TrackedPoint
 
 GRAVITY = 9.81
 

@@ -122,3 +122,51 @@ def test_row_layout_of_fourbar():
     assert spec.row_count == 20
     model = pack_worlds([spec], device="cpu")
     assert model.row_count.numpy()[0] == 20 and model.max_rows == 24
+
+
+def test_shape_with_wrong_size_count_rejected():
+    """A box needs three half extents; the error names the shape."""
+    from engine import Shape
+
+    with pytest.raises(ValueError, match=r"shape 'foot'.*box needs 3"):
+        Shape("foot", "box", "b", (0.1, 0.1))
+
+
+def test_shape_with_non_positive_radius_rejected():
+    """A sphere's radius must be positive."""
+    from engine import Shape
+
+    with pytest.raises(ValueError, match=r"shape 'ball'.*positive"):
+        Shape("ball", "sphere", "b", (-0.1,))
+
+
+def test_restitution_above_one_rejected():
+    """Restitution is a coefficient in [0, 1]."""
+    from engine import GroundPlane, Shape
+
+    with pytest.raises(ValueError, match=r"shape 'ball'.*restitution"):
+        Shape("ball", "sphere", "b", (0.1,), restitution=1.5)
+    with pytest.raises(ValueError, match=r"ground plane.*restitution"):
+        GroundPlane(restitution=2.0)
+
+
+def test_shape_on_missing_body_rejected():
+    """A shape must sit on a body of the mechanism."""
+    from engine import Shape
+
+    with pytest.raises(ValueError, match=r"shape 'ball'.*body 'ghost' does not exist"):
+        MechanismSpec([body("a")], shapes=[Shape("ball", "sphere", "ghost", (0.1,))])
+
+
+def test_inverted_or_misplaced_limits_rejected():
+    """limit_lower above limit_upper, or limits on a spherical joint, are rejected."""
+    with pytest.raises(ValueError, match=r"joint 'knee'.*limit_lower"):
+        Joint("knee", "revolute", None, "a", limit_lower=1.0, limit_upper=0.5)
+    with pytest.raises(ValueError, match=r"joint 'ball'.*limits need a revolute or prismatic"):
+        Joint("ball", "spherical", None, "a", limit_lower=-1.0)
+
+
+def test_negative_contact_capacity_rejected():
+    """pack_worlds refuses a negative contact capacity."""
+    with pytest.raises(ValueError, match="contact_capacity"):
+        pack_worlds([fourbar().spec], device="cpu", contact_capacity=-1)
