@@ -60,6 +60,13 @@ def test_sphere_on_plane_penetrating(device):
     np.testing.assert_allclose(p[0], [0.3, 0, -0.002], atol=1e-6)
 
 
+def test_sphere_beside_capsule(device):
+    """A sphere (r 0.1) 0.124 m from a capsule's segment (r 0.02): distance 0.004, normal radial."""
+    d, n, _ = contacts(scene(ball("a", (0.05, 0.124, 0.0)), capsule("b", (0, 0, 0), 0.02, 0.2, Y90)), device)
+    assert len(d) == 1 and abs(d[0] - 0.004) < 1e-6
+    np.testing.assert_allclose(n[0], [0, 1, 0], atol=1e-6)
+
+
 def test_crossed_capsules(device):
     """Capsules along x and y crossing 0.045 m apart (radii 0.02): distance 0.005 along z."""
     d, n, _ = contacts(scene(capsule("a", (0, 0, 0.045), 0.02, 0.2, Y90), capsule("b", (0, 0, 0), 0.02, 0.2, X90)),
