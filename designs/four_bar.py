@@ -1,0 +1,37 @@
+"""Four-bar crank-rocker with a coupler point: the classic coupler-curve synthesis family.
+
+Ground pivots O (crank) and D (rocker) on the x axis, crank O-M, coupler M-C, rocker D-C; the
+tracked point P rides on the coupler at ``point_u`` of the way from M to C and ``point_v`` [m]
+to its left.
+"""
+
+import math
+
+from morphopt.design_space import DesignSpace, Float
+from morphopt.linkage import Crank, Dyad, Link, Linkage
+
+space = DesignSpace({
+    "ground": Float(0.15, 0.45, default=0.30),
+    "crank": Float(0.04, 0.15, default=0.10),
+    "coupler": Float(0.15, 0.45, default=0.30),
+    "rocker": Float(0.10, 0.40, default=0.25),
+    "point_u": Float(-0.5, 1.5, default=0.5),
+    "point_v": Float(-0.2, 0.2, default=0.1),
+})
+
+
+def generate(params: dict, *, crank_speed: float = 2.0 * math.pi, phase: float = 0.0) -> Linkage:
+    """The four-bar for ``params`` (lengths [m])."""
+    p = params
+    along, side = p["point_u"] * p["coupler"], p["point_v"]
+    to_m = math.hypot(along, side)
+    to_c = math.hypot(p["coupler"] - along, side)
+    return Linkage(
+        name="four_bar",
+        ground={"O": (0.0, 0.0), "D": (p["ground"], 0.0)},
+        crank=Crank("O", "M", p["crank"], phase=phase, speed=crank_speed),
+        dyads=[Dyad("C", "M", p["coupler"], "D", p["rocker"], branch=1),
+               Dyad("P", "M", max(to_m, 1e-9), "C", max(to_c, 1e-9), branch=1 if side >= 0 else -1)],
+        links=[Link("crank", ("O", "M")), Link("coupler", ("M", "C", "P")), Link("rocker", ("D", "C"))],
+        points={"coupler_point": "P"},
+    )

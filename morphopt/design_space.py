@@ -1,0 +1,196 @@
+"""Design spaces: bounded floats, integers and categorical choices, with unit-cube maps.
+
+A DesignSpace is an ordered set of named parameters. Optimizers see only this module and
+parameter dicts: they sample in the unit cube (floats, ints) or pick categories, and the space
+maps between that and the design's own values. Optuna distributions come from the same
+definitions.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["Choice", "DesignSpace", "Float", "Int"]
+
+
+@dataclass(frozen=True)
+class Float:
+    """A real parameter in [low, high]; ``log`` samples it on a log scale (low > 0)."""
+
+    low: float
+    high: float
+    default: float | None = None
+    log: bool = False
+
+    def check(self, name: str) -> None:
+        if not (math.isfinite(self.low) and math.isfinite(self.high)) or self.low >= self.high:
+            raise ValueError(f"parameter '{name}': bounds must be finite with low < high, got [{self.low}, {self.high}]")
+        if self.log and self.low <= 0.0:
+            raise ValueError(f"parameter '{name}': a log-scaled range needs low > 0, got {self.low}")
+        if self.default is not None and not self.low <= self.default <= self.high:
+            raise ValueError(f"parameter '{name}': default {self.default} outside [{self.low}, {self.high}]")
+
+    def to_unit(self, value: float) -> float:
+        if self.log:
+            return (math.log(value) - math.log(self.low)) / (math.log(self.high) - math.log(self.low))
+        return (value - self.low) / (self.high - self.low)
+
+    def from_unit(self, u: float) -> float:
+        u = min(max(float(u), 0.0), 1.0)
+        if self.log:
+            return math.exp(math.log(self.low) + u * (math.log(self.high) - math.log(self.low)))
+        return self.low + u * (self.high - self.low)
+
+    def contains(self, value) -> bool:
+        return isinstance(value, (int, float)) and self.low <= value <= self.high
+
+    @property
+    def center(self) -> float:
+        return self.default if self.default is not None else self.from_unit(0.5)
+
+
+@dataclass(frozen=True)
+class Int:
+    """An integer parameter in [low, high] (both included)."""
+
+    low: int
+    high: int
+    default: int | None = None
+
+    def check(self, name: str) -> None:
+        if int(self.low) != self.low or int(self.high) != self.high or self.low >= self.high:
+            raise ValueError(f"parameter '{name}': integer bounds with low < high expected, got [{self.low}, {self.high}]")
+        if self.default is not None and not self.low <= self.default <= self.high:
+            raise ValueError(f"parameter '{name}': default {self.default} outside [{self.low}, {self.high}]")
+
+    def to_unit(self, value: int) -> float:
+        return (value - self.low + 0.5) / (self.high - self.low + 1)
+
+    def from_unit(self, u: float) -> int:
+        u = min(max(float(u), 0.0), 1.0)
+        return min(self.high, self.low + int(math.floor(u * (self.high - self.low + 1))))
+
+    def contains(self, value) -> bool:
+        return isinstance(value, (int, np.integer)) and not isinstance(value, bool) and self.low <= value <= self.high
+
+    @property
+    def center(self) -> int:
+        return self.default if self.default is not None else self.from_unit(0.5)
+
+
+@dataclass(frozen=True)
+class Choice:
+    """A categorical parameter: one of ``options`` (strings, numbers or booleans)."""
+
+    options: tuple
+    default: object = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "options", tuple(self.options))
+
+    def check(self, name: str) -> None:
+        if len(self.options) < 1 or len(set(self.options)) != len(self.options):
+            raise ValueError(f"parameter '{name}': choices must be distinct and non-empty, got {list(self.options)}")
+        if self.default is not None and self.default not in self.options:
+            raise ValueError(f"parameter '{name}': default {self.default!r} is not one of {list(self.options)}")
+
+    def to_unit(self, value) -> float:
+        return (self.options.index(value) + 0.5) / len(self.options)
+
+    def from_unit(self, u: float):
+        u = min(max(float(u), 0.0), 1.0)
+        return self.options[min(len(self.options) - 1, int(math.floor(u * len(self.options))))]
+
+    def contains(self, value) -> bool:
+        return value in self.options
+
+    @property
+    def center(self):
+        return self.default if self.default is not None else self.options[0]
+
+
+Parameter = Float | Int | Choice
+
+
+class DesignSpace:
+    """Named parameters in a fixed order.
+
+    Args:
+        parameters: mapping name -> Float | Int | Choice.
+    """
+
+    def __init__(self, parameters: Mapping[str, Parameter]):
+        if not parameters:
+            raise ValueError("a design space needs at least one parameter")
+        for name, parameter in parameters.items():
+            if not isinstance(parameter, (Float, Int, Choice)):
+                raise ValueError(f"parameter '{name}': expected Float, Int or Choice, got {type(parameter).__name__}")
+            parameter.check(name)
+        self.parameters: dict[str, Parameter] = dict(parameters)
+
+    @property
+    def names(self) -> list[str]:
+        return list(self.parameters)
+
+    @property
+    def dimension(self) -> int:
+        return len(self.parameters)
+
+    def default(self) -> dict:
+        """Each parameter's default (or the middle of its range, or its first choice)."""
+        return {name: p.center for name, p in self.parameters.items()}
+
+    def validate(self, params: Mapping) -> dict:
+        """Return a copy of ``params`` after checking that every parameter is present and in range."""
+        unknown = sorted(set(params) - set(self.parameters))
+        if unknown:
+            raise ValueError(f"unknown design parameter(s) {unknown}; expected {self.names}")
+        out = {}
+        for name, parameter in self.parameters.items():
+            if name not in params:
+                raise ValueError(f"design parameter '{name}' is missing")
+            value = params[name]
+            if not parameter.contains(value):
+                raise ValueError(f"design parameter '{name}' = {value!r} is outside {_describe(parameter)}")
+            out[name] = value
+        return out
+
+    def to_unit(self, params: Mapping) -> np.ndarray:
+        """Unit-cube coordinates (dimension,) of a parameter dict."""
+        return np.array([p.to_unit(params[name]) for name, p in self.parameters.items()])
+
+    def from_unit(self, u: Sequence[float]) -> dict:
+        """Parameter dict of unit-cube coordinates (clipped into the cube)."""
+        u = np.asarray(u, dtype=float).reshape(-1)
+        if u.size != self.dimension:
+            raise ValueError(f"expected {self.dimension} unit coordinates, got {u.size}")
+        return {name: p.from_unit(x) for (name, p), x in zip(self.parameters.items(), u)}
+
+    def sample(self, rng: np.random.Generator, count: int) -> list[dict]:
+        """``count`` independent uniform samples."""
+        return [self.from_unit(rng.random(self.dimension)) for _ in range(count)]
+
+    def optuna_distributions(self) -> dict:
+        """The same space as Optuna distributions."""
+        import optuna
+
+        out = {}
+        for name, p in self.parameters.items():
+            if isinstance(p, Float):
+                out[name] = optuna.distributions.FloatDistribution(p.low, p.high, log=p.log)
+            elif isinstance(p, Int):
+                out[name] = optuna.distributions.IntDistribution(int(p.low), int(p.high))
+            else:
+                out[name] = optuna.distributions.CategoricalDistribution(p.options)
+        return out
+
+
+def _describe(parameter) -> str:
+    if isinstance(parameter, Choice):
+        return f"the choices {list(parameter.options)}"
+    kind = "integers" if isinstance(parameter, Int) else "reals"
+    return f"{kind} in [{parameter.low}, {parameter.high}]"

@@ -1,0 +1,36 @@
+"""Design families: plain modules with a ``space`` (DesignSpace) and ``generate(params)``.
+
+Families live in the project's designs/ folder and are loaded by name, or from any .py path.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import pathlib
+from types import ModuleType
+
+__all__ = ["DESIGNS_DIR", "available_families", "load_family"]
+
+DESIGNS_DIR = pathlib.Path(__file__).resolve().parents[1] / "designs"
+
+
+def available_families() -> list[str]:
+    """Names of the families in designs/."""
+    return sorted(p.stem for p in DESIGNS_DIR.glob("*.py") if not p.name.startswith("_"))
+
+
+def load_family(name_or_path: str) -> ModuleType:
+    """Load a family module by name (designs/<name>.py) or by path; checks its interface."""
+    path = pathlib.Path(name_or_path)
+    if path.suffix != ".py":
+        path = DESIGNS_DIR / f"{name_or_path}.py"
+    if not path.is_file():
+        raise ValueError(f"unknown design family '{name_or_path}': no file {path}; "
+                         f"available: {', '.join(available_families())}")
+    spec = importlib.util.spec_from_file_location(f"morphopt_family_{path.stem}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    for attribute in ("space", "generate"):
+        if not hasattr(module, attribute):
+            raise ValueError(f"design family {path} defines no '{attribute}'")
+    return module

@@ -1,0 +1,102 @@
+"""Planar linkages as kinematic graphs: ground pivots, one driving crank, RRR dyads, rigid links.
+
+Coordinates are planar (x, y) [m] with y up; engine.MechanismSpec puts the plane at y = 0 of
+the world (planar x -> world x, planar y -> world z) with every pivot turning about world -y, so
+that a positive planar angle is counter-clockwise.
+
+Nodes are solved in order: ground pivots are fixed, the crank tip turns about its centre, and each
+dyad places a new node at distance ``ra`` from node ``a`` and ``rb`` from node ``b``, on the
+``branch`` side (+1: left of the direction a -> b, -1: right). Links name the rigid bodies: each
+is a set of nodes whose distances never change (binary bars, ternary plates, the crank).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+__all__ = ["Crank", "Dyad", "Link", "Linkage"]
+
+
+@dataclass(frozen=True)
+class Crank:
+    """The driver: node ``tip`` at ``radius`` [m] from ground node ``center``, at angle
+    ``phase + speed * t`` [rad] (speed in [rad/s], counter-clockwise positive)."""
+
+    center: str
+    tip: str
+    radius: float
+    phase: float = 0.0
+    speed: float = 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class Dyad:
+    """RRR dyad: node ``node`` at distance ``ra`` from node ``a`` and ``rb`` from node ``b``."""
+
+    node: str
+    a: str
+    ra: float
+    b: str
+    rb: float
+    branch: int = 1
+
+
+@dataclass(frozen=True)
+class Link:
+    """A rigid body through ``nodes`` (at least two)."""
+
+    name: str
+    nodes: tuple
+
+
+@dataclass
+class Linkage:
+    """One planar linkage design (see the module docstring)."""
+
+    name: str
+    ground: dict
+    crank: Crank
+    dyads: list = field(default_factory=list)
+    links: list = field(default_factory=list)
+    points: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        where = f"linkage '{self.name}'"
+        self.ground = {k: (float(v[0]), float(v[1])) for k, v in self.ground.items()}
+        known = set(self.ground)
+        if self.crank.center not in known:
+            raise ValueError(f"{where}: crank centre '{self.crank.center}' is not a ground pivot")
+        if not self.crank.radius > 0.0:
+            raise ValueError(f"{where}: crank radius must be positive, got {self.crank.radius}")
+        known.add(self.crank.tip)
+        for dyad in self.dyads:
+            for end in (dyad.a, dyad.b):
+                if end not in known:
+                    raise ValueError(f"{where}: dyad '{dyad.node}' uses node '{end}' before it is placed")
+            if dyad.node in known:
+                raise ValueError(f"{where}: node '{dyad.node}' is placed twice")
+            if not (dyad.ra > 0.0 and dyad.rb > 0.0) or dyad.branch not in (1, -1):
+                raise ValueError(f"{where}: dyad '{dyad.node}' needs positive lengths and branch +1 or -1")
+            known.add(dyad.node)
+        for link in self.links:
+            if len(link.nodes) < 2:
+                raise ValueError(f"{where}: link '{link.name}' needs at least two nodes")
+            for node in link.nodes:
+                if node not in known:
+                    raise ValueError(f"{where}: link '{link.name}' names unknown node '{node}'")
+        for point, node in self.points.items():
+            if node not in known:
+                raise ValueError(f"{where}: tracked point '{point}' names unknown node '{node}'")
+
+    @property
+    def nodes(self) -> list[str]:
+        """All nodes in solving order."""
+        return [*self.ground, self.crank.tip, *(d.node for d in self.dyads)]
+
+    @property
+    def topology(self) -> tuple:
+        """Everything but the numbers: designs with equal topology solve in one batch."""
+        return (tuple(self.ground), (self.crank.center, self.crank.tip),
+                tuple((d.node, d.a, d.b, d.branch) for d in self.dyads),
+                tuple((link.name, tuple(link.nodes)) for link in self.links), tuple(self.points.items()))

@@ -1,0 +1,133 @@
+"""The one conversion from a planar Linkage to engine.MechanismSpec.
+
+Links become bodies built from rectangular bars between every pair of their nodes (width and
+thickness [m], density [kg/m^3]); nodes shared by links become revolute joints about world -y
+(loop closures included, no spanning tree); ground nodes join links to the world; the crank gets a
+velocity drive with an effort limit. Planar (x, y) maps to world (x, 0, y).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from engine import Body, Joint, JointDrive, MechanismSpec, TrackedPoint
+from morphopt.linkage.graph import Linkage
+from morphopt.linkage.kinematics import solve_at
+
+__all__ = ["BarStyle", "to_spec"]
+
+AXIS = (0.0, -1.0, 0.0)  # positive rotation is counter-clockwise in the planar (x, y) view
+
+
+@dataclass(frozen=True)
+class BarStyle:
+    """Cross-section and material of the bars: width, thickness [m], density [kg/m^3]."""
+
+    width: float = 0.01
+    thickness: float = 0.005
+    density: float = 2700.0
+
+
+def world(xy) -> np.ndarray:
+    """Planar point -> world point."""
+    return np.array([xy[0], 0.0, xy[1]])
+
+
+def planar_rotation(angle: float) -> tuple:
+    """Quaternion (x, y, z, w) of a counter-clockwise planar rotation (about world -y)."""
+    return (0.0, -math.sin(0.5 * angle), 0.0, math.cos(0.5 * angle))
+
+
+def _bar_inertia(start: np.ndarray, end: np.ndarray, style: BarStyle):
+    """Mass [kg], centre (world) and inertia about the centre (world axes) of one bar."""
+    axis = end - start
+    length = float(np.linalg.norm(axis))
+    mass = style.density * style.width * style.thickness * length
+    u = axis / length
+    w = np.array([0.0, 1.0, 0.0])  # thickness direction
+    v = np.cross(w, u)  # width direction, in the plane
+    inertia = (mass / 12.0) * ((length**2) * (np.eye(3) - np.outer(u, u))
+                               + style.width**2 * (np.eye(3) - np.outer(v, v))
+                               + style.thickness**2 * (np.eye(3) - np.outer(w, w)))
+    return mass, 0.5 * (start + end), inertia
+
+
+def link_body(name: str, points: list[np.ndarray], style: BarStyle, velocities=None) -> Body:
+    """A body made of bars between every pair of ``points`` (world), frame at points[0] with x
+    towards points[1]."""
+    bars = [_bar_inertia(points[i], points[j], style) for i in range(len(points)) for j in range(i + 1, len(points))]
+    mass = sum(m for m, _, _ in bars)
+    com = sum(m * c for m, c, _ in bars) / mass
+    inertia = sum(I + m * ((c - com) @ (c - com) * np.eye(3) - np.outer(c - com, c - com)) for m, c, I in bars)
+    direction = points[1] - points[0]
+    angle = math.atan2(direction[2], direction[0])
+    rotation = planar_rotation(angle)
+    R = _matrix(rotation)
+    return Body(name, mass, R.T @ inertia @ R, com=R.T @ (com - points[0]), position=points[0], orientation=rotation)
+
+
+def _matrix(q) -> np.ndarray:
+    x, y, z, w = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def to_spec(linkage: Linkage, *, style: BarStyle = BarStyle(), crank_damping: float = 50.0,
+            effort_limit: float = 50.0, gravity=(0.0, 0.0, -9.81), start_at_speed: bool = True) -> MechanismSpec:
+    """Build the MechanismSpec of ``linkage``, assembled at its crank phase.
+
+    crank_damping [N m s/rad] and effort_limit [N m] define the crank's velocity drive (target
+    = crank.speed). With start_at_speed, bodies start with the loop-consistent velocities of the
+    crank turning at speed (finite differences of the kinematics), else at rest.
+    """
+    crank = linkage.crank
+    h = 1e-6
+    angles = np.array([crank.phase, crank.phase + h])
+    solution = solve_at([linkage], angles[None, :])[0]
+    if not solution.feasible:
+        raise ValueError(f"linkage '{linkage.name}' cannot be assembled: {solution.reason}")
+    node_xy = {name: path[0] for name, path in solution.nodes.items()}
+    node_rate = {name: (path[1] - path[0]) / h * (crank.speed if start_at_speed else 0.0)
+                 for name, path in solution.nodes.items()}
+    bodies, joints, link_of = [], [], {}
+    for link in linkage.links:
+        points = [world(node_xy[n]) for n in link.nodes]
+        body = link_body(link.name, points, style)
+        # rigid-body velocity from the first two nodes' planar velocities
+        v0, v1 = world(node_rate[link.nodes[0]]), world(node_rate[link.nodes[1]])
+        r = points[1] - points[0]
+        omega_y = (np.cross(r, v1 - v0) / max(r @ r, 1e-300))[1]
+        com_world = points[0] + _matrix(body.orientation) @ body.com
+        body.velocity = v0 + np.cross(np.array([0.0, omega_y, 0.0]), com_world - points[0])
+        body.angular_velocity = np.array([0.0, omega_y, 0.0])
+        bodies.append(body)
+        for node in link.nodes:
+            link_of.setdefault(node, []).append((link.name, body))
+    for node, members in link_of.items():
+        anchor = world(node_xy[node])
+        if node in linkage.ground:
+            for name, body in members:
+                drive = None
+                if node == crank.center and crank.tip in next(l.nodes for l in linkage.links if l.name == name):
+                    drive = JointDrive(damping=crank_damping, target_velocity=crank.speed, effort_limit=effort_limit)
+                joints.append(Joint(f"{node}_{name}", "revolute", None, name, parent_position=anchor,
+                                    child_position=_local(body, anchor), axis=AXIS, drive=drive))
+            continue
+        (parent, parent_body), *children = members
+        for name, body in children:
+            joints.append(Joint(f"{node}_{parent}_{name}", "revolute", parent, name,
+                                parent_position=_local(parent_body, anchor), child_position=_local(body, anchor), axis=AXIS))
+    points = []
+    for point, node in linkage.points.items():
+        name, body = link_of[node][0]
+        points.append(TrackedPoint(point, name, _local(body, world(node_xy[node]))))
+    return MechanismSpec(bodies, joints, points, gravity=gravity, name=linkage.name)
+
+
+def _local(body: Body, point: np.ndarray) -> np.ndarray:
+    """World point in the body frame."""
+    return _matrix(body.orientation).T @ (point - body.position)
