@@ -14,16 +14,22 @@ __all__ = ["DESIGNS_DIR", "available_families", "load_family"]
 DESIGNS_DIR = pathlib.Path(__file__).resolve().parents[1] / "designs"
 
 
+def _search_dirs() -> list[pathlib.Path]:
+    """designs/ of the working directory first, then the one beside the package (source tree)."""
+    return [d for d in (pathlib.Path.cwd() / "designs", DESIGNS_DIR) if d.is_dir()]
+
+
 def available_families() -> list[str]:
-    """Names of the families in designs/."""
-    return sorted(p.stem for p in DESIGNS_DIR.glob("*.py") if not p.name.startswith("_"))
+    """Names of the families found in designs/."""
+    return sorted({p.stem for d in _search_dirs() for p in d.glob("*.py") if not p.name.startswith("_")})
 
 
 def load_family(name_or_path: str) -> ModuleType:
     """Load a family module by name (designs/<name>.py) or by path; checks its interface."""
     path = pathlib.Path(name_or_path)
     if path.suffix != ".py":
-        path = DESIGNS_DIR / f"{name_or_path}.py"
+        candidates = [d / f"{name_or_path}.py" for d in _search_dirs()]
+        path = next((c for c in candidates if c.is_file()), DESIGNS_DIR / f"{name_or_path}.py")
     if not path.is_file():
         raise ValueError(f"unknown design family '{name_or_path}': no file {path}; "
                          f"available: {', '.join(available_families())}")
