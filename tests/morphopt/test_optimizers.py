@@ -1,0 +1,62 @@
+"""Optimizer conformance: every optimizer honours the ask/tell contract; each finds a toy optimum."""
+
+import math
+
+import numpy as np
+import pytest
+
+from morphopt.design_space import Choice, DesignSpace, Float, Int
+from morphopt.optimizers import OPTIMIZERS
+
+
+def make(name, space, batch, seed):
+    cls = OPTIMIZERS[name]
+    return cls(space, popsize=batch, seed=seed) if name == "cma" else cls(space, seed=seed)
+
+
+def sphere_space():
+    return DesignSpace({"x": Float(-2.0, 2.0, default=1.5), "y": Float(-2.0, 2.0, default=-1.5)})
+
+
+@pytest.mark.parametrize("name", sorted(OPTIMIZERS))
+def test_conformance(name):
+    """ask returns in-bounds designs of the space; tell accepts failures; same seed, same designs;
+    the best design is tracked."""
+    space = DesignSpace({"a": Float(0.0, 1.0), "n": Int(1, 4), "c": Choice(("p", "q"))})
+    runs = []
+    for _ in range(2):
+        opt = make(name, space, 8, seed=3)
+        asked = []
+        for generation in range(3):
+            batch = opt.ask(8)
+            assert len(batch) == 8
+            for params in batch:
+                space.validate(params)
+            values = [p["a"] + p["n"] if i % 3 else math.inf for i, p in enumerate(batch)]
+            opt.tell(batch, values)
+            asked.append(batch)
+        runs.append((asked, opt.best_value, opt.best_params))
+    assert runs[0] == runs[1]
+    assert math.isfinite(runs[0][1]) and opt.evaluations == 24
+
+
+@pytest.mark.parametrize("name, budget, tolerance", [("cma", 30, 1e-3), ("random", 40, 0.2)])
+def test_finds_the_optimum_of_a_shifted_sphere(name, budget, tolerance):
+    """On (x - 0.3)^2 + (y + 0.7)^2 the optimizer gets within ``tolerance`` of (0.3, -0.7)."""
+    opt = make(name, sphere_space(), 16, seed=1)
+    for _ in range(budget):
+        batch = opt.ask(16)
+        opt.tell(batch, [(p["x"] - 0.3) ** 2 + (p["y"] + 0.7) ** 2 for p in batch])
+    best = opt.best_params
+    assert math.hypot(best["x"] - 0.3, best["y"] + 0.7) < tolerance
+
+
+def test_cma_ranks_failures_last():
+    """Failed designs get a penalty worse than every finite value, so the mean moves away from them."""
+    opt = OPTIMIZERS["cma"](sphere_space(), popsize=12, seed=0)
+    for _ in range(25):
+        batch = opt.ask(12)
+        # everything with x < 0 "fails"; the optimum of x^2 + y^2 restricted to x >= 0 is at x = 0
+        opt.tell(batch, [math.nan if p["x"] < 0 else p["x"] ** 2 + p["y"] ** 2 for p in batch])
+    assert opt.best_params["x"] >= 0 and opt.best_value < 1e-3
+    assert np.isfinite(opt.penalized([math.inf])).all()
