@@ -129,8 +129,9 @@ class Trace:
 
     time (T,) [s]; points (T, W, P, 3) tracked points, world frame [m];
     violation_linear (T, W) [m]; violation_angular (T, W) [rad]; energy (T, W) [J];
-    iterations (T, W) PADMM iterations of the last step before the record; diverged (W,) bool;
-    point_names (list per world).
+    iterations (T, W) PADMM iterations of the last step before the record; drive_torque
+    (T, W, J) torque [N m] (force [N]) of every joint drive in that step (0 without a drive);
+    diverged (W,) bool; point_names (list per world).
     """
 
     time: np.ndarray
@@ -139,6 +140,7 @@ class Trace:
     violation_angular: np.ndarray
     energy: np.ndarray
     iterations: np.ndarray
+    drive_torque: np.ndarray
     diverged: np.ndarray
     point_names: list
 
@@ -158,6 +160,22 @@ def tracked_points(
     points_out[world, p] = wp.transform_point(body_q[world, point_body[world, p]], point_local[world, p])
 
 
+@wp.kernel
+def drive_torques(
+    joint_count: wp.array(dtype=wp.int32),
+    joint_drive_row: wp.array2d(dtype=wp.int32),
+    world_dt: wp.array(dtype=float),
+    row_lambda: wp.array2d(dtype=float),
+    torque_out: wp.array2d(dtype=float),
+):
+    """Drive torque [N m] = drive row impulse / dt; 0 for joints without a drive."""
+    world, j = wp.tid()
+    value = 0.0
+    if j < joint_count[world] and joint_drive_row[world, j] >= 0:
+        value = row_lambda[world, joint_drive_row[world, j]] / world_dt[world]
+    torque_out[world, j] = value
+
+
 def rollout(model: Model, state: State, control: Control, steps: int, *, dt: float | None = None,
             record_every: int = 1) -> tuple[Trace, State]:
     """Run ``steps`` steps, recording tracked points and metrics every ``record_every`` steps.
@@ -170,7 +188,9 @@ def rollout(model: Model, state: State, control: Control, steps: int, *, dt: flo
         model.set_dt(dt)
     stepper = Stepper(model, state, control, chunk=record_every)
     points = wp.zeros((model.num_worlds, model.max_points), dtype=wp.vec3, device=model.device)
-    records = {name: [] for name in ("points", "violation_linear", "violation_angular", "energy", "iterations")}
+    torques = wp.zeros((model.num_worlds, model.max_joints), dtype=float, device=model.device)
+    records = {name: [] for name in ("points", "violation_linear", "violation_angular", "energy", "iterations",
+                                     "drive_torque")}
     times = []
 
     def record(current: State):
@@ -178,6 +198,10 @@ def rollout(model: Model, state: State, control: Control, steps: int, *, dt: flo
         wp.launch(tracked_points, dim=(model.num_worlds, model.max_points), device=model.device,
                   inputs=[model.point_count, model.point_body, model.point_local, current.body_q], outputs=[points])
         records["points"].append(points.numpy().copy())
+        wp.launch(drive_torques, dim=(model.num_worlds, model.max_joints), device=model.device,
+                  inputs=[model.joint_count, model.joint_drive_row, model.world_dt, current.row_lambda],
+                  outputs=[torques])
+        records["drive_torque"].append(torques.numpy().copy())
         for name in ("violation_linear", "violation_angular", "energy", "iterations"):
             records[name].append(getattr(model.work, name).numpy().copy())
 
@@ -191,6 +215,6 @@ def rollout(model: Model, state: State, control: Control, steps: int, *, dt: flo
     trace = Trace(time=np.asarray(times), points=np.stack(records["points"]),
                   violation_linear=np.stack(records["violation_linear"]),
                   violation_angular=np.stack(records["violation_angular"]), energy=np.stack(records["energy"]),
-                  iterations=np.stack(records["iterations"]),
+                  iterations=np.stack(records["iterations"]), drive_torque=np.stack(records["drive_torque"]),
                   diverged=model.work.diverged.numpy().astype(bool), point_names=model.point_names)
     return trace, stepper.state
