@@ -1,5 +1,9 @@
 """The `morphopt` command line: nested subcommands.
 
+    morphopt study run SPEC [--device D] [--worlds N] [--generations G] [--seed S]
+    morphopt study resume SPEC
+    morphopt study show SPEC [--top K]
+    morphopt study plot SPEC [--out PNG]
     morphopt demo fourbar [--worlds N] [--seconds S] [--dt DT] [--device cpu|cuda]
 """
 
@@ -49,10 +53,89 @@ def _demo(args) -> int:
     return 0
 
 
+def _study_spec(args):
+    from morphopt.study_spec import load_study_spec
+
+    spec = load_study_spec(args.spec)
+    overrides = {k: getattr(args, k, None) for k in ("device", "worlds", "generations", "seed")}
+    return spec.with_overrides(**overrides)
+
+
+def _study_run(args) -> int:
+    from morphopt.study import run_study
+
+    spec = _study_spec(args)
+    result = run_study(spec, resume=args.study_command == "resume")
+    print(f"study '{spec.name}': {result.evaluations} designs in {result.seconds:.1f} s "
+          f"({result.evaluations / max(result.seconds, 1e-9):,.0f} designs/s), results in {spec.storage_url}")
+    if result.best_params is None:
+        print("no feasible design found")
+        return 1
+    print(f"best {spec.metric} = {result.best_value:.6g} ({spec.direction})")
+    for name, value in result.best_params.items():
+        print(f"  {name:>12} = {value:.6g}" if isinstance(value, float) else f"  {name:>12} = {value}")
+    return 0
+
+
+def _study_show(args) -> int:
+    import pandas as pd
+
+    from morphopt.storage import StudyStorage
+
+    spec = _study_spec(args)
+    frame = StudyStorage(spec.storage_url, spec.name).designs()
+    if frame.empty:
+        print(f"study '{spec.name}' has no stored designs in {spec.storage_url}")
+        return 1
+    done = int(frame["generation"].max()) + 1
+    feasible = frame[frame["failure"] == ""]
+    print(f"study '{spec.name}': {done}/{spec.generations} generations, {len(frame)} designs, "
+          f"{len(feasible)} feasible ({100 * len(feasible) / len(frame):.0f} %)")
+    best = feasible.sort_values("value", ascending=spec.direction == "minimize").head(args.top)
+    columns = ["generation", "value", *[c for c in best.columns if c not in ("generation", "member", "value",
+                                                                            "failure") and not c.startswith("metric_")]]
+    with pd.option_context("display.width", 200, "display.max_columns", 30):
+        print(best[columns].to_string(index=False))
+    return 0
+
+
+def _study_plot(args) -> int:
+    from morphopt.families import load_family
+    from morphopt.plots import plot_study
+    from morphopt.storage import StudyStorage
+
+    spec = _study_spec(args)
+    frame = StudyStorage(spec.storage_url, spec.name).designs()
+    if frame.empty:
+        print(f"study '{spec.name}' has no stored designs in {spec.storage_url}")
+        return 1
+    out = args.out or str(spec.path.with_suffix(".png"))
+    print(plot_study(frame, spec, load_family(spec.family), out))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="morphopt", description="Closed-chain mechanism design optimization.")
     parser.add_argument("--version", action="version", version=f"morphopt {__version__}")
     commands = parser.add_subparsers(dest="command", required=True)
+    study = commands.add_parser("study", help="run, resume, show or plot a design study (TOML spec)")
+    study_commands = study.add_subparsers(dest="study_command", required=True)
+    for name, handler, text in (("run", _study_run, "run a study from scratch"),
+                                ("resume", _study_run, "continue an interrupted study"),
+                                ("show", _study_show, "best designs as a table, and progress"),
+                                ("plot", _study_plot, "convergence and the best design, as a PNG")):
+        sub = study_commands.add_parser(name, help=text)
+        sub.add_argument("spec", help="study TOML file")
+        if name == "run":
+            sub.add_argument("--device", help="Warp device: cpu, cuda, cuda:N")
+            sub.add_argument("--worlds", type=_positive(int), help="designs per generation (worlds per batch)")
+            sub.add_argument("--generations", type=_positive(int), help="number of generations")
+            sub.add_argument("--seed", type=int, help="random seed")
+        if name == "show":
+            sub.add_argument("--top", type=_positive(int), default=10, help="rows to show (default 10)")
+        if name == "plot":
+            sub.add_argument("--out", help="PNG path (default: beside the spec)")
+        sub.set_defaults(handler=handler)
     demo = commands.add_parser("demo", help="simulate a reference mechanism and print what was measured")
     demo.add_argument("scene", choices=DEMO_SCENES)
     demo.add_argument("--worlds", type=_positive(int), default=16, help="number of worlds (default 16)")
@@ -66,6 +149,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    if args.command == "study":
+        try:
+            return args.handler(args)
+        except ValueError as exc:
+            print(f"morphopt study {args.study_command}: {exc}", file=sys.stderr)
+            return 2
     if args.command == "demo" and args.device.startswith("cuda"):
         import warp as wp
 

@@ -1,0 +1,171 @@
+"""StudySpec: a study read from TOML and checked before anything runs.
+
+    [study]       name, family, mode ("kinematic" | "dynamic"), seed, generations, worlds,
+                  device, storage (path relative to the spec file, or an SQLAlchemy URL)
+    [objective]   metric (a metric name of the evaluation), direction ("minimize" | "maximize")
+    [optimizer]   name ("cma" | "random"), sigma0 (cma)
+    [simulation]  duration [s], dt [s], crank_speed [rad/s]   (dynamic mode; crank_speed also
+                  sets the kinematic crank's speed, samples = points per crank turn)
+    [space]       per parameter: [low, high] to narrow the family's bounds
+    [fixed]       per parameter: a value held fixed
+
+Every error names the file, the key and what was expected.
+"""
+
+from __future__ import annotations
+
+import math
+import pathlib
+import tomllib
+from dataclasses import dataclass, field, replace
+
+from morphopt.design_space import DesignSpace, Float, Int
+from morphopt.families import load_family
+
+__all__ = ["StudySpec", "load_study_spec"]
+
+SECTIONS = {
+    "study": {"name": str, "family": str, "mode": str, "seed": int, "generations": int, "worlds": int,
+              "device": str, "storage": str},
+    "objective": {"metric": str, "direction": str},
+    "optimizer": {"name": str, "sigma0": float},
+    "simulation": {"duration": float, "dt": float, "crank_speed": float, "samples": int},
+    "space": None,
+    "fixed": None,
+}
+REQUIRED = {"study": ("name", "family"), "objective": ("metric",)}
+
+
+@dataclass(frozen=True)
+class StudySpec:
+    """A validated study (see the module docstring for the keys and their defaults)."""
+
+    path: pathlib.Path
+    name: str
+    family: str
+    mode: str = "kinematic"
+    seed: int = 0
+    generations: int = 10
+    worlds: int = 64
+    device: str = "cpu"
+    storage: str = ""
+    metric: str = "foot_stride"
+    direction: str = "maximize"
+    optimizer: str = "cma"
+    sigma0: float = 0.25
+    duration: float = 2.0
+    dt: float = 1e-3
+    crank_speed: float = 2.0 * math.pi
+    samples: int = 360
+    space_overrides: dict = field(default_factory=dict)
+    fixed: dict = field(default_factory=dict)
+
+    @property
+    def storage_url(self) -> str:
+        """SQLAlchemy URL of the study database."""
+        storage = self.storage or f"{self.name}.sqlite"
+        if "://" in storage:
+            return storage
+        return f"sqlite:///{(self.path.parent / storage).resolve()}"
+
+    def with_overrides(self, **changes) -> StudySpec:
+        """A copy with command-line overrides (None values ignored), checked again."""
+        changes = {k: v for k, v in changes.items() if v is not None}
+        spec = replace(self, **changes)
+        _check_values(spec, str(self.path))
+        return spec
+
+    def design_space(self, family) -> DesignSpace:
+        """The family's space narrowed by [space] and without the [fixed] parameters."""
+        params = {}
+        for name, parameter in family.space.parameters.items():
+            if name in self.fixed:
+                continue
+            if name in self.space_overrides:
+                low, high = self.space_overrides[name]
+                kind = Int if isinstance(parameter, Int) else Float
+                default = parameter.default if parameter.default is not None and low <= parameter.default <= high else None
+                parameter = kind(low, high, default=default) if kind is Int else Float(low, high, default=default,
+                                                                                         log=parameter.log)
+            params[name] = parameter
+        return DesignSpace(params)
+
+
+def load_study_spec(path) -> StudySpec:
+    """Read and check a study TOML file; raise ValueError naming the file and key on any problem."""
+    path = pathlib.Path(path)
+    where = str(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError as exc:
+        raise ValueError(f"{where}: no such study file") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{where}: not valid TOML ({exc})") from exc
+    values = {}
+    for section, content in data.items():
+        if section not in SECTIONS:
+            raise ValueError(f"{where}: unknown section [{section}]; expected one of {sorted(SECTIONS)}")
+        if not isinstance(content, dict):
+            raise ValueError(f"{where}: '{section}' must be a [section] table")
+        keys = SECTIONS[section]
+        if keys is None:
+            continue
+        for key, value in content.items():
+            if key not in keys:
+                raise ValueError(f"{where}: unknown key '{section}.{key}'; expected one of {sorted(keys)}")
+            expected = keys[key]
+            if expected is float and isinstance(value, int) and not isinstance(value, bool):
+                value = float(value)
+            if not isinstance(value, expected) or isinstance(value, bool):
+                raise ValueError(f"{where}: '{section}.{key}' must be {expected.__name__}, got {value!r}")
+            target = {("optimizer", "name"): "optimizer", ("objective", "metric"): "metric"}.get((section, key), key)
+            values[target] = value
+    for section, keys in REQUIRED.items():
+        for key in keys:
+            if key not in data.get(section, {}):
+                raise ValueError(f"{where}: missing required key '{section}.{key}'")
+    spec = StudySpec(path=path, space_overrides=dict(data.get("space", {})), fixed=dict(data.get("fixed", {})),
+                     **values)
+    _check_values(spec, where)
+    return spec
+
+
+def _check_values(spec: StudySpec, where: str) -> None:
+    checks = [
+        ("study.mode", spec.mode in ("kinematic", "dynamic"), "'kinematic' or 'dynamic'"),
+        ("objective.direction", spec.direction in ("minimize", "maximize"), "'minimize' or 'maximize'"),
+        ("optimizer.name", spec.optimizer in ("cma", "random"), "'cma' or 'random'"),
+        ("study.generations", spec.generations >= 1, "an integer >= 1"),
+        ("study.worlds", spec.worlds >= 2, "an integer >= 2"),
+        ("optimizer.sigma0", 0.0 < spec.sigma0 <= 1.0, "a number in (0, 1]"),
+        ("simulation.duration", spec.duration > 0.0, "a positive number of seconds"),
+        ("simulation.dt", 0.0 < spec.dt <= 0.1, "a time step in (0, 0.1] s"),
+        ("simulation.crank_speed", spec.crank_speed != 0.0 and math.isfinite(spec.crank_speed), "a non-zero speed"),
+        ("simulation.samples", spec.samples >= 8, "an integer >= 8"),
+    ]
+    for key, ok, expected in checks:
+        if not ok:
+            raise ValueError(f"{where}: '{key}' must be {expected}")
+    try:
+        family = load_family(spec.family)
+    except ValueError as exc:
+        raise ValueError(f"{where}: 'study.family': {exc}") from exc
+    for section, table in (("space", spec.space_overrides), ("fixed", spec.fixed)):
+        for name, value in table.items():
+            if name not in family.space.parameters:
+                raise ValueError(f"{where}: '{section}.{name}' is not a parameter of family '{spec.family}' "
+                                 f"(parameters: {', '.join(family.space.names)})")
+            parameter = family.space.parameters[name]
+            if section == "space":
+                if (not isinstance(value, list) or len(value) != 2
+                        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
+                    raise ValueError(f"{where}: 'space.{name}' must be [low, high], got {value!r}")
+                if not value[0] < value[1]:
+                    raise ValueError(f"{where}: 'space.{name}' has inverted bounds {value}")
+                if value[0] < parameter.low or value[1] > parameter.high:
+                    raise ValueError(f"{where}: 'space.{name}' {value} leaves the family's range "
+                                     f"[{parameter.low}, {parameter.high}]")
+            elif not parameter.contains(value):
+                raise ValueError(f"{where}: 'fixed.{name}' = {value!r} is outside the family's range")
+    if len(spec.fixed) == len(family.space.parameters):
+        raise ValueError(f"{where}: every parameter is fixed; nothing to optimize")

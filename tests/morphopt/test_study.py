@@ -1,0 +1,106 @@
+"""Studies: spec validation, convergence on a known optimum, resume, and the CLI end to end."""
+
+import math
+import pathlib
+import textwrap
+
+import pytest
+
+from morphopt.cli import main
+from morphopt.study import run_study
+from morphopt.study_spec import load_study_spec
+
+TOY_FAMILY = '''
+"""A crank alone: its tip's path is a circle of radius r (step height 2 r)."""
+from morphopt.design_space import DesignSpace, Float
+from morphopt.linkage import Crank, Link, Linkage
+
+space = DesignSpace({"r": Float(0.01, 0.05, default=0.02), "x": Float(-1.0, 1.0, default=0.0)})
+
+
+def generate(params, *, crank_speed=6.283185307179586, phase=0.0):
+    return Linkage(name="toy", ground={"O": (params["x"], 0.0)},
+                   crank=Crank("O", "T", params["r"], phase=phase, speed=crank_speed),
+                   links=[Link("crank", ("O", "T"))], points={"tip": "T"})
+'''
+
+
+def write(tmp_path, text, name="study.toml"):
+    path = tmp_path / name
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+def toy_study(tmp_path, generations=12, extra=""):
+    (tmp_path / "toy.py").write_text(TOY_FAMILY)
+    return write(tmp_path, f"""
+        [study]
+        name = "toy"
+        family = "{(tmp_path / 'toy.py').as_posix()}"
+        generations = {generations}
+        worlds = 8
+        seed = 3
+        [objective]
+        metric = "tip_step_height"
+        direction = "maximize"
+        [simulation]
+        samples = 64
+        {extra}
+    """)
+
+
+def test_study_converges_to_the_known_optimum(tmp_path):
+    """Maximizing the tip's step height (2 r) drives r to its upper bound 0.05 m (value 0.1 m)."""
+    result = run_study(load_study_spec(toy_study(tmp_path)), progress=False)
+    assert abs(result.best_params["r"] - 0.05) < 1e-3
+    assert abs(result.best_value - 0.1) < 2e-3
+    assert result.evaluations == 12 * 8
+
+
+def test_resume_gives_the_uninterrupted_result(tmp_path):
+    """A study stopped after 4 generations and resumed to 10 ends exactly like a 10-generation run."""
+    spec = load_study_spec(toy_study(tmp_path, generations=10))
+    full = run_study(spec, progress=False)
+    run_study(spec.with_overrides(generations=4), progress=False)  # "interrupted" after 4 generations
+    resumed = run_study(spec, resume=True, progress=False)
+    assert resumed.best_params == full.best_params and resumed.best_value == full.best_value
+    assert resumed.evaluations == full.evaluations
+
+
+@pytest.mark.parametrize("body, message", [
+    ("[study]\nname='s'\nfamily='four_bar'\ncolour='red'\n[objective]\nmetric='x'", r"unknown key 'study.colour'"),
+    ("[study]\nname='s'\nfamily='four_bar'\nworlds='many'\n[objective]\nmetric='x'", r"'study.worlds' must be int"),
+    ("[study]\nname='s'\nfamily='four_bar'\n[objective]\nmetric='x'\n[space]\ncrank=[0.12, 0.05]",
+     r"'space.crank' has inverted bounds"),
+    ("[study]\nname='s'\nfamily='hexapod'\n[objective]\nmetric='x'", r"'study.family': unknown design family"),
+    ("[study]\nname='s'\n[objective]\nmetric='x'", r"missing required key 'study.family'"),
+    ("[study]\nname='s'\nfamily='four_bar'\n[objective]\nmetric='x'\ndirection='up'", r"'objective.direction'"),
+])
+def test_bad_spec_names_file_and_key(tmp_path, body, message):
+    """Every bad spec fails before running, naming the file and the key."""
+    path = write(tmp_path, body, name="bad.toml")
+    with pytest.raises(ValueError, match=message) as exc:
+        load_study_spec(path)
+    assert str(path) in str(exc.value)
+
+
+def test_cli_runs_shows_plots_and_resumes(tmp_path, capsys):
+    """`morphopt study run|show|plot|resume` work end to end on a tiny study."""
+    spec = toy_study(tmp_path, generations=3)
+    assert main(["study", "run", str(spec), "--worlds", "6"]) == 0
+    out = capsys.readouterr().out
+    assert "best tip_step_height" in out and "18 designs" in out
+    assert main(["study", "show", str(spec), "--top", "2"]) == 0
+    assert "3/3 generations" in capsys.readouterr().out
+    png = tmp_path / "toy.png"
+    assert main(["study", "plot", str(spec), "--out", str(png)]) == 0
+    assert png.stat().st_size > 10_000
+    assert main(["study", "resume", str(spec)]) == 0  # nothing left to do, best design printed again
+    assert "best tip_step_height" in capsys.readouterr().out
+    assert main(["study", "run", str(tmp_path / "missing.toml")]) == 2
+
+
+def test_quickstart_spec_is_valid():
+    """The README's default job parses and names an existing family."""
+    spec = load_study_spec(pathlib.Path(__file__).parents[2] / "studies" / "quickstart.toml")
+    assert spec.family == "jansen_leg" and spec.mode == "kinematic" and math.isclose(spec.fixed["m"], 0.015)
