@@ -17,7 +17,7 @@ from tqdm.auto import tqdm
 
 from morphopt.evaluate import evaluate_dynamic, evaluate_kinematic
 from morphopt.families import load_family
-from morphopt.optimizers import CMAES, RandomSearch
+from morphopt.optimizers import CMAES, OptunaSampler, RandomSearch
 from morphopt.storage import StudyStorage
 from morphopt.study_spec import StudySpec
 
@@ -38,6 +38,8 @@ class StudyResult:
 def _make_optimizer(spec: StudySpec, space):
     if spec.optimizer == "cma":
         return CMAES(space, popsize=spec.worlds, sigma0=spec.sigma0, seed=spec.seed)
+    if spec.optimizer == "optuna":
+        return OptunaSampler(space, sampler=spec.sampler, seed=spec.seed)
     return RandomSearch(space, seed=spec.seed)
 
 

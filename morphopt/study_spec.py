@@ -3,7 +3,8 @@
     [study]       name, family, mode ("kinematic" | "dynamic"), seed, generations, worlds,
                   device, storage (path relative to the spec file, or an SQLAlchemy URL)
     [objective]   metric (a metric name of the evaluation), direction ("minimize" | "maximize")
-    [optimizer]   name ("cma" | "random"), sigma0 (cma)
+    [optimizer]   name ("cma" | "optuna" | "random"), sigma0 (cma), sampler ("tpe" | "nsga2" |
+                  "random", optuna)
     [simulation]  duration [s], dt [s], crank_speed [rad/s]   (dynamic mode; crank_speed also
                   sets the kinematic crank's speed, samples = points per crank turn)
     [space]       per parameter: [low, high] to narrow the family's bounds
@@ -28,7 +29,7 @@ SECTIONS = {
     "study": {"name": str, "family": str, "mode": str, "seed": int, "generations": int, "worlds": int,
               "device": str, "storage": str},
     "objective": {"metric": str, "direction": str},
-    "optimizer": {"name": str, "sigma0": float},
+    "optimizer": {"name": str, "sigma0": float, "sampler": str},
     "simulation": {"duration": float, "dt": float, "crank_speed": float, "samples": int},
     "space": None,
     "fixed": None,
@@ -53,6 +54,7 @@ class StudySpec:
     direction: str = "maximize"
     optimizer: str = "cma"
     sigma0: float = 0.25
+    sampler: str = "tpe"
     duration: float = 2.0
     dt: float = 1e-3
     crank_speed: float = 2.0 * math.pi
@@ -134,7 +136,8 @@ def _check_values(spec: StudySpec, where: str) -> None:
     checks = [
         ("study.mode", spec.mode in ("kinematic", "dynamic"), "'kinematic' or 'dynamic'"),
         ("objective.direction", spec.direction in ("minimize", "maximize"), "'minimize' or 'maximize'"),
-        ("optimizer.name", spec.optimizer in ("cma", "random"), "'cma' or 'random'"),
+        ("optimizer.name", spec.optimizer in ("cma", "optuna", "random"), "'cma', 'optuna' or 'random'"),
+        ("optimizer.sampler", spec.sampler in ("tpe", "nsga2", "random"), "'tpe', 'nsga2' or 'random'"),
         ("study.generations", spec.generations >= 1, "an integer >= 1"),
         ("study.worlds", spec.worlds >= 2, "an integer >= 2"),
         ("optimizer.sigma0", 0.0 < spec.sigma0 <= 1.0, "a number in (0, 1]"),

@@ -7,8 +7,9 @@ finite penalty worse than anything feasible seen so far).
 
 from morphopt.optimizers.base import Optimizer
 from morphopt.optimizers.cma_es import CMAES
+from morphopt.optimizers.optuna_sampler import OptunaSampler
 from morphopt.optimizers.random_search import RandomSearch
 
-OPTIMIZERS = {"random": RandomSearch, "cma": CMAES}
+OPTIMIZERS = {"random": RandomSearch, "cma": CMAES, "optuna": OptunaSampler}
 
-__all__ = ["CMAES", "OPTIMIZERS", "Optimizer", "RandomSearch"]
+__all__ = ["CMAES", "OPTIMIZERS", "Optimizer", "OptunaSampler", "RandomSearch"]

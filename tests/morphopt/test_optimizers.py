@@ -40,7 +40,7 @@ def test_conformance(name):
     assert math.isfinite(runs[0][1]) and opt.evaluations == 24
 
 
-@pytest.mark.parametrize("name, budget, tolerance", [("cma", 30, 1e-3), ("random", 40, 0.2)])
+@pytest.mark.parametrize("name, budget, tolerance", [("cma", 30, 1e-3), ("random", 40, 0.2), ("optuna", 12, 0.1)])
 def test_finds_the_optimum_of_a_shifted_sphere(name, budget, tolerance):
     """On (x - 0.3)^2 + (y + 0.7)^2 the optimizer gets within ``tolerance`` of (0.3, -0.7)."""
     opt = make(name, sphere_space(), 16, seed=1)

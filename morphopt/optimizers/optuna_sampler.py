@@ -1,0 +1,46 @@
+"""Optuna samplers (TPE by default, NSGA-II, any other) through ask/tell on whole batches.
+
+The Optuna study lives in memory during a run (its SQL storages are far too slow for thousands
+of trials per generation); morphopt's own storage records the designs.
+"""
+
+from __future__ import annotations
+
+import math
+
+import optuna
+
+from morphopt.optimizers.base import Optimizer
+
+__all__ = ["OptunaSampler"]
+
+SAMPLERS = {"tpe": optuna.samplers.TPESampler, "nsga2": optuna.samplers.NSGAIISampler,
+            "random": optuna.samplers.RandomSampler}
+
+
+class OptunaSampler(Optimizer):
+    """Batch ask/tell over an in-memory Optuna study. Failed designs are told as FAIL trials."""
+
+    def __init__(self, space, *, sampler: str = "tpe", seed: int = 0, **sampler_options):
+        super().__init__(space, seed=seed)
+        if sampler not in SAMPLERS:
+            raise ValueError(f"unknown Optuna sampler '{sampler}', expected one of {sorted(SAMPLERS)}")
+        optuna.logging.set_verbosity(optuna.logging.WARNING)
+        self.study = optuna.create_study(sampler=SAMPLERS[sampler](seed=seed, **sampler_options))
+        self.distributions = space.optuna_distributions()
+        self._pending: list = []
+
+    def ask(self, count: int) -> list[dict]:
+        self._pending = [self.study.ask(self.distributions) for _ in range(count)]
+        return [dict(trial.params) for trial in self._pending]
+
+    def tell(self, params, values) -> None:
+        if len(params) != len(self._pending):
+            raise ValueError("Optuna: tell() must follow ask() with the same batch")
+        super().tell(params, values)
+        for trial, value in zip(self._pending, values):
+            if math.isfinite(value):
+                self.study.tell(trial, float(value))
+            else:
+                self.study.tell(trial, state=optuna.trial.TrialState.FAIL)
+        self._pending = []
