@@ -11,7 +11,7 @@ from engine.collide import PAIR_CONTACTS, PLANE_CONTACTS
 from engine.model import Model, SolverConfig, Workspace
 from engine.spec import JOINT_ROW_COUNT, JointType, MechanismSpec, joint_dynamics_rows
 
-__all__ = ["pack_worlds"]
+__all__ = ["MAX_DENSE_ROWS", "dense_rows_needed", "pack_worlds"]
 
 ROW_KINDS = {  # bilateral row kinds per joint type: 0 linear [m], 1 angular [rad]
     JointType.REVOLUTE: (0, 0, 0, 1, 1),
@@ -22,6 +22,7 @@ ROW_KINDS = {  # bilateral row kinds per joint type: 0 linear [m], 1 angular [ra
     JointType.FIXED: (0, 0, 0, 1, 1, 1),
 }
 ROW_TILE = 8  # the padded row count is a multiple of this (tile size of the Delassus matrix)
+MAX_DENSE_ROWS = 144  # largest per-world Delassus tile the dense solver factors in on-chip memory
 
 
 def _rotate(quat: np.ndarray, vec: np.ndarray) -> np.ndarray:
@@ -58,6 +59,17 @@ def contact_worst_case(spec: MechanismSpec, pairs) -> int:
     """Most contacts the pairs of a world can produce at once."""
     return sum(PLANE_CONTACTS[spec.shapes[a].type] if b < 0 else
                PAIR_CONTACTS[(spec.shapes[a].type, spec.shapes[b].type)] for a, b in pairs)
+
+
+def default_contact_capacity(spec: MechanismSpec) -> int:
+    """Contacts per step a world keeps by default: what its pairs can produce, at most 4 per shape + 8."""
+    return min(contact_worst_case(spec, collision_pairs(spec)), 4 * len(spec.shapes) + 8)
+
+
+def dense_rows_needed(spec: MechanismSpec, contact_capacity: int | None = None) -> int:
+    """Constraint rows of a world in the dense solver: joint, drive and limit rows + 3 per contact."""
+    capacity = default_contact_capacity(spec) if contact_capacity is None else contact_capacity
+    return spec.row_count + 3 * capacity
 
 
 def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | None = None,
@@ -99,6 +111,12 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         capacity = max(min(w, 4 * len(s.shapes) + 8) for s, w in zip(specs, worst))
     else:
         capacity = min(int(contact_capacity), max(worst))
+    for index, spec in enumerate(specs):
+        rows = spec.row_count + 3 * capacity
+        if rows > MAX_DENSE_ROWS:
+            raise ValueError(f"pack_worlds: world {index} ('{spec.name}') needs {rows} constraint rows "
+                             f"({spec.row_count} joint/drive/limit rows + 3 x {capacity} contacts); the dense solver "
+                             f"takes at most {MAX_DENSE_ROWS} per world: lower contact_capacity or simplify the mechanism")
     max_pairs = max(len(p) for p in pairs)
     max_shapes = max(1, max(len(s.shapes) for s in specs))
     max_rows = max(1, max(s.row_count for s in specs) + 3 * capacity)

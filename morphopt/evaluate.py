@@ -20,6 +20,21 @@ from morphopt.metrics import stride_and_step_height
 __all__ = ["Evaluation", "evaluate_dynamic", "evaluate_kinematic"]
 
 
+def _walking_metrics(trace, world: int, torso: int, speeds: list, record_dt: float) -> dict:
+    """Speed, heading drift and energy per distance of a walker's torso after a settling quarter."""
+    start = len(trace.time) // 4
+    path = trace.points[start:, world, torso]
+    forward = path[-1, 0] - path[0, 0]
+    sideways = path[-1, 1] - path[0, 1]
+    elapsed = trace.time[-1] - trace.time[start]
+    omega = max(speeds) if speeds else 0.0
+    work = float(np.abs(trace.drive_torque[start + 1:, world]).sum() * omega * record_dt)
+    distance = abs(forward)
+    return {"walking_speed": float(distance / max(elapsed, 1e-9)),
+            "heading_drift": float(abs(sideways) / max(distance, 1e-9)),
+            "energy_per_distance": float(work / max(distance, 1e-9)) if distance > 1e-4 else float("inf")}
+
+
 @dataclass
 class Evaluation:
     """Results of one batch, in the order of ``params``.
@@ -53,14 +68,16 @@ def _path_metrics(paths: dict) -> dict:
     metrics = {"paths": paths}
     for name, path in paths.items():
         stride, height = stride_and_step_height(path)
-        metrics[f"{name}_stride"] = stride
-        metrics[f"{name}_step_height"] = height
+        metrics[f"{name}_stride"] = float(stride)
+        metrics[f"{name}_step_height"] = float(height)
     return metrics
 
 
 def evaluate_kinematic(family, params: Sequence[dict], *, samples: int = 360) -> Evaluation:
     """Tracked-point paths over one crank turn, stride, step height and transmission angle of
     every design, from the batched kinematics alone."""
+    if not hasattr(family, "generate"):
+        raise ValueError("this design family builds whole worlds (build_spec): evaluate it with mode = 'dynamic'")
     linkages, failures = _generate(family, params)
     ok = [i for i, linkage in enumerate(linkages) if linkage is not None]
     solutions = dict(zip(ok, solve_cycles([linkages[i] for i in ok], samples=samples)))
@@ -80,27 +97,37 @@ def evaluate_kinematic(family, params: Sequence[dict], *, samples: int = 360) ->
 
 
 def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: float = 1e-3, device: str = "cpu",
-                     crank_speed: float = 2.0 * np.pi, record_every: int = 10,
+                     crank_speed: float | None = None, record_every: int = 10,
                      spec_hook: Callable | None = None) -> Evaluation:
     """Simulate every feasible design for ``duration`` [s] in one heterogeneous batch.
 
     Metrics: tracked-point paths over the last crank turn (planar, [m]), their stride and step
-    height, crank torque peak and RMS [N m], loop-closure violation max [m]. spec_hook(spec,
-    params) may add shapes, ground or change the spec before packing.
+    height, crank torque peak and RMS [N m], loop-closure violation max [m]; with a tracked point
+    named "torso" (walkers), over the last three quarters of the run: walking_speed [m/s],
+    heading_drift (sideways per forward distance) and energy_per_distance [J/m] of the motors.
+    crank_speed [rad/s] overrides the design's (linkage families default to 2 pi).
+    spec_hook(spec, params) may add shapes, ground or change the spec before packing.
     """
     from engine import pack_worlds, rollout
+    from engine.pack import MAX_DENSE_ROWS, dense_rows_needed
 
-    linkages, failures = _generate(family, params, crank_speed=crank_speed)
-    specs, owners = [], []
-    for i, linkage in enumerate(linkages):
-        if linkage is None:
-            continue
+    specs, owners, failures = [], [], []
+    for i, p in enumerate(params):
         try:
-            spec = to_spec(linkage)
+            if hasattr(family, "build_spec"):
+                spec = family.build_spec(family.space.validate(p), crank_speed=crank_speed)
+            else:
+                spec = to_spec(family.generate(family.space.validate(p), crank_speed=crank_speed or 2.0 * np.pi))
         except ValueError as exc:
-            failures[i] = str(exc).split(": ", 1)[-1]
+            failures.append(f"cannot be built: {exc}")
             continue
-        specs.append(spec_hook(spec, params[i]) if spec_hook else spec)
+        spec = spec_hook(spec, p) if spec_hook else spec
+        rows = dense_rows_needed(spec)
+        if rows > MAX_DENSE_ROWS:
+            failures.append(f"too large for the dense solver: {rows} constraint rows (at most {MAX_DENSE_ROWS})")
+            continue
+        failures.append("")
+        specs.append(spec)
         owners.append(i)
     evaluation = Evaluation(list(params), [{} for _ in params], failures)
     if not specs:
@@ -108,14 +135,18 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     model = pack_worlds(specs, device=device, dt=dt)
     steps = max(record_every, int(round(duration / dt / record_every)) * record_every)
     trace, _ = rollout(model, model.state(), model.control(), steps, record_every=record_every)
-    turn = int(round(2.0 * np.pi / abs(crank_speed) / (dt * record_every)))
+    record_dt = dt * record_every
     for world, i in enumerate(owners):
         if trace.diverged[world]:
             evaluation.failures[i] = "diverged: the simulation produced a non-finite state"
             continue
+        speeds = [abs(j.drive.target_velocity) for j in specs[world].joints if j.drive is not None]
+        turn = int(round(2.0 * np.pi / max(speeds + [1e-9]) / record_dt)) if speeds else len(trace.time)
         names = model.point_names[world]
         paths = {name: trace.points[-turn:, world, k][:, [0, 2]] for k, name in enumerate(names)}
         metrics = _path_metrics(paths)
+        if "torso" in names:
+            metrics.update(_walking_metrics(trace, world, names.index("torso"), speeds, record_dt))
         drive = trace.drive_torque[1:, world]  # record 0 is the initial state
         metrics["torque_peak"] = float(np.abs(drive).max())
         metrics["torque_rms"] = float(np.sqrt(np.mean(drive**2)))

@@ -1,4 +1,6 @@
-"""Design families: plain modules with a ``space`` (DesignSpace) and ``generate(params)``.
+"""Design families: plain modules with a ``space`` (DesignSpace) and either ``generate(params)``
+(a planar Linkage: kinematic and dynamic studies) or ``build_spec(params)`` (a whole engine world,
+e.g. a walker with a floating torso: dynamic studies only).
 
 Families live in the project's designs/ folder and are loaded by name, or from any .py path.
 """
@@ -36,7 +38,8 @@ def load_family(name_or_path: str) -> ModuleType:
     spec = importlib.util.spec_from_file_location(f"morphopt_family_{path.stem}", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    for attribute in ("space", "generate"):
-        if not hasattr(module, attribute):
-            raise ValueError(f"design family {path} defines no '{attribute}'")
+    if not hasattr(module, "space"):
+        raise ValueError(f"design family {path} defines no 'space'")
+    if not (hasattr(module, "generate") or hasattr(module, "build_spec")):
+        raise ValueError(f"design family {path} defines neither 'generate' (a linkage) nor 'build_spec' (a world)")
     return module

@@ -34,11 +34,11 @@ def path_error(path: np.ndarray, target: np.ndarray, *, samples: int = 128) -> f
         return float("inf")
     p = resample_closed(np.asarray(path, float), samples)
     t = resample_closed(np.asarray(target, float), samples)
+    shifts = (np.arange(samples)[:, None] + np.arange(samples)[None, :]) % samples  # (shift, sample)
     best = np.inf
     for candidate in (p, p[::-1]):
-        for shift in range(samples):
-            rolled = np.roll(candidate, shift, axis=0)
-            best = min(best, float(np.sqrt(np.mean(np.sum((rolled - t) ** 2, axis=1)))))
+        squared = np.sum((candidate[shifts] - t[None]) ** 2, axis=-1).mean(axis=1)
+        best = min(best, float(np.sqrt(squared.min())))
     return best
 
 

@@ -17,6 +17,7 @@ from tqdm.auto import tqdm
 
 from morphopt.evaluate import evaluate_dynamic, evaluate_kinematic
 from morphopt.families import load_family
+from morphopt.metrics import path_error
 from morphopt.optimizers import CMAES, OptunaSampler, RandomSearch
 from morphopt.storage import StudyStorage
 from morphopt.study_spec import StudySpec
@@ -44,9 +45,15 @@ def _make_optimizer(spec: StudySpec, space):
 
 
 def objective_values(spec: StudySpec, evaluation) -> np.ndarray:
-    """Values to minimize: the metric (negated when maximized); inf for failed designs."""
+    """Values to minimize: the metric (negated when maximized); inf for failed designs. The metric
+    "path_error" compares the path of ``objective.point`` with ``objective.target``."""
     sign = -1.0 if spec.direction == "maximize" else 1.0
     values = []
+    if spec.metric == "path_error":
+        target = np.asarray(spec.target, dtype=float)
+        for metrics, failure in zip(evaluation.metrics, evaluation.failures):
+            if not failure:
+                metrics["path_error"] = path_error(metrics["paths"][spec.point], target)
     for metrics, failure in zip(evaluation.metrics, evaluation.failures):
         value = metrics.get(spec.metric, math.nan) if not failure else math.nan
         values.append(sign * value if value is not None and math.isfinite(value) else math.inf)
@@ -54,7 +61,12 @@ def objective_values(spec: StudySpec, evaluation) -> np.ndarray:
 
 
 def _scalars(metrics: dict) -> dict:
-    return {k: (float(v) if math.isfinite(v) else None) for k, v in metrics.items() if isinstance(v, (int, float))}
+    """The scalar metrics as JSON-able floats (None for inf and NaN)."""
+    out = {}
+    for key, value in metrics.items():
+        if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
+            out[key] = float(value) if math.isfinite(value) else None
+    return out
 
 
 def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -> StudyResult:

@@ -2,11 +2,13 @@
 
     [study]       name, family, mode ("kinematic" | "dynamic"), seed, generations, worlds,
                   device, storage (path relative to the spec file, or an SQLAlchemy URL)
-    [objective]   metric (a metric name of the evaluation), direction ("minimize" | "maximize")
+    [objective]   metric (a metric name of the evaluation), direction ("minimize" | "maximize");
+                  metric "path_error" also needs point (a tracked point) and target (a closed
+                  curve [[x, y], ...] in metres)
     [optimizer]   name ("cma" | "optuna" | "random"), sigma0 (cma), sampler ("tpe" | "nsga2" |
                   "random", optuna)
-    [simulation]  duration [s], dt [s], crank_speed [rad/s]   (dynamic mode; crank_speed also
-                  sets the kinematic crank's speed, samples = points per crank turn)
+    [simulation]  duration [s], dt [s], crank_speed [rad/s] (dynamic mode; default: the design's
+                  own, 2 pi for linkage families), samples (points per crank turn, kinematic mode)
     [space]       per parameter: [low, high] to narrow the family's bounds
     [fixed]       per parameter: a value held fixed
 
@@ -28,7 +30,7 @@ __all__ = ["StudySpec", "load_study_spec"]
 SECTIONS = {
     "study": {"name": str, "family": str, "mode": str, "seed": int, "generations": int, "worlds": int,
               "device": str, "storage": str},
-    "objective": {"metric": str, "direction": str},
+    "objective": {"metric": str, "direction": str, "point": str, "target": list},
     "optimizer": {"name": str, "sigma0": float, "sampler": str},
     "simulation": {"duration": float, "dt": float, "crank_speed": float, "samples": int},
     "space": None,
@@ -52,12 +54,14 @@ class StudySpec:
     storage: str = ""
     metric: str = "foot_stride"
     direction: str = "maximize"
+    point: str = ""
+    target: tuple = ()
     optimizer: str = "cma"
     sigma0: float = 0.25
     sampler: str = "tpe"
     duration: float = 2.0
     dt: float = 1e-3
-    crank_speed: float = 2.0 * math.pi
+    crank_speed: float | None = None
     samples: int = 360
     space_overrides: dict = field(default_factory=dict)
     fixed: dict = field(default_factory=dict)
@@ -126,6 +130,8 @@ def load_study_spec(path) -> StudySpec:
         for key in keys:
             if key not in data.get(section, {}):
                 raise ValueError(f"{where}: missing required key '{section}.{key}'")
+    if "target" in values:
+        values["target"] = tuple(tuple(p) for p in values["target"])
     spec = StudySpec(path=path, space_overrides=dict(data.get("space", {})), fixed=dict(data.get("fixed", {})),
                      **values)
     _check_values(spec, where)
@@ -143,12 +149,19 @@ def _check_values(spec: StudySpec, where: str) -> None:
         ("optimizer.sigma0", 0.0 < spec.sigma0 <= 1.0, "a number in (0, 1]"),
         ("simulation.duration", spec.duration > 0.0, "a positive number of seconds"),
         ("simulation.dt", 0.0 < spec.dt <= 0.1, "a time step in (0, 0.1] s"),
-        ("simulation.crank_speed", spec.crank_speed != 0.0 and math.isfinite(spec.crank_speed), "a non-zero speed"),
+        ("simulation.crank_speed", spec.crank_speed is None or (spec.crank_speed != 0.0 and math.isfinite(spec.crank_speed)),
+         "a non-zero speed"),
         ("simulation.samples", spec.samples >= 8, "an integer >= 8"),
     ]
     for key, ok, expected in checks:
         if not ok:
             raise ValueError(f"{where}: '{key}' must be {expected}")
+    if spec.metric == "path_error":
+        ok = (spec.point and len(spec.target) >= 3 and all(len(p) == 2 and all(isinstance(c, (int, float)) for c in p)
+                                                           for p in spec.target))
+        if not ok:
+            raise ValueError(f"{where}: metric 'path_error' needs 'objective.point' and 'objective.target' "
+                             f"as at least three [x, y] points")
     try:
         family = load_family(spec.family)
     except ValueError as exc:

@@ -5,8 +5,9 @@ the world (planar x -> world x, planar y -> world z) with every pivot turning ab
 that a positive planar angle is counter-clockwise.
 
 Nodes are solved in order: ground pivots are fixed, the crank tip turns about its centre, and each
-dyad places a new node at distance ``ra`` from node ``a`` and ``rb`` from node ``b``, on the
-``branch`` side (+1: left of the direction a -> b, -1: right). Links name the rigid bodies: each
+entry of ``dyads`` places a new node: a Dyad at distance ``ra`` from node ``a`` and ``rb`` from
+node ``b``, on the ``branch`` side (+1: left of the direction a -> b, -1: right); an Offset at
+fixed coordinates in the frame of two placed nodes. Links name the rigid bodies: each
 is a set of nodes whose distances never change (binary bars, ternary plates, the crank).
 """
 
@@ -15,7 +16,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-__all__ = ["Crank", "Dyad", "Link", "Linkage"]
+__all__ = ["Crank", "Dyad", "Link", "Linkage", "Offset"]
 
 
 @dataclass(frozen=True)
@@ -40,6 +41,18 @@ class Dyad:
     b: str
     rb: float
     branch: int = 1
+
+
+@dataclass(frozen=True)
+class Offset:
+    """A node fixed in the frame of nodes a -> b: ``along`` [m] in the direction a -> b and
+    ``across`` [m] to its left (coupler points, collinear extensions, ternary plates)."""
+
+    node: str
+    a: str
+    b: str
+    along: float
+    across: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -73,10 +86,10 @@ class Linkage:
         for dyad in self.dyads:
             for end in (dyad.a, dyad.b):
                 if end not in known:
-                    raise ValueError(f"{where}: dyad '{dyad.node}' uses node '{end}' before it is placed")
+                    raise ValueError(f"{where}: node '{dyad.node}' uses node '{end}' before it is placed")
             if dyad.node in known:
                 raise ValueError(f"{where}: node '{dyad.node}' is placed twice")
-            if not (dyad.ra > 0.0 and dyad.rb > 0.0) or dyad.branch not in (1, -1):
+            if isinstance(dyad, Dyad) and (not (dyad.ra > 0.0 and dyad.rb > 0.0) or dyad.branch not in (1, -1)):
                 raise ValueError(f"{where}: dyad '{dyad.node}' needs positive lengths and branch +1 or -1")
             known.add(dyad.node)
         for link in self.links:
@@ -98,5 +111,5 @@ class Linkage:
     def topology(self) -> tuple:
         """Everything but the numbers: designs with equal topology solve in one batch."""
         return (tuple(self.ground), (self.crank.center, self.crank.tip),
-                tuple((d.node, d.a, d.b, d.branch) for d in self.dyads),
+                tuple((type(d).__name__, d.node, d.a, d.b, getattr(d, "branch", 0)) for d in self.dyads),
                 tuple((link.name, tuple(link.nodes)) for link in self.links), tuple(self.points.items()))

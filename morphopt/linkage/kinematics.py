@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from morphopt.linkage.graph import Linkage
+from morphopt.linkage.graph import Linkage, Offset
 
 __all__ = ["CycleSolution", "solve_at", "solve_cycles"]
 
@@ -71,6 +71,14 @@ def _solve_group(group: list[Linkage], angles: np.ndarray) -> list[CycleSolution
     fail_dyad = [""] * count
     transmission = np.full(count, np.pi / 2)
     for k, dyad in enumerate(first.dyads):
+        if isinstance(dyad, Offset):
+            along = np.array([g.dyads[k].along for g in group])[:, None, None]
+            across = np.array([g.dyads[k].across for g in group])[:, None, None]
+            delta = pos[dyad.b] - pos[dyad.a]
+            ex = delta / np.maximum(np.linalg.norm(delta, axis=-1), 1e-300)[..., None]
+            ey = np.stack([-ex[..., 1], ex[..., 0]], axis=-1)
+            pos[dyad.node] = pos[dyad.a] + along * ex + across * ey
+            continue
         ra = np.array([g.dyads[k].ra for g in group])[:, None]
         rb = np.array([g.dyads[k].rb for g in group])[:, None]
         a, b = pos[dyad.a], pos[dyad.b]

@@ -17,7 +17,7 @@ from engine import Body, Joint, JointDrive, MechanismSpec, TrackedPoint
 from morphopt.linkage.graph import Linkage
 from morphopt.linkage.kinematics import solve_at
 
-__all__ = ["BarStyle", "to_spec"]
+__all__ = ["BarStyle", "linkage_parts", "link_body", "to_spec"]
 
 AXIS = (0.0, -1.0, 0.0)  # positive rotation is counter-clockwise in the planar (x, y) view
 
@@ -78,11 +78,24 @@ def _matrix(q) -> np.ndarray:
 
 def to_spec(linkage: Linkage, *, style: BarStyle = BarStyle(), crank_damping: float = 50.0,
             effort_limit: float = 50.0, gravity=(0.0, 0.0, -9.81), start_at_speed: bool = True) -> MechanismSpec:
-    """Build the MechanismSpec of ``linkage``, assembled at its crank phase.
+    """Build the MechanismSpec of ``linkage``, assembled at its crank phase, ground pivots on the world.
 
     crank_damping [N m s/rad] and effort_limit [N m] define the crank's velocity drive (target
     = crank.speed). With start_at_speed, bodies start with the loop-consistent velocities of the
     crank turning at speed (finite differences of the kinematics), else at rest.
+    """
+    bodies, joints, points = linkage_parts(linkage, style=style, crank_damping=crank_damping,
+                                           effort_limit=effort_limit, start_at_speed=start_at_speed)
+    return MechanismSpec(bodies, joints, points, gravity=gravity, name=linkage.name)
+
+
+def linkage_parts(linkage: Linkage, *, style: BarStyle = BarStyle(), crank_damping: float = 50.0,
+                  effort_limit: float = 50.0, start_at_speed: bool = True, origin=(0.0, 0.0, 0.0), prefix: str = "",
+                  base: Body | None = None):
+    """Bodies, joints and tracked points of ``linkage`` with its plane's origin at world ``origin``.
+
+    Ground pivots join the ``base`` body (at rest) when given, else the world. Names get ``prefix``.
+    Raises ValueError when the linkage cannot be assembled at its crank phase.
     """
     crank = linkage.crank
     h = 1e-6
@@ -90,13 +103,18 @@ def to_spec(linkage: Linkage, *, style: BarStyle = BarStyle(), crank_damping: fl
     solution = solve_at([linkage], angles[None, :])[0]
     if not solution.feasible:
         raise ValueError(f"linkage '{linkage.name}' cannot be assembled: {solution.reason}")
+    origin = np.asarray(origin, dtype=float)
+
+    def place(xy):
+        return world(xy) + origin
+
     node_xy = {name: path[0] for name, path in solution.nodes.items()}
     node_rate = {name: (path[1] - path[0]) / h * (crank.speed if start_at_speed else 0.0)
                  for name, path in solution.nodes.items()}
     bodies, joints, link_of = [], [], {}
     for link in linkage.links:
-        points = [world(node_xy[n]) for n in link.nodes]
-        body = link_body(link.name, points, style)
+        points = [place(node_xy[n]) for n in link.nodes]
+        body = link_body(prefix + link.name, points, style)
         # rigid-body velocity from the first two nodes' planar velocities
         v0, v1 = world(node_rate[link.nodes[0]]), world(node_rate[link.nodes[1]])
         r = points[1] - points[0]
@@ -106,26 +124,29 @@ def to_spec(linkage: Linkage, *, style: BarStyle = BarStyle(), crank_damping: fl
         body.angular_velocity = np.array([0.0, omega_y, 0.0])
         bodies.append(body)
         for node in link.nodes:
-            link_of.setdefault(node, []).append((link.name, body))
+            link_of.setdefault(node, []).append((link, body))
     for node, members in link_of.items():
-        anchor = world(node_xy[node])
+        anchor = place(node_xy[node])
         if node in linkage.ground:
-            for name, body in members:
+            for link, body in members:
                 drive = None
-                if node == crank.center and crank.tip in next(l.nodes for l in linkage.links if l.name == name):
+                if node == crank.center and crank.tip in link.nodes:
                     drive = JointDrive(damping=crank_damping, target_velocity=crank.speed, effort_limit=effort_limit)
-                joints.append(Joint(f"{node}_{name}", "revolute", None, name, parent_position=anchor,
-                                    child_position=_local(body, anchor), axis=AXIS, drive=drive))
+                parent_position = anchor if base is None else _local(base, anchor)
+                joints.append(Joint(f"{prefix}{node}_{link.name}", "revolute", None if base is None else base.name,
+                                    body.name, parent_position=parent_position, child_position=_local(body, anchor),
+                                    axis=AXIS, drive=drive))
             continue
-        (parent, parent_body), *children = members
-        for name, body in children:
-            joints.append(Joint(f"{node}_{parent}_{name}", "revolute", parent, name,
-                                parent_position=_local(parent_body, anchor), child_position=_local(body, anchor), axis=AXIS))
+        (parent_link, parent_body), *children = members
+        for link, body in children:
+            joints.append(Joint(f"{prefix}{node}_{parent_link.name}_{link.name}", "revolute", parent_body.name,
+                                body.name, parent_position=_local(parent_body, anchor),
+                                child_position=_local(body, anchor), axis=AXIS))
     points = []
     for point, node in linkage.points.items():
-        name, body = link_of[node][0]
-        points.append(TrackedPoint(point, name, _local(body, world(node_xy[node]))))
-    return MechanismSpec(bodies, joints, points, gravity=gravity, name=linkage.name)
+        _, body = link_of[node][0]
+        points.append(TrackedPoint(prefix + point, body.name, _local(body, place(node_xy[node]))))
+    return bodies, joints, points
 
 
 def _local(body: Body, point: np.ndarray) -> np.ndarray:

@@ -104,3 +104,13 @@ def test_quickstart_spec_is_valid():
     """The README's default job parses and names an existing family."""
     spec = load_study_spec(pathlib.Path(__file__).parents[2] / "studies" / "quickstart.toml")
     assert spec.family == "jansen_leg" and spec.mode == "kinematic" and math.isclose(spec.fixed["m"], 0.015)
+
+
+def test_path_synthesis_recovers_the_four_bar_that_drew_the_target(tmp_path):
+    """studies/four_bar_path.toml: CMA-ES finds the four-bar whose coupler point traced the target
+    (crank 0.08 m, point_u 1.2, point_v 0.05 m) to a path error under 1 mm."""
+    source = pathlib.Path(__file__).parents[2] / "studies" / "four_bar_path.toml"
+    spec = load_study_spec(source).with_overrides(storage=f"sqlite:///{tmp_path / 'path.sqlite'}")
+    result = run_study(spec, progress=False)
+    assert result.best_value < 1e-3
+    assert abs(result.best_params["crank"] - 0.08) < 2e-3 and abs(result.best_params["point_u"] - 1.2) < 0.02
