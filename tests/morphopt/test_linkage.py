@@ -71,7 +71,8 @@ def test_batch_groups_topologies_and_keeps_order():
     assert np.allclose(np.linalg.norm(crank_tip, axis=1), 0.08)
 
 
-@pytest.mark.parametrize("family_name, point", [("jansen_leg", "foot"), ("four_bar", "coupler_point")])
+@pytest.mark.parametrize("family_name, point", [("jansen_leg", "foot"), ("four_bar", "coupler_point"),
+                                                ("watt_sixbar", "coupler_point")])
 def test_slowly_driven_dynamics_follows_kinematics(family_name, point):
     """The linkage converted to the engine, driven slowly by its crank motor under gravity, keeps
     its tracked point on the kinematic path (at the simulated crank angle) to 1e-4 m."""

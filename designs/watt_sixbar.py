@@ -1,0 +1,42 @@
+"""Watt II six-bar: a crank-rocker four-bar whose rocker, extended past its pivot as a lever,
+drives a second four-bar; the tracked point rides on the second coupler.
+
+Nodes: O crank pivot, D rocker pivot, F second rocker pivot (ground); M crank pin; C first coupler
+joint; E lever end (on the rocker line beyond D); H second coupler joint; P coupler point.
+"""
+
+import math
+
+from morphopt.design_space import DesignSpace, Float
+from morphopt.linkage import Crank, Dyad, Link, Linkage, Offset
+
+space = DesignSpace({
+    "ground": Float(0.2, 0.4, default=0.30),
+    "crank": Float(0.05, 0.14, default=0.10),
+    "coupler": Float(0.2, 0.4, default=0.30),
+    "rocker": Float(0.15, 0.35, default=0.25),
+    "lever": Float(0.05, 0.2, default=0.10),
+    "pivot2_x": Float(0.3, 0.7, default=0.50),
+    "pivot2_y": Float(-0.3, 0.1, default=-0.15),
+    "coupler2": Float(0.15, 0.4, default=0.25),
+    "rocker2": Float(0.1, 0.35, default=0.20),
+    "point_u": Float(-0.5, 1.5, default=0.5),
+    "point_v": Float(-0.15, 0.15, default=0.05),
+})
+
+
+def generate(params: dict, *, crank_speed: float = 2.0 * math.pi, phase: float = 0.0) -> Linkage:
+    """The six-bar for ``params`` (lengths [m])."""
+    p = params
+    return Linkage(
+        name="watt_sixbar",
+        ground={"O": (0.0, 0.0), "D": (p["ground"], 0.0), "F": (p["pivot2_x"], p["pivot2_y"])},
+        crank=Crank("O", "M", p["crank"], phase=phase, speed=crank_speed),
+        dyads=[Dyad("C", "M", p["coupler"], "D", p["rocker"], branch=1),
+               Offset("E", "D", "C", -p["lever"]),
+               Dyad("H", "E", p["coupler2"], "F", p["rocker2"], branch=-1),
+               Offset("P", "E", "H", p["point_u"] * p["coupler2"], p["point_v"])],
+        links=[Link("crank", ("O", "M")), Link("coupler", ("M", "C")), Link("rocker", ("D", "C", "E")),
+               Link("coupler2", ("E", "H", "P")), Link("rocker2", ("F", "H"))],
+        points={"coupler_point": "P"},
+    )
