@@ -90,3 +90,24 @@ def test_slowly_driven_dynamics_follows_kinematics(family_name, point):
     kinematic = solve_at([linkage], np.array([angles]))[0].point(point, linkage)
     assert np.abs(kinematic - np.array(points)).max() < 1e-4
     assert angles[-1] > 0.8  # the motor turned the crank (1 rad/s for 1 s)
+
+
+def test_compiled_kinematics_match_numpy():
+    """The Warp kernel (float32) gives the NumPy (float64) feasibility, failure reasons and paths
+    (to 1e-4 m) on random Jansen legs, four-bars and six-bars in one mixed call."""
+    rng = np.random.default_rng(5)
+    linkages = []
+    for name in ("jansen_leg", "four_bar", "watt_sixbar"):
+        family = load_family(name)
+        linkages += [family.generate(p) for p in family.space.sample(rng, 40)]
+    reference = solve_cycles(linkages, samples=120)
+    compiled = solve_cycles(linkages, samples=120, device="cpu")
+    assert [s.feasible for s in compiled] == [s.feasible for s in reference]
+    assert 0 < sum(s.feasible for s in reference) < len(linkages)  # both outcomes occur
+    for fast, slow in zip(compiled, reference):
+        if slow.feasible:
+            for node, path in slow.nodes.items():
+                assert np.abs(fast.nodes[node] - path).max() < 1e-4, node
+            assert abs(fast.transmission_angle_min - slow.transmission_angle_min) < 1e-3
+        else:
+            assert fast.reason.split(" at crank angle")[0] == slow.reason.split(" at crank angle")[0]
