@@ -4,6 +4,7 @@
     morphopt study resume SPEC
     morphopt study show SPEC [--top K]
     morphopt study plot SPEC [--out PNG]
+    morphopt study export SPEC --optuna-storage URL
     morphopt demo fourbar [--worlds N] [--seconds S] [--dt DT] [--device cpu|cuda]
 """
 
@@ -114,6 +115,22 @@ def _study_plot(args) -> int:
     return 0
 
 
+def _study_export(args) -> int:
+    from morphopt.families import load_family
+    from morphopt.storage import StudyStorage, export_to_optuna
+
+    spec = _study_spec(args)
+    frame = StudyStorage(spec.storage_url, spec.name).designs()
+    if frame.empty:
+        print(f"study '{spec.name}' has no stored designs in {spec.storage_url}")
+        return 1
+    space = spec.design_space(load_family(spec.family))
+    count = export_to_optuna(frame, study_name=spec.name, space=space, direction=spec.direction,
+                             storage=args.optuna_storage)
+    print(f"exported {count} trials of '{spec.name}' to {args.optuna_storage} (optuna-dashboard {args.optuna_storage})")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="morphopt", description="Closed-chain mechanism design optimization.")
     parser.add_argument("--version", action="version", version=f"morphopt {__version__}")
@@ -123,7 +140,8 @@ def build_parser() -> argparse.ArgumentParser:
     for name, handler, text in (("run", _study_run, "run a study from scratch"),
                                 ("resume", _study_run, "continue an interrupted study"),
                                 ("show", _study_show, "best designs as a table, and progress"),
-                                ("plot", _study_plot, "convergence and the best design, as a PNG")):
+                                ("plot", _study_plot, "convergence and the best design, as a PNG"),
+                                ("export", _study_export, "copy the designs into an Optuna storage")):
         sub = study_commands.add_parser(name, help=text)
         sub.add_argument("spec", help="study TOML file")
         if name == "run":
@@ -135,6 +153,8 @@ def build_parser() -> argparse.ArgumentParser:
             sub.add_argument("--top", type=_positive(int), default=10, help="rows to show (default 10)")
         if name == "plot":
             sub.add_argument("--out", help="PNG path (default: beside the spec)")
+        if name == "export":
+            sub.add_argument("--optuna-storage", required=True, help="Optuna storage URL, e.g. sqlite:///optuna.db")
         sub.set_defaults(handler=handler)
     demo = commands.add_parser("demo", help="simulate a reference mechanism and print what was measured")
     demo.add_argument("scene", choices=DEMO_SCENES)

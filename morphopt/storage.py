@@ -10,7 +10,7 @@ import math
 import pandas as pd
 import sqlalchemy as sa
 
-__all__ = ["StudyStorage"]
+__all__ = ["StudyStorage", "export_to_optuna"]
 
 METADATA = sa.MetaData()
 DESIGNS = sa.Table(
@@ -75,3 +75,26 @@ class StudyStorage:
         params = pd.DataFrame([json.loads(p) for p in frame.pop("params")])
         metrics = pd.DataFrame([json.loads(m) for m in frame.pop("metrics")]).add_prefix("metric_")
         return pd.concat([frame.drop(columns="study"), params, metrics], axis=1)
+
+
+def export_to_optuna(frame: pd.DataFrame, *, study_name: str, space, direction: str, storage: str) -> int:
+    """Copy a study's designs into an Optuna storage (e.g. for optuna-dashboard); returns trials written.
+
+    Failed designs become FAIL trials. Written in one bulk call (add_trials) per study.
+    """
+    import optuna
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = optuna.create_study(study_name=study_name, storage=storage, direction=direction, load_if_exists=True)
+    distributions = space.optuna_distributions()
+    trials = []
+    for row in frame.itertuples(index=False):
+        params = {name: getattr(row, name) for name in distributions}
+        params = {k: (v.item() if hasattr(v, "item") else v) for k, v in params.items()}
+        failed = bool(row.failure) or row.value is None or not math.isfinite(row.value)
+        trials.append(optuna.trial.create_trial(
+            params=params, distributions=distributions, value=None if failed else float(row.value),
+            state=optuna.trial.TrialState.FAIL if failed else optuna.trial.TrialState.COMPLETE,
+            user_attrs={"generation": int(row.generation), "failure": row.failure}))
+    study.add_trials(trials)
+    return len(trials)

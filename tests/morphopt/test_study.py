@@ -98,6 +98,13 @@ def test_cli_runs_shows_plots_and_resumes(tmp_path, capsys):
     assert main(["study", "resume", str(spec)]) == 0  # nothing left to do, best design printed again
     assert "best tip_step_height" in capsys.readouterr().out
     assert main(["study", "run", str(tmp_path / "missing.toml")]) == 2
+    optuna_url = f"sqlite:///{tmp_path / 'optuna.db'}"
+    assert main(["study", "export", str(spec), "--optuna-storage", optuna_url]) == 0
+    import optuna
+
+    exported = optuna.load_study(study_name="toy", storage=optuna_url)
+    assert len(exported.trials) == 18
+    assert abs(exported.best_value - max(t.value for t in exported.trials if t.value is not None)) < 1e-12
 
 
 def test_quickstart_spec_is_valid():
