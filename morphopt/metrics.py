@@ -42,12 +42,13 @@ def path_error(path: np.ndarray, target: np.ndarray, *, samples: int = 128) -> f
     return best
 
 
-def stride_and_step_height(foot: np.ndarray, *, ground_band: float = 0.1) -> tuple[float, float]:
+def stride_and_step_height(foot: np.ndarray, *, ground_band: float = 0.02) -> tuple[float, float]:
     """Stride length and step height [m] of a closed foot path (N, 2), y up.
 
-    The stance phase is the part of the path within ``ground_band`` of the path's height range
-    above its lowest point; stride = horizontal extent of the stance phase; step height = the
-    path's vertical extent (how high the foot lifts above its lowest point).
+    The stance phase is the flat bottom of the path: the points within ``ground_band`` times the
+    step height above the lowest point (2 %: a foot that rocks up and down while it pushes gets a
+    short stride); stride = horizontal extent of the stance phase; step height = the path's
+    vertical extent (how high the foot lifts above its lowest point).
     """
     if not np.all(np.isfinite(foot)):
         return float("nan"), float("nan")

@@ -60,6 +60,18 @@ def objective_values(spec: StudySpec, evaluation) -> np.ndarray:
     return np.array(values)
 
 
+def apply_constraints(spec: StudySpec, evaluation) -> None:
+    """Mark designs whose metrics leave the [constraints] bounds as failed, with the reason."""
+    for k, (metrics, failure) in enumerate(zip(evaluation.metrics, evaluation.failures)):
+        if failure:
+            continue
+        for name, (low, high) in spec.constraints.items():
+            value = metrics.get(name, math.nan)
+            if not (low <= value <= high):
+                evaluation.failures[k] = f"constraint {name} in [{low:g}, {high:g}] violated: {value:.6g}"
+                break
+
+
 def _scalars(metrics: dict) -> dict:
     """The scalar metrics as JSON-able floats (None for inf and NaN)."""
     out = {}
@@ -95,6 +107,7 @@ def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -
         else:
             evaluation = evaluate_dynamic(family, params, duration=spec.duration, dt=spec.dt, device=spec.device,
                                           crank_speed=spec.crank_speed)
+        apply_constraints(spec, evaluation)
         values = objective_values(spec, evaluation)
         optimizer.tell(free, values.tolist())
         seconds += time.perf_counter() - t0

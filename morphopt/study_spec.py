@@ -11,6 +11,7 @@
                   own, 2 pi for linkage families), samples (points per crank turn, kinematic mode)
     [space]       per parameter: [low, high] to narrow the family's bounds
     [fixed]       per parameter: a value held fixed
+    [constraints] per metric: [low, high]; a design outside fails with the reason (TOML has inf)
 
 Every error names the file, the key and what was expected.
 """
@@ -35,6 +36,7 @@ SECTIONS = {
     "simulation": {"duration": float, "dt": float, "crank_speed": float, "samples": int},
     "space": None,
     "fixed": None,
+    "constraints": None,
 }
 REQUIRED = {"study": ("name", "family"), "objective": ("metric",)}
 
@@ -65,6 +67,7 @@ class StudySpec:
     samples: int = 360
     space_overrides: dict = field(default_factory=dict)
     fixed: dict = field(default_factory=dict)
+    constraints: dict = field(default_factory=dict)
 
     @property
     def storage_url(self) -> str:
@@ -132,8 +135,13 @@ def load_study_spec(path) -> StudySpec:
                 raise ValueError(f"{where}: missing required key '{section}.{key}'")
     if "target" in values:
         values["target"] = tuple(tuple(p) for p in values["target"])
+    constraints = dict(data.get("constraints", {}))
+    for name, bounds in constraints.items():
+        if (not isinstance(bounds, list) or len(bounds) != 2
+                or not all(isinstance(b, (int, float)) and not isinstance(b, bool) for b in bounds) or bounds[0] > bounds[1]):
+            raise ValueError(f"{where}: 'constraints.{name}' must be [low, high] with low <= high, got {bounds!r}")
     spec = StudySpec(path=path, space_overrides=dict(data.get("space", {})), fixed=dict(data.get("fixed", {})),
-                     **values)
+                     constraints=constraints, **values)
     _check_values(spec, where)
     return spec
 

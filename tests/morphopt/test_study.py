@@ -111,6 +111,7 @@ def test_quickstart_spec_is_valid():
     """The README's default job parses and names an existing family."""
     spec = load_study_spec(pathlib.Path(__file__).parents[2] / "studies" / "quickstart.toml")
     assert spec.family == "jansen_leg" and spec.mode == "kinematic" and math.isclose(spec.fixed["m"], 0.015)
+    assert spec.constraints == {"foot_step_height": [0.02, 1.0]}
 
 
 def test_path_synthesis_recovers_the_four_bar_that_drew_the_target(tmp_path):
@@ -121,3 +122,15 @@ def test_path_synthesis_recovers_the_four_bar_that_drew_the_target(tmp_path):
     result = run_study(spec, progress=False)
     assert result.best_value < 1e-3
     assert abs(result.best_params["crank"] - 0.08) < 2e-3 and abs(result.best_params["point_u"] - 1.2) < 0.02
+
+
+def test_constraints_bound_the_optimum(tmp_path):
+    """With the constraint tip_step_height <= 0.06 m, maximizing the step height stops at the
+    constraint (r = 0.03 m) and the designs beyond it are stored as failed with the reason."""
+    spec = load_study_spec(toy_study(tmp_path, generations=15, extra="[constraints]\ntip_step_height = [0.0, 0.06]"))
+    result = run_study(spec, progress=False)
+    assert 0.055 < result.best_value <= 0.06 and abs(result.best_params["r"] - 0.03) < 2e-3
+    from morphopt.storage import StudyStorage
+
+    failures = StudyStorage(spec.storage_url, spec.name).designs()["failure"]
+    assert failures.str.contains("constraint tip_step_height in \\[0, 0.06\\] violated").any()
