@@ -1,9 +1,10 @@
-"""A walker: a box torso carrying Jansen legs on both sides, every crank turning at one speed
-with phase offsets, standing on the ground plane. ``legs_per_side`` changes the topology, so a
-batch holds structurally different worlds.
+"""A walker: a box torso carrying legs of one family (Jansen or Klann) on both sides, every crank
+turning at one speed with phase offsets, standing on the ground plane. ``leg_family`` and
+``legs_per_side`` change the topology, so one batch holds structurally different worlds.
 
-Each leg's crank has its own velocity-driven motor on the torso, all with the same target speed
-and phases spread evenly (the right side half a turn behind the left): stiff motors keep the
+Feet are capsule shoes along the walking direction. Each leg's crank has its own velocity-driven
+motor on the torso, all with the same target speed
+and phases spread evenly along a side (the right side ``side_phase`` behind the left): stiff motors keep the
 phase offsets of a common crankshaft while the effort limit is not reached.
 """
 
@@ -14,21 +15,42 @@ import pathlib
 import numpy as np
 
 from engine import GroundPlane, MechanismSpec, Shape, TrackedPoint
-from morphopt.design_space import DesignSpace, Float, Int
+from morphopt.design_space import Choice, DesignSpace, Float, Int
 from morphopt.linkage import BarStyle, linkage_parts, solve_at
 from morphopt.linkage.to_spec import link_body
 
-_spec = importlib.util.spec_from_file_location("walker_leg", pathlib.Path(__file__).with_name("jansen_leg.py"))
-leg_family = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(leg_family)
+
+
+def _load_leg(name):
+    spec = importlib.util.spec_from_file_location(f"walker_{name}", pathlib.Path(__file__).with_name(f"{name}.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+LEG_FAMILIES = {name: _load_leg(name) for name in ("jansen_leg", "klann_leg")}
 
 space = DesignSpace({
+    "leg_family": Choice(tuple(LEG_FAMILIES), default="jansen_leg"),
     "legs_per_side": Int(1, 2, default=1),  # 2 per side needs more rows than the dense solver takes
-    "scale": Float(2.0, 5.0, default=3.0),  # leg size relative to Jansen's 15 mm-crank drawing
+    "scale": Float(2.0, 5.0, default=3.0),  # leg size relative to the families' 15 mm-crank legs
     "crank_speed": Float(2.0, 10.0, default=5.0),  # [rad/s]
     "stance": Float(0.5, 1.5, default=1.0),  # leg spacing along the torso, in crank-to-pivot lengths
     "torso_mass": Float(0.5, 4.0, default=1.5),  # [kg]
+    "side_phase": Float(0.0, 3.141592653589793, default=0.0),  # crank phase of the right legs behind the left [rad]
 })
+
+
+SHOE_ALONG_X = np.array([0.0, math.sin(math.pi / 4), 0.0, math.cos(math.pi / 4)])  # capsule z -> world x
+
+
+def _quat_mul(a, b):
+    av, aw, bv, bw = np.asarray(a[:3]), a[3], np.asarray(b[:3]), b[3]
+    return np.concatenate([aw * bv + bw * av + np.cross(av, bv), [aw * bw - av @ bv]])
+
+
+def _quat_conj(q):
+    return np.array([-q[0], -q[1], -q[2], q[3]])
 
 
 def build_spec(params: dict, *, crank_speed: float | None = None, effort_limit: float = 20.0) -> MechanismSpec:
@@ -36,19 +58,20 @@ def build_spec(params: dict, *, crank_speed: float | None = None, effort_limit: 
     p = space.validate(params)
     scale, count = p["scale"], int(p["legs_per_side"])
     speed = p["crank_speed"] if crank_speed is None else crank_speed
+    leg_family = LEG_FAMILIES[p["leg_family"]]
     leg = {k: v * scale for k, v in leg_family.space.default().items()}
-    spacing = p["stance"] * 2.0 * leg["a"]
-    width = 0.6 * leg["a"]
-    half = (0.5 * max(count, 1) * spacing + leg["a"], width, 0.1 * leg["a"])
+    reach = 38.0e-3 * scale  # crank axle to frame pivot of Jansen's drawing, sets the body size
+    spacing = p["stance"] * 2.0 * reach
+    width = 0.6 * reach
+    half = (0.5 * max(count, 1) * spacing + reach, width, 0.1 * reach)
     foot_radius = 0.004 * scale
     style = BarStyle(width=0.004 * scale, thickness=0.002 * scale, density=1200.0)
     placements = []
     for side, y in ((0, width + 0.01 * scale), (1, -(width + 0.01 * scale))):
         for k in range(count):
-            phase = 2.0 * math.pi * k / count + math.pi * side
+            phase = 2.0 * math.pi * k / count + p["side_phase"] * side
             placements.append((f"{'left' if side == 0 else 'right'}{k}_", (k - 0.5 * (count - 1)) * spacing, y,
-                               leg_family.generate(leg_family.space.default() | {n: v for n, v in leg.items()},
-                                                   crank_speed=speed, phase=phase)))
+                               leg_family.generate(leg, crank_speed=speed, phase=phase)))
     lowest = min(solve_at([linkage], np.array([[linkage.crank.phase]]))[0].nodes["F"][0, 1]
                  for _, _, _, linkage in placements)
     height = -lowest + foot_radius + 0.001
@@ -69,6 +92,10 @@ def build_spec(params: dict, *, crank_speed: float | None = None, effort_limit: 
         joints += leg_joints
         points += leg_points
         foot = next(pt for pt in leg_points if pt.name == prefix + "foot")
-        shapes.append(Shape(prefix + "foot", "sphere", foot.body, (foot_radius,), position=foot.position,
-                            friction=1.0, collision_group=1))
+        body = next(b for b in leg_bodies if b.name == foot.body)
+        # a shoe: a capsule along the walking direction (world x at the start), so that two rows of
+        # feet stand without tipping sideways
+        shoe = _quat_mul(_quat_conj(body.orientation), SHOE_ALONG_X)
+        shapes.append(Shape(prefix + "foot", "capsule", foot.body, (foot_radius, 0.25 * reach), position=foot.position,
+                            orientation=shoe, friction=1.0, collision_group=1))
     return MechanismSpec(bodies, joints, points, shapes=shapes, ground=GroundPlane(friction=1.0), name="walker")
