@@ -68,7 +68,8 @@ def _study_run(args) -> int:
     spec = _study_spec(args)
     result = run_study(spec, resume=args.study_command == "resume")
     print(f"study '{spec.name}': {result.evaluations} designs in {result.seconds:.1f} s "
-          f"({result.evaluations / max(result.seconds, 1e-9):,.0f} designs/s), results in {spec.storage_url}")
+          f"({result.evaluations / max(result.seconds, 1e-9):,.0f} designs/s; sampling and storage "
+          f"{100 * result.overhead:.1f} % of it), results in {spec.storage_url}")
     if result.best_params is None:
         print("no feasible design found")
         return 1

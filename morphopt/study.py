@@ -27,13 +27,16 @@ __all__ = ["StudyResult", "run_study"]
 
 @dataclass
 class StudyResult:
-    """Best design (all parameters), its objective value (natural sign), evaluations, seconds."""
+    """Best design (all parameters), its objective value (natural sign), evaluations, seconds
+    (wall time of the generations run now and before a resume) and, of this run's time, the share
+    spent outside the evaluation (sampling, telling, storage): ``overhead``."""
 
     best_params: dict | None
     best_value: float
     evaluations: int
     generations: int
     seconds: float
+    overhead: float = 0.0
 
 
 def _make_optimizer(spec: StudySpec, space):
@@ -97,11 +100,13 @@ def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -
         storage.clear()
         optimizer, start, seconds = _make_optimizer(spec, space), 0, 0.0
     sign = -1.0 if spec.direction == "maximize" else 1.0
+    evaluating = outside = 0.0
     bar = tqdm(total=spec.generations, initial=start, desc=spec.name, unit="gen", disable=not progress)
     for generation in range(start, spec.generations):
         t0 = time.perf_counter()
         free = optimizer.ask(spec.worlds)
         params = [{**p, **spec.fixed} for p in free]
+        t1 = time.perf_counter()
         if spec.mode == "kinematic":
             evaluation = evaluate_kinematic(family, params, samples=spec.samples)
         else:
@@ -109,10 +114,14 @@ def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -
                                           crank_speed=spec.crank_speed)
         apply_constraints(spec, evaluation)
         values = objective_values(spec, evaluation)
+        t2 = time.perf_counter()
         optimizer.tell(free, values.tolist())
-        seconds += time.perf_counter() - t0
         storage.write_generation(generation, params, sign * values, [_scalars(m) for m in evaluation.metrics],
-                                 evaluation.failures, pickle.dumps(optimizer), seconds)
+                                 evaluation.failures, pickle.dumps(optimizer), seconds + time.perf_counter() - t0)
+        t3 = time.perf_counter()
+        seconds += t3 - t0
+        evaluating += t2 - t1
+        outside += (t1 - t0) + (t3 - t2)
         bar.update(1)
         rate = optimizer.evaluations / max(seconds, 1e-9)
         best = sign * optimizer.best_value if math.isfinite(optimizer.best_value) else float("nan")
@@ -120,4 +129,5 @@ def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -
     bar.close()
     best = {**optimizer.best_params, **spec.fixed} if optimizer.best_params is not None else None
     value = sign * optimizer.best_value if math.isfinite(optimizer.best_value) else math.nan
-    return StudyResult(best, value, optimizer.evaluations, spec.generations, seconds)
+    return StudyResult(best, value, optimizer.evaluations, spec.generations, seconds,
+                       outside / max(evaluating + outside, 1e-12))
