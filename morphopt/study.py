@@ -41,7 +41,7 @@ class StudyResult:
 
 def _make_optimizer(spec: StudySpec, space):
     if spec.optimizer == "cma":
-        return CMAES(space, popsize=spec.worlds, sigma0=spec.sigma0, seed=spec.seed)
+        return CMAES(space, popsize=spec.worlds, sigma0=spec.sigma0, seed=spec.seed, restarts=spec.restarts)
     if spec.optimizer == "optuna":
         return OptunaSampler(space, sampler=spec.sampler, seed=spec.seed)
     return RandomSearch(space, seed=spec.seed)

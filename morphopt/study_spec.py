@@ -5,8 +5,8 @@
     [objective]   metric (a metric name of the evaluation), direction ("minimize" | "maximize");
                   metric "path_error" also needs point (a tracked point) and target (a closed
                   curve [[x, y], ...] in metres)
-    [optimizer]   name ("cma" | "optuna" | "random"), sigma0 (cma), sampler ("tpe" | "nsga2" |
-                  "random", optuna)
+    [optimizer]   name ("cma" | "optuna" | "random"), sigma0 and restarts (cma, IPOP), sampler
+                  ("tpe" | "nsga2" | "random", optuna)
     [simulation]  duration [s], dt [s], crank_speed [rad/s] (dynamic mode; default: the design's
                   own, 2 pi for linkage families), samples (points per crank turn, kinematic mode)
     [space]       per parameter: [low, high] to narrow the family's bounds
@@ -32,7 +32,7 @@ SECTIONS = {
     "study": {"name": str, "family": str, "mode": str, "seed": int, "generations": int, "worlds": int,
               "device": str, "storage": str},
     "objective": {"metric": str, "direction": str, "point": str, "target": list},
-    "optimizer": {"name": str, "sigma0": float, "sampler": str},
+    "optimizer": {"name": str, "sigma0": float, "sampler": str, "restarts": int},
     "simulation": {"duration": float, "dt": float, "crank_speed": float, "samples": int},
     "space": None,
     "fixed": None,
@@ -61,6 +61,7 @@ class StudySpec:
     optimizer: str = "cma"
     sigma0: float = 0.25
     sampler: str = "tpe"
+    restarts: int = 0
     duration: float = 2.0
     dt: float = 1e-3
     crank_speed: float | None = None
@@ -152,6 +153,7 @@ def _check_values(spec: StudySpec, where: str) -> None:
         ("objective.direction", spec.direction in ("minimize", "maximize"), "'minimize' or 'maximize'"),
         ("optimizer.name", spec.optimizer in ("cma", "optuna", "random"), "'cma', 'optuna' or 'random'"),
         ("optimizer.sampler", spec.sampler in ("tpe", "nsga2", "random"), "'tpe', 'nsga2' or 'random'"),
+        ("optimizer.restarts", spec.restarts >= 0, "an integer >= 0 (IPOP restarts of CMA-ES)"),
         ("study.generations", spec.generations >= 1, "an integer >= 1"),
         ("study.worlds", spec.worlds >= 2, "an integer >= 2"),
         ("optimizer.sigma0", 0.0 < spec.sigma0 <= 1.0, "a number in (0, 1]"),

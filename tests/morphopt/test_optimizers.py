@@ -60,3 +60,20 @@ def test_cma_ranks_failures_last():
         opt.tell(batch, [math.nan if p["x"] < 0 else p["x"] ** 2 + p["y"] ** 2 for p in batch])
     assert opt.best_params["x"] >= 0 and opt.best_value < 1e-3
     assert np.isfinite(opt.penalized([math.inf])).all()
+
+
+def test_cma_ipop_restarts_double_the_population():
+    """With IPOP restarts the strategy restarts once it has converged, doubles its population up
+    to the batch size, keeps filling whole batches and keeps the best design found."""
+    space = sphere_space()
+    opt = OPTIMIZERS["cma"](space, popsize=32, seed=2, restarts=3)
+    populations = [opt.es.popsize]
+    for _ in range(150):
+        batch = opt.ask(32)
+        assert len(batch) == 32
+        opt.tell(batch, [(p["x"] - 0.3) ** 2 + (p["y"] + 0.7) ** 2 for p in batch])
+        if opt.es.popsize != populations[-1]:
+            populations.append(opt.es.popsize)
+    assert opt.restarts_done >= 2
+    assert populations[:3] == [6, 12, 24] and max(populations) <= 32
+    assert opt.best_value < 1e-8
