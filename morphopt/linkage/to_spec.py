@@ -17,7 +17,7 @@ from engine import Body, Joint, JointDrive, MechanismSpec, TrackedPoint
 from morphopt.linkage.graph import Linkage
 from morphopt.linkage.kinematics import solve_at
 
-__all__ = ["BarStyle", "linkage_parts", "link_body", "to_spec"]
+__all__ = ["BarStyle", "link_body", "link_mesh", "linkage_parts", "to_spec"]
 
 AXIS = (0.0, -1.0, 0.0)  # positive rotation is counter-clockwise in the planar (x, y) view
 
@@ -53,6 +53,27 @@ def _bar_inertia(start: np.ndarray, end: np.ndarray, style: BarStyle):
                                + style.width**2 * (np.eye(3) - np.outer(v, v))
                                + style.thickness**2 * (np.eye(3) - np.outer(w, w)))
     return mass, 0.5 * (start + end), inertia
+
+
+def link_mesh(points: list[np.ndarray], style: BarStyle):
+    """The link's visual and fabrication geometry: one box per bar (as in link_body) as a trimesh
+    mesh in world coordinates (the bars overlap at shared pivots, as their masses do)."""
+    import trimesh
+
+    boxes = []
+    for i in range(len(points)):
+        for j in range(i + 1, len(points)):
+            start, end = points[i], points[j]
+            axis = end - start
+            length = float(np.linalg.norm(axis))
+            u = axis / length
+            w = np.array([0.0, 1.0, 0.0])
+            v = np.cross(w, u)
+            transform = np.eye(4)
+            transform[:3, :3] = np.stack([u, v, w], axis=1)
+            transform[:3, 3] = 0.5 * (start + end)
+            boxes.append(trimesh.creation.box(extents=(length, style.width, style.thickness), transform=transform))
+    return trimesh.util.concatenate(boxes)
 
 
 def link_body(name: str, points: list[np.ndarray], style: BarStyle, velocities=None) -> Body:
