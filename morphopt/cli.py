@@ -79,15 +79,23 @@ def _study_run(args) -> int:
     return 0
 
 
-def _study_show(args) -> int:
-    import pandas as pd
-
+def _stored_designs(args):
+    """The spec and its stored designs (a DataFrame), or (spec, None) after saying there are none."""
     from morphopt.storage import StudyStorage
 
     spec = _study_spec(args)
     frame = StudyStorage(spec.storage_url, spec.name).designs()
     if frame.empty:
         print(f"study '{spec.name}' has no stored designs in {spec.storage_url}")
+        return spec, None
+    return spec, frame
+
+
+def _study_show(args) -> int:
+    import pandas as pd
+
+    spec, frame = _stored_designs(args)
+    if frame is None:
         return 1
     done = int(frame["generation"].max()) + 1
     feasible = frame[frame["failure"] == ""]
@@ -104,12 +112,8 @@ def _study_show(args) -> int:
 def _study_plot(args) -> int:
     from morphopt.families import load_family
     from morphopt.plots import plot_study
-    from morphopt.storage import StudyStorage
-
-    spec = _study_spec(args)
-    frame = StudyStorage(spec.storage_url, spec.name).designs()
-    if frame.empty:
-        print(f"study '{spec.name}' has no stored designs in {spec.storage_url}")
+    spec, frame = _stored_designs(args)
+    if frame is None:
         return 1
     out = args.out or str(spec.path.with_suffix(".png"))
     print(plot_study(frame, spec, load_family(spec.family), out))
@@ -118,12 +122,10 @@ def _study_plot(args) -> int:
 
 def _study_export(args) -> int:
     from morphopt.families import load_family
-    from morphopt.storage import StudyStorage, export_to_optuna
+    from morphopt.storage import export_to_optuna
 
-    spec = _study_spec(args)
-    frame = StudyStorage(spec.storage_url, spec.name).designs()
-    if frame.empty:
-        print(f"study '{spec.name}' has no stored designs in {spec.storage_url}")
+    spec, frame = _stored_designs(args)
+    if frame is None:
         return 1
     space = spec.design_space(load_family(spec.family))
     count = export_to_optuna(frame, study_name=spec.name, space=space, direction=spec.direction,
