@@ -183,7 +183,6 @@ def padmm_project(
 
 @wp.kernel
 def padmm_convergence(
-    max_rows: int,
     max_iterations: int,
     relative_tolerance: float,
     rho_update_interval: int,
@@ -351,7 +350,7 @@ def padmm_iteration(model):
               inputs=[model.row_kind, work.row_count, work.row_friction, work.rho, work.active, work.lo, work.hi, work.x, work.z_hat, work.y, work.z,
                       work.y_prev, work.z_prev])
     wp.launch(padmm_convergence, dim=model.num_worlds, device=device,
-              inputs=[model.max_rows, cfg.max_iterations, float(cfg.relative_tolerance), cfg.rho_update_interval, int(cfg.adaptive_rho),
+              inputs=[cfg.max_iterations, float(cfg.relative_tolerance), cfg.rho_update_interval, int(cfg.adaptive_rho),
                       int(cfg.acceleration), model.row_kind, model.padmm_eta, model.padmm_tolerance,
                       work.row_count, work.x, work.x_prev, work.y, work.y_hat, work.z, work.z_hat, work.rho, work.active,
                       work.converged, work.iterations, work.momentum, work.momentum_beta, work.merit,

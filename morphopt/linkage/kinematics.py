@@ -57,8 +57,11 @@ def solve_at(linkages: list[Linkage], angles: np.ndarray, *, device: str | None 
     out: list[CycleSolution | None] = [None] * len(linkages)
     for indices in groups.values():
         group = [linkages[i] for i in indices]
-        solve = _solve_group if device is None else _solve_group_compiled
-        for index, solution in zip(indices, solve(group, angles[indices], device)):
+        if device is None:
+            solutions = _solve_group(group, angles[indices])
+        else:
+            solutions = _solve_group_compiled(group, angles[indices], device)
+        for index, solution in zip(indices, solutions):
             out[index] = solution
     return out
 
@@ -81,7 +84,7 @@ def _solve_group_compiled(group: list[Linkage], angles: np.ndarray, device: str)
     return solutions
 
 
-def _solve_group(group: list[Linkage], angles: np.ndarray, device=None) -> list[CycleSolution]:
+def _solve_group(group: list[Linkage], angles: np.ndarray) -> list[CycleSolution]:
     first = group[0]
     count, samples = angles.shape
     pos = {}

@@ -76,7 +76,7 @@ def link_mesh(points: list[np.ndarray], style: BarStyle):
     return trimesh.util.concatenate(boxes)
 
 
-def link_body(name: str, points: list[np.ndarray], style: BarStyle, velocities=None) -> Body:
+def link_body(name: str, points: list[np.ndarray], style: BarStyle) -> Body:
     """A body made of bars between every pair of ``points`` (world), frame at points[0] with x
     towards points[1]."""
     bars = [_bar_inertia(points[i], points[j], style) for i in range(len(points)) for j in range(i + 1, len(points))]
