@@ -55,10 +55,10 @@ def kinematic(device: str, designs: int, samples: int = 360) -> dict:
 
 
 def walkers(device: str, worlds: int, duration: float) -> dict:
-    """One generation of random walkers (1 leg per side): designs/s and walking speeds."""
+    """One generation of random walkers (1 to 4 legs per side, both leg families): designs/s and walking speeds."""
     family = load_family("walker")
     rng = np.random.default_rng(1)
-    params = [p | {"legs_per_side": 1} for p in family.space.sample(rng, worlds)]
+    params = family.space.sample(rng, worlds)
     evaluate_dynamic(family, params[:2], duration=0.02, device=device)  # compile
     t0 = time.perf_counter()
     evaluation = evaluate_dynamic(family, params, duration=duration, device=device)

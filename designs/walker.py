@@ -32,7 +32,7 @@ LEG_FAMILIES = {name: _load_leg(name) for name in ("jansen_leg", "klann_leg")}
 
 space = DesignSpace({
     "leg_family": Choice(tuple(LEG_FAMILIES), default="jansen_leg"),
-    "legs_per_side": Int(1, 2, default=1),  # 2 per side needs more rows than the dense solver takes
+    "legs_per_side": Int(1, 4, default=3),
     "scale": Float(2.0, 5.0, default=3.0),  # leg size relative to the families' 15 mm-crank legs
     "crank_speed": Float(2.0, 10.0, default=5.0),  # [rad/s]
     "stance": Float(0.5, 1.5, default=1.0),  # leg spacing along the torso, in crank-to-pivot lengths

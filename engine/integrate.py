@@ -5,12 +5,13 @@ Semi-implicit Euler: u+ = u_free + M^-1 J^T lambda, then x+ = x + dt v+, q+ = ex
 Moreau-Jean: q_mid = q + dt/2 u; dynamics at q_mid; q+ = q_mid + dt/2 u+ (engine.step).
 Position projection (Gauss-Newton): with the residuals phi(q+) of the bilateral rows, solve
 (P D P + sigma I) x = -P phi with the factor the PADMM solve already holds and move every body by
-M^-1 J^T (P x): one damped Newton step on the constraint manifold per iteration, no new factor.
+M^-1 J^T (P x): one damped Newton step on the constraint manifold per iteration, no new factor
+(matrix-free solver: the same system by Conjugate Residual on the bilateral rows).
 """
 
 import warp as wp
 
-from engine import linear
+from engine import linear, matrix_free
 from engine.model import ROW_ANGULAR, ROW_LINEAR
 from engine.spatial import quat_integrate, quat_rotate_vector
 
@@ -223,19 +224,26 @@ def project_positions(model, body_q, body_qd, residual_fn, fraction=1.0):
     # the projection (their rows and columns become identity) and a large ADMM penalty would damp
     # the Gauss-Newton steps: such worlds get a factor of their own (the PADMM factor and matrix
     # are free now, the next step rebuilds both).
-    if model.has_unilateral_or_drive_rows:
+    dense = model.linear_solver == "dense"
+    if dense and model.has_unilateral_or_drive_rows:
         wp.launch(bilateral_block, dim=(model.num_worlds, model.max_rows, model.max_rows), device=device,
                   inputs=[model.row_kind, work.row_count, work.delassus])
     wp.launch(projection_shift, dim=model.num_worlds, device=device,
               inputs=[model.padmm_eta, model.padmm_rho_init, model.bilateral_row_count, work.valid,
-                      int(model.has_unilateral_or_drive_rows), work.sigma, work.needs_factor, work.project])
-    linear.factor(work.delassus, work.sigma, work.needs_factor, work.factor)
+                      int(model.has_unilateral_or_drive_rows or not dense), work.sigma, work.needs_factor,
+                      work.project])
+    if dense:
+        linear.factor(work.delassus, work.sigma, work.needs_factor, work.factor)
     for _ in range(model.config.position_iterations):
         residual_fn(model, body_q, work.row_residual)
         wp.launch(projection_rhs, dim=grid_rows, device=device,
                   inputs=[work.row_count, model.row_kind, work.project, work.row_precond, work.row_residual],
                   outputs=[work.rhs])
-        linear.solve(work.factor, work.rhs, work.project, work.delta)
+        if dense:
+            linear.solve(work.factor, work.rhs, work.project, work.delta)
+        else:  # Conjugate Residual on the bilateral rows, from zero
+            work.delta.zero_()
+            matrix_free.solve(model, work.rhs, work.project, work.delta, bilateral_only=True)
         wp.launch(apply_projection, dim=grid_bodies, device=device,
                   inputs=[model.body_count, work.row_count, work.row_body_c, work.row_body_p, work.project,
                           model.world_dt, int(model.config.projection_velocity_update), fraction, work.row_MJ_c,

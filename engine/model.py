@@ -74,6 +74,13 @@ class SolverConfig:
         contact_margin: contacts closer than this are kept (speculative) [m].
         contact_stabilization: share of a penetration pushed out per step.
         restitution_threshold: approach speeds below this bounce with no restitution [m/s].
+        linear_solver: "dense" (per-world Cholesky tile, at most engine.pack.MAX_DENSE_ROWS
+            rows), "matrix_free" (Conjugate Residual with the Delassus operator, any size) or
+            "auto" (dense when the padded rows fit the tile, else matrix-free).
+        inner_iterations: Conjugate Residual iterations per PADMM iteration at most
+            (matrix-free; the position projection allows four times as many).
+        inner_tolerance_ratio: a matrix-free inner solve stops once its residual is below this
+            share of the outer PADMM residual (inexact ADMM).
     """
 
     integrator: Integrator = Integrator.MOREAU_JEAN
@@ -94,6 +101,9 @@ class SolverConfig:
     contact_margin: float = 0.01
     contact_stabilization: float = 0.2
     restitution_threshold: float = 0.05
+    linear_solver: str = "auto"
+    inner_iterations: int = 100
+    inner_tolerance_ratio: float = 0.01
 
     def __post_init__(self):
         if not isinstance(self.integrator, Integrator):
@@ -102,7 +112,12 @@ class SolverConfig:
             except ValueError as exc:
                 raise ValueError(f"SolverConfig.integrator: expected one of "
                                  f"{[i.value for i in Integrator]}, got {self.integrator!r}") from exc
+        if self.linear_solver not in ("auto", "dense", "matrix_free"):
+            raise ValueError(f"SolverConfig.linear_solver: expected 'auto', 'dense' or 'matrix_free', "
+                             f"got {self.linear_solver!r}")
         checks = {
+            "inner_iterations": self.inner_iterations >= 1,
+            "inner_tolerance_ratio": 0.0 < self.inner_tolerance_ratio < 1.0,
             "max_iterations": self.max_iterations >= 1,
             "tolerance": self.tolerance > 0.0,
             "relative_tolerance": self.relative_tolerance >= 0.0,
@@ -229,7 +244,9 @@ class Workspace:
     Rows (W, R): row_J_c, row_J_p, row_MJ_c, row_MJ_p (spatial_vector; MJ = M^-1 J^T),
     row_bias (c), row_compliance (R), row_lo, row_hi (physical impulse bounds), row_residual
     (position-level residual [m]/[rad]), row_precond (P).
-    Matrices (W, R, R): delassus (P D P), factor (its Cholesky factor with (eta + rho) I added).
+    Matrices (W, R, R), dense solver only: delassus (P D P), factor (its Cholesky factor with
+    (eta + rho) I added). Matrix-free only: cr_r, cr_p, cr_Ar, cr_Ap (W, R) Conjugate Residual
+    vectors, body_acc (W, B) twists; inner_iterations (W,) CR iterations summed over a step.
     PADMM vectors (W, R): v_f, lo, hi (preconditioned), x, x_prev, y, y_prev, y_hat, z, z_prev,
     z_hat, rhs, delta. Per world (W,): rho, sigma, valid, iterations, residual_primal, residual_dual, converged,
     active, needs_factor, momentum, momentum_beta, merit, diverged; active_count (1,).
@@ -241,7 +258,7 @@ class Workspace:
     """
 
     def __init__(self, num_worlds: int, max_bodies: int, max_rows: int, device, *, max_pairs: int = 0,
-                 contact_capacity: int = 0):
+                 contact_capacity: int = 0, dense: bool = True):
         w, b, r = num_worlds, max_bodies, max_rows
 
         def zeros(shape, dtype=float):
@@ -255,8 +272,13 @@ class Workspace:
                      "v_f", "lo", "hi", "x", "x_prev", "y", "y_prev", "y_hat", "z", "z_prev", "z_hat",
                      "rhs", "delta", "warm", "row_friction"):
             setattr(self, name, zeros((w, r)))
-        self.delassus = zeros((w, r, r))
-        self.factor = zeros((w, r, r))
+        # the dense path keeps P D P and its factor; the matrix-free path keeps CR vectors instead
+        self.delassus = zeros((w, r, r) if dense else (w, 1, 1))
+        self.factor = zeros((w, r, r) if dense else (w, 1, 1))
+        for name in ("cr_r", "cr_p", "cr_Ar", "cr_Ap"):
+            setattr(self, name, zeros((w, r) if not dense else (w, 1)))
+        self.body_acc = zeros((w, b) if not dense else (w, 1), wp.spatial_vector)
+        self.inner_iterations = zeros(w, wp.int32)
         for name in ("rho", "sigma", "residual_primal", "residual_dual", "residual_complementarity", "momentum", "momentum_beta", "merit",
                      "violation_linear", "violation_angular", "energy"):
             setattr(self, name, zeros(w))

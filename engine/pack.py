@@ -111,16 +111,19 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         capacity = max(min(w, 4 * len(s.shapes) + 8) for s, w in zip(specs, worst))
     else:
         capacity = min(int(contact_capacity), max(worst))
-    for index, spec in enumerate(specs):
-        rows = spec.row_count + 3 * capacity
-        if rows > MAX_DENSE_ROWS:
-            raise ValueError(f"pack_worlds: world {index} ('{spec.name}') needs {rows} constraint rows "
-                             f"({spec.row_count} joint/drive/limit rows + 3 x {capacity} contacts); the dense solver "
-                             f"takes at most {MAX_DENSE_ROWS} per world: lower contact_capacity or simplify the mechanism")
+    if config.linear_solver == "dense":
+        for index, spec in enumerate(specs):
+            rows = spec.row_count + 3 * capacity
+            if rows > MAX_DENSE_ROWS:
+                raise ValueError(f"pack_worlds: world {index} ('{spec.name}') needs {rows} constraint rows "
+                                 f"({spec.row_count} joint/drive/limit rows + 3 x {capacity} contacts); the dense "
+                                 f"solver takes at most {MAX_DENSE_ROWS} per world: use linear_solver='matrix_free' "
+                                 f"or 'auto', lower contact_capacity or simplify the mechanism")
     max_pairs = max(len(p) for p in pairs)
     max_shapes = max(1, max(len(s.shapes) for s in specs))
     max_rows = max(1, max(s.row_count for s in specs) + 3 * capacity)
     max_rows = ROW_TILE * ((max_rows + ROW_TILE - 1) // ROW_TILE)
+    dense = config.linear_solver == "dense" or (config.linear_solver == "auto" and max_rows <= MAX_DENSE_ROWS)
 
     W, B, J, R, P, S, Q = num_worlds, max_bodies, max_joints, max_rows, max_points, max_shapes, max(max_pairs, 1)
     f32 = np.float32
@@ -266,7 +269,8 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     bilateral = np.array([sum(JOINT_ROW_COUNT[j.type] for j in s.joints) for s in specs], np.int32)
     model.bilateral_row_count = wp.array(bilateral, dtype=wp.int32, device=device)
     model.has_bilateral_rows = bool(bilateral.any())
-    model.work = Workspace(W, B, R, device, max_pairs=max_pairs, contact_capacity=capacity)
+    model.linear_solver = "dense" if dense else "matrix_free"
+    model.work = Workspace(W, B, R, device, max_pairs=max_pairs, contact_capacity=capacity, dense=dense)
     model.work.row_count.assign(h["row_count"])
     model.work.row_body_c = wp.clone(model.row_body_c)  # contact rows rewrite their bodies every step
     model.work.row_body_p = wp.clone(model.row_body_p)

@@ -14,13 +14,15 @@ factor L L^T = P D P + (eta + rho) I, each iteration of an active world does
                       penalty update (which asks for a new factor)
     padmm_accelerate: y_hat = y + beta (y - y_prev), z_hat = z + beta (z - z_prev)
     linear.factor:    only for worlds whose penalty changed
+With the matrix-free linear solver (engine.matrix_free) the solve is an inexact, warm-started
+Conjugate Residual solve with the Delassus operator and there is no factor.
 The loop runs under wp.capture_while on a device counter of active worlds, so it can be
 captured into a CUDA graph; converged, capped and diverged worlds do no more work.
 """
 
 import warp as wp
 
-from engine import linear
+from engine import linear, matrix_free
 from engine.model import ROW_CONTACT_NORMAL, ROW_CONTACT_TANGENT, ROW_LIMIT
 
 RHO_MIN = wp.constant(1.0e-5)
@@ -333,7 +335,8 @@ def refactor(model):
     work, W = model.work, model.num_worlds
     wp.launch(sigma_of, dim=W, inputs=[model.padmm_eta, work.rho, work.needs_factor], outputs=[work.sigma],
               device=model.device)
-    linear.factor(work.delassus, work.sigma, work.needs_factor, work.factor)
+    if model.linear_solver == "dense":
+        linear.factor(work.delassus, work.sigma, work.needs_factor, work.factor)
     wp.launch(clear_flags, dim=W, inputs=[work.needs_factor], device=model.device)
 
 
@@ -345,7 +348,10 @@ def padmm_iteration(model):
               inputs=[model.padmm_eta, model.row_kind, work.rho, work.active, work.row_friction, work.v_f, work.x,
                       work.y_hat, work.z_hat],
               outputs=[work.x_prev, work.rhs])
-    linear.solve(work.factor, work.rhs, work.active, work.x)
+    if model.linear_solver == "dense":
+        linear.solve(work.factor, work.rhs, work.active, work.x)
+    else:  # inexact Conjugate Residual, warm-started from the last iterate
+        matrix_free.solve(model, work.rhs, work.active, work.x)
     wp.launch(padmm_project, dim=grid, device=device,
               inputs=[model.row_kind, work.row_count, work.row_friction, work.rho, work.active, work.lo, work.hi, work.x, work.z_hat, work.y, work.z,
                       work.y_prev, work.z_prev])
@@ -369,6 +375,7 @@ def solve_padmm(model, row_lambda_warm, row_lambda_out):
     work, cfg, device = model.work, model.config, model.device
     grid = (model.num_worlds, model.max_rows)
     work.active_count.zero_()
+    work.inner_iterations.zero_()
     wp.launch(padmm_setup, dim=model.num_worlds, device=device,
               inputs=[work.row_count, model.padmm_rho_init, work.diverged],
               outputs=[work.rho, work.valid, work.active, work.converged, work.iterations, work.momentum, work.momentum_beta,

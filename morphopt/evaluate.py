@@ -109,7 +109,6 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     spec_hook(spec, params) may add shapes, ground or change the spec before packing.
     """
     from engine import pack_worlds, rollout
-    from engine.pack import MAX_DENSE_ROWS, dense_rows_needed
 
     specs, owners, failures = [], [], []
     for i, p in enumerate(params):
@@ -122,10 +121,6 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
             failures.append(f"cannot be built: {exc}")
             continue
         spec = spec_hook(spec, p) if spec_hook else spec
-        rows = dense_rows_needed(spec)
-        if rows > MAX_DENSE_ROWS:
-            failures.append(f"too large for the dense solver: {rows} constraint rows (at most {MAX_DENSE_ROWS})")
-            continue
         failures.append("")
         specs.append(spec)
         owners.append(i)
