@@ -106,6 +106,14 @@ def _study_show(args) -> int:
                                                                             "failure") and not c.startswith("metric_")]]
     with pd.option_context("display.width", 200, "display.max_columns", 30):
         print(best[columns].to_string(index=False))
+        if spec.multi_objective:
+            from morphopt.study import objective_metric_names, pareto_front
+
+            front = pareto_front(frame, spec)
+            objectives = [f"metric_{name}" for name in objective_metric_names(spec)]
+            print(f"Pareto front: {len(front)} designs ("
+                  + ", ".join(f"{o.metric} {o.direction}" for o in spec.objectives) + ")")
+            print(front[["generation", "value", *objectives]].head(args.top).to_string(index=False))
     return 0
 
 

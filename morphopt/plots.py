@@ -7,8 +7,25 @@ import numpy as np
 __all__ = ["plot_study"]
 
 
+def _plot_pareto(ax, frame, spec) -> None:
+    """The first two objectives of every feasible design, the Pareto front highlighted."""
+    from morphopt.study import objective_metric_names, pareto_front
+
+    names = objective_metric_names(spec)[:2]
+    feasible = frame[frame["failure"] == ""]
+    front = pareto_front(frame, spec).sort_values(f"metric_{names[0]}")
+    ax.plot(feasible[f"metric_{names[0]}"], feasible[f"metric_{names[1]}"], ".", color="0.6", ms=3, label="designs")
+    ax.plot(front[f"metric_{names[0]}"], front[f"metric_{names[1]}"], "o-", color="C3", ms=4, label="Pareto front")
+    ax.set_xlabel(f"{names[0]} ({spec.objectives[0].direction})")
+    ax.set_ylabel(f"{names[1]} ({spec.objectives[1].direction})")
+    ax.set_title(f"Pareto front: {len(front)} designs")
+    ax.grid(alpha=0.3)
+    ax.legend()
+
+
 def plot_study(frame, spec, family, path: str) -> str:
-    """Convergence (best value per generation) beside the best design and its tracked paths; PNG."""
+    """Convergence (best value per generation) beside the best design and its tracked paths, and
+    with several objectives the Pareto front of the first two; PNG."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -16,7 +33,9 @@ def plot_study(frame, spec, family, path: str) -> str:
 
     from morphopt.linkage import solve_cycles
 
-    fig, (ax_curve, ax_design) = plt.subplots(1, 2, figsize=(11, 4.5))
+    panels = 3 if spec.multi_objective else 2
+    fig, axes = plt.subplots(1, panels, figsize=(5.5 * panels, 4.5))
+    ax_curve, ax_design = axes[0], axes[1]
     feasible = frame[frame["failure"] == ""]
     maximize = spec.direction == "maximize"
     per_generation = feasible.groupby("generation")["value"].agg("max" if maximize else "min")
@@ -45,6 +64,8 @@ def plot_study(frame, spec, family, path: str) -> str:
         ax_design.legend()
         ax_design.set_xlabel("x [m]")
         ax_design.set_ylabel("y [m]")
+    if spec.multi_objective:
+        _plot_pareto(axes[2], frame, spec)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -22,7 +22,7 @@ from morphopt.optimizers import CMAES, OptunaSampler, RandomSearch
 from morphopt.storage import StudyStorage
 from morphopt.study_spec import StudySpec
 
-__all__ = ["StudyResult", "run_study"]
+__all__ = ["StudyResult", "objective_matrix", "objective_metric_names", "objective_values", "pareto_front", "run_study"]
 
 
 @dataclass
@@ -43,24 +43,67 @@ def _make_optimizer(spec: StudySpec, space):
     if spec.optimizer == "cma":
         return CMAES(space, popsize=spec.worlds, sigma0=spec.sigma0, seed=spec.seed, restarts=spec.restarts)
     if spec.optimizer == "optuna":
-        return OptunaSampler(space, sampler=spec.sampler, seed=spec.seed)
+        directions = ["minimize"] * len(spec.objectives) if spec.pareto else None
+        return OptunaSampler(space, sampler=spec.sampler, seed=spec.seed, directions=directions)
     return RandomSearch(space, seed=spec.seed)
 
 
-def objective_values(spec: StudySpec, evaluation) -> np.ndarray:
-    """Values to minimize: the metric (negated when maximized); inf for failed designs. The metric
-    "path_error" compares the path of ``objective.point`` with ``objective.target``."""
-    sign = -1.0 if spec.direction == "maximize" else 1.0
-    values = []
-    if spec.metric == "path_error":
-        target = np.asarray(spec.target, dtype=float)
+def objective_matrix(spec: StudySpec, evaluation) -> np.ndarray:
+    """(designs, objectives) values to minimize: each metric, negated when maximized; inf for
+    failed designs. A "path_error" objective compares the path of its point with its target (with
+    several such objectives, the metric is stored as path_error, path_error_1, ...)."""
+    columns = []
+    for objective, name in zip(spec.objectives, objective_metric_names(spec)):
+        if objective.metric == "path_error":
+            target = np.asarray(objective.target, dtype=float)
+            for metrics, failure in zip(evaluation.metrics, evaluation.failures):
+                if not failure:
+                    metrics[name] = path_error(metrics["paths"][objective.point], target)
+        column = []
         for metrics, failure in zip(evaluation.metrics, evaluation.failures):
-            if not failure:
-                metrics["path_error"] = path_error(metrics["paths"][spec.point], target)
-    for metrics, failure in zip(evaluation.metrics, evaluation.failures):
-        value = metrics.get(spec.metric, math.nan) if not failure else math.nan
-        values.append(sign * value if value is not None and math.isfinite(value) else math.inf)
-    return np.array(values)
+            value = metrics.get(name, math.nan) if not failure else math.nan
+            column.append(objective.sign * value if value is not None and math.isfinite(value) else math.inf)
+        columns.append(column)
+    return np.array(columns, dtype=float).T.reshape(len(evaluation.failures), len(spec.objectives))
+
+
+def objective_metric_names(spec: StudySpec) -> list[str]:
+    """The stored metric of every objective (a second "path_error" objective is "path_error_1", ...)."""
+    names = []
+    for k, objective in enumerate(spec.objectives):
+        name = objective.metric
+        if name == "path_error" and name in names:
+            name = f"path_error_{k}"
+        names.append(name)
+    return names
+
+
+def objective_values(spec: StudySpec, evaluation) -> np.ndarray:
+    """One value per design to minimize: the metric (negated when maximized), or with several
+    objectives the weighted score sum_k weight_k * value_k; inf for failed designs."""
+    matrix = objective_matrix(spec, evaluation)
+    if not spec.multi_objective:
+        return matrix[:, 0]
+    weights = np.array([o.weight for o in spec.objectives])
+    with np.errstate(invalid="ignore"):
+        score = matrix @ weights
+    return np.where(np.isfinite(matrix).all(axis=1), score, math.inf)
+
+
+def pareto_front(frame, spec: StudySpec):
+    """The feasible designs of a stored study that no other feasible design dominates (all
+    objectives at least as good, one better), best score first."""
+    feasible = frame[frame["failure"] == ""]
+    columns = [f"metric_{name}" for name in objective_metric_names(spec)]
+    values = feasible[columns].to_numpy(dtype=float) * np.array([o.sign for o in spec.objectives])
+    keep = np.isfinite(values).all(axis=1)
+    values, feasible = values[keep], feasible[keep]
+    dominated = np.zeros(len(values), dtype=bool)
+    for i in range(len(values)):
+        better_or_equal = (values <= values[i]).all(axis=1)
+        strictly = (values < values[i]).any(axis=1)
+        dominated[i] = bool(np.any(better_or_equal & strictly))
+    return feasible[~dominated].sort_values("value")
 
 
 def apply_constraints(spec: StudySpec, evaluation) -> None:
@@ -115,7 +158,10 @@ def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -
         apply_constraints(spec, evaluation)
         values = objective_values(spec, evaluation)
         t2 = time.perf_counter()
-        optimizer.tell(free, values.tolist())
+        if spec.pareto:
+            optimizer.tell(free, values.tolist(), objective_matrix(spec, evaluation))
+        else:
+            optimizer.tell(free, values.tolist())
         storage.write_generation(generation, params, sign * values, [_scalars(m) for m in evaluation.metrics],
                                  evaluation.failures, pickle.dumps(optimizer), seconds + time.perf_counter() - t0)
         t3 = time.perf_counter()

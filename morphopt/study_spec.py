@@ -5,6 +5,11 @@
     [objective]   metric (a metric name of the evaluation), direction ("minimize" | "maximize");
                   metric "path_error" also needs point (a tracked point) and target (a closed
                   curve [[x, y], ...] in metres)
+    [[objectives]] several objectives instead of [objective], each with the keys of [objective]
+                  and weight (>= 0, default 1). CMA-ES and random search minimize the weighted
+                  score sum_k weight_k * (+-metric_k) (minus for maximized metrics); Optuna searches
+                  the Pareto front of all of them (NSGA-II or TPE), and the weighted score only
+                  ranks designs in `study show`. The stored value is that score (minimized).
     [optimizer]   name ("cma" | "optuna" | "random"), sigma0 and restarts (cma, IPOP), sampler
                   ("tpe" | "nsga2" | "random", optuna)
     [simulation]  duration [s], dt [s], crank_speed [rad/s] (dynamic mode; default: the design's
@@ -26,19 +31,38 @@ from dataclasses import dataclass, field, replace
 from morphopt.design_space import DesignSpace, Float, Int
 from morphopt.families import load_family
 
-__all__ = ["StudySpec", "load_study_spec"]
+__all__ = ["Objective", "StudySpec", "load_study_spec"]
 
 SECTIONS = {
     "study": {"name": str, "family": str, "mode": str, "seed": int, "generations": int, "worlds": int,
               "device": str, "storage": str},
     "objective": {"metric": str, "direction": str, "point": str, "target": list},
+    "objectives": None,
     "optimizer": {"name": str, "sigma0": float, "sampler": str, "restarts": int},
     "simulation": {"duration": float, "dt": float, "crank_speed": float, "samples": int},
     "space": None,
     "fixed": None,
     "constraints": None,
 }
-REQUIRED = {"study": ("name", "family"), "objective": ("metric",)}
+REQUIRED = {"study": ("name", "family")}
+OBJECTIVE_KEYS = {"metric": str, "direction": str, "point": str, "target": list, "weight": float}
+
+
+@dataclass(frozen=True)
+class Objective:
+    """One objective term: a metric, its direction, its weight in the score, and for "path_error"
+    the tracked point and target curve."""
+
+    metric: str
+    direction: str = "maximize"
+    weight: float = 1.0
+    point: str = ""
+    target: tuple = ()
+
+    @property
+    def sign(self) -> float:
+        """-1 for maximized metrics (values are minimized), else +1."""
+        return -1.0 if self.direction == "maximize" else 1.0
 
 
 @dataclass(frozen=True)
@@ -69,6 +93,25 @@ class StudySpec:
     space_overrides: dict = field(default_factory=dict)
     fixed: dict = field(default_factory=dict)
     constraints: dict = field(default_factory=dict)
+    objectives: tuple = ()
+
+    def __post_init__(self):
+        if not self.objectives:
+            objective = Objective(self.metric, self.direction, 1.0, self.point, self.target)
+            object.__setattr__(self, "objectives", (objective,))
+        elif len(self.objectives) > 1:  # the stored value is the weighted score, minimized
+            object.__setattr__(self, "metric", "score")
+            object.__setattr__(self, "direction", "minimize")
+
+    @property
+    def multi_objective(self) -> bool:
+        """Several objectives."""
+        return len(self.objectives) > 1
+
+    @property
+    def pareto(self) -> bool:
+        """Several objectives searched as a Pareto front (Optuna); else one value is minimized."""
+        return self.multi_objective and self.optimizer == "optuna"
 
     @property
     def storage_url(self) -> str:
@@ -115,6 +158,8 @@ def load_study_spec(path) -> StudySpec:
     for section, content in data.items():
         if section not in SECTIONS:
             raise ValueError(f"{where}: unknown section [{section}]; expected one of {sorted(SECTIONS)}")
+        if section == "objectives":
+            continue  # a list of tables, checked by _objectives
         if not isinstance(content, dict):
             raise ValueError(f"{where}: '{section}' must be a [section] table")
         keys = SECTIONS[section]
@@ -134,8 +179,14 @@ def load_study_spec(path) -> StudySpec:
         for key in keys:
             if key not in data.get(section, {}):
                 raise ValueError(f"{where}: missing required key '{section}.{key}'")
+    if ("objective" in data) == ("objectives" in data):
+        raise ValueError(f"{where}: give either one [objective] table or several [[objectives]] tables")
+    if "objective" in data and "metric" not in data["objective"]:
+        raise ValueError(f"{where}: missing required key 'objective.metric'")
     if "target" in values:
         values["target"] = tuple(tuple(p) for p in values["target"])
+    if "objectives" in data:
+        values["objectives"] = _objectives(data["objectives"], where)
     constraints = dict(data.get("constraints", {}))
     for name, bounds in constraints.items():
         if (not isinstance(bounds, list) or len(bounds) != 2
@@ -145,6 +196,33 @@ def load_study_spec(path) -> StudySpec:
                      constraints=constraints, **values)
     _check_values(spec, where)
     return spec
+
+
+def _objectives(tables, where: str) -> tuple:
+    if not isinstance(tables, list) or not tables or not all(isinstance(t, dict) for t in tables):
+        raise ValueError(f"{where}: 'objectives' must be one or more [[objectives]] tables")
+    objectives = []
+    for k, table in enumerate(tables):
+        key = f"objectives[{k}]"
+        for name, value in table.items():
+            if name not in OBJECTIVE_KEYS:
+                raise ValueError(f"{where}: unknown key '{key}.{name}'; expected one of {sorted(OBJECTIVE_KEYS)}")
+            expected = OBJECTIVE_KEYS[name]
+            if expected is float and isinstance(value, int) and not isinstance(value, bool):
+                value = float(value)
+            if not isinstance(value, expected) or isinstance(value, bool):
+                raise ValueError(f"{where}: '{key}.{name}' must be {expected.__name__}, got {value!r}")
+            table = {**table, name: value}
+        if "metric" not in table:
+            raise ValueError(f"{where}: missing required key '{key}.metric'")
+        if table.get("direction", "maximize") not in ("minimize", "maximize"):
+            raise ValueError(f"{where}: '{key}.direction' must be 'minimize' or 'maximize'")
+        if not (math.isfinite(table.get("weight", 1.0)) and table.get("weight", 1.0) >= 0.0):
+            raise ValueError(f"{where}: '{key}.weight' must be a finite number >= 0")
+        target = tuple(tuple(p) for p in table.get("target", ()))
+        objectives.append(Objective(table["metric"], table.get("direction", "maximize"), table.get("weight", 1.0),
+                                    table.get("point", ""), target))
+    return tuple(objectives)
 
 
 def _check_values(spec: StudySpec, where: str) -> None:
@@ -166,12 +244,14 @@ def _check_values(spec: StudySpec, where: str) -> None:
     for key, ok, expected in checks:
         if not ok:
             raise ValueError(f"{where}: '{key}' must be {expected}")
-    if spec.metric == "path_error":
-        ok = (spec.point and len(spec.target) >= 3 and all(len(p) == 2 and all(isinstance(c, (int, float)) for c in p)
-                                                           for p in spec.target))
-        if not ok:
-            raise ValueError(f"{where}: metric 'path_error' needs 'objective.point' and 'objective.target' "
-                             f"as at least three [x, y] points")
+    for k, objective in enumerate(spec.objectives):
+        key = "objective" if not spec.multi_objective else f"objectives[{k}]"
+        if objective.metric == "path_error":
+            ok = (objective.point and len(objective.target) >= 3
+                  and all(len(p) == 2 and all(isinstance(c, (int, float)) for c in p) for p in objective.target))
+            if not ok:
+                raise ValueError(f"{where}: metric 'path_error' needs '{key}.point' and '{key}.target' "
+                                 f"as at least three [x, y] points")
     try:
         family = load_family(spec.family)
     except ValueError as exc:

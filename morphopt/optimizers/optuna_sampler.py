@@ -19,14 +19,22 @@ SAMPLERS = {"tpe": optuna.samplers.TPESampler, "nsga2": optuna.samplers.NSGAIISa
 
 
 class OptunaSampler(Optimizer):
-    """Batch ask/tell over an in-memory Optuna study. Failed designs are told as FAIL trials."""
+    """Batch ask/tell over an in-memory Optuna study. Failed designs are told as FAIL trials.
 
-    def __init__(self, space, *, sampler: str = "tpe", seed: int = 0, **sampler_options):
+    directions: one "minimize"/"maximize" per objective for a multi-objective (Pareto) study;
+    tell() then takes the objective vectors as a third argument (the scalar values still track
+    the best design by score).
+    """
+
+    def __init__(self, space, *, sampler: str = "tpe", seed: int = 0, directions: list | None = None,
+                 **sampler_options):
         super().__init__(space, seed=seed)
         if sampler not in SAMPLERS:
             raise ValueError(f"unknown Optuna sampler '{sampler}', expected one of {sorted(SAMPLERS)}")
         optuna.logging.set_verbosity(optuna.logging.WARNING)
-        self.study = optuna.create_study(sampler=SAMPLERS[sampler](seed=seed, **sampler_options))
+        self.directions = list(directions) if directions else None
+        self.study = optuna.create_study(sampler=SAMPLERS[sampler](seed=seed, **sampler_options),
+                                         directions=self.directions)
         self.distributions = space.optuna_distributions()
         self._pending: list = []
 
@@ -34,12 +42,20 @@ class OptunaSampler(Optimizer):
         self._pending = [self.study.ask(self.distributions) for _ in range(count)]
         return [dict(trial.params) for trial in self._pending]
 
-    def tell(self, params, values) -> None:
+    def tell(self, params, values, objectives=None) -> None:
         if len(params) != len(self._pending):
             raise ValueError("Optuna: tell() must follow ask() with the same batch")
+        if (objectives is None) != (self.directions is None):
+            raise ValueError("Optuna: objective vectors go with a multi-objective study (directions), and only there")
         super().tell(params, values)
-        for trial, value in zip(self._pending, values):
-            if math.isfinite(value):
+        for k, (trial, value) in enumerate(zip(self._pending, values)):
+            if objectives is not None:
+                vector = [float(v) for v in objectives[k]]
+                if all(math.isfinite(v) for v in vector):
+                    self.study.tell(trial, vector)
+                else:
+                    self.study.tell(trial, state=optuna.trial.TrialState.FAIL)
+            elif math.isfinite(value):
                 self.study.tell(trial, float(value))
             else:
                 self.study.tell(trial, state=optuna.trial.TrialState.FAIL)

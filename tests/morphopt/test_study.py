@@ -134,3 +134,88 @@ def test_constraints_bound_the_optimum(tmp_path):
 
     failures = StudyStorage(spec.storage_url, spec.name).designs()["failure"]
     assert failures.str.contains("constraint tip_step_height in \\[0, 0.06\\] violated").any()
+
+
+def multi_study(tmp_path, *, weight, optimizer="name = \"cma\"", generations=20):
+    """Toy crank with two conflicting objectives: trace a circle of radius 0.03 m about (0.5, 0)
+    (path error ~ |r - 0.03| + |x - 0.5|) and lift the tip high (step height 2 r)."""
+    (tmp_path / "toy.py").write_text(TOY_FAMILY)
+    circle = [[0.5 + 0.03 * math.cos(t), 0.03 * math.sin(t)] for t in [2 * math.pi * k / 48 for k in range(48)]]
+    return write(tmp_path, f"""
+        [study]
+        name = "multi"
+        family = "{(tmp_path / 'toy.py').as_posix()}"
+        generations = {generations}
+        worlds = 16
+        seed = 1
+        [optimizer]
+        {optimizer}
+        [simulation]
+        samples = 64
+        [[objectives]]
+        metric = "path_error"
+        direction = "minimize"
+        point = "tip"
+        target = {circle}
+        [[objectives]]
+        metric = "tip_step_height"
+        direction = "maximize"
+        weight = {weight}
+    """)
+
+
+@pytest.mark.parametrize("weight, r_best", [(0.25, 0.03), (1.0, 0.05)])
+def test_weighted_objectives_find_the_known_compromise(tmp_path, weight, r_best):
+    """score = path_error - weight * step_height: for weight 1/4 the path term wins (r = 0.03 m on
+    the target's centre), for weight 1 the step height wins (r at its bound 0.05 m)."""
+    spec = load_study_spec(multi_study(tmp_path, weight=weight))
+    assert spec.multi_objective and not spec.pareto and spec.direction == "minimize"
+    result = run_study(spec, progress=False)
+    assert abs(result.best_params["r"] - r_best) < 2e-3, result.best_params
+    if weight < 0.5:
+        assert abs(result.best_params["x"] - 0.5) < 5e-3
+    from morphopt.storage import StudyStorage
+
+    frame = StudyStorage(spec.storage_url, spec.name).designs()
+    row = frame.loc[frame["value"].idxmin()]  # the stored value is the weighted score of stored metrics
+    assert math.isclose(row["value"], row["metric_path_error"] - weight * row["metric_tip_step_height"], abs_tol=1e-9)
+
+
+def test_pareto_study_with_nsga2(tmp_path, capsys):
+    """Optuna NSGA-II on both objectives: the stored Pareto front is mutually non-dominated,
+    dominates every other feasible design it is compared with, and `study show|plot` report it."""
+    from morphopt.storage import StudyStorage
+    from morphopt.study import pareto_front
+
+    path = multi_study(tmp_path, weight=1.0, optimizer='name = "optuna"\nsampler = "nsga2"', generations=8)
+    spec = load_study_spec(path)
+    assert spec.pareto
+    run_study(spec, progress=False)
+    frame = StudyStorage(spec.storage_url, spec.name).designs()
+    front = pareto_front(frame, spec)
+    feasible = frame[frame["failure"] == ""]
+    points = [(e, -h) for e, h in zip(feasible["metric_path_error"], feasible["metric_tip_step_height"])]
+    front_points = [(e, -h) for e, h in zip(front["metric_path_error"], front["metric_tip_step_height"])]
+    assert 2 <= len(front_points) < len(points)
+
+    def dominates(a, b):
+        return a[0] <= b[0] and a[1] <= b[1] and a != b
+
+    for p in front_points:  # no design dominates a front member
+        assert not any(dominates(q, p) for q in points)
+    for q in points:  # every design off the front is dominated by (or equal to) a front member
+        assert q in front_points or any(dominates(p, q) or p == q for p in front_points)
+    assert main(["study", "show", str(path), "--top", "3"]) == 0
+    assert "Pareto front" in capsys.readouterr().out
+    png = tmp_path / "multi.png"
+    assert main(["study", "plot", str(path), "--out", str(png)]) == 0 and png.stat().st_size > 10_000
+
+
+def test_objectives_tables_are_checked(tmp_path):
+    path = write(tmp_path, "[study]\nname='s'\nfamily='four_bar'\n[[objectives]]\nmetric='a'\nweight=-1\n", name="bad.toml")
+    with pytest.raises(ValueError, match=r"'objectives\[0\].weight' must be a finite number >= 0"):
+        load_study_spec(path)
+    path = write(tmp_path, "[study]\nname='s'\nfamily='four_bar'\n[objective]\nmetric='a'\n[[objectives]]\nmetric='b'\n",
+                 name="both.toml")
+    with pytest.raises(ValueError, match="either one"):
+        load_study_spec(path)
