@@ -41,7 +41,8 @@ class StudyResult:
 
 def _make_optimizer(spec: StudySpec, space):
     if spec.optimizer == "cma":
-        return CMAES(space, popsize=spec.worlds, sigma0=spec.sigma0, seed=spec.seed, restarts=spec.restarts)
+        return CMAES(space, popsize=spec.worlds, sigma0=spec.sigma0, seed=spec.seed, restarts=spec.restarts,
+                     restart_strategy=spec.restart_strategy)
     if spec.optimizer == "optuna":
         directions = ["minimize"] * len(spec.objectives) if spec.pareto else None
         return OptunaSampler(space, sampler=spec.sampler, seed=spec.seed, directions=directions)

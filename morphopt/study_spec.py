@@ -10,7 +10,8 @@
                   score sum_k weight_k * (+-metric_k) (minus for maximized metrics); Optuna searches
                   the Pareto front of all of them (NSGA-II or TPE), and the weighted score only
                   ranks designs in `study show`. The stored value is that score (minimized).
-    [optimizer]   name ("cma" | "optuna" | "random"), sigma0 and restarts (cma, IPOP), sampler
+    [optimizer]   name ("cma" | "optuna" | "random"), sigma0, restarts and restart_strategy
+                  ("ipop" | "bipop") (cma), sampler
                   ("tpe" | "nsga2" | "random", optuna)
     [simulation]  duration [s], dt [s], crank_speed [rad/s] (dynamic mode; default: the design's
                   own, 2 pi for linkage families), samples (points per crank turn, kinematic mode)
@@ -38,7 +39,7 @@ SECTIONS = {
               "device": str, "storage": str},
     "objective": {"metric": str, "direction": str, "point": str, "target": list},
     "objectives": None,
-    "optimizer": {"name": str, "sigma0": float, "sampler": str, "restarts": int},
+    "optimizer": {"name": str, "sigma0": float, "sampler": str, "restarts": int, "restart_strategy": str},
     "simulation": {"duration": float, "dt": float, "crank_speed": float, "samples": int},
     "space": None,
     "fixed": None,
@@ -86,6 +87,7 @@ class StudySpec:
     sigma0: float = 0.25
     sampler: str = "tpe"
     restarts: int = 0
+    restart_strategy: str = "ipop"
     duration: float = 2.0
     dt: float = 1e-3
     crank_speed: float | None = None
@@ -231,7 +233,8 @@ def _check_values(spec: StudySpec, where: str) -> None:
         ("objective.direction", spec.direction in ("minimize", "maximize"), "'minimize' or 'maximize'"),
         ("optimizer.name", spec.optimizer in ("cma", "optuna", "random"), "'cma', 'optuna' or 'random'"),
         ("optimizer.sampler", spec.sampler in ("tpe", "nsga2", "random"), "'tpe', 'nsga2' or 'random'"),
-        ("optimizer.restarts", spec.restarts >= 0, "an integer >= 0 (IPOP restarts of CMA-ES)"),
+        ("optimizer.restarts", spec.restarts >= 0, "an integer >= 0 (restarts of CMA-ES)"),
+        ("optimizer.restart_strategy", spec.restart_strategy in ("ipop", "bipop"), "'ipop' or 'bipop'"),
         ("study.generations", spec.generations >= 1, "an integer >= 1"),
         ("study.worlds", spec.worlds >= 2, "an integer >= 2"),
         ("optimizer.sigma0", 0.0 < spec.sigma0 <= 1.0, "a number in (0, 1]"),

@@ -77,3 +77,36 @@ def test_cma_ipop_restarts_double_the_population():
     assert opt.restarts_done >= 2
     assert populations[:3] == [6, 12, 24] and max(populations) <= 32
     assert opt.best_value < 1e-8
+
+
+def test_cma_bipop_alternates_large_and_small_populations():
+    """BIPOP on a multimodal function (a bowl with ripples, global minimum 0 at (0.3, -0.7)):
+    after the first run, restarts alternate between the doubling large-population regime and
+    small populations between the default and half the current large one, balancing the
+    generations spent in each; the global minimum is found."""
+    import math
+
+    space = sphere_space()
+    opt = OPTIMIZERS["cma"](space, popsize=48, seed=4, restarts=12, restart_strategy="bipop")
+
+    def f(p):
+        dx, dy = p["x"] - 0.3, p["y"] + 0.7
+        return dx * dx + dy * dy + 0.05 * (2.0 - math.cos(20 * math.pi * dx) - math.cos(20 * math.pi * dy))
+
+    for _ in range(400):
+        batch = opt.ask(48)
+        opt.tell(batch, [f(p) for p in batch])
+    default = opt.default_population
+    assert opt.restarts_done >= 4
+    assert opt.runs[0] == ("large", default)
+    large = [p for regime, p in opt.runs if regime == "large"]
+    assert len(large) >= 2 and large == [min(default * 2**k, 48) for k in range(len(large))]
+    for k, (regime, p) in enumerate(opt.runs):
+        if regime == "small":  # between the default and half the large population reached before it
+            reached = max(q for r, q in opt.runs[:k] if r == "large")
+            assert default <= p <= max(default, reached // 2)
+    spent = opt.generations_in
+    assert spent["small"] > 0 and spent["large"] > 0
+    assert opt.best_value < 1e-6
+    with pytest.raises(ValueError, match="restart_strategy"):
+        OPTIMIZERS["cma"](space, popsize=8, restart_strategy="lbfgs")
