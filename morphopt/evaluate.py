@@ -98,7 +98,7 @@ def evaluate_kinematic(family, params: Sequence[dict], *, samples: int = 360) ->
 
 def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: float = 1e-3, device: str = "cpu",
                      crank_speed: float | None = None, record_every: int = 10,
-                     spec_hook: Callable | None = None) -> Evaluation:
+                     spec_hook: Callable | None = None, loop_tolerance: float = 5e-3) -> Evaluation:
     """Simulate every feasible design for ``duration`` [s] in one heterogeneous batch.
 
     Metrics: tracked-point paths over the last crank turn (planar, [m]), their stride and step
@@ -107,6 +107,9 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     heading_drift (sideways per forward distance) and energy_per_distance [J/m] of the motors.
     crank_speed [rad/s] overrides the design's (linkage families default to 2 pi).
     spec_hook(spec, params) may add shapes, ground or change the spec before packing.
+    A design whose state turns non-finite, or whose joints come apart by more than loop_tolerance
+    [m] at any recorded step (a torn mechanism, which can still be finite and even "walk" fast),
+    fails as diverged: its metrics would describe a broken simulation, not the design.
     """
     from engine import pack_worlds, rollout
 
@@ -134,6 +137,11 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     for world, i in enumerate(owners):
         if trace.diverged[world]:
             evaluation.failures[i] = "diverged: the simulation produced a non-finite state"
+            continue
+        torn = float(trace.violation_linear[:, world].max())
+        if torn > loop_tolerance:
+            evaluation.failures[i] = (f"diverged: joints came apart by {torn:.3g} m "
+                                      f"(more than the {loop_tolerance:g} m tolerance)")
             continue
         speeds = [abs(j.drive.target_velocity) for j in specs[world].joints if j.drive is not None]
         turn = int(round(2.0 * np.pi / max(speeds + [1e-9]) / record_dt)) if speeds else len(trace.time)

@@ -172,7 +172,8 @@ def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -
         bar.update(1)
         rate = optimizer.evaluations / max(seconds, 1e-9)
         best = sign * optimizer.best_value if math.isfinite(optimizer.best_value) else float("nan")
-        bar.set_postfix_str(f"{rate:,.0f} designs/s, best {spec.metric} {best:.6g}")
+        shown = f"{rate:,.0f}" if rate >= 100 else f"{rate:.3g}"
+        bar.set_postfix_str(f"{shown} designs/s, best {spec.metric} {best:.6g}")
     bar.close()
     best = {**optimizer.best_params, **spec.fixed} if optimizer.best_params is not None else None
     value = sign * optimizer.best_value if math.isfinite(optimizer.best_value) else math.nan

@@ -8,14 +8,11 @@ from __future__ import annotations
 
 import math
 
-import optuna
-
 from morphopt.optimizers.base import Optimizer
 
 __all__ = ["OptunaSampler"]
 
-SAMPLERS = {"tpe": optuna.samplers.TPESampler, "nsga2": optuna.samplers.NSGAIISampler,
-            "random": optuna.samplers.RandomSampler}
+SAMPLERS = {"tpe": "TPESampler", "nsga2": "NSGAIISampler", "random": "RandomSampler"}
 
 
 class OptunaSampler(Optimizer):
@@ -28,12 +25,14 @@ class OptunaSampler(Optimizer):
 
     def __init__(self, space, *, sampler: str = "tpe", seed: int = 0, directions: list | None = None,
                  **sampler_options):
+        import optuna  # only studies that use Optuna need it installed
+
         super().__init__(space, seed=seed)
         if sampler not in SAMPLERS:
             raise ValueError(f"unknown Optuna sampler '{sampler}', expected one of {sorted(SAMPLERS)}")
         optuna.logging.set_verbosity(optuna.logging.WARNING)
         self.directions = list(directions) if directions else None
-        self.study = optuna.create_study(sampler=SAMPLERS[sampler](seed=seed, **sampler_options),
+        self.study = optuna.create_study(sampler=getattr(optuna.samplers, SAMPLERS[sampler])(seed=seed, **sampler_options),
                                          directions=self.directions)
         self.distributions = space.optuna_distributions()
         self._pending: list = []
@@ -43,6 +42,8 @@ class OptunaSampler(Optimizer):
         return [dict(trial.params) for trial in self._pending]
 
     def tell(self, params, values, objectives=None) -> None:
+        import optuna
+
         if len(params) != len(self._pending):
             raise ValueError("Optuna: tell() must follow ask() with the same batch")
         if (objectives is None) != (self.directions is None):

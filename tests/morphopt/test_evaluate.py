@@ -32,3 +32,18 @@ def test_dynamic_evaluation_matches_kinematic_paths():
             assert abs(dynamic[metric] - kinematic[metric]) < 1e-3, (name, metric)
         assert dynamic["torque_peak"] > 0 and np.isfinite(dynamic["torque_rms"])
         assert dynamic["loop_violation_max"] < 1e-5
+
+
+def test_torn_mechanisms_fail_as_diverged():
+    """A design whose joints come apart by more than loop_tolerance fails with the distance in its
+    reason (a torn mechanism can stay finite and score absurdly well); the same design passes
+    under a tolerance above its real loop error."""
+    family = load_family("four_bar")
+    params = [family.space.default()]
+    ok = evaluate_dynamic(family, params, duration=0.2, record_every=5)
+    assert ok.feasible.all()
+    error = ok.metrics[0]["loop_violation_max"]
+    assert 0.0 < error < 1e-5
+    strict = evaluate_dynamic(family, params, duration=0.2, record_every=5, loop_tolerance=0.5 * error)
+    assert not strict.feasible.any()
+    assert "diverged: joints came apart by" in strict.failures[0] and "m tolerance" in strict.failures[0]

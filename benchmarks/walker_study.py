@@ -1,0 +1,72 @@
+"""The walker study end to end: designs per second, the best design and how much it beats the default.
+
+    python benchmarks/walker_study.py --device cuda --worlds 4096 --generations 3 --out DIR
+    python benchmarks/walker_study.py --device cpu --worlds 64 --generations 1 --out DIR
+
+Runs studies/walker.toml (with the given device, worlds and generations; storage under --out),
+then simulates the family's default design and the best design found side by side in one batch
+with the study's settings. Prints one JSON object and writes walker_study_<device>.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+import warp as wp  # noqa: E402
+
+from morphopt.evaluate import evaluate_dynamic  # noqa: E402
+from morphopt.families import load_family  # noqa: E402
+from morphopt.study import run_study  # noqa: E402
+from morphopt.study_spec import load_study_spec  # noqa: E402
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--worlds", type=int, default=64)
+    parser.add_argument("--generations", type=int, default=1)
+    parser.add_argument("--spec", default=str(ROOT / "studies" / "walker.toml"))
+    parser.add_argument("--out", default=".")
+    args = parser.parse_args(argv)
+    wp.config.log_level = wp.LOG_WARNING
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    spec = load_study_spec(args.spec).with_overrides(
+        device=args.device, worlds=args.worlds, generations=args.generations,
+        storage=f"sqlite:///{(out / 'walker_study.sqlite').resolve()}")
+    family = load_family(spec.family)
+    evaluate_dynamic(family, [{**family.space.default(), **spec.fixed}], duration=4 * spec.dt, dt=spec.dt,
+                     device=spec.device)  # compile the kernels outside the timed study
+    t0 = time.perf_counter()
+    result = run_study(spec, progress=True)
+    seconds = time.perf_counter() - t0
+    default = {**family.space.default(), **spec.fixed}
+    pair = evaluate_dynamic(family, [default, result.best_params], duration=spec.duration, dt=spec.dt,
+                            device=spec.device)
+    speeds = [m.get("walking_speed", float("nan")) for m in pair.metrics]
+    report = {
+        "device": wp.get_device(args.device).name if args.device != "cpu" else "cpu", "worlds": args.worlds,
+        "generations": args.generations, "evaluations": result.evaluations, "seconds": seconds,
+        "designs_per_s": result.evaluations / seconds, "overhead_share": result.overhead,
+        "simulated_s_per_design": spec.duration, "dt": spec.dt,
+        "best_walking_speed": result.best_value, "best_params": result.best_params,
+        "default_walking_speed": speeds[0], "best_rechecked_walking_speed": speeds[1],
+        "best_over_default": speeds[1] / speeds[0] if speeds[0] > 0 else float("inf"),
+        "failures_of_pair": pair.failures, "warp": wp.config.version,
+    }
+    (out / f"walker_study_{args.device.split(':')[0]}.json").write_text(json.dumps(report, indent=1))
+    print(json.dumps(report))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
