@@ -167,14 +167,7 @@ def load_study_spec(path) -> StudySpec:
         keys = SECTIONS[section]
         if keys is None:
             continue
-        for key, value in content.items():
-            if key not in keys:
-                raise ValueError(f"{where}: unknown key '{section}.{key}'; expected one of {sorted(keys)}")
-            expected = keys[key]
-            if expected is float and isinstance(value, int) and not isinstance(value, bool):
-                value = float(value)
-            if not isinstance(value, expected) or isinstance(value, bool):
-                raise ValueError(f"{where}: '{section}.{key}' must be {expected.__name__}, got {value!r}")
+        for key, value in _typed(content, keys, section, where).items():
             target = {("optimizer", "name"): "optimizer", ("objective", "metric"): "metric"}.get((section, key), key)
             values[target] = value
     for section, keys in REQUIRED.items():
@@ -200,21 +193,28 @@ def load_study_spec(path) -> StudySpec:
     return spec
 
 
+def _typed(table: dict, keys: dict, prefix: str, where: str) -> dict:
+    """The table's values checked against ``keys`` (name -> type; ints pass as floats)."""
+    out = {}
+    for name, value in table.items():
+        if name not in keys:
+            raise ValueError(f"{where}: unknown key '{prefix}.{name}'; expected one of {sorted(keys)}")
+        expected = keys[name]
+        if expected is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if not isinstance(value, expected) or isinstance(value, bool):
+            raise ValueError(f"{where}: '{prefix}.{name}' must be {expected.__name__}, got {value!r}")
+        out[name] = value
+    return out
+
+
 def _objectives(tables, where: str) -> tuple:
     if not isinstance(tables, list) or not tables or not all(isinstance(t, dict) for t in tables):
         raise ValueError(f"{where}: 'objectives' must be one or more [[objectives]] tables")
     objectives = []
     for k, table in enumerate(tables):
         key = f"objectives[{k}]"
-        for name, value in table.items():
-            if name not in OBJECTIVE_KEYS:
-                raise ValueError(f"{where}: unknown key '{key}.{name}'; expected one of {sorted(OBJECTIVE_KEYS)}")
-            expected = OBJECTIVE_KEYS[name]
-            if expected is float and isinstance(value, int) and not isinstance(value, bool):
-                value = float(value)
-            if not isinstance(value, expected) or isinstance(value, bool):
-                raise ValueError(f"{where}: '{key}.{name}' must be {expected.__name__}, got {value!r}")
-            table = {**table, name: value}
+        table = _typed(table, OBJECTIVE_KEYS, key, where)
         if "metric" not in table:
             raise ValueError(f"{where}: missing required key '{key}.metric'")
         if table.get("direction", "maximize") not in ("minimize", "maximize"):
