@@ -15,43 +15,43 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-import numpy as np  # noqa: E402
-import warp as wp  # noqa: E402
+import numpy as np
+import warp as wp
 
-from morphopt.evaluate import evaluate_dynamic  # noqa: E402
-from morphopt.families import load_family  # noqa: E402
-from morphopt.linkage import kinematics_warp, solve_cycles  # noqa: E402
+from morphopt.evaluate import evaluate_dynamic
+from morphopt.families import load_family
 
 
-def kinematic(device: str, designs: int, samples: int = 360) -> dict:
-    """Jansen legs perturbed by up to 5 %: kernel-only and end-to-end designs/s."""
+def kinematic(device: str, designs: int, samples: int = 360, repeats: int = 15) -> dict:
+    """Jansen legs perturbed by up to 5 %: end-to-end designs/s of evaluate_kinematic (parameter
+    dicts in, metrics and failure reasons out; median of ``repeats``), with and without the paths
+    in the metrics, and of the kernels alone (solve_tables on a generated batch)."""
+    from morphopt.evaluate import _generate_batched, evaluate_kinematic
+    from morphopt.linkage.kinematics_warp import solve_tables
+
     family = load_family("jansen_leg")
     rng = np.random.default_rng(0)
     base = family.space.default()
-    linkages = [family.generate({k: v * (1 + 0.05 * rng.uniform(-1, 1)) for k, v in base.items()})
-                for _ in range(designs)]
-    angles = np.tile(2 * np.pi * np.arange(samples) / samples, (designs, 1))
-    kinematics_warp.solve_group_warp(linkages[:8], angles[:8], device=device)  # compile
-    launch = wp.launch
-    kernel_s = []
-
-    def timed(*args, **kwargs):
+    params = [{k: v * (1 + 0.05 * rng.uniform(-1, 1)) for k, v in base.items()} for _ in range(designs)]
+    evaluate_kinematic(family, params[:64], samples=samples, device=device)  # compile
+    out = {"designs": designs, "samples": samples, "repeats": repeats, "threads": os.cpu_count()}
+    for name, keep in (("end_to_end", False), ("end_to_end_with_paths", True)):
+        seconds = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            evaluation = evaluate_kinematic(family, params, samples=samples, device=device, keep_paths=keep)
+            seconds.append(time.perf_counter() - t0)
+        out[f"{name}_designs_per_s"] = designs / float(np.median(seconds))
+    out["infeasible_fraction"] = float(1.0 - evaluation.feasible.mean())
+    (_, tables, points), = _generate_batched(family, params)[0]
+    seconds = []
+    for _ in range(repeats):
         wp.synchronize_device(device)
         t0 = time.perf_counter()
-        launch(*args, **kwargs)
-        wp.synchronize_device(device)
-        kernel_s.append(time.perf_counter() - t0)
-
-    kinematics_warp.wp.launch = timed
-    try:
-        t0 = time.perf_counter()
-        solutions = solve_cycles(linkages, samples=samples, device=device)
-        total = time.perf_counter() - t0
-    finally:
-        kinematics_warp.wp.launch = launch
-    return {"designs": designs, "samples": samples, "kernel_designs_per_s": designs / kernel_s[0],
-            "end_to_end_designs_per_s": designs / total,
-            "infeasible_fraction": float(np.mean([not s.feasible for s in solutions]))}
+        solve_tables(tables, samples=samples, nodes=list(points.values()), device=device, keep_points=False)
+        seconds.append(time.perf_counter() - t0)
+    out["kernels_designs_per_s"] = designs / float(np.median(seconds))
+    return out
 
 
 def walkers(device: str, worlds: int, duration: float) -> dict:
@@ -77,12 +77,15 @@ def main(argv=None) -> int:
     parser.add_argument("--designs", type=int, default=4096)
     parser.add_argument("--worlds", type=int, default=64)
     parser.add_argument("--duration", type=float, default=1.0)
+    parser.add_argument("--only", choices=("kinematic", "walker"), default=None, help="run one of the two parts")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     wp.config.log_level = wp.LOG_WARNING
-    result = {"device": args.device, "device_name": wp.get_device(args.device).name,
-              "kinematic_jansen": kinematic(args.device, args.designs),
-              "walker": walkers(args.device, args.worlds, args.duration)}
+    result = {"device": args.device, "device_name": wp.get_device(args.device).name, "warp": wp.config.version}
+    if args.only in (None, "kinematic"):
+        result["kinematic_jansen"] = kinematic(args.device, args.designs)
+    if args.only in (None, "walker"):
+        result["walker"] = walkers(args.device, args.worlds, args.duration)
     print(json.dumps(result))
     if args.out:
         os.makedirs(args.out, exist_ok=True)

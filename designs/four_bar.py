@@ -7,6 +7,8 @@ to its left.
 
 import math
 
+import numpy as np
+
 from morphopt.design_space import DesignSpace, Float
 from morphopt.linkage import Crank, Dyad, Link, Linkage
 
@@ -21,17 +23,17 @@ space = DesignSpace({
 
 
 def generate(params: dict, *, crank_speed: float = 2.0 * math.pi, phase: float = 0.0) -> Linkage:
-    """The four-bar for ``params`` (lengths [m])."""
+    """The four-bar for ``params`` (lengths [m]; floats, or arrays for a batch of designs)."""
     p = params
     along, side = p["point_u"] * p["coupler"], p["point_v"]
-    to_m = math.hypot(along, side)
-    to_c = math.hypot(p["coupler"] - along, side)
+    to_m = np.hypot(along, side)
+    to_c = np.hypot(p["coupler"] - along, side)
     return Linkage(
         name="four_bar",
         ground={"O": (0.0, 0.0), "D": (p["ground"], 0.0)},
         crank=Crank("O", "M", p["crank"], phase=phase, speed=crank_speed),
         dyads=[Dyad("C", "M", p["coupler"], "D", p["rocker"], branch=1),
-               Dyad("P", "M", max(to_m, 1e-9), "C", max(to_c, 1e-9), branch=1 if side >= 0 else -1)],
+               Dyad("P", "M", np.maximum(to_m, 1e-9), "C", np.maximum(to_c, 1e-9), branch=np.where(side >= 0, 1, -1))],
         links=[Link("crank", ("O", "M")), Link("coupler", ("M", "C", "P")), Link("rocker", ("D", "C"))],
         points={"coupler_point": "P"},
     )

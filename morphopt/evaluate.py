@@ -9,12 +9,16 @@ reason; the others in its batch carry on.
 
 from __future__ import annotations
 
+import operator
+from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from morphopt.linkage import solve_cycles, to_spec
+from morphopt.design_space import Float
+from morphopt.linkage import Linkage, to_spec
+from morphopt.linkage.kinematics_warp import LinkageTables, solve_tables
 from morphopt.metrics import stride_and_step_height
 
 __all__ = ["Evaluation", "evaluate_dynamic", "evaluate_kinematic"]
@@ -52,18 +56,6 @@ class Evaluation:
         return np.array([not reason for reason in self.failures])
 
 
-def _generate(family, params: Sequence[dict], **kwargs):
-    linkages, failures = [], []
-    for p in params:
-        try:
-            linkages.append(family.generate(family.space.validate(p), **kwargs))
-            failures.append("")
-        except ValueError as exc:
-            linkages.append(None)
-            failures.append(f"cannot be generated: {exc}")
-    return linkages, failures
-
-
 def _path_metrics(paths: dict) -> dict:
     metrics = {"paths": paths}
     for name, path in paths.items():
@@ -73,26 +65,131 @@ def _path_metrics(paths: dict) -> dict:
     return metrics
 
 
-def evaluate_kinematic(family, params: Sequence[dict], *, samples: int = 360) -> Evaluation:
+def _generate_batched(family, params: Sequence[dict], **kwargs) -> tuple[list, list]:
+    """Generate every design with one call of the family per topology.
+
+    Designs are grouped by their integer and categorical values; each group's float parameters
+    go to ``family.generate`` as (D,) arrays, which gives a batched linkage when the family is
+    written with NumPy operations. The first design of the group is generated alone as well and
+    must give the same numbers; otherwise (or when generate raises on arrays) the group falls back
+    to one call per design. Returns [(indices, LinkageTables, point names -> node)] and the
+    failure reasons ("" when generated).
+    """
+    space = family.space
+    names = set(space.names)
+    floats = [n for n, p in space.parameters.items() if isinstance(p, Float)]
+    others = [n for n in space.names if n not in floats]
+    failures = [""] * len(params)
+    groups = defaultdict(list)
+    for i, p in enumerate(params):
+        if p.keys() != names:
+            failures[i] = _validation_failure(space, p)
+        else:
+            try:
+                groups[tuple(p[n] for n in others)].append(i)
+            except TypeError:  # an unhashable value: let validation name it
+                failures[i] = _validation_failure(space, p)
+    batches = []
+    for key, indices in groups.items():
+        fixed = dict(zip(others, key))
+        try:
+            getter = operator.itemgetter(*floats)
+            table = np.array([getter(params[i]) for i in indices], dtype=float).reshape(len(indices), len(floats))
+            columns = {n: np.ascontiguousarray(table[:, k]) for k, n in enumerate(floats)}
+        except (TypeError, ValueError):
+            columns = None
+        if columns is None or not all(space.parameters[n].contains(v) for n, v in fixed.items()):
+            batches += _generate_each(family, params, indices, failures, kwargs)
+            continue
+        inside = np.ones(len(indices), bool)
+        for n, values in columns.items():
+            inside &= (values >= space.parameters[n].low) & (values <= space.parameters[n].high)
+        for i in np.asarray(indices)[~inside]:
+            failures[i] = _validation_failure(space, params[i])
+        keep = [i for i, ok in zip(indices, inside) if ok]
+        if not keep:
+            continue
+        tables = None
+        try:
+            batched = family.generate({**{n: v[inside] for n, v in columns.items()}, **fixed}, **kwargs)
+            if isinstance(batched, Linkage) and batched.batch_size in (None, len(keep)):
+                tables = LinkageTables.from_linkages(batched)
+                alone = LinkageTables.from_linkages([family.generate(space.validate(params[keep[0]]), **kwargs)])
+                if not _same_first_row(tables, alone):
+                    tables = None
+        except Exception:  # noqa: BLE001 - any failure on arrays means: generate design by design
+            tables = None
+        if tables is None:
+            batches += _generate_each(family, params, keep, failures, kwargs)
+        else:
+            batches.append((keep, tables, dict(batched.points)))
+    return batches, failures
+
+
+def _validation_failure(space, params: dict) -> str:
+    try:
+        space.validate(params)
+    except ValueError as exc:
+        return f"cannot be generated: {exc}"
+    return "cannot be generated: invalid parameters"
+
+
+def _same_first_row(batch: LinkageTables, alone: LinkageTables) -> bool:
+    if (batch.names != alone.names or batch.ground_node.tolist() != alone.ground_node.tolist()
+            or batch.kind.tolist() != alone.kind.tolist() or batch.node.tolist() != alone.node.tolist()
+            or batch.node_a.tolist() != alone.node_a.tolist() or batch.node_b.tolist() != alone.node_b.tolist()):
+        return False
+    pairs = [(batch.ground_xy, alone.ground_xy), (batch.radius, alone.radius), (batch.phase, alone.phase),
+             (batch.branch, alone.branch), (batch.first, alone.first), (batch.second, alone.second)]
+    return all(np.allclose(b[0], a[0], rtol=1e-12, atol=1e-15) for b, a in pairs)
+
+
+def _generate_each(family, params, indices, failures, kwargs) -> list:
+    """One generate call per design, grouped by topology into tables."""
+    linkages, topologies = {}, defaultdict(list)
+    for i in indices:
+        try:
+            linkage = family.generate(family.space.validate(params[i]), **kwargs)
+        except ValueError as exc:
+            failures[i] = f"cannot be generated: {exc}"
+            continue
+        linkages[i] = linkage
+        topologies[linkage.topology].append(i)
+    return [(group, LinkageTables.from_linkages([linkages[i] for i in group]), dict(linkages[group[0]].points))
+            for group in topologies.values()]
+
+
+def evaluate_kinematic(family, params: Sequence[dict], *, samples: int = 360, device: str = "cpu",
+                       keep_paths: bool = True) -> Evaluation:
     """Tracked-point paths over one crank turn, stride, step height and transmission angle of
-    every design, from the batched kinematics alone."""
+    every design, from the batched cycle kinematics alone (compiled Warp kernels on ``device``;
+    the CPU splits the batch over its cores). keep_paths=False skips the paths (N, 2) in the
+    metrics, which saves their copy from a GPU when only the scalar metrics are needed."""
     if not hasattr(family, "generate"):
         raise ValueError("this design family builds whole worlds (build_spec): evaluate it with mode = 'dynamic'")
-    linkages, failures = _generate(family, params)
-    ok = [i for i, linkage in enumerate(linkages) if linkage is not None]
-    solutions = dict(zip(ok, solve_cycles([linkages[i] for i in ok], samples=samples)))
-    evaluation = Evaluation(list(params))
-    for i, linkage in enumerate(linkages):
-        if linkage is None:
-            evaluation.metrics.append({})
-            evaluation.failures.append(failures[i])
-            continue
-        solution = solutions[i]
-        paths = {name: solution.point(name, linkage) for name in linkage.points}
-        metrics = _path_metrics(paths)
-        metrics["transmission_angle_min"] = solution.transmission_angle_min
-        evaluation.metrics.append(metrics)
-        evaluation.failures.append(solution.reason)
+    batches, failures = _generate_batched(family, params)
+    evaluation = Evaluation(list(params), [{} for _ in params], failures)
+    for indices, tables, points in batches:
+        names = list(points)
+        result = solve_tables(tables, samples=samples, nodes=[points[n] for n in names], device=device,
+                              keep_points=keep_paths)
+        fail_step, fail_placement = result["fail_step"].tolist(), result["fail_placement"].tolist()
+        transmission = result["transmission_angle_min"].tolist()
+        stride, height = result["stride"].tolist(), result["step_height"].tolist()
+        step = 360.0 / samples
+        for j, i in enumerate(indices):
+            if fail_step[j] >= 0:
+                where = fail_placement[j]
+                what = "the crank" if where == len(tables.placements) else f"dyad '{tables.placements[where].node}'"
+                angle = (np.degrees(tables.phase[j]) + step * fail_step[j]) % 360.0
+                evaluation.failures[i] = f"cannot complete a crank turn: {what} does not close at crank angle {angle:.1f} deg"
+                continue
+            metrics = {"paths": {n: result["points"][j, :, k] for k, n in enumerate(names)}} if keep_paths else {}
+            for k, n in enumerate(names):
+                metrics[f"{n}_stride"] = stride[j][k]
+                metrics[f"{n}_step_height"] = height[j][k]
+            metrics["transmission_angle_min"] = transmission[j]
+            evaluation.metrics[i] = metrics
     return evaluation
 
 

@@ -152,7 +152,8 @@ def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -
         params = [{**p, **spec.fixed} for p in free]
         t1 = time.perf_counter()
         if spec.mode == "kinematic":
-            evaluation = evaluate_kinematic(family, params, samples=spec.samples)
+            evaluation = evaluate_kinematic(family, params, samples=spec.samples, device=spec.device,
+                                            keep_paths=any(o.metric == "path_error" for o in spec.objectives))
         else:
             evaluation = evaluate_dynamic(family, params, duration=spec.duration, dt=spec.dt, device=spec.device,
                                           crank_speed=spec.crank_speed)

@@ -40,8 +40,8 @@ class CycleSolution:
 def solve_cycles(linkages: list[Linkage], samples: int = 360, *, device: str | None = None) -> list[CycleSolution]:
     """Solve every linkage over ``samples`` crank angles phase + 2 pi k / samples.
 
-    device None solves in NumPy (float64); "cpu" or "cuda" runs the compiled Warp kernel
-    (float32, the same results to ~1e-6 relative, much faster for large batches).
+    device None solves in NumPy (the reference); "cpu" or "cuda" runs the compiled Warp kernels
+    (float64 as well, much faster for large batches).
     """
     steps = 2.0 * np.pi * np.arange(samples) / samples
     phases = np.array([[linkage.crank.phase] for linkage in linkages])
@@ -77,10 +77,12 @@ def _solve_group_compiled(group: list[Linkage], angles: np.ndarray, device: str)
         reason = ""
         if bad.size:
             step = int(bad[0])
-            reason = (f"cannot complete a crank turn: dyad '{placements[failed[d, step]].node}' does not close at "
+            what = ("the crank" if failed[d, step] == len(placements)
+                    else f"dyad '{placements[failed[d, step]].node}'")
+            reason = (f"cannot complete a crank turn: {what} does not close at "
                       f"crank angle {np.degrees(angles[d, step]) % 360.0:.1f} deg")
         nodes = {name: (p[d] if not bad.size else np.full((angles.shape[1], 2), np.nan)) for name, p in pos.items()}
-        solutions.append(CycleSolution(angles[d].copy(), nodes, not bad.size, reason, float(transmission[d].min())))
+        solutions.append(CycleSolution(angles[d].copy(), nodes, not bad.size, reason, float(transmission[d])))
     return solutions
 
 

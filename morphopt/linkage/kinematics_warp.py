@@ -1,106 +1,371 @@
-"""Cycle kinematics as one Warp kernel: a thread per (design, crank angle), the same results as
-the NumPy path (morphopt.linkage.kinematics) compiled for the CPU or a GPU.
+"""Cycle kinematics as Warp kernels (float64): a thread per (design, crank angle) places every node
+of a linkage, a thread per design reduces the cycle to feasibility, transmission angle, stride and
+step height. The same kernels run on the CPU (the batch split over the cores) and on a GPU.
 
-The topology is passed as small integer tables, the numbers as (designs, placements) arrays, so
-one compiled kernel serves every family.
+The topology is passed as small integer tables and the numbers as (designs, placements) arrays
+(``LinkageTables``), so one compiled kernel serves every family. Node positions live in a
+per-thread scratch vector; only the nodes asked for are written out, so a batch of many designs
+moves little memory.
 """
 
 from __future__ import annotations
+
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
 from morphopt.linkage.graph import Linkage, Offset
 
-__all__ = ["solve_group_warp"]
+__all__ = ["MAX_NODES", "LinkageTables", "solve_group_warp", "solve_tables"]
+
+MAX_NODES = 32
+_scratch = wp.types.vector(length=2 * MAX_NODES, dtype=wp.float64)
 
 KIND_DYAD = wp.constant(0)
 KIND_OFFSET = wp.constant(1)
 
 
+CPU_LANES = 8  # crank angles per CPU thread, interleaved: independent chains that one core overlaps
+GPU_LANES = 1  # a GPU hides latency with other threads and keeps each thread's scratch small
+
+
+def _cycle_points_kernel(LANES: int):
+    """The placement kernel for LANES crank angles per thread."""
+    _lanes = wp.types.matrix(shape=(2 * MAX_NODES, LANES), dtype=wp.float64)
+    _lane_ints = wp.types.vector(length=LANES, dtype=wp.int32)
+    _lane_floats = wp.types.vector(length=LANES, dtype=wp.float64)
+
+    @wp.kernel(module="unique")
+    def cycle_points(
+        angles: wp.array2d(dtype=wp.float64),
+        phase: wp.array(dtype=wp.float64),
+        turn: wp.array(dtype=wp.vec2d),
+        samples: int,
+        ground_node: wp.array(dtype=wp.int32),
+        ground_xy: wp.array2d(dtype=wp.vec2d),
+        crank_center: int,
+        crank_tip: int,
+        crank_radius: wp.array(dtype=wp.float64),
+        kind: wp.array(dtype=wp.int32),
+        node: wp.array(dtype=wp.int32),
+        node_a: wp.array(dtype=wp.int32),
+        node_b: wp.array(dtype=wp.int32),
+        branch: wp.array2d(dtype=wp.float64),
+        first: wp.array2d(dtype=wp.float64),
+        second: wp.array2d(dtype=wp.float64),
+        coefficients: wp.array3d(dtype=wp.float64),
+        out_nodes: wp.array(dtype=wp.int32),
+        # out
+        points_out: wp.array3d(dtype=wp.vec2d),
+        failed_out: wp.array2d(dtype=wp.int32),
+        cos_out: wp.array2d(dtype=wp.float64),
+    ):
+        """Place the nodes of design d at crank angles LANES * c ... LANES * c + LANES - 1 (angles[d, i],
+        or phase[d] + 2 pi i / samples when ``angles`` is empty, turn[i] = (cos, sin)(2 pi i / samples)); record per angle the first placement that
+        cannot close (-1: none, the number of placements: the crank itself) and the largest |cos| of a
+        dyad's transmission angle. coefficients[d, k] = (ra^2 - rb^2, ra^2, ra^2 + rb^2, 1 / (2 ra rb))."""
+        d, c = wp.tid()
+        zero = wp.float64(0.0)
+        one = wp.float64(1.0)
+        half = wp.float64(0.5)
+        s = _lanes()
+        radius = crank_radius[d]
+        count = kind.shape[0]
+        failed = _lane_ints(-1)
+        worst = _lane_floats()
+        for g in range(ground_node.shape[0]):
+            xy = ground_xy[d, g]
+            n = ground_node[g]
+            for lane in range(wp.static(LANES)):
+                s[2 * n, lane] = xy[0]
+                s[2 * n + 1, lane] = xy[1]
+        start = wp.vec2d(wp.cos(phase[d]), wp.sin(phase[d]))
+        for lane in range(wp.static(LANES)):
+            i = wp.min(c * LANES + lane, samples - 1)
+            cs = turn[i]
+            cos_t = start[0] * cs[0] - start[1] * cs[1]
+            sin_t = start[1] * cs[0] + start[0] * cs[1]
+            if angles.shape[0] > 0:
+                cos_t = wp.cos(angles[d, i])
+                sin_t = wp.sin(angles[d, i])
+            s[2 * crank_tip, lane] = s[2 * crank_center, lane] + radius * cos_t
+            s[2 * crank_tip + 1, lane] = s[2 * crank_center + 1, lane] + radius * sin_t
+            if not (radius > zero):
+                failed[lane] = count
+        for k in range(count):
+            a = node_a[k]
+            b = node_b[k]
+            n = node[k]
+            is_dyad = kind[k] == KIND_DYAD
+            f = first[d, k]
+            g2 = second[d, k]
+            sign = branch[d, k]
+            c0 = coefficients[d, k, 0]
+            c1 = coefficients[d, k, 1]
+            c2 = coefficients[d, k, 2]
+            c3 = coefficients[d, k, 3]
+            lengths_ok = f > zero and g2 > zero
+            for lane in range(wp.static(LANES)):
+                ax = s[2 * a, lane]
+                ay = s[2 * a + 1, lane]
+                dx = s[2 * b, lane] - ax
+                dy = s[2 * b + 1, lane] - ay
+                dist2 = dx * dx + dy * dy
+                dist = wp.sqrt(dist2)
+                inv = one / wp.max(dist, wp.float64(1.0e-300))
+                ex = dx * inv
+                ey = dy * inv
+                along = f
+                across = g2
+                if is_dyad:
+                    along = (c0 + dist2) * half * inv
+                    h2 = c1 - along * along
+                    if not (h2 >= zero and dist > zero and lengths_ok):
+                        if failed[lane] < 0:
+                            failed[lane] = k
+                    across = wp.sqrt(wp.max(h2, zero))
+                    if sign < zero:
+                        across = -across
+                    worst[lane] = wp.max(worst[lane], wp.min(wp.abs((c2 - dist2) * c3), one))
+                s[2 * n, lane] = ax + along * ex - across * ey
+                s[2 * n + 1, lane] = ay + along * ey + across * ex
+        for lane in range(wp.static(LANES)):
+            i = c * LANES + lane
+            if i < samples:
+                for p in range(out_nodes.shape[0]):
+                    m = out_nodes[p]
+                    points_out[d, i, p] = wp.vec2d(s[2 * m, lane], s[2 * m + 1, lane])
+                failed_out[d, i] = failed[lane]
+                cos_out[d, i] = worst[lane]
+
+    return cycle_points
+
+
+_CYCLE_POINTS = {}
+
+
 @wp.kernel
-def cycle_positions(
-    angles: wp.array2d(dtype=float),
-    crank_center: int,
-    crank_tip: int,
-    crank_radius: wp.array(dtype=float),
-    kind: wp.array(dtype=wp.int32),
-    node: wp.array(dtype=wp.int32),
-    node_a: wp.array(dtype=wp.int32),
-    node_b: wp.array(dtype=wp.int32),
-    branch: wp.array(dtype=float),
-    first: wp.array2d(dtype=float),
-    second: wp.array2d(dtype=float),
-    # in/out: ground nodes filled in, the rest computed
-    positions: wp.array3d(dtype=wp.vec2),
+def cycle_reduce(
+    points: wp.array3d(dtype=wp.vec2d),
+    failed: wp.array2d(dtype=wp.int32),
+    cos_max: wp.array2d(dtype=wp.float64),
+    ground_band: wp.float64,
     # out
-    failed_at_out: wp.array2d(dtype=wp.int32),
-    transmission_out: wp.array2d(dtype=float),
+    fail_step_out: wp.array(dtype=wp.int32),
+    fail_placement_out: wp.array(dtype=wp.int32),
+    cos_out: wp.array(dtype=wp.float64),
+    stride_out: wp.array2d(dtype=wp.float64),
+    height_out: wp.array2d(dtype=wp.float64),
 ):
-    """Place every node of design d at its crank angle i; record the first dyad that cannot close."""
-    d, i = wp.tid()
-    theta = angles[d, i]
-    center = positions[d, i, crank_center]
-    positions[d, i, crank_tip] = center + crank_radius[d] * wp.vec2(wp.cos(theta), wp.sin(theta))
-    failed = int(-1)
-    transmission = float(1.5707963267948966)
-    for k in range(kind.shape[0]):
-        a = positions[d, i, node_a[k]]
-        b = positions[d, i, node_b[k]]
-        delta = b - a
-        dist = wp.length(delta)
-        ex = delta / wp.max(dist, 1.0e-30)
-        ey = wp.vec2(-ex[1], ex[0])
-        if kind[k] == KIND_OFFSET:
-            positions[d, i, node[k]] = a + first[d, k] * ex + second[d, k] * ey
+    """Per design: the first failing crank step and placement (-1: feasible), the largest |cos mu|
+    and, per output node, the stride (horizontal extent of the points within ground_band x the step
+    height above the lowest one) and the step height (vertical extent); NaN when infeasible."""
+    d = wp.tid()
+    samples = failed.shape[1]
+    fail_step = -1
+    fail_placement = -1
+    worst = wp.float64(0.0)
+    for i in range(samples):
+        if failed[d, i] >= 0 and fail_step < 0:
+            fail_step = i
+            fail_placement = failed[d, i]
+        worst = wp.max(worst, cos_max[d, i])
+    fail_step_out[d] = fail_step
+    fail_placement_out[d] = fail_placement
+    cos_out[d] = worst
+    nan = wp.float64(wp.nan)
+    for p in range(points.shape[2]):
+        if fail_step >= 0:
+            stride_out[d, p] = nan
+            height_out[d, p] = nan
+            continue
+        low = points[d, 0, p][1]
+        high = low
+        for i in range(samples):
+            y = points[d, i, p][1]
+            low = wp.min(low, y)
+            high = wp.max(high, y)
+        band = low + ground_band * (high - low)
+        left = wp.float64(1.0e300)
+        right = wp.float64(-1.0e300)
+        for i in range(samples):
+            q = points[d, i, p]
+            if q[1] <= band:
+                left = wp.min(left, q[0])
+                right = wp.max(right, q[0])
+        stride_out[d, p] = right - left
+        height_out[d, p] = high - low
+
+
+@dataclass
+class LinkageTables:
+    """A group of same-topology linkages as arrays: node names, ground nodes and their (D, G, 2)
+    positions, crank centre/tip, radius and phase (D,), placement kinds and nodes (K,), branch,
+    first and second numbers (D, K) (ra, rb of a dyad; along, across of an offset)."""
+
+    names: list
+    placements: list
+    ground_node: np.ndarray
+    ground_xy: np.ndarray
+    crank_center: int
+    crank_tip: int
+    radius: np.ndarray
+    phase: np.ndarray
+    kind: np.ndarray
+    node: np.ndarray
+    node_a: np.ndarray
+    node_b: np.ndarray
+    branch: np.ndarray
+    first: np.ndarray
+    second: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return len(self.radius)
+
+    @classmethod
+    def from_linkages(cls, linkages) -> LinkageTables:
+        """Tables of a list of same-topology linkages, or of one linkage whose numbers are (D,)
+        arrays (a batched linkage, see Linkage.batch_size)."""
+        if isinstance(linkages, Linkage):
+            template, count = linkages, linkages.batch_size or 1
+            column = lambda get: np.broadcast_to(np.asarray(get(template), np.float64), (count,))
         else:
-            ra = first[d, k]
-            rb = second[d, k]
-            along = (ra * ra - rb * rb + dist * dist) / (2.0 * wp.max(dist, 1.0e-30))
-            h2 = ra * ra - along * along
-            if (h2 < 0.0 or dist <= 0.0) and failed < 0:
-                failed = k
-            h = wp.sqrt(wp.max(h2, 0.0))
-            positions[d, i, node[k]] = a + along * ex + branch[k] * h * ey
-            cos_mu = wp.clamp((ra * ra + rb * rb - dist * dist) / (2.0 * ra * rb), -1.0, 1.0)
-            mu = wp.acos(cos_mu)
-            transmission = wp.min(transmission, wp.min(mu, 3.141592653589793 - mu))
-    failed_at_out[d, i] = failed
-    transmission_out[d, i] = transmission
+            template, count = linkages[0], len(linkages)
+            column = lambda get: np.array([get(g) for g in linkages], np.float64)
+        names = template.nodes
+        if len(names) > MAX_NODES:
+            raise ValueError(f"linkage '{template.name}' has {len(names)} nodes; the compiled kinematics "
+                             f"take at most {MAX_NODES}")
+        index = {name: k for k, name in enumerate(names)}
+        placements = list(template.dyads)
+        ground = list(template.ground)
+        ground_xy = np.stack([np.stack([column(lambda g, n=n: g.ground[n][0]), column(lambda g, n=n: g.ground[n][1])],
+                                       axis=-1) for n in ground], axis=1)
+        width = max(len(placements), 1)  # keep the tables 2-D when a linkage is a bare crank
+        branch, first, second = (np.zeros((count, width)) for _ in range(3))
+        for k, p in enumerate(placements):
+            if isinstance(p, Offset):
+                first[:, k] = column(lambda g, k=k: g.dyads[k].along)
+                second[:, k] = column(lambda g, k=k: g.dyads[k].across)
+            else:
+                first[:, k] = column(lambda g, k=k: g.dyads[k].ra)
+                second[:, k] = column(lambda g, k=k: g.dyads[k].rb)
+                branch[:, k] = column(lambda g, k=k: g.dyads[k].branch)
+        ints = lambda values: np.array(values, np.int32)
+        return cls(names, placements, ints([index[n] for n in ground]), np.ascontiguousarray(ground_xy),
+                   index[template.crank.center], index[template.crank.tip],
+                   np.ascontiguousarray(column(lambda g: g.crank.radius)),
+                   np.ascontiguousarray(column(lambda g: g.crank.phase)),
+                   ints([1 if isinstance(p, Offset) else 0 for p in placements]),
+                   ints([index[p.node] for p in placements]), ints([index[p.a] for p in placements]),
+                   ints([index[p.b] for p in placements]), branch, first, second)
 
 
-def solve_group_warp(group: list[Linkage], angles: np.ndarray, device: str = "cpu"):
+def _chunks(count: int, device: str) -> list[tuple[int, int]]:
+    """Design ranges launched side by side: one per core on the CPU (Warp runs a CPU launch on one
+    thread and releases the interpreter lock while it runs), one range on a GPU."""
+    workers = (os.cpu_count() or 1) if wp.get_device(device).is_cpu else 1
+    workers = max(1, min(workers, count // 64 or 1))
+    edges = np.linspace(0, count, workers + 1).astype(int)
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+def solve_tables(tables: LinkageTables, *, samples: int | None = None, angles: np.ndarray | None = None,
+                 nodes: list[str] | None = None, device: str = "cpu", ground_band: float = 0.02,
+                 keep_points: bool = True) -> dict:
+    """Solve every design of ``tables`` over ``samples`` crank angles phase + 2 pi k / samples (or
+    at its own ``angles`` (D, N)) and reduce each cycle.
+
+    Returns a dict of NumPy arrays: "points" (D, N, len(nodes), 2) [m] of the nodes asked for (all
+    by default; omitted when keep_points is False, which saves the copy from a GPU), "failed"
+    (D, N) first failing placement per angle (-1 none; K: the crank), "fail_step" and
+    "fail_placement" (D,) (-1: feasible), "transmission_angle_min" (D,) [rad], "stride" and
+    "step_height" (D, len(nodes)) [m] (the rule of morphopt.metrics.stride_and_step_height).
+    """
+    count = tables.count
+    nodes = list(tables.names) if nodes is None else list(nodes)
+    out_nodes = np.array([tables.names.index(n) for n in nodes], np.int32)
+    if angles is not None:
+        angles = np.ascontiguousarray(angles, np.float64)
+        samples = angles.shape[1]
+    elif samples is None:
+        raise ValueError("solve_tables needs samples or angles")
+    turn_angles = 2.0 * math.pi * np.arange(samples) / samples
+    turn = wp.array(np.stack([np.cos(turn_angles), np.sin(turn_angles)], axis=-1), dtype=wp.vec2d, device=device)
+    ra, rb = tables.first, tables.second
+    with np.errstate(divide="ignore", invalid="ignore"):
+        coefficients = np.ascontiguousarray(np.stack([ra * ra - rb * rb, ra * ra, ra * ra + rb * rb,
+                                                      0.5 / (ra * rb)], axis=-1))
+    per_design = {"phase": tables.phase, "ground_xy": tables.ground_xy, "radius": tables.radius,
+                  "branch": tables.branch, "first": tables.first, "second": tables.second,
+                  "coefficients": coefficients}
+    host = {"points": np.empty((count, samples, len(nodes), 2)), "failed": np.empty((count, samples), np.int32),
+            "cos": np.empty((count, samples)), "fail_step": np.empty(count, np.int32),
+            "fail_placement": np.empty(count, np.int32), "cos_max": np.empty(count),
+            "stride": np.empty((count, len(nodes))), "step_height": np.empty((count, len(nodes)))}
+    shared = {name: wp.array(getattr(tables, name), dtype=wp.int32, device=device)
+              for name in ("ground_node", "kind", "node", "node_a", "node_b")}
+    shared["out_nodes"] = wp.array(out_nodes, dtype=wp.int32, device=device)
+    is_cpu = wp.get_device(device).is_cpu
+    lanes = CPU_LANES if is_cpu else GPU_LANES
+    if lanes not in _CYCLE_POINTS:
+        _CYCLE_POINTS[lanes] = _cycle_points_kernel(lanes)
+    kernel = _CYCLE_POINTS[lanes]
+
+    def run(lo: int, hi: int):
+        def put(array, dtype):
+            return wp.array(array[lo:hi], dtype=dtype, device=device, copy=not is_cpu)
+
+        def out(name, dtype):  # on the CPU the kernels write straight into the host arrays
+            return put(host[name], dtype) if is_cpu else wp.empty(host[name][lo:hi].shape[:host[name].ndim - (
+                dtype is wp.vec2d)], dtype=dtype, device=device)
+
+        arrays = {k: put(v, wp.vec2d if k == "ground_xy" else wp.float64) for k, v in per_design.items()}
+        chunk_angles = (put(angles, wp.float64) if angles is not None
+                        else wp.empty((0, 0), dtype=wp.float64, device=device))
+        points, failed, cos = out("points", wp.vec2d), out("failed", wp.int32), out("cos", wp.float64)
+        wp.launch(kernel, dim=(hi - lo, (samples + lanes - 1) // lanes), device=device,
+                  inputs=[chunk_angles, arrays["phase"], turn, samples, shared["ground_node"], arrays["ground_xy"],
+                          tables.crank_center, tables.crank_tip, arrays["radius"], shared["kind"], shared["node"],
+                          shared["node_a"], shared["node_b"], arrays["branch"], arrays["first"], arrays["second"],
+                          arrays["coefficients"], shared["out_nodes"]],
+                  outputs=[points, failed, cos])
+        reduced = {name: out(name, dtype) for name, dtype in (
+            ("fail_step", wp.int32), ("fail_placement", wp.int32), ("cos_max", wp.float64),
+            ("stride", wp.float64), ("step_height", wp.float64))}
+        wp.launch(cycle_reduce, dim=hi - lo, device=device, inputs=[points, failed, cos, ground_band],
+                  outputs=list(reduced.values()))
+        if not is_cpu:
+            for name, array in reduced.items():
+                host[name][lo:hi] = array.numpy()
+            host["failed"][lo:hi] = failed.numpy()
+            if keep_points:
+                host["points"][lo:hi] = points.numpy()
+
+    ranges = _chunks(count, device)
+    if len(ranges) == 1:
+        run(*ranges[0])
+    else:
+        with ThreadPoolExecutor(len(ranges)) as pool:
+            list(pool.map(lambda r: run(*r), ranges))
+    result = {"failed": host["failed"], "fail_step": host["fail_step"], "fail_placement": host["fail_placement"],
+              "transmission_angle_min": np.arccos(host["cos_max"]), "stride": host["stride"],
+              "step_height": host["step_height"]}
+    if keep_points:
+        result["points"] = host["points"]
+    return result
+
+
+def solve_group_warp(group, angles: np.ndarray, device: str = "cpu"):
     """Node positions (name -> (D, N, 2)), first failing placement per (D, N) (-1: none) and the
-    transmission angle per (D, N) for linkages of one topology."""
-    first_linkage = group[0]
-    names = first_linkage.nodes
-    index = {name: k for k, name in enumerate(names)}
-    count, samples = angles.shape
-    placements = first_linkage.dyads
-    positions = np.zeros((count, samples, len(names), 2), np.float32)
-    for name in first_linkage.ground:
-        positions[:, :, index[name]] = np.array([g.ground[name] for g in group], np.float32)[:, None, :]
-    tables = {
-        "kind": [1 if isinstance(p, Offset) else 0 for p in placements],
-        "node": [index[p.node] for p in placements], "node_a": [index[p.a] for p in placements],
-        "node_b": [index[p.b] for p in placements],
-    }
-    branch = np.array([getattr(p, "branch", 0) for p in placements], np.float32)
-    width = max(len(placements), 1)  # keep the tables 2-D when a linkage is a bare crank
-    first = np.zeros((count, width), np.float32)
-    second = np.zeros((count, width), np.float32)
-    for d, g in enumerate(group):
-        for k, p in enumerate(g.dyads):
-            first[d, k], second[d, k] = (p.along, p.across) if isinstance(p, Offset) else (p.ra, p.rb)
-    arr = lambda x, dtype: wp.array(np.asarray(x), dtype=dtype, device=device)  # noqa: E731
-    pos = wp.array(positions, dtype=wp.vec2, device=device)
-    failed = wp.zeros((count, samples), dtype=wp.int32, device=device)
-    transmission = wp.zeros((count, samples), dtype=float, device=device)
-    wp.launch(cycle_positions, dim=(count, samples), device=device,
-              inputs=[arr(angles.astype(np.float32), float), index[first_linkage.crank.center],
-                      index[first_linkage.crank.tip], arr([g.crank.radius for g in group], float),
-                      arr(tables["kind"], wp.int32), arr(tables["node"], wp.int32), arr(tables["node_a"], wp.int32),
-                      arr(tables["node_b"], wp.int32), arr(branch, float), arr(first, float), arr(second, float), pos],
-              outputs=[failed, transmission])
-    out = pos.numpy().astype(np.float64)
-    return {name: out[:, :, k] for name, k in index.items()}, failed.numpy(), transmission.numpy()
+    smallest transmission angle per design (D,) for linkages of one topology."""
+    tables = LinkageTables.from_linkages(group)
+    result = solve_tables(tables, angles=angles, device=device)
+    points = result["points"]
+    return ({name: points[:, :, k] for k, name in enumerate(tables.names)}, result["failed"],
+            result["transmission_angle_min"])
