@@ -166,8 +166,8 @@ def cycle_reduce(
     height above the lowest one) and the step height (vertical extent); NaN when infeasible."""
     d = wp.tid()
     samples = failed.shape[1]
-    fail_step = -1
-    fail_placement = -1
+    fail_step = int(-1)  # noqa: UP018 - int(): a variable, not a constant, for Warp
+    fail_placement = int(-1)  # noqa: UP018
     worst = wp.float64(0.0)
     for i in range(samples):
         if failed[d, i] >= 0 and fail_step < 0:
