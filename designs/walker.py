@@ -83,7 +83,8 @@ def build_spec(params: dict, *, crank_speed: float | None = None, effort_limit: 
     torso.com = np.array([half[0], 0.0, 0.0])
     bodies, joints = [torso], []
     shapes = [Shape("torso", "box", "torso", half, position=(half[0], 0.0, 0.0), collision_group=1)]
-    points = [TrackedPoint("torso", "torso", (half[0], 0.0, 0.0))]
+    # torso_up: one torso half-length above the centre, for the torso's tilt (falls are failures)
+    points = [TrackedPoint("torso", "torso", (half[0], 0.0, 0.0)), TrackedPoint("torso_up", "torso", (half[0], 0.0, hx))]
     for prefix, x, y, linkage in placements:
         leg_bodies, leg_joints, leg_points = linkage_parts(
             linkage, style=style, crank_damping=5.0, effort_limit=effort_limit, start_at_speed=False,

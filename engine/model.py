@@ -246,7 +246,7 @@ class Workspace:
     (position-level residual [m]/[rad]), row_precond (P).
     Matrices (W, R, R), dense solver only: delassus (P D P), factor (its Cholesky factor with
     (eta + rho) I added). Matrix-free only: cr_r, cr_p, cr_Ar, cr_Ap (W, R) Conjugate Residual
-    vectors, body_acc (W, B) twists; inner_iterations (W,) CR iterations summed over a step.
+    vectors (body twists live in shared memory); inner_iterations (W,) CR iterations summed over a step.
     PADMM vectors (W, R): v_f, lo, hi (preconditioned), x, x_prev, y, y_prev, y_hat, z, z_prev,
     z_hat, rhs, delta. Per world (W,): rho, sigma, valid, iterations, residual_primal, residual_dual, converged,
     active, needs_factor, momentum, momentum_beta, merit, diverged; active_count (1,).
@@ -277,7 +277,6 @@ class Workspace:
         self.factor = zeros((w, r, r) if dense else (w, 1, 1))
         for name in ("cr_r", "cr_p", "cr_Ar", "cr_Ap"):
             setattr(self, name, zeros((w, r) if not dense else (w, 1)))
-        self.body_acc = zeros((w, b) if not dense else (w, 1), wp.spatial_vector)
         self.inner_iterations = zeros(w, wp.int32)
         for name in ("rho", "sigma", "residual_primal", "residual_dual", "residual_complementarity", "momentum", "momentum_beta", "merit",
                      "violation_linear", "violation_angular", "energy"):

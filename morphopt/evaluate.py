@@ -39,6 +39,22 @@ def _walking_metrics(trace, world: int, torso: int, speeds: list, record_dt: flo
             "energy_per_distance": float(work / max(distance, 1e-9)) if distance > 1e-4 else float("inf")}
 
 
+def _fall(trace, world: int, torso: int, up: int, max_tilt: float, min_height: float) -> tuple:
+    """Largest tilt [rad] of the torso's up axis, lowest torso height (fraction of the start) and
+    the failure reason ("" when the walker stayed up)."""
+    axis = trace.points[:, world, up] - trace.points[:, world, torso]
+    cos_tilt = axis[:, 2] / np.maximum(np.linalg.norm(axis, axis=1), 1e-12)
+    tilt = float(np.arccos(np.clip(cos_tilt, -1.0, 1.0)).max())
+    height = trace.points[:, world, torso, 2]
+    lowest = float(height.min() / max(height[0], 1e-12))
+    reason = ""
+    if tilt > max_tilt:
+        reason = f"fell: the torso tilted by {np.degrees(tilt):.0f} deg (more than {np.degrees(max_tilt):.0f})"
+    elif lowest < min_height:
+        reason = f"fell: the torso sank to {lowest:.2f} of its starting height (less than {min_height:g})"
+    return tilt, lowest, reason
+
+
 @dataclass
 class Evaluation:
     """Results of one batch, in the order of ``params``.
@@ -195,7 +211,8 @@ def evaluate_kinematic(family, params: Sequence[dict], *, samples: int = 360, de
 
 def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: float = 1e-3, device: str = "cpu",
                      crank_speed: float | None = None, record_every: int = 10,
-                     spec_hook: Callable | None = None, loop_tolerance: float = 5e-3) -> Evaluation:
+                     spec_hook: Callable | None = None, loop_tolerance: float = 5e-3,
+                     fall_tilt: float = np.radians(45.0), fall_height: float = 0.5) -> Evaluation:
     """Simulate every feasible design for ``duration`` [s] in one heterogeneous batch.
 
     Metrics: tracked-point paths over the last crank turn (planar, [m]), their stride and step
@@ -207,6 +224,10 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     A design whose state turns non-finite, or whose joints come apart by more than loop_tolerance
     [m] at any recorded step (a torn mechanism, which can still be finite and even "walk" fast),
     fails as diverged: its metrics would describe a broken simulation, not the design.
+    A walker (tracked points "torso" and "torso_up", the latter above the torso centre) that tilts
+    by more than fall_tilt [rad] or whose torso sinks below fall_height times its starting height
+    fails as fallen (a tumbling or belly-sliding body can cover ground fast without walking); its
+    torso_tilt_max [rad] and torso_height_min (fraction of the start) are metrics as well.
     """
     from engine import pack_worlds, rollout
 
@@ -247,6 +268,12 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
         metrics = _path_metrics(paths)
         if "torso" in names:
             metrics.update(_walking_metrics(trace, world, names.index("torso"), speeds, record_dt))
+        if "torso" in names and "torso_up" in names:
+            fell = _fall(trace, world, names.index("torso"), names.index("torso_up"), fall_tilt, fall_height)
+            metrics["torso_tilt_max"], metrics["torso_height_min"], reason = fell
+            if reason:
+                evaluation.failures[i] = reason
+                continue
         drive = trace.drive_torque[1:, world]  # record 0 is the initial state
         metrics["torque_peak"] = float(np.abs(drive).max())
         metrics["torque_rms"] = float(np.sqrt(np.mean(drive**2)))

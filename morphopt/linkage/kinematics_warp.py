@@ -33,9 +33,10 @@ CPU_LANES = 8  # crank angles per CPU thread, interleaved: independent chains th
 GPU_LANES = 1  # a GPU hides latency with other threads and keeps each thread's scratch small
 
 
-def _cycle_points_kernel(LANES: int):
-    """The placement kernel for LANES crank angles per thread."""
-    _lanes = wp.types.matrix(shape=(2 * MAX_NODES, LANES), dtype=wp.float64)
+def _cycle_points_kernel(LANES: int, NODES: int):
+    """The placement kernel for LANES crank angles per thread and linkages of up to NODES nodes
+    (the per-thread scratch holds exactly that much); both are read as constants in the kernel."""
+    _lanes = wp.types.matrix(shape=(2 * NODES, LANES), dtype=wp.float64)
     _lane_ints = wp.types.vector(length=LANES, dtype=wp.int32)
     _lane_floats = wp.types.vector(length=LANES, dtype=wp.float64)
 
@@ -146,6 +147,19 @@ def _cycle_points_kernel(LANES: int):
 
 
 _CYCLE_POINTS = {}
+
+
+@wp.kernel
+def dyad_coefficients(first: wp.array2d(dtype=wp.float64), second: wp.array2d(dtype=wp.float64),
+                      coefficients: wp.array3d(dtype=wp.float64)):
+    """(ra^2 - rb^2, ra^2, ra^2 + rb^2, 1 / (2 ra rb)) of every dyad, computed once per design."""
+    d, k = wp.tid()
+    ra = first[d, k]
+    rb = second[d, k]
+    coefficients[d, k, 0] = ra * ra - rb * rb
+    coefficients[d, k, 1] = ra * ra
+    coefficients[d, k, 2] = ra * ra + rb * rb
+    coefficients[d, k, 3] = wp.float64(0.5) / (ra * rb)
 
 
 @wp.kernel
@@ -297,13 +311,8 @@ def solve_tables(tables: LinkageTables, *, samples: int | None = None, angles: n
         raise ValueError("solve_tables needs samples or angles")
     turn_angles = 2.0 * math.pi * np.arange(samples) / samples
     turn = wp.array(np.stack([np.cos(turn_angles), np.sin(turn_angles)], axis=-1), dtype=wp.vec2d, device=device)
-    ra, rb = tables.first, tables.second
-    with np.errstate(divide="ignore", invalid="ignore"):
-        coefficients = np.ascontiguousarray(np.stack([ra * ra - rb * rb, ra * ra, ra * ra + rb * rb,
-                                                      0.5 / (ra * rb)], axis=-1))
     per_design = {"phase": tables.phase, "ground_xy": tables.ground_xy, "radius": tables.radius,
-                  "branch": tables.branch, "first": tables.first, "second": tables.second,
-                  "coefficients": coefficients}
+                  "branch": tables.branch, "first": tables.first, "second": tables.second}
     host = {"points": np.empty((count, samples, len(nodes), 2)), "failed": np.empty((count, samples), np.int32),
             "cos": np.empty((count, samples)), "fail_step": np.empty(count, np.int32),
             "fail_placement": np.empty(count, np.int32), "cos_max": np.empty(count),
@@ -313,9 +322,10 @@ def solve_tables(tables: LinkageTables, *, samples: int | None = None, angles: n
     shared["out_nodes"] = wp.array(out_nodes, dtype=wp.int32, device=device)
     is_cpu = wp.get_device(device).is_cpu
     lanes = CPU_LANES if is_cpu else GPU_LANES
-    if lanes not in _CYCLE_POINTS:
-        _CYCLE_POINTS[lanes] = _cycle_points_kernel(lanes)
-    kernel = _CYCLE_POINTS[lanes]
+    scratch = min(MAX_NODES, 8 * ((len(tables.names) + 7) // 8))
+    if (lanes, scratch) not in _CYCLE_POINTS:
+        _CYCLE_POINTS[lanes, scratch] = _cycle_points_kernel(lanes, scratch)
+    kernel = _CYCLE_POINTS[lanes, scratch]
 
     def run(lo: int, hi: int):
         def put(array, dtype):
@@ -329,11 +339,14 @@ def solve_tables(tables: LinkageTables, *, samples: int | None = None, angles: n
         chunk_angles = (put(angles, wp.float64) if angles is not None
                         else wp.empty((0, 0), dtype=wp.float64, device=device))
         points, failed, cos = out("points", wp.vec2d), out("failed", wp.int32), out("cos", wp.float64)
+        coefficients = wp.empty((hi - lo, tables.first.shape[1], 4), dtype=wp.float64, device=device)
+        wp.launch(dyad_coefficients, dim=tables.first[lo:hi].shape, device=device,
+                  inputs=[arrays["first"], arrays["second"]], outputs=[coefficients])
         wp.launch(kernel, dim=(hi - lo, (samples + lanes - 1) // lanes), device=device,
                   inputs=[chunk_angles, arrays["phase"], turn, samples, shared["ground_node"], arrays["ground_xy"],
                           tables.crank_center, tables.crank_tip, arrays["radius"], shared["kind"], shared["node"],
                           shared["node_a"], shared["node_b"], arrays["branch"], arrays["first"], arrays["second"],
-                          arrays["coefficients"], shared["out_nodes"]],
+                          coefficients, shared["out_nodes"]],
                   outputs=[points, failed, cos])
         reduced = {name: out(name, dtype) for name, dtype in (
             ("fail_step", wp.int32), ("fail_placement", wp.int32), ("cos_max", wp.float64),
@@ -343,8 +356,8 @@ def solve_tables(tables: LinkageTables, *, samples: int | None = None, angles: n
         if not is_cpu:
             for name, array in reduced.items():
                 host[name][lo:hi] = array.numpy()
-            host["failed"][lo:hi] = failed.numpy()
-            if keep_points:
+            if keep_points:  # the per-angle detail comes back with the paths only
+                host["failed"][lo:hi] = failed.numpy()
                 host["points"][lo:hi] = points.numpy()
 
     ranges = _chunks(count, device)
@@ -353,11 +366,11 @@ def solve_tables(tables: LinkageTables, *, samples: int | None = None, angles: n
     else:
         with ThreadPoolExecutor(len(ranges)) as pool:
             list(pool.map(lambda r: run(*r), ranges))
-    result = {"failed": host["failed"], "fail_step": host["fail_step"], "fail_placement": host["fail_placement"],
+    result = {"fail_step": host["fail_step"], "fail_placement": host["fail_placement"],
               "transmission_angle_min": np.arccos(host["cos_max"]), "stride": host["stride"],
               "step_height": host["step_height"]}
     if keep_points:
-        result["points"] = host["points"]
+        result["points"], result["failed"] = host["points"], host["failed"]
     return result
 
 

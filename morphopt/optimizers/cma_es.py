@@ -60,7 +60,7 @@ class CMAES(Optimizer):
         if count != self.batch:
             raise ValueError(f"CMA-ES was set up for batches of {self.batch}, asked for {count}")
         self._pending = self.es.ask(number=count)
-        return [self.space.from_unit(x) for x in self._pending]
+        return self.space.from_unit_many(self._pending)
 
     def tell(self, params, values) -> None:
         if self._pending is None or len(params) != len(self._pending):

@@ -20,7 +20,10 @@ def test_walkers_of_different_topologies_walk_in_one_batch():
     specs = [family.build_spec(p) for p in params]
     assert [sum(1 for j in s.joints if j.drive is not None) for s in specs] == [6, 2, 4]  # one motor per leg
     assert dense_rows_needed(specs[0]) > MAX_DENSE_ROWS
-    evaluation = evaluate_dynamic(family, params, duration=1.5, dt=2e-3, record_every=5)
+    # the fall rules off: walkers with one or two legs per side rest on one foot per side at times and
+    # pitch onto the torso's nose (a fall by the default rule); here they show the mixed batch works
+    evaluation = evaluate_dynamic(family, params, duration=1.5, dt=2e-3, record_every=5, fall_tilt=np.pi,
+                                  fall_height=0.0)
     assert evaluation.feasible.all(), evaluation.failures
     for metrics in evaluation.metrics:
         assert metrics["loop_violation_max"] < 1e-4
@@ -29,3 +32,26 @@ def test_walkers_of_different_topologies_walk_in_one_batch():
     assert walker["walking_speed"] > 0.1, walker["walking_speed"]
     assert walker["heading_drift"] < 0.05  # straight, no sideways fall
     assert walker["left0_foot_step_height"] > 0.01 and 0.0 < walker["energy_per_distance"] < 100.0
+    assert walker["torso_tilt_max"] < np.radians(15.0) and walker["torso_height_min"] > 0.8  # it stays up
+    assert all(m["torso_tilt_max"] > np.radians(30.0) for m in evaluation.metrics[1:])  # they pitch over
+
+
+def test_a_walker_without_feet_falls_and_fails_with_the_reason():
+    """Without its foot shapes the walker's legs pass through the ground and the torso drops onto it:
+    a failed design ("fell", the height reached in the reason); its twin with feet stands."""
+    import dataclasses
+
+    family = load_family("walker")
+    params = [family.space.default()] * 2
+
+    def hook(spec, p):
+        if hook.calls == 0:
+            spec = dataclasses.replace(spec, shapes=[s for s in spec.shapes if not s.name.endswith("foot")])
+        hook.calls += 1
+        return spec
+
+    hook.calls = 0
+    evaluation = evaluate_dynamic(family, params, duration=0.4, dt=2e-3, record_every=5, spec_hook=hook)
+    assert evaluation.failures[0].startswith("fell: the torso sank to"), evaluation.failures[0]
+    assert evaluation.failures[1] == "", evaluation.failures[1]
+    assert evaluation.metrics[1]["torso_height_min"] > 0.8

@@ -89,3 +89,4 @@ def test_solver_choice_is_validated():
         SolverConfig(linear_solver="sparse")
     with pytest.raises(ValueError, match="inner_tolerance_ratio"):
         SolverConfig(inner_tolerance_ratio=1.5)
+
