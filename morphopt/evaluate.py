@@ -18,6 +18,7 @@ import numpy as np
 
 from morphopt.design_space import Float
 from morphopt.linkage import Linkage, to_spec
+from morphopt.linkage.kinematics import crank_turn_failure, placement_name
 from morphopt.linkage.kinematics_warp import LinkageTables, solve_tables
 from morphopt.metrics import stride_and_step_height
 
@@ -151,13 +152,12 @@ def _validation_failure(space, params: dict) -> str:
 
 
 def _same_first_row(batch: LinkageTables, alone: LinkageTables) -> bool:
-    if (batch.names != alone.names or batch.ground_node.tolist() != alone.ground_node.tolist()
-            or batch.kind.tolist() != alone.kind.tolist() or batch.node.tolist() != alone.node.tolist()
-            or batch.node_a.tolist() != alone.node_a.tolist() or batch.node_b.tolist() != alone.node_b.tolist()):
-        return False
-    pairs = [(batch.ground_xy, alone.ground_xy), (batch.radius, alone.radius), (batch.phase, alone.phase),
-             (batch.branch, alone.branch), (batch.first, alone.first), (batch.second, alone.second)]
-    return all(np.allclose(b[0], a[0], rtol=1e-12, atol=1e-15) for b, a in pairs)
+    """Same topology tables, and the batch's first design has the numbers of the design alone."""
+    topology = ("ground_node", "kind", "node", "node_a", "node_b")
+    numbers = ("ground_xy", "radius", "phase", "branch", "first", "second")
+    return (batch.names == alone.names
+            and all(np.array_equal(getattr(batch, k), getattr(alone, k)) for k in topology)
+            and all(np.allclose(getattr(batch, k)[0], getattr(alone, k)[0], rtol=1e-12, atol=1e-15) for k in numbers))
 
 
 def _generate_each(family, params, indices, failures, kwargs) -> list:
@@ -192,13 +192,10 @@ def evaluate_kinematic(family, params: Sequence[dict], *, samples: int = 360, de
         fail_step, fail_placement = result["fail_step"].tolist(), result["fail_placement"].tolist()
         transmission = result["transmission_angle_min"].tolist()
         stride, height = result["stride"].tolist(), result["step_height"].tolist()
-        step = 360.0 / samples
         for j, i in enumerate(indices):
             if fail_step[j] >= 0:
-                where = fail_placement[j]
-                what = "the crank" if where == len(tables.placements) else f"dyad '{tables.placements[where].node}'"
-                angle = (np.degrees(tables.phase[j]) + step * fail_step[j]) % 360.0
-                evaluation.failures[i] = f"cannot complete a crank turn: {what} does not close at crank angle {angle:.1f} deg"
+                angle = tables.phase[j] + 2.0 * np.pi * fail_step[j] / samples
+                evaluation.failures[i] = crank_turn_failure(placement_name(tables, fail_placement[j]), angle)
                 continue
             metrics = {"paths": {n: result["points"][j, :, k] for k, n in enumerate(names)}} if keep_paths else {}
             for k, n in enumerate(names):

@@ -67,23 +67,31 @@ def solve_at(linkages: list[Linkage], angles: np.ndarray, *, device: str | None 
 
 
 def _solve_group_compiled(group: list[Linkage], angles: np.ndarray, device: str) -> list[CycleSolution]:
-    from morphopt.linkage.kinematics_warp import solve_group_warp
+    from morphopt.linkage.kinematics_warp import LinkageTables, solve_tables
 
-    pos, failed, transmission = solve_group_warp(group, angles, device=device)
-    placements = group[0].dyads
+    tables = LinkageTables.from_linkages(group)
+    result = solve_tables(tables, angles=angles, device=device)
     solutions = []
-    for d, linkage in enumerate(group):
-        bad = np.nonzero(failed[d] >= 0)[0]
-        reason = ""
-        if bad.size:
-            step = int(bad[0])
-            what = ("the crank" if failed[d, step] == len(placements)
-                    else f"dyad '{placements[failed[d, step]].node}'")
-            reason = (f"cannot complete a crank turn: {what} does not close at "
-                      f"crank angle {np.degrees(angles[d, step]) % 360.0:.1f} deg")
-        nodes = {name: (p[d] if not bad.size else np.full((angles.shape[1], 2), np.nan)) for name, p in pos.items()}
-        solutions.append(CycleSolution(angles[d].copy(), nodes, not bad.size, reason, float(transmission[d])))
+    for d in range(len(group)):
+        feasible = result["fail_step"][d] < 0
+        reason = "" if feasible else crank_turn_failure(
+            placement_name(tables, result["fail_placement"][d]), angles[d, result["fail_step"][d]])
+        nodes = {name: (result["points"][d, :, k] if feasible else np.full((angles.shape[1], 2), np.nan))
+                 for k, name in enumerate(tables.names)}
+        solutions.append(CycleSolution(angles[d].copy(), nodes, bool(feasible), reason,
+                                       float(result["transmission_angle_min"][d])))
     return solutions
+
+
+def placement_name(tables, placement: int) -> str:
+    """How a failure reason names placement ``placement`` of the tables (the crank past the last)."""
+    return "the crank" if placement == len(tables.placements) else f"dyad '{tables.placements[placement].node}'"
+
+
+def crank_turn_failure(what: str, angle: float) -> str:
+    """The reason of a design that cannot complete a crank turn: ``what`` (a dyad, the crank) does
+    not close at crank angle ``angle`` [rad]."""
+    return f"cannot complete a crank turn: {what} does not close at crank angle {np.degrees(angle) % 360.0:.1f} deg"
 
 
 def _solve_group(group: list[Linkage], angles: np.ndarray) -> list[CycleSolution]:
@@ -135,9 +143,7 @@ def _solve_group(group: list[Linkage], angles: np.ndarray) -> list[CycleSolution
         feasible = fail_step[d] == samples
         reason = ""
         if not feasible:
-            angle = np.degrees(angles[d, fail_step[d]]) % 360.0
-            reason = (f"cannot complete a crank turn: dyad '{fail_dyad[d]}' does not close at crank angle "
-                      f"{angle:.1f} deg")
+            reason = crank_turn_failure(f"dyad '{fail_dyad[d]}'", angles[d, fail_step[d]])
         nodes = {name: (p[d] if feasible else np.full((samples, 2), np.nan)) for name, p in pos.items()}
         solutions.append(CycleSolution(angles[d].copy(), nodes, bool(feasible), reason, float(transmission[d])))
     return solutions

@@ -20,7 +20,7 @@ import warp as wp
 
 from morphopt.linkage.graph import Linkage, Offset
 
-__all__ = ["MAX_NODES", "LinkageTables", "solve_group_warp", "solve_tables"]
+__all__ = ["MAX_NODES", "LinkageTables", "solve_tables"]
 
 MAX_NODES = 32
 _scratch = wp.types.vector(length=2 * MAX_NODES, dtype=wp.float64)
@@ -296,9 +296,9 @@ def solve_tables(tables: LinkageTables, *, samples: int | None = None, angles: n
     at its own ``angles`` (D, N)) and reduce each cycle.
 
     Returns a dict of NumPy arrays: "points" (D, N, len(nodes), 2) [m] of the nodes asked for (all
-    by default; omitted when keep_points is False, which saves the copy from a GPU), "failed"
-    (D, N) first failing placement per angle (-1 none; K: the crank), "fail_step" and
-    "fail_placement" (D,) (-1: feasible), "transmission_angle_min" (D,) [rad], "stride" and
+    by default; omitted when keep_points is False, which saves the copy from a GPU), "fail_step"
+    and "fail_placement" (D,) first crank step and placement that cannot close (-1: feasible; the
+    number of placements: the crank itself), "transmission_angle_min" (D,) [rad], "stride" and
     "step_height" (D, len(nodes)) [m] (the rule of morphopt.metrics.stride_and_step_height).
     """
     count = tables.count
@@ -332,8 +332,10 @@ def solve_tables(tables: LinkageTables, *, samples: int | None = None, angles: n
             return wp.array(array[lo:hi], dtype=dtype, device=device, copy=not is_cpu)
 
         def out(name, dtype):  # on the CPU the kernels write straight into the host arrays
-            return put(host[name], dtype) if is_cpu else wp.empty(host[name][lo:hi].shape[:host[name].ndim - (
-                dtype is wp.vec2d)], dtype=dtype, device=device)
+            if is_cpu:
+                return put(host[name], dtype)
+            shape = host[name][lo:hi].shape
+            return wp.empty(shape[:-1] if dtype is wp.vec2d else shape, dtype=dtype, device=device)
 
         arrays = {k: put(v, wp.vec2d if k == "ground_xy" else wp.float64) for k, v in per_design.items()}
         chunk_angles = (put(angles, wp.float64) if angles is not None
@@ -356,8 +358,7 @@ def solve_tables(tables: LinkageTables, *, samples: int | None = None, angles: n
         if not is_cpu:
             for name, array in reduced.items():
                 host[name][lo:hi] = array.numpy()
-            if keep_points:  # the per-angle detail comes back with the paths only
-                host["failed"][lo:hi] = failed.numpy()
+            if keep_points:
                 host["points"][lo:hi] = points.numpy()
 
     ranges = _chunks(count, device)
@@ -370,15 +371,5 @@ def solve_tables(tables: LinkageTables, *, samples: int | None = None, angles: n
               "transmission_angle_min": np.arccos(host["cos_max"]), "stride": host["stride"],
               "step_height": host["step_height"]}
     if keep_points:
-        result["points"], result["failed"] = host["points"], host["failed"]
+        result["points"] = host["points"]
     return result
-
-
-def solve_group_warp(group, angles: np.ndarray, device: str = "cpu"):
-    """Node positions (name -> (D, N, 2)), first failing placement per (D, N) (-1: none) and the
-    smallest transmission angle per design (D,) for linkages of one topology."""
-    tables = LinkageTables.from_linkages(group)
-    result = solve_tables(tables, angles=angles, device=device)
-    points = result["points"]
-    return ({name: points[:, :, k] for k, name in enumerate(tables.names)}, result["failed"],
-            result["transmission_angle_min"])
