@@ -13,8 +13,11 @@ caller's x:
 - inside PADMM the solve is inexact: it stops once the residual is below
   ``inner_tolerance_ratio`` times the outer iteration's own residual (inexact ADMM), or at
   ``inner_iterations``;
-- for the position projection it stops at a relative residual of 1e-6 or 4 x inner_iterations.
+- for the position projection it stops at a relative residual of ``projection_tolerance`` or
+  4 x inner_iterations.
 """
+
+from typing import Any
 
 import warp as wp
 
@@ -31,64 +34,62 @@ def _row_used(bilateral_only: int, kind: int):
 TILED_BLOCK = 128  # threads per world in the GPU form
 
 
-def _tiled_kernel(bodies: int):
-    """Conjugate Residual with one thread block per world: the block's threads share the world's
-    rows (row i on thread i mod block_dim), scatter the row impulses into a shared-memory tile of
-    ``bodies`` body twists and reduce the dot products over the block; the loop exits for the whole
-    block at once. On the CPU a block is one thread (the same kernel, the same results)."""
+def _tiled_kernel(bodies: int, rows: int, sweeps: int):
+    """Conjugate Residual with one thread block per world: thread ``lane`` owns rows lane + k *
+    block_dim (k < ``sweeps``) and keeps their iterates in registers; the world's row Jacobians
+    (J and M^-1 J^T of both bodies) are loaded once into shared-memory tiles of ``rows`` rows, the
+    row impulses are scattered into a shared tile of ``bodies`` body twists and dot products are
+    reduced over the block; the loop exits for the whole block at once. On the CPU a block is one
+    thread owning every row (sweeps = rows; the same kernel, the same results)."""
+    rowvec = wp.types.vector(length=sweeps, dtype=float)
+    rowint = wp.types.vector(length=sweeps, dtype=wp.int32)
 
     @wp.func
     def apply_tiled(
-        world: int,
         lane: int,
         stride: int,
-        sweeps: int,
         n: int,
-        bilateral_only: int,
-        sigma: float,
-        row_kind: wp.array2d(dtype=wp.int32),
-        row_body_c: wp.array2d(dtype=wp.int32),
-        row_body_p: wp.array2d(dtype=wp.int32),
-        row_J_c: wp.array2d(dtype=wp.spatial_vector),
-        row_J_p: wp.array2d(dtype=wp.spatial_vector),
-        row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
-        row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
-        row_precond: wp.array2d(dtype=float),
-        row_compliance: wp.array2d(dtype=float),
-        v: wp.array2d(dtype=float),
-        out: wp.array2d(dtype=float),
+        used: rowint,
+        body_c: rowint,
+        body_p: rowint,
+        precond: rowvec,
+        diag: rowvec,
+        J_c: Any,
+        J_p: Any,
+        MJ_c: Any,
+        MJ_p: Any,
+        v: rowvec,
     ):
         acc = wp.tile_zeros(shape=bodies, dtype=wp.spatial_vector, storage="shared")
         for k in range(sweeps):
             i = lane + k * stride
-            c = int(-1)
-            p = int(-1)
+            c = int(-1)  # noqa: UP018 (a Warp variable, not a constant)
+            p = int(-1)  # noqa: UP018
             to_c = wp.spatial_vector()
             to_p = wp.spatial_vector()
-            if i < n:
-                if _row_used(bilateral_only, row_kind[world, i]):
-                    impulse = row_precond[world, i] * v[world, i]
-                    c = row_body_c[world, i]
-                    p = row_body_p[world, i]
-                    to_c = impulse * row_MJ_c[world, i]
-                    to_p = impulse * row_MJ_p[world, i]
+            if i < n and used[k] != 0:
+                impulse = precond[k] * v[k]
+                c = body_c[k]
+                p = body_p[k]
+                if c >= 0:
+                    to_c = impulse * wp.tile_extract(MJ_c, i)
+                if p >= 0:
+                    to_p = impulse * wp.tile_extract(MJ_p, i)
             wp.tile_scatter_add(acc, wp.max(c, 0), to_c, c >= 0)
             wp.tile_scatter_add(acc, wp.max(p, 0), to_p, p >= 0)
+        out = rowvec()
         for k in range(sweeps):
             i = lane + k * stride
-            if i < n:
-                value = float(0.0)
-                if _row_used(bilateral_only, row_kind[world, i]):
-                    c = row_body_c[world, i]
-                    p = row_body_p[world, i]
-                    velocity = float(0.0)
-                    if c >= 0:
-                        velocity += wp.dot(row_J_c[world, i], wp.tile_extract(acc, c))
-                    if p >= 0:
-                        velocity += wp.dot(row_J_p[world, i], wp.tile_extract(acc, p))
-                    pi = row_precond[world, i]
-                    value = pi * velocity + (sigma + pi * pi * row_compliance[world, i]) * v[world, i]
-                out[world, i] = value
+            if i < n and used[k] != 0:
+                c = body_c[k]
+                p = body_p[k]
+                velocity = float(0.0)
+                if c >= 0:
+                    velocity += wp.dot(wp.tile_extract(J_c, i), wp.tile_extract(acc, c))
+                if p >= 0:
+                    velocity += wp.dot(wp.tile_extract(J_p, i), wp.tile_extract(acc, p))
+                out[k] = precond[k] * velocity + diag[k] * v[k]
+        return out
 
     @wp.func
     def block_sum(value: float):
@@ -97,6 +98,20 @@ def _tiled_kernel(bodies: int):
     @wp.func
     def block_max(value: float):
         return wp.tile_extract(wp.tile_max(wp.tile(value)), 0)
+
+    @wp.func
+    def dot(a: rowvec, b: rowvec):
+        total = float(0.0)
+        for k in range(sweeps):
+            total += a[k] * b[k]
+        return block_sum(total)
+
+    @wp.func
+    def norm_inf(a: rowvec):
+        largest = float(0.0)
+        for k in range(sweeps):
+            largest = wp.max(largest, wp.abs(a[k]))
+        return block_max(largest)
 
     @wp.kernel(module="unique")
     def conjugate_residual_tiled(
@@ -121,10 +136,6 @@ def _tiled_kernel(bodies: int):
         row_precond: wp.array2d(dtype=float),
         row_compliance: wp.array2d(dtype=float),
         rhs: wp.array2d(dtype=float),
-        r: wp.array2d(dtype=float),
-        p: wp.array2d(dtype=float),
-        Ar: wp.array2d(dtype=float),
-        Ap: wp.array2d(dtype=float),
         x: wp.array2d(dtype=float),
         inner_iterations: wp.array(dtype=wp.int32),
     ):
@@ -133,25 +144,35 @@ def _tiled_kernel(bodies: int):
             return
         stride = wp.block_dim()
         n = row_count[world]
-        sweeps = (n + stride - 1) // stride
         s = sigma[world]
-        apply_tiled(world, lane, stride, sweeps, n, bilateral_only, s, row_kind, row_body_c, row_body_p, row_J_c,
-                    row_J_p, row_MJ_c, row_MJ_p, row_precond, row_compliance, x, Ap)
-        res = float(0.0)
+        J_c = wp.tile_load(row_J_c[world], shape=rows, storage="shared")
+        J_p = wp.tile_load(row_J_p[world], shape=rows, storage="shared")
+        MJ_c = wp.tile_load(row_MJ_c[world], shape=rows, storage="shared")
+        MJ_p = wp.tile_load(row_MJ_p[world], shape=rows, storage="shared")
+        used = rowint()
+        body_c = rowint()
+        body_p = rowint()
+        precond = rowvec()
+        diag = rowvec()
+        b = rowvec()
+        xk = rowvec()
         scale = float(0.0)
         for k in range(sweeps):
             i = lane + k * stride
             if i < n:
-                ri = float(0.0)
                 if _row_used(bilateral_only, row_kind[world, i]):
-                    ri = rhs[world, i] - Ap[world, i]
-                    scale = wp.max(scale, wp.abs(rhs[world, i]))
-                else:
-                    x[world, i] = 0.0
-                r[world, i] = ri
-                p[world, i] = ri
-                res = wp.max(res, wp.abs(ri))
-        res = block_max(res)
+                    used[k] = 1
+                    body_c[k] = row_body_c[world, i]
+                    body_p[k] = row_body_p[world, i]
+                    pi = row_precond[world, i]
+                    precond[k] = pi
+                    diag[k] = s + pi * pi * row_compliance[world, i]
+                    b[k] = rhs[world, i]
+                    xk[k] = x[world, i]
+                    scale = wp.max(scale, wp.abs(b[k]))
+        Ax = apply_tiled(lane, stride, n, used, body_c, body_p, precond, diag, J_c, J_p, MJ_c, MJ_p, xk)
+        r = b - Ax
+        res = norm_inf(r)
         scale = block_max(scale)
         tol = relative_floor * scale + 1.0e-12
         if bilateral_only == 0:
@@ -159,55 +180,32 @@ def _tiled_kernel(bodies: int):
             if outer_iterations[world] > 0:
                 outer = wp.max(residual_primal[world], residual_dual[world])
             tol = wp.max(ratio * outer, 1.0e-3 * padmm_tolerance[world])
-        if res <= tol:
-            return
-        apply_tiled(world, lane, stride, sweeps, n, bilateral_only, s, row_kind, row_body_c, row_body_p, row_J_c,
-                    row_J_p, row_MJ_c, row_MJ_p, row_precond, row_compliance, r, Ar)
-        rAr = float(0.0)
+        count = int(0)
+        if res > tol:
+            p = r
+            Ar = apply_tiled(lane, stride, n, used, body_c, body_p, precond, diag, J_c, J_p, MJ_c, MJ_p, r)
+            Ap = Ar
+            rAr = dot(r, Ar)
+            for _k in range(max_iterations):
+                ApAp = dot(Ap, Ap)
+                if ApAp <= 1.0e-30 or rAr <= 0.0:
+                    break
+                alpha = rAr / ApAp
+                xk = xk + alpha * p
+                r = r - alpha * Ap
+                count += 1
+                if norm_inf(r) <= tol:
+                    break
+                Ar = apply_tiled(lane, stride, n, used, body_c, body_p, precond, diag, J_c, J_p, MJ_c, MJ_p, r)
+                rAr_new = dot(r, Ar)
+                beta = rAr_new / rAr
+                rAr = rAr_new
+                p = r + beta * p
+                Ap = Ar + beta * Ap
         for k in range(sweeps):
             i = lane + k * stride
             if i < n:
-                Ap[world, i] = Ar[world, i]
-                rAr += r[world, i] * Ar[world, i]
-        rAr = block_sum(rAr)
-        count = int(0)
-        for _k in range(max_iterations):
-            ApAp = float(0.0)
-            for k in range(sweeps):
-                i = lane + k * stride
-                if i < n:
-                    ApAp += Ap[world, i] * Ap[world, i]
-            ApAp = block_sum(ApAp)
-            if ApAp <= 1.0e-30 or rAr <= 0.0:
-                break
-            alpha = rAr / ApAp
-            res = float(0.0)
-            for k in range(sweeps):
-                i = lane + k * stride
-                if i < n:
-                    x[world, i] = x[world, i] + alpha * p[world, i]
-                    ri = r[world, i] - alpha * Ap[world, i]
-                    r[world, i] = ri
-                    res = wp.max(res, wp.abs(ri))
-            res = block_max(res)
-            count += 1
-            if res <= tol:
-                break
-            apply_tiled(world, lane, stride, sweeps, n, bilateral_only, s, row_kind, row_body_c, row_body_p,
-                        row_J_c, row_J_p, row_MJ_c, row_MJ_p, row_precond, row_compliance, r, Ar)
-            rAr_new = float(0.0)
-            for k in range(sweeps):
-                i = lane + k * stride
-                if i < n:
-                    rAr_new += r[world, i] * Ar[world, i]
-            rAr_new = block_sum(rAr_new)
-            beta = rAr_new / rAr
-            rAr = rAr_new
-            for k in range(sweeps):
-                i = lane + k * stride
-                if i < n:
-                    p[world, i] = r[world, i] + beta * p[world, i]
-                    Ap[world, i] = Ar[world, i] + beta * Ap[world, i]
+                x[world, i] = xk[k]  # 0 on rows left out of the operator
         if lane == 0:
             inner_iterations[world] = inner_iterations[world] + count
 
@@ -221,17 +219,20 @@ def solve(model, rhs, mask, x, *, bilateral_only: bool = False) -> None:
     """Solve A x = rhs per world (mask != 0) in place, warm-started from x.
 
     bilateral_only: the operator of the bilateral joint rows alone (position projection, solved to
-    a relative residual of 1e-6); otherwise all rows, solved inexactly for PADMM.
+    a relative residual of config.projection_tolerance); otherwise all rows, solved inexactly for
+    PADMM.
     """
     work, cfg = model.work, model.config
     cap = cfg.inner_iterations * (4 if bilateral_only else 1)
-    bodies = model.max_bodies
-    if bodies not in _TILED:
-        _TILED[bodies] = _tiled_kernel(bodies)
-    wp.launch_tiled(_TILED[bodies], dim=[model.num_worlds], block_dim=TILED_BLOCK, device=model.device,
-                    inputs=[int(bilateral_only), cap, float(cfg.inner_tolerance_ratio), 1.0e-6, model.row_kind,
+    rows = model.max_rows
+    threads = TILED_BLOCK if wp.get_device(model.device).is_cuda else 1  # a block is one CPU thread
+    key = (model.max_bodies, rows, (rows + threads - 1) // threads)
+    if key not in _TILED:
+        _TILED[key] = _tiled_kernel(*key)
+    wp.launch_tiled(_TILED[key], dim=[model.num_worlds], block_dim=TILED_BLOCK, device=model.device,
+                    inputs=[int(bilateral_only), cap, float(cfg.inner_tolerance_ratio), float(cfg.projection_tolerance), model.row_kind,
                             model.padmm_tolerance, work.row_count, mask, work.sigma, work.iterations,
                             work.residual_primal, work.residual_dual, work.row_body_c, work.row_body_p,
                             work.row_J_c, work.row_J_p, work.row_MJ_c, work.row_MJ_p, work.row_precond,
-                            work.row_compliance, rhs, work.cr_r, work.cr_p, work.cr_Ar, work.cr_Ap],
+                            work.row_compliance, rhs],
                     outputs=[x, work.inner_iterations])

@@ -81,6 +81,9 @@ class SolverConfig:
             (matrix-free; the position projection allows four times as many).
         inner_tolerance_ratio: a matrix-free inner solve stops once its residual is below this
             share of the outer PADMM residual (inexact ADMM).
+        projection_tolerance: a matrix-free Gauss-Newton projection solve stops at this residual
+            relative to its right-hand side (each of the position_iterations solves reduces the
+            joint error by about this factor; the dense solver solves exactly).
     """
 
     integrator: Integrator = Integrator.MOREAU_JEAN
@@ -104,6 +107,7 @@ class SolverConfig:
     linear_solver: str = "auto"
     inner_iterations: int = 100
     inner_tolerance_ratio: float = 0.01
+    projection_tolerance: float = 1.0e-3
 
     def __post_init__(self):
         if not isinstance(self.integrator, Integrator):
@@ -118,6 +122,7 @@ class SolverConfig:
         checks = {
             "inner_iterations": self.inner_iterations >= 1,
             "inner_tolerance_ratio": 0.0 < self.inner_tolerance_ratio < 1.0,
+            "projection_tolerance": 0.0 < self.projection_tolerance < 1.0,
             "max_iterations": self.max_iterations >= 1,
             "tolerance": self.tolerance > 0.0,
             "relative_tolerance": self.relative_tolerance >= 0.0,
@@ -245,8 +250,9 @@ class Workspace:
     row_bias (c), row_compliance (R), row_lo, row_hi (physical impulse bounds), row_residual
     (position-level residual [m]/[rad]), row_precond (P).
     Matrices (W, R, R), dense solver only: delassus (P D P), factor (its Cholesky factor with
-    (eta + rho) I added). Matrix-free only: cr_r, cr_p, cr_Ar, cr_Ap (W, R) Conjugate Residual
-    vectors (body twists live in shared memory); inner_iterations (W,) CR iterations summed over a step.
+    (eta + rho) I added). Matrix-free: no extra arrays (Conjugate Residual vectors live in registers,
+    row Jacobians and body twists in shared memory); inner_iterations (W,) CR iterations summed over
+    a step.
     PADMM vectors (W, R): v_f, lo, hi (preconditioned), x, x_prev, y, y_prev, y_hat, z, z_prev,
     z_hat, rhs, delta. Per world (W,): rho, sigma, valid, iterations, residual_primal, residual_dual, converged,
     active, needs_factor, momentum, momentum_beta, merit, diverged; active_count (1,).
@@ -272,11 +278,9 @@ class Workspace:
                      "v_f", "lo", "hi", "x", "x_prev", "y", "y_prev", "y_hat", "z", "z_prev", "z_hat",
                      "rhs", "delta", "warm", "row_friction"):
             setattr(self, name, zeros((w, r)))
-        # the dense path keeps P D P and its factor; the matrix-free path keeps CR vectors instead
+        # the dense path keeps P D P and its factor; the matrix-free path needs neither
         self.delassus = zeros((w, r, r) if dense else (w, 1, 1))
         self.factor = zeros((w, r, r) if dense else (w, 1, 1))
-        for name in ("cr_r", "cr_p", "cr_Ar", "cr_Ap"):
-            setattr(self, name, zeros((w, r) if not dense else (w, 1)))
         self.inner_iterations = zeros(w, wp.int32)
         for name in ("rho", "sigma", "residual_primal", "residual_dual", "residual_complementarity", "momentum", "momentum_beta", "merit",
                      "violation_linear", "violation_angular", "energy"):

@@ -183,6 +183,19 @@ def padmm_project(
     z[world, i] = zh - r * (xi - yi)
 
 
+CONVERGENCE_BLOCK = 64  # threads per world on a GPU (rows spread over them); one on the CPU
+
+
+@wp.func
+def _block_max(value: float):
+    return wp.tile_extract(wp.tile_max(wp.tile(value)), 0)
+
+
+@wp.func
+def _block_sum(value: float):
+    return wp.tile_extract(wp.tile_sum(wp.tile(value)), 0)
+
+
 @wp.kernel
 def padmm_convergence(
     max_iterations: int,
@@ -216,10 +229,13 @@ def padmm_convergence(
     residual_complementarity: wp.array(dtype=float),
     active_count: wp.array(dtype=wp.int32),
 ):
-    """Per world: residuals, stop test, Nesterov momentum with restart, penalty update."""
-    world = wp.tid()
+    """Per world (one thread block, rows spread over its threads): residuals, stop test, Nesterov
+    momentum with restart, penalty update."""
+    world, lane = wp.tid()
     if active[world] == 0:
         return
+    stride = wp.block_dim()
+    n = row_count[world]
     r = rho[world]
     eta = padmm_eta[world]
     r_p = float(0.0)
@@ -227,19 +243,28 @@ def padmm_convergence(
     r_c = float(0.0)
     change = float(0.0)
     scale = float(0.0)
-    for i in range(row_count[world]):
-        scale = wp.max(scale, wp.abs(y[world, i]))
-        dy = y[world, i] - y_hat[world, i]
-        dz = z[world, i] - z_hat[world, i]
-        r_p = wp.max(r_p, wp.abs(x[world, i] - y[world, i]))
-        r_d = wp.max(r_d, wp.abs(eta * (x[world, i] - x_prev[world, i]) + r * dy))
-        change += r * dy * dy + dz * dz / r
-        kind = row_kind[world, i]
-        if kind == ROW_LIMIT:
-            r_c = wp.max(r_c, wp.abs(y[world, i] * z[world, i]))
-        elif kind == ROW_CONTACT_NORMAL:
-            gap = y[world, i] * z[world, i] + y[world, i + 1] * z[world, i + 1] + y[world, i + 2] * z[world, i + 2]
-            r_c = wp.max(r_c, wp.abs(gap))
+    for k in range((n + stride - 1) // stride):
+        i = lane + k * stride
+        if i < n:
+            scale = wp.max(scale, wp.abs(y[world, i]))
+            dy = y[world, i] - y_hat[world, i]
+            dz = z[world, i] - z_hat[world, i]
+            r_p = wp.max(r_p, wp.abs(x[world, i] - y[world, i]))
+            r_d = wp.max(r_d, wp.abs(eta * (x[world, i] - x_prev[world, i]) + r * dy))
+            change += r * dy * dy + dz * dz / r
+            kind = row_kind[world, i]
+            if kind == ROW_LIMIT:
+                r_c = wp.max(r_c, wp.abs(y[world, i] * z[world, i]))
+            elif kind == ROW_CONTACT_NORMAL:
+                gap = y[world, i] * z[world, i] + y[world, i + 1] * z[world, i + 1] + y[world, i + 2] * z[world, i + 2]
+                r_c = wp.max(r_c, wp.abs(gap))
+    r_p = _block_max(r_p)
+    r_d = _block_max(r_d)
+    r_c = _block_max(r_c)
+    scale = _block_max(scale)
+    change = _block_sum(change)
+    if lane != 0:
+        return
     its = iterations[world] + 1
     iterations[world] = its
     residual_primal[world] = r_p
@@ -355,7 +380,7 @@ def padmm_iteration(model):
     wp.launch(padmm_project, dim=grid, device=device,
               inputs=[model.row_kind, work.row_count, work.row_friction, work.rho, work.active, work.lo, work.hi, work.x, work.z_hat, work.y, work.z,
                       work.y_prev, work.z_prev])
-    wp.launch(padmm_convergence, dim=model.num_worlds, device=device,
+    wp.launch_tiled(padmm_convergence, dim=[model.num_worlds], block_dim=CONVERGENCE_BLOCK, device=device,
               inputs=[cfg.max_iterations, float(cfg.relative_tolerance), cfg.rho_update_interval, int(cfg.adaptive_rho),
                       int(cfg.acceleration), model.row_kind, model.padmm_eta, model.padmm_tolerance,
                       work.row_count, work.x, work.x_prev, work.y, work.y_hat, work.z, work.z_hat, work.rho, work.active,

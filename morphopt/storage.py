@@ -30,6 +30,30 @@ def _finite_or_none(value):
     return float(value) if value is not None and math.isfinite(value) else None
 
 
+def _json_value(value) -> str:
+    if type(value) is float and math.isfinite(value):
+        return repr(value)  # what json.dumps writes for a finite float, without its dispatch
+    return json.dumps(value)
+
+
+def json_rows(dicts: list[dict]) -> list[str]:
+    """json.dumps of every dict, the same text, several times faster for a generation of designs:
+    the dicts of a generation share their keys, so the key text is built once per key set and each
+    row only formats its values."""
+    templates = {}
+    out = []
+    for d in dicts:
+        keys = tuple(d)
+        template = templates.get(keys)
+        if template is None:
+            if not all(type(k) is str for k in keys):
+                out.append(json.dumps(d))
+                continue
+            template = templates[keys] = "{" + ", ".join(json.dumps(k).replace("%", "%%") + ": %s" for k in keys) + "}"
+        out.append(template % tuple(map(_json_value, d.values())))
+    return out
+
+
 class StudyStorage:
     """Designs and checkpoints of one study (``name``) in the database at ``url``."""
 
@@ -45,8 +69,8 @@ class StudyStorage:
                          state: bytes, seconds: float) -> None:
         """Append one generation and replace the checkpoint, in one transaction."""
         rows = [{"study": self.name, "generation": generation, "member": k, "value": _finite_or_none(v),
-                 "failure": failure, "params": json.dumps(p), "metrics": json.dumps(m)}
-                for k, (p, v, m, failure) in enumerate(zip(params, values, metrics, failures))]
+                 "failure": failure, "params": p, "metrics": m}
+                for k, (v, p, m, failure) in enumerate(zip(values, json_rows(params), json_rows(metrics), failures))]
         with self.engine.begin() as connection:
             connection.execute(DESIGNS.insert(), rows)
             connection.execute(CHECKPOINTS.delete().where(CHECKPOINTS.c.study == self.name))

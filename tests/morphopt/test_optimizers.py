@@ -110,3 +110,34 @@ def test_cma_bipop_alternates_large_and_small_populations():
     assert opt.best_value < 1e-6
     with pytest.raises(ValueError, match="restart_strategy"):
         OPTIMIZERS["cma"](space, popsize=8, restart_strategy="lbfgs")
+
+
+def test_cma_maps_samples_into_the_unit_cube_like_pycma():
+    """The population-wide map into the cube equals pycma's own BoundTransform sample by sample
+    (identity inside, quadratic tails, periodic outside), and a CMA-ES run hands out the same
+    designs as pycma's ask with its bounds option would, generation after generation."""
+    import cma
+
+    from morphopt.optimizers.cma_es import into_cube
+
+    x = np.linspace(-7.0, 8.0, 3001)
+    reference = cma.transformations.BoxConstraintsLinQuadTransformation([[0.0, 1.0]])
+    assert np.abs(into_cube(x) - np.array([reference.transform([v])[0] for v in x])).max() < 1e-12
+    space = DesignSpace({"x": Float(-2.0, 2.0, default=1.9), "y": Float(-2.0, 2.0, default=0.0)})
+
+    def value(p):
+        return (p["x"] - 2.0) ** 2 + (p["y"] - 0.5) ** 2
+
+    opt = OPTIMIZERS["cma"](space, popsize=16, seed=0, sigma0=0.4)  # pycma seeds NumPy's global generator:
+    ours = []  # run the two strategies one after the other
+    for _ in range(30):
+        ours.append(opt.ask(16))
+        opt.tell(ours[-1], [value(p) for p in ours[-1]])
+    plain = cma.CMAEvolutionStrategy(space.to_unit(space.default()), 0.4,
+                                     {"popsize": 16, "bounds": [0.0, 1.0], "seed": 1, "verbose": -9})
+    for batch in ours:
+        asked = plain.ask()
+        expected = space.from_unit_many(asked)
+        assert all(abs(a[k] - b[k]) < 1e-12 for a, b in zip(batch, expected) for k in ("x", "y"))
+        plain.tell(asked, [value(p) for p in expected])
+    assert opt.best_params["x"] > 1.99 and abs(opt.best_params["y"] - 0.5) < 1e-2
