@@ -35,8 +35,9 @@ TILED_BLOCK = 128  # threads per world in the GPU form
 
 
 def _tiled_kernel(bodies: int, rows: int, sweeps: int):
-    """Conjugate Residual with one thread block per world: thread ``lane`` owns rows lane + k *
-    block_dim (k < ``sweeps``) and keeps their iterates in registers; the world's row Jacobians
+    """Conjugate Residual with one thread block per world: thread ``lane`` owns rows lane * sweeps
+    + k (k < ``sweeps``; the rows of one joint mostly on one thread, so that fewer threads add
+    into the same body at once) and keeps their iterates in registers; the world's row Jacobians
     (J and M^-1 J^T of both bodies) are loaded once into shared-memory tiles of ``rows`` rows, the
     row impulses are scattered into a shared tile of ``bodies`` body twists and dot products are
     reduced over the block; the loop exits for the whole block at once. On the CPU a block is one
@@ -47,7 +48,6 @@ def _tiled_kernel(bodies: int, rows: int, sweeps: int):
     @wp.func
     def apply_tiled(
         lane: int,
-        stride: int,
         n: int,
         used: rowint,
         body_c: rowint,
@@ -62,7 +62,7 @@ def _tiled_kernel(bodies: int, rows: int, sweeps: int):
     ):
         acc = wp.tile_zeros(shape=bodies, dtype=wp.spatial_vector, storage="shared")
         for k in range(sweeps):
-            i = lane + k * stride
+            i = lane * sweeps + k
             c = int(-1)  # noqa: UP018 (a Warp variable, not a constant)
             p = int(-1)  # noqa: UP018
             to_c = wp.spatial_vector()
@@ -79,7 +79,7 @@ def _tiled_kernel(bodies: int, rows: int, sweeps: int):
             wp.tile_scatter_add(acc, wp.max(p, 0), to_p, p >= 0)
         out = rowvec()
         for k in range(sweeps):
-            i = lane + k * stride
+            i = lane * sweeps + k
             if i < n and used[k] != 0:
                 c = body_c[k]
                 p = body_p[k]
@@ -142,7 +142,6 @@ def _tiled_kernel(bodies: int, rows: int, sweeps: int):
         world, lane = wp.tid()
         if mask[world] == 0:
             return
-        stride = wp.block_dim()
         n = row_count[world]
         s = sigma[world]
         J_c = wp.tile_load(row_J_c[world], shape=rows, storage="shared")
@@ -158,7 +157,7 @@ def _tiled_kernel(bodies: int, rows: int, sweeps: int):
         xk = rowvec()
         scale = float(0.0)
         for k in range(sweeps):
-            i = lane + k * stride
+            i = lane * sweeps + k
             if i < n:
                 if _row_used(bilateral_only, row_kind[world, i]):
                     used[k] = 1
@@ -170,7 +169,7 @@ def _tiled_kernel(bodies: int, rows: int, sweeps: int):
                     b[k] = rhs[world, i]
                     xk[k] = x[world, i]
                     scale = wp.max(scale, wp.abs(b[k]))
-        Ax = apply_tiled(lane, stride, n, used, body_c, body_p, precond, diag, J_c, J_p, MJ_c, MJ_p, xk)
+        Ax = apply_tiled(lane, n, used, body_c, body_p, precond, diag, J_c, J_p, MJ_c, MJ_p, xk)
         r = b - Ax
         res = norm_inf(r)
         scale = block_max(scale)
@@ -183,7 +182,7 @@ def _tiled_kernel(bodies: int, rows: int, sweeps: int):
         count = int(0)
         if res > tol:
             p = r
-            Ar = apply_tiled(lane, stride, n, used, body_c, body_p, precond, diag, J_c, J_p, MJ_c, MJ_p, r)
+            Ar = apply_tiled(lane, n, used, body_c, body_p, precond, diag, J_c, J_p, MJ_c, MJ_p, r)
             Ap = Ar
             rAr = dot(r, Ar)
             for _k in range(max_iterations):
@@ -196,14 +195,14 @@ def _tiled_kernel(bodies: int, rows: int, sweeps: int):
                 count += 1
                 if norm_inf(r) <= tol:
                     break
-                Ar = apply_tiled(lane, stride, n, used, body_c, body_p, precond, diag, J_c, J_p, MJ_c, MJ_p, r)
+                Ar = apply_tiled(lane, n, used, body_c, body_p, precond, diag, J_c, J_p, MJ_c, MJ_p, r)
                 rAr_new = dot(r, Ar)
                 beta = rAr_new / rAr
                 rAr = rAr_new
                 p = r + beta * p
                 Ap = Ar + beta * Ap
         for k in range(sweeps):
-            i = lane + k * stride
+            i = lane * sweeps + k
             if i < n:
                 x[world, i] = xk[k]  # 0 on rows left out of the operator
         if lane == 0:

@@ -105,7 +105,7 @@ class SolverConfig:
     contact_stabilization: float = 0.2
     restitution_threshold: float = 0.05
     linear_solver: str = "auto"
-    inner_iterations: int = 100
+    inner_iterations: int = 25
     inner_tolerance_ratio: float = 0.01
     projection_tolerance: float = 1.0e-3
 
