@@ -65,6 +65,32 @@ def run_setting(specs, device: str, dt: float, config: dict, duration: float) ->
             "diverged": int(trace.diverged.sum())}
 
 
+def plot(report: dict, path) -> None:
+    """Walking-speed error (median, bar to the 90th percentile) against wall time per simulated
+    second, one point per setting."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in report["settings"] if r["setting"] != "reference"]
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for row in rows:
+        ax.errorbar(row["s_per_simulated_s"], row["speed_error_median"], fmt="o",
+                    yerr=[[0.0], [row["speed_error_p90"] - row["speed_error_median"]]], capsize=3)
+        ax.annotate(row["setting"], (row["s_per_simulated_s"], row["speed_error_median"]), fontsize=8,
+                    xytext=(4, 4), textcoords="offset points")
+    ax.set_xlim(0.0, 1.15 * max(r["s_per_simulated_s"] for r in rows))
+    ax.set_ylim(0.0, 1.1 * max(r["speed_error_p90"] for r in rows))
+    ax.grid(alpha=0.3)
+    ax.set_xlabel(f"wall time per simulated second, {report['worlds']} walkers [s]")
+    ax.set_ylabel("walking-speed error vs reference [m/s]\n(median, bar to 90th percentile)")
+    ax.set_title(f"Walker work-precision ({report['device']}, warp {report['warp']})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu")
@@ -72,7 +98,11 @@ def main(argv=None) -> int:
     parser.add_argument("--duration", type=float, default=1.0)
     parser.add_argument("--only", nargs="*", default=None, help="setting names (the reference always runs)")
     parser.add_argument("--out", default=".")
+    parser.add_argument("--replot", default=None, help="redraw the PNG of a written JSON and exit")
     args = parser.parse_args(argv)
+    if args.replot:
+        plot(json.loads(pathlib.Path(args.replot).read_text()), pathlib.Path(args.replot).with_suffix(".png"))
+        return 0
     wp.config.log_level = wp.LOG_WARNING
     names = ["reference"] + [n for n in (args.only or SETTINGS) if n != "reference"]
     unknown = [n for n in names if n not in SETTINGS]
@@ -104,24 +134,7 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     stem = "walker_precision_" + ("cuda" if args.device.startswith("cuda") else "cpu")
     (out / f"{stem}.json").write_text(json.dumps(report, indent=1))
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    for row in rows[1:]:
-        ax.errorbar(row["s_per_simulated_s"], row["speed_error_median"], fmt="o",
-                    yerr=[[0.0], [row["speed_error_p90"] - row["speed_error_median"]]], capsize=3)
-        ax.annotate(row["setting"], (row["s_per_simulated_s"], row["speed_error_median"]), fontsize=8,
-                    xytext=(4, 4), textcoords="offset points")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel(f"wall time per simulated second, {len(specs)} walkers [s]")
-    ax.set_ylabel("walking-speed error vs reference [m/s]\n(median, bar to 90th percentile)")
-    ax.set_title(f"Walker work-precision ({report['device']})")
-    fig.tight_layout()
-    fig.savefig(out / f"{stem}.png", dpi=120)
+    plot(report, out / f"{stem}.png")
     print(json.dumps(report, indent=1))
     return 0
 
