@@ -154,12 +154,14 @@ def guard_divergence(
     body_count: wp.array(dtype=wp.int32),
     body_q_in: wp.array2d(dtype=wp.transform),
     body_qd_in: wp.array2d(dtype=wp.spatial_vector),
+    halted: wp.array(dtype=wp.int32),
     # in/out
     body_q_out: wp.array2d(dtype=wp.transform),
     body_qd_out: wp.array2d(dtype=wp.spatial_vector),
     diverged: wp.array(dtype=wp.int32),
 ):
-    """Flag a world whose new state is not finite and freeze it at its last state."""
+    """Flag a world whose new state is not finite and freeze it at its last state; a halted world
+    (engine.rollout's halt) stays frozen as well, without the flag."""
     world = wp.tid()
     n = body_count[world]
     bad = diverged[world] != 0
@@ -168,6 +170,7 @@ def guard_divergence(
             bad = True
     if bad:
         diverged[world] = 1
+    if bad or halted[world] != 0:
         for b in range(n):
             body_q_out[world, b] = body_q_in[world, b]
             body_qd_out[world, b] = body_qd_in[world, b]

@@ -255,7 +255,8 @@ class Workspace:
     a step.
     PADMM vectors (W, R): v_f, lo, hi (preconditioned), x, x_prev, y, y_prev, y_hat, z, z_prev,
     z_hat, rhs, delta. Per world (W,): rho, sigma, valid, iterations, residual_primal, residual_dual, converged,
-    active, needs_factor, momentum, momentum_beta, merit, diverged; active_count (1,).
+    active, needs_factor, momentum, momentum_beta, merit, diverged (non-finite state: frozen),
+    halted (stopped by engine.rollout's halt: frozen, not flagged as diverged); active_count (1,).
     Metrics (W,): violation_linear [m], violation_angular [rad], energy [J].
     Contacts: row_count (W,) rows of this step; candidates (collide.Candidates, (W, 4 max_pairs));
     contact_* (W, C): bodies, points, normal (from b to a), distance [m], friction, restitution,
@@ -285,7 +286,7 @@ class Workspace:
         for name in ("rho", "sigma", "residual_primal", "residual_dual", "residual_complementarity", "momentum", "momentum_beta", "merit",
                      "violation_linear", "violation_angular", "energy"):
             setattr(self, name, zeros(w))
-        for name in ("iterations", "converged", "valid", "project", "active", "needs_factor", "diverged"):
+        for name in ("iterations", "converged", "valid", "project", "active", "needs_factor", "diverged", "halted"):
             setattr(self, name, zeros(w, wp.int32))
         self.active_count = zeros(1, wp.int32)
         self.row_count = zeros(w, wp.int32)  # rows of this step: joint, drive, limit and 3 per contact

@@ -39,6 +39,7 @@ def padmm_setup(
     padmm_rho_init: wp.array(dtype=float),
     # in
     diverged: wp.array(dtype=wp.int32),
+    halted: wp.array(dtype=wp.int32),
     # out
     rho_out: wp.array(dtype=float),
     valid_out: wp.array(dtype=wp.int32),
@@ -51,10 +52,11 @@ def padmm_setup(
     needs_factor_out: wp.array(dtype=wp.int32),
     active_count_out: wp.array(dtype=wp.int32),
 ):
-    """Per world: activate worlds with rows that have not diverged; keep the last penalty."""
+    """Per world: activate worlds with rows that have neither diverged nor been halted; keep the
+    last penalty."""
     world = wp.tid()
     active = 0
-    if row_count[world] > 0 and diverged[world] == 0:
+    if row_count[world] > 0 and diverged[world] == 0 and halted[world] == 0:
         active = 1
         wp.atomic_add(active_count_out, 0, 1)
     active_out[world] = active
@@ -344,13 +346,14 @@ def padmm_output(
     row_precond: wp.array2d(dtype=float),
     y: wp.array2d(dtype=float),
     diverged: wp.array(dtype=wp.int32),
+    halted: wp.array(dtype=wp.int32),
     # out
     row_lambda_out: wp.array2d(dtype=float),
 ):
-    """Impulses lambda = P y [N s]/[N m s]; zero on padded rows."""
+    """Impulses lambda = P y [N s]/[N m s]; zero on padded rows and in frozen worlds."""
     world, i = wp.tid()
     value = 0.0
-    if i < row_count[world] and diverged[world] == 0:
+    if i < row_count[world] and diverged[world] == 0 and halted[world] == 0:
         value = row_precond[world, i] * y[world, i]
     row_lambda_out[world, i] = value
 
@@ -402,7 +405,7 @@ def solve_padmm(model, row_lambda_warm, row_lambda_out):
     work.active_count.zero_()
     work.inner_iterations.zero_()
     wp.launch(padmm_setup, dim=model.num_worlds, device=device,
-              inputs=[work.row_count, model.padmm_rho_init, work.diverged],
+              inputs=[work.row_count, model.padmm_rho_init, work.diverged, work.halted],
               outputs=[work.rho, work.valid, work.active, work.converged, work.iterations, work.momentum, work.momentum_beta,
                        work.merit, work.needs_factor, work.active_count])
     wp.launch(padmm_warmstart, dim=grid, device=device,
@@ -411,7 +414,8 @@ def solve_padmm(model, row_lambda_warm, row_lambda_out):
     refactor(model)
     wp.capture_while(work.active_count, padmm_iteration, model=model)
     wp.launch(padmm_output, dim=grid, device=device,
-              inputs=[work.row_count, work.row_precond, work.y, work.diverged], outputs=[row_lambda_out])
+              inputs=[work.row_count, work.row_precond, work.y, work.diverged, work.halted],
+              outputs=[row_lambda_out])
 
 
 __all__ = ["padmm_iteration", "refactor", "solve_padmm"]

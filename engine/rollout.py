@@ -131,7 +131,8 @@ class Trace:
     violation_linear (T, W) [m]; violation_angular (T, W) [rad]; energy (T, W) [J];
     iterations (T, W) PADMM iterations of the last step before the record; drive_torque
     (T, W, J) torque [N m] (force [N]) of every joint drive in that step (0 without a drive);
-    diverged (W,) bool; point_names (list per world).
+    diverged (W,) bool; point_names (list per world); halted_at (W,) time [s] at which rollout's
+    halt froze the world (-1: never).
     """
 
     time: np.ndarray
@@ -143,6 +144,7 @@ class Trace:
     drive_torque: np.ndarray
     diverged: np.ndarray
     point_names: list
+    halted_at: np.ndarray | None = None
 
 
 @wp.kernel
@@ -177,8 +179,14 @@ def drive_torques(
 
 
 def rollout(model: Model, state: State, control: Control, steps: int, *, dt: float | None = None,
-            record_every: int = 1) -> tuple[Trace, State]:
+            record_every: int = 1, halt=None) -> tuple[Trace, State]:
     """Run ``steps`` steps, recording tracked points and metrics every ``record_every`` steps.
+
+    halt: optional callable(points, start) -> bool array (W,), called after every record with the
+    tracked points of that record and of record 0 (each (W, P, 3)); the worlds it marks are frozen from then on (they cost no
+    solver work and keep their last state, like diverged worlds, but are not flagged as diverged):
+    an evaluation that already knows a world's outcome (a walker that fell) stops simulating it.
+    The other worlds are unaffected.
 
     Returns the Trace (record 0 is the initial state) and the final State.
     """
@@ -205,6 +213,18 @@ def rollout(model: Model, state: State, control: Control, steps: int, *, dt: flo
         for name in ("violation_linear", "violation_angular", "energy", "iterations"):
             records[name].append(getattr(model.work, name).numpy().copy())
 
+    model.work.halted.zero_()
+    halted = np.zeros(model.num_worlds, dtype=bool)
+    halted_at = np.full(model.num_worlds, -1.0)
+
+    def check_halt():
+        marked = np.asarray(halt(records["points"][-1], records["points"][0]), dtype=bool).reshape(model.num_worlds)
+        new = marked & ~halted
+        if new.any():
+            halted[new] = True
+            halted_at[new] = times[-1]
+            model.work.halted.assign(halted.astype(np.int32))
+
     record(stepper.state)
     times.append(0.0)
     dt_host = model._dt_host
@@ -212,9 +232,12 @@ def rollout(model: Model, state: State, control: Control, steps: int, *, dt: flo
         stepper.advance()
         record(stepper.state)
         times.append(stepper.steps_done * float(dt_host[0]))
+        if halt is not None:
+            check_halt()
     trace = Trace(time=np.asarray(times), points=np.stack(records["points"]),
                   violation_linear=np.stack(records["violation_linear"]),
                   violation_angular=np.stack(records["violation_angular"]), energy=np.stack(records["energy"]),
                   iterations=np.stack(records["iterations"]), drive_torque=np.stack(records["drive_torque"]),
-                  diverged=model.work.diverged.numpy().astype(bool), point_names=model.point_names)
+                  diverged=model.work.diverged.numpy().astype(bool), point_names=model.point_names,
+                  halted_at=halted_at)
     return trace, stepper.state

@@ -42,18 +42,38 @@ def _walking_metrics(trace, world: int, torso: int, speeds: list, record_dt: flo
 
 def _fall(trace, world: int, torso: int, up: int, max_tilt: float, min_height: float) -> tuple:
     """Largest tilt [rad] of the torso's up axis, lowest torso height (fraction of the start) and
-    the failure reason ("" when the walker stayed up)."""
+    the failure reason ("" when the walker stayed up; else when it fell and how)."""
     axis = trace.points[:, world, up] - trace.points[:, world, torso]
     cos_tilt = axis[:, 2] / np.maximum(np.linalg.norm(axis, axis=1), 1e-12)
-    tilt = float(np.arccos(np.clip(cos_tilt, -1.0, 1.0)).max())
-    height = trace.points[:, world, torso, 2]
-    lowest = float(height.min() / max(height[0], 1e-12))
-    reason = ""
-    if tilt > max_tilt:
-        reason = f"fell: the torso tilted by {np.degrees(tilt):.0f} deg (more than {np.degrees(max_tilt):.0f})"
-    elif lowest < min_height:
-        reason = f"fell: the torso sank to {lowest:.2f} of its starting height (less than {min_height:g})"
-    return tilt, lowest, reason
+    tilts = np.arccos(np.clip(cos_tilt, -1.0, 1.0))
+    heights = trace.points[:, world, torso, 2] / max(trace.points[0, world, torso, 2], 1e-12)
+    tilt, lowest = float(tilts.max()), float(heights.min())
+    fallen = (tilts > max_tilt) | (heights < min_height)
+    if not fallen.any():
+        return tilt, lowest, ""
+    first = int(np.argmax(fallen))
+    when = f"fell after {trace.time[first]:.2f} s: the torso"
+    if tilts[first] > max_tilt:
+        return tilt, lowest, (f"{when} tilted by {np.degrees(tilts[first]):.1f} deg "
+                              f"(more than {np.degrees(max_tilt):g})")
+    return tilt, lowest, f"{when} sank to {heights[first]:.2f} of its starting height (less than {min_height:g})"
+
+
+def _fallen_worlds(points: np.ndarray, start: np.ndarray, torso: np.ndarray, up: np.ndarray, max_tilt: float,
+                   min_height: float) -> np.ndarray:
+    """(W,) bool: walkers whose torso has tilted past max_tilt or sunk below min_height of its
+    starting height, in records ``points`` (T, W, P, 3) with the starting heights from record 0
+    of ``start`` (torso, up (W,) point indices, -1 where a world is no walker): the rule of _fall
+    for a whole batch at once."""
+    walker = (torso >= 0) & (up >= 0)
+    worlds = np.arange(points.shape[1])
+    t, u = np.maximum(torso, 0), np.maximum(up, 0)
+    centre = points[:, worlds, t]  # (T, W, 3)
+    axis = points[:, worlds, u] - centre
+    cos_tilt = axis[..., 2] / np.maximum(np.linalg.norm(axis, axis=-1), 1e-12)
+    tilted = (np.arccos(np.clip(cos_tilt, -1.0, 1.0)) > max_tilt).any(axis=0)
+    sunk = (centre[..., 2] / np.maximum(start[None, worlds, t, 2], 1e-12) < min_height).any(axis=0)
+    return walker & (tilted | sunk)
 
 
 @dataclass
@@ -224,7 +244,9 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     A walker (tracked points "torso" and "torso_up", the latter above the torso centre) that tilts
     by more than fall_tilt [rad] or whose torso sinks below fall_height times its starting height
     fails as fallen (a tumbling or belly-sliding body can cover ground fast without walking); its
-    torso_tilt_max [rad] and torso_height_min (fraction of the start) are metrics as well.
+    torso_tilt_max [rad] and torso_height_min (fraction of the start) are metrics as well. A walker
+    is frozen at the first record that shows it fallen (engine.rollout's halt): the rest of the
+    batch runs on without it, and its metrics describe the run up to the fall.
     """
     from engine import pack_worlds, rollout
 
@@ -247,7 +269,13 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
         return evaluation
     model = pack_worlds(specs, device=device, dt=dt)
     steps = max(record_every, int(round(duration / dt / record_every)) * record_every)
-    trace, _ = rollout(model, model.state(), model.control(), steps, record_every=record_every)
+    torso = np.array([names.index("torso") if "torso" in names else -1 for names in model.point_names])
+    up = np.array([names.index("torso_up") if "torso_up" in names else -1 for names in model.point_names])
+    halt = None
+    if ((torso >= 0) & (up >= 0)).any():  # a walker that fell has failed: stop simulating it
+        def halt(points, start):
+            return _fallen_worlds(points[None], start, torso, up, fall_tilt, fall_height)
+    trace, _ = rollout(model, model.state(), model.control(), steps, record_every=record_every, halt=halt)
     record_dt = dt * record_every
     for world, i in enumerate(owners):
         if trace.diverged[world]:

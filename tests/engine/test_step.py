@@ -159,3 +159,29 @@ def test_cuda_graph_replay_matches_eager():
     for _ in range(4):
         stepper.advance()
     assert np.abs(stepper.state.body_q.numpy() - eager).max() < 1e-6
+
+
+def test_rollout_halt_freezes_the_marked_world_and_leaves_the_others_bit_identical():
+    """A world marked by rollout's halt keeps its last state from that record on, does no solver
+    work and is not flagged as diverged; the other world of the batch runs exactly as it does
+    without the halt (CPU: each world's arithmetic is its own)."""
+    specs = [fourbar().spec, fourbar(crank=0.12).spec]
+    calls = []
+
+    def halt(points, start):
+        calls.append(points.shape)
+        assert points.shape == start.shape == (2, model.max_points, 3)
+        return np.array([len(calls) >= 3, False])
+
+    model = pack_worlds(specs, device="cpu", dt=1e-3)
+    trace, _ = rollout(model, model.state(), model.control(), 100, record_every=10, halt=halt)
+    free = pack_worlds(specs, device="cpu", dt=1e-3)
+    reference, _ = rollout(free, free.state(), free.control(), 100, record_every=10)
+    assert len(calls) == 10
+    assert trace.halted_at[0] == pytest.approx(0.03) and trace.halted_at[1] == -1.0
+    assert not trace.diverged.any()
+    assert np.array_equal(trace.points[:, 1], reference.points[:, 1])
+    assert np.array_equal(trace.points[:4, 0], reference.points[:4, 0])  # up to the halt: the same run
+    assert np.all(trace.points[3:, 0] == trace.points[3, 0])  # then frozen
+    assert not np.array_equal(reference.points[3:, 0], np.broadcast_to(reference.points[3, 0], reference.points[3:, 0].shape))
+    assert np.all(trace.iterations[4:, 0] == 0) and np.all(trace.iterations[4:, 1] > 0)
