@@ -5,7 +5,7 @@ Jacobian row with d(phi_k)/dt = J_c . u_c + J_p . u_p exactly (tests check it ag
 differences). Rows, in the order of engine.pack.ROW_KINDS:
 - position rows: the anchor separation d = p_c - p_p along the world axes (revolute, spherical,
   universal, fixed) or along two parent-frame directions normal to the axis (prismatic,
-  cylindrical) [m];
+  cylindrical, inline; an inline joint has no other rows) [m];
 - angular rows: the child axis dotted with two parent directions normal to the parent axis
   (revolute, cylindrical), parent axis . child axis2 (universal), or 2 vec(q_rel) of the
   relative rotation in the parent anchor frame (prismatic, fixed) [rad].
@@ -28,6 +28,7 @@ JOINT_SPHERICAL = wp.constant(2)
 JOINT_UNIVERSAL = wp.constant(3)
 JOINT_CYLINDRICAL = wp.constant(4)
 JOINT_FIXED = wp.constant(5)
+JOINT_INLINE = wp.constant(6)
 
 
 @wp.func
@@ -35,6 +36,8 @@ def bilateral_row_count(joint_type: int):
     """Number of bilateral rows of a joint type."""
     if joint_type == JOINT_SPHERICAL:
         return 3
+    if joint_type == JOINT_INLINE:
+        return 2
     if joint_type == JOINT_UNIVERSAL or joint_type == JOINT_CYLINDRICAL:
         return 4
     if joint_type == JOINT_FIXED:
@@ -92,7 +95,7 @@ def bilateral_row(joint_type: int, k: int, X_wp: wp.transform, X_wc: wp.transfor
     q_p = wp.transform_get_rotation(X_wp)
     q_c = wp.transform_get_rotation(X_wc)
     d = wp.transform_get_translation(X_wc) - wp.transform_get_translation(X_wp)
-    sliding = joint_type == JOINT_PRISMATIC or joint_type == JOINT_CYLINDRICAL
+    sliding = joint_type == JOINT_PRISMATIC or joint_type == JOINT_CYLINDRICAL or joint_type == JOINT_INLINE
     n_position = 3
     if sliding:
         n_position = 2
@@ -346,5 +349,5 @@ def compute_joint_residuals(model, body_q, residual_out):
               inputs=[*joint_model_inputs(model), body_q], outputs=[residual_out])
 
 
-__all__ = ["JOINT_CYLINDRICAL", "JOINT_FIXED", "JOINT_PRISMATIC", "JOINT_REVOLUTE", "JOINT_SPHERICAL",
+__all__ = ["JOINT_CYLINDRICAL", "JOINT_FIXED", "JOINT_INLINE", "JOINT_PRISMATIC", "JOINT_REVOLUTE", "JOINT_SPHERICAL",
            "JOINT_UNIVERSAL", "compute_joint_residuals", "compute_joint_rows"]

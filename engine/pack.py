@@ -20,6 +20,7 @@ ROW_KINDS = {  # bilateral row kinds per joint type: 0 linear [m], 1 angular [ra
     JointType.UNIVERSAL: (0, 0, 0, 1),
     JointType.CYLINDRICAL: (0, 0, 1, 1),
     JointType.FIXED: (0, 0, 0, 1, 1, 1),
+    JointType.INLINE: (0, 0),
 }
 ROW_TILE = 8  # the padded row count is a multiple of this (tile size of the Delassus matrix)
 MAX_DENSE_ROWS = 144  # largest per-world Delassus tile the dense solver factors in on-chip memory

@@ -36,6 +36,7 @@ class JointType(enum.IntEnum):
     UNIVERSAL = 3  # rotation about axis (parent) and axis2 (child): 3 position rows + 1 angular row
     CYLINDRICAL = 4  # rotation about and translation along axis: 2 position rows + 2 angular rows
     FIXED = 5  # no relative motion: 3 position rows + 3 angular rows
+    INLINE = 6  # the child anchor stays on the parent's axis line: 2 position rows normal to the axis
 
 
 JOINT_ROW_COUNT = {
@@ -45,6 +46,7 @@ JOINT_ROW_COUNT = {
     JointType.UNIVERSAL: 4,
     JointType.CYLINDRICAL: 4,
     JointType.FIXED: 6,
+    JointType.INLINE: 2,
 }
 
 DRIVABLE = (JointType.REVOLUTE, JointType.PRISMATIC)
@@ -172,8 +174,11 @@ class Joint:
         parent_position, parent_orientation: anchor frame in the parent body frame (world frame
             when parent is None) [m], quaternion (x, y, z, w).
         child_position, child_orientation: anchor frame in the child body frame.
-        axis: joint axis in the anchor frame (revolute, prismatic, cylindrical; universal: the
-            parent-side axis); normalized on creation.
+        axis: joint axis in the anchor frame (revolute, prismatic, cylindrical, inline; universal:
+            the parent-side axis); normalized on creation. An inline joint keeps the child anchor
+            on the parent's axis line and leaves every rotation free: it closes a loop of a planar
+            linkage whose other joints already hold it in the plane, without the redundant
+            out-of-plane rows a revolute closure would add.
         axis2: universal joints only: the child-side axis, in the child anchor frame.
         armature: added joint-space inertia [kg m^2] or [kg] (revolute, prismatic).
         damping: viscous joint damping [N m s/rad] or [N s/m] (revolute, prismatic).

@@ -1,13 +1,15 @@
 """The one conversion from a planar Linkage to engine.MechanismSpec.
 
 Links become bodies built from rectangular bars between every pair of their nodes (width and
-thickness [m], density [kg/m^3]); nodes shared by links become revolute joints about world -y
-(loop closures included, no spanning tree); ground nodes join links to the world; the crank gets a
-velocity drive with an effort limit. Planar (x, y) maps to world (x, 0, y).
+thickness [m], density [kg/m^3]); nodes shared by links become revolute joints about world -y,
+except that the pivots closing kinematic loops become inline joints (close_loops_in_plane: no
+redundant out-of-plane rows); ground nodes join links to the world; the crank gets a velocity
+drive with an effort limit. Planar (x, y) maps to world (x, 0, y).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -167,7 +169,37 @@ def linkage_parts(linkage: Linkage, *, style: BarStyle = BarStyle(), crank_dampi
     for point, node in linkage.points.items():
         _, body = link_of[node][0]
         points.append(TrackedPoint(prefix + point, body.name, _local(body, place(node_xy[node]))))
-    return bodies, joints, points
+    return bodies, close_loops_in_plane(joints), points
+
+
+def close_loops_in_plane(joints: list) -> list:
+    """Keep the revolute joints of a spanning tree of the bodies (driven joints first) and make
+    every loop-closing pivot an inline joint (two rows: the pivot stays on the partner's axis).
+
+    The tree's revolute joints already hold every body in the plane, so of a closing revolute's
+    five rows three (the out-of-plane translation and both tilts) would repeat what the tree
+    imposes. Repeated rows make every walker's constraint system singular in as many directions
+    (54 for a walker of six legs with three loops each), and the solvers then spend their
+    iterations on residuals in those directions; the inline closure removes them and leaves the
+    motion the same.
+    """
+    root = {}
+
+    def find(name):
+        while root.setdefault(name, name) != name:
+            root[name] = root[root[name]]
+            name = root[name]
+        return name
+
+    out = list(joints)
+    for k in sorted(range(len(joints)), key=lambda k: joints[k].drive is None):  # driven joints join first
+        joint = joints[k]
+        a, b = find(joint.parent if joint.parent is not None else "\0world"), find(joint.child)
+        if a != b:
+            root[a] = b
+        else:
+            out[k] = dataclasses.replace(joint, type="inline")
+    return out
 
 
 def _local(body: Body, point: np.ndarray) -> np.ndarray:
