@@ -23,7 +23,7 @@ import warp as wp
 
 from engine.model import ROW_ANGULAR, ROW_LINEAR
 
-__all__ = ["TILED_BLOCK", "solve"]
+__all__ = ["TILED_BLOCK", "block_max", "block_sum", "solve"]
 
 
 @wp.func
@@ -32,6 +32,18 @@ def _row_used(bilateral_only: int, kind: int):
 
 
 TILED_BLOCK = 128  # threads per world in the GPU form
+
+
+@wp.func
+def block_sum(value: float):
+    """Sum of ``value`` over the threads of the block (every thread gets it)."""
+    return wp.tile_extract(wp.tile_sum(wp.tile(value)), 0)
+
+
+@wp.func
+def block_max(value: float):
+    """Largest ``value`` over the threads of the block (every thread gets it)."""
+    return wp.tile_extract(wp.tile_max(wp.tile(value)), 0)
 
 
 def _tiled_kernel(bodies: int, rows: int, sweeps: int):
@@ -90,14 +102,6 @@ def _tiled_kernel(bodies: int, rows: int, sweeps: int):
                     velocity += wp.dot(wp.tile_extract(J_p, i), wp.tile_extract(acc, p))
                 out[k] = precond[k] * velocity + diag[k] * v[k]
         return out
-
-    @wp.func
-    def block_sum(value: float):
-        return wp.tile_extract(wp.tile_sum(wp.tile(value)), 0)
-
-    @wp.func
-    def block_max(value: float):
-        return wp.tile_extract(wp.tile_max(wp.tile(value)), 0)
 
     @wp.func
     def dot(a: rowvec, b: rowvec):

@@ -188,16 +188,6 @@ def padmm_project(
 CONVERGENCE_BLOCK = 64  # threads per world on a GPU (rows spread over them); one on the CPU
 
 
-@wp.func
-def _block_max(value: float):
-    return wp.tile_extract(wp.tile_max(wp.tile(value)), 0)
-
-
-@wp.func
-def _block_sum(value: float):
-    return wp.tile_extract(wp.tile_sum(wp.tile(value)), 0)
-
-
 @wp.kernel
 def padmm_convergence(
     max_iterations: int,
@@ -260,11 +250,11 @@ def padmm_convergence(
             elif kind == ROW_CONTACT_NORMAL:
                 gap = y[world, i] * z[world, i] + y[world, i + 1] * z[world, i + 1] + y[world, i + 2] * z[world, i + 2]
                 r_c = wp.max(r_c, wp.abs(gap))
-    r_p = _block_max(r_p)
-    r_d = _block_max(r_d)
-    r_c = _block_max(r_c)
-    scale = _block_max(scale)
-    change = _block_sum(change)
+    r_p = matrix_free.block_max(r_p)
+    r_d = matrix_free.block_max(r_d)
+    r_c = matrix_free.block_max(r_c)
+    scale = matrix_free.block_max(scale)
+    change = matrix_free.block_sum(change)
     if lane != 0:
         return
     its = iterations[world] + 1

@@ -40,13 +40,31 @@ def _walking_metrics(trace, world: int, torso: int, speeds: list, record_dt: flo
             "energy_per_distance": float(work / max(distance, 1e-9)) if distance > 1e-4 else float("inf")}
 
 
+def _torso_tilt_height(points: np.ndarray, start: np.ndarray, torso: np.ndarray, up: np.ndarray) -> tuple:
+    """Tilt [rad] of the torso's up axis and torso height as a fraction of its height in ``start``,
+    per record and world ((T, W) each), from tracked points (T, W, P, 3) and record 0 (W, P, 3);
+    torso, up (W,) point indices (-1 where a world is no walker: read as point 0)."""
+    worlds = np.arange(points.shape[1])
+    t, u = np.maximum(torso, 0), np.maximum(up, 0)
+    centre = points[:, worlds, t]
+    axis = points[:, worlds, u] - centre
+    cos_tilt = axis[..., 2] / np.maximum(np.linalg.norm(axis, axis=-1), 1e-12)
+    return np.arccos(np.clip(cos_tilt, -1.0, 1.0)), centre[..., 2] / np.maximum(start[worlds, t, 2], 1e-12)
+
+
+def _fallen_worlds(points: np.ndarray, start: np.ndarray, torso: np.ndarray, up: np.ndarray, max_tilt: float,
+                   min_height: float) -> np.ndarray:
+    """(W,) bool: walkers (torso and up >= 0) whose torso has tilted past max_tilt or sunk below
+    min_height of its starting height in the records ``points`` (see _torso_tilt_height)."""
+    tilts, heights = _torso_tilt_height(points, start, torso, up)
+    return (torso >= 0) & (up >= 0) & ((tilts > max_tilt) | (heights < min_height)).any(axis=0)
+
+
 def _fall(trace, world: int, torso: int, up: int, max_tilt: float, min_height: float) -> tuple:
     """Largest tilt [rad] of the torso's up axis, lowest torso height (fraction of the start) and
     the failure reason ("" when the walker stayed up; else when it fell and how)."""
-    axis = trace.points[:, world, up] - trace.points[:, world, torso]
-    cos_tilt = axis[:, 2] / np.maximum(np.linalg.norm(axis, axis=1), 1e-12)
-    tilts = np.arccos(np.clip(cos_tilt, -1.0, 1.0))
-    heights = trace.points[:, world, torso, 2] / max(trace.points[0, world, torso, 2], 1e-12)
+    points = trace.points[:, world:world + 1]
+    tilts, heights = (a[:, 0] for a in _torso_tilt_height(points, points[0], np.array([torso]), np.array([up])))
     tilt, lowest = float(tilts.max()), float(heights.min())
     fallen = (tilts > max_tilt) | (heights < min_height)
     if not fallen.any():
@@ -57,23 +75,6 @@ def _fall(trace, world: int, torso: int, up: int, max_tilt: float, min_height: f
         return tilt, lowest, (f"{when} tilted by {np.degrees(tilts[first]):.1f} deg "
                               f"(more than {np.degrees(max_tilt):g})")
     return tilt, lowest, f"{when} sank to {heights[first]:.2f} of its starting height (less than {min_height:g})"
-
-
-def _fallen_worlds(points: np.ndarray, start: np.ndarray, torso: np.ndarray, up: np.ndarray, max_tilt: float,
-                   min_height: float) -> np.ndarray:
-    """(W,) bool: walkers whose torso has tilted past max_tilt or sunk below min_height of its
-    starting height, in records ``points`` (T, W, P, 3) with the starting heights from record 0
-    of ``start`` (torso, up (W,) point indices, -1 where a world is no walker): the rule of _fall
-    for a whole batch at once."""
-    walker = (torso >= 0) & (up >= 0)
-    worlds = np.arange(points.shape[1])
-    t, u = np.maximum(torso, 0), np.maximum(up, 0)
-    centre = points[:, worlds, t]  # (T, W, 3)
-    axis = points[:, worlds, u] - centre
-    cos_tilt = axis[..., 2] / np.maximum(np.linalg.norm(axis, axis=-1), 1e-12)
-    tilted = (np.arccos(np.clip(cos_tilt, -1.0, 1.0)) > max_tilt).any(axis=0)
-    sunk = (centre[..., 2] / np.maximum(start[None, worlds, t, 2], 1e-12) < min_height).any(axis=0)
-    return walker & (tilted | sunk)
 
 
 @dataclass
