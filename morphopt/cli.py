@@ -5,6 +5,7 @@
     morphopt study show SPEC [--top K]
     morphopt study plot SPEC [--out PNG]
     morphopt study export SPEC --optuna-storage URL
+    morphopt export SPEC [--best K] --format usd|urdf|mjcf|svg|dxf [--out DIR] [--motion SECONDS]
     morphopt demo fourbar [--worlds N] [--seconds S] [--dt DT] [--device cpu|cuda]
 """
 
@@ -142,6 +143,44 @@ def _study_export(args) -> int:
     return 0
 
 
+def _export(args) -> int:
+    import math
+    import pathlib
+
+    from morphopt.families import load_family
+    from morphopt.formats import export_design
+
+    spec, frame = _stored_designs(args)
+    if frame is None:
+        return 1
+    feasible = frame[frame["failure"] == ""]
+    if feasible.empty:
+        print(f"study '{spec.name}' has no feasible design to export")
+        return 1
+    family = load_family(spec.family)
+    names = family.space.names
+    best = feasible.sort_values("value", ascending=spec.direction == "minimize").head(args.best)
+    out = pathlib.Path(args.out) if args.out else pathlib.Path(args.spec).resolve().parent / f"{spec.name}_export"
+    for rank, row in enumerate(best.itertuples(index=False), start=1):
+        record = row._asdict()
+        params = {k: _plain(record[k]) for k in (*names, *spec.fixed) if k in record}
+        metrics = {k[len("metric_"):]: _plain(v) for k, v in record.items()
+                   if k.startswith("metric_") and isinstance(v, (int, float)) and math.isfinite(v)}
+        name = f"{spec.name}_rank{rank}_g{record['generation']}_m{record['member']}"
+        metadata = {"study": spec.name, "family": spec.family, "rank": rank, "generation": int(record["generation"]),
+                    "member": int(record["member"]), "objective": {spec.metric: float(record["value"])},
+                    "params": params, "metrics": metrics}
+        path = export_design(family, params, args.format, out, name=name, metadata=metadata,
+                             motion_seconds=args.motion or 0.0)
+        print(f"{path}  ({spec.metric} {record['value']:.6g})")
+    return 0
+
+
+def _plain(value):
+    """A pandas/NumPy scalar as a plain Python value (for JSON metadata and the families)."""
+    return value.item() if hasattr(value, "item") else value
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="morphopt", description="Closed-chain mechanism design optimization.")
     parser.add_argument("--version", action="version", version=f"morphopt {__version__}")
@@ -167,6 +206,14 @@ def build_parser() -> argparse.ArgumentParser:
         if name == "export":
             sub.add_argument("--optuna-storage", required=True, help="Optuna storage URL, e.g. sqlite:///optuna.db")
         sub.set_defaults(handler=handler)
+    export = commands.add_parser("export", help="write the best designs of a study as USD, URDF, MJCF, SVG or DXF")
+    export.add_argument("spec", help="study TOML file")
+    export.add_argument("--best", type=_positive(int), default=1, help="how many of the best designs (default 1)")
+    export.add_argument("--format", required=True, choices=("usd", "urdf", "mjcf", "svg", "dxf"))
+    export.add_argument("--out", help="output folder (default: <study name>_export beside the spec)")
+    export.add_argument("--motion", type=_positive(float),
+                        help="USD only: simulate this many seconds and add the motion as time samples")
+    export.set_defaults(handler=_export)
     demo = commands.add_parser("demo", help="simulate a reference mechanism and print what was measured")
     demo.add_argument("scene", choices=DEMO_SCENES)
     demo.add_argument("--worlds", type=_positive(int), default=16, help="number of worlds (default 16)")
@@ -185,6 +232,12 @@ def main(argv=None) -> int:
             return args.handler(args)
         except ValueError as exc:
             print(f"morphopt study {args.study_command}: {exc}", file=sys.stderr)
+            return 2
+    if args.command == "export":
+        try:
+            return args.handler(args)
+        except ValueError as exc:
+            print(f"morphopt export: {exc}", file=sys.stderr)
             return 2
     if args.command == "demo" and args.device.startswith("cuda"):
         import warp as wp
