@@ -45,7 +45,7 @@ def _best(path, k):
     return feasible.sort_values("value", ascending=False).head(k)
 
 
-@pytest.mark.parametrize("fmt, suffix", [("usd", ".usda"), ("svg", ".svg"), ("dxf", ".dxf")])
+@pytest.mark.parametrize("fmt, suffix", [("usd", ".usda"), ("urdf", ".urdf"), ("svg", ".svg"), ("dxf", ".dxf")])
 def test_export_writes_the_best_designs_named_with_their_metadata(study, tmp_path, capsys, fmt, suffix,
                                                                   same_mechanism):
     out = tmp_path / fmt
@@ -63,6 +63,12 @@ def test_export_writes_the_best_designs_named_with_their_metadata(study, tmp_pat
             stage = Usd.Stage.Open(str(path))
             metadata = json.loads(stage.GetRootLayer().customLayerData["morphopt:metadata"])
             same_mechanism(to_spec(family.generate(params)), read_usd(path))
+        elif fmt == "urdf":
+            from morphopt.formats.urdf import read_urdf, read_urdf_metadata
+
+            metadata = read_urdf_metadata(path)
+            same_mechanism(to_spec(family.generate(params)), read_urdf(path))
+            assert (out / "meshes").is_dir()  # the links' bars as visual meshes
         elif fmt == "svg":
             root = ET.parse(path).getroot()
             metadata = json.loads(next(e for e in root.iter() if e.tag.endswith("metadata")).text)
