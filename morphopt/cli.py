@@ -227,17 +227,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    if args.command == "study":
+    if args.command in ("study", "export"):
         try:
             return args.handler(args)
         except ValueError as exc:
-            print(f"morphopt study {args.study_command}: {exc}", file=sys.stderr)
-            return 2
-    if args.command == "export":
-        try:
-            return args.handler(args)
-        except ValueError as exc:
-            print(f"morphopt export: {exc}", file=sys.stderr)
+            command = f"study {args.study_command}" if args.command == "study" else args.command
+            print(f"morphopt {command}: {exc}", file=sys.stderr)
             return 2
     if args.command == "demo" and args.device.startswith("cuda"):
         import warp as wp
