@@ -45,7 +45,7 @@ def _best(path, k):
     return feasible.sort_values("value", ascending=False).head(k)
 
 
-@pytest.mark.parametrize("fmt, suffix", [("usd", ".usda"), ("urdf", ".urdf"), ("svg", ".svg"), ("dxf", ".dxf")])
+@pytest.mark.parametrize("fmt, suffix", [("usd", ".usda"), ("urdf", ".urdf"), ("mjcf", ".xml"), ("svg", ".svg"), ("dxf", ".dxf")])
 def test_export_writes_the_best_designs_named_with_their_metadata(study, tmp_path, capsys, fmt, suffix,
                                                                   same_mechanism):
     out = tmp_path / fmt
@@ -69,6 +69,14 @@ def test_export_writes_the_best_designs_named_with_their_metadata(study, tmp_pat
             metadata = read_urdf_metadata(path)
             same_mechanism(to_spec(family.generate(params)), read_urdf(path))
             assert (out / "meshes").is_dir()  # the links' bars as visual meshes
+        elif fmt == "mjcf":
+            import mujoco
+
+            from morphopt.formats.mjcf import read_metadata
+
+            model = mujoco.MjModel.from_xml_path(str(path))
+            metadata = read_metadata(model)
+            assert model.neq >= 1 and model.nu == 1  # the loop closures and the crank drive
         elif fmt == "svg":
             root = ET.parse(path).getroot()
             metadata = json.loads(next(e for e in root.iter() if e.tag.endswith("metadata")).text)
