@@ -155,18 +155,23 @@ def guard_divergence(
     body_q_in: wp.array2d(dtype=wp.transform),
     body_qd_in: wp.array2d(dtype=wp.spatial_vector),
     halted: wp.array(dtype=wp.int32),
+    max_speed: float,
     # in/out
     body_q_out: wp.array2d(dtype=wp.transform),
     body_qd_out: wp.array2d(dtype=wp.spatial_vector),
     diverged: wp.array(dtype=wp.int32),
 ):
-    """Flag a world whose new state is not finite and freeze it at its last state; a halted world
-    (engine.rollout's halt) stays frozen as well, without the flag."""
+    """Flag a world whose new state is not finite, or in which a body's centre of mass moves
+    faster than max_speed [m/s], and freeze it at its last state; a halted world (engine.rollout's
+    halt) stays frozen as well, without the flag."""
     world = wp.tid()
     n = body_count[world]
     bad = diverged[world] != 0
     for b in range(n):
-        if not (transform_finite(body_q_out[world, b]) and twist_finite(body_qd_out[world, b])):
+        u = body_qd_out[world, b]
+        if not (transform_finite(body_q_out[world, b]) and twist_finite(u)):
+            bad = True
+        elif wp.length(wp.spatial_top(u)) > max_speed:
             bad = True
     if bad:
         diverged[world] = 1

@@ -84,6 +84,9 @@ class SolverConfig:
         projection_tolerance: a matrix-free Gauss-Newton projection solve stops at this residual
             relative to its right-hand side (each of the position_iterations solves reduces the
             joint error by about this factor; the dense solver solves exactly).
+        max_speed: a world in which a body's centre of mass moves faster than this [m/s] is
+            flagged diverged and frozen, like one whose state is no longer finite: a blow-up
+            that grows over many steps is caught before its numbers overflow.
     """
 
     integrator: Integrator = Integrator.MOREAU_JEAN
@@ -108,6 +111,7 @@ class SolverConfig:
     inner_iterations: int = 25
     inner_tolerance_ratio: float = 0.01
     projection_tolerance: float = 1.0e-3
+    max_speed: float = 1.0e3
 
     def __post_init__(self):
         if not isinstance(self.integrator, Integrator):
@@ -123,6 +127,7 @@ class SolverConfig:
             "inner_iterations": self.inner_iterations >= 1,
             "inner_tolerance_ratio": 0.0 < self.inner_tolerance_ratio < 1.0,
             "projection_tolerance": 0.0 < self.projection_tolerance < 1.0,
+            "max_speed": self.max_speed > 0.0,
             "max_iterations": self.max_iterations >= 1,
             "tolerance": self.tolerance > 0.0,
             "relative_tolerance": self.relative_tolerance >= 0.0,

@@ -137,6 +137,6 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
     mark("integrate")
     project_positions(model, state_out.body_q, state_out.body_qd, compute_joint_residuals, fraction)
     wp.launch(guard_divergence, dim=model.num_worlds, device=device,
-              inputs=[model.body_count, state_in.body_q, state_in.body_qd, work.halted],
+              inputs=[model.body_count, state_in.body_q, state_in.body_qd, work.halted, float(model.config.max_speed)],
               outputs=[state_out.body_q, state_out.body_qd, work.diverged])
     mark("projection")

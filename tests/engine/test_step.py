@@ -127,6 +127,34 @@ def test_diverged_world_is_frozen_and_isolated(device):
     np.testing.assert_array_equal(q_bad[1], poisoned.state().body_q.numpy()[1])  # frozen at the start
 
 
+def test_runaway_world_is_flagged_before_it_overflows(device):
+    """A world driven to ever higher speed (finite numbers all along) is flagged diverged and
+    frozen once a body moves faster than SolverConfig.max_speed; the others run on unchanged.
+    With a higher max_speed the same world is not flagged: the bound is what decides."""
+    specs = [fourbar().spec] * 3
+    forces = np.zeros((3, 3, 6), np.float32)
+    forces[1, 0, 2] = 1.0e6  # [N] on the crank: thousands of m/s within the run, far from overflow
+
+    def pushed(config):
+        model = pack_worlds(specs, device=device, config=config)
+        control = model.control()
+        padded = np.zeros((3, model.max_bodies, 6), np.float32)
+        padded[:, :3] = forces
+        control.body_f.assign(padded)
+        state = run(model, 100, 1e-3, control)
+        return model, state
+
+    model, state = pushed(SolverConfig())
+    assert model.work.diverged.numpy().tolist() == [0, 1, 0]
+    speeds = np.linalg.norm(state.body_qd.numpy()[1, :3, :3], axis=1)
+    assert np.all(np.isfinite(state.body_q.numpy()[1])) and speeds.max() <= 1.0e3
+    reference = run(pack_worlds(specs, device=device), 100, 1e-3)
+    assert np.array_equal(state.body_q.numpy()[[0, 2]], reference.body_q.numpy()[[0, 2]])
+    model, state = pushed(SolverConfig(max_speed=1.0e9))
+    assert model.work.diverged.numpy().tolist() == [0, 0, 0]
+    assert np.linalg.norm(state.body_qd.numpy()[1, :3, :3], axis=1).max() > 1.0e3
+
+
 def test_energy_metric_matches_numpy(device):
     """The energy metric equals kinetic + gravitational energy computed in NumPy from the state."""
     scene = sixbar()
