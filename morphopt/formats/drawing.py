@@ -29,6 +29,7 @@ import shapely
 from shapely.geometry import LineString, Polygon
 from shapely.geometry.polygon import orient
 
+from morphopt.formats.tree import metadata_json
 from morphopt.linkage.graph import Linkage
 from morphopt.linkage.kinematics import solve_at
 from morphopt.linkage.to_spec import BarStyle
@@ -160,15 +161,6 @@ def _placed(parts: list[Part]):
     return out, width, height
 
 
-def _json(metadata: dict | None) -> str:
-    def plain(value):
-        if hasattr(value, "tolist"):  # NumPy scalars and arrays
-            return value.tolist()
-        raise TypeError(f"metadata value {value!r} of type {type(value).__name__} is not JSON-able")
-
-    return json.dumps({} if metadata is None else metadata, default=plain, sort_keys=True)
-
-
 def _f(value: float) -> str:
     return f"{value:.6f}".rstrip("0").rstrip(".")
 
@@ -185,7 +177,7 @@ def write_svg(linkage: Linkage, path, *, style: BarStyle = DEFAULT_STYLE, metada
     svg = ET.Element("svg", xmlns="http://www.w3.org/2000/svg", version="1.1", width=f"{_f(width)}mm",
                      height=f"{_f(height)}mm", viewBox=f"0 0 {_f(width)} {_f(height)}")
     ET.SubElement(svg, "title").text = f"{linkage.name}: fabrication drawing, 1:1, millimetres"
-    ET.SubElement(svg, "metadata", id="design").text = _json(metadata)
+    ET.SubElement(svg, "metadata", id="design").text = metadata_json(metadata)
     marker = ET.SubElement(ET.SubElement(svg, "defs"), "marker", id="arrow", viewBox="0 0 10 10", refX="10",
                            refY="5", markerWidth="6", markerHeight="6", orient="auto-start-reverse")
     ET.SubElement(marker, "path", d="M 0 1 L 10 5 L 0 9 z", fill="blue")
@@ -256,7 +248,7 @@ def write_dxf(linkage: Linkage, path, *, style: BarStyle = DEFAULT_STYLE, metada
           "dimgap": 0.6, "dimblk": "", "dimtad": 1, "dimtih": 0, "dimtoh": 0, "dimzin": 0}  # 0.1 mm, "50.0"
     for key, value in mm.items():
         dimstyle.dxf.set(key, value)
-    payload = _json(metadata)
+    payload = metadata_json(metadata)
     record = doc.rootdict.add_xrecord(METADATA_KEY)
     record.reset([(1, payload[i:i + 250]) for i in range(0, len(payload), 250)] or [(1, "")])
     msp = doc.modelspace()

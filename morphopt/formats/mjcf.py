@@ -70,6 +70,7 @@ from morphopt.formats.tree import (
     frame,
     initial_coordinate,
     matrix_to_quat,
+    metadata_json,
     quat_to_matrix,
     spanning_tree,
 )
@@ -91,13 +92,6 @@ FRICTION_TAIL = (0.005, 0.0001)  # MuJoCo's torsional and rolling friction (the 
 def _num(values) -> str:
     """Space-separated shortest round-trip decimal strings of the numbers (-0.0 written as 0.0)."""
     return " ".join(repr(float(v) + 0.0) for v in np.atleast_1d(np.asarray(values, dtype=float)))
-
-
-def _plain(value):
-    """JSON fallback for NumPy scalars and arrays in the metadata."""
-    if isinstance(value, (np.generic, np.ndarray)):
-        return value.tolist()
-    raise TypeError(f"metadata: {type(value).__name__} is not JSON serializable")
 
 
 def _wxyz(quat_xyzw) -> np.ndarray:
@@ -271,7 +265,7 @@ def _build(spec: MechanismSpec, *, metadata: dict | None, mesh_files: dict[str, 
     ET.SubElement(root, "option", timestep=_num(timestep), integrator=integrator, gravity=_num(spec.gravity))
     if metadata is not None:
         custom = ET.SubElement(root, "custom")
-        ET.SubElement(custom, "text", name=METADATA_NAME, data=json.dumps(metadata, sort_keys=True, default=_plain))
+        ET.SubElement(custom, "text", name=METADATA_NAME, data=metadata_json(metadata))
     if mesh_files:
         asset = ET.SubElement(root, "asset")
         for name, file in mesh_files.items():

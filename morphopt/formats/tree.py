@@ -8,6 +8,7 @@ USD: joints excluded from the articulation), so every exporter starts from spann
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
 
@@ -16,10 +17,21 @@ import numpy as np
 from engine import Joint, JointType, MechanismSpec
 
 __all__ = ["SpanningTree", "TreeJoint", "anchor_frames", "body_frame", "frame", "initial_coordinate",
-           "matrix_to_quat", "quat_to_matrix", "spanning_tree"]
+           "matrix_to_quat", "metadata_json", "quat_to_matrix", "spanning_tree"]
 
 # Joint types a tree edge may have in every tree format (URDF knows no others).
 TREE_TYPES = (JointType.REVOLUTE, JointType.PRISMATIC, JointType.FIXED)
+
+
+def metadata_json(metadata: dict | None) -> str:
+    """A design's metadata as JSON text (keys sorted; NumPy scalars and arrays as plain values);
+    TypeError naming any other value that JSON cannot hold."""
+    def plain(value):
+        if isinstance(value, np.generic | np.ndarray):
+            return value.tolist()
+        raise TypeError(f"metadata value {value!r} of type {type(value).__name__} is not JSON-able")
+
+    return json.dumps({} if metadata is None else metadata, default=plain, sort_keys=True)
 
 
 def quat_to_matrix(q) -> np.ndarray:

@@ -72,7 +72,15 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from engine import Body, GroundPlane, Joint, JointDrive, JointType, MechanismSpec, Shape, ShapeType, TrackedPoint
-from morphopt.formats.tree import anchor_frames, body_frame, frame, initial_coordinate, matrix_to_quat, spanning_tree
+from morphopt.formats.tree import (
+    anchor_frames,
+    body_frame,
+    frame,
+    initial_coordinate,
+    matrix_to_quat,
+    metadata_json,
+    spanning_tree,
+)
 
 __all__ = ["EXTENSION_TAG", "LARGE", "read_urdf", "read_urdf_metadata", "write_urdf"]
 
@@ -314,20 +322,12 @@ def write_urdf(spec: MechanismSpec, path, *, metadata: dict | None = None, meshe
         O = offset[point.body]
         ET.SubElement(extension, "point", name=point.name, link=point.body, xyz=_text(O[:3, :3] @ point.position
                                                                                        + O[:3, 3]))
-    ET.SubElement(extension, "metadata").text = _json(metadata)
+    ET.SubElement(extension, "metadata").text = metadata_json(metadata)
     robot.append(extension)
     ET.indent(robot)
     path.parent.mkdir(parents=True, exist_ok=True)
     ET.ElementTree(robot).write(path, encoding="utf-8", xml_declaration=True)
     return path
-
-
-def _json(metadata: dict | None) -> str:
-    def plain(value):
-        if isinstance(value, np.generic | np.ndarray):
-            return value.tolist()
-        raise TypeError(f"metadata value {value!r} of type {type(value).__name__} is not JSON-able")
-    return json.dumps({} if metadata is None else metadata, default=plain, sort_keys=True)
 
 
 def _parse(path: pathlib.Path) -> ET.Element:

@@ -34,7 +34,6 @@ Revolute limits at or beyond +/-180 degrees are read as no limit (such files mea
 
 from __future__ import annotations
 
-import json
 import math
 import pathlib
 
@@ -42,7 +41,7 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdShade, UsdValidation, Vt
 
 from engine import Body, GroundPlane, Joint, JointDrive, JointType, MechanismSpec, Shape, ShapeType, TrackedPoint
-from morphopt.formats.tree import matrix_to_quat, quat_to_matrix, spanning_tree
+from morphopt.formats.tree import matrix_to_quat, metadata_json, quat_to_matrix, spanning_tree
 
 __all__ = ["read_usd", "record_motion", "validate_usd", "write_usd"]
 
@@ -116,7 +115,7 @@ def write_usd(spec: MechanismSpec, path, *, metadata: dict | None = None, meshes
     stage.SetDefaultPrim(root.GetPrim())
     layer_data = {"morphopt:spec_name": spec.name}
     if metadata is not None:
-        layer_data["morphopt:metadata"] = json.dumps(metadata, sort_keys=True, default=float)
+        layer_data["morphopt:metadata"] = metadata_json(metadata)
     stage.GetRootLayer().customLayerData = layer_data
 
     scene = UsdPhysics.Scene.Define(stage, root_path.AppendChild("PhysicsScene"))
@@ -582,17 +581,14 @@ def _read_joint(prim, body_of_path, poses, meters, to_z, origin, cache):
         value = attr.Get()
         rotations.append(_finite(_np_quat(value), f"{where}: {attr.GetName()}") if value is not None
                          else np.array([0.0, 0.0, 0.0, 1.0]))
-    if parent is None:  # body0 empty: the anchor is in the world frame (in stage coordinates)
-        world = to_z[:3, :3]
-        positions[0] = world @ positions[0] + origin
-        rotations[0] = matrix_to_quat(world @ quat_to_matrix(rotations[0]))
-    if child is None:
+    swapped = child is None
+    if swapped:  # only body0: swap the sides so that the world is the parent (the coordinate changes sign)
         if parent is None:
             raise ValueError(f"{where}: joins no rigid body (body0 and body1 are empty)")
-        # a joint with only body0: swap sides so that the world is the parent
         parent, child = None, parent
         positions.reverse()
         rotations.reverse()
+    if parent is None:  # the world-side anchor is in stage coordinates
         world = to_z[:3, :3]
         positions[0] = world @ positions[0] + origin
         rotations[0] = matrix_to_quat(world @ quat_to_matrix(rotations[0]))
@@ -632,6 +628,10 @@ def _read_joint(prim, body_of_path, poses, meters, to_z, origin, cache):
             armature = float(prim.GetAttribute("morphopt:armature").Get())
         if prim.HasAttribute("morphopt:damping"):
             damping = float(prim.GetAttribute("morphopt:damping").Get())
+    if swapped:
+        lower, upper = -upper, -lower
+        if drive is not None:
+            drive.target_position, drive.target_velocity = -drive.target_position, -drive.target_velocity
     try:
         return Joint(name, kind, parent, child, parent_position=positions[0], parent_orientation=rotations[0],
                      child_position=positions[1], child_orientation=rotations[1], axis=axis, axis2=axis2,

@@ -212,3 +212,30 @@ def test_malformed_stages_are_refused_naming_the_prim(tmp_path, edit, message):
     with pytest.raises(ValueError, match=message) as exc:
         read_usd(path)
     assert str(path) in str(exc.value)
+
+
+def test_a_world_joint_written_with_body0_only_reads_as_the_same_joint(tmp_path, same_mechanism):
+    """UsdPhysics lets either side be the world: the driven crank joint written with its body in
+    body0 (and the world in body1, so the drive's target is negated to turn the same way) imports
+    as the same joint."""
+    spec = linkage_spec("four_bar")
+    driven = next(j for j in spec.joints if j.drive is not None and j.parent is None)
+
+    def flip(stage):
+        prim = next(p for p in stage.Traverse() if p.IsA(UsdPhysics.Joint)
+                    and p.GetAttribute("morphopt:name").Get() == driven.name)
+        joint = UsdPhysics.Joint(prim)
+        joint.GetBody0Rel().SetTargets(joint.GetBody1Rel().GetTargets())
+        joint.GetBody1Rel().ClearTargets(True)
+        pos0, pos1 = joint.GetLocalPos0Attr().Get(), joint.GetLocalPos1Attr().Get()
+        rot0, rot1 = joint.GetLocalRot0Attr().Get(), joint.GetLocalRot1Attr().Get()
+        joint.GetLocalPos0Attr().Set(pos1)
+        joint.GetLocalPos1Attr().Set(pos0)
+        joint.GetLocalRot0Attr().Set(rot1)
+        joint.GetLocalRot1Attr().Set(rot0)
+        target = prim.GetAttribute("drive:angular:physics:targetVelocity")
+        target.Set(-target.Get())
+
+    back = read_usd(_stage_with(tmp_path, flip))
+    assert driven.drive.target_velocity != 0.0
+    same_mechanism(spec, back)
