@@ -20,6 +20,35 @@ def body_term(body_of_row: int, J: wp.spatial_vector, other_body: int, MJ_other:
     return 0.0
 
 
+@wp.func
+def free_velocity_of(
+    world: int, b: int,
+    # model
+    body_count: wp.array(dtype=wp.int32),
+    body_inv_mass: wp.array2d(dtype=float),
+    body_inertia: wp.array2d(dtype=wp.mat33),
+    body_inv_inertia: wp.array2d(dtype=wp.mat33),
+    world_gravity: wp.array(dtype=wp.vec3),
+    world_dt: wp.array(dtype=float),
+    # in
+    body_q: wp.array2d(dtype=wp.transform),
+    body_qd: wp.array2d(dtype=wp.spatial_vector),
+    body_f: wp.array2d(dtype=wp.spatial_vector),
+    # out
+    body_qd_free_out: wp.array2d(dtype=wp.spatial_vector),
+):
+    """u_free = u + dt M^-1 (m g + f) with the gyroscopic torque integrated by the implicit midpoint rule."""
+    dt = world_dt[world]
+    q = wp.transform_get_rotation(body_q[world, b])
+    u = body_qd[world, b]
+    f = body_f[world, b]
+    v = wp.spatial_top(u) + dt * (world_gravity[world] + body_inv_mass[world, b] * wp.spatial_top(f))
+    w_body = wp.quat_rotate_inv(q, wp.spatial_bottom(u))
+    w_body = gyroscopic_implicit_midpoint(w_body, body_inertia[world, b], dt)
+    w = wp.quat_rotate(q, w_body) + dt * (world_inertia_inverse(q, body_inv_inertia[world, b]) * wp.spatial_bottom(f))
+    body_qd_free_out[world, b] = twist(v, w)
+
+
 @wp.kernel
 def free_velocity(
     # model
@@ -40,15 +69,8 @@ def free_velocity(
     world, b = wp.tid()
     if b >= body_count[world]:
         return
-    dt = world_dt[world]
-    q = wp.transform_get_rotation(body_q[world, b])
-    u = body_qd[world, b]
-    f = body_f[world, b]
-    v = wp.spatial_top(u) + dt * (world_gravity[world] + body_inv_mass[world, b] * wp.spatial_top(f))
-    w_body = wp.quat_rotate_inv(q, wp.spatial_bottom(u))
-    w_body = gyroscopic_implicit_midpoint(w_body, body_inertia[world, b], dt)
-    w = wp.quat_rotate(q, w_body) + dt * (world_inertia_inverse(q, body_inv_inertia[world, b]) * wp.spatial_bottom(f))
-    body_qd_free_out[world, b] = twist(v, w)
+    free_velocity_of(world, b, body_count, body_inv_mass, body_inertia, body_inv_inertia, world_gravity, world_dt,
+        body_q, body_qd, body_f, body_qd_free_out)
 
 
 @wp.func
@@ -85,8 +107,9 @@ def row_mass_weighted(world: int, i: int, row_body_c: wp.array2d(dtype=wp.int32)
     return MJ_c, MJ_p, wp.dot(row_J_c[world, i], MJ_c) + wp.dot(row_J_p[world, i], MJ_p)
 
 
-@wp.kernel
-def row_operators(
+@wp.func
+def row_operator_of(
+    world: int, i: int,
     # model
     row_kind: wp.array2d(dtype=wp.int32),
     contact_row_start: wp.array(dtype=wp.int32),
@@ -114,7 +137,6 @@ def row_operators(
 ):
     """Per row: M^-1 J^T, the Jacobi preconditioner P (one value per contact triplet, so the
     friction cone keeps its shape), and the preconditioned v_f and bounds."""
-    world, i = wp.tid()
     if i >= row_count[world]:
         row_precond_out[world, i] = 1.0
         v_f_out[world, i] = 0.0
@@ -149,6 +171,61 @@ def row_operators(
 
 
 @wp.kernel
+def row_operators(
+    # model
+    row_kind: wp.array2d(dtype=wp.int32),
+    contact_row_start: wp.array(dtype=wp.int32),
+    body_inv_mass: wp.array2d(dtype=float),
+    body_inv_inertia: wp.array2d(dtype=wp.mat33),
+    # in
+    row_count: wp.array(dtype=wp.int32),
+    row_body_p: wp.array2d(dtype=wp.int32),
+    row_body_c: wp.array2d(dtype=wp.int32),
+    body_q: wp.array2d(dtype=wp.transform),
+    body_qd_free: wp.array2d(dtype=wp.spatial_vector),
+    row_J_c: wp.array2d(dtype=wp.spatial_vector),
+    row_J_p: wp.array2d(dtype=wp.spatial_vector),
+    row_bias: wp.array2d(dtype=float),
+    row_compliance: wp.array2d(dtype=float),
+    row_lo: wp.array2d(dtype=float),
+    row_hi: wp.array2d(dtype=float),
+    # out
+    row_MJ_c_out: wp.array2d(dtype=wp.spatial_vector),
+    row_MJ_p_out: wp.array2d(dtype=wp.spatial_vector),
+    row_precond_out: wp.array2d(dtype=float),
+    v_f_out: wp.array2d(dtype=float),
+    lo_out: wp.array2d(dtype=float),
+    hi_out: wp.array2d(dtype=float),
+):
+    """Per row: M^-1 J^T, the Jacobi preconditioner P (one value per contact triplet, so the
+    friction cone keeps its shape), and the preconditioned v_f and bounds."""
+    world, i = wp.tid()
+    row_operator_of(world, i, row_kind, contact_row_start, body_inv_mass, body_inv_inertia, row_count, row_body_p,
+        row_body_c, body_q, body_qd_free, row_J_c, row_J_p, row_bias, row_compliance, row_lo, row_hi, row_MJ_c_out,
+        row_MJ_p_out, row_precond_out, v_f_out, lo_out, hi_out)
+
+
+@wp.func
+def delassus_entry(world: int, i: int, j: int, row_body_p: wp.array2d(dtype=wp.int32),
+                   row_body_c: wp.array2d(dtype=wp.int32), row_J_c: wp.array2d(dtype=wp.spatial_vector),
+                   row_J_p: wp.array2d(dtype=wp.spatial_vector), row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
+                   row_MJ_p: wp.array2d(dtype=wp.spatial_vector), row_compliance: wp.array2d(dtype=float),
+                   row_precond: wp.array2d(dtype=float)):
+    """Entry (i, j) of P (J M^-1 J^T + R) P for two rows of a world."""
+    ci = row_body_c[world, i]
+    pi = row_body_p[world, i]
+    cj = row_body_c[world, j]
+    pj = row_body_p[world, j]
+    Jci = row_J_c[world, i]
+    Jpi = row_J_p[world, i]
+    d = body_term(ci, Jci, cj, row_MJ_c[world, j]) + body_term(ci, Jci, pj, row_MJ_p[world, j])
+    d += body_term(pi, Jpi, cj, row_MJ_c[world, j]) + body_term(pi, Jpi, pj, row_MJ_p[world, j])
+    if i == j:
+        d += row_compliance[world, i]
+    return row_precond[world, i] * d * row_precond[world, j]
+
+
+@wp.kernel
 def delassus(
     # in
     row_count: wp.array(dtype=wp.int32),
@@ -172,17 +249,8 @@ def delassus(
             value = 1.0
         delassus_out[world, i, j] = value
         return
-    ci = row_body_c[world, i]
-    pi = row_body_p[world, i]
-    cj = row_body_c[world, j]
-    pj = row_body_p[world, j]
-    Jci = row_J_c[world, i]
-    Jpi = row_J_p[world, i]
-    d = body_term(ci, Jci, cj, row_MJ_c[world, j]) + body_term(ci, Jci, pj, row_MJ_p[world, j])
-    d += body_term(pi, Jpi, cj, row_MJ_c[world, j]) + body_term(pi, Jpi, pj, row_MJ_p[world, j])
-    if i == j:
-        d += row_compliance[world, i]
-    delassus_out[world, i, j] = row_precond[world, i] * d * row_precond[world, j]
+    delassus_out[world, i, j] = delassus_entry(world, i, j, row_body_p, row_body_c, row_J_c, row_J_p, row_MJ_c, row_MJ_p,
+                                               row_compliance, row_precond)
 
 
 def build_dual_problem(model, body_q, body_qd, body_f):

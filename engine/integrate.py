@@ -34,6 +34,28 @@ def row_sum_for_body(world: int, b: int, n: int, row_body_c: wp.array2d(dtype=wp
     return total
 
 
+@wp.func
+def apply_impulses_of(
+    world: int, b: int,
+    # model
+    body_count: wp.array(dtype=wp.int32),
+    row_count: wp.array(dtype=wp.int32),
+    row_body_c: wp.array2d(dtype=wp.int32),
+    row_body_p: wp.array2d(dtype=wp.int32),
+    # in
+    row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
+    row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
+    row_lambda: wp.array2d(dtype=float),
+    row_precond: wp.array2d(dtype=float),
+    body_qd_free: wp.array2d(dtype=wp.spatial_vector),
+    # out
+    body_qd_out: wp.array2d(dtype=wp.spatial_vector),
+):
+    """u+ = u_free + M^-1 J^T lambda."""
+    body_qd_out[world, b] = body_qd_free[world, b] + row_sum_for_body(
+        world, b, row_count[world], row_body_c, row_body_p, row_MJ_c, row_MJ_p, row_lambda, row_precond, 0)
+
+
 @wp.kernel
 def apply_impulses(
     # model
@@ -54,8 +76,27 @@ def apply_impulses(
     world, b = wp.tid()
     if b >= body_count[world]:
         return
-    body_qd_out[world, b] = body_qd_free[world, b] + row_sum_for_body(
-        world, b, row_count[world], row_body_c, row_body_p, row_MJ_c, row_MJ_p, row_lambda, row_precond, 0)
+    apply_impulses_of(world, b, body_count, row_count, row_body_c, row_body_p, row_MJ_c, row_MJ_p, row_lambda,
+        row_precond, body_qd_free, body_qd_out)
+
+
+@wp.func
+def integrate_pose_of(
+    world: int, b: int,
+    body_count: wp.array(dtype=wp.int32),
+    world_dt: wp.array(dtype=float),
+    fraction: float,
+    body_q: wp.array2d(dtype=wp.transform),
+    body_qd: wp.array2d(dtype=wp.spatial_vector),
+    # out
+    body_q_out: wp.array2d(dtype=wp.transform),
+):
+    """x+ = x + h v, q+ = exp(h w) q with h = fraction * dt."""
+    h = fraction * world_dt[world]
+    X = body_q[world, b]
+    u = body_qd[world, b]
+    body_q_out[world, b] = wp.transform(wp.transform_get_translation(X) + h * wp.spatial_top(u),
+                                        quat_integrate(wp.transform_get_rotation(X), wp.spatial_bottom(u), h))
 
 
 @wp.kernel
@@ -72,11 +113,7 @@ def integrate_poses(
     world, b = wp.tid()
     if b >= body_count[world]:
         return
-    h = fraction * world_dt[world]
-    X = body_q[world, b]
-    u = body_qd[world, b]
-    body_q_out[world, b] = wp.transform(wp.transform_get_translation(X) + h * wp.spatial_top(u),
-                                        quat_integrate(wp.transform_get_rotation(X), wp.spatial_bottom(u), h))
+    integrate_pose_of(world, b, body_count, world_dt, fraction, body_q, body_qd, body_q_out)
 
 
 @wp.kernel
@@ -98,6 +135,35 @@ def projection_rhs(
     if i < row_count[world] and (kind == ROW_LINEAR or kind == ROW_ANGULAR):
         value = -row_precond[world, i] * row_residual[world, i]
     rhs_out[world, i] = value
+
+
+@wp.func
+def apply_projection_of(
+    world: int, b: int,
+    body_count: wp.array(dtype=wp.int32),
+    row_count: wp.array(dtype=wp.int32),
+    row_body_c: wp.array2d(dtype=wp.int32),
+    row_body_p: wp.array2d(dtype=wp.int32),
+    valid: wp.array(dtype=wp.int32),
+    world_dt: wp.array(dtype=float),
+    velocity_update: int,
+    fraction: float,
+    row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
+    row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
+    row_precond: wp.array2d(dtype=float),
+    delta: wp.array2d(dtype=float),
+    # in/out
+    body_q: wp.array2d(dtype=wp.transform),
+    body_qd: wp.array2d(dtype=wp.spatial_vector),
+):
+    """Move each body by M^-1 J^T (P delta): translation [m] and rotation vector [rad]; with
+    velocity_update, add the same displacement / (fraction dt) to the twist (SHAKE: the step stays symplectic)."""
+    dx = row_sum_for_body(world, b, row_count[world], row_body_c, row_body_p, row_MJ_c, row_MJ_p, delta, row_precond, 1)
+    X = body_q[world, b]
+    body_q[world, b] = wp.transform(wp.transform_get_translation(X) + wp.spatial_top(dx),
+                                    quat_rotate_vector(wp.transform_get_rotation(X), wp.spatial_bottom(dx)))
+    if velocity_update != 0:
+        body_qd[world, b] = body_qd[world, b] + dx / (fraction * world_dt[world])
 
 
 @wp.kernel
@@ -123,12 +189,8 @@ def apply_projection(
     world, b = wp.tid()
     if b >= body_count[world] or valid[world] == 0:
         return
-    dx = row_sum_for_body(world, b, row_count[world], row_body_c, row_body_p, row_MJ_c, row_MJ_p, delta, row_precond, 1)
-    X = body_q[world, b]
-    body_q[world, b] = wp.transform(wp.transform_get_translation(X) + wp.spatial_top(dx),
-                                    quat_rotate_vector(wp.transform_get_rotation(X), wp.spatial_bottom(dx)))
-    if velocity_update != 0:
-        body_qd[world, b] = body_qd[world, b] + dx / (fraction * world_dt[world])
+    apply_projection_of(world, b, body_count, row_count, row_body_c, row_body_p, valid, world_dt, velocity_update,
+        fraction, row_MJ_c, row_MJ_p, row_precond, delta, body_q, body_qd)
 
 
 @wp.func
@@ -149,6 +211,38 @@ def twist_finite(u: wp.spatial_vector):
     return ok
 
 
+@wp.func
+def guard_divergence_of(
+    world: int,
+    body_count: wp.array(dtype=wp.int32),
+    body_q_in: wp.array2d(dtype=wp.transform),
+    body_qd_in: wp.array2d(dtype=wp.spatial_vector),
+    halted: wp.array(dtype=wp.int32),
+    max_speed: float,
+    # in/out
+    body_q_out: wp.array2d(dtype=wp.transform),
+    body_qd_out: wp.array2d(dtype=wp.spatial_vector),
+    diverged: wp.array(dtype=wp.int32),
+):
+    """Flag a world whose new state is not finite, or in which a body's centre of mass moves
+    faster than max_speed [m/s], and freeze it at its last state; a halted world (engine.rollout's
+    halt) stays frozen as well, without the flag."""
+    n = body_count[world]
+    bad = diverged[world] != 0
+    for b in range(n):
+        u = body_qd_out[world, b]
+        if not (transform_finite(body_q_out[world, b]) and twist_finite(u)):
+            bad = True
+        elif wp.length(wp.spatial_top(u)) > max_speed:
+            bad = True
+    if bad:
+        diverged[world] = 1
+    if bad or halted[world] != 0:
+        for b in range(n):
+            body_q_out[world, b] = body_q_in[world, b]
+            body_qd_out[world, b] = body_qd_in[world, b]
+
+
 @wp.kernel
 def guard_divergence(
     body_count: wp.array(dtype=wp.int32),
@@ -165,20 +259,7 @@ def guard_divergence(
     faster than max_speed [m/s], and freeze it at its last state; a halted world (engine.rollout's
     halt) stays frozen as well, without the flag."""
     world = wp.tid()
-    n = body_count[world]
-    bad = diverged[world] != 0
-    for b in range(n):
-        u = body_qd_out[world, b]
-        if not (transform_finite(body_q_out[world, b]) and twist_finite(u)):
-            bad = True
-        elif wp.length(wp.spatial_top(u)) > max_speed:
-            bad = True
-    if bad:
-        diverged[world] = 1
-    if bad or halted[world] != 0:
-        for b in range(n):
-            body_q_out[world, b] = body_q_in[world, b]
-            body_qd_out[world, b] = body_qd_in[world, b]
+    guard_divergence_of(world, body_count, body_q_in, body_qd_in, halted, max_speed, body_q_out, body_qd_out, diverged)
 
 
 @wp.kernel

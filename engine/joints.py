@@ -182,8 +182,9 @@ def limit_row(world: int, row: int, side: float, gap: float, gap_rate: float, J_
                   row_compliance_out, row_lo_out, row_hi_out, row_residual_out)
 
 
-@wp.kernel
-def joint_rows(
+@wp.func
+def joint_rows_of(
+    world: int, j: int,
     # model
     joint_count: wp.array(dtype=wp.int32),
     joint_type: wp.array2d(dtype=wp.int32),
@@ -225,9 +226,6 @@ def joint_rows(
     row_residual_out: wp.array2d(dtype=float),
 ):
     """Rows of every joint: J, bias c, compliance R and bounds, so that J u+ + R lambda = c."""
-    world, j = wp.tid()
-    if j >= joint_count[world]:
-        return
     jtype = joint_type[world, j]
     parent = joint_parent[world, j]
     child = joint_child[world, j]
@@ -287,6 +285,94 @@ def joint_rows(
 
 
 @wp.kernel
+def joint_rows(
+    # model
+    joint_count: wp.array(dtype=wp.int32),
+    joint_type: wp.array2d(dtype=wp.int32),
+    joint_parent: wp.array2d(dtype=wp.int32),
+    joint_child: wp.array2d(dtype=wp.int32),
+    joint_X_p: wp.array2d(dtype=wp.transform),
+    joint_X_c: wp.array2d(dtype=wp.transform),
+    joint_axis: wp.array2d(dtype=wp.vec3),
+    joint_axis2: wp.array2d(dtype=wp.vec3),
+    joint_row_start: wp.array2d(dtype=wp.int32),
+    joint_inertia_row: wp.array2d(dtype=wp.int32),
+    joint_drive_row: wp.array2d(dtype=wp.int32),
+    joint_armature: wp.array2d(dtype=float),
+    joint_damping: wp.array2d(dtype=float),
+    joint_stiffness: wp.array2d(dtype=float),
+    joint_drive_damping: wp.array2d(dtype=float),
+    joint_effort_limit: wp.array2d(dtype=float),
+    joint_limit_lower: wp.array2d(dtype=float),
+    joint_limit_upper: wp.array2d(dtype=float),
+    joint_limit_lower_row: wp.array2d(dtype=wp.int32),
+    joint_limit_upper_row: wp.array2d(dtype=wp.int32),
+    world_dt: wp.array(dtype=float),
+    baumgarte: float,
+    limit_margin: float,
+    limit_stabilization: float,
+    # in
+    body_q: wp.array2d(dtype=wp.transform),
+    body_qd: wp.array2d(dtype=wp.spatial_vector),
+    joint_target_position: wp.array2d(dtype=float),
+    joint_target_velocity: wp.array2d(dtype=float),
+    joint_effort: wp.array2d(dtype=float),
+    # out
+    row_J_c_out: wp.array2d(dtype=wp.spatial_vector),
+    row_J_p_out: wp.array2d(dtype=wp.spatial_vector),
+    row_bias_out: wp.array2d(dtype=float),
+    row_compliance_out: wp.array2d(dtype=float),
+    row_lo_out: wp.array2d(dtype=float),
+    row_hi_out: wp.array2d(dtype=float),
+    row_residual_out: wp.array2d(dtype=float),
+):
+    """Rows of every joint: J, bias c, compliance R and bounds, so that J u+ + R lambda = c."""
+    world, j = wp.tid()
+    if j >= joint_count[world]:
+        return
+    joint_rows_of(world, j, joint_count, joint_type, joint_parent, joint_child, joint_X_p, joint_X_c, joint_axis,
+        joint_axis2, joint_row_start, joint_inertia_row, joint_drive_row, joint_armature, joint_damping,
+        joint_stiffness, joint_drive_damping, joint_effort_limit, joint_limit_lower, joint_limit_upper,
+        joint_limit_lower_row, joint_limit_upper_row, world_dt, baumgarte, limit_margin, limit_stabilization,
+        body_q, body_qd, joint_target_position, joint_target_velocity, joint_effort, row_J_c_out, row_J_p_out,
+        row_bias_out, row_compliance_out, row_lo_out, row_hi_out, row_residual_out)
+
+
+@wp.func
+def joint_residuals_of(
+    world: int, j: int,
+    # model
+    joint_count: wp.array(dtype=wp.int32),
+    joint_type: wp.array2d(dtype=wp.int32),
+    joint_parent: wp.array2d(dtype=wp.int32),
+    joint_child: wp.array2d(dtype=wp.int32),
+    joint_X_p: wp.array2d(dtype=wp.transform),
+    joint_X_c: wp.array2d(dtype=wp.transform),
+    joint_axis: wp.array2d(dtype=wp.vec3),
+    joint_axis2: wp.array2d(dtype=wp.vec3),
+    joint_row_start: wp.array2d(dtype=wp.int32),
+    joint_inertia_row: wp.array2d(dtype=wp.int32),
+    joint_drive_row: wp.array2d(dtype=wp.int32),
+    # in
+    body_q: wp.array2d(dtype=wp.transform),
+    # out
+    row_residual_out: wp.array2d(dtype=float),
+):
+    """Position-level residuals of every joint's rows at body_q (0 for dynamics rows)."""
+    jtype = joint_type[world, j]
+    X_wp, X_wc, r_p, r_c = joint_frames(body_q, world, joint_parent[world, j], joint_child[world, j],
+                                        joint_X_p[world, j], joint_X_c[world, j])
+    start = joint_row_start[world, j]
+    for k in range(bilateral_row_count(jtype)):
+        J_c, J_p, phi = bilateral_row(jtype, k, X_wp, X_wc, r_p, r_c, joint_axis[world, j], joint_axis2[world, j])
+        row_residual_out[world, start + k] = phi
+    if joint_inertia_row[world, j] >= 0:
+        row_residual_out[world, joint_inertia_row[world, j]] = 0.0
+    if joint_drive_row[world, j] >= 0:
+        row_residual_out[world, joint_drive_row[world, j]] = 0.0
+
+
+@wp.kernel
 def joint_residuals(
     # model
     joint_count: wp.array(dtype=wp.int32),
@@ -309,17 +395,8 @@ def joint_residuals(
     world, j = wp.tid()
     if j >= joint_count[world]:
         return
-    jtype = joint_type[world, j]
-    X_wp, X_wc, r_p, r_c = joint_frames(body_q, world, joint_parent[world, j], joint_child[world, j],
-                                        joint_X_p[world, j], joint_X_c[world, j])
-    start = joint_row_start[world, j]
-    for k in range(bilateral_row_count(jtype)):
-        J_c, J_p, phi = bilateral_row(jtype, k, X_wp, X_wc, r_p, r_c, joint_axis[world, j], joint_axis2[world, j])
-        row_residual_out[world, start + k] = phi
-    if joint_inertia_row[world, j] >= 0:
-        row_residual_out[world, joint_inertia_row[world, j]] = 0.0
-    if joint_drive_row[world, j] >= 0:
-        row_residual_out[world, joint_drive_row[world, j]] = 0.0
+    joint_residuals_of(world, j, joint_count, joint_type, joint_parent, joint_child, joint_X_p, joint_X_c,
+        joint_axis, joint_axis2, joint_row_start, joint_inertia_row, joint_drive_row, body_q, row_residual_out)
 
 
 def joint_model_inputs(model):

@@ -87,6 +87,10 @@ class SolverConfig:
         max_speed: a world in which a body's centre of mass moves faster than this [m/s] is
             flagged diverged and frozen, like one whose state is no longer finite: a blow-up
             that grows over many steps is caught before its numbers overflow.
+        step_kernel: "fused" (the whole step of a world in one thread, one launch per step:
+            engine.fused; batches without contact shapes and at most engine.fused.FUSED_MAX_ROWS
+            rows), "staged" (one kernel per stage, the PADMM loop as a captured while loop) or
+            "auto" (fused where it fits).
     """
 
     integrator: Integrator = Integrator.MOREAU_JEAN
@@ -112,6 +116,7 @@ class SolverConfig:
     inner_tolerance_ratio: float = 0.01
     projection_tolerance: float = 1.0e-3
     max_speed: float = 1.0e3
+    step_kernel: str = "auto"
 
     def __post_init__(self):
         if not isinstance(self.integrator, Integrator):
@@ -120,6 +125,8 @@ class SolverConfig:
             except ValueError as exc:
                 raise ValueError(f"SolverConfig.integrator: expected one of "
                                  f"{[i.value for i in Integrator]}, got {self.integrator!r}") from exc
+        if self.step_kernel not in ("auto", "fused", "staged"):
+            raise ValueError(f"SolverConfig.step_kernel: expected 'auto', 'fused' or 'staged', got {self.step_kernel!r}")
         if self.linear_solver not in ("auto", "dense", "matrix_free"):
             raise ValueError(f"SolverConfig.linear_solver: expected 'auto', 'dense' or 'matrix_free', "
                              f"got {self.linear_solver!r}")

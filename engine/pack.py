@@ -8,6 +8,7 @@ import numpy as np
 import warp as wp
 
 from engine.collide import PAIR_CONTACTS, PLANE_CONTACTS
+from engine.fused import FUSED_MAX_ROWS, fused_fits
 from engine.model import Model, SolverConfig, Workspace
 from engine.spec import JOINT_ROW_COUNT, JointType, MechanismSpec, joint_dynamics_rows
 
@@ -271,6 +272,14 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     model.bilateral_row_count = wp.array(bilateral, dtype=wp.int32, device=device)
     model.has_bilateral_rows = bool(bilateral.any())
     model.linear_solver = "dense" if dense else "matrix_free"
+    fits = fused_fits(model.has_contacts, R, dense)
+    if config.step_kernel == "fused" and not fits:
+        raise ValueError(f"pack_worlds: step_kernel='fused' takes batches without contact shapes and with at most "
+                         f"{FUSED_MAX_ROWS} dense rows per world; this batch has {R} rows"
+                         f"{' and contacts' if model.has_contacts else ''} ({model.linear_solver} solver): use "
+                         f"step_kernel='auto' or 'staged'")
+    model.step_kernel = "fused" if config.step_kernel == "fused" or (config.step_kernel == "auto" and fits) else "staged"
+    model._fused_structs = None  # built on the first fused step
     model.work = Workspace(W, B, R, device, max_pairs=max_pairs, contact_capacity=capacity, dense=dense)
     model.work.row_count.assign(h["row_count"])
     model.work.row_body_c = wp.clone(model.row_body_c)  # contact rows rewrite their bodies every step

@@ -71,6 +71,32 @@ def padmm_setup(
     merit_out[world] = 1.0e30
 
 
+@wp.func
+def padmm_warmstart_of(
+    world: int, i: int,
+    warmstart_scale: float,
+    # in
+    row_lambda: wp.array2d(dtype=float),
+    row_precond: wp.array2d(dtype=float),
+    active: wp.array(dtype=wp.int32),
+    lo: wp.array2d(dtype=float),
+    hi: wp.array2d(dtype=float),
+    # out
+    x_out: wp.array2d(dtype=float),
+    y_out: wp.array2d(dtype=float),
+    y_hat_out: wp.array2d(dtype=float),
+    z_out: wp.array2d(dtype=float),
+    z_hat_out: wp.array2d(dtype=float),
+):
+    """Start from the last step's impulses, in this step's preconditioned variables."""
+    x = wp.clamp(warmstart_scale * row_lambda[world, i] / row_precond[world, i], lo[world, i], hi[world, i])
+    x_out[world, i] = x
+    y_out[world, i] = x
+    y_hat_out[world, i] = x
+    z_out[world, i] = 0.0
+    z_hat_out[world, i] = 0.0
+
+
 @wp.kernel
 def padmm_warmstart(
     warmstart_scale: float,
@@ -91,12 +117,33 @@ def padmm_warmstart(
     world, i = wp.tid()
     if active[world] == 0:
         return
-    x = wp.clamp(warmstart_scale * row_lambda[world, i] / row_precond[world, i], lo[world, i], hi[world, i])
-    x_out[world, i] = x
-    y_out[world, i] = x
-    y_hat_out[world, i] = x
-    z_out[world, i] = 0.0
-    z_hat_out[world, i] = 0.0
+    padmm_warmstart_of(world, i, warmstart_scale, row_lambda, row_precond, active, lo, hi, x_out, y_out, y_hat_out,
+        z_out, z_hat_out)
+
+
+@wp.func
+def padmm_rhs_of(
+    world: int, i: int,
+    padmm_eta: wp.array(dtype=float),
+    row_kind: wp.array2d(dtype=wp.int32),
+    rho: wp.array(dtype=float),
+    active: wp.array(dtype=wp.int32),
+    row_friction: wp.array2d(dtype=float),
+    v_f: wp.array2d(dtype=float),
+    x: wp.array2d(dtype=float),
+    y_hat: wp.array2d(dtype=float),
+    z_hat: wp.array2d(dtype=float),
+    # out
+    x_prev_out: wp.array2d(dtype=float),
+    rhs_out: wp.array2d(dtype=float),
+):
+    """rhs = -v_f + eta x + rho y_hat + z_hat (and remember x)."""
+    xi = x[world, i]
+    x_prev_out[world, i] = xi
+    de_saxce = float(0.0)
+    if row_kind[world, i] == ROW_CONTACT_NORMAL and i + 2 < row_friction.shape[1]:
+        de_saxce = row_friction[world, i] * wp.length(wp.vec2(z_hat[world, i + 1], z_hat[world, i + 2]))
+    rhs_out[world, i] = -v_f[world, i] - de_saxce + padmm_eta[world] * xi + rho[world] * y_hat[world, i] + z_hat[world, i]
 
 
 @wp.kernel
@@ -118,12 +165,7 @@ def padmm_rhs(
     world, i = wp.tid()
     if active[world] == 0:
         return
-    xi = x[world, i]
-    x_prev_out[world, i] = xi
-    de_saxce = float(0.0)
-    if row_kind[world, i] == ROW_CONTACT_NORMAL and i + 2 < row_friction.shape[1]:
-        de_saxce = row_friction[world, i] * wp.length(wp.vec2(z_hat[world, i + 1], z_hat[world, i + 2]))
-    rhs_out[world, i] = -v_f[world, i] - de_saxce + padmm_eta[world] * xi + rho[world] * y_hat[world, i] + z_hat[world, i]
+    padmm_rhs_of(world, i, padmm_eta, row_kind, rho, active, row_friction, v_f, x, y_hat, z_hat, x_prev_out, rhs_out)
 
 
 @wp.func
@@ -137,6 +179,50 @@ def project_cone(normal: float, t1: float, t2: float, mu: float):
     n = (normal + mu * tangent) / (1.0 + mu * mu)
     scale = mu * n / tangent
     return wp.vec3(n, scale * t1, scale * t2)
+
+
+@wp.func
+def padmm_project_of(
+    world: int, i: int,
+    row_kind: wp.array2d(dtype=wp.int32),
+    row_count: wp.array(dtype=wp.int32),
+    row_friction: wp.array2d(dtype=float),
+    rho: wp.array(dtype=float),
+    active: wp.array(dtype=wp.int32),
+    lo: wp.array2d(dtype=float),
+    hi: wp.array2d(dtype=float),
+    x: wp.array2d(dtype=float),
+    z_hat: wp.array2d(dtype=float),
+    # in/out
+    y: wp.array2d(dtype=float),
+    z: wp.array2d(dtype=float),
+    y_prev_out: wp.array2d(dtype=float),
+    z_prev_out: wp.array2d(dtype=float),
+):
+    """y = projection of x - z_hat / rho onto the row's set; z = z_hat - rho (x - y). The thread of
+    a contact normal row projects its whole triplet onto the friction cone."""
+    kind = row_kind[world, i]
+    if kind == ROW_CONTACT_TANGENT and i < row_count[world]:
+        return
+    r = rho[world]
+    if kind == ROW_CONTACT_NORMAL and i < row_count[world]:
+        v = wp.vec3(0.0)
+        for k in range(3):
+            v[k] = x[world, i + k] - z_hat[world, i + k] / r
+        proj = project_cone(v[0], v[1], v[2], row_friction[world, i])
+        for k in range(3):
+            y_prev_out[world, i + k] = y[world, i + k]
+            z_prev_out[world, i + k] = z[world, i + k]
+            y[world, i + k] = proj[k]
+            z[world, i + k] = z_hat[world, i + k] - r * (x[world, i + k] - proj[k])
+        return
+    xi = x[world, i]
+    zh = z_hat[world, i]
+    yi = wp.clamp(xi - zh / r, lo[world, i], hi[world, i])
+    y_prev_out[world, i] = y[world, i]
+    z_prev_out[world, i] = z[world, i]
+    y[world, i] = yi
+    z[world, i] = zh - r * (xi - yi)
 
 
 @wp.kernel
@@ -161,28 +247,94 @@ def padmm_project(
     world, i = wp.tid()
     if active[world] == 0:
         return
+    padmm_project_of(world, i, row_kind, row_count, row_friction, rho, active, lo, hi, x, z_hat, y, z, y_prev_out,
+        z_prev_out)
+
+
+@wp.func
+def row_residuals(world: int, i: int, eta: float, r: float, row_kind: wp.array2d(dtype=wp.int32),
+                  x: wp.array2d(dtype=float), x_prev: wp.array2d(dtype=float), y: wp.array2d(dtype=float),
+                  y_hat: wp.array2d(dtype=float), z: wp.array2d(dtype=float), z_hat: wp.array2d(dtype=float)):
+    """Row i's share of a world's PADMM residuals: |y|, primal |x - y|, dual, complementarity and
+    the merit increment (rho |dy|^2 + |dz|^2 / rho)."""
+    dy = y[world, i] - y_hat[world, i]
+    dz = z[world, i] - z_hat[world, i]
+    r_p = wp.abs(x[world, i] - y[world, i])
+    r_d = wp.abs(eta * (x[world, i] - x_prev[world, i]) + r * dy)
+    r_c = float(0.0)
     kind = row_kind[world, i]
-    if kind == ROW_CONTACT_TANGENT and i < row_count[world]:
-        return
+    if kind == ROW_LIMIT:
+        r_c = wp.abs(y[world, i] * z[world, i])
+    elif kind == ROW_CONTACT_NORMAL:
+        gap = y[world, i] * z[world, i] + y[world, i + 1] * z[world, i + 1] + y[world, i + 2] * z[world, i + 2]
+        r_c = wp.abs(gap)
+    return wp.abs(y[world, i]), r_p, r_d, r_c, r * dy * dy + dz * dz / r
+
+
+@wp.func
+def padmm_decide(
+    world: int,
+    r_p: float,
+    r_d: float,
+    r_c: float,
+    scale: float,
+    change: float,
+    max_iterations: int,
+    relative_tolerance: float,
+    rho_update_interval: int,
+    adaptive_rho: int,
+    acceleration: int,
+    padmm_tolerance: wp.array(dtype=float),
+    rho: wp.array(dtype=float),
+    active: wp.array(dtype=wp.int32),
+    converged: wp.array(dtype=wp.int32),
+    iterations: wp.array(dtype=wp.int32),
+    momentum: wp.array(dtype=float),
+    momentum_beta: wp.array(dtype=float),
+    merit: wp.array(dtype=float),
+    needs_factor: wp.array(dtype=wp.int32),
+    residual_primal: wp.array(dtype=float),
+    residual_dual: wp.array(dtype=float),
+    residual_complementarity: wp.array(dtype=float),
+):
+    """End of a PADMM iteration of one world from its residuals: count it, stop (returns 1) when
+    converged or capped, else set the momentum for padmm_accelerate and update the penalty."""
     r = rho[world]
-    if kind == ROW_CONTACT_NORMAL and i < row_count[world]:
-        v = wp.vec3(0.0)
-        for k in range(3):
-            v[k] = x[world, i + k] - z_hat[world, i + k] / r
-        proj = project_cone(v[0], v[1], v[2], row_friction[world, i])
-        for k in range(3):
-            y_prev_out[world, i + k] = y[world, i + k]
-            z_prev_out[world, i + k] = z[world, i + k]
-            y[world, i + k] = proj[k]
-            z[world, i + k] = z_hat[world, i + k] - r * (x[world, i + k] - proj[k])
-        return
-    xi = x[world, i]
-    zh = z_hat[world, i]
-    yi = wp.clamp(xi - zh / r, lo[world, i], hi[world, i])
-    y_prev_out[world, i] = y[world, i]
-    z_prev_out[world, i] = z[world, i]
-    y[world, i] = yi
-    z[world, i] = zh - r * (xi - yi)
+    its = iterations[world] + 1
+    iterations[world] = its
+    residual_primal[world] = r_p
+    residual_dual[world] = r_d
+    residual_complementarity[world] = r_c
+    tol = padmm_tolerance[world] + relative_tolerance * scale
+    done = r_p <= tol and r_d <= tol and r_c <= tol * scale
+    if done or its >= max_iterations:
+        active[world] = 0
+        if done:
+            converged[world] = 1
+        return 1
+    beta = float(0.0)
+    if acceleration != 0 and change < RESTART_RATIO * merit[world]:
+        a = momentum[world]
+        a_next = 0.5 * (1.0 + wp.sqrt(1.0 + 4.0 * a * a))
+        beta = (a - 1.0) / a_next
+        momentum[world] = a_next
+    else:
+        momentum[world] = 1.0
+    merit[world] = change
+    if adaptive_rho != 0 and its % rho_update_interval == 0:
+        new_rho = r
+        if r_p > RHO_BALANCE * r_d:
+            new_rho = wp.min(r * RHO_FACTOR, RHO_MAX)
+        elif r_d > RHO_BALANCE * r_p:
+            new_rho = wp.max(r / RHO_FACTOR, RHO_MIN)
+        if new_rho != r:
+            rho[world] = new_rho
+            needs_factor[world] = 1
+            momentum[world] = 1.0
+            merit[world] = 1.0e30
+            beta = 0.0
+    momentum_beta[world] = beta
+    return 0
 
 
 CONVERGENCE_BLOCK = 64  # threads per world on a GPU (rows spread over them); one on the CPU
@@ -238,18 +390,12 @@ def padmm_convergence(
     for k in range((n + stride - 1) // stride):
         i = lane + k * stride
         if i < n:
-            scale = wp.max(scale, wp.abs(y[world, i]))
-            dy = y[world, i] - y_hat[world, i]
-            dz = z[world, i] - z_hat[world, i]
-            r_p = wp.max(r_p, wp.abs(x[world, i] - y[world, i]))
-            r_d = wp.max(r_d, wp.abs(eta * (x[world, i] - x_prev[world, i]) + r * dy))
-            change += r * dy * dy + dz * dz / r
-            kind = row_kind[world, i]
-            if kind == ROW_LIMIT:
-                r_c = wp.max(r_c, wp.abs(y[world, i] * z[world, i]))
-            elif kind == ROW_CONTACT_NORMAL:
-                gap = y[world, i] * z[world, i] + y[world, i + 1] * z[world, i + 1] + y[world, i + 2] * z[world, i + 2]
-                r_c = wp.max(r_c, wp.abs(gap))
+            s_i, p_i, d_i, c_i, m_i = row_residuals(world, i, eta, r, row_kind, x, x_prev, y, y_hat, z, z_hat)
+            scale = wp.max(scale, s_i)
+            r_p = wp.max(r_p, p_i)
+            r_d = wp.max(r_d, d_i)
+            r_c = wp.max(r_c, c_i)
+            change += m_i
     r_p = matrix_free.block_max(r_p)
     r_d = matrix_free.block_max(r_d)
     r_c = matrix_free.block_max(r_c)
@@ -257,41 +403,29 @@ def padmm_convergence(
     change = matrix_free.block_sum(change)
     if lane != 0:
         return
-    its = iterations[world] + 1
-    iterations[world] = its
-    residual_primal[world] = r_p
-    residual_dual[world] = r_d
-    residual_complementarity[world] = r_c
-    tol = padmm_tolerance[world] + relative_tolerance * scale
-    done = r_p <= tol and r_d <= tol and r_c <= tol * scale
-    if done or its >= max_iterations:
-        active[world] = 0
-        if done:
-            converged[world] = 1
+    if padmm_decide(world, r_p, r_d, r_c, scale, change, max_iterations, relative_tolerance, rho_update_interval,
+                    adaptive_rho, acceleration, padmm_tolerance, rho, active, converged, iterations, momentum,
+                    momentum_beta, merit, needs_factor, residual_primal, residual_dual, residual_complementarity) != 0:
         wp.atomic_sub(active_count, 0, 1)
-        return
-    beta = float(0.0)
-    if acceleration != 0 and change < RESTART_RATIO * merit[world]:
-        a = momentum[world]
-        a_next = 0.5 * (1.0 + wp.sqrt(1.0 + 4.0 * a * a))
-        beta = (a - 1.0) / a_next
-        momentum[world] = a_next
-    else:
-        momentum[world] = 1.0
-    merit[world] = change
-    if adaptive_rho != 0 and its % rho_update_interval == 0:
-        new_rho = r
-        if r_p > RHO_BALANCE * r_d:
-            new_rho = wp.min(r * RHO_FACTOR, RHO_MAX)
-        elif r_d > RHO_BALANCE * r_p:
-            new_rho = wp.max(r / RHO_FACTOR, RHO_MIN)
-        if new_rho != r:
-            rho[world] = new_rho
-            needs_factor[world] = 1
-            momentum[world] = 1.0
-            merit[world] = 1.0e30
-            beta = 0.0
-    momentum_beta[world] = beta
+
+
+@wp.func
+def padmm_accelerate_of(
+    world: int, i: int,
+    active: wp.array(dtype=wp.int32),
+    momentum_beta: wp.array(dtype=float),
+    y: wp.array2d(dtype=float),
+    y_prev: wp.array2d(dtype=float),
+    z: wp.array2d(dtype=float),
+    z_prev: wp.array2d(dtype=float),
+    # out
+    y_hat_out: wp.array2d(dtype=float),
+    z_hat_out: wp.array2d(dtype=float),
+):
+    """y_hat = y + beta (y - y_prev), z_hat = z + beta (z - z_prev)."""
+    beta = momentum_beta[world]
+    y_hat_out[world, i] = y[world, i] + beta * (y[world, i] - y_prev[world, i])
+    z_hat_out[world, i] = z[world, i] + beta * (z[world, i] - z_prev[world, i])
 
 
 @wp.kernel
@@ -310,9 +444,7 @@ def padmm_accelerate(
     world, i = wp.tid()
     if active[world] == 0:
         return
-    beta = momentum_beta[world]
-    y_hat_out[world, i] = y[world, i] + beta * (y[world, i] - y_prev[world, i])
-    z_hat_out[world, i] = z[world, i] + beta * (z[world, i] - z_prev[world, i])
+    padmm_accelerate_of(world, i, active, momentum_beta, y, y_prev, z, z_prev, y_hat_out, z_hat_out)
 
 
 @wp.kernel
@@ -330,6 +462,24 @@ def clear_flags(flags: wp.array(dtype=wp.int32)):
     flags[wp.tid()] = 0
 
 
+@wp.func
+def padmm_output_of(
+    world: int, i: int,
+    row_count: wp.array(dtype=wp.int32),
+    row_precond: wp.array2d(dtype=float),
+    y: wp.array2d(dtype=float),
+    diverged: wp.array(dtype=wp.int32),
+    halted: wp.array(dtype=wp.int32),
+    # out
+    row_lambda_out: wp.array2d(dtype=float),
+):
+    """Impulses lambda = P y [N s]/[N m s]; zero on padded rows and in frozen worlds."""
+    value = 0.0
+    if i < row_count[world] and diverged[world] == 0 and halted[world] == 0:
+        value = row_precond[world, i] * y[world, i]
+    row_lambda_out[world, i] = value
+
+
 @wp.kernel
 def padmm_output(
     row_count: wp.array(dtype=wp.int32),
@@ -342,10 +492,7 @@ def padmm_output(
 ):
     """Impulses lambda = P y [N s]/[N m s]; zero on padded rows and in frozen worlds."""
     world, i = wp.tid()
-    value = 0.0
-    if i < row_count[world] and diverged[world] == 0 and halted[world] == 0:
-        value = row_precond[world, i] * y[world, i]
-    row_lambda_out[world, i] = value
+    padmm_output_of(world, i, row_count, row_precond, y, diverged, halted, row_lambda_out)
 
 
 def refactor(model):

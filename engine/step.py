@@ -21,6 +21,7 @@ import warp as wp
 from engine.collide import compact_contacts, generate_candidates
 from engine.contacts import contact_rows, gather_warmstart, store_contacts
 from engine.dynamics import build_dual_problem
+from engine.fused import fused_step
 from engine.integrate import apply_impulses, guard_divergence, integrate_poses, project_positions
 from engine.joints import compute_joint_residuals, compute_joint_rows
 from engine.model import Control, Integrator, Model, State
@@ -57,7 +58,7 @@ class StageTimer:
     """Wall time per stage of step() [s], accumulated over calls (synchronizes the device at every
     stage boundary, so use it for profiling, never inside a captured graph)."""
 
-    STAGES = ("kinematics", "collision", "dual_problem", "padmm", "integrate", "projection")
+    STAGES = ("kinematics", "collision", "dual_problem", "padmm", "integrate", "projection", "fused")
 
     def __init__(self, device):
         self.device = device
@@ -99,6 +100,10 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
         raise ValueError("step: state_in and state_out must be different State objects")
     if dt is not None:
         model.set_dt(dt)
+    if model.step_kernel == "fused":  # the whole step in one launch (engine.fused)
+        fused_step(model, state_in, state_out, control)
+        mark("fused")
+        return
     work, device = model.work, model.device
     bodies = (model.num_worlds, model.max_bodies)
     moreau = model.config.integrator is Integrator.MOREAU_JEAN
