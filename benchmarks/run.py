@@ -1,9 +1,23 @@
-"""Run benchmark suites declared as data; print one JSON line per case, write CSV (and PNG).
+"""The engine benchmark: throughput against batch size and run time against error, per scene, with
+MuJoCo Warp on the same mechanisms in the same run (--peers).
 
-    python benchmarks/run.py --suite core --device cuda --out benchmarks/results/h100
-    python benchmarks/run.py --suite stabilization --device cpu --worlds 64
+    python -m benchmarks.run --device cuda [--peers] [--only fourbar mixed] [--out DIR]
+    python -m benchmarks.run --device cpu --quick
 
-Every case is engine.testspeed.run with the arguments below; repeats give medians.
+Scenes and settings are data (benchmarks/scenes.py). Per scene:
+- throughput: world-steps/s at each batch size of the scene (default solver settings), CUDA graphs
+  of 10 steps (engine.rollout.Stepper), median time per step after the compile and capture chunks;
+- work-precision (linkage scenes): each setting of the sweep (dt, step kernel, linear solver,
+  tolerance, stabilization, integrator) simulates the scene's duration on the precision batch;
+  errors: largest loop-closure violation [m] over all worlds and records, energy drift
+  |E(t) - E(0)| / (E(0) - E_min) (passive scenes), and trajectory error: largest distance [m] of a
+  body's centre of mass from the reference at records every 50 ms; the reference is MuJoCo C
+  (float64, RK4 at dt / 20, the MJCF export) when installed, else our engine at dt / 10 with
+  tolerance 1e-9 and 4 projections; run time as wall seconds per simulated second of the batch;
+- peers (--peers): MuJoCo Warp (benchmarks/peers.py) with the same errors measured the same way.
+Writes <out>/<scene>.json (device, versions, command, every configuration), <scene>.csv and
+<scene>.png (throughput and work-precision, ours and the peers' on the same axes); prints one JSON
+line per configuration. --quick: small batches and short runs (CPU, CI).
 """
 
 from __future__ import annotations
@@ -11,105 +25,324 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import os
-import statistics
+import pathlib
+import platform
 import sys
+import time
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import numpy as np
+import warp as wp
 
-import warp as wp  # noqa: E402
+from benchmarks.scenes import SCENES_DECLARED, Declared
+from engine import SolverConfig, compute_metrics, pack_worlds
+from engine.rollout import Stepper
 
-from engine.model import SolverConfig  # noqa: E402
-from engine.testspeed import STABILIZATION, run  # noqa: E402
-
-SUITES = {
-    # testspeed JSON of the issue's acceptance: fourbar and the heterogeneous mix
-    "core": [
-        dict(scene="fourbar", steps=1000, dt=1e-3),
-        dict(scene="mixed", steps=1000, dt=1e-3),
-    ],
-    # position projection (SHAKE or plain) against velocity-level Baumgarte feedback, both integrators
-    "stabilization": [
-        dict(scene=scene, steps=5000, dt=1e-3, integrator=integrator, stabilization=stab)
-        for scene in ("fourbar", "sixbar")
-        for integrator in ("euler", "moreau")
-        for stab in ("shake", "projection", "baumgarte")
-    ],
-    # contacts and limits (issue acceptance: walker and box_stack), fourbar for the skipped stages
-    "contact": [dict(scene=scene, steps=1000, dt=1e-3) for scene in
-                ("walker", "box_stack", "fourbar_limits", "ball_bounce", "box_slide", "box_on_plane", "fourbar")],
-    # throughput against batch size
-    "scaling": [dict(scene="fourbar", steps=200, dt=1e-3, worlds=n) for n in (1, 16, 256, 1024, 4096, 16384)],
-}
-
-FIELDS = ["scene", "num_worlds", "steps", "dt", "integrator", "stabilization", "step_ms_median", "world_steps_per_s",
-          "max_constraint_violation_m", "max_constraint_violation_rad", "energy_drift_rel", "padmm_iterations_mean",
-          "padmm_iterations_max", "diverged_worlds", "contacts_mean", "contacts_max", "contact_overflow_worlds",
-          "max_penetration_m", "complementarity_max", "stage_ms", "compile_s", "device", "device_name", "repeats"]
+RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 
 
-def run_case(case: dict, device: str, worlds: int, repeats: int) -> dict:
-    stabilization = case.get("stabilization", "shake")
-    config = SolverConfig(integrator=case.get("integrator", SolverConfig.integrator), **STABILIZATION[stabilization])
-    results = [run(case["scene"], case.get("worlds", worlds), case["steps"], case["dt"], device, config=config)
-               for _ in range(repeats)]
-    best = dict(results[-1])
-    best["step_ms_median"] = statistics.median(r["step_ms_median"] for r in results)
-    best["world_steps_per_s"] = best["num_worlds"] / (best["step_ms_median"] * 1e-3)
-    best["stabilization"] = stabilization
-    best["repeats"] = repeats
-    return best
+def device_tag(device: str) -> str:
+    """Folder name of a device's results: cpu, h100, h200 (else the GPU name, simplified)."""
+    dev = wp.get_device(device)
+    if not dev.is_cuda:
+        return "cpu"
+    name = dev.name.lower()
+    for tag in ("h100", "h200", "b200", "a100", "l40s"):
+        if tag in name:
+            return tag
+    return "".join(c if c.isalnum() else "_" for c in name)
+
+
+def versions() -> dict:
+    return {"warp": wp.config.version, "numpy": np.__version__, "python": platform.python_version()}
+
+
+def engine_run(specs, worlds: int, dt: float, steps: int, record_every: int, config: SolverConfig, device: str,
+               sample: np.ndarray, potential_min=None) -> dict:
+    """Simulate ``worlds`` worlds (cycling through ``specs``); time every chunk of ``record_every``
+    steps after the first two (compile, capture); record errors and sample positions per chunk."""
+    batch = [specs[w % len(specs)] for w in range(worlds)]
+    t0 = time.perf_counter()
+    model = pack_worlds(batch, device=device, config=config, dt=dt)
+    pack_s = time.perf_counter() - t0
+    stepper = Stepper(model, model.state(), model.control(), chunk=record_every)
+    compute_metrics(model, stepper.state)
+    energy0 = model.work.energy.numpy().copy()
+    available = None
+    if potential_min is not None:
+        pmin = np.array([potential_min[w % len(specs)] for w in range(worlds)])
+        available = np.maximum(energy0 - pmin, 1e-12)
+    positions = [stepper.state.body_q.numpy()[sample, :, :3].copy()]
+    times, loop_m, loop_rad, drift, done = [], 0.0, 0.0, 0.0, 0
+    t_first = time.perf_counter()
+    while done < steps:
+        wp.synchronize_device(model.device)
+        t = time.perf_counter()
+        stepper.advance()
+        wp.synchronize_device(model.device)
+        times.append((time.perf_counter() - t) / record_every)
+        done += record_every
+        compute_metrics(model, stepper.state)
+        ok = ~model.work.diverged.numpy().astype(bool)
+        if ok.any():
+            loop_m = max(loop_m, float(model.work.violation_linear.numpy()[ok].max()))
+            loop_rad = max(loop_rad, float(model.work.violation_angular.numpy()[ok].max()))
+            if available is not None:
+                energy = model.work.energy.numpy()
+                drift = max(drift, float((np.abs(energy - energy0) / available)[ok].max()))
+        positions.append(stepper.state.body_q.numpy()[sample, :, :3].copy())
+    timed = times[2:] if len(times) > 2 else times
+    step_s = float(np.median(timed))
+    solved = np.maximum(stepper.solved_steps.numpy(), 1)
+    return {
+        "num_worlds": worlds, "dt": dt, "steps": done, "step_ms_median": step_s * 1e3,
+        "world_steps_per_s": worlds / step_s, "wall_s_per_simulated_s": step_s / dt,
+        "first_chunks_s": [round(x * record_every, 4) for x in times[:2]], "pack_s": pack_s,
+        "loop_error_m": loop_m, "loop_error_rad": loop_rad,
+        "energy_drift_rel": drift if available is not None else None,
+        "padmm_iterations_mean": float((stepper.iteration_sum.numpy() / solved).mean()),
+        "padmm_iterations_max": int(stepper.iteration_max.numpy().max()),
+        "unconverged_step_fraction": float((stepper.unconverged_steps.numpy() / solved).mean()),
+        "diverged_worlds": int(model.work.diverged.numpy().sum()),
+        "step_kernel": model.step_kernel, "linear_solver": model.linear_solver, "max_rows": model.max_rows,
+        "fused_block": model.fused_block, "cuda_graph": bool(stepper.capture),
+        "positions": np.array(positions), "run_s": time.perf_counter() - t_first,
+    }
+
+
+def trajectory_error(positions: np.ndarray, reference: np.ndarray, sample: np.ndarray, specs) -> float:
+    """Largest body-position distance [m] between a run's sample worlds and the reference worlds
+    of the same mechanisms, over the common records."""
+    records = min(len(positions), len(reference))
+    worst = 0.0
+    for k, w in enumerate(sample):
+        kind = w % len(specs)
+        n = len(specs[kind].bodies)
+        diff = positions[:records, k, :n] - reference[:records, kind, :n]
+        worst = max(worst, float(np.linalg.norm(diff, axis=-1).max()))
+    return worst
+
+
+def config_of(setting: dict, base: dict | None = None) -> SolverConfig:
+    return SolverConfig(**{**(base or {}), **setting.get("config", {})})
+
+
+def clean(row: dict) -> dict:
+    return {k: v for k, v in row.items() if k not in ("positions", "energy")}
+
+
+def run_scene(name: str, declared: Declared, args) -> dict:
+    scene = declared.build(args.assets)
+    specs = scene.specs
+    quick = args.quick
+    result = {"scene": name, "note": scene.note, "device": args.device, "device_name": wp.get_device(args.device).name,
+              "versions": versions(), "command": "python -m benchmarks.run " + " ".join(sys.argv[1:]),
+              "bodies": [len(s.bodies) for s in specs], "joints": [len(s.joints) for s in specs],
+              "throughput": [], "precision": [], "peers": [], "reference": None}
+    dt = declared.dt
+    worlds_list = declared.quick_worlds if quick else declared.throughput_worlds
+    steps = 20 if quick else declared.throughput_steps
+    chunk = 10 if steps >= 30 else max(1, steps // 4)
+    for worlds in worlds_list:
+        sample = np.arange(min(worlds, len(specs)))
+        row = engine_run(specs, worlds, dt, steps + 2 * chunk, chunk, SolverConfig(), args.device, sample,
+                         scene.potential_min)
+        row.update(kind="throughput", engine="morphopt", label="default")
+        result["throughput"].append(clean(row))
+        print(json.dumps({"scene": name, **clean(row)}), flush=True)
+    peer_reason = None
+    if args.peers and declared.peers:
+        from benchmarks.peers import available
+        peer_reason = available()
+    if declared.duration > 0:
+        duration = 0.2 if quick else declared.duration
+        record_dt = 0.01 if quick else declared.record_dt
+        worlds = 8 if quick else declared.precision_worlds
+        sample = np.arange(min(worlds, 2 * len(specs)))
+        reference, result["reference"] = reference_run(specs, scene, duration, record_dt, dt, declared, args)
+        sweep = declared.sweep[:5] if quick else declared.sweep
+        for setting in sweep:
+            step_dt = dt * setting["dt_scale"]
+            try:
+                config = config_of(setting)
+                row = engine_run(specs, worlds, step_dt, round(duration / step_dt), round(record_dt / step_dt), config,
+                                 args.device, sample, scene.potential_min)
+            except ValueError as exc:  # e.g. a setting this batch cannot take
+                result["precision"].append({"label": setting["label"], "error": str(exc)})
+                continue
+            row.update(kind="precision", engine="morphopt", label=setting["label"], settings=setting.get("config", {}),
+                       trajectory_error_m=trajectory_error(row["positions"], reference, sample, specs))
+            result["precision"].append(clean(row))
+            print(json.dumps({"scene": name, **clean(row)}), flush=True)
+        if args.peers and declared.peers and peer_reason is None:
+            result["peers"] += peer_precision(specs, scene, worlds, dt, duration, record_dt, reference, args)
+    if args.peers and declared.peers:
+        if peer_reason is not None:
+            result["peers"].append({"engine": "mujoco_warp", "error": peer_reason})
+        else:
+            result["peers"] += peer_throughput(specs, worlds_list, dt, steps, args)
+    return result
+
+
+def reference_run(specs, scene, duration, record_dt, dt, declared, args):
+    """Body positions of every distinct mechanism at the record times, from MuJoCo C (float64, RK4,
+    dt / 20) when it is installed, else from our engine at dt / 10 with tight tolerances (float32:
+    its rounding limits how small an error it can resolve)."""
+    try:
+        from benchmarks.peers import mujoco_reference
+
+        t0 = time.perf_counter()
+        positions = mujoco_reference(specs, duration=duration, record_dt=record_dt, dt=dt / 20)
+        return positions, {"engine": "mujoco C (float64)", "integrator": "RK4", "dt": dt / 20,
+                           "loops": "MJCF export equality constraints, time constant 2 dt", "run_s": time.perf_counter() - t0}
+    except ImportError:
+        ref_dt = dt / 10
+        ref = declared.reference
+        row = engine_run(specs, len(specs), ref_dt, round(duration / ref_dt), round(record_dt / ref_dt),
+                         SolverConfig(**ref["config"]), args.device, np.arange(len(specs)), scene.potential_min)
+        return row["positions"], {**clean(row), "engine": "morphopt (float32)", "settings": ref["config"]}
+
+
+def peer_precision(specs, scene, worlds, dt, duration, record_dt, reference, args) -> list:
+    from benchmarks.peers import mujoco_warp_run
+
+    rows = []
+    spec = specs[0]
+    names = [b.name for b in spec.bodies]
+    for integrator, scale in (("Euler", 0.5), ("Euler", 1.0), ("Euler", 2.0), ("RK4", 1.0), ("RK4", 2.0)):
+        step_dt = dt * scale
+        try:
+            row = mujoco_warp_run(spec, worlds=worlds, dt=step_dt, steps=round(duration / step_dt),
+                                  record_every=round(record_dt / step_dt), integrator=integrator, device=args.device,
+                                  body_names=names)
+        except Exception as exc:  # noqa: BLE001  (a peer failing is a result, not a crash of the benchmark)
+            rows.append({"engine": "mujoco_warp", "integrator": integrator, "dt": step_dt, "error": repr(exc)})
+            continue
+        energy = row["energy"]
+        drift = None
+        if scene.potential_min is not None:
+            available = np.maximum(energy[0] - scene.potential_min[0], 1e-12)
+            drift = float((np.abs(energy - energy[0]) / available).max())
+        positions = row["positions"]
+        records = min(len(positions), len(reference))
+        traj = float(np.linalg.norm(positions[:records] - reference[:records, :1, : len(names)], axis=-1).max())
+        row.update(kind="precision", label=f"MuJoCo Warp {integrator}, dt x{scale:g}", energy_drift_rel=drift,
+                   trajectory_error_m=traj, wall_s_per_simulated_s=row["step_ms_median"] * 1e-3 / step_dt)
+        rows.append(clean(row))
+        print(json.dumps(clean(row)), flush=True)
+    return rows
+
+
+def peer_throughput(specs, worlds_list, dt, steps, args) -> list:
+    from benchmarks.peers import mujoco_warp_run
+
+    rows = []
+    spec = specs[0]
+    integrator = "Euler" if not spec.shapes and not any(j.drive for j in spec.joints) else "implicitfast"
+    for worlds in worlds_list:
+        try:
+            row = mujoco_warp_run(spec, worlds=worlds, dt=dt, steps=steps, record_every=10, integrator=integrator,
+                                  device=args.device, body_names=[b.name for b in spec.bodies])
+        except Exception as exc:  # noqa: BLE001
+            rows.append({"engine": "mujoco_warp", "integrator": integrator, "num_worlds": worlds, "error": repr(exc)})
+            continue
+        row.update(kind="throughput", label=f"MuJoCo Warp {integrator}")
+        rows.append(clean(row))
+        print(json.dumps(clean(row)), flush=True)
+    return rows
+
+
+CSV_FIELDS = ["kind", "engine", "label", "integrator", "num_worlds", "dt", "steps", "step_ms_median",
+              "world_steps_per_s", "wall_s_per_simulated_s", "loop_error_m", "loop_error_rad", "energy_drift_rel",
+              "trajectory_error_m", "padmm_iterations_mean", "padmm_iterations_max", "step_kernel", "linear_solver",
+              "max_rows", "diverged_worlds", "error"]
+
+
+def write(result: dict, out: pathlib.Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    name = result["scene"]
+    (out / f"{name}.json").write_text(json.dumps(result, indent=1, default=float) + "\n")
+    rows = result["throughput"] + result["precision"] + result["peers"]
+    with open(out / f"{name}.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=CSV_FIELDS, extrasaction="ignore")
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({"engine": "morphopt", **row})
+    plot(result, out / f"{name}.png")
+
+
+def plot(result: dict, path: pathlib.Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = 3 if result["precision"] else 1
+    fig, axes = plt.subplots(1, panels, figsize=(5.2 * panels, 4.0), squeeze=False)
+    ax = axes[0, 0]
+    ours = [r for r in result["throughput"] if "error" not in r]
+    ax.loglog([r["num_worlds"] for r in ours], [r["world_steps_per_s"] for r in ours], "o-", label="morphopt")
+    for label in sorted({r["label"] for r in result["peers"] if r.get("kind") == "throughput"}):
+        rows = [r for r in result["peers"] if r.get("kind") == "throughput" and r.get("label") == label]
+        ax.loglog([r["num_worlds"] for r in rows], [r["world_steps_per_s"] for r in rows], "s--", label=label)
+    ax.set_xlabel("worlds")
+    ax.set_ylabel("world-steps / s")
+    ax.set_title(f"{result['scene']}: throughput")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    if result["precision"]:
+        for ax, key, unit in ((axes[0, 1], "trajectory_error_m", "trajectory error [m]"),
+                              (axes[0, 2], "loop_error_m", "loop-closure error [m]")):
+            for rows, marker, color in ((result["precision"], "o", "C0"),
+                                        ([r for r in result["peers"] if r.get("kind") == "precision"], "s", "C1")):
+                for r in rows:
+                    if "error" in r or r.get(key) is None:
+                        continue
+                    ax.loglog(r["wall_s_per_simulated_s"], max(r[key], 1e-9), marker, color=color)
+                    ax.annotate(r["label"], (r["wall_s_per_simulated_s"], max(r[key], 1e-9)), fontsize=6)
+            ax.set_xlabel(f"wall s per simulated s ({result['precision'][0].get('num_worlds', '')} worlds)")
+            ax.set_ylabel(unit)
+            ax.set_title(f"{result['scene']}: {unit.split(' [')[0]} (blue: morphopt, orange: MuJoCo Warp)", fontsize=8)
+            ax.grid(True, which="both", alpha=0.3)
+    fig.suptitle(f"{result['device_name']}", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--suite", choices=sorted(SUITES), default="core")
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--worlds", type=int, default=64, help="worlds per case unless the case sets them")
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--out", default=None, help="folder for <suite>.csv (and .png)")
-    parser.add_argument("--plot-csv", default=None, help="only redraw the PNG of a scaling CSV written earlier")
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.run", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
+    parser.add_argument("--quick", action="store_true", help="small batches and short runs (CPU, CI)")
+    parser.add_argument("--peers", action="store_true", help="also run MuJoCo Warp on the same mechanisms")
+    parser.add_argument("--only", nargs="+", choices=sorted(SCENES_DECLARED), default=None, help="scenes to run")
+    parser.add_argument("--assets", default=None, help="folder holding disneyresearch/dr_legs (DR Legs scenes)")
+    parser.add_argument("--out", default=None, help="results folder (default benchmarks/results/<device>)")
     args = parser.parse_args(argv)
-    if args.plot_csv:
-        with open(args.plot_csv) as handle:
-            rows = [{k: (float(v) if k in ("num_worlds", "world_steps_per_s") else v) for k, v in row.items()}
-                    for row in csv.DictReader(handle)]
-        _plot_scaling(rows, args.plot_csv.replace(".csv", ".png"))
-        return 0
     wp.config.log_level = wp.LOG_WARNING
-    rows = []
-    for case in SUITES[args.suite]:
-        result = run_case(case, args.device, args.worlds, args.repeats)
-        print(json.dumps(result), flush=True)
-        rows.append(result)
-    if args.out:
-        os.makedirs(args.out, exist_ok=True)
-        path = os.path.join(args.out, f"{args.suite}_{args.device.replace(':', '')}.csv")
-        with open(path, "w", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=FIELDS, extrasaction="ignore")
-            writer.writeheader()
-            writer.writerows(rows)
-        if args.suite == "scaling":
-            _plot_scaling(rows, path.replace(".csv", ".png"))
-    return 0
-
-
-def _plot_scaling(rows, path):
+    wp.init()
     try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        return
-    fig, ax = plt.subplots(figsize=(5, 3.5))
-    ax.loglog([r["num_worlds"] for r in rows], [r["world_steps_per_s"] for r in rows], "o-")
-    ax.set_xlabel("worlds")
-    ax.set_ylabel("world-steps / s")
-    ax.set_title(f"{rows[0]['scene']} on {rows[0]['device_name']}")
-    ax.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
+        wp.get_device(args.device)
+    except (RuntimeError, ValueError) as exc:
+        parser.error(f"--device {args.device}: {exc}")
+    out = pathlib.Path(args.out) if args.out else RESULTS / device_tag(args.device)
+    names = args.only or list(SCENES_DECLARED)
+    failed = []
+    for name in names:
+        try:
+            result = run_scene(name, SCENES_DECLARED[name], args)
+        except FileNotFoundError as exc:  # a scene whose data is not on this machine
+            print(json.dumps({"scene": name, "skipped": str(exc)}), flush=True)
+            continue
+        except Exception as exc:  # noqa: BLE001  (report, go on with the other scenes, fail at the end)
+            print(json.dumps({"scene": name, "error": repr(exc)}), flush=True)
+            failed.append(name)
+            continue
+        write(result, out)
+    if failed:
+        print(f"failed scenes: {', '.join(failed)}", file=sys.stderr)
+        return 1
+    return 0
 
 
 if __name__ == "__main__":

@@ -18,6 +18,8 @@ import warp as wp
 
 from engine.spec import ShapeType
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
+
 SPHERE = wp.constant(int(ShapeType.SPHERE))
 CAPSULE = wp.constant(int(ShapeType.CAPSULE))
 BOX = wp.constant(int(ShapeType.BOX))

@@ -18,6 +18,8 @@ from engine.joints import body_twist, normal_basis
 from engine.model import UNBOUNDED
 from engine.spatial import twist
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
+
 
 @wp.func
 def contact_direction(n: wp.vec3, component: int):

@@ -11,6 +11,8 @@ import warp as wp
 from engine.model import ROW_CONTACT_NORMAL, ROW_CONTACT_TANGENT, UNBOUNDED
 from engine.spatial import gyroscopic_implicit_midpoint, twist, world_inertia_inverse
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
+
 
 @wp.func
 def body_term(body_of_row: int, J: wp.spatial_vector, other_body: int, MJ_other: wp.spatial_vector):

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from engine.dynamics import delassus_entry, free_velocity_of, row_operator_of
+from engine.dynamics import body_term, free_velocity_of, row_operator_of
 from engine.integrate import apply_impulses_of, apply_projection_of, guard_divergence_of, integrate_pose_of
 from engine.joints import joint_residuals_of, joint_rows_of
 from engine.model import ROW_ANGULAR, ROW_LINEAR
@@ -38,10 +38,20 @@ from engine.padmm import (
     row_residuals,
 )
 
-__all__ = ["FUSED_BLOCK", "FUSED_MAX_ROWS", "fused_fits", "fused_step"]
+wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
+
+__all__ = ["FUSED_MAX_ROWS", "fused_block", "fused_fits", "fused_step"]
 
 FUSED_MAX_ROWS = 64
-FUSED_BLOCK = 32  # worlds per thread block on a GPU: one warp, so that worlds spread over all SMs
+WARPS_PER_SM = 4  # the fused step is latency-bound: spread the worlds so that every SM has a few warps
+
+
+def fused_block(num_worlds: int, device) -> int:
+    """Worlds (threads) per block: few enough that every SM gets WARPS_PER_SM warps, at most 32."""
+    device = wp.get_device(device)
+    if not device.is_cuda:
+        return 1
+    return max(1, min(32, num_worlds // (WARPS_PER_SM * device.sm_count)))
 
 
 def fused_fits(has_contacts: bool, max_rows: int, dense: bool) -> bool:
@@ -192,7 +202,36 @@ def cholesky_solve_of(world: int, n: int, factor: wp.array3d(dtype=float), rhs: 
         x[world, i] = t / factor[world, i, i]
 
 
-@wp.kernel
+@wp.func
+def delassus_lower_of(world: int, i: int, row_body_p: wp.array2d(dtype=wp.int32),
+                      row_body_c: wp.array2d(dtype=wp.int32), row_J_c: wp.array2d(dtype=wp.spatial_vector),
+                      row_J_p: wp.array2d(dtype=wp.spatial_vector), row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
+                      row_MJ_p: wp.array2d(dtype=wp.spatial_vector), row_compliance: wp.array2d(dtype=float),
+                      row_precond: wp.array2d(dtype=float), matrix: wp.array3d(dtype=float)):
+    """Row i of P D P left of the diagonal, mirrored: engine.dynamics.delassus_entry's arithmetic with
+    row i loaded once and the pairs of rows without a common body skipped (their entry is 0)."""
+    ci = row_body_c[world, i]
+    pi = row_body_p[world, i]
+    Jci = row_J_c[world, i]
+    Jpi = row_J_p[world, i]
+    precond_i = row_precond[world, i]
+    for j in range(i + 1):
+        cj = row_body_c[world, j]
+        pj = row_body_p[world, j]
+        d = float(0.0)
+        if (ci >= 0 and (ci == cj or ci == pj)) or (pi >= 0 and (pi == cj or pi == pj)):
+            MJ_c = row_MJ_c[world, j]
+            MJ_p = row_MJ_p[world, j]
+            d = body_term(ci, Jci, cj, MJ_c) + body_term(ci, Jci, pj, MJ_p)
+            d += body_term(pi, Jpi, cj, MJ_c) + body_term(pi, Jpi, pj, MJ_p)
+        if i == j:
+            d += row_compliance[world, i]
+        value = precond_i * d * row_precond[world, j]
+        matrix[world, i, j] = value
+        matrix[world, j, i] = value
+
+
+@wp.kernel(enable_backward=False)
 def fused_step_kernel(
     m: StepModel,
     w: StepWork,
@@ -254,11 +293,8 @@ def fused_step_kernel(
                         w.row_compliance, w.row_lo, w.row_hi, w.row_MJ_c, w.row_MJ_p, w.row_precond, w.v_f, w.lo,
                         w.hi)
     for i in range(n):
-        for j in range(i + 1):
-            value = delassus_entry(world, i, j, w.row_body_p, w.row_body_c, w.row_J_c, w.row_J_p, w.row_MJ_c,
-                                   w.row_MJ_p, w.row_compliance, w.row_precond)
-            w.delassus[world, i, j] = value
-            w.delassus[world, j, i] = value
+        delassus_lower_of(world, i, w.row_body_p, w.row_body_c, w.row_J_c, w.row_J_p, w.row_MJ_c, w.row_MJ_p,
+                          w.row_compliance, w.row_precond, w.delassus)
     # 3. PADMM (padmm_setup, padmm_warmstart, then iterations until this world stops)
     eta = m.padmm_eta[world]
     active = int(0)
@@ -367,7 +403,9 @@ def fused_step(model, state_in, state_out, control) -> None:
         model._fused_structs = (m, w)
     m, w = model._fused_structs
     cfg = model.config
-    wp.launch(fused_step_kernel, dim=model.num_worlds, block_dim=FUSED_BLOCK, device=model.device,
+    if model.fused_block is None:
+        model.fused_block = fused_block(model.num_worlds, model.device)
+    wp.launch(fused_step_kernel, dim=model.num_worlds, block_dim=model.fused_block, device=model.device,
               inputs=[m, w, int(cfg.integrator.value == "moreau"), float(cfg.baumgarte), float(cfg.limit_margin),
                       float(cfg.limit_stabilization), 1.0 if cfg.warmstart else 0.0, cfg.max_iterations,
                       float(cfg.relative_tolerance), cfg.rho_update_interval, int(cfg.adaptive_rho),

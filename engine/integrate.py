@@ -15,6 +15,8 @@ from engine import linear, matrix_free
 from engine.model import ROW_ANGULAR, ROW_LINEAR
 from engine.spatial import quat_integrate, quat_rotate_vector
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
+
 
 @wp.func
 def row_sum_for_body(world: int, b: int, n: int, row_body_c: wp.array2d(dtype=wp.int32),

@@ -22,6 +22,8 @@ import warp as wp
 from engine.model import UNBOUNDED
 from engine.spatial import relative_rotation, twist, wrap_angle
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
+
 JOINT_REVOLUTE = wp.constant(0)
 JOINT_PRISMATIC = wp.constant(1)
 JOINT_SPHERICAL = wp.constant(2)

@@ -23,6 +23,8 @@ import warp as wp
 
 from engine.model import ROW_ANGULAR, ROW_LINEAR
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
+
 __all__ = ["TILED_BLOCK", "block_max", "block_sum", "solve"]
 
 

@@ -8,6 +8,8 @@ import warp as wp
 from engine.joints import compute_joint_residuals
 from engine.model import ROW_ANGULAR, ROW_LINEAR, Model, State
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
+
 __all__ = ["compute_metrics", "metrics_numpy"]
 
 

@@ -25,6 +25,8 @@ import warp as wp
 from engine import linear, matrix_free
 from engine.model import ROW_CONTACT_NORMAL, ROW_CONTACT_TANGENT, ROW_LIMIT
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
+
 RHO_MIN = wp.constant(1.0e-5)
 RHO_MAX = wp.constant(1.0e3)
 RHO_FACTOR = wp.constant(4.0)

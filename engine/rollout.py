@@ -16,6 +16,8 @@ from engine.metrics import compute_metrics
 from engine.model import Control, Model, State
 from engine.step import step
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
+
 __all__ = ["Stepper", "Trace", "rollout"]
 
 

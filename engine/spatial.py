@@ -8,6 +8,8 @@ both in the world frame.
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
+
 
 @wp.func
 def twist(linear: wp.vec3, angular: wp.vec3):

@@ -56,13 +56,15 @@ def detect_contacts(model: Model, body_q, body_qd) -> None:
 
 class StageTimer:
     """Wall time per stage of step() [s], accumulated over calls (synchronizes the device at every
-    stage boundary, so use it for profiling, never inside a captured graph)."""
+    stage boundary, so use it for profiling, never inside a captured graph). The staged step
+    reports its six stages, the fused step one ("fused")."""
 
     STAGES = ("kinematics", "collision", "dual_problem", "padmm", "integrate", "projection", "fused")
 
     def __init__(self, device):
         self.device = device
         self.seconds = dict.fromkeys(self.STAGES, 0.0)
+        self.marked = set()  # the stages of the path taken (the fused step is one stage)
         self.calls = 0
         self._last = None
 
@@ -75,10 +77,11 @@ class StageTimer:
         wp.synchronize_device(self.device)
         now = time.perf_counter()
         self.seconds[stage] += now - self._last
+        self.marked.add(stage)
         self._last = now
 
     def milliseconds_per_step(self) -> dict[str, float]:
-        return {k: 1e3 * v / max(self.calls, 1) for k, v in self.seconds.items()}
+        return {k: 1e3 * v / max(self.calls, 1) for k, v in self.seconds.items() if k in self.marked}
 
 
 def step(model: Model, state_in: State, state_out: State, control: Control, dt: float | None = None, *,

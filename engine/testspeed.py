@@ -64,7 +64,7 @@ def stage_profile(model, state, control, steps: int = 20) -> dict:
 
 
 def run(scene: str, num_worlds: int, steps: int, dt: float, device: str, *, chunk: int = 10,
-        config: SolverConfig | None = None, stages: bool = True) -> dict:
+        config: SolverConfig | None = None, stages: bool = True, fused_block: int | None = None) -> dict:
     """Run the benchmark and return its JSON-able result."""
     config = config or SolverConfig()
     specs, potential_min = build_batch(scene, num_worlds)
@@ -74,6 +74,7 @@ def run(scene: str, num_worlds: int, steps: int, dt: float, device: str, *, chun
     t0 = time.perf_counter()
     model = pack_worlds(specs, device=device, config=config, dt=dt)
     pack_s = time.perf_counter() - t0
+    model.fused_block = fused_block
     state, control = model.state(), model.control()
     compute_metrics(model, state)
     energy0 = model.work.energy.numpy().copy()
@@ -114,7 +115,8 @@ def run(scene: str, num_worlds: int, steps: int, dt: float, device: str, *, chun
     result = {
         "scene": scene, "device": str(model.device), "device_name": model.device.name,
         "num_worlds": num_worlds, "steps": measured, "dt": dt, "integrator": config.integrator.value,
-        "max_rows": model.max_rows, "pack_s": pack_s, "compile_s": compile_s, "step_ms_median": step_ms,
+        "max_rows": model.max_rows, "step_kernel": model.step_kernel, "linear_solver": model.linear_solver,
+        "pack_s": pack_s, "compile_s": compile_s, "step_ms_median": step_ms,
         "world_steps_per_s": num_worlds / (step_ms * 1e-3),
         "max_constraint_violation_m": viol_m, "max_constraint_violation_rad": viol_rad,
         "energy_drift_rel": drift if conservative else None,
@@ -128,7 +130,7 @@ def run(scene: str, num_worlds: int, steps: int, dt: float, device: str, *, chun
         "contact_overflow_worlds": int((stepper.overflow_steps.numpy() > 0).sum()),
         "max_penetration_m": float(max(stepper.penetration_max.numpy().max(), 0.0)),
         "complementarity_max": float(stepper.complementarity_max.numpy().max()),
-        "warp_version": wp.config.version, "cuda_graph": bool(stepper.capture),
+        "warp_version": wp.config.version, "cuda_graph": bool(stepper.capture), "fused_block": model.fused_block,
     }
     if stages:
         result["stage_ms"] = stage_profile(model, stepper.state, control)
@@ -148,6 +150,9 @@ def main(argv=None) -> int:
     parser.add_argument("--stabilization", choices=sorted(STABILIZATION), default="shake")
     parser.add_argument("--tolerance", type=float, default=SolverConfig.tolerance)
     parser.add_argument("--max-iterations", type=int, default=SolverConfig.max_iterations)
+    parser.add_argument("--step-kernel", choices=["auto", "fused", "staged"], default=SolverConfig.step_kernel,
+                        help="whole step per world in one launch (fused) or one kernel per stage (staged)")
+    parser.add_argument("--fused-block", type=int, default=None, help="worlds per thread block of the fused step")
     parser.add_argument("--json", action="store_true", help="print only the JSON object")
     args = parser.parse_args(argv)
     if args.worlds < 1 or args.steps < 1 or not args.dt > 0.0:
@@ -155,8 +160,9 @@ def main(argv=None) -> int:
     if args.json:
         wp.config.log_level = wp.LOG_WARNING
     config = SolverConfig(integrator=args.integrator, tolerance=args.tolerance, max_iterations=args.max_iterations,
-                          **STABILIZATION[args.stabilization])
-    result = run(args.scene, args.worlds, args.steps, args.dt, args.device, chunk=args.chunk, config=config)
+                          step_kernel=args.step_kernel, **STABILIZATION[args.stabilization])
+    result = run(args.scene, args.worlds, args.steps, args.dt, args.device, chunk=args.chunk, config=config,
+                 fused_block=args.fused_block)
     result["stabilization"] = args.stabilization
     if args.json:
         print(json.dumps(result))

@@ -20,6 +20,8 @@ import warp as wp
 
 from morphopt.linkage.graph import Linkage, Offset
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
+
 __all__ = ["MAX_NODES", "LinkageTables", "solve_tables"]
 
 MAX_NODES = 32

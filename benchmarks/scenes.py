@@ -1,0 +1,144 @@
+"""The benchmark scenes, declared as data: how to build each batch, how long to simulate it, which
+batch sizes to time and which solver settings to sweep for the work-precision curves.
+
+Every scene builder returns a BenchScene: the distinct mechanisms (a batch of N worlds cycles
+through them), the potential energy of each one's static equilibrium (for the energy drift of
+passive scenes; None where drives, limits or contacts put energy in or take it out) and a note.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import pathlib
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from engine import GroundPlane, Joint, MechanismSpec
+from engine.scenes import SCENES, make_scene
+
+__all__ = ["SCENES_DECLARED", "BenchScene", "dr_legs_path"]
+
+
+@dataclass
+class BenchScene:
+    specs: list[MechanismSpec]
+    potential_min: np.ndarray | None
+    note: str
+
+
+def _engine_scenes(names) -> BenchScene:
+    scenes = [make_scene(n) for n in names]
+    return BenchScene([s.spec for s in scenes], np.array([s.potential_min for s in scenes]),
+                      "engine.scenes " + ", ".join(names))
+
+
+def dr_legs_path(assets: str | None = None) -> pathlib.Path | None:
+    """The DR Legs USD file: --assets, $MORPHOPT_ASSETS, or shared/assets beside the checkout."""
+    roots = [assets, os.environ.get("MORPHOPT_ASSETS"),
+             pathlib.Path(__file__).resolve().parents[2] / "shared" / "assets"]
+    for root in roots:
+        if root:
+            path = pathlib.Path(root) / "disneyresearch/dr_legs/usd/dr_legs_with_boxes.usda"
+            if path.is_file():
+                return path
+    return None
+
+
+def dr_legs(standing: bool, assets: str | None = None) -> BenchScene:
+    """DR Legs from its USD file through morphopt's import: standing on its PD drives on the
+    ground, or hanging passively from a welded pelvis (no drives, no contacts)."""
+    from morphopt.formats.usd import read_usd
+
+    path = dr_legs_path(assets)
+    if path is None:
+        raise FileNotFoundError("the DR Legs asset was not found (pass --assets or set MORPHOPT_ASSETS)")
+    if standing:
+        spec = read_usd(path, origin=(0.0, 0.0, 0.265))
+        spec = dataclasses.replace(spec, ground=GroundPlane())
+        return BenchScene([spec], None, "DR Legs standing on its 12 PD drives (file gains), ground contact")
+    spec = read_usd(path, origin=(0.0, 0.0, 0.5))
+    pelvis = spec.bodies[spec.body_index["pelvis"]]
+    joints = [dataclasses.replace(j, drive=None) for j in spec.joints]
+    joints.append(Joint("weld", "fixed", None, "pelvis", parent_position=pelvis.position,
+                        parent_orientation=pelvis.orientation))
+    spec = dataclasses.replace(spec, joints=joints, shapes=[])
+    return BenchScene([spec], None, "DR Legs hanging passively from a welded pelvis (36 revolute joints, 6 loops)")
+
+
+def walkers(count: int = 64, seed: int = 1) -> BenchScene:
+    """Random designs of the walker family (Jansen and Klann legs, 3 per side): heterogeneous."""
+    from morphopt.families import load_family
+
+    family = load_family("walker")
+    specs = []
+    for params in family.space.sample(np.random.default_rng(seed), count):
+        try:
+            specs.append(family.build_spec(family.space.validate({**params, "legs_per_side": 3})))
+        except ValueError:
+            continue
+    return BenchScene(specs, None, f"{len(specs)} random walker designs (Jansen/Klann legs, 3 per side) cycled")
+
+
+def walker_default() -> BenchScene:
+    """The walker family's default design replicated (homogeneous batch of the largest member kind)."""
+    from morphopt.families import load_family
+
+    family = load_family("walker")
+    params = family.space.validate({**family.space.default(), "legs_per_side": 3})
+    return BenchScene([family.build_spec(params)], None, "the default walker design (3 Jansen legs per side)")
+
+
+@dataclass
+class Declared:
+    """One scene of the benchmark: builder, step size, simulated time of the precision runs,
+    batch sizes for throughput, worlds of the precision runs, reference settings and the sweep."""
+
+    build: object
+    dt: float
+    duration: float
+    throughput_worlds: list[int]
+    precision_worlds: int
+    sweep: list[dict] = field(default_factory=list)
+    reference: dict = field(default_factory=dict)
+    throughput_steps: int = 300
+    record_dt: float = 0.05
+    peers: bool = False
+    quick_worlds: list[int] = field(default_factory=lambda: [1, 8])
+
+
+# work-precision settings: label, dt multiplier of the scene's dt, SolverConfig overrides
+LINKAGE_SWEEP = [
+    dict(label="default", dt_scale=1.0),
+    dict(label="dt x0.5", dt_scale=0.5),
+    dict(label="dt x2", dt_scale=2.0),
+    dict(label="dt x4", dt_scale=4.0),
+    dict(label="staged kernels", dt_scale=1.0, config=dict(step_kernel="staged")),
+    dict(label="staged, dt x2", dt_scale=2.0, config=dict(step_kernel="staged")),
+    dict(label="matrix-free", dt_scale=1.0, config=dict(step_kernel="staged", linear_solver="matrix_free")),
+    dict(label="tolerance 1e-4", dt_scale=1.0, config=dict(tolerance=1e-4, relative_tolerance=1e-2)),
+    dict(label="no projection (Baumgarte 0.01)", dt_scale=1.0,
+         config=dict(position_iterations=0, projection_velocity_update=False, baumgarte=0.01)),
+    dict(label="semi-implicit Euler", dt_scale=1.0, config=dict(integrator="euler")),
+]
+TIGHT = dict(tolerance=1e-9, relative_tolerance=0.0, max_iterations=300, position_iterations=4)
+
+SCENES_DECLARED = {
+    "fourbar": Declared(lambda assets: _engine_scenes(["fourbar"]), dt=1e-3, duration=2.0,
+                        throughput_worlds=[1, 64, 1024, 4096, 16384], precision_worlds=4096, sweep=LINKAGE_SWEEP,
+                        reference=dict(dt=1e-4, config=TIGHT), peers=True),
+    "mixed": Declared(lambda assets: _engine_scenes(list(SCENES)), dt=1e-3, duration=1.0,
+                      throughput_worlds=[4, 1024, 4096, 16384], precision_worlds=4096, sweep=LINKAGE_SWEEP,
+                      reference=dict(dt=1e-4, config=TIGHT), quick_worlds=[4, 8]),
+    "walker": Declared(lambda assets: walkers(), dt=2e-3, duration=0.0, throughput_worlds=[64, 1024, 4096],
+                       precision_worlds=0, throughput_steps=30, quick_worlds=[2]),
+    "walker_default": Declared(lambda assets: walker_default(), dt=2e-3, duration=0.0, throughput_worlds=[4096],
+                               precision_worlds=0, throughput_steps=30, quick_worlds=[2]),
+    "drlegs_hanging": Declared(lambda assets: dr_legs(False, assets), dt=1e-2, duration=0.0,
+                               throughput_worlds=[1, 1024, 4096], precision_worlds=0, throughput_steps=50, peers=True,
+                               quick_worlds=[1]),
+    "drlegs_standing": Declared(lambda assets: dr_legs(True, assets), dt=1e-2, duration=0.0,
+                                throughput_worlds=[1, 1024, 4096], precision_worlds=0, throughput_steps=50,
+                                peers=True, quick_worlds=[1]),
+}
