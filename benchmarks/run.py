@@ -142,7 +142,7 @@ def run_scene(name: str, declared: Declared, args) -> dict:
     worlds_list = declared.quick_worlds if quick else declared.throughput_worlds
     steps = 20 if quick else declared.throughput_steps
     chunk = 10 if steps >= 30 else max(1, steps // 4)
-    for worlds in worlds_list:
+    for worlds in (worlds_list if "throughput" in args.parts else []):
         sample = np.arange(min(worlds, len(specs)))
         row = engine_run(specs, worlds, dt, steps + 2 * chunk, chunk, SolverConfig(), args.device, sample,
                          scene.potential_min)
@@ -153,7 +153,7 @@ def run_scene(name: str, declared: Declared, args) -> dict:
     if args.peers and declared.peers:
         from benchmarks.peers import available
         peer_reason = available()
-    if declared.duration > 0:
+    if declared.duration > 0 and "precision" in args.parts:
         duration = 0.2 if quick else declared.duration
         record_dt = 0.01 if quick else declared.record_dt
         worlds = 8 if quick else declared.precision_worlds
@@ -175,11 +175,11 @@ def run_scene(name: str, declared: Declared, args) -> dict:
             print(json.dumps({"scene": name, **clean(row)}), flush=True)
         if args.peers and declared.peers and peer_reason is None:
             result["peers"] += peer_precision(specs, scene, worlds, dt, duration, record_dt, reference, args)
-    if args.peers and declared.peers:
+    if args.peers and declared.peers and "throughput" in args.parts:
         if peer_reason is not None:
             result["peers"].append({"engine": "mujoco_warp", "error": peer_reason})
         else:
-            result["peers"] += peer_throughput(specs, worlds_list, dt, steps, args)
+            result["peers"] += peer_throughput(specs, worlds_list[-2:], dt, steps, args)
     return result
 
 
@@ -315,6 +315,8 @@ def main(argv=None) -> int:
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     parser.add_argument("--quick", action="store_true", help="small batches and short runs (CPU, CI)")
     parser.add_argument("--peers", action="store_true", help="also run MuJoCo Warp on the same mechanisms")
+    parser.add_argument("--parts", nargs="+", choices=["throughput", "precision"], default=["throughput", "precision"],
+                        help="what to measure (default both)")
     parser.add_argument("--only", nargs="+", choices=sorted(SCENES_DECLARED), default=None, help="scenes to run")
     parser.add_argument("--assets", default=None, help="folder holding disneyresearch/dr_legs (DR Legs scenes)")
     parser.add_argument("--out", default=None, help="results folder (default benchmarks/results/<device>)")

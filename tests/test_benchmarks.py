@@ -29,3 +29,26 @@ def test_walker_precision_compares_settings_with_the_reference(tmp_path):
     assert np.isfinite(rows["default"]["speed_error_median"]) and rows["default"]["diverged"] == 0
     assert rows["default"]["joint_separation_max"] < 1e-3
     assert (tmp_path / "walker_precision_cpu.png").stat().st_size > 1000
+
+
+def test_benchmark_runner_quick_fourbar_writes_results_with_a_float64_reference(tmp_path):
+    """python -m benchmarks.run --quick on the CPU: throughput and work-precision rows with the
+    promised fields; the default setting's trajectory stays within 1e-5 m of MuJoCo's float64 RK4
+    reference (an independent simulator), a 4x larger step is measurably worse, and the files exist."""
+    import json
+
+    from benchmarks.run import main
+
+    assert main(["--device", "cpu", "--quick", "--only", "fourbar", "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "fourbar.json").read_text())
+    assert result["reference"]["engine"].startswith("mujoco C")
+    assert {r["num_worlds"] for r in result["throughput"]} == {1, 8}
+    for row in result["throughput"] + result["precision"]:
+        assert row["world_steps_per_s"] > 0 and row["diverged_worlds"] == 0
+        assert row["loop_error_m"] < 1e-5 and row["energy_drift_rel"] < 1e-2
+    rows = {r["label"]: r for r in result["precision"]}
+    assert rows["default"]["step_kernel"] == "fused" and rows["staged kernels"]["step_kernel"] == "staged"
+    assert rows["default"]["trajectory_error_m"] < 1e-5
+    assert rows["dt x4"]["trajectory_error_m"] > 10 * rows["default"]["trajectory_error_m"]
+    for ext in ("csv", "png"):
+        assert (tmp_path / f"fourbar.{ext}").stat().st_size > 0
