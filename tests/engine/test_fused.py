@@ -31,7 +31,7 @@ def armature_fourbar():
 
 CASES = {
     "fourbar": lambda: [fourbar().spec] * 3,
-    "mixed": lambda: [pendulum().spec, fourbar().spec, sixbar().spec, chain().spec],
+    "mixed": lambda: [pendulum().spec, fourbar().spec, sixbar().spec],  # 40 rows padded (a 10-link chain has 56)
     "limits": lambda: [ALL_SCENES["fourbar_limits"]().spec] * 2,
     "jansen_drive": lambda: [jansen_spec()] * 2,
     "armature": lambda: [armature_fourbar()] * 2,
@@ -104,6 +104,7 @@ def test_auto_choice_and_errors():
     """'auto' fuses small batches without contacts and stages the others; forcing the fused step
     on a batch it cannot take names the reason; an unknown choice is refused."""
     assert pack_worlds([fourbar().spec], device="cpu").step_kernel == "fused"
+    assert pack_worlds([fourbar().spec, chain().spec], device="cpu").step_kernel == "staged"  # 56 rows > 48
     walker = CONTACT_SCENES["walker"]().spec
     assert pack_worlds([walker], device="cpu").step_kernel == "staged"
     with pytest.raises(ValueError, match="step_kernel='fused'.*contacts"):
