@@ -122,10 +122,6 @@ def trajectory_error(positions: np.ndarray, reference: np.ndarray, sample: np.nd
     return worst
 
 
-def config_of(setting: dict, base: dict | None = None) -> SolverConfig:
-    return SolverConfig(**{**(base or {}), **setting.get("config", {})})
-
-
 def clean(row: dict) -> dict:
     return {k: v for k, v in row.items() if k not in ("positions", "energy")}
 
@@ -163,7 +159,7 @@ def run_scene(name: str, declared: Declared, args) -> dict:
         for setting in sweep:
             step_dt = dt * setting["dt_scale"]
             try:
-                config = config_of(setting)
+                config = SolverConfig(**setting.get("config", {}))
                 row = engine_run(specs, worlds, step_dt, round(duration / step_dt), round(record_dt / step_dt), config,
                                  args.device, sample, scene.potential_min)
             except ValueError as exc:  # e.g. a setting this batch cannot take

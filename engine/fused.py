@@ -390,18 +390,18 @@ def fused_step_kernel(
                         w.diverged)
 
 
-def _fill(struct, source) -> None:
-    for name in type(struct)._cls.__annotations__:  # the fields as declared
-        setattr(struct, name, getattr(source, name))
+def _filled(struct_type, source):
+    """An instance of a Warp struct whose fields are the same-named arrays of ``source``."""
+    instance = struct_type()
+    for name in struct_type.vars:
+        setattr(instance, name, getattr(source, name))
+    return instance
 
 
 def fused_step(model, state_in, state_out, control) -> None:
     """Advance every world of a fused batch (engine.pack chose it) by one step in one launch."""
     if model._fused_structs is None:
-        m, w = StepModel(), StepWork()
-        _fill(m, model)
-        _fill(w, model.work)
-        model._fused_structs = (m, w)
+        model._fused_structs = (_filled(StepModel, model), _filled(StepWork, model.work))
     m, w = model._fused_structs
     cfg = model.config
     if model.fused_block is None:
