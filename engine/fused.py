@@ -1,33 +1,37 @@
-"""The fused step: one kernel launch advances every world by a whole step, one thread per world.
+"""The fused step: one kernel launch advances every world by a whole step, one thread block per world.
 
-A small mechanism (a four-bar has 20 constraint rows) leaves a GPU idle between the ~40 kernels
-and the conditional PADMM loop of the staged step (engine.step): the staged four-bar costs the same
-0.8 ms per step for 1 world as for 4096. The fused kernel runs the same stages, serially in the
-thread of its world, and calls the same per-joint, per-body and per-row functions as the staged
-kernels (so both paths compute the same physics):
+A small mechanism (a four-bar has 24 constraint rows) leaves a GPU idle between the ~40 kernels
+and the conditional PADMM loop of the staged step (engine.step). The fused kernel runs the same
+stages for one world in one warp and calls the same per-joint, per-body and per-row functions as
+the staged kernels (so both paths compute the same physics); the lanes share the world's bodies,
+joints and rows, with a block barrier wherever a stage reads what another lane wrote:
 
 1. midpoint poses (Moreau-Jean), joint rows, free velocities, row operators and the dense
-   preconditioned Delassus matrix of the world's n rows (no padding);
-2. PADMM with the world's own early exit, its penalty updates refactoring the matrix in place
-   (a serial Cholesky factor of the n x n matrix, no tile);
+   preconditioned Delassus matrix of the world's n rows, in shared memory;
+2. PADMM with the world's own early exit, its penalty updates refactoring the matrix: a
+   left-looking Cholesky factor in shared memory (the lanes share each column) and
+   column-oriented substitutions (the lanes share each row's updates);
 3. velocity update, pose integration, Gauss-Newton projection onto the joint constraints
    (the factor reused, or the bilateral block refactored, exactly as the staged dense path does);
 4. divergence guard.
 
-It takes batches without contact shapes whose padded rows fit ``FUSED_MAX_ROWS``: measured on an
-H100 at 4096 worlds, the fused step wins at 24 rows (four-bar: 0.47 against 1.62 ms per step) and
-40 rows (six-bar: 1.35 against 1.92 ms) and loses at 56 (10-link chain: 3.05 against 1.88 ms), where
-one thread's serial factor and solves cost more than the staged path's launches. SolverConfig.step_kernel chooses:
-"auto" (fused where it fits), "fused" (error where it does not) or "staged".
+Shared memory keeps the factor's and the substitutions' dependent loads on the SM; a register cap
+(FUSED_REGISTERS) lets more worlds share an SM. On the CPU a block is one thread and the same code
+runs serially. Measured on an H100 at 4096 worlds, dt 1 ms (engine.testspeed): four-bar (24 rows)
+0.27 ms per step (staged 1.26 ms; one thread per world 0.45 ms), six-bar (40 rows) 0.62 ms, 10-link
+chain (56 rows) 1.40 ms (staged 2.53 ms). It takes batches without contact shapes whose padded rows
+fit ``FUSED_MAX_ROWS``; SolverConfig.step_kernel chooses: "auto" (fused where it fits), "fused"
+(error where it does not) or "staged".
 """
 
-from __future__ import annotations
+from typing import Any
 
 import warp as wp
 
 from engine.dynamics import body_term, free_velocity_of, row_operator_of
 from engine.integrate import apply_impulses_of, apply_projection_of, guard_divergence_of, integrate_pose_of
 from engine.joints import joint_residuals_of, joint_rows_of
+from engine.matrix_free import block_max, block_sum
 from engine.model import ROW_ANGULAR, ROW_LINEAR
 from engine.padmm import (
     padmm_accelerate_of,
@@ -41,18 +45,18 @@ from engine.padmm import (
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
-__all__ = ["FUSED_MAX_ROWS", "fused_block", "fused_fits", "fused_step"]
+__all__ = ["FUSED_MAX_ROWS", "FUSED_REGISTERS", "fused_block", "fused_fits", "fused_step"]
 
-FUSED_MAX_ROWS = 48
-WARPS_PER_SM = 4  # the fused step is latency-bound: spread the worlds so that every SM has a few warps
+FUSED_MAX_ROWS = 64
+FUSED_REGISTERS = 128  # register cap per thread: 158 uncapped leave 12 worlds per SM, 128 allow 16
 
 
-def fused_block(num_worlds: int, device) -> int:
-    """Worlds (threads) per block: few enough that every SM gets WARPS_PER_SM warps, at most 32."""
-    device = wp.get_device(device)
-    if not device.is_cuda:
+def fused_block(max_rows: int, device) -> int:
+    """Threads (lanes) per world of the fused step: one warp (two were slower at 40 and 56 rows on
+    an H100); one on the CPU, where a block is one thread and the lanes' loops run serially."""
+    if not wp.get_device(device).is_cuda:
         return 1
-    return max(1, min(32, num_worlds // (WARPS_PER_SM * device.sm_count)))
+    return 32
 
 
 def fused_fits(has_contacts: bool, max_rows: int, dense: bool) -> bool:
@@ -157,50 +161,99 @@ def is_bilateral(kind: int):
 
 
 @wp.func
-def matrix_entry(world: int, i: int, j: int, bilateral_only: int, row_kind: wp.array2d(dtype=wp.int32),
-                 matrix: wp.array3d(dtype=float)):
-    """P D P (i, j), or with bilateral_only its bilateral joint block (identity elsewhere)."""
+def matrix_entry(world: int, i: int, j: int, bilateral_only: int, row_kind: wp.array2d(dtype=wp.int32), matrix: Any):
+    """P D P (i, j) from the world's shared matrix tile, or with bilateral_only its bilateral joint
+    block (identity elsewhere)."""
     if bilateral_only != 0:
         if not (is_bilateral(row_kind[world, i]) and is_bilateral(row_kind[world, j])):
             if i == j:
                 return 1.0
             return 0.0
-    return matrix[world, i, j]
+    return matrix[i, j]
+
+
+_SYNC = """
+#if defined(__CUDA_ARCH__)
+__syncthreads();
+#endif
+"""
+
+
+@wp.func_native(_SYNC)
+def block_sync(): ...
+
+
+TILE_ROWS = 16  # the shared matrices are sized in steps of this many rows (one kernel per size)
+MAX_TILE_ROWS = 64
+
+
+def _define_tile_setters(size: int):
+    """Element writes into shared tiles of one size that, unlike Warp's tile element assignment,
+    do not end in a block barrier: the lanes write different entries in divergent code and the
+    callers place the barriers (overloads of tile_set, one per size)."""
+
+    @wp.func_native("t.data(wp::tile_coord(i, j)) = value;")
+    def tile_set(t: wp.tile(dtype=float, shape=(size, size), storage="shared"), i: int, j: int, value: float): ...
+
+    @wp.func_native("t.data(wp::tile_coord(i)) = value;")
+    def tile_set(t: wp.tile(dtype=float, shape=(size,), storage="shared"), i: int, value: float): ...  # noqa: F811
+
+    return tile_set
+
+
+for _size in range(TILE_ROWS, MAX_TILE_ROWS + 1, TILE_ROWS):
+    tile_set = _define_tile_setters(_size)
 
 
 @wp.func
-def cholesky_of(world: int, n: int, sigma: float, bilateral_only: int, row_kind: wp.array2d(dtype=wp.int32),
-                matrix: wp.array3d(dtype=float), factor: wp.array3d(dtype=float)):
-    """Lower Cholesky factor of the world's n x n matrix + sigma I (column by column)."""
+def cholesky_lanes(world: int, lane: int, lanes: int, n: int, sigma: float, bilateral_only: int,
+                   row_kind: wp.array2d(dtype=wp.int32), matrix: Any, factor: Any):
+    """Lower Cholesky factor of the world's n x n matrix + sigma I (shared tiles), column by column
+    (left-looking): every lane forms the column's pivot, the lanes share the column's entries below
+    it; one barrier per column. The dot products run in the serial order. Entered after a barrier."""
     for j in range(n):
         s = matrix_entry(world, j, j, bilateral_only, row_kind, matrix) + sigma
         for k in range(j):
-            s -= factor[world, j, k] * factor[world, j, k]
+            s -= factor[j, k] * factor[j, k]
         d = wp.sqrt(wp.max(s, 1.0e-30))
-        factor[world, j, j] = d
         inv = 1.0 / d
-        for i in range(j + 1, n):
+        if lane == 0:
+            tile_set(factor, j, j, d)
+        for i in range(j + 1 + lane, n, lanes):
             t = matrix_entry(world, i, j, bilateral_only, row_kind, matrix)
             for k in range(j):
-                t -= factor[world, i, k] * factor[world, j, k]
-            factor[world, i, j] = t * inv
+                t -= factor[i, k] * factor[j, k]
+            tile_set(factor, i, j, t * inv)
+        block_sync()
 
 
 @wp.func
-def cholesky_solve_of(world: int, n: int, factor: wp.array3d(dtype=float), rhs: wp.array2d(dtype=float),
-                      x: wp.array2d(dtype=float)):
-    """x = (L L^T)^-1 rhs for the world's n rows (forward, then backward substitution in x)."""
-    for i in range(n):
-        t = rhs[world, i]
-        for k in range(i):
-            t -= factor[world, i, k] * x[world, k]
-        x[world, i] = t / factor[world, i, i]
-    for step in range(n):
+def cholesky_solve_lanes(world: int, lane: int, lanes: int, n: int, factor: Any, rhs: wp.array2d(dtype=float),
+                         x: wp.array2d(dtype=float), acc: Any, sol: Any):
+    """x = (L L^T)^-1 rhs for the world's n rows: column-oriented substitutions in two shared
+    vectors (acc, sol), the lanes sharing each column's updates (one barrier per row). Entered
+    after a barrier; leaves x written and a barrier behind."""
+    for i in range(lane, n, lanes):
+        tile_set(acc, i, rhs[world, i])
+    block_sync()
+    for i in range(n):  # forward: L y = rhs, y into sol
+        yi = acc[i] / factor[i, i]
+        if lane == 0:
+            tile_set(sol, i, yi)
+        for k in range(i + 1 + lane, n, lanes):
+            tile_set(acc, k, acc[k] - factor[k, i] * yi)
+        block_sync()
+    for step in range(n):  # backward: L^T x = y, partial sums in sol, the solution into acc
         i = n - 1 - step
-        t = x[world, i]
-        for k in range(i + 1, n):
-            t -= factor[world, k, i] * x[world, k]
-        x[world, i] = t / factor[world, i, i]
+        xi = sol[i] / factor[i, i]
+        if lane == 0:
+            tile_set(acc, i, xi)
+        for k in range(lane, i, lanes):
+            tile_set(sol, k, sol[k] - factor[i, k] * xi)
+        block_sync()
+    for i in range(lane, n, lanes):
+        x[world, i] = acc[i]
+    block_sync()
 
 
 @wp.func
@@ -208,9 +261,10 @@ def delassus_lower_of(world: int, i: int, row_body_p: wp.array2d(dtype=wp.int32)
                       row_body_c: wp.array2d(dtype=wp.int32), row_J_c: wp.array2d(dtype=wp.spatial_vector),
                       row_J_p: wp.array2d(dtype=wp.spatial_vector), row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
                       row_MJ_p: wp.array2d(dtype=wp.spatial_vector), row_compliance: wp.array2d(dtype=float),
-                      row_precond: wp.array2d(dtype=float), matrix: wp.array3d(dtype=float)):
-    """Row i of P D P left of the diagonal, mirrored: engine.dynamics.delassus_entry's arithmetic with
-    row i loaded once and the pairs of rows without a common body skipped (their entry is 0)."""
+                      row_precond: wp.array2d(dtype=float), matrix: Any):
+    """Row i of P D P left of the diagonal, mirrored, into the world's shared matrix tile:
+    engine.dynamics.delassus_entry's arithmetic with row i loaded once and the pairs of rows
+    without a common body skipped (their entry is 0)."""
     ci = row_body_c[world, i]
     pi = row_body_p[world, i]
     Jci = row_J_c[world, i]
@@ -228,166 +282,225 @@ def delassus_lower_of(world: int, i: int, row_body_p: wp.array2d(dtype=wp.int32)
         if i == j:
             d += row_compliance[world, i]
         value = precond_i * d * row_precond[world, j]
-        matrix[world, i, j] = value
-        matrix[world, j, i] = value
+        tile_set(matrix, i, j, value)
+        tile_set(matrix, j, i, value)
 
 
-@wp.kernel(enable_backward=False)
-def fused_step_kernel(
-    m: StepModel,
-    w: StepWork,
-    moreau: int,
-    baumgarte: float,
-    limit_margin: float,
-    limit_stabilization: float,
-    warmstart_scale: float,
-    max_iterations: int,
-    relative_tolerance: float,
-    rho_update_interval: int,
-    adaptive_rho: int,
-    acceleration: int,
-    position_iterations: int,
-    mask_projection: int,
-    velocity_update: int,
-    max_speed: float,
-    body_q_in: wp.array2d(dtype=wp.transform),
-    body_qd_in: wp.array2d(dtype=wp.spatial_vector),
-    row_lambda_in: wp.array2d(dtype=float),
-    joint_target_position: wp.array2d(dtype=float),
-    joint_target_velocity: wp.array2d(dtype=float),
-    joint_effort: wp.array2d(dtype=float),
-    body_f: wp.array2d(dtype=wp.spatial_vector),
-    # out
-    body_q_out: wp.array2d(dtype=wp.transform),
-    body_qd_out: wp.array2d(dtype=wp.spatial_vector),
-    row_lambda_out: wp.array2d(dtype=float),
-):
-    """One whole step of one world (engine.step's stages in one thread)."""
-    world = wp.tid()
-    nb = m.body_count[world]
-    fraction = 1.0
-    # 1. configuration of the dynamics: the midpoint (Moreau-Jean) or the start of the step
-    for b in range(nb):
+_KERNELS = {}
+
+
+def _make_kernel(tile_rows: int, max_registers: int):
+    """The fused step for worlds of at most tile_rows rows: the world's matrix and factor live in
+    shared-memory tiles of that size (the loads of a factor or substitution never leave the SM)."""
+
+    @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=max_registers)
+    def fused_step_kernel(
+        m: StepModel,
+        w: StepWork,
+        moreau: int,
+        baumgarte: float,
+        limit_margin: float,
+        limit_stabilization: float,
+        warmstart_scale: float,
+        max_iterations: int,
+        relative_tolerance: float,
+        rho_update_interval: int,
+        adaptive_rho: int,
+        acceleration: int,
+        position_iterations: int,
+        mask_projection: int,
+        velocity_update: int,
+        max_speed: float,
+        body_q_in: wp.array2d(dtype=wp.transform),
+        body_qd_in: wp.array2d(dtype=wp.spatial_vector),
+        row_lambda_in: wp.array2d(dtype=float),
+        joint_target_position: wp.array2d(dtype=float),
+        joint_target_velocity: wp.array2d(dtype=float),
+        joint_effort: wp.array2d(dtype=float),
+        body_f: wp.array2d(dtype=wp.spatial_vector),
+        # out
+        body_q_out: wp.array2d(dtype=wp.transform),
+        body_qd_out: wp.array2d(dtype=wp.spatial_vector),
+        row_lambda_out: wp.array2d(dtype=float),
+    ):
+        """One whole step of one world (engine.step's stages) in one thread block: the lanes share the
+        world's bodies, joints and rows, with a barrier wherever a stage reads what another lane wrote.
+        Every loop bound and branch that contains a barrier is the same on all lanes of the block."""
+        world, lane = wp.tid()
+        lanes = wp.block_dim()
+        D = wp.tile_zeros(shape=(tile_rows, tile_rows), dtype=float, storage="shared")  # P D P of the world
+        F = wp.tile_zeros(shape=(tile_rows, tile_rows), dtype=float, storage="shared")  # its Cholesky factor
+        acc = wp.tile_zeros(shape=tile_rows, dtype=float, storage="shared")  # substitution vectors
+        sol = wp.tile_zeros(shape=tile_rows, dtype=float, storage="shared")
+        nb = m.body_count[world]
+        nj = m.joint_count[world]
+        fraction = 1.0
         if moreau != 0:
-            integrate_pose_of(world, b, m.body_count, m.world_dt, 0.5, body_q_in, body_qd_in, w.body_q_mid)
-        else:
-            w.body_q_mid[world, b] = body_q_in[world, b]
-    if moreau != 0:
-        fraction = 0.5
-    for j in range(m.joint_count[world]):
-        joint_rows_of(world, j, m.joint_count, m.joint_type, m.joint_parent, m.joint_child, m.joint_X_p, m.joint_X_c,
-                      m.joint_axis, m.joint_axis2, m.joint_row_start, m.joint_inertia_row, m.joint_drive_row,
-                      m.joint_armature, m.joint_damping, m.joint_stiffness, m.joint_drive_damping,
-                      m.joint_effort_limit, m.joint_limit_lower, m.joint_limit_upper, m.joint_limit_lower_row,
-                      m.joint_limit_upper_row, m.world_dt, baumgarte, limit_margin, limit_stabilization,
-                      w.body_q_mid, body_qd_in, joint_target_position, joint_target_velocity, joint_effort,
-                      w.row_J_c, w.row_J_p, w.row_bias, w.row_compliance, w.row_lo, w.row_hi, w.row_residual)
-    # 2. the dual problem
-    n = w.row_count[world]
-    max_rows = row_lambda_out.shape[1]
-    for b in range(nb):
-        free_velocity_of(world, b, m.body_count, m.body_inv_mass, m.body_inertia, m.body_inv_inertia, m.world_gravity,
-                         m.world_dt, w.body_q_mid, body_qd_in, body_f, w.body_qd_free)
-    for i in range(max_rows):
-        row_operator_of(world, i, m.row_kind, m.contact_row_start, m.body_inv_mass, m.body_inv_inertia, w.row_count,
-                        w.row_body_p, w.row_body_c, w.body_q_mid, w.body_qd_free, w.row_J_c, w.row_J_p, w.row_bias,
-                        w.row_compliance, w.row_lo, w.row_hi, w.row_MJ_c, w.row_MJ_p, w.row_precond, w.v_f, w.lo,
-                        w.hi)
-    for i in range(n):
-        delassus_lower_of(world, i, w.row_body_p, w.row_body_c, w.row_J_c, w.row_J_p, w.row_MJ_c, w.row_MJ_p,
-                          w.row_compliance, w.row_precond, w.delassus)
-    # 3. PADMM (padmm_setup, padmm_warmstart, then iterations until this world stops)
-    eta = m.padmm_eta[world]
-    active = int(0)
-    if n > 0 and w.diverged[world] == 0 and w.halted[world] == 0:
-        active = 1
-    w.active[world] = active
-    w.valid[world] = active
-    w.needs_factor[world] = 0
-    w.converged[world] = 0
-    w.iterations[world] = 0
-    if w.rho[world] <= 0.0:
-        w.rho[world] = m.padmm_rho_init[world]
-    w.momentum[world] = 1.0
-    w.momentum_beta[world] = 0.0
-    w.merit[world] = 1.0e30
-    if active != 0:
-        for i in range(n):
-            padmm_warmstart_of(world, i, warmstart_scale, row_lambda_in, w.row_precond, w.active, w.lo, w.hi, w.x,
-                               w.y, w.y_hat, w.z, w.z_hat)
-        w.sigma[world] = eta + w.rho[world]
-        cholesky_of(world, n, w.sigma[world], 0, m.row_kind, w.delassus, w.factor)
-    while active != 0:
-        for i in range(n):
-            padmm_rhs_of(world, i, m.padmm_eta, m.row_kind, w.rho, w.active, w.row_friction, w.v_f, w.x, w.y_hat,
-                         w.z_hat, w.x_prev, w.rhs)
-        cholesky_solve_of(world, n, w.factor, w.rhs, w.x)
-        for i in range(n):
-            padmm_project_of(world, i, m.row_kind, w.row_count, w.row_friction, w.rho, w.active, w.lo, w.hi, w.x,
-                             w.z_hat, w.y, w.z, w.y_prev, w.z_prev)
-        r = w.rho[world]
-        r_p = float(0.0)
-        r_d = float(0.0)
-        r_c = float(0.0)
-        change = float(0.0)
-        scale = float(0.0)
-        for i in range(n):
-            s_i, p_i, d_i, c_i, m_i = row_residuals(world, i, eta, r, m.row_kind, w.x, w.x_prev, w.y, w.y_hat, w.z,
-                                                    w.z_hat)
-            scale = wp.max(scale, s_i)
-            r_p = wp.max(r_p, p_i)
-            r_d = wp.max(r_d, d_i)
-            r_c = wp.max(r_c, c_i)
-            change += m_i
-        if padmm_decide(world, r_p, r_d, r_c, scale, change, max_iterations, relative_tolerance,
-                        rho_update_interval, adaptive_rho, acceleration, m.padmm_tolerance, w.rho, w.active,
-                        w.converged, w.iterations, w.momentum, w.momentum_beta, w.merit, w.needs_factor,
-                        w.residual_primal, w.residual_dual, w.residual_complementarity) != 0:
-            active = 0
-        else:
-            for i in range(n):
-                padmm_accelerate_of(world, i, w.active, w.momentum_beta, w.y, w.y_prev, w.z, w.z_prev, w.y_hat,
-                                    w.z_hat)
-            if w.needs_factor[world] != 0:
-                w.sigma[world] = eta + w.rho[world]
-                cholesky_of(world, n, w.sigma[world], 0, m.row_kind, w.delassus, w.factor)
-                w.needs_factor[world] = 0
-    for i in range(max_rows):
-        padmm_output_of(world, i, w.row_count, w.row_precond, w.y, w.diverged, w.halted, row_lambda_out)
-    # 4. velocity update and poses
-    for b in range(nb):
-        apply_impulses_of(world, b, m.body_count, w.row_count, w.row_body_c, w.row_body_p, w.row_MJ_c, w.row_MJ_p,
-                          row_lambda_out, w.row_precond, w.body_qd_free, body_qd_out)
-    for b in range(nb):
-        integrate_pose_of(world, b, m.body_count, m.world_dt, fraction, w.body_q_mid, body_qd_out, body_q_out)
-    # 5. Gauss-Newton projection onto the joint constraints (engine.integrate.project_positions)
-    project = int(0)
-    if position_iterations > 0 and w.valid[world] != 0 and m.bilateral_row_count[world] > 0:
-        project = 1
-    w.project[world] = project
-    if project != 0:
+            fraction = 0.5
+        # 1. configuration of the dynamics: the midpoint (Moreau-Jean) or the start of the step
+        for b in range(lane, nb, lanes):
+            if moreau != 0:
+                integrate_pose_of(world, b, m.body_count, m.world_dt, 0.5, body_q_in, body_qd_in, w.body_q_mid)
+            else:
+                w.body_q_mid[world, b] = body_q_in[world, b]
+        block_sync()
+        for j in range(lane, nj, lanes):
+            joint_rows_of(world, j, m.joint_count, m.joint_type, m.joint_parent, m.joint_child, m.joint_X_p, m.joint_X_c,
+                          m.joint_axis, m.joint_axis2, m.joint_row_start, m.joint_inertia_row, m.joint_drive_row,
+                          m.joint_armature, m.joint_damping, m.joint_stiffness, m.joint_drive_damping,
+                          m.joint_effort_limit, m.joint_limit_lower, m.joint_limit_upper, m.joint_limit_lower_row,
+                          m.joint_limit_upper_row, m.world_dt, baumgarte, limit_margin, limit_stabilization,
+                          w.body_q_mid, body_qd_in, joint_target_position, joint_target_velocity, joint_effort,
+                          w.row_J_c, w.row_J_p, w.row_bias, w.row_compliance, w.row_lo, w.row_hi, w.row_residual)
+        # 2. the dual problem
+        n = w.row_count[world]
+        max_rows = row_lambda_out.shape[1]
+        for b in range(lane, nb, lanes):
+            free_velocity_of(world, b, m.body_count, m.body_inv_mass, m.body_inertia, m.body_inv_inertia, m.world_gravity,
+                             m.world_dt, w.body_q_mid, body_qd_in, body_f, w.body_qd_free)
+        block_sync()
+        for i in range(lane, max_rows, lanes):
+            row_operator_of(world, i, m.row_kind, m.contact_row_start, m.body_inv_mass, m.body_inv_inertia, w.row_count,
+                            w.row_body_p, w.row_body_c, w.body_q_mid, w.body_qd_free, w.row_J_c, w.row_J_p, w.row_bias,
+                            w.row_compliance, w.row_lo, w.row_hi, w.row_MJ_c, w.row_MJ_p, w.row_precond, w.v_f, w.lo,
+                            w.hi)
+        block_sync()
+        for i in range(lane, n, lanes):
+            delassus_lower_of(world, i, w.row_body_p, w.row_body_c, w.row_J_c, w.row_J_p, w.row_MJ_c, w.row_MJ_p,
+                              w.row_compliance, w.row_precond, D)
+        # 3. PADMM (padmm_setup, padmm_warmstart, then iterations until this world stops)
+        eta = m.padmm_eta[world]
+        active = int(0)
+        if n > 0 and w.diverged[world] == 0 and w.halted[world] == 0:
+            active = 1
+        valid = active
+        rho = w.rho[world]
+        if rho <= 0.0:
+            rho = m.padmm_rho_init[world]
+        sigma = eta + rho
+        block_sync()  # every lane has read rho before lane 0 writes it
+        if lane == 0:
+            w.active[world] = active
+            w.valid[world] = active
+            w.needs_factor[world] = 0
+            w.converged[world] = 0
+            w.iterations[world] = 0
+            w.rho[world] = rho
+            w.momentum[world] = 1.0
+            w.momentum_beta[world] = 0.0
+            w.merit[world] = 1.0e30
+            if active != 0:
+                w.sigma[world] = sigma
+        block_sync()
+        if active != 0:
+            for i in range(lane, n, lanes):
+                padmm_warmstart_of(world, i, warmstart_scale, row_lambda_in, w.row_precond, w.active, w.lo, w.hi, w.x,
+                                   w.y, w.y_hat, w.z, w.z_hat)
+            cholesky_lanes(world, lane, lanes, n, sigma, 0, m.row_kind, D, F)
+        while active != 0:
+            for i in range(lane, n, lanes):
+                padmm_rhs_of(world, i, m.padmm_eta, m.row_kind, w.rho, w.active, w.row_friction, w.v_f, w.x, w.y_hat,
+                             w.z_hat, w.x_prev, w.rhs)
+            block_sync()
+            cholesky_solve_lanes(world, lane, lanes, n, F, w.rhs, w.x, acc, sol)
+            r = w.rho[world]
+            r_p = float(0.0)
+            r_d = float(0.0)
+            r_c = float(0.0)
+            change = float(0.0)
+            scale = float(0.0)
+            for i in range(lane, n, lanes):
+                padmm_project_of(world, i, m.row_kind, w.row_count, w.row_friction, w.rho, w.active, w.lo, w.hi, w.x,
+                                 w.z_hat, w.y, w.z, w.y_prev, w.z_prev)
+                s_i, p_i, d_i, c_i, m_i = row_residuals(world, i, eta, r, m.row_kind, w.x, w.x_prev, w.y, w.y_hat, w.z,
+                                                        w.z_hat)
+                scale = wp.max(scale, s_i)
+                r_p = wp.max(r_p, p_i)
+                r_d = wp.max(r_d, d_i)
+                r_c = wp.max(r_c, c_i)
+                change += m_i
+            if lanes > 1:
+                scale = block_max(scale)
+                r_p = block_max(r_p)
+                r_d = block_max(r_d)
+                r_c = block_max(r_c)
+                change = block_sum(change)
+            if lane == 0:
+                padmm_decide(world, r_p, r_d, r_c, scale, change, max_iterations, relative_tolerance,
+                             rho_update_interval, adaptive_rho, acceleration, m.padmm_tolerance, w.rho, w.active,
+                             w.converged, w.iterations, w.momentum, w.momentum_beta, w.merit, w.needs_factor,
+                             w.residual_primal, w.residual_dual, w.residual_complementarity)
+            block_sync()
+            active = w.active[world]
+            if active != 0:
+                for i in range(lane, n, lanes):
+                    padmm_accelerate_of(world, i, w.active, w.momentum_beta, w.y, w.y_prev, w.z, w.z_prev, w.y_hat,
+                                        w.z_hat)
+                if w.needs_factor[world] != 0:
+                    sigma = eta + w.rho[world]
+                    block_sync()  # every lane has read the flag before lane 0 clears it
+                    if lane == 0:
+                        w.sigma[world] = sigma
+                        w.needs_factor[world] = 0
+                    cholesky_lanes(world, lane, lanes, n, sigma, 0, m.row_kind, D, F)
+        for i in range(lane, max_rows, lanes):
+            padmm_output_of(world, i, w.row_count, w.row_precond, w.y, w.diverged, w.halted, row_lambda_out)
+        block_sync()
+        # 4. velocity update and poses
+        for b in range(lane, nb, lanes):
+            apply_impulses_of(world, b, m.body_count, w.row_count, w.row_body_c, w.row_body_p, w.row_MJ_c, w.row_MJ_p,
+                              row_lambda_out, w.row_precond, w.body_qd_free, body_qd_out)
+            integrate_pose_of(world, b, m.body_count, m.world_dt, fraction, w.body_q_mid, body_qd_out, body_q_out)
+        # 5. Gauss-Newton projection onto the joint constraints (engine.integrate.project_positions)
+        project = int(0)
+        if position_iterations > 0 and valid != 0 and m.bilateral_row_count[world] > 0:
+            project = 1
         target = eta + m.padmm_rho_init[world]
-        if mask_projection != 0 or w.sigma[world] > target:
-            w.sigma[world] = target
-            cholesky_of(world, n, target, mask_projection, m.row_kind, w.delassus, w.factor)
-        for _it in range(position_iterations):
-            for j in range(m.joint_count[world]):
-                joint_residuals_of(world, j, m.joint_count, m.joint_type, m.joint_parent, m.joint_child, m.joint_X_p,
-                                   m.joint_X_c, m.joint_axis, m.joint_axis2, m.joint_row_start, m.joint_inertia_row,
-                                   m.joint_drive_row, body_q_out, w.row_residual)
-            for i in range(n):
-                value = 0.0
-                if is_bilateral(m.row_kind[world, i]):
-                    value = -w.row_precond[world, i] * w.row_residual[world, i]
-                w.rhs[world, i] = value
-            cholesky_solve_of(world, n, w.factor, w.rhs, w.delta)
-            for b in range(nb):
-                apply_projection_of(world, b, m.body_count, w.row_count, w.row_body_c, w.row_body_p, w.valid,
-                                    m.world_dt, velocity_update, fraction, w.row_MJ_c, w.row_MJ_p, w.row_precond,
-                                    w.delta, body_q_out, body_qd_out)
-    # 6. divergence guard
-    guard_divergence_of(world, m.body_count, body_q_in, body_qd_in, w.halted, max_speed, body_q_out, body_qd_out,
-                        w.diverged)
+        refactor = project != 0 and (mask_projection != 0 or w.sigma[world] > target)
+        block_sync()  # every lane has read sigma before lane 0 writes it
+        if lane == 0:
+            w.project[world] = project
+            if refactor:
+                w.sigma[world] = target
+        if project != 0:
+            if refactor:
+                cholesky_lanes(world, lane, lanes, n, target, mask_projection, m.row_kind, D, F)
+            for _it in range(position_iterations):
+                for j in range(lane, nj, lanes):
+                    joint_residuals_of(world, j, m.joint_count, m.joint_type, m.joint_parent, m.joint_child, m.joint_X_p,
+                                       m.joint_X_c, m.joint_axis, m.joint_axis2, m.joint_row_start, m.joint_inertia_row,
+                                       m.joint_drive_row, body_q_out, w.row_residual)
+                block_sync()
+                for i in range(lane, n, lanes):
+                    value = 0.0
+                    if is_bilateral(m.row_kind[world, i]):
+                        value = -w.row_precond[world, i] * w.row_residual[world, i]
+                    w.rhs[world, i] = value
+                block_sync()
+                cholesky_solve_lanes(world, lane, lanes, n, F, w.rhs, w.delta, acc, sol)
+                for b in range(lane, nb, lanes):
+                    apply_projection_of(world, b, m.body_count, w.row_count, w.row_body_c, w.row_body_p, w.valid,
+                                        m.world_dt, velocity_update, fraction, w.row_MJ_c, w.row_MJ_p, w.row_precond,
+                                        w.delta, body_q_out, body_qd_out)
+                block_sync()
+        # 6. divergence guard
+        block_sync()
+        if lane == 0:
+            guard_divergence_of(world, m.body_count, body_q_in, body_qd_in, w.halted, max_speed, body_q_out,
+                                body_qd_out, w.diverged)
+
+    return fused_step_kernel
+
+
+def fused_kernel(max_rows: int, max_registers: int = FUSED_REGISTERS):
+    """The fused step kernel for a padded row count (cached per tile size and register cap)."""
+    tile_rows = max(TILE_ROWS, -(-max_rows // TILE_ROWS) * TILE_ROWS)
+    if tile_rows > MAX_TILE_ROWS:
+        raise ValueError(f"the fused step takes at most {MAX_TILE_ROWS} rows per world, not {max_rows}")
+    key = (tile_rows, max_registers)
+    if key not in _KERNELS:
+        _KERNELS[key] = _make_kernel(*key)
+    return _KERNELS[key]
 
 
 def _filled(struct_type, source):
@@ -405,8 +518,8 @@ def fused_step(model, state_in, state_out, control) -> None:
     m, w = model._fused_structs
     cfg = model.config
     if model.fused_block is None:
-        model.fused_block = fused_block(model.num_worlds, model.device)
-    wp.launch(fused_step_kernel, dim=model.num_worlds, block_dim=model.fused_block, device=model.device,
+        model.fused_block = fused_block(model.max_rows, model.device)
+    wp.launch_tiled(fused_kernel(model.max_rows, model.fused_registers), dim=[model.num_worlds], block_dim=model.fused_block, device=model.device,
               inputs=[m, w, int(cfg.integrator.value == "moreau"), float(cfg.baumgarte), float(cfg.limit_margin),
                       float(cfg.limit_stabilization), 1.0 if cfg.warmstart else 0.0, cfg.max_iterations,
                       float(cfg.relative_tolerance), cfg.rho_update_interval, int(cfg.adaptive_rho),

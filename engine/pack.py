@@ -8,7 +8,7 @@ import numpy as np
 import warp as wp
 
 from engine.collide import PAIR_CONTACTS, PLANE_CONTACTS
-from engine.fused import FUSED_MAX_ROWS, fused_fits
+from engine.fused import FUSED_MAX_ROWS, FUSED_REGISTERS, fused_fits
 from engine.model import Model, SolverConfig, Workspace
 from engine.spec import JOINT_ROW_COUNT, JointType, MechanismSpec, joint_dynamics_rows
 
@@ -280,7 +280,8 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
                          f"step_kernel='auto' or 'staged'")
     model.step_kernel = "fused" if config.step_kernel == "fused" or (config.step_kernel == "auto" and fits) else "staged"
     model._fused_structs = None  # built on the first fused step
-    model.fused_block = None  # worlds per thread block of the fused step (None: engine.fused.fused_block)
+    model.fused_block = None  # threads per world of the fused step (None: engine.fused.fused_block)
+    model.fused_registers = FUSED_REGISTERS  # register cap per thread of the fused step
     model.work = Workspace(W, B, R, device, max_pairs=max_pairs, contact_capacity=capacity, dense=dense)
     model.work.row_count.assign(h["row_count"])
     model.work.row_body_c = wp.clone(model.row_body_c)  # contact rows rewrite their bodies every step

@@ -64,7 +64,8 @@ def stage_profile(model, state, control, steps: int = 20) -> dict:
 
 
 def run(scene: str, num_worlds: int, steps: int, dt: float, device: str, *, chunk: int = 10,
-        config: SolverConfig | None = None, stages: bool = True, fused_block: int | None = None) -> dict:
+        config: SolverConfig | None = None, stages: bool = True, fused_block: int | None = None,
+        fused_registers: int | None = None) -> dict:
     """Run the benchmark and return its JSON-able result."""
     config = config or SolverConfig()
     specs, potential_min = build_batch(scene, num_worlds)
@@ -75,6 +76,8 @@ def run(scene: str, num_worlds: int, steps: int, dt: float, device: str, *, chun
     model = pack_worlds(specs, device=device, config=config, dt=dt)
     pack_s = time.perf_counter() - t0
     model.fused_block = fused_block
+    if fused_registers is not None:
+        model.fused_registers = fused_registers
     state, control = model.state(), model.control()
     compute_metrics(model, state)
     energy0 = model.work.energy.numpy().copy()
@@ -130,7 +133,7 @@ def run(scene: str, num_worlds: int, steps: int, dt: float, device: str, *, chun
         "contact_overflow_worlds": int((stepper.overflow_steps.numpy() > 0).sum()),
         "max_penetration_m": float(max(stepper.penetration_max.numpy().max(), 0.0)),
         "complementarity_max": float(stepper.complementarity_max.numpy().max()),
-        "warp_version": wp.config.version, "cuda_graph": bool(stepper.capture), "fused_block": model.fused_block,
+        "warp_version": wp.config.version, "cuda_graph": bool(stepper.capture), "fused_block": model.fused_block, "fused_registers": model.fused_registers,
     }
     if stages:
         result["stage_ms"] = stage_profile(model, stepper.state, control)
@@ -152,7 +155,8 @@ def main(argv=None) -> int:
     parser.add_argument("--max-iterations", type=int, default=SolverConfig.max_iterations)
     parser.add_argument("--step-kernel", choices=["auto", "fused", "staged"], default=SolverConfig.step_kernel,
                         help="whole step per world in one launch (fused) or one kernel per stage (staged)")
-    parser.add_argument("--fused-block", type=int, default=None, help="worlds per thread block of the fused step")
+    parser.add_argument("--fused-block", type=int, default=None, help="threads per world of the fused step")
+    parser.add_argument("--fused-registers", type=int, default=None, help="register cap per thread of the fused step")
     parser.add_argument("--json", action="store_true", help="print only the JSON object")
     args = parser.parse_args(argv)
     if args.worlds < 1 or args.steps < 1 or not args.dt > 0.0:
@@ -162,7 +166,7 @@ def main(argv=None) -> int:
     config = SolverConfig(integrator=args.integrator, tolerance=args.tolerance, max_iterations=args.max_iterations,
                           step_kernel=args.step_kernel, **STABILIZATION[args.stabilization])
     result = run(args.scene, args.worlds, args.steps, args.dt, args.device, chunk=args.chunk, config=config,
-                 fused_block=args.fused_block)
+                 fused_block=args.fused_block, fused_registers=args.fused_registers)
     result["stabilization"] = args.stabilization
     if args.json:
         print(json.dumps(result))
