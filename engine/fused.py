@@ -29,7 +29,13 @@ from typing import Any
 import warp as wp
 
 from engine.dynamics import body_term, free_velocity_of, row_operator_of
-from engine.integrate import apply_impulses_of, apply_projection_of, guard_divergence_of, integrate_pose_of
+from engine.integrate import (
+    apply_impulses_of,
+    apply_projection_of,
+    guard_divergence_of,
+    integrate_pose_of,
+    projection_error_of,
+)
 from engine.joints import joint_residuals_of, joint_rows_of
 from engine.matrix_free import block_max, block_sum
 from engine.model import ROW_ANGULAR, ROW_LINEAR
@@ -310,6 +316,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
         position_iterations: int,
         mask_projection: int,
         velocity_update: int,
+        velocity_floor: float,
         max_speed: float,
         body_q_in: wp.array2d(dtype=wp.transform),
         body_qd_in: wp.array2d(dtype=wp.spatial_vector),
@@ -471,16 +478,23 @@ def _make_kernel(tile_rows: int, max_registers: int):
                                        m.joint_X_c, m.joint_axis, m.joint_axis2, m.joint_row_start, m.joint_inertia_row,
                                        m.joint_drive_row, body_q_out, w.row_residual)
                 block_sync()
+                largest = float(0.0)
                 for i in range(lane, n, lanes):
                     value = 0.0
                     if is_bilateral(m.row_kind[world, i]):
                         value = -w.row_precond[world, i] * w.row_residual[world, i]
                     w.rhs[world, i] = value
+                    largest = wp.max(largest, projection_error_of(world, i, w.row_count, m.row_kind, w.row_residual))
+                if lanes > 1:
+                    largest = block_max(largest)
+                update = int(0)
+                if largest > velocity_floor:  # above float32 rounding: SHAKE's velocity update
+                    update = velocity_update
                 block_sync()
                 cholesky_solve_lanes(world, lane, lanes, n, F, w.rhs, w.delta, acc, sol)
                 for b in range(lane, nb, lanes):
                     apply_projection_of(world, b, m.body_count, w.row_count, w.row_body_c, w.row_body_p, w.valid,
-                                        m.world_dt, velocity_update, fraction, w.row_MJ_c, w.row_MJ_p, w.row_precond,
+                                        m.world_dt, update, fraction, w.row_MJ_c, w.row_MJ_p, w.row_precond,
                                         w.delta, body_q_out, body_qd_out)
                 block_sync()
         # 6. divergence guard
@@ -525,7 +539,7 @@ def fused_step(model, state_in, state_out, control) -> None:
                       float(cfg.relative_tolerance), cfg.rho_update_interval, int(cfg.adaptive_rho),
                       int(cfg.acceleration), cfg.position_iterations if model.has_bilateral_rows else 0,
                       int(model.has_unilateral_or_drive_rows), int(cfg.projection_velocity_update),
-                      float(cfg.max_speed), state_in.body_q, state_in.body_qd, state_in.row_lambda,
+                      float(cfg.projection_velocity_floor), float(cfg.max_speed), state_in.body_q, state_in.body_qd, state_in.row_lambda,
                       control.joint_target_position, control.joint_target_velocity, control.joint_effort,
                       control.body_f],
               outputs=[state_out.body_q, state_out.body_qd, state_out.row_lambda])

@@ -140,6 +140,34 @@ def projection_rhs(
 
 
 @wp.func
+def projection_error_of(world: int, i: int, row_count: wp.array(dtype=wp.int32), row_kind: wp.array2d(dtype=wp.int32),
+                        row_residual: wp.array2d(dtype=float)):
+    """|phi_i| of a bilateral joint row [m]/[rad], 0 for every other row."""
+    kind = row_kind[world, i]
+    if i < row_count[world] and (kind == ROW_LINEAR or kind == ROW_ANGULAR):
+        return wp.abs(row_residual[world, i])
+    return 0.0
+
+
+@wp.kernel
+def projection_gate(
+    row_count: wp.array(dtype=wp.int32),
+    row_kind: wp.array2d(dtype=wp.int32),
+    row_residual: wp.array2d(dtype=float),
+    floor: float,
+    # out
+    gate: wp.array(dtype=wp.int32),
+):
+    """gate = 1 where the world's largest bilateral joint error exceeds floor (its projection
+    iteration may update the velocities), else 0 (the correction is rounding)."""
+    world = wp.tid()
+    largest = float(0.0)
+    for i in range(row_count[world]):
+        largest = wp.max(largest, projection_error_of(world, i, row_count, row_kind, row_residual))
+    gate[world] = wp.where(largest > floor, 1, 0)
+
+
+@wp.func
 def apply_projection_of(
     world: int, b: int,
     body_count: wp.array(dtype=wp.int32),
@@ -177,6 +205,7 @@ def apply_projection(
     valid: wp.array(dtype=wp.int32),
     world_dt: wp.array(dtype=float),
     velocity_update: int,
+    gate: wp.array(dtype=wp.int32),
     fraction: float,
     row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
     row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
@@ -187,12 +216,13 @@ def apply_projection(
     body_qd: wp.array2d(dtype=wp.spatial_vector),
 ):
     """Move each body by M^-1 J^T (P delta): translation [m] and rotation vector [rad]; with
-    velocity_update, add the same displacement / (fraction dt) to the twist (SHAKE: the step stays symplectic)."""
+    velocity_update, and where the world's gate is open (its joint error is above the rounding
+    floor), add the same displacement / (fraction dt) to the twist (SHAKE: the step stays symplectic)."""
     world, b = wp.tid()
     if b >= body_count[world] or valid[world] == 0:
         return
-    apply_projection_of(world, b, body_count, row_count, row_body_c, row_body_p, valid, world_dt, velocity_update,
-        fraction, row_MJ_c, row_MJ_p, row_precond, delta, body_q, body_qd)
+    apply_projection_of(world, b, body_count, row_count, row_body_c, row_body_p, valid, world_dt,
+        velocity_update * gate[world], fraction, row_MJ_c, row_MJ_p, row_precond, delta, body_q, body_qd)
 
 
 @wp.func
@@ -327,6 +357,9 @@ def project_positions(model, body_q, body_qd, residual_fn, fraction=1.0):
         linear.factor(work.delassus, work.sigma, work.needs_factor, work.factor)
     for _ in range(model.config.position_iterations):
         residual_fn(model, body_q, work.row_residual)
+        wp.launch(projection_gate, dim=model.num_worlds, device=device,
+                  inputs=[work.row_count, model.row_kind, work.row_residual,
+                          float(model.config.projection_velocity_floor)], outputs=[work.projection_gate])
         wp.launch(projection_rhs, dim=grid_rows, device=device,
                   inputs=[work.row_count, model.row_kind, work.project, work.row_precond, work.row_residual],
                   outputs=[work.rhs])
@@ -337,7 +370,8 @@ def project_positions(model, body_q, body_qd, residual_fn, fraction=1.0):
             matrix_free.solve(model, work.rhs, work.project, work.delta, bilateral_only=True)
         wp.launch(apply_projection, dim=grid_bodies, device=device,
                   inputs=[model.body_count, work.row_count, work.row_body_c, work.row_body_p, work.project,
-                          model.world_dt, int(model.config.projection_velocity_update), fraction, work.row_MJ_c,
+                          model.world_dt, int(model.config.projection_velocity_update), work.projection_gate,
+                          fraction, work.row_MJ_c,
                           work.row_MJ_p, work.row_precond, work.delta, body_q, body_qd])
 
 

@@ -68,6 +68,14 @@ class SolverConfig:
             manifold after each step (0 disables; reuses the factored Delassus matrix).
         projection_velocity_update: add each projection displacement / dt to the velocities, so
             that the step is SHAKE-like (symplectic: energy stays bounded instead of draining).
+        projection_velocity_floor: a projection iteration updates the velocities only when the
+            largest bilateral joint error it corrects exceeds this [m]/[rad] (about two float32
+            ulps of a coordinate of 0.5 m); below it the correction is mostly rounding of the
+            poses, which the update would divide by dt and inject as noise, so the energy error
+            grew as dt shrank. Energy drift over 2 s (four-bar) / 1 s (six-bar), CPU, without ->
+            with the floor: four-bar dt 0.1 ms 3.3 % -> 0.14 %, 0.5 ms 0.11 % -> 0.003 %, 1 ms
+            0.013 % -> 0.011 %, 2 ms 0.010 % -> 0.022 %; six-bar 0.1 ms 5.4 % -> 0.40 %, 1 ms
+            0.008 % -> 0.003 %. 0 turns the floor off.
         limit_margin: a joint limit row turns on within this distance of the limit [rad]/[m]
             (plus the distance the joint covers in one step, so fast joints do not tunnel).
         limit_stabilization: share of a limit violation pushed back per step.
@@ -106,6 +114,7 @@ class SolverConfig:
     baumgarte: float = 0.0
     position_iterations: int = 2
     projection_velocity_update: bool = True
+    projection_velocity_floor: float = 1.0e-7
     limit_margin: float = 0.02
     limit_stabilization: float = 0.2
     contact_margin: float = 0.01
@@ -134,6 +143,7 @@ class SolverConfig:
             "inner_iterations": self.inner_iterations >= 1,
             "inner_tolerance_ratio": 0.0 < self.inner_tolerance_ratio < 1.0,
             "projection_tolerance": 0.0 < self.projection_tolerance < 1.0,
+            "projection_velocity_floor": self.projection_velocity_floor >= 0.0,
             "max_speed": self.max_speed > 0.0,
             "max_iterations": self.max_iterations >= 1,
             "tolerance": self.tolerance > 0.0,
@@ -298,7 +308,8 @@ class Workspace:
         for name in ("rho", "sigma", "residual_primal", "residual_dual", "residual_complementarity", "momentum", "momentum_beta", "merit",
                      "violation_linear", "violation_angular", "energy"):
             setattr(self, name, zeros(w))
-        for name in ("iterations", "converged", "valid", "project", "active", "needs_factor", "diverged", "halted"):
+        for name in ("iterations", "converged", "valid", "project", "projection_gate", "active", "needs_factor",
+                     "diverged", "halted"):
             setattr(self, name, zeros(w, wp.int32))
         self.active_count = zeros(1, wp.int32)
         self.row_count = zeros(w, wp.int32)  # rows of this step: joint, drive, limit and 3 per contact

@@ -188,11 +188,13 @@ def test_fused_step_on_the_device_matches_the_staged_step(device):
 
 
 def test_default_projection_velocity_update_keeps_the_paths_within_its_noise():
-    """With the default SHAKE velocity update, poses agree to 1e-4 m and twists to 1 % over 200
-    steps: the update turns pose rounding into twist noise, but neither path drifts from the other."""
+    """With the SHAKE velocity update on every projection, poses agree to 1e-4 m and twists to 1 %
+    over 200 steps: the update turns pose rounding into twist noise, but neither path drifts from
+    the other. (The default rounding floor of that update, a threshold, is off here: the two paths
+    may fall on either side of it; tests/engine/test_projection_floor.py covers it on both.)"""
     for case in ("fourbar", "jansen_drive", "armature"):
         for integrator in ("euler", "moreau"):
-            config = SolverConfig(integrator=integrator)
+            config = SolverConfig(integrator=integrator, projection_velocity_floor=0.0)
             _, staged = trajectory(CASES[case](), "staged", 200, config)
             _, fused = trajectory(CASES[case](), "fused", 200, config)
             assert np.abs(staged.body_q.numpy() - fused.body_q.numpy()).max() < 1e-4, (case, integrator)
