@@ -15,7 +15,7 @@ import time
 import numpy as np
 import warp as wp
 
-__all__ = ["available", "mujoco_warp_run"]
+__all__ = ["available", "contact_capacity", "mujoco_warp_run"]
 
 
 def available() -> str | None:
@@ -26,6 +26,24 @@ def available() -> str | None:
     except ImportError as exc:
         return f"MuJoCo Warp is not installed ({exc}); pip install '.[bench]'"
     return None
+
+
+def contact_capacity(host_model, qpos, qvel, steps: int, margin: float = 2.0) -> dict:
+    """MuJoCo Warp's per-world contact and constraint capacities (nconmax, njmax) sized from a
+    rollout of one world in MuJoCo C: the largest counts seen, times ``margin``, plus 8. MuJoCo Warp
+    allocates these up front and drops what does not fit (its default njmax is too small for a
+    legged robot standing on its feet, whose run then loses its contacts and goes non-finite)."""
+    import mujoco
+
+    probe = mujoco.MjData(host_model)
+    probe.qpos[:], probe.qvel[:] = qpos, qvel
+    ncon = nefc = 0
+    for _ in range(min(steps, 1000)):
+        mujoco.mj_step(host_model, probe)
+        if probe.warning[mujoco.mjtWarning.mjWARN_BADQACC].number > 0:
+            break  # the host run went unstable (MuJoCo resets it): keep the counts seen so far
+        ncon, nefc = max(ncon, int(probe.ncon)), max(nefc, int(probe.nefc))
+    return {"nconmax": int(margin * ncon) + 8, "njmax": int(margin * nefc) + 8}
 
 
 def mujoco_warp_run(spec, *, worlds: int, dt: float, steps: int, record_every: int, integrator: str, device: str,
@@ -52,6 +70,8 @@ def mujoco_warp_run(spec, *, worlds: int, dt: float, steps: int, record_every: i
         kwargs = dict(nworld=worlds)
         if not has_contacts:
             kwargs.update(nconmax=0, njmax=max(8, 2 * int(host_model.neq) * 6 + 8))
+        else:
+            kwargs.update(contact_capacity(host_model, q0, v0, steps))
         data = mjw.make_data(device_model, **kwargs)
 
         def reset():

@@ -52,3 +52,25 @@ def test_benchmark_runner_quick_fourbar_writes_results_with_a_float64_reference(
     assert rows["dt x4"]["trajectory_error_m"] > 10 * rows["default"]["trajectory_error_m"]
     for ext in ("csv", "png"):
         assert (tmp_path / f"fourbar.{ext}").stat().st_size > 0
+
+
+def test_mujoco_warp_capacities_cover_a_host_rollout():
+    """The MuJoCo Warp peer's per-world contact and constraint capacities come from a MuJoCo C
+    rollout of one world: a box settling on the ground needs its 4 corner contacts and their
+    constraint rows, and the capacities cover twice what the rollout saw."""
+    import mujoco
+
+    from benchmarks.peers import contact_capacity
+    from engine.scenes_contact import CONTACT_SCENES
+    from morphopt.formats.mjcf import mjcf_string
+
+    spec = CONTACT_SCENES["box_on_plane"]().spec
+    model = mujoco.MjModel.from_xml_string(mjcf_string(spec, timestep=2e-3, integrator="Euler"))
+    data = mujoco.MjData(model)
+    capacity = contact_capacity(model, data.qpos.copy(), data.qvel.copy(), steps=300)
+    ncon = nefc = 0
+    for _ in range(300):
+        mujoco.mj_step(model, data)
+        ncon, nefc = max(ncon, data.ncon), max(nefc, data.nefc)
+    assert ncon >= 4 and nefc >= 4 * ncon  # the box rests on its corners (pyramidal cones: 4 rows each)
+    assert capacity["nconmax"] >= 2 * ncon and capacity["njmax"] >= 2 * nefc
