@@ -95,7 +95,7 @@ class SolverConfig:
         max_speed: a world in which a body's centre of mass moves faster than this [m/s] is
             flagged diverged and frozen, like one whose state is no longer finite: a blow-up
             that grows over many steps is caught before its numbers overflow.
-        step_kernel: "fused" (the whole step of a world in one thread, one launch per step:
+        step_kernel: "fused" (the whole step of a world in one warp, one launch per step:
             engine.fused; batches without contact shapes and at most engine.fused.FUSED_MAX_ROWS
             rows), "staged" (one kernel per stage, the PADMM loop as a captured while loop) or
             "auto" (fused where it fits).

@@ -1,4 +1,4 @@
-"""The fused step (engine.fused: a whole step per world in one thread) against the staged step
+"""The fused step (engine.fused: a whole step per world in one warp) against the staged step
 (engine.step: one kernel per stage, tile Cholesky, captured PADMM loop): two implementations of the
 same method must give the same trajectories, for every feature the fused path accepts."""
 
