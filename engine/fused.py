@@ -32,9 +32,9 @@ from engine.dynamics import body_term, free_velocity_of, row_operator_of
 from engine.integrate import (
     apply_impulses_of,
     apply_projection_of,
+    bilateral_residual_of,
     guard_divergence_of,
     integrate_pose_of,
-    projection_error_of,
 )
 from engine.joints import joint_residuals_of, joint_rows_of
 from engine.matrix_free import block_max, block_sum
@@ -57,7 +57,7 @@ FUSED_MAX_ROWS = 64
 FUSED_REGISTERS = 128  # register cap per thread: 158 uncapped leave 12 worlds per SM, 128 allow 16
 
 
-def fused_block(max_rows: int, device) -> int:
+def fused_block(device) -> int:
     """Threads (lanes) per world of the fused step: one warp (two were slower at 40 and 56 rows on
     an H100); one on the CPU, where a block is one thread and the lanes' loops run serially."""
     if not wp.get_device(device).is_cuda:
@@ -190,7 +190,6 @@ def block_sync(): ...
 
 
 TILE_ROWS = 16  # the shared matrices are sized in steps of this many rows (one kernel per size)
-MAX_TILE_ROWS = 64
 
 
 def _define_tile_setters(size: int):
@@ -207,7 +206,7 @@ def _define_tile_setters(size: int):
     return tile_set
 
 
-for _size in range(TILE_ROWS, MAX_TILE_ROWS + 1, TILE_ROWS):
+for _size in range(TILE_ROWS, FUSED_MAX_ROWS + 1, TILE_ROWS):
     tile_set = _define_tile_setters(_size)
 
 
@@ -480,11 +479,9 @@ def _make_kernel(tile_rows: int, max_registers: int):
                 block_sync()
                 largest = float(0.0)
                 for i in range(lane, n, lanes):
-                    value = 0.0
-                    if is_bilateral(m.row_kind[world, i]):
-                        value = -w.row_precond[world, i] * w.row_residual[world, i]
-                    w.rhs[world, i] = value
-                    largest = wp.max(largest, projection_error_of(world, i, w.row_count, m.row_kind, w.row_residual))
+                    phi = bilateral_residual_of(world, i, w.row_count, m.row_kind, w.row_residual)
+                    w.rhs[world, i] = -w.row_precond[world, i] * phi
+                    largest = wp.max(largest, wp.abs(phi))
                 if lanes > 1:
                     largest = block_max(largest)
                 update = int(0)
@@ -509,8 +506,8 @@ def _make_kernel(tile_rows: int, max_registers: int):
 def fused_kernel(max_rows: int, max_registers: int = FUSED_REGISTERS):
     """The fused step kernel for a padded row count (cached per tile size and register cap)."""
     tile_rows = max(TILE_ROWS, -(-max_rows // TILE_ROWS) * TILE_ROWS)
-    if tile_rows > MAX_TILE_ROWS:
-        raise ValueError(f"the fused step takes at most {MAX_TILE_ROWS} rows per world, not {max_rows}")
+    if tile_rows > FUSED_MAX_ROWS:
+        raise ValueError(f"the fused step takes at most {FUSED_MAX_ROWS} rows per world, not {max_rows}")
     key = (tile_rows, max_registers)
     if key not in _KERNELS:
         _KERNELS[key] = _make_kernel(*key)
@@ -532,7 +529,7 @@ def fused_step(model, state_in, state_out, control) -> None:
     m, w = model._fused_structs
     cfg = model.config
     if model.fused_block is None:
-        model.fused_block = fused_block(model.max_rows, model.device)
+        model.fused_block = fused_block(model.device)
     wp.launch_tiled(fused_kernel(model.max_rows, model.fused_registers), dim=[model.num_worlds], block_dim=model.fused_block, device=model.device,
               inputs=[m, w, int(cfg.integrator.value == "moreau"), float(cfg.baumgarte), float(cfg.limit_margin),
                       float(cfg.limit_stabilization), 1.0 if cfg.warmstart else 0.0, cfg.max_iterations,

@@ -118,6 +118,17 @@ def integrate_poses(
     integrate_pose_of(world, b, body_count, world_dt, fraction, body_q, body_qd, body_q_out)
 
 
+@wp.func
+def bilateral_residual_of(world: int, i: int, row_count: wp.array(dtype=wp.int32),
+                          row_kind: wp.array2d(dtype=wp.int32), row_residual: wp.array2d(dtype=float)):
+    """phi_i of a bilateral joint row [m]/[rad], the row the projection corrects; 0 on drive,
+    limit, contact and padded rows."""
+    kind = row_kind[world, i]
+    if i < row_count[world] and (kind == ROW_LINEAR or kind == ROW_ANGULAR):
+        return row_residual[world, i]
+    return 0.0
+
+
 @wp.kernel
 def projection_rhs(
     row_count: wp.array(dtype=wp.int32),
@@ -132,21 +143,7 @@ def projection_rhs(
     world, i = wp.tid()
     if valid[world] == 0:
         return
-    value = 0.0
-    kind = row_kind[world, i]
-    if i < row_count[world] and (kind == ROW_LINEAR or kind == ROW_ANGULAR):
-        value = -row_precond[world, i] * row_residual[world, i]
-    rhs_out[world, i] = value
-
-
-@wp.func
-def projection_error_of(world: int, i: int, row_count: wp.array(dtype=wp.int32), row_kind: wp.array2d(dtype=wp.int32),
-                        row_residual: wp.array2d(dtype=float)):
-    """|phi_i| of a bilateral joint row [m]/[rad], 0 for every other row."""
-    kind = row_kind[world, i]
-    if i < row_count[world] and (kind == ROW_LINEAR or kind == ROW_ANGULAR):
-        return wp.abs(row_residual[world, i])
-    return 0.0
+    rhs_out[world, i] = -row_precond[world, i] * bilateral_residual_of(world, i, row_count, row_kind, row_residual)
 
 
 @wp.kernel
@@ -163,7 +160,7 @@ def projection_gate(
     world = wp.tid()
     largest = float(0.0)
     for i in range(row_count[world]):
-        largest = wp.max(largest, projection_error_of(world, i, row_count, row_kind, row_residual))
+        largest = wp.max(largest, wp.abs(bilateral_residual_of(world, i, row_count, row_kind, row_residual)))
     gate[world] = wp.where(largest > floor, 1, 0)
 
 
@@ -357,9 +354,10 @@ def project_positions(model, body_q, body_qd, residual_fn, fraction=1.0):
         linear.factor(work.delassus, work.sigma, work.needs_factor, work.factor)
     for _ in range(model.config.position_iterations):
         residual_fn(model, body_q, work.row_residual)
-        wp.launch(projection_gate, dim=model.num_worlds, device=device,
-                  inputs=[work.row_count, model.row_kind, work.row_residual,
-                          float(model.config.projection_velocity_floor)], outputs=[work.projection_gate])
+        if model.config.projection_velocity_update:
+            wp.launch(projection_gate, dim=model.num_worlds, device=device,
+                      inputs=[work.row_count, model.row_kind, work.row_residual,
+                              float(model.config.projection_velocity_floor)], outputs=[work.projection_gate])
         wp.launch(projection_rhs, dim=grid_rows, device=device,
                   inputs=[work.row_count, model.row_kind, work.project, work.row_precond, work.row_residual],
                   outputs=[work.rhs])
