@@ -37,6 +37,7 @@ from engine.integrate import (
     integrate_pose_of,
 )
 from engine.joints import joint_residuals_of, joint_rows_of
+from engine.linear import block_sync
 from engine.matrix_free import block_max, block_sum
 from engine.model import ROW_ANGULAR, ROW_LINEAR
 from engine.padmm import (
@@ -176,17 +177,6 @@ def matrix_entry(world: int, i: int, j: int, bilateral_only: int, row_kind: wp.a
                 return 1.0
             return 0.0
     return matrix[i, j]
-
-
-_SYNC = """
-#if defined(__CUDA_ARCH__)
-__syncthreads();
-#endif
-"""
-
-
-@wp.func_native(_SYNC)
-def block_sync(): ...
 
 
 TILE_ROWS = 16  # the shared matrices are sized in steps of this many rows (one kernel per size)

@@ -6,12 +6,13 @@ Moreau-Jean: q_mid = q + dt/2 u; dynamics at q_mid; q+ = q_mid + dt/2 u+ (engine
 Position projection (Gauss-Newton): with the residuals phi(q+) of the bilateral rows, solve
 (P D P + sigma I) x = -P phi with the factor the PADMM solve already holds and move every body by
 M^-1 J^T (P x): one damped Newton step on the constraint manifold per iteration, no new factor
-(matrix-free solver: the same system by Conjugate Residual on the bilateral rows).
+(sparse solver: the same, with its sparse factor; matrix-free solver: the same system by
+Conjugate Residual on the bilateral rows).
 """
 
 import warp as wp
 
-from engine import linear, matrix_free
+from engine import linear, matrix_free, sparse
 from engine.model import ROW_ANGULAR, ROW_LINEAR
 from engine.spatial import quat_integrate, quat_rotate_vector
 
@@ -343,15 +344,18 @@ def project_positions(model, body_q, body_qd, residual_fn, fraction=1.0):
     # the Gauss-Newton steps: such worlds get a factor of their own (the PADMM factor and matrix
     # are free now, the next step rebuilds both).
     dense = model.linear_solver == "dense"
+    direct = model.linear_solver in ("dense", "sparse")  # a factor to reuse or refactor
     if dense and model.has_unilateral_or_drive_rows:
         wp.launch(bilateral_block, dim=(model.num_worlds, model.max_rows, model.max_rows), device=device,
                   inputs=[model.row_kind, work.row_count, work.delassus])
     wp.launch(projection_shift, dim=model.num_worlds, device=device,
               inputs=[model.padmm_eta, model.padmm_rho_init, model.bilateral_row_count, work.valid,
-                      int(model.has_unilateral_or_drive_rows or not dense), work.sigma, work.needs_factor,
+                      int(model.has_unilateral_or_drive_rows or not direct), work.sigma, work.needs_factor,
                       work.project])
     if dense:
         linear.factor(work.delassus, work.sigma, work.needs_factor, work.factor)
+    elif direct:
+        sparse.factor(model, work.sigma, work.needs_factor, bilateral_only=model.has_unilateral_or_drive_rows)
     for _ in range(model.config.position_iterations):
         residual_fn(model, body_q, work.row_residual)
         if model.config.projection_velocity_update:
@@ -363,6 +367,8 @@ def project_positions(model, body_q, body_qd, residual_fn, fraction=1.0):
                   outputs=[work.rhs])
         if dense:
             linear.solve(work.factor, work.rhs, work.project, work.delta)
+        elif direct:
+            sparse.solve(model, work.rhs, work.project, work.delta)
         else:  # Conjugate Residual on the bilateral rows, from zero
             work.delta.zero_()
             matrix_free.solve(model, work.rhs, work.project, work.delta, bilateral_only=True)

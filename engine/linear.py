@@ -9,9 +9,22 @@ import functools
 
 import warp as wp
 
-__all__ = ["cholesky_factor_kernel", "cholesky_solve_kernel", "factor", "solve"]
+__all__ = ["block_sync", "cholesky_factor_kernel", "cholesky_solve_kernel", "factor", "solve"]
 
 BLOCK_DIM = 64
+
+_SYNC = """
+#if defined(__CUDA_ARCH__)
+__syncthreads();
+#endif
+"""
+
+
+@wp.func_native(_SYNC)
+def block_sync():
+    """Barrier of the thread block (a no-op on the CPU, where a block is one thread). Unlike the
+    tile operations it may sit in code that only some blocks reach, but every thread of a block
+    must reach it."""
 
 
 @functools.cache

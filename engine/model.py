@@ -83,8 +83,10 @@ class SolverConfig:
         contact_stabilization: share of a penetration pushed out per step.
         restitution_threshold: approach speeds below this bounce with no restitution [m/s].
         linear_solver: "dense" (per-world Cholesky tile, at most engine.pack.MAX_DENSE_ROWS
-            rows), "matrix_free" (Conjugate Residual with the Delassus operator, any size) or
-            "auto" (dense when the padded rows fit the tile, else matrix-free).
+            rows), "sparse" (a Cholesky factor on the Delassus matrix's own sparsity, analysed
+            once per topology: engine.sparse), "matrix_free" (Conjugate Residual with the
+            Delassus operator, inexact) or "auto" (dense when the padded rows fit the tile,
+            else sparse).
         inner_iterations: Conjugate Residual iterations per PADMM iteration at most
             (matrix-free; the position projection allows four times as many).
         inner_tolerance_ratio: a matrix-free inner solve stops once its residual is below this
@@ -136,8 +138,8 @@ class SolverConfig:
                                  f"{[i.value for i in Integrator]}, got {self.integrator!r}") from exc
         if self.step_kernel not in ("auto", "fused", "staged"):
             raise ValueError(f"SolverConfig.step_kernel: expected 'auto', 'fused' or 'staged', got {self.step_kernel!r}")
-        if self.linear_solver not in ("auto", "dense", "matrix_free"):
-            raise ValueError(f"SolverConfig.linear_solver: expected 'auto', 'dense' or 'matrix_free', "
+        if self.linear_solver not in ("auto", "dense", "sparse", "matrix_free"):
+            raise ValueError(f"SolverConfig.linear_solver: expected 'auto', 'dense', 'sparse' or 'matrix_free', "
                              f"got {self.linear_solver!r}")
         checks = {
             "inner_iterations": self.inner_iterations >= 1,
@@ -272,7 +274,9 @@ class Workspace:
     row_bias (c), row_compliance (R), row_lo, row_hi (physical impulse bounds), row_residual
     (position-level residual [m]/[rad]), row_precond (P).
     Matrices (W, R, R), dense solver only: delassus (P D P), factor (its Cholesky factor with
-    (eta + rho) I added). Matrix-free: no extra arrays (Conjugate Residual vectors live in registers,
+    (eta + rho) I added). Sparse solver: sparse_L (W, entries) the factor's values on its
+    pattern (engine.sparse), sparse_real (W, factor rows) the row each factor row stands for this
+    step (-1: unused). Matrix-free: no extra arrays (Conjugate Residual vectors live in registers,
     row Jacobians and body twists in shared memory); inner_iterations (W,) CR iterations summed over
     a step.
     PADMM vectors (W, R): v_f, lo, hi (preconditioned), x, x_prev, y, y_prev, y_hat, z, z_prev,

@@ -7,9 +7,10 @@ from collections.abc import Sequence
 import numpy as np
 import warp as wp
 
-from engine.collide import PAIR_CONTACTS, PLANE_CONTACTS
+from engine.collide import PAIR_CONTACTS, PAIR_SLOTS, PLANE_CONTACTS
 from engine.fused import FUSED_MAX_ROWS, FUSED_REGISTERS, fused_fits
 from engine.model import Model, SolverConfig, Workspace
+from engine.sparse import build_patterns
 from engine.spec import JOINT_ROW_COUNT, JointType, MechanismSpec, joint_dynamics_rows
 
 __all__ = ["MAX_DENSE_ROWS", "dense_rows_needed", "pack_worlds"]
@@ -74,6 +75,27 @@ def dense_rows_needed(spec: MechanismSpec, contact_capacity: int | None = None) 
     return spec.row_count + 3 * capacity
 
 
+def factor_rows(specs, pairs, h) -> tuple[int, np.ndarray, np.ndarray]:
+    """The rows of the sparse solver's factor (engine.sparse) and their bodies, per world: the
+    joint rows, then three rows for each candidate contact slot of every collision pair (pair p,
+    slot m: rows start + 3 (4 p + m) ..; slots a pair never fills are padding), so that a contact
+    row always sits where its bodies are known in advance; then padding to the batch's largest."""
+    sizes = [int(h["contact_row_start"][w]) + 3 * PAIR_SLOTS * len(pairs[w]) for w in range(len(specs))]
+    V = max(max(sizes), 1)
+    body_c = np.full((len(specs), V), -1, np.int32)
+    body_p = np.full((len(specs), V), -1, np.int32)
+    for w, spec in enumerate(specs):
+        start = int(h["contact_row_start"][w])
+        body_c[w, :start] = h["row_body_c"][w, :start]
+        body_p[w, :start] = h["row_body_p"][w, :start]
+        for p, (a, b) in enumerate(pairs[w]):
+            count = PLANE_CONTACTS[spec.shapes[a].type] if b < 0 else PAIR_CONTACTS[(spec.shapes[a].type, spec.shapes[b].type)]
+            rows = slice(start + 3 * PAIR_SLOTS * p, start + 3 * (PAIR_SLOTS * p + count))
+            body_c[w, rows] = h["shape_body"][w, a]
+            body_p[w, rows] = -1 if b < 0 else h["shape_body"][w, b]
+    return V, body_c, body_p
+
+
 def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | None = None,
                 dt: float = 1.0e-3, contact_capacity: int | None = None) -> Model:
     """Pack one world per spec into a padded batch on ``device``.
@@ -119,13 +141,14 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
             if rows > MAX_DENSE_ROWS:
                 raise ValueError(f"pack_worlds: world {index} ('{spec.name}') needs {rows} constraint rows "
                                  f"({spec.row_count} joint/drive/limit rows + 3 x {capacity} contacts); the dense "
-                                 f"solver takes at most {MAX_DENSE_ROWS} per world: use linear_solver='matrix_free' "
+                                 f"solver takes at most {MAX_DENSE_ROWS} per world: use linear_solver='sparse', 'matrix_free' "
                                  f"or 'auto', lower contact_capacity or simplify the mechanism")
     max_pairs = max(len(p) for p in pairs)
     max_shapes = max(1, max(len(s.shapes) for s in specs))
     max_rows = max(1, max(s.row_count for s in specs) + 3 * capacity)
     max_rows = ROW_TILE * ((max_rows + ROW_TILE - 1) // ROW_TILE)
     dense = config.linear_solver == "dense" or (config.linear_solver == "auto" and max_rows <= MAX_DENSE_ROWS)
+    sparse = not dense and config.linear_solver in ("auto", "sparse")
 
     W, B, J, R, P, S, Q = num_worlds, max_bodies, max_joints, max_rows, max_points, max_shapes, max(max_pairs, 1)
     f32 = np.float32
@@ -271,7 +294,7 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     bilateral = np.array([sum(JOINT_ROW_COUNT[j.type] for j in s.joints) for s in specs], np.int32)
     model.bilateral_row_count = wp.array(bilateral, dtype=wp.int32, device=device)
     model.has_bilateral_rows = bool(bilateral.any())
-    model.linear_solver = "dense" if dense else "matrix_free"
+    model.linear_solver = "dense" if dense else ("sparse" if sparse else "matrix_free")
     fits = fused_fits(model.has_contacts, R, dense)
     if config.step_kernel == "fused" and not fits:
         raise ValueError(f"pack_worlds: step_kernel='fused' takes batches without contact shapes and with at most "
@@ -286,4 +309,10 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     model.work.row_count.assign(h["row_count"])
     model.work.row_body_c = wp.clone(model.row_body_c)  # contact rows rewrite their bodies every step
     model.work.row_body_p = wp.clone(model.row_body_p)
+    model.sparse = None
+    if sparse:  # one factor schedule per distinct topology (engine.sparse)
+        model.sparse_rows, rbc, rbp = factor_rows(specs, pairs, h)
+        model.sparse, model.sparse_analyses, entries = build_patterns(rbc, rbp, device)
+        model.work.sparse_L = wp.zeros((W, entries), dtype=float, device=device)
+        model.work.sparse_real = wp.zeros((W, model.sparse_rows), dtype=wp.int32, device=device)
     return model

@@ -22,7 +22,7 @@ captured into a CUDA graph; converged, capped and diverged worlds do no more wor
 
 import warp as wp
 
-from engine import linear, matrix_free
+from engine import linear, matrix_free, sparse
 from engine.model import ROW_CONTACT_NORMAL, ROW_CONTACT_TANGENT, ROW_LIMIT
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
@@ -504,6 +504,8 @@ def refactor(model):
               device=model.device)
     if model.linear_solver == "dense":
         linear.factor(work.delassus, work.sigma, work.needs_factor, work.factor)
+    elif model.linear_solver == "sparse":
+        sparse.factor(model, work.sigma, work.needs_factor)
     wp.launch(clear_flags, dim=W, inputs=[work.needs_factor], device=model.device)
 
 
@@ -517,6 +519,8 @@ def padmm_iteration(model):
               outputs=[work.x_prev, work.rhs])
     if model.linear_solver == "dense":
         linear.solve(work.factor, work.rhs, work.active, work.x)
+    elif model.linear_solver == "sparse":
+        sparse.solve(model, work.rhs, work.active, work.x)
     else:  # inexact Conjugate Residual, warm-started from the last iterate
         matrix_free.solve(model, work.rhs, work.active, work.x)
     wp.launch(padmm_project, dim=grid, device=device,
@@ -550,6 +554,8 @@ def solve_padmm(model, row_lambda_warm, row_lambda_out):
     wp.launch(padmm_warmstart, dim=grid, device=device,
               inputs=[1.0 if cfg.warmstart else 0.0, row_lambda_warm, work.row_precond, work.active, work.lo, work.hi],
               outputs=[work.x, work.y, work.y_hat, work.z, work.z_hat])
+    if model.linear_solver == "sparse":
+        sparse.map_rows(model)
     refactor(model)
     wp.capture_while(work.active_count, padmm_iteration, model=model)
     wp.launch(padmm_output, dim=grid, device=device,

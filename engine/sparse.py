@@ -1,0 +1,625 @@
+"""Sparse direct solves with the per-world Delassus matrix: a Cholesky factor on the matrix's own
+sparsity pattern, analysed on the host once per mechanism topology.
+
+In maximal coordinates two constraint rows couple only when they act on a common body, so the
+preconditioned Delassus matrix P D P of a linkage is sparse. Ordered by minimum degree, its
+Cholesky factor stays sparse: a three-legs-per-side walker (336 factor rows with its contact
+slots) has 6.0 k factor entries instead of 56 k dense and costs 85 k multiply-adds per factor
+instead of 6.3 M; DR Legs hanging (186 rows) 2.8 k entries and 22 k multiply-adds, standing (264
+rows with contact slots) 6.7 k and 106 k. A solve is then exact, where the matrix-free Conjugate
+Residual solve (engine.matrix_free) stops after 25 operator products.
+
+Contacts: a contact row's bodies change from step to step, but they always belong to one
+collision pair, and each pair has four candidate slots (engine.collide). The factor therefore
+has three rows for every candidate slot of every pair (bodies known in advance; slots a pair
+never fills are padding), and each step ``map_rows`` records which of the step's compacted rows
+each factor row stands for (-1: unused, the identity).
+
+Host (``analyze``): a minimum-degree order of the factor rows, the elimination tree, the factor's
+pattern, and schedules for the device:
+- entries grouped by levels of the elimination tree (a column's level is one more than its
+  children's highest), so that all columns of a level are computed at once;
+- for every factor entry L_ij the pairs (L_ik, L_jk), k < j, whose products it subtracts
+  (left-looking Cholesky);
+- for every row of L its entries left of the diagonal (forward substitution), for every column
+  its entries below the diagonal (backward substitution);
+- per level and phase whether each lane takes its own items or the warp shares each item (a
+  warp-shuffle sum), whichever has the shorter chain of dependent steps.
+Worlds of one topology share one analysis (``SparsePatterns`` holds each distinct one once);
+only the factor's values are per world.
+
+Device: one warp per world (one thread on the CPU); level by level with a block barrier between
+levels, so results are deterministic (each entry is summed by one lane, or by one warp in a fixed
+order). The solve keeps its vector in shared memory; the factor stays in global memory (copying it
+into shared memory for every solve was 2.5x slower on an H100). Measured on an H100 at 4096
+worlds (benchmarks/results/README.md): DR Legs standing 23 ms per step (matrix-free 58 ms) with
+loops closed to 8e-8 m (matrix-free 8e-4 m); hanging 3.8 ms (9.9 ms); random walkers 119 ms
+(171 ms). Both kernels are bound by the latency of their chain of levels (71 to 108 levels).
+"""
+
+import dataclasses
+import functools
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from engine.dynamics import delassus_entry
+from engine.linear import block_sync
+from engine.model import ROW_ANGULAR, ROW_LINEAR
+
+wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
+
+__all__ = ["SparsePatterns", "analyze", "build_patterns", "factor", "map_rows", "solve", "sparse_block"]
+
+
+VECTOR_STEP = 64  # shared tiles are sized in steps of this many elements (one kernel per size)
+
+
+def sparse_block(device) -> int:
+    """Threads per world of the sparse kernels: one warp on a GPU, one thread on the CPU."""
+    return 32 if wp.get_device(device).is_cuda else 1
+
+
+def minimum_degree(neighbours: list[set[int]]) -> list[int]:
+    """Elimination order by greedy minimum degree on the explicit elimination graph (ties go to
+    the lowest index, so the order is reproducible)."""
+    graph = [set(n) for n in neighbours]
+    alive = set(range(len(graph)))
+    order = []
+    while alive:
+        v = min(alive, key=lambda x: (len(graph[x]), x))
+        around = graph[v]
+        for a in around:
+            graph[a] |= around
+            graph[a].discard(a)
+            graph[a].discard(v)
+        graph[v] = set()
+        alive.discard(v)
+        order.append(v)
+    return order
+
+
+@dataclasses.dataclass
+class Analysis:
+    """The factor schedule of one topology (positions are places in the elimination order)."""
+
+    rows: int  # matrix size (the batch's padded rows)
+    perm: np.ndarray  # (rows,) position -> row
+    entry_i: np.ndarray  # (E,) row position of each factor entry
+    entry_j: np.ndarray  # (E,) column position
+    entry_coupled: np.ndarray  # (E,) 1 where the matrix entry itself can be non-zero (else fill)
+    diag: np.ndarray  # (rows,) entry of each column's diagonal
+    col_begin: np.ndarray  # (rows,) first entry below column j's diagonal
+    col_end: np.ndarray  # (rows,)
+    update_begin: np.ndarray  # (E,) into update_a / update_b
+    update_end: np.ndarray  # (E,)
+    update_a: np.ndarray  # (U,) entry L_ik of each product subtracted from L_ij
+    update_b: np.ndarray  # (U,) entry L_jk
+    row_begin: np.ndarray  # (rows,) into row_entry / row_col: the entries left of row j's diagonal
+    row_end: np.ndarray  # (rows,)
+    row_entry: np.ndarray  # (N,)
+    row_col: np.ndarray  # (N,) their column positions
+    level_first: np.ndarray  # (levels,) first entry of each level (its diagonals come first)
+    level_diag_end: np.ndarray  # (levels,) end of the level's diagonal entries
+    level_end: np.ndarray  # (levels,)
+    level_mode: np.ndarray  # (levels,) per phase (factor, forward, backward) log2 of the lanes sharing an item
+
+    @property
+    def entries(self) -> int:
+        return len(self.entry_i)
+
+    @property
+    def flops(self) -> int:
+        """Multiply-adds of one factor."""
+        return len(self.update_a)
+
+
+def analyze(row_body_c: np.ndarray, row_body_p: np.ndarray) -> Analysis:
+    """The factor schedule of one topology: rows i and j couple when they act on a common body
+    (row_body_c, row_body_p: the bodies of every row, -1 for the world frame; a row with no body
+    at all is a padding row, the identity)."""
+    rows = len(row_body_c)
+    body_rows: dict[int, list[int]] = {}
+    for i in range(rows):
+        for b in {int(row_body_c[i]), int(row_body_p[i])}:
+            if b >= 0:
+                body_rows.setdefault(b, []).append(i)
+    neighbours = [set() for _ in range(rows)]
+    for members in body_rows.values():
+        for i in members:
+            neighbours[i].update(members)
+    for i in range(rows):
+        neighbours[i].discard(i)
+    perm = np.asarray(minimum_degree(neighbours), np.int32)
+    pos = np.empty(rows, np.int64)
+    pos[perm] = np.arange(rows)
+    lower = [set() for _ in range(rows)]  # the matrix's pattern below the diagonal, by column position
+    for i in range(rows):
+        for j in neighbours[i]:
+            if pos[i] > pos[j]:
+                lower[pos[j]].add(int(pos[i]))
+    coupled = [set(c) for c in lower]
+
+    # symbolic factor: column patterns along the elimination tree
+    cols = [set(s) for s in lower]
+    parent = np.full(rows, -1, np.int64)
+    for j in range(rows):
+        if cols[j]:
+            p = min(cols[j])
+            parent[j] = p
+            cols[p] |= cols[j] - {p}
+    level = np.zeros(rows, np.int64)
+    for j in range(rows):
+        if parent[j] >= 0:
+            level[parent[j]] = max(level[parent[j]], level[j] + 1)
+    levels = int(level.max()) + 1 if rows else 0
+
+    # entries: per level its diagonals, then the columns' sub-diagonal entries (column by column)
+    entry_i, entry_j, entry_coupled = [], [], []
+    diag = np.zeros(rows, np.int32)
+    col_begin = np.zeros(rows, np.int32)
+    col_end = np.zeros(rows, np.int32)
+    level_first, level_diag_end, level_end = [], [], []
+    by_level = [[] for _ in range(levels)]
+    for j in range(rows):
+        by_level[level[j]].append(j)
+    for members in by_level:
+        level_first.append(len(entry_i))
+        for j in members:
+            diag[j] = len(entry_i)
+            entry_i.append(j)
+            entry_j.append(j)
+            entry_coupled.append(1)
+        level_diag_end.append(len(entry_i))
+        for j in members:
+            col_begin[j] = len(entry_i)
+            for i in sorted(cols[j]):
+                entry_i.append(i)
+                entry_j.append(j)
+                entry_coupled.append(1 if i in coupled[j] else 0)
+            col_end[j] = len(entry_i)
+        level_end.append(len(entry_i))
+    entry_i = np.asarray(entry_i, np.int32)
+    entry_j = np.asarray(entry_j, np.int32)
+    E = len(entry_i)
+    where = np.full((rows, rows), -1, np.int64)  # (i, j) -> entry
+    where[entry_i, entry_j] = np.arange(E)
+
+    # left-looking updates: L_ij -= L_ik L_jk for every column k with both entries
+    targets, pair_a, pair_b = [], [], []
+    for k in range(rows):
+        below = np.asarray(sorted(cols[k]), np.int64)
+        if len(below) == 0:
+            continue
+        off = where[below, k]
+        a, b = np.triu_indices(len(below))  # below[a] <= below[b]: column j = below[a], row i = below[b]
+        targets.append(where[below[b], below[a]])
+        pair_a.append(off[b])
+        pair_b.append(off[a])
+    if targets:
+        targets = np.concatenate(targets)
+        order_u = np.argsort(targets, kind="stable")
+        update_a = np.concatenate(pair_a)[order_u].astype(np.int32)
+        update_b = np.concatenate(pair_b)[order_u].astype(np.int32)
+        counts = np.bincount(targets, minlength=E)
+    else:
+        update_a = update_b = np.zeros(0, np.int32)
+        counts = np.zeros(E, np.int64)
+    update_end = np.cumsum(counts).astype(np.int32)
+    update_begin = (update_end - counts).astype(np.int32)
+
+    # rows of L left of the diagonal, for the forward substitution
+    sub = entry_i != entry_j
+    row_order = np.lexsort((entry_j[sub], entry_i[sub]))
+    row_entry = np.flatnonzero(sub)[row_order].astype(np.int32)
+    row_col = entry_j[row_entry].astype(np.int32)
+    row_counts = np.bincount(entry_i[row_entry], minlength=rows)
+    row_end = np.cumsum(row_counts).astype(np.int32)
+    row_begin = (row_end - row_counts).astype(np.int32)
+    level_mode = np.zeros(levels, np.int32)
+    for level, members in enumerate(by_level):
+        first, end = level_first[level], level_end[level]
+        phases = (counts[first:end], row_counts[members], (col_end - col_begin)[members])
+        for phase, lengths in enumerate(phases):
+            level_mode[level] |= group_shift(lengths) << (PHASE_BITS * phase)
+    return Analysis(rows, perm, entry_i, entry_j, np.asarray(entry_coupled, np.int32), diag, col_begin, col_end,
+                    update_begin, update_end, update_a, update_b, row_begin, row_end, row_entry, row_col,
+                    np.asarray(level_first, np.int32), np.asarray(level_diag_end, np.int32),
+                    np.asarray(level_end, np.int32), level_mode)
+
+
+WARP_LANES = 32
+FACTOR, FORWARD, BACKWARD = wp.constant(0), wp.constant(1), wp.constant(2)  # the phases of level_mode
+PHASE_BITS = wp.constant(3)  # level_mode holds log2 of the lane group width of the factor, forward and backward phases
+
+
+def group_shift(lengths) -> int:
+    """log2 of the lanes that share each item of a level (0: each lane takes its own items; 5: the
+    warp takes the items one after the other), whichever has the shorter chain of dependent
+    steps: items go round robin to 32 / g groups of g lanes, each spending ceil(length / g) steps
+    per item plus log2(g) + 1 for its sum."""
+    lengths = np.asarray(lengths, np.int64)
+    if len(lengths) == 0:
+        return 0
+    best, best_cost = 0, None
+    for shift in (0, 5):  # one lane or the whole warp per item (groups of 2 to 16 measured slower on an H100)
+        g = 1 << shift
+        groups = WARP_LANES // g
+        per_item = -(-lengths // g) + shift + 1
+        cost = max(int(per_item[k::groups].sum()) for k in range(min(groups, len(lengths))))
+        if best_cost is None or cost < best_cost:
+            best, best_cost = shift, cost
+    return best
+
+
+@wp.struct
+class SparsePatterns:
+    """The distinct analyses of a batch, concatenated (``*_base`` arrays hold each one's offset
+    into the flat arrays; per-entry indices are relative to the analysis' first entry)."""
+
+    world_pattern: wp.array(dtype=wp.int32)  # (W,) analysis of each world
+    perm: wp.array2d(dtype=wp.int32)  # (P, R)
+    diag: wp.array2d(dtype=wp.int32)  # (P, R)
+    col_begin: wp.array2d(dtype=wp.int32)
+    col_end: wp.array2d(dtype=wp.int32)
+    row_begin: wp.array2d(dtype=wp.int32)
+    row_end: wp.array2d(dtype=wp.int32)
+    entry_base: wp.array(dtype=wp.int32)  # (P + 1,)
+    entry_i: wp.array(dtype=wp.int32)
+    entry_j: wp.array(dtype=wp.int32)
+    entry_coupled: wp.array(dtype=wp.int32)
+    update_begin: wp.array(dtype=wp.int32)  # per entry, relative to update_base
+    update_end: wp.array(dtype=wp.int32)
+    update_base: wp.array(dtype=wp.int32)  # (P + 1,)
+    update_a: wp.array(dtype=wp.int32)
+    update_b: wp.array(dtype=wp.int32)
+    row_base: wp.array(dtype=wp.int32)  # (P + 1,)
+    row_entry: wp.array(dtype=wp.int32)
+    row_col: wp.array(dtype=wp.int32)
+    level_base: wp.array(dtype=wp.int32)  # (P + 1,)
+    level_first: wp.array(dtype=wp.int32)
+    level_diag_end: wp.array(dtype=wp.int32)
+    level_end: wp.array(dtype=wp.int32)
+    level_mode: wp.array(dtype=wp.int32)
+
+
+def build_patterns(row_body_c: np.ndarray, row_body_p: np.ndarray, device) -> tuple[SparsePatterns, list[Analysis], int]:
+    """Analyse every distinct topology of a batch once and upload the schedules.
+
+    row_body_c, row_body_p: (W, V) bodies of every world's factor rows (engine.pack: its joint
+    rows, then three rows per candidate contact slot of each collision pair, then padding).
+    Returns the device struct, the analyses and the largest factor (entries per world)."""
+    keys: dict[tuple, int] = {}
+    analyses: list[Analysis] = []
+    world_pattern = np.zeros(len(row_body_c), np.int32)
+    for w in range(len(row_body_c)):
+        key = (row_body_c[w].tobytes(), row_body_p[w].tobytes())
+        if key not in keys:
+            keys[key] = len(analyses)
+            analyses.append(analyze(row_body_c[w], row_body_p[w]))
+        world_pattern[w] = keys[key]
+
+    def base(sizes):
+        return np.concatenate([[0], np.cumsum(sizes)]).astype(np.int32)
+
+    def arr(value, dtype=wp.int32):
+        return wp.array(np.ascontiguousarray(value), dtype=dtype, device=device)
+
+    def flat(name):
+        return arr(np.concatenate([getattr(a, name) for a in analyses]).astype(np.int32))
+
+    s = SparsePatterns()
+    s.world_pattern = arr(world_pattern)
+    for name in ("perm", "diag", "col_begin", "col_end", "row_begin", "row_end"):
+        setattr(s, name, arr(np.stack([getattr(a, name) for a in analyses]).astype(np.int32)))
+    s.entry_base = arr(base([a.entries for a in analyses]))
+    s.update_base = arr(base([len(a.update_a) for a in analyses]))
+    s.row_base = arr(base([len(a.row_entry) for a in analyses]))
+    s.level_base = arr(base([len(a.level_first) for a in analyses]))
+    for name in ("entry_i", "entry_j", "entry_coupled", "update_begin", "update_end", "update_a", "update_b",
+                 "row_entry", "row_col", "level_first", "level_diag_end", "level_end", "level_mode"):
+        setattr(s, name, flat(name))
+    return s, analyses, max(a.entries for a in analyses)
+
+
+@wp.kernel
+def map_joint_rows(contact_row_start: wp.array(dtype=wp.int32), real_out: wp.array2d(dtype=wp.int32)):
+    """Factor rows below a world's first contact row are its joint rows; contact slots start unused (-1)."""
+    world, v = wp.tid()
+    real = int(-1)
+    if v < contact_row_start[world]:
+        real = v
+    real_out[world, v] = real
+
+
+@wp.kernel
+def map_contact_rows(contact_row_start: wp.array(dtype=wp.int32), contact_count: wp.array(dtype=wp.int32),
+                     contact_key: wp.array2d(dtype=wp.int32), real_out: wp.array2d(dtype=wp.int32)):
+    """Contact k (rows start + 3k ..) fills the factor rows of its candidate slot (key = pair * 4 + m)."""
+    world, k = wp.tid()
+    if k >= contact_count[world]:
+        return
+    start = contact_row_start[world]
+    slot = start + 3 * contact_key[world, k]
+    for t in range(3):
+        real_out[world, slot + t] = start + 3 * k + t
+
+
+@wp.func
+def _used(world: int, i: int, n: int, bilateral_only: int, row_kind: wp.array2d(dtype=wp.int32)):
+    if i < 0 or i >= n:
+        return False
+    if bilateral_only != 0:
+        kind = row_kind[world, i]
+        return kind == ROW_LINEAR or kind == ROW_ANGULAR
+    return True
+
+
+_GROUP_SUM = """
+float total = value;
+#if defined(__CUDA_ARCH__)
+for (int offset = width >> 1; offset > 0; offset >>= 1) total += __shfl_xor_sync(0xffffffffu, total, offset);
+#endif
+return total;
+"""
+
+
+@wp.func_native(_GROUP_SUM)
+def group_sum(value: float, width: int) -> float:
+    """Sum over each aligned group of ``width`` lanes of a warp (every lane of the group gets it;
+    all 32 lanes must call); the value itself on the CPU, where a block is one thread."""
+
+
+@wp.func
+def group_width(mode: int, phase: int, lanes: int):
+    """Lanes that share each item of this level and phase (at most the block's)."""
+    return wp.min(1 << ((mode >> (PHASE_BITS * phase)) & 7), lanes)
+
+
+@functools.cache
+def _vector_setter(size: int):
+    """Element writes into a shared vector tile of one size without the block barrier of Warp's
+    tile element assignment (lanes write different elements in divergent code)."""
+
+    @wp.func_native("t.data(wp::tile_coord(i)) = value;")
+    def tile_store_at(t: wp.tile(dtype=float, shape=(size,), storage="shared"), i: int, value: float): ...
+
+    return tile_store_at
+
+
+@wp.func
+def _entry_sum(Lw: Any, pat: SparsePatterns, eb: int, ub: int, e: int, first: int, stride: int):
+    """Part of the products subtracted from factor entry e: its pairs first, first + stride, ..."""
+    acc = float(0.0)
+    u = pat.update_begin[eb + e] + first
+    end = pat.update_end[eb + e]
+    while u < end:
+        acc += Lw[pat.update_a[ub + u]] * Lw[pat.update_b[ub + u]]
+        u += stride
+    return acc
+
+
+@wp.func
+def _row_sum(Lw: Any, v: Any, pat: SparsePatterns, p: int, rb: int, j: int, first: int, stride: int):
+    """Part of row j's entries left of the diagonal times the solved values."""
+    acc = float(0.0)
+    r = pat.row_begin[p, j] + first
+    end = pat.row_end[p, j]
+    while r < end:
+        acc += Lw[pat.row_entry[rb + r]] * v[pat.row_col[rb + r]]
+        r += stride
+    return acc
+
+
+@wp.func
+def _col_sum(Lw: Any, v: Any, pat: SparsePatterns, p: int, eb: int, j: int, first: int, stride: int):
+    """Part of column j's entries below the diagonal times the solved values."""
+    acc = float(0.0)
+    c = pat.col_begin[p, j] + first
+    end = pat.col_end[p, j]
+    while c < end:
+        acc += Lw[c] * v[pat.entry_i[eb + c]]
+        c += stride
+    return acc
+
+
+@wp.kernel
+def sparse_factor(
+    pat: SparsePatterns,
+    mask: wp.array(dtype=wp.int32),
+    sigma: wp.array(dtype=float),
+    bilateral_only: int,
+    row_count: wp.array(dtype=wp.int32),
+    row_kind: wp.array2d(dtype=wp.int32),
+    row_body_p: wp.array2d(dtype=wp.int32),
+    row_body_c: wp.array2d(dtype=wp.int32),
+    row_J_c: wp.array2d(dtype=wp.spatial_vector),
+    row_J_p: wp.array2d(dtype=wp.spatial_vector),
+    row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
+    row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
+    row_compliance: wp.array2d(dtype=float),
+    row_precond: wp.array2d(dtype=float),
+    real: wp.array2d(dtype=wp.int32),
+    # out
+    L: wp.array2d(dtype=float),
+):
+    """L L^T = P D P + sigma I for worlds with mask != 0 (with bilateral_only: the bilateral
+    joint block, identity elsewhere; unused rows are the identity)."""
+    world, lane = wp.tid()
+    lanes = wp.block_dim()
+    if mask[world] == 0:
+        return
+    p = pat.world_pattern[world]
+    eb = pat.entry_base[p]
+    ub = pat.update_base[p]
+    entries = pat.entry_base[p + 1] - eb
+    n = row_count[world]
+    shift = sigma[world]
+    Lw = L[world]
+    e = lane
+    while e < entries:  # the matrix's entries on the factor's pattern
+        i = real[world, pat.perm[p, pat.entry_i[eb + e]]]
+        j = real[world, pat.perm[p, pat.entry_j[eb + e]]]
+        value = float(0.0)
+        if pat.entry_i[eb + e] == pat.entry_j[eb + e]:
+            value = 1.0
+            if _used(world, i, n, bilateral_only, row_kind):
+                value = delassus_entry(world, i, j, row_body_p, row_body_c, row_J_c, row_J_p, row_MJ_c, row_MJ_p,
+                                       row_compliance, row_precond)
+            value += shift
+        elif pat.entry_coupled[eb + e] != 0:
+            if _used(world, i, n, bilateral_only, row_kind) and _used(world, j, n, bilateral_only, row_kind):
+                value = delassus_entry(world, i, j, row_body_p, row_body_c, row_J_c, row_J_p, row_MJ_c, row_MJ_p,
+                                       row_compliance, row_precond)
+        Lw[e] = value
+        e += lanes
+    block_sync()
+    lb = pat.level_base[p]
+    for level in range(pat.level_base[p + 1] - lb):
+        first = pat.level_first[lb + level]
+        diag_end = pat.level_diag_end[lb + level]
+        end = pat.level_end[lb + level]
+        if group_width(pat.level_mode[lb + level], FACTOR, lanes) > 1:  # the lanes share each entry's products
+            for e in range(first, end):
+                total = group_sum(_entry_sum(Lw, pat, eb, ub, e, lane, lanes), lanes)
+                if lane == 0:
+                    value = Lw[e] - total
+                    if e < diag_end:
+                        value = wp.sqrt(value)
+                    Lw[e] = value
+        else:  # one entry per lane
+            e = first + lane
+            while e < end:
+                value = Lw[e] - _entry_sum(Lw, pat, eb, ub, e, 0, 1)
+                if e < diag_end:
+                    value = wp.sqrt(value)
+                Lw[e] = value
+                e += lanes
+        block_sync()
+        e = diag_end + lane
+        while e < end:  # below the diagonals: divide by the column's diagonal
+            Lw[e] = Lw[e] / Lw[pat.diag[p, pat.entry_j[eb + e]]]
+            e += lanes
+        block_sync()
+
+
+@functools.cache
+def solve_kernel(size: int):
+    """Solve kernel with the world's vector in a shared tile of ``size`` rows (the factor stays
+    in global memory: copying it into shared memory for each solve was 2.5x slower on an H100)."""
+    vector_set = _vector_setter(size)
+
+    @wp.func
+    def substitute(Lw: Any, v: Any, pat: SparsePatterns, p: int, eb: int, rb: int, level: int, phase: int, lane: int,
+                   lanes: int):
+        """One level of the forward (rows gather their entries left of the diagonal) or backward
+        (columns gather their entries below it) substitution: v_j = (v_j - sum) / L_jj."""
+        first = pat.level_first[level]
+        diag_end = pat.level_diag_end[level]
+        if group_width(pat.level_mode[level], phase, lanes) > 1:  # the warp shares each row
+            for e in range(first, diag_end):
+                j = pat.entry_j[eb + e]
+                part = float(0.0)
+                if phase == FORWARD:
+                    part = _row_sum(Lw, v, pat, p, rb, j, lane, lanes)
+                else:
+                    part = _col_sum(Lw, v, pat, p, eb, j, lane, lanes)
+                total = group_sum(part, lanes)
+                if lane == 0:
+                    vector_set(v, j, (v[j] - total) / Lw[e])
+        else:  # one row per lane
+            e = first + lane
+            while e < diag_end:
+                j = pat.entry_j[eb + e]
+                part = float(0.0)
+                if phase == FORWARD:
+                    part = _row_sum(Lw, v, pat, p, rb, j, 0, 1)
+                else:
+                    part = _col_sum(Lw, v, pat, p, eb, j, 0, 1)
+                vector_set(v, j, (v[j] - part) / Lw[e])
+                e += lanes
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def sparse_solve(
+        pat: SparsePatterns,
+        mask: wp.array(dtype=wp.int32),
+        L: wp.array2d(dtype=float),
+        rhs: wp.array2d(dtype=float),
+        real: wp.array2d(dtype=wp.int32),
+        row_count: wp.array(dtype=wp.int32),
+        # out
+        x_out: wp.array2d(dtype=float),
+    ):
+        """x = (L L^T)^-1 rhs for worlds with mask != 0: forward substitution level by level
+        (rows gather their entries left of the diagonal), backward in reverse (columns gather
+        their entries below it); per level the lanes take one row each or share each row."""
+        world, lane = wp.tid()
+        lanes = wp.block_dim()
+        v = wp.tile_zeros(shape=size, dtype=float, storage="shared")
+        if mask[world] == 0:
+            return
+        p = pat.world_pattern[world]
+        eb = pat.entry_base[p]
+        rb = pat.row_base[p]
+        rows = pat.perm.shape[1]
+        k = lane
+        while k < rows:
+            r = real[world, pat.perm[p, k]]
+            value = float(0.0)
+            if r >= 0:
+                value = rhs[world, r]
+            vector_set(v, k, value)
+            k += lanes
+        Lw = L[world]
+        block_sync()
+        lb = pat.level_base[p]
+        levels = pat.level_base[p + 1] - lb
+        for level in range(levels):
+            substitute(Lw, v, pat, p, eb, rb, lb + level, FORWARD, lane, lanes)
+            block_sync()
+        for back in range(levels):
+            substitute(Lw, v, pat, p, eb, rb, lb + levels - 1 - back, BACKWARD, lane, lanes)
+            block_sync()
+        k = lane
+        while k < rows:
+            r = real[world, pat.perm[p, k]]
+            if r >= 0:
+                x_out[world, r] = v[k]
+            k += lanes
+        k = row_count[world] + lane
+        while k < x_out.shape[1]:  # rows not in use this step
+            x_out[world, k] = 0.0
+            k += lanes
+
+    return sparse_solve
+
+
+def factor(model, sigma, mask, bilateral_only: bool = False) -> None:
+    """Factor P D P + sigma I (or its bilateral joint block) of every masked world into work.sparse_L."""
+    work = model.work
+    wp.launch_tiled(sparse_factor, dim=[model.num_worlds], block_dim=sparse_block(model.device), device=model.device,
+                    inputs=[model.sparse, mask, sigma, int(bilateral_only), work.row_count, model.row_kind,
+                            work.row_body_p, work.row_body_c, work.row_J_c, work.row_J_p, work.row_MJ_c, work.row_MJ_p,
+                            work.row_compliance, work.row_precond, work.sparse_real],
+                    outputs=[work.sparse_L])
+
+
+def solve(model, rhs, mask, x_out) -> None:
+    """x_out = (L L^T)^-1 rhs with the stored factors, for every masked world."""
+    work = model.work
+    size = -(-model.sparse_rows // VECTOR_STEP) * VECTOR_STEP
+    wp.launch_tiled(solve_kernel(size), dim=[model.num_worlds], block_dim=sparse_block(model.device),
+                    device=model.device, inputs=[model.sparse, mask, work.sparse_L, rhs, work.sparse_real, work.row_count],
+                    outputs=[x_out])
+
+
+def map_rows(model) -> None:
+    """Which of this step's rows each factor row stands for (after collision detection)."""
+    work, W = model.work, model.num_worlds
+    wp.launch(map_joint_rows, dim=(W, model.sparse_rows), inputs=[model.contact_row_start],
+              outputs=[work.sparse_real], device=model.device)
+    if model.has_contacts:
+        wp.launch(map_contact_rows, dim=(W, model.contact_capacity),
+                  inputs=[model.contact_row_start, work.contact_count, work.contact_key],
+                  outputs=[work.sparse_real], device=model.device)
