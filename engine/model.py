@@ -274,8 +274,8 @@ class Workspace:
     row_bias (c), row_compliance (R), row_lo, row_hi (physical impulse bounds), row_residual
     (position-level residual [m]/[rad]), row_precond (P).
     Matrices (W, R, R), dense solver only: delassus (P D P), factor (its Cholesky factor with
-    (eta + rho) I added). Sparse solver: sparse_L (W, entries) the factor's values on its
-    pattern (engine.sparse), sparse_real (W, factor rows) the row each factor row stands for this
+    (eta + rho) I added). Sparse solver: sparse_A, sparse_L (W, entries) this step's P D P and its
+    factor on the factor's pattern (engine.sparse), sparse_real (W, factor rows) the row each factor row stands for this
     step (-1: unused). Matrix-free: no extra arrays (Conjugate Residual vectors live in registers,
     row Jacobians and body twists in shared memory); inner_iterations (W,) CR iterations summed over
     a step.

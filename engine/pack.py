@@ -58,10 +58,14 @@ def collision_pairs(spec: MechanismSpec) -> list[tuple[int, int]]:
     return pairs
 
 
+def pair_contacts(spec: MechanismSpec, a: int, b: int) -> int:
+    """Most contacts shapes a and b (b = -1: the ground plane) can produce at once."""
+    return PLANE_CONTACTS[spec.shapes[a].type] if b < 0 else PAIR_CONTACTS[(spec.shapes[a].type, spec.shapes[b].type)]
+
+
 def contact_worst_case(spec: MechanismSpec, pairs) -> int:
     """Most contacts the pairs of a world can produce at once."""
-    return sum(PLANE_CONTACTS[spec.shapes[a].type] if b < 0 else
-               PAIR_CONTACTS[(spec.shapes[a].type, spec.shapes[b].type)] for a, b in pairs)
+    return sum(pair_contacts(spec, a, b) for a, b in pairs)
 
 
 def default_contact_capacity(spec: MechanismSpec) -> int:
@@ -89,8 +93,7 @@ def factor_rows(specs, pairs, h) -> tuple[int, np.ndarray, np.ndarray]:
         body_c[w, :start] = h["row_body_c"][w, :start]
         body_p[w, :start] = h["row_body_p"][w, :start]
         for p, (a, b) in enumerate(pairs[w]):
-            count = PLANE_CONTACTS[spec.shapes[a].type] if b < 0 else PAIR_CONTACTS[(spec.shapes[a].type, spec.shapes[b].type)]
-            rows = slice(start + 3 * PAIR_SLOTS * p, start + 3 * (PAIR_SLOTS * p + count))
+            rows = slice(start + 3 * PAIR_SLOTS * p, start + 3 * (PAIR_SLOTS * p + pair_contacts(spec, a, b)))
             body_c[w, rows] = h["shape_body"][w, a]
             body_p[w, rows] = -1 if b < 0 else h["shape_body"][w, b]
     return V, body_c, body_p
@@ -313,6 +316,7 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     if sparse:  # one factor schedule per distinct topology (engine.sparse)
         model.sparse_rows, rbc, rbp = factor_rows(specs, pairs, h)
         model.sparse, model.sparse_analyses, entries = build_patterns(rbc, rbp, device)
+        model.work.sparse_A = wp.zeros((W, entries), dtype=float, device=device)
         model.work.sparse_L = wp.zeros((W, entries), dtype=float, device=device)
         model.work.sparse_real = wp.zeros((W, model.sparse_rows), dtype=wp.int32, device=device)
     return model

@@ -555,7 +555,7 @@ def solve_padmm(model, row_lambda_warm, row_lambda_out):
               inputs=[1.0 if cfg.warmstart else 0.0, row_lambda_warm, work.row_precond, work.active, work.lo, work.hi],
               outputs=[work.x, work.y, work.y_hat, work.z, work.z_hat])
     if model.linear_solver == "sparse":
-        sparse.map_rows(model)
+        sparse.prepare(model)
     refactor(model)
     wp.capture_while(work.active_count, padmm_iteration, model=model)
     wp.launch(padmm_output, dim=grid, device=device,

@@ -12,7 +12,7 @@ Residual solve (engine.matrix_free) stops after 25 operator products.
 Contacts: a contact row's bodies change from step to step, but they always belong to one
 collision pair, and each pair has four candidate slots (engine.collide). The factor therefore
 has three rows for every candidate slot of every pair (bodies known in advance; slots a pair
-never fills are padding), and each step ``map_rows`` records which of the step's compacted rows
+never fills are padding), and each step ``prepare`` records which of the step's compacted rows
 each factor row stands for (-1: unused, the identity).
 
 Host (``analyze``): a minimum-degree order of the factor rows, the elimination tree, the factor's
@@ -50,7 +50,7 @@ from engine.model import ROW_ANGULAR, ROW_LINEAR
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
-__all__ = ["SparsePatterns", "analyze", "build_patterns", "factor", "map_rows", "solve", "sparse_block"]
+__all__ = ["SparsePatterns", "analyze", "build_patterns", "factor", "prepare", "solve", "sparse_block"]
 
 
 VECTOR_STEP = 64  # shared tiles are sized in steps of this many elements (one kernel per size)
@@ -84,7 +84,6 @@ def minimum_degree(neighbours: list[set[int]]) -> list[int]:
 class Analysis:
     """The factor schedule of one topology (positions are places in the elimination order)."""
 
-    rows: int  # matrix size (the batch's padded rows)
     perm: np.ndarray  # (rows,) position -> row
     entry_i: np.ndarray  # (E,) row position of each factor entry
     entry_j: np.ndarray  # (E,) column position
@@ -108,11 +107,6 @@ class Analysis:
     @property
     def entries(self) -> int:
         return len(self.entry_i)
-
-    @property
-    def flops(self) -> int:
-        """Multiply-adds of one factor."""
-        return len(self.update_a)
 
 
 def analyze(row_body_c: np.ndarray, row_body_p: np.ndarray) -> Analysis:
@@ -223,7 +217,7 @@ def analyze(row_body_c: np.ndarray, row_body_p: np.ndarray) -> Analysis:
         phases = (counts[first:end], row_counts[members], (col_end - col_begin)[members])
         for phase, lengths in enumerate(phases):
             level_mode[level] |= group_shift(lengths) << (PHASE_BITS * phase)
-    return Analysis(rows, perm, entry_i, entry_j, np.asarray(entry_coupled, np.int32), diag, col_begin, col_end,
+    return Analysis(perm, entry_i, entry_j, np.asarray(entry_coupled, np.int32), diag, col_begin, col_end,
                     update_begin, update_end, update_a, update_b, row_begin, row_end, row_entry, row_col,
                     np.asarray(level_first, np.int32), np.asarray(level_diag_end, np.int32),
                     np.asarray(level_end, np.int32), level_mode)
@@ -425,13 +419,8 @@ def _col_sum(Lw: Any, v: Any, pat: SparsePatterns, p: int, eb: int, j: int, firs
 
 
 @wp.kernel
-def sparse_factor(
+def sparse_matrix(
     pat: SparsePatterns,
-    mask: wp.array(dtype=wp.int32),
-    sigma: wp.array(dtype=float),
-    bilateral_only: int,
-    row_count: wp.array(dtype=wp.int32),
-    row_kind: wp.array2d(dtype=wp.int32),
     row_body_p: wp.array2d(dtype=wp.int32),
     row_body_c: wp.array2d(dtype=wp.int32),
     row_J_c: wp.array2d(dtype=wp.spatial_vector),
@@ -442,10 +431,42 @@ def sparse_factor(
     row_precond: wp.array2d(dtype=float),
     real: wp.array2d(dtype=wp.int32),
     # out
+    A: wp.array2d(dtype=float),
+):
+    """This step's P D P on the factor's pattern (once per step; every factor of the step starts
+    from it): zero off the matrix's own pattern, the identity on unused rows."""
+    world, e = wp.tid()
+    p = pat.world_pattern[world]
+    eb = pat.entry_base[p]
+    if e >= pat.entry_base[p + 1] - eb:
+        return
+    i = real[world, pat.perm[p, pat.entry_i[eb + e]]]
+    j = real[world, pat.perm[p, pat.entry_j[eb + e]]]
+    diagonal = pat.entry_i[eb + e] == pat.entry_j[eb + e]
+    value = float(0.0)
+    if diagonal:
+        value = 1.0
+    if pat.entry_coupled[eb + e] != 0 and i >= 0 and j >= 0:  # both rows in use this step
+        value = delassus_entry(world, i, j, row_body_p, row_body_c, row_J_c, row_J_p, row_MJ_c, row_MJ_p,
+                               row_compliance, row_precond)
+    A[world, e] = value
+
+
+@wp.kernel
+def sparse_factor(
+    pat: SparsePatterns,
+    mask: wp.array(dtype=wp.int32),
+    sigma: wp.array(dtype=float),
+    bilateral_only: int,
+    row_count: wp.array(dtype=wp.int32),
+    row_kind: wp.array2d(dtype=wp.int32),
+    real: wp.array2d(dtype=wp.int32),
+    A: wp.array2d(dtype=float),
+    # out
     L: wp.array2d(dtype=float),
 ):
-    """L L^T = P D P + sigma I for worlds with mask != 0 (with bilateral_only: the bilateral
-    joint block, identity elsewhere; unused rows are the identity)."""
+    """L L^T = A + sigma I for worlds with mask != 0, A from sparse_matrix (with bilateral_only:
+    its bilateral joint block, the identity elsewhere)."""
     world, lane = wp.tid()
     lanes = wp.block_dim()
     if mask[world] == 0:
@@ -458,20 +479,18 @@ def sparse_factor(
     shift = sigma[world]
     Lw = L[world]
     e = lane
-    while e < entries:  # the matrix's entries on the factor's pattern
-        i = real[world, pat.perm[p, pat.entry_i[eb + e]]]
-        j = real[world, pat.perm[p, pat.entry_j[eb + e]]]
-        value = float(0.0)
-        if pat.entry_i[eb + e] == pat.entry_j[eb + e]:
-            value = 1.0
-            if _used(world, i, n, bilateral_only, row_kind):
-                value = delassus_entry(world, i, j, row_body_p, row_body_c, row_J_c, row_J_p, row_MJ_c, row_MJ_p,
-                                       row_compliance, row_precond)
+    while e < entries:
+        diagonal = pat.entry_i[eb + e] == pat.entry_j[eb + e]
+        value = A[world, e]
+        if bilateral_only != 0:
+            i = real[world, pat.perm[p, pat.entry_i[eb + e]]]
+            j = real[world, pat.perm[p, pat.entry_j[eb + e]]]
+            if not (_used(world, i, n, 1, row_kind) and _used(world, j, n, 1, row_kind)):
+                value = 0.0
+                if diagonal:
+                    value = 1.0
+        if diagonal:
             value += shift
-        elif pat.entry_coupled[eb + e] != 0:
-            if _used(world, i, n, bilateral_only, row_kind) and _used(world, j, n, bilateral_only, row_kind):
-                value = delassus_entry(world, i, j, row_body_p, row_body_c, row_J_c, row_J_p, row_MJ_c, row_MJ_p,
-                                       row_compliance, row_precond)
         Lw[e] = value
         e += lanes
     block_sync()
@@ -600,8 +619,7 @@ def factor(model, sigma, mask, bilateral_only: bool = False) -> None:
     work = model.work
     wp.launch_tiled(sparse_factor, dim=[model.num_worlds], block_dim=sparse_block(model.device), device=model.device,
                     inputs=[model.sparse, mask, sigma, int(bilateral_only), work.row_count, model.row_kind,
-                            work.row_body_p, work.row_body_c, work.row_J_c, work.row_J_p, work.row_MJ_c, work.row_MJ_p,
-                            work.row_compliance, work.row_precond, work.sparse_real],
+                            work.sparse_real, work.sparse_A],
                     outputs=[work.sparse_L])
 
 
@@ -614,8 +632,9 @@ def solve(model, rhs, mask, x_out) -> None:
                     outputs=[x_out])
 
 
-def map_rows(model) -> None:
-    """Which of this step's rows each factor row stands for (after collision detection)."""
+def prepare(model) -> None:
+    """Once per step, after the dual problem is built: which of this step's rows each factor row
+    stands for, and the matrix's values on the factor's pattern (work.sparse_A)."""
     work, W = model.work, model.num_worlds
     wp.launch(map_joint_rows, dim=(W, model.sparse_rows), inputs=[model.contact_row_start],
               outputs=[work.sparse_real], device=model.device)
@@ -623,3 +642,7 @@ def map_rows(model) -> None:
         wp.launch(map_contact_rows, dim=(W, model.contact_capacity),
                   inputs=[model.contact_row_start, work.contact_count, work.contact_key],
                   outputs=[work.sparse_real], device=model.device)
+    wp.launch(sparse_matrix, dim=work.sparse_A.shape, device=model.device,
+              inputs=[model.sparse, work.row_body_p, work.row_body_c, work.row_J_c, work.row_J_p,
+                      work.row_MJ_c, work.row_MJ_p, work.row_compliance, work.row_precond, work.sparse_real],
+              outputs=[work.sparse_A])

@@ -47,7 +47,7 @@ def test_factor_and_solve_match_numpy(device, bilateral_only):
     if bilateral_only:
         wp.launch(bilateral_block, dim=(W, R, R), inputs=[model.row_kind, work.row_count, matrix], device=device)
     shifts = np.array([1e-3, 1e-2, 1e-1][:W], np.float32)
-    sparse.map_rows(model)
+    sparse.prepare(model)
     sparse.factor(model, wp.array(shifts, device=device), wp.ones(W, dtype=wp.int32, device=device),
                   bilateral_only=bilateral_only)
     rhs = np.random.default_rng(0).standard_normal((W, R)).astype(np.float32)
