@@ -32,8 +32,8 @@ Device: one warp per world (one thread on the CPU); level by level with a block 
 levels, so results are deterministic (each entry is summed by one lane, or by one warp in a fixed
 order). The solve keeps its vector in shared memory; the factor stays in global memory (copying it
 into shared memory for every solve was 2.5x slower on an H100). Measured on an H100 at 4096
-worlds (benchmarks/results/README.md): DR Legs standing 23 ms per step (matrix-free 58 ms) with
-loops closed to 8e-8 m (matrix-free 8e-4 m); hanging 3.8 ms (9.9 ms); random walkers 119 ms
+worlds (benchmarks/results/README.md): DR Legs standing 15.4 ms per step (matrix-free 58 ms)
+with loops closed to 6e-8 m (matrix-free 8e-4 m); hanging 3.3 ms (9.9 ms); random walkers 107 ms
 (171 ms). Both kernels are bound by the latency of their chain of dependent steps: the level
 schedule of DR Legs standing has a critical path of 6.3 k steps per factor and 2.5 k per solve,
 and on the H100 a factor takes 1.4 ms and a solve 0.73 ms at 4096 worlds, 0.23 to 0.29 us (one

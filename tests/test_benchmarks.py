@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pytest
 
 from benchmarks import walker_precision, walker_steps
 
@@ -74,3 +75,19 @@ def test_mujoco_warp_capacities_cover_a_host_rollout():
         ncon, nefc = max(ncon, data.ncon), max(nefc, data.nefc)
     assert ncon >= 4 and nefc >= 4 * ncon  # the box rests on its corners (pyramidal cones: 4 rows each)
     assert capacity["nconmax"] >= 2 * ncon and capacity["njmax"] >= 2 * nefc
+
+
+def test_padmm_bandwidth_counts_at_least_the_arrays_every_iteration_must_touch(tmp_path, capsys):
+    from benchmarks import padmm_bandwidth
+
+    assert padmm_bandwidth.main(["--device", "cpu", "--scene", "fourbar", "--worlds", "4", "--warmup", "3",
+                                 "--steps", "2", "--out", str(tmp_path)]) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    W, R = 4, result["rows"]
+    # every iteration reads the factor (W R R floats) and the iterate, its previous value and the rhs
+    assert result["linear_solver"] == "dense"
+    assert result["bytes_per_iteration"] >= 4 * (W * R * R + 3 * W * R)
+    assert result["loop_trips_per_step"] >= 1
+    assert 0.0 < result["fraction_of_bandwidth"] < 1.0
+    assert result["floor_ms"] == pytest.approx(result["bytes_per_iteration"] / (1e6 * result["bandwidth_GBps"]))
+    assert (tmp_path / "padmm_bandwidth_cpu.csv").stat().st_size > 0

@@ -1,0 +1,218 @@
+"""PADMM iteration against the memory-bandwidth floor: how close the iteration phase comes to the
+time it would take just to move its data once.
+
+    python benchmarks/padmm_bandwidth.py --device cuda --scene walker drlegs_standing --out benchmarks/results/h100
+    python benchmarks/padmm_bandwidth.py --device cpu --scene fourbar --worlds 64
+
+For each scene a batch of --worlds worlds runs the staged step (the fused step runs the whole
+loop inside one kernel): --warmup eager steps, then --steps more with every kernel timed
+(wp.timing on a GPU, synchronized wall time per launch on the CPU). The launches of the PADMM loop
+are those from a step's first padmm_rhs to its padmm_output. The bytes of an iteration are the
+sizes of every array the kernels of one iteration take (recorded by wrapping wp.launch for one
+call of engine.padmm.padmm_iteration), each counted once per kernel: a floor, as an array read
+twice counts once; the schedule arrays shared by all worlds count too. The bandwidth is measured
+in the same run with a device-to-device copy of 1 GiB (CPU: 256 MiB). Reported per scene: bytes
+per iteration, time per iteration (the loop's kernel time / its trips), the floor (bytes /
+bandwidth) and the fraction reached (floor / time). Prints one JSON object per scene and
+writes padmm_bandwidth_<device>.csv.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import contextlib
+import json
+import os
+import pathlib
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+import numpy as np
+import pandas as pd
+import warp as wp
+
+from engine import SolverConfig, pack_worlds
+from engine import padmm as padmm_module
+from engine.step import step
+
+SCENE_DT = {"fourbar": 1e-3, "sixbar": 1e-3, "walker": 2e-3, "drlegs_hanging": 1e-2, "drlegs_standing": 1e-2}
+
+
+def scene_specs(name: str, assets: str | None) -> list:
+    from benchmarks.scenes import dr_legs, walkers
+    from engine.scenes import make_scene
+
+    if name == "walker":
+        return walkers().specs
+    if name.startswith("drlegs"):
+        return dr_legs(name == "drlegs_standing", assets).specs
+    return [make_scene(name).spec]
+
+
+def measure_bandwidth(device: str, nbytes: int, repeats: int = 5) -> float:
+    """Device memory bandwidth [bytes/s]: a copy of nbytes reads and writes 2 nbytes (median)."""
+    n = nbytes // 16
+    src = wp.ones(n, dtype=wp.vec4, device=device)
+    dst = wp.zeros(n, dtype=wp.vec4, device=device)
+    wp.copy(dst, src)
+    times = []
+    for _ in range(repeats):
+        wp.synchronize_device(device)
+        t0 = time.perf_counter()
+        wp.copy(dst, src)
+        wp.synchronize_device(device)
+        times.append(time.perf_counter() - t0)
+    return 2.0 * n * 16 / float(np.median(times))
+
+
+def _array_bytes(value, seen: set) -> int:
+    """Bytes of the arrays in a launch argument (a struct's array fields included), each once."""
+    if isinstance(value, wp.array):
+        if id(value) in seen:
+            return 0
+        seen.add(id(value))
+        return int(value.size * wp.types.type_size_in_bytes(value.dtype))
+    if hasattr(getattr(value, "_cls", None), "vars"):  # a wp.struct instance
+        return sum(_array_bytes(getattr(value, name), seen) for name in value._cls.vars)
+    return 0
+
+
+@contextlib.contextmanager
+def recorded_launches(records: list):
+    """Record (kernel key, bytes of its array arguments) of every wp.launch / wp.launch_tiled."""
+    launch, launch_tiled = wp.launch, wp.launch_tiled
+
+    def note(kernel, kwargs, args):
+        arrays = list(args) + list(kwargs.get("inputs", []) or []) + list(kwargs.get("outputs", []) or [])
+        seen: set = set()
+        records.append((kernel.key, sum(_array_bytes(a, seen) for a in arrays)))
+
+    def wrapped(kernel, *args, **kwargs):
+        note(kernel, kwargs, args[1:] if args else ())
+        return launch(kernel, *args, **kwargs)
+
+    def wrapped_tiled(kernel, *args, **kwargs):
+        note(kernel, kwargs, args[1:] if args else ())
+        return launch_tiled(kernel, *args, **kwargs)
+
+    wp.launch, wp.launch_tiled = wrapped, wrapped_tiled
+    try:
+        yield records
+    finally:
+        wp.launch, wp.launch_tiled = launch, launch_tiled
+
+
+def timed_launches(device: str, model, state_a, state_b, steps: int) -> list[tuple[str, float]]:
+    """(kernel name, seconds) of every launch of ``steps`` steps, in launch order."""
+    if wp.get_device(device).is_cuda:
+        wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+        for _ in range(steps):
+            step(model, state_a, state_b, model.control())
+            state_a, state_b = state_b, state_a
+        return [(r.name.replace("forward kernel ", ""), 1e-3 * r.elapsed) for r in wp.timing_end()]
+    records = []
+    launch, launch_tiled = wp.launch, wp.launch_tiled
+
+    def timed(original):
+        def run(kernel, *args, **kwargs):
+            t0 = time.perf_counter()
+            out = original(kernel, *args, **kwargs)
+            records.append((kernel.key, time.perf_counter() - t0))
+            return out
+        return run
+
+    wp.launch, wp.launch_tiled = timed(launch), timed(launch_tiled)
+    try:
+        for _ in range(steps):
+            step(model, state_a, state_b, model.control())
+            state_a, state_b = state_b, state_a
+    finally:
+        wp.launch, wp.launch_tiled = launch, launch_tiled
+    return records
+
+
+def loop_launches(records: list[tuple[str, float]]) -> list[tuple[str, float]]:
+    """The launches inside the PADMM loops: from each step's first padmm_rhs up to its
+    padmm_output (the factor and solve kernels also run before the loop and in the projection)."""
+    inside, loop = False, []
+    for name, seconds in records:
+        if name.startswith("padmm_rhs"):
+            inside = True
+        elif name.startswith("padmm_output"):
+            inside = False
+        if inside:
+            loop.append((name, seconds))
+    return loop
+
+
+def run_scene(name: str, device: str, worlds: int, warmup: int, steps: int, bandwidth: float, config: dict,
+              assets: str | None = None) -> dict:
+    specs = scene_specs(name, assets)
+    batch = [specs[w % len(specs)] for w in range(worlds)]
+    # the staged step: the fused step runs the loop inside one kernel, with nothing to time apart
+    model = pack_worlds(batch, device=device, dt=SCENE_DT.get(name, 1e-3),
+                        config=SolverConfig(**{"step_kernel": "staged", **config}))
+    state_a, state_b = model.state(), model.state()
+    for _ in range(warmup):
+        step(model, state_a, state_b, model.control())
+        state_a, state_b = state_b, state_a
+    wp.synchronize_device(device)
+    records: list = []
+    with recorded_launches(records):  # one iteration of every world (after a step: its data in place)
+        padmm_module.padmm_iteration(model)
+    wp.synchronize_device(device)
+    iteration_bytes = sum(b for _, b in records)
+    loop = loop_launches(timed_launches(device, model, state_a, state_b, steps))
+    trips = sum(1 for name, _ in loop if name.startswith("padmm_rhs"))
+    if trips == 0:
+        raise RuntimeError(f"{name}: no PADMM iteration was launched in {steps} steps")
+    per_kernel = collections.defaultdict(float)
+    for kernel, seconds in loop:
+        per_kernel[kernel] += seconds
+    per_iteration = sum(per_kernel.values()) / trips
+    floor = iteration_bytes / bandwidth
+    return {
+        "scene": name, "device": wp.get_device(device).name if wp.get_device(device).is_cuda else "cpu",
+        "warp": wp.config.version, "worlds": model.num_worlds, "rows": model.max_rows,
+        "linear_solver": model.linear_solver, "loop_trips_per_step": trips / steps,
+        "bytes_per_iteration": int(iteration_bytes), "bandwidth_GBps": bandwidth / 1e9,
+        "iteration_ms": 1e3 * per_iteration, "floor_ms": 1e3 * floor, "fraction_of_bandwidth": floor / per_iteration,
+        "loop_kernels_ms_per_step": {k: round(1e3 * v / steps, 4) for k, v in sorted(per_kernel.items())},
+    }
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--scene", nargs="+", default=["walker"], choices=sorted(SCENE_DT))
+    parser.add_argument("--worlds", type=int, default=4096)
+    parser.add_argument("--warmup", type=int, default=20)
+    parser.add_argument("--steps", type=int, default=3)
+    parser.add_argument("--config", default="{}", help="SolverConfig keywords as JSON")
+    parser.add_argument("--assets", default=None, help="folder holding disneyresearch/dr_legs (DR Legs scenes)")
+    parser.add_argument("--out", default=".")
+    args = parser.parse_args(argv)
+    wp.config.log_level = wp.LOG_WARNING
+    try:
+        config = json.loads(args.config)
+        SolverConfig(**config)
+    except (ValueError, TypeError) as exc:
+        parser.error(f"--config: {exc}")
+    cuda = wp.get_device(args.device).is_cuda
+    bandwidth = measure_bandwidth(args.device, (1 << 30) if cuda else (1 << 28))
+    rows = []
+    for name in args.scene:
+        result = run_scene(name, args.device, args.worlds, args.warmup, args.steps, bandwidth, config, args.assets)
+        print(json.dumps(result), flush=True)
+        rows.append({k: v for k, v in result.items() if not isinstance(v, dict)})
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    pd.DataFrame(rows).to_csv(out / f"padmm_bandwidth_{'cuda' if cuda else 'cpu'}.csv", index=False)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
