@@ -199,6 +199,60 @@ def case_s3(device: str, full: bool) -> dict:
     return {"measured": measured, "pass": bool(ok)}
 
 
+# ---------------------------------------------------------------- S4: redundant loops
+
+
+def double_parallelogram(theta0: float, speed: float) -> MechanismSpec:
+    """Three 1 m, 1 kg cranks on ground pivots 1 m apart under one rigid 2 m, 2 kg coupler:
+    Gruebler's count in the plane gives 0 degrees of freedom, the mechanism has 1 (the third
+    crank is redundant). The coupler is pinned to the first crank and held on the other two by
+    inline joints."""
+    bodies = [bar(f"crank{k}", 1.0, (float(k), 0.0, 0.0), theta0, speed) for k in range(3)]
+    tip_velocity = speed * np.cross(np.array(Y_AXIS), u(theta0))
+    bodies.append(bar("coupler", 2.0, u(theta0), 0.0, 0.0, tip_velocity))
+    joints = [pin(f"ground{k}", None, f"crank{k}", (float(k), 0.0, 0.0)) for k in range(3)]
+    joints.append(pin("left", "crank0", "coupler", (1.0, 0.0, 0.0)))
+    for k in (1, 2):
+        joints.append(Joint(f"inline{k}", "inline", "coupler", f"crank{k}", parent_position=(float(k), 0.0, 0.0),
+                            child_position=(1.0, 0.0, 0.0), axis=Y_AXIS))
+    return MechanismSpec(bodies, joints, [TrackedPoint("tip", "crank0", (1.0, 0.0, 0.0))], name="double_parallelogram")
+
+
+def crank_reference(theta0: float, speed: float, times: np.ndarray, inertia: float, torque: float) -> np.ndarray:
+    """inertia theta'' = torque cos theta (angles of engine.scenes' u), integrated by scipy."""
+    from scipy.integrate import solve_ivp
+
+    sol = solve_ivp(lambda _, y: [y[1], torque * math.cos(y[0]) / inertia], (0.0, float(times[-1])),
+                    [theta0, speed], t_eval=times, rtol=1e-12, atol=1e-12, method="DOP853")
+    return sol.y[0]
+
+
+def case_s4(device: str, full: bool) -> dict:
+    duration, dt = (10.0 if full else 2.0), 1e-3
+    theta0, speed = 0.5 * math.pi - 0.8, 0.0  # released 0.8 rad from hanging: swings, never flat
+    spec = double_parallelogram(theta0, speed)
+    model = pack_worlds([spec], device=device, dt=dt)
+    steps = round(duration / dt)
+    trace, state = rollout(model, model.state(), model.control(), steps, record_every=10)
+    # one degree of freedom: three cranks (1/3 m l^2 each) and the translating 2 kg coupler
+    reference = crank_reference(theta0, speed, trace.time, 3.0 / 3.0 + 2.0, GRAVITY * (3 * 0.5 + 2.0))
+    expected = np.stack([np.cos(reference), np.zeros_like(reference), -np.sin(reference)], axis=1)
+    energy = trace.energy[:, 0]
+    impulses = state.row_lambda.numpy()[0]
+    weight_impulse = 5.0 * GRAVITY * dt  # the whole mechanism's weight over one step
+    measured = {
+        "duration_s": duration, "loop_closure_m": float(np.nanmax(trace.violation_linear)),
+        "tip_error_m": float(np.nanmax(np.linalg.norm(trace.points[:, 0, 0] - expected, axis=1))),
+        # relative to the energy above the hanging equilibrium (cranks down: -g (3 * 0.5 + 2 * 1))
+        "energy_drift": float(np.max(np.abs(energy - energy[0])) / (energy[0] + GRAVITY * 3.5)),
+        "largest_impulse_over_weight_impulse": float(np.abs(impulses).max() / weight_impulse),
+        "finite": bool(np.isfinite(impulses).all() and np.isfinite(trace.points).all()),
+    }
+    ok = (measured["finite"] and measured["loop_closure_m"] < 1e-4 and measured["tip_error_m"] < 1e-3
+          and measured["largest_impulse_over_weight_impulse"] < 10.0 and measured["energy_drift"] < 0.01)
+    return {"measured": measured, "pass": bool(ok)}
+
+
 # ---------------------------------------------------------------- S5: mass ratios
 
 
@@ -326,6 +380,50 @@ def case_s7(device: str, full: bool) -> dict:
     return {"measured": measured, "pass": bool(ok)}
 
 
+# ---------------------------------------------------------------- S8: large time steps
+
+
+def _stable(spec: MechanismSpec, device: str, dt: float, duration: float) -> tuple[bool, float]:
+    """(finite and joints held within 1e-3 m, largest joint separation) over ``duration``."""
+    model = pack_worlds([spec], device=device, dt=dt)
+    steps = max(1, round(duration / dt))
+    trace, state = rollout(model, model.state(), model.control(), steps, record_every=max(1, steps // 50))
+    finite = bool(np.isfinite(state.body_q.numpy()).all() and not trace.diverged[0])
+    loop = float(np.nanmax(trace.violation_linear)) if finite else math.inf
+    return finite and loop < 1e-3, loop
+
+
+def case_s8(device: str, full: bool) -> dict:
+    """Every case's mechanism at dt x 1, 2, 4, 8 (base 1 ms; the walker 2 ms): the largest dt at
+    which it stays finite with its joints held within 1e-3 m."""
+    from morphopt.families import load_family
+
+    duration = 2.0 if full else 0.5
+    family = load_family("walker")
+    mechanisms = {
+        "S1 driven four-bar": (driven_fourbar(), 1e-3),
+        "S2 passive four-bar": (fourbar().spec, 1e-3),
+        "S3 parallelogram": (n_fourbar(1), 1e-3),
+        "S4 double parallelogram": (double_parallelogram(0.5 * math.pi - 0.8, 0.0), 1e-3),
+        "S5 chain 10 links 1:10000": (mass_ratio_chain(10, 1e4), 1e-3),
+        "S7 crank into its limit": (driven_fourbar(speed=20.0, limit_upper=math.radians(45.0) + 1.0,
+                                                   effort_limit=200.0), 1e-3),
+        "S7 walker": (family.build_spec(family.space.validate(family.space.default())), 2e-3),
+    }
+    measured, ok = {}, True
+    for label, (spec, base) in mechanisms.items():
+        largest, loops = None, {}
+        for factor in (1, 2, 4, 8):
+            stable, loop = _stable(spec, device, base * factor, duration)
+            loops[f"{base * factor * 1e3:g} ms"] = loop
+            if not stable:
+                break
+            largest = base * factor
+        measured[label] = {"largest_stable_dt_ms": None if largest is None else largest * 1e3, "loop_closure_m": loops}
+        ok = ok and largest is not None
+    return {"measured": measured, "pass": bool(ok)}
+
+
 # ---------------------------------------------------------------- S9: batch health
 
 
@@ -406,12 +504,18 @@ CASES = [
     Case("S3", "singular configurations: a parallelogram through its flat position; IFToMM A02 N four-bar "
          "(N = 40, 20 s; CI N = 2, 4 s) against its one-degree-of-freedom motion (scipy, rtol 1e-12)",
          "first crank tip within 1e-3 m of the reference, passes the flat position, no NaN", case_s3),
+    Case("S4", "redundant loops: a double parallelogram (3 cranks, one rigid coupler) swinging, 10 s (CI 2 s), "
+         "against its one-degree-of-freedom motion (scipy)",
+         "loops closed < 1e-4 m, crank tip within 1e-3 m of the reference, impulses finite and below 10 "
+         "weight impulses, energy drift < 1 %", case_s4),
     Case("S5", "chains of 10 and 50 links (CI: 10) with mass ratios 1:100 and 1:10000, 10 s (CI 1 s)",
          "joint separation < 1e-4 m, no NaN; PADMM iterations reported", case_s5),
     Case("S6", "free body spinning about its intermediate axis (inertias 1, 2, 3), falling, 10 s (CI 4 s)",
          "flips; angular momentum conserved to 0.5 %; centre of mass within 1e-3 m of free fall", case_s6),
     Case("S7", "impacts: a crank driven at 20 rad/s into its joint limit; a walker dropped from 0.2 m",
          "overshoot and penetration below 5 mm, no NaN", case_s7),
+    Case("S8", "large time steps: every case's mechanism at dt x 1, 2, 4, 8 for 2 s (CI 0.5 s)",
+         "each stable at its base dt (finite, joints within 1e-3 m); the largest stable dt reported", case_s8),
     Case("S9", "batch health: 4096 heterogeneous linkages (CI 16) under random drive torques up to 3x their "
          "effort limits for 10 s (CI 0.5 s); one world forced to diverge (non-finite force)",
          "no NaN world, quaternion norms within 1e-3, the forced world flagged and frozen, its neighbours "
