@@ -543,12 +543,12 @@ def main(argv=None) -> int:
     unknown = sorted(set(args.only or []) - known)
     if unknown:
         parser.error(f"--only: unknown case {', '.join(unknown)}; expected some of {', '.join(sorted(known))}")
+    wp.config.quiet = True  # stdout holds only the cases' JSON: no Warp banner
+    wp.config.log_level = wp.LOG_WARNING
     try:
         wp.get_device(args.device)
     except (RuntimeError, ValueError) as exc:
         parser.error(f"--device: {exc}")
-    wp.config.log_level = wp.LOG_WARNING
-    wp.config.quiet = True
     failed = []
     for case in CASES:
         if args.only and case.id not in args.only:
