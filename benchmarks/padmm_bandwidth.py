@@ -34,22 +34,10 @@ import numpy as np
 import pandas as pd
 import warp as wp
 
+from benchmarks.scenes import SCENES_DECLARED
 from engine import SolverConfig, pack_worlds
 from engine import padmm as padmm_module
 from engine.step import step
-
-SCENE_DT = {"fourbar": 1e-3, "sixbar": 1e-3, "walker": 2e-3, "drlegs_hanging": 1e-2, "drlegs_standing": 1e-2}
-
-
-def scene_specs(name: str, assets: str | None) -> list:
-    from benchmarks.scenes import dr_legs, walkers
-    from engine.scenes import make_scene
-
-    if name == "walker":
-        return walkers().specs
-    if name.startswith("drlegs"):
-        return dr_legs(name == "drlegs_standing", assets).specs
-    return [make_scene(name).spec]
 
 
 def measure_bandwidth(device: str, nbytes: int, repeats: int = 5) -> float:
@@ -81,56 +69,47 @@ def _array_bytes(value, seen: set) -> int:
 
 
 @contextlib.contextmanager
-def recorded_launches(records: list):
-    """Record (kernel key, bytes of its array arguments) of every wp.launch / wp.launch_tiled."""
-    launch, launch_tiled = wp.launch, wp.launch_tiled
+def observed_launches(observe):
+    """Call observe(kernel, args, kwargs, seconds) after every wp.launch / wp.launch_tiled (the
+    engine's modules call them through ``wp``, so swapping the attributes reaches every launch)."""
+    originals = wp.launch, wp.launch_tiled
 
-    def note(kernel, kwargs, args):
-        arrays = list(args) + list(kwargs.get("inputs", []) or []) + list(kwargs.get("outputs", []) or [])
-        seen: set = set()
-        records.append((kernel.key, sum(_array_bytes(a, seen) for a in arrays)))
-
-    def wrapped(kernel, *args, **kwargs):
-        note(kernel, kwargs, args[1:] if args else ())
-        return launch(kernel, *args, **kwargs)
-
-    def wrapped_tiled(kernel, *args, **kwargs):
-        note(kernel, kwargs, args[1:] if args else ())
-        return launch_tiled(kernel, *args, **kwargs)
-
-    wp.launch, wp.launch_tiled = wrapped, wrapped_tiled
-    try:
-        yield records
-    finally:
-        wp.launch, wp.launch_tiled = launch, launch_tiled
-
-
-def timed_launches(device: str, model, state_a, state_b, steps: int) -> list[tuple[str, float]]:
-    """(kernel name, seconds) of every launch of ``steps`` steps, in launch order."""
-    if wp.get_device(device).is_cuda:
-        wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
-        for _ in range(steps):
-            step(model, state_a, state_b, model.control())
-            state_a, state_b = state_b, state_a
-        return [(r.name.replace("forward kernel ", ""), 1e-3 * r.elapsed) for r in wp.timing_end()]
-    records = []
-    launch, launch_tiled = wp.launch, wp.launch_tiled
-
-    def timed(original):
+    def wrap(original):
         def run(kernel, *args, **kwargs):
             t0 = time.perf_counter()
             out = original(kernel, *args, **kwargs)
-            records.append((kernel.key, time.perf_counter() - t0))
+            observe(kernel, args, kwargs, time.perf_counter() - t0)
             return out
         return run
 
-    wp.launch, wp.launch_tiled = timed(launch), timed(launch_tiled)
+    wp.launch, wp.launch_tiled = (wrap(f) for f in originals)
     try:
+        yield
+    finally:
+        wp.launch, wp.launch_tiled = originals
+
+
+def launch_bytes(kernel, args, kwargs) -> int:
+    """Bytes of the arrays a launch takes (positional after dim, inputs, outputs), each once."""
+    arrays = list(args[1:]) + list(kwargs.get("inputs") or []) + list(kwargs.get("outputs") or [])
+    seen: set = set()
+    return sum(_array_bytes(a, seen) for a in arrays)
+
+
+def timed_launches(device: str, model, state_a, state_b, steps: int) -> list[tuple[str, float]]:
+    """(kernel name, seconds) of every launch of ``steps`` steps, in launch order (GPU: kernel
+    times from wp.timing; CPU: wall time per launch, a launch runs synchronously there)."""
+    cuda = wp.get_device(device).is_cuda
+    records = []
+    if cuda:
+        wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+    with contextlib.nullcontext() if cuda else observed_launches(
+            lambda kernel, args, kwargs, seconds: records.append((kernel.key, seconds))):
         for _ in range(steps):
             step(model, state_a, state_b, model.control())
             state_a, state_b = state_b, state_a
-    finally:
-        wp.launch, wp.launch_tiled = launch, launch_tiled
+    if cuda:
+        records = [(r.name.replace("forward kernel ", ""), 1e-3 * r.elapsed) for r in wp.timing_end()]
     return records
 
 
@@ -150,10 +129,11 @@ def loop_launches(records: list[tuple[str, float]]) -> list[tuple[str, float]]:
 
 def run_scene(name: str, device: str, worlds: int, warmup: int, steps: int, bandwidth: float, config: dict,
               assets: str | None = None) -> dict:
-    specs = scene_specs(name, assets)
+    declared = SCENES_DECLARED[name]
+    specs = declared.build(assets).specs
     batch = [specs[w % len(specs)] for w in range(worlds)]
     # the staged step: the fused step runs the loop inside one kernel, with nothing to time apart
-    model = pack_worlds(batch, device=device, dt=SCENE_DT.get(name, 1e-3),
+    model = pack_worlds(batch, device=device, dt=declared.dt,
                         config=SolverConfig(**{"step_kernel": "staged", **config}))
     state_a, state_b = model.state(), model.state()
     for _ in range(warmup):
@@ -161,10 +141,10 @@ def run_scene(name: str, device: str, worlds: int, warmup: int, steps: int, band
         state_a, state_b = state_b, state_a
     wp.synchronize_device(device)
     records: list = []
-    with recorded_launches(records):  # one iteration of every world (after a step: its data in place)
-        padmm_module.padmm_iteration(model)
+    with observed_launches(lambda kernel, args, kwargs, _: records.append(launch_bytes(kernel, args, kwargs))):
+        padmm_module.padmm_iteration(model)  # one iteration of every world (after a step: its data in place)
     wp.synchronize_device(device)
-    iteration_bytes = sum(b for _, b in records)
+    iteration_bytes = sum(records)
     loop = loop_launches(timed_launches(device, model, state_a, state_b, steps))
     trips = sum(1 for name, _ in loop if name.startswith("padmm_rhs"))
     if trips == 0:
@@ -187,7 +167,7 @@ def run_scene(name: str, device: str, worlds: int, warmup: int, steps: int, band
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--scene", nargs="+", default=["walker"], choices=sorted(SCENE_DT))
+    parser.add_argument("--scene", nargs="+", default=["walker"], choices=sorted(SCENES_DECLARED))
     parser.add_argument("--worlds", type=int, default=4096)
     parser.add_argument("--warmup", type=int, default=20)
     parser.add_argument("--steps", type=int, default=3)
