@@ -37,7 +37,7 @@ import warp as wp
 
 from engine import Joint, JointDrive, MechanismSpec, SolverConfig, TrackedPoint, pack_worlds, rollout
 from engine.rollout import Stepper
-from engine.scenes import Y_AXIS, bar, fourbar, pin, u
+from engine.scenes import Y_AXIS, bar, chain, fourbar, pin, u
 
 GRAVITY = 9.81
 
@@ -158,20 +158,15 @@ def n_fourbar(n: int, theta0: float = -0.5 * math.pi, speed: float = 1.0) -> Mec
     return MechanismSpec(bodies, joints, [TrackedPoint("tip", "crank0", (1.0, 0.0, 0.0))], name=f"n_fourbar_{n}")
 
 
-def n_fourbar_reference(n: int, theta0: float, speed: float, times: np.ndarray) -> np.ndarray:
-    """Crank angle of the one-degree-of-freedom motion: (n + 1) cranks (m l^2 / 3 about their
-    pivots) and n translating couplers (m, speed l theta'); the height of a point at distance r
-    along a crank is -r sin theta, so M theta'' = G cos theta."""
+def crank_reference(theta0: float, speed: float, times: np.ndarray, inertia: float, torque: float) -> np.ndarray:
+    """Crank angle of a one-degree-of-freedom parallel linkage (cranks parallel, couplers
+    translating), integrated by scipy at tight tolerance: the height of a point at distance r
+    along a crank is -r sin theta (engine.scenes' u), so inertia theta'' = torque cos theta, with
+    inertia and torque per unit crank mass, length and gravity summed over the links."""
     from scipy.integrate import solve_ivp
 
-    inertia = (n + 1) / 3.0 + n
-    torque = GRAVITY * ((n + 1) * 0.5 + n)
-
-    def rhs(_, y):
-        return [y[1], torque * math.cos(y[0]) / inertia]
-
-    sol = solve_ivp(rhs, (0.0, float(times[-1])), [theta0, speed], t_eval=times, rtol=1e-12, atol=1e-12,
-                    method="DOP853")
+    sol = solve_ivp(lambda _, y: [y[1], torque * math.cos(y[0]) / inertia], (0.0, float(times[-1])),
+                    [theta0, speed], t_eval=times, rtol=1e-12, atol=1e-12, method="DOP853")
     return sol.y[0]
 
 
@@ -186,7 +181,9 @@ def case_s3(device: str, full: bool) -> dict:
         steps = round(duration / dt)
         trace, _ = rollout(model, model.state(), model.control(), steps, record_every=20)
         tip = trace.points[:, 0, 0]
-        reference = n_fourbar_reference(count, theta0, speed, trace.time)
+        # (count + 1) cranks (1/3 m l^2 about their pivots) and count translating couplers
+        reference = crank_reference(theta0, speed, trace.time, (count + 1) / 3.0 + count,
+                                    GRAVITY * ((count + 1) * 0.5 + count))
         expected = np.stack([np.cos(reference), np.zeros_like(reference), -np.sin(reference)], axis=1)
         error = np.linalg.norm(tip - expected, axis=1)
         flat = int(np.sum(np.diff(np.sign(np.sin(reference))) != 0))  # passes through the flat position
@@ -218,15 +215,6 @@ def double_parallelogram(theta0: float, speed: float) -> MechanismSpec:
     return MechanismSpec(bodies, joints, [TrackedPoint("tip", "crank0", (1.0, 0.0, 0.0))], name="double_parallelogram")
 
 
-def crank_reference(theta0: float, speed: float, times: np.ndarray, inertia: float, torque: float) -> np.ndarray:
-    """inertia theta'' = torque cos theta (angles of engine.scenes' u), integrated by scipy."""
-    from scipy.integrate import solve_ivp
-
-    sol = solve_ivp(lambda _, y: [y[1], torque * math.cos(y[0]) / inertia], (0.0, float(times[-1])),
-                    [theta0, speed], t_eval=times, rtol=1e-12, atol=1e-12, method="DOP853")
-    return sol.y[0]
-
-
 def case_s4(device: str, full: bool) -> dict:
     duration, dt = (10.0 if full else 2.0), 1e-3
     theta0, speed = 0.5 * math.pi - 0.8, 0.0  # released 0.8 rad from hanging: swings, never flat
@@ -256,19 +244,9 @@ def case_s4(device: str, full: bool) -> dict:
 # ---------------------------------------------------------------- S5: mass ratios
 
 
-def mass_ratio_chain(links: int, ratio: float, length: float = 0.1) -> MechanismSpec:
-    """An open chain hanging from a world pivot, released at 30 degrees from the vertical, its
-    links alternating between line densities 1 and ``ratio`` [kg/m]."""
-    phi = 0.5 * math.pi - math.radians(30.0)
-    bodies, joints = [], []
-    origin = np.zeros(3)
-    for k in range(links):
-        bodies.append(bar(f"link{k}", length, origin, phi, density=ratio if k % 2 else 1.0))
-        joints.append(pin(f"joint{k}", None if k == 0 else f"link{k - 1}", f"link{k}",
-                          origin if k == 0 else (length, 0.0, 0.0)))
-        origin = origin + length * u(phi)
-    return MechanismSpec(bodies, joints, [TrackedPoint("tip", f"link{links - 1}", (length, 0.0, 0.0))],
-                         name=f"chain_{links}_{ratio:g}")
+def mass_ratio_chain(links: int, ratio: float) -> MechanismSpec:
+    """engine.scenes' chain with its links alternating between line densities 1 and ``ratio``."""
+    return chain(links, densities=[ratio if k % 2 else 1.0 for k in range(links)]).spec
 
 
 def case_s5(device: str, full: bool) -> dict:
@@ -455,6 +433,9 @@ def _torque_run(specs, device, dt, steps, every, seed, poison: int | None):
         force = np.zeros((model.num_worlds, model.max_bodies, 6), np.float32)
         force[poison, 0, :] = np.nan
         control.body_f.assign(force)
+    real = np.arange(model.max_bodies)[None, :] < model.body_count.numpy()[:, None]  # not padding
+    if poison is not None:
+        real[poison] = False
     rng = np.random.default_rng(seed)
     stepper = Stepper(model, model.state(), control, chunk=every)
     unconverged, quaternion = [], 0.0
@@ -462,11 +443,8 @@ def _torque_run(specs, device, dt, steps, every, seed, poison: int | None):
         control.joint_effort.assign((rng.uniform(-3.0, 3.0, driven.shape) * driven).astype(np.float32))
         stepper.advance()
         unconverged.append(int((model.work.iterations.numpy() >= model.config.max_iterations).sum()))
-        q = stepper.state.body_q.numpy()[:, :, 3:7]
-        counts = model.body_count.numpy()
-        for w in range(model.num_worlds):
-            if w != poison:
-                quaternion = max(quaternion, float(np.abs(np.linalg.norm(q[w, :counts[w]], axis=1) - 1.0).max()))
+        error = np.abs(np.linalg.norm(stepper.state.body_q.numpy()[:, :, 3:7], axis=2) - 1.0)
+        quaternion = max(quaternion, float(error[real].max()))
     return model, stepper.state.body_q.numpy().copy(), unconverged, quaternion
 
 

@@ -190,19 +190,24 @@ def sixbar(crank_angle: float = math.radians(45.0), crank_speed: float = 3.0) ->
     return Scene(MechanismSpec(bodies, joints, points, name="sixbar"), best)
 
 
-def chain(links: int = 10, length: float = 0.1, angle: float = math.radians(30.0)) -> Scene:
-    """An open chain of bars hanging from a world pivot, released straight at ``angle`` from vertical."""
+def chain(links: int = 10, length: float = 0.1, angle: float = math.radians(30.0),
+          densities: list[float] | None = None) -> Scene:
+    """An open chain of bars hanging from a world pivot, released straight at ``angle`` from
+    vertical; densities: each link's line density [kg/m] (default 1)."""
+    densities = [1.0] * links if densities is None else list(densities)
+    if len(densities) != links:
+        raise ValueError(f"chain: expected {links} densities, got {len(densities)}")
     phi = 0.5 * math.pi - angle  # u(phi) = (sin angle, 0, -cos angle)
     bodies, joints = [], []
     origin = np.zeros(3)
     for k in range(links):
-        bodies.append(bar(f"link{k}", length, origin, phi))
+        bodies.append(bar(f"link{k}", length, origin, phi, density=densities[k]))
         parent = None if k == 0 else f"link{k - 1}"
         joints.append(pin(f"joint{k}", parent, f"link{k}", origin if k == 0 else (length, 0.0, 0.0)))
         origin = origin + length * u(phi)
     points = [TrackedPoint("tip", f"link{links - 1}", (length, 0.0, 0.0))]
-    total = links * length
-    potential_min = -length * GRAVITY * 0.5 * total * total / length  # sum of -m g z_com hanging straight
+    # hanging straight: link k's centre at -(k + 1/2) length
+    potential_min = -GRAVITY * sum(d * length * (k + 0.5) * length for k, d in enumerate(densities))
     return Scene(MechanismSpec(bodies, joints, points, name="chain"), potential_min)
 
 

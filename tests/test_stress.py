@@ -44,3 +44,21 @@ def test_stress_runner_reports_failures_and_crashes_and_exits_non_zero(monkeypat
     with pytest.raises(SystemExit) as exit_info:
         stress.main(["--device", "cpu", "--only", "S42"])
     assert exit_info.value.code == 2
+
+
+def test_chain_with_densities_hangs_at_its_potential_minimum():
+    # released straight down at rest, the chain's energy (the engine's own sum) is its potential minimum
+    import numpy as np
+
+    from engine import pack_worlds
+    from engine.metrics import compute_metrics
+    from engine.scenes import chain
+
+    scene = chain(3, densities=[1.0, 100.0, 1e4], angle=0.0)
+    model = pack_worlds([scene.spec], device="cpu")
+    state = model.state()
+    compute_metrics(model, state)
+    assert np.isclose(model.work.energy.numpy()[0], scene.potential_min, rtol=1e-5)
+    assert [b.mass for b in scene.spec.bodies] == pytest.approx([0.1, 10.0, 1000.0])
+    with pytest.raises(ValueError, match="expected 3 densities"):
+        chain(3, densities=[1.0])
