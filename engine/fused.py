@@ -35,6 +35,7 @@ from engine.integrate import (
     bilateral_residual_of,
     guard_divergence_of,
     integrate_pose_of,
+    midpoint_pose_of,
 )
 from engine.joints import joint_residuals_of, joint_rows_of
 from engine.linear import block_sync
@@ -309,6 +310,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
         max_speed: float,
         body_q_in: wp.array2d(dtype=wp.transform),
         body_qd_in: wp.array2d(dtype=wp.spatial_vector),
+        body_q_offset_in: wp.array2d(dtype=wp.spatial_vector),
         row_lambda_in: wp.array2d(dtype=float),
         joint_target_position: wp.array2d(dtype=float),
         joint_target_velocity: wp.array2d(dtype=float),
@@ -317,6 +319,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
         # out
         body_q_out: wp.array2d(dtype=wp.transform),
         body_qd_out: wp.array2d(dtype=wp.spatial_vector),
+        body_q_offset_out: wp.array2d(dtype=wp.spatial_vector),
         row_lambda_out: wp.array2d(dtype=float),
     ):
         """One whole step of one world (engine.step's stages) in one thread block: the lanes share the
@@ -330,13 +333,10 @@ def _make_kernel(tile_rows: int, max_registers: int):
         sol = wp.tile_zeros(shape=tile_rows, dtype=float, storage="shared")
         nb = m.body_count[world]
         nj = m.joint_count[world]
-        fraction = 1.0
-        if moreau != 0:
-            fraction = 0.5
         # 1. configuration of the dynamics: the midpoint (Moreau-Jean) or the start of the step
         for b in range(lane, nb, lanes):
             if moreau != 0:
-                integrate_pose_of(world, b, m.body_count, m.world_dt, 0.5, body_q_in, body_qd_in, w.body_q_mid)
+                midpoint_pose_of(world, b, m.world_dt, body_q_in, body_q_offset_in, body_qd_in, w.body_q_mid)
             else:
                 w.body_q_mid[world, b] = body_q_in[world, b]
         block_sync()
@@ -446,8 +446,11 @@ def _make_kernel(tile_rows: int, max_registers: int):
         for b in range(lane, nb, lanes):
             apply_impulses_of(world, b, m.body_count, w.row_count, w.row_body_c, w.row_body_p, w.row_MJ_c, w.row_MJ_p,
                               row_lambda_out, w.row_precond, w.body_qd_free, body_qd_out)
-            integrate_pose_of(world, b, m.body_count, m.world_dt, fraction, w.body_q_mid, body_qd_out, body_q_out)
-        # 5. Gauss-Newton projection onto the joint constraints (engine.integrate.project_positions)
+            integrate_pose_of(world, b, m.body_count, m.world_dt, 1.0, w.body_q_mid, body_qd_out, body_q_out)
+            body_q_offset_out[world, b] = wp.spatial_vector()
+        # 5. Gauss-Newton projection onto the joint constraints (engine.integrate.project_positions) of
+        # the next step's configuration with SHAKE's velocity update; Moreau-Jean then projects the
+        # end of the step, half-way there, for output only (engine.step)
         project = int(0)
         if position_iterations > 0 and valid != 0 and m.bilateral_row_count[world] > 0:
             project = 1
@@ -461,7 +464,18 @@ def _make_kernel(tile_rows: int, max_registers: int):
         if project != 0:
             if refactor:
                 cholesky_lanes(world, lane, lanes, n, target, mask_projection, m.row_kind, D, F)
-            for _it in range(position_iterations):
+            passes = position_iterations
+            shake = position_iterations
+            if moreau != 0:  # engine.integrate.projection_split
+                passes = 2 * shake
+            for _it in range(passes):
+                output = _it >= shake
+                if output and _it == shake:  # the end of the step, from the midpoint
+                    block_sync()
+                    for b in range(lane, nb, lanes):
+                        integrate_pose_of(world, b, m.body_count, m.world_dt, 0.5, w.body_q_mid, body_qd_out,
+                                          body_q_out)
+                    block_sync()
                 for j in range(lane, nj, lanes):
                     joint_residuals_of(world, j, m.joint_count, m.joint_type, m.joint_parent, m.joint_child, m.joint_X_p,
                                        m.joint_X_c, m.joint_axis, m.joint_axis2, m.joint_row_start, m.joint_inertia_row,
@@ -475,20 +489,24 @@ def _make_kernel(tile_rows: int, max_registers: int):
                 if lanes > 1:
                     largest = block_max(largest)
                 update = int(0)
-                if largest > velocity_floor:  # above float32 rounding: SHAKE's velocity update
+                if largest > velocity_floor and not output:  # above float32 rounding: SHAKE's velocity update
                     update = velocity_update
                 block_sync()
                 cholesky_solve_lanes(world, lane, lanes, n, F, w.rhs, w.delta, acc, sol)
                 for b in range(lane, nb, lanes):
                     apply_projection_of(world, b, m.body_count, w.row_count, w.row_body_c, w.row_body_p, w.valid,
-                                        m.world_dt, update, fraction, w.row_MJ_c, w.row_MJ_p, w.row_precond,
-                                        w.delta, body_q_out, body_qd_out)
+                                        m.world_dt, update, 1.0, w.row_MJ_c, w.row_MJ_p, w.row_precond,
+                                        w.delta, wp.where(output, 1, 0), body_q_out, body_qd_out, body_q_offset_out)
                 block_sync()
+        if moreau != 0 and project == 0:  # no projection: the end of the step is half-way to the midpoint
+            block_sync()
+            for b in range(lane, nb, lanes):
+                integrate_pose_of(world, b, m.body_count, m.world_dt, 0.5, w.body_q_mid, body_qd_out, body_q_out)
         # 6. divergence guard
         block_sync()
         if lane == 0:
-            guard_divergence_of(world, m.body_count, body_q_in, body_qd_in, w.halted, max_speed, body_q_out,
-                                body_qd_out, w.diverged)
+            guard_divergence_of(world, m.body_count, body_q_in, body_qd_in, body_q_offset_in, w.halted, max_speed,
+                                body_q_out, body_qd_out, body_q_offset_out, w.diverged)
 
     return fused_step_kernel
 
@@ -526,7 +544,8 @@ def fused_step(model, state_in, state_out, control) -> None:
                       float(cfg.relative_tolerance), cfg.rho_update_interval, int(cfg.adaptive_rho),
                       int(cfg.acceleration), cfg.position_iterations if model.has_bilateral_rows else 0,
                       int(model.has_unilateral_or_drive_rows), int(cfg.projection_velocity_update),
-                      float(cfg.projection_velocity_floor), float(cfg.max_speed), state_in.body_q, state_in.body_qd, state_in.row_lambda,
+                      float(cfg.projection_velocity_floor), float(cfg.max_speed),
+                      state_in.body_q, state_in.body_qd, state_in.body_q_offset, state_in.row_lambda,
                       control.joint_target_position, control.joint_target_velocity, control.joint_effort,
                       control.body_f],
-              outputs=[state_out.body_q, state_out.body_qd, state_out.row_lambda])
+              outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_offset, state_out.row_lambda])

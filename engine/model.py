@@ -65,17 +65,19 @@ class SolverConfig:
         warmstart: start each step from the last step's impulses.
         baumgarte: velocity-level stabilization factor (bias = -baumgarte / dt * residual).
         position_iterations: Gauss-Newton projections of the poses back onto the constraint
-            manifold after each step (0 disables; reuses the factored Delassus matrix).
+            manifold after each step (0 disables; reuses the factored Delassus matrix). They project the
+            next configuration (Moreau-Jean: the next midpoint) with the velocity update;
+            Moreau-Jean then projects the end of the step as often, for output only
+            (engine.integrate.projection_split).
         projection_velocity_update: add each projection displacement / dt to the velocities, so
             that the step is SHAKE-like (symplectic: energy stays bounded instead of draining).
         projection_velocity_floor: a projection iteration updates the velocities only when the
             largest bilateral joint error it corrects exceeds this [m]/[rad] (about two float32
-            ulps of a coordinate of 0.5 m); below it the correction is mostly rounding of the
-            poses, which the update would divide by dt and inject as noise, so the energy error
-            grew as dt shrank. Energy drift over 2 s (four-bar) / 1 s (six-bar), CPU, without ->
-            with the floor: four-bar dt 0.1 ms 3.3 % -> 0.14 %, 0.5 ms 0.11 % -> 0.003 %, 1 ms
-            0.013 % -> 0.011 %, 2 ms 0.010 % -> 0.022 %; six-bar 0.1 ms 5.4 % -> 0.40 %, 1 ms
-            0.008 % -> 0.003 %. 0 turns the floor off.
+            ulps of a coordinate of 0.5 m): below it the correction is mostly rounding of the
+            poses. It was needed while Moreau-Jean projected the end of the step (rounding fed a
+            neutral period-two mode, and the energy error grew as dt shrank: four-bar at 0.1 ms
+            3.3 % without it); since the dynamics run on projected midpoints, the four-bar at
+            0.1 ms drifts 5e-5 with or without it. 0 turns it off.
         limit_margin: a joint limit row turns on within this distance of the limit [rad]/[m]
             (plus the distance the joint covers in one step, so fast joints do not tunnel).
         limit_stabilization: share of a limit violation pushed back per step.
@@ -208,6 +210,7 @@ class Model:
         state = State()
         state.body_q = wp.clone(self.body_q_init)
         state.body_qd = wp.clone(self.body_qd_init)
+        state.body_q_offset = wp.zeros((self.num_worlds, self.max_bodies), dtype=wp.spatial_vector, device=self.device)
         state.row_lambda = wp.zeros((self.num_worlds, self.max_rows), dtype=float, device=self.device)
         capacity = max(self.contact_capacity, 1)
         state.contact_count = wp.zeros(self.num_worlds, dtype=wp.int32, device=self.device)
@@ -240,13 +243,17 @@ class State:
     """Time-varying quantities, double-buffered by the caller.
 
     body_q (W, B) transform: COM pose, world frame. body_qd (W, B) spatial_vector (v, w), world
-    frame. row_lambda (W, R): the last step's constraint impulses [N s] or [N m s] (warm start).
+    frame. body_q_offset (W, B) spatial_vector: how far the last Moreau-Jean step's output
+    projection moved each pose onto the joints (translation [m], rotation vector [rad]); the next
+    step undoes it to find its midpoint (engine.step). Zero in a new State; when body_q is set by
+    hand, zero it too (a stale offset only costs the next step a correction of its own size). row_lambda (W, R): the last step's constraint impulses [N s] or [N m s] (warm start).
     contact_count (W,), contact_key (W, C), contact_impulse (W, C) vec3: the last step's contacts
     and their impulses in the world frame [N s], matched by key to warm-start the next step.
     """
 
     body_q: wp.array
     body_qd: wp.array
+    body_q_offset: wp.array
     row_lambda: wp.array
     contact_count: wp.array
     contact_key: wp.array

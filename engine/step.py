@@ -7,8 +7,14 @@ The stages, in order (each a module of the engine):
    engine.contacts); warm-start impulses gathered (contacts matched by key)
 3. dual problem: free velocities, Delassus matrix, preconditioner (engine.dynamics)
 4. PADMM on all worlds, per-world early exit, warm-started (engine.padmm)
-5. velocity update and pose integration, then Gauss-Newton projection of the poses onto the
-   joint constraints (engine.integrate)
+5. velocity update; a whole pose step from the configuration of the dynamics, projected onto the
+   joint constraints by Gauss-Newton with SHAKE's velocity update (engine.integrate). Moreau-Jean
+   then reports the end of the step half-way to that next midpoint, projected onto the joints
+   for output only: the offset is kept in the State and undone when the next step finds its
+   midpoint, so the dynamics always run on projected midpoints. (Projecting the end of the step
+   itself and recovering the midpoint by half a step leaves a neutral period-two oscillation in
+   the joint-normal direction that the velocity update feeds: it drained a parallelogram's energy
+   through every flat pass.)
 6. divergence guard: a world with a non-finite state is flagged and frozen (engine.integrate)
 Everything that varies between steps lives in device arrays; nothing is allocated, so the whole
 step can be captured once (wp.ScopedCapture) and replayed.
@@ -22,7 +28,14 @@ from engine.collide import compact_contacts, generate_candidates
 from engine.contacts import contact_rows, gather_warmstart, store_contacts
 from engine.dynamics import build_dual_problem
 from engine.fused import fused_step
-from engine.integrate import apply_impulses, guard_divergence, integrate_poses, project_positions
+from engine.integrate import (
+    apply_impulses,
+    guard_divergence,
+    integrate_poses,
+    midpoint_poses,
+    project_positions,
+    projection_split,
+)
 from engine.joints import compute_joint_residuals, compute_joint_rows
 from engine.model import Control, Integrator, Model, State
 from engine.padmm import solve_padmm
@@ -110,11 +123,10 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
     work, device = model.work, model.device
     bodies = (model.num_worlds, model.max_bodies)
     moreau = model.config.integrator is Integrator.MOREAU_JEAN
-    fraction = 0.5 if moreau else 1.0
     body_q = state_in.body_q
     if moreau:
-        wp.launch(integrate_poses, dim=bodies, device=device,
-                  inputs=[model.body_count, model.world_dt, 0.5, state_in.body_q, state_in.body_qd],
+        wp.launch(midpoint_poses, dim=bodies, device=device,
+                  inputs=[model.body_count, model.world_dt, state_in.body_q, state_in.body_q_offset, state_in.body_qd],
                   outputs=[work.body_q_mid])
         body_q = work.body_q_mid
     compute_joint_rows(model, body_q, state_in.body_qd, control)
@@ -139,12 +151,24 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
               inputs=[model.body_count, work.row_count, work.row_body_c, work.row_body_p, work.row_MJ_c,
                       work.row_MJ_p, state_out.row_lambda, work.row_precond, work.body_qd_free],
               outputs=[state_out.body_qd])
+    # a whole step from the configuration of the dynamics: the next step's (Moreau-Jean: the next
+    # midpoint), projected onto the joints with SHAKE's velocity update
     wp.launch(integrate_poses, dim=bodies, device=device,
-              inputs=[model.body_count, model.world_dt, fraction, body_q, state_out.body_qd],
+              inputs=[model.body_count, model.world_dt, 1.0, body_q, state_out.body_qd],
               outputs=[state_out.body_q])
     mark("integrate")
-    project_positions(model, state_out.body_q, state_out.body_qd, compute_joint_residuals, fraction)
+    shake, output = projection_split(model.config.position_iterations, moreau)
+    project_positions(model, state_out.body_q, state_out.body_qd, compute_joint_residuals, iterations=shake)
+    state_out.body_q_offset.zero_()
+    if moreau:  # the end of the step: half-way to the next midpoint, projected for output only
+        wp.launch(integrate_poses, dim=bodies, device=device,
+                  inputs=[model.body_count, model.world_dt, 0.5, body_q, state_out.body_qd],
+                  outputs=[state_out.body_q])
+        project_positions(model, state_out.body_q, state_out.body_qd, compute_joint_residuals, iterations=output,
+                          velocity_update=False,
+                          body_q_offset=state_out.body_q_offset, prepare=False)
     wp.launch(guard_divergence, dim=model.num_worlds, device=device,
-              inputs=[model.body_count, state_in.body_q, state_in.body_qd, work.halted, float(model.config.max_speed)],
-              outputs=[state_out.body_q, state_out.body_qd, work.diverged])
+              inputs=[model.body_count, state_in.body_q, state_in.body_qd, state_in.body_q_offset, work.halted,
+                      float(model.config.max_speed)],
+              outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_offset, work.diverged])
     mark("projection")
