@@ -466,7 +466,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
                 cholesky_lanes(world, lane, lanes, n, target, mask_projection, m.row_kind, D, F)
             passes = position_iterations
             shake = position_iterations
-            if moreau != 0:  # engine.integrate.projection_split
+            if moreau != 0:  # the output projection gets as many iterations (engine.step)
                 passes = 2 * shake
             for _it in range(passes):
                 output = _it >= shake
@@ -495,7 +495,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
                 cholesky_solve_lanes(world, lane, lanes, n, F, w.rhs, w.delta, acc, sol)
                 for b in range(lane, nb, lanes):
                     apply_projection_of(world, b, m.body_count, w.row_count, w.row_body_c, w.row_body_p, w.valid,
-                                        m.world_dt, update, 1.0, w.row_MJ_c, w.row_MJ_p, w.row_precond,
+                                        m.world_dt, update, w.row_MJ_c, w.row_MJ_p, w.row_precond,
                                         w.delta, wp.where(output, 1, 0), body_q_out, body_qd_out, body_q_offset_out)
                 block_sync()
         if moreau != 0 and project == 0:  # no projection: the end of the step is half-way to the midpoint

@@ -213,7 +213,6 @@ def apply_projection_of(
     valid: wp.array(dtype=wp.int32),
     world_dt: wp.array(dtype=float),
     velocity_update: int,
-    fraction: float,
     row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
     row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
     row_precond: wp.array2d(dtype=float),
@@ -225,7 +224,7 @@ def apply_projection_of(
     body_q_offset: wp.array2d(dtype=wp.spatial_vector),
 ):
     """Move each body by M^-1 J^T (P delta): translation [m] and rotation vector [rad]; with
-    velocity_update, add the same displacement / (fraction dt) to the twist (SHAKE: the step stays
+    velocity_update, add the same displacement / dt to the twist (SHAKE: the step stays
     symplectic); with record_offset, add it to body_q_offset (an output projection the next
     Moreau-Jean midpoint undoes)."""
     dx = row_sum_for_body(world, b, row_count[world], row_body_c, row_body_p, row_MJ_c, row_MJ_p, delta, row_precond, 1)
@@ -233,7 +232,7 @@ def apply_projection_of(
     body_q[world, b] = wp.transform(wp.transform_get_translation(X) + wp.spatial_top(dx),
                                     quat_rotate_vector(wp.transform_get_rotation(X), wp.spatial_bottom(dx)))
     if velocity_update != 0:
-        body_qd[world, b] = body_qd[world, b] + dx / (fraction * world_dt[world])
+        body_qd[world, b] = body_qd[world, b] + dx / world_dt[world]
     if record_offset != 0:
         body_q_offset[world, b] = body_q_offset[world, b] + dx
 
@@ -248,7 +247,6 @@ def apply_projection(
     world_dt: wp.array(dtype=float),
     velocity_update: int,
     gate: wp.array(dtype=wp.int32),
-    fraction: float,
     row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
     row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
     row_precond: wp.array2d(dtype=float),
@@ -261,13 +259,13 @@ def apply_projection(
 ):
     """Move each body by M^-1 J^T (P delta): translation [m] and rotation vector [rad]; with
     velocity_update, and where the world's gate is open (its joint error is above the rounding
-    floor), add the same displacement / (fraction dt) to the twist (SHAKE: the step stays
+    floor), add the same displacement / dt to the twist (SHAKE: the step stays
     symplectic); with record_offset, add the displacement to body_q_offset."""
     world, b = wp.tid()
     if b >= body_count[world] or valid[world] == 0:
         return
     apply_projection_of(world, b, body_count, row_count, row_body_c, row_body_p, valid, world_dt,
-        velocity_update * gate[world], fraction, row_MJ_c, row_MJ_p, row_precond, delta, record_offset, body_q, body_qd,
+        velocity_update * gate[world], row_MJ_c, row_MJ_p, row_precond, delta, record_offset, body_q, body_qd,
         body_q_offset)
 
 
@@ -382,24 +380,12 @@ def projection_shift(padmm_eta: wp.array(dtype=float), padmm_rho_init: wp.array(
     project_out[world] = project
 
 
-def projection_split(position_iterations: int, moreau: bool) -> tuple[int, int]:
-    """Gauss-Newton iterations of a step: (projection of the next configuration with the velocity
-    update, output projection of the end of the step). Moreau-Jean projects its output as often
-    as its next midpoint; semi-implicit Euler has no output projection. A single output
-    iteration saved 6 % of DR Legs hanging's step on the H100 (4.2 against 4.4 ms) but left the
-    loops of the ten-second four-bar at 9.5e-5 m instead of < 1e-5 m."""
-    if position_iterations <= 0:
-        return 0, 0
-    return position_iterations, (position_iterations if moreau else 0)
-
-
-def project_positions(model, body_q, body_qd, residual_fn, fraction=1.0, *, iterations=None,
+def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
                       velocity_update=None, body_q_offset=None, prepare=True):
     """Gauss-Newton projection of body_q onto the joint constraints.
 
-    fraction: the share of dt over which the last pose update used the new velocities, for the
-    SHAKE velocity update. iterations: Gauss-Newton steps (config.position_iterations when None).
-    velocity_update: add each displacement / (fraction dt) to body_qd (config's
+    iterations: Gauss-Newton steps (config.position_iterations when None).
+    velocity_update: add each displacement / dt to body_qd (config's
     projection_velocity_update when None). body_q_offset: accumulate the displacements there
     (Moreau-Jean's output projection). prepare=False reuses the factor of an earlier call this step.
     """
@@ -449,8 +435,8 @@ def project_positions(model, body_q, body_qd, residual_fn, fraction=1.0, *, iter
             matrix_free.solve(model, work.rhs, work.project, work.delta, bilateral_only=True)
         wp.launch(apply_projection, dim=grid_bodies, device=device,
                   inputs=[model.body_count, work.row_count, work.row_body_c, work.row_body_p, work.project,
-                          model.world_dt, int(velocity_update), work.projection_gate, fraction, work.row_MJ_c,
+                          model.world_dt, int(velocity_update), work.projection_gate, work.row_MJ_c,
                           work.row_MJ_p, work.row_precond, work.delta, int(record), body_q, body_qd, offset])
 
 
-__all__ = ["apply_impulses", "guard_divergence", "integrate_poses", "midpoint_poses", "project_positions", "projection_split"]
+__all__ = ["apply_impulses", "guard_divergence", "integrate_poses", "midpoint_poses", "project_positions"]

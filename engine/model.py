@@ -67,8 +67,7 @@ class SolverConfig:
         position_iterations: Gauss-Newton projections of the poses back onto the constraint
             manifold after each step (0 disables; reuses the factored Delassus matrix). They project the
             next configuration (Moreau-Jean: the next midpoint) with the velocity update;
-            Moreau-Jean then projects the end of the step as often, for output only
-            (engine.integrate.projection_split).
+            Moreau-Jean then projects the end of the step as often, for output only (engine.step).
         projection_velocity_update: add each projection displacement / dt to the velocities, so
             that the step is SHAKE-like (symplectic: energy stays bounded instead of draining).
         projection_velocity_floor: a projection iteration updates the velocities only when the
