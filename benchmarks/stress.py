@@ -15,7 +15,8 @@ configurations (a parallelogram through its flat position, IFToMM A02's N four-b
 loops (a double parallelogram); S5 chains with extreme mass ratios; S6 a free body spinning about
 its intermediate axis; S7 impacts (a crank driven into its joint limit, a walker dropped on the
 ground); S8 the largest stable time step of every case; S9 batch health (random over-limit
-torques, one world forced to diverge, its neighbours bit-identical to a run without it).
+torques, one world forced to diverge, its neighbours bit-identical to a run without it); S10
+jamming (a design that locks mid-cycle, or whose motor is too weak, fails as jammed).
 """
 
 from __future__ import annotations
@@ -474,6 +475,41 @@ def case_s9(device: str, full: bool) -> dict:
     return {"measured": measured, "pass": bool(ok)}
 
 
+# ---------------------------------------------------------------- S10: jamming
+
+
+def jam_hook(spec: MechanismSpec, params: dict) -> MechanismSpec:
+    """evaluate_dynamic's spec_hook for S10, keyed on the four-bar's point_v: 0.11 puts a stop
+    at 1.2 rad on the coupler-rocker joint (it swings 0.72 to 1.62 rad in a turn: the linkage locks
+    mid-cycle); 0.12 gives the crank a motor of 0.02 N m (the design needs 0.1 N m); else as is."""
+    joints = list(spec.joints)
+    if math.isclose(params["point_v"], 0.11):
+        k = next(k for k, j in enumerate(joints) if j.name == "C_coupler_rocker")
+        joints[k] = dataclasses.replace(joints[k], limit_upper=1.2)
+    elif math.isclose(params["point_v"], 0.12):
+        drive = dataclasses.replace(joints[0].drive, effort_limit=0.02)
+        joints[0] = dataclasses.replace(joints[0], drive=drive)
+    return dataclasses.replace(spec, joints=joints)
+
+
+def case_s10(device: str, full: bool) -> dict:
+    from morphopt.evaluate import evaluate_dynamic
+    from morphopt.families import load_family
+
+    family = load_family("four_bar")
+    base = family.space.default()
+    params = [dict(base, point_v=0.1), dict(base, point_v=0.11), dict(base, point_v=0.12)]
+    duration = 3.0 if full else 1.5
+    evaluation = evaluate_dynamic(family, params, duration=duration, dt=1e-3, device=device, spec_hook=jam_hook)
+    healthy, locked, weak = evaluation.failures
+    measured = {"duration_s": duration, "healthy": healthy or "feasible", "locked_mid_cycle": locked,
+                "motor_too_weak": weak,
+                "healthy_torque_peak_nm": evaluation.metrics[0].get("torque_peak")}
+    ok = (not healthy and locked.startswith("jammed:") and "O_crank" in locked
+          and weak.startswith("jammed:") and "O_crank" in weak)
+    return {"measured": measured, "pass": bool(ok)}
+
+
 CASES = [
     Case("S1", "driven four-bar against Freudenstein's equation (a, b, c, d = 0.2, 0.5, 0.4, 0.5 m, 1 rev/s)",
          "rocker angle within 0.1 deg of the analytic one, loop closure < 1e-5 m", case_s1),
@@ -498,6 +534,10 @@ CASES = [
          "effort limits for 10 s (CI 0.5 s); one world forced to diverge (non-finite force)",
          "no NaN world, quaternion norms within 1e-3, the forced world flagged and frozen, its neighbours "
          "bit-identical to a run without it; non-converged worlds counted", case_s9),
+    Case("S10", "jamming: three four-bars in one batch through the study evaluation (morphopt.evaluate_dynamic): "
+         "a healthy one, one with a stop that locks it mid-cycle, one whose motor is too weak; 3 s (CI 1.5 s)",
+         "both stalled designs fail as jammed (the reason names the drive and its effort limit), the healthy "
+         "one stays feasible", case_s10),
 ]
 
 

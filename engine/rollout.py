@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from engine.joints import body_twist, joint_coordinate_row, joint_frames
 from engine.metrics import compute_metrics
 from engine.model import Control, Model, State
 from engine.step import step
@@ -133,6 +134,7 @@ class Trace:
     violation_linear (T, W) [m]; violation_angular (T, W) [rad]; energy (T, W) [J];
     iterations (T, W) PADMM iterations of the last step before the record; drive_torque
     (T, W, J) torque [N m] (force [N]) of every joint drive in that step (0 without a drive);
+    drive_speed (T, W, J) the driven joints' speeds [rad/s] ([m/s]) at the record (0 without a drive);
     diverged (W,) bool; point_names (list per world); halted_at (W,) time [s] at which rollout's
     halt froze the world (-1: never).
     """
@@ -144,6 +146,7 @@ class Trace:
     energy: np.ndarray
     iterations: np.ndarray
     drive_torque: np.ndarray
+    drive_speed: np.ndarray
     diverged: np.ndarray
     point_names: list
     halted_at: np.ndarray | None = None
@@ -180,6 +183,32 @@ def drive_torques(
     torque_out[world, j] = value
 
 
+@wp.kernel
+def drive_speeds(
+    joint_count: wp.array(dtype=wp.int32),
+    joint_type: wp.array2d(dtype=wp.int32),
+    joint_parent: wp.array2d(dtype=wp.int32),
+    joint_child: wp.array2d(dtype=wp.int32),
+    joint_X_p: wp.array2d(dtype=wp.transform),
+    joint_X_c: wp.array2d(dtype=wp.transform),
+    joint_axis: wp.array2d(dtype=wp.vec3),
+    joint_drive_row: wp.array2d(dtype=wp.int32),
+    body_q: wp.array2d(dtype=wp.transform),
+    body_qd: wp.array2d(dtype=wp.spatial_vector),
+    speed_out: wp.array2d(dtype=float),
+):
+    """Speed [rad/s] or [m/s] of every driven joint's coordinate; 0 for joints without a drive."""
+    world, j = wp.tid()
+    value = 0.0
+    if j < joint_count[world] and joint_drive_row[world, j] >= 0:
+        parent = joint_parent[world, j]
+        child = joint_child[world, j]
+        X_wp, X_wc, r_p, r_c = joint_frames(body_q, world, parent, child, joint_X_p[world, j], joint_X_c[world, j])
+        J_c, J_p, q = joint_coordinate_row(joint_type[world, j], X_wp, X_wc, r_p, r_c, joint_axis[world, j])
+        value = wp.dot(J_c, body_twist(body_qd, world, child)) + wp.dot(J_p, body_twist(body_qd, world, parent))
+    speed_out[world, j] = value
+
+
 def rollout(model: Model, state: State, control: Control, steps: int, *, dt: float | None = None,
             record_every: int = 1, halt=None) -> tuple[Trace, State]:
     """Run ``steps`` steps, recording tracked points and metrics every ``record_every`` steps.
@@ -199,8 +228,9 @@ def rollout(model: Model, state: State, control: Control, steps: int, *, dt: flo
     stepper = Stepper(model, state, control, chunk=record_every)
     points = wp.zeros((model.num_worlds, model.max_points), dtype=wp.vec3, device=model.device)
     torques = wp.zeros((model.num_worlds, model.max_joints), dtype=float, device=model.device)
+    speeds = wp.zeros((model.num_worlds, model.max_joints), dtype=float, device=model.device)
     records = {name: [] for name in ("points", "violation_linear", "violation_angular", "energy", "iterations",
-                                     "drive_torque")}
+                                     "drive_torque", "drive_speed")}
     times = []
 
     def record(current: State):
@@ -212,6 +242,11 @@ def rollout(model: Model, state: State, control: Control, steps: int, *, dt: flo
                   inputs=[model.joint_count, model.joint_drive_row, model.world_dt, current.row_lambda],
                   outputs=[torques])
         records["drive_torque"].append(torques.numpy().copy())
+        wp.launch(drive_speeds, dim=(model.num_worlds, model.max_joints), device=model.device,
+                  inputs=[model.joint_count, model.joint_type, model.joint_parent, model.joint_child, model.joint_X_p,
+                          model.joint_X_c, model.joint_axis, model.joint_drive_row, current.body_q, current.body_qd],
+                  outputs=[speeds])
+        records["drive_speed"].append(speeds.numpy().copy())
         for name in ("violation_linear", "violation_angular", "energy", "iterations"):
             records[name].append(getattr(model.work, name).numpy().copy())
 
@@ -240,6 +275,7 @@ def rollout(model: Model, state: State, control: Control, steps: int, *, dt: flo
                   violation_linear=np.stack(records["violation_linear"]),
                   violation_angular=np.stack(records["violation_angular"]), energy=np.stack(records["energy"]),
                   iterations=np.stack(records["iterations"]), drive_torque=np.stack(records["drive_torque"]),
+                  drive_speed=np.stack(records["drive_speed"]),
                   diverged=model.work.diverged.numpy().astype(bool), point_names=model.point_names,
                   halted_at=halted_at)
     return trace, stepper.state

@@ -77,6 +77,34 @@ def _fall(trace, world: int, torso: int, up: int, max_tilt: float, min_height: f
     return tilt, lowest, f"{when} sank to {heights[first]:.2f} of its starting height (less than {min_height:g})"
 
 
+def _jam(trace, world: int, joints: list, stall_time: float, record_dt: float) -> str:
+    """The failure reason of a jammed design ("" if none): a velocity drive with a finite effort
+    limit that stays at >= 95 % of that limit while its joint turns at less than half of the
+    target speed (or backwards) for stall_time [s] of consecutive records (a locked mechanism, a
+    leg stuck in the ground, a load beyond the motor). Record 0, the initial state, is skipped."""
+    needed = max(2, int(np.ceil(stall_time / record_dt)))
+    for j, joint in enumerate(joints):
+        drive = joint.drive
+        if drive is None or drive.target_velocity == 0.0 or not np.isfinite(drive.effort_limit):
+            continue
+        torque = np.abs(trace.drive_torque[1:, world, j])
+        speed = trace.drive_speed[1:, world, j] * np.sign(drive.target_velocity)
+        stalled = (torque >= 0.95 * drive.effort_limit) & (speed < 0.5 * abs(drive.target_velocity))
+        run = 0
+        for k, flag in enumerate(stalled):
+            run = run + 1 if flag else 0
+            if run == needed:
+                first = k - needed + 1
+                revolute = joint.type.name == "REVOLUTE"
+                unit = "N m" if revolute else "N"
+                rate = "rad/s" if revolute else "m/s"
+                return (f"jammed: the drive of joint '{joint.name}' stalled at its effort limit "
+                        f"({drive.effort_limit:g} {unit}) from {trace.time[first + 1]:.2f} s, turning at "
+                        f"{speed[first:k + 1].mean():.3g} of its {abs(drive.target_velocity):.3g} {rate} "
+                        f"for {needed * record_dt:.2g} s")
+    return ""
+
+
 @dataclass
 class Evaluation:
     """Results of one batch, in the order of ``params``.
@@ -230,7 +258,8 @@ def evaluate_kinematic(family, params: Sequence[dict], *, samples: int = 360, de
 def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: float = 1e-3, device: str = "cpu",
                      crank_speed: float | None = None, record_every: int = 10,
                      spec_hook: Callable | None = None, loop_tolerance: float = 5e-3,
-                     fall_tilt: float = np.radians(45.0), fall_height: float = 0.5) -> Evaluation:
+                     fall_tilt: float = np.radians(45.0), fall_height: float = 0.5,
+                     stall_time: float = 0.2) -> Evaluation:
     """Simulate every feasible design for ``duration`` [s] in one heterogeneous batch.
 
     Metrics: tracked-point paths over the last crank turn (planar, [m]), their stride and step
@@ -248,6 +277,9 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     torso_tilt_max [rad] and torso_height_min (fraction of the start) are metrics as well. A walker
     is frozen at the first record that shows it fallen (engine.rollout's halt): the rest of the
     batch runs on without it, and its metrics describe the run up to the fall.
+    A design whose velocity drive stays at its effort limit while turning at less than half its
+    target speed for stall_time [s] fails as jammed (it locks mid-cycle, or the motor cannot move
+    it); the reason names the joint and when it stalled.
     """
     from engine import pack_worlds, rollout
 
@@ -286,6 +318,10 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
         if torn > loop_tolerance:
             evaluation.failures[i] = (f"diverged: joints came apart by {torn:.3g} m "
                                       f"(more than the {loop_tolerance:g} m tolerance)")
+            continue
+        jammed = _jam(trace, world, specs[world].joints, stall_time, dt * record_every)
+        if jammed:
+            evaluation.failures[i] = jammed
             continue
         speeds = [abs(j.drive.target_velocity) for j in specs[world].joints if j.drive is not None]
         turn = int(round(2.0 * np.pi / max(speeds + [1e-9]) / record_dt)) if speeds else len(trace.time)

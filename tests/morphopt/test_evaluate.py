@@ -116,3 +116,54 @@ def test_families_that_need_floats_are_generated_design_by_design():
     assert "'rocker' = nan is outside" in evaluation.failures[0]
     assert "'crank' = 'long' is outside" in evaluation.failures[1]
     assert evaluation.failures[2] == expected.failures[1]
+
+
+def test_drive_speed_matches_the_crank_angle_rate():
+    """Trace.drive_speed of the four-bar's velocity-driven crank equals the central-difference rate
+    of the crank tip's angle about its pivot (to 1 %), is near its 2 pi rad/s target, and joints
+    without a drive read 0."""
+    import dataclasses
+
+    from engine import TrackedPoint, pack_worlds, rollout
+    from morphopt.linkage import to_spec
+
+    family = load_family("four_bar")
+    params = family.space.default()
+    spec = to_spec(family.generate(params))
+    tip = TrackedPoint("crank_tip", "crank", (params["crank"], 0.0, 0.0))
+    spec = dataclasses.replace(spec, points=[*spec.points, tip])
+    model = pack_worlds([spec], device="cpu", dt=1e-3)
+    trace, _ = rollout(model, model.state(), model.control(), 300, record_every=1)
+    xyz = trace.points[:, 0, len(spec.points) - 1]
+    pivot = trace.points[0, 0, len(spec.points) - 1] - params["crank"] * np.array([1.0, 0.0, 0.0])
+    angle = np.unwrap(np.arctan2(-(xyz[:, 2] - pivot[2]), xyz[:, 0] - pivot[0]))
+    rate = (angle[2:] - angle[:-2]) / (trace.time[2:] - trace.time[:-2])
+    speed = trace.drive_speed[1:-1, 0, 0]
+    assert np.allclose(np.abs(rate), speed, rtol=1e-2)
+    assert np.allclose(speed, 2.0 * np.pi, rtol=0.05)
+    assert np.all(trace.drive_speed[:, 0, 1:] == 0.0)
+
+
+def test_jammed_designs_fail_with_the_drive_and_the_time_and_short_stalls_do_not():
+    """A velocity drive held at its effort limit below half its target speed for stall_time fails
+    the design as jammed; the same stall for less than stall_time (a transient) does not."""
+    from types import SimpleNamespace
+
+    from engine import Joint, JointDrive
+    from morphopt.evaluate import _jam
+
+    drive = JointDrive(damping=10.0, target_velocity=2.0, effort_limit=5.0)
+    joints = [Joint("crank", "revolute", None, "a", drive=drive), Joint("pin", "revolute", "a", "b")]
+    records = 60
+    time = np.arange(records) * 0.01
+    torque = np.zeros((records, 1, 2))
+    speed = np.zeros((records, 1, 2))
+    speed[:, 0, 0] = 2.0
+    torque[10:40, 0, 0] = -5.0  # at the limit, the wrong way round is still the limit
+    speed[10:40, 0, 0] = 0.3
+    trace = SimpleNamespace(time=time, drive_torque=torque, drive_speed=speed)
+    reason = _jam(trace, 0, joints, stall_time=0.2, record_dt=0.01)
+    assert reason.startswith("jammed: the drive of joint 'crank'") and "(5 N m) from 0.10 s" in reason
+    assert _jam(trace, 0, joints, stall_time=0.35, record_dt=0.01) == ""
+    speed[10:40, 0, 0] = 1.2  # slowed down but above half the target: a heavy load, not a jam
+    assert _jam(trace, 0, joints, stall_time=0.2, record_dt=0.01) == ""
