@@ -45,9 +45,9 @@ def free_velocity_of(
     u = body_qd[world, b]
     f = body_f[world, b]
     v = wp.spatial_top(u) + dt * (world_gravity[world] + body_inv_mass[world, b] * wp.spatial_top(f))
-    w_body = wp.quat_rotate_inv(q, wp.spatial_bottom(u))
-    w_body = gyroscopic_implicit_midpoint(w_body, body_inertia[world, b], dt)
-    w = wp.quat_rotate(q, w_body) + dt * (world_inertia_inverse(q, body_inv_inertia[world, b]) * wp.spatial_bottom(f))
+    w = wp.spatial_bottom(u)
+    change = gyroscopic_implicit_midpoint(wp.quat_rotate_inv(q, w), body_inertia[world, b], dt)
+    w = w + wp.quat_rotate(q, change) + dt * (world_inertia_inverse(q, body_inv_inertia[world, b]) * wp.spatial_bottom(f))
     body_qd_free_out[world, b] = twist(v, w)
 
 
