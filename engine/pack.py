@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -115,6 +116,8 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     Returns:
         Model with arrays of shape (num_worlds, max_X) and per-world counts.
     """
+    if isinstance(specs, (MechanismSpec, str, bytes)) or not hasattr(specs, "__iter__"):
+        raise ValueError(f"pack_worlds: specs must be a list of MechanismSpec, got {type(specs).__name__}")
     specs = list(specs)
     if not specs:
         raise ValueError("pack_worlds: needs at least one MechanismSpec")
@@ -124,13 +127,23 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     config = config or SolverConfig()
     if not isinstance(config, SolverConfig):
         raise ValueError(f"pack_worlds: config must be a SolverConfig, got {type(config).__name__}")
-    device = wp.get_device(device)
+    try:
+        dt_ok = not isinstance(dt, bool) and math.isfinite(float(dt)) and float(dt) > 0.0
+    except (TypeError, ValueError):
+        dt_ok = False
+    if not dt_ok:
+        raise ValueError(f"pack_worlds: dt must be a positive finite time step [s], got {dt!r}")
+    try:
+        device = wp.get_device(device)
+    except (RuntimeError, ValueError) as exc:  # Warp: unknown identifier, or CUDA not available
+        raise ValueError(f"pack_worlds: device {device!r} is not available ('cpu', 'cuda' or 'cuda:N'): {exc}") from exc
 
     num_worlds = len(specs)
     max_bodies = max(len(s.bodies) for s in specs)
     max_joints = max(1, max(len(s.joints) for s in specs))
     max_points = max(1, max(len(s.points) for s in specs))
-    if contact_capacity is not None and (int(contact_capacity) != contact_capacity or contact_capacity < 0):
+    integral = isinstance(contact_capacity, (int, np.integer)) and not isinstance(contact_capacity, bool)
+    if contact_capacity is not None and not (integral and contact_capacity >= 0):
         raise ValueError(f"pack_worlds: contact_capacity must be a non-negative integer, got {contact_capacity!r}")
     pairs = [collision_pairs(s) for s in specs]
     worst = [contact_worst_case(s, p) for s, p in zip(specs, pairs)]

@@ -52,6 +52,28 @@ JOINT_ROW_COUNT = {
 DRIVABLE = (JointType.REVOLUTE, JointType.PRISMATIC)
 
 
+def _array(value, what: str) -> np.ndarray:
+    """``value`` as a float64 array, raising ValueError naming ``what`` when it holds no plain numbers."""
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{what}: expected numbers, got {value!r}") from exc
+
+
+def _name(value, what: str) -> str:
+    """A non-empty string naming a body (for joints, points and shapes), else ValueError naming ``what``."""
+    if not isinstance(value, str) or not value:
+        raise ValueError(f"{what}: must be a body name (a non-empty string), got {value!r}")
+    return value
+
+
+def _items(value, kind: str, where: str) -> list:
+    """The list of ``kind`` items of a mechanism, from any iterable; ValueError naming the list otherwise."""
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__iter__"):
+        raise ValueError(f"{where}: the {kind} list must be a list, got {type(value).__name__}")
+    return list(value)
+
+
 def _vector(value, size: int, what: str) -> np.ndarray:
     """Convert to a float64 vector of ``size`` entries, raising ValueError naming ``what``."""
     try:
@@ -119,7 +141,7 @@ class Body:
         if not isinstance(self.name, str) or not self.name:
             raise ValueError(f"body name must be a non-empty string, got {self.name!r}")
         self.mass = _scalar(self.mass, f"{where}: mass [kg]", minimum=0.0, strict=True)
-        inertia = np.asarray(self.inertia, dtype=np.float64)
+        inertia = _array(self.inertia, f"{where}: inertia [kg m^2]")
         if inertia.shape == (3,):
             inertia = np.diag(inertia)
         if inertia.shape != (3, 3):
@@ -128,7 +150,7 @@ class Body:
             raise ValueError(f"{where}: inertia must be finite, got {inertia.tolist()}")
         if not np.allclose(inertia, inertia.T, rtol=1e-6, atol=1e-12):
             raise ValueError(f"{where}: inertia must be symmetric, got {inertia.tolist()}")
-        if np.linalg.eigvalsh(inertia).min() <= 0.0:
+        if not np.linalg.eigvalsh(inertia).min() > 0.0:
             raise ValueError(f"{where}: inertia must be positive definite, got eigenvalues "
                              f"{np.linalg.eigvalsh(inertia).tolist()}")
         self.inertia = inertia
@@ -214,7 +236,7 @@ class Joint:
             raise ValueError(f"{where}: type must be one of {names}, got {self.type!r}") from exc
         if not isinstance(self.child, str) or not self.child:
             raise ValueError(f"{where}: child must be a body name, got {self.child!r}")
-        if self.parent is not None and not isinstance(self.parent, str):
+        if self.parent is not None and (not isinstance(self.parent, str) or not self.parent):
             raise ValueError(f"{where}: parent must be a body name or None (world), got {self.parent!r}")
         if self.parent == self.child:
             raise ValueError(f"{where}: parent and child are the same body '{self.child}'")
@@ -307,8 +329,9 @@ class Shape:
         except (KeyError, ValueError) as exc:
             names = ", ".join(t.name.lower() for t in ShapeType)
             raise ValueError(f"{where}: type must be one of {names}, got {self.type!r}") from exc
+        self.body = _name(self.body, f"{where}: body")
         count = {ShapeType.SPHERE: 1, ShapeType.CAPSULE: 2, ShapeType.BOX: 3, ShapeType.CYLINDER: 2}[self.type]
-        size = np.asarray(self.size, dtype=np.float64).reshape(-1) if np.ndim(self.size) else np.array([self.size], float)
+        size = _array(self.size, f"{where}: size [m]").reshape(-1)
         if size.size != count:
             raise ValueError(f"{where}: a {self.type.name.lower()} needs {count} size value(s), got {size.tolist()}")
         if not np.all(np.isfinite(size)) or np.any(size <= 0.0):
@@ -320,8 +343,14 @@ class Shape:
         self.restitution = _scalar(self.restitution, f"{where}: restitution", minimum=0.0)
         if self.restitution > 1.0:
             raise ValueError(f"{where}: restitution must be <= 1, got {self.restitution}")
-        if int(self.collision_group) != self.collision_group or self.collision_group < 0:
-            raise ValueError(f"{where}: collision_group must be a non-negative integer, got {self.collision_group!r}")
+        group = self.collision_group
+        try:  # an int, or a float holding one
+            integral = not isinstance(group, bool) and float(group).is_integer() and int(group) == group
+        except (TypeError, ValueError, OverflowError):
+            integral = False
+        if not integral or group < 0:
+            raise ValueError(f"{where}: collision_group must be a non-negative integer, got {group!r}")
+        self.collision_group = int(group)
 
 
 @dataclass
@@ -359,6 +388,7 @@ class TrackedPoint:
     def __post_init__(self):
         if not isinstance(self.name, str) or not self.name:
             raise ValueError(f"tracked point name must be a non-empty string, got {self.name!r}")
+        self.body = _name(self.body, f"tracked point '{self.name}': body")
         self.position = _vector(self.position, 3, f"tracked point '{self.name}': position [m]")
 
 
@@ -378,10 +408,13 @@ class MechanismSpec:
     ground: GroundPlane | None = None
 
     def __post_init__(self):
-        self.bodies = list(self.bodies)
-        self.joints = list(self.joints)
-        self.points = list(self.points)
-        self.shapes = list(self.shapes)
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"mechanism name must be a non-empty string, got {self.name!r}")
+        where = f"mechanism '{self.name}'"
+        self.bodies = _items(self.bodies, "body", where)
+        self.joints = _items(self.joints, "joint", where)
+        self.points = _items(self.points, "tracked point", where)
+        self.shapes = _items(self.shapes, "shape", where)
         if self.ground is not None and not isinstance(self.ground, GroundPlane):
             raise ValueError(f"mechanism '{self.name}': ground must be a GroundPlane or None")
         if not self.bodies:

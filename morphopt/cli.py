@@ -7,12 +7,17 @@
     morphopt study export SPEC --optuna-storage URL
     morphopt export SPEC [--best K] --format usd|urdf|mjcf|svg|dxf [--out DIR] [--motion SECONDS]
     morphopt demo fourbar [--worlds N] [--seconds S] [--dt DT] [--device cpu|cuda]
+
+Bad input (a missing or malformed study file, an unknown key or family, a bad argument, a device
+that is not there) ends the command with exit status 2 and one line on stderr naming the item and
+what was expected, never a traceback; a failed study command leaves its stored results as they were.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import pathlib
 import sys
 
 from morphopt import __version__
@@ -20,12 +25,20 @@ from morphopt import __version__
 DEMO_SCENES = ("pendulum", "fourbar", "sixbar", "chain", "mixed")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: "morphopt <command>: error: <argument>: <what was expected>", status 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
 def _positive(kind):
     def parse(text):
         try:
             value = kind(text)
         except ValueError as exc:
-            raise argparse.ArgumentTypeError(f"expected a {kind.__name__}, got {text!r}") from exc
+            article = "an" if kind.__name__[0] in "aeiou" else "a"
+            raise argparse.ArgumentTypeError(f"expected {article} {kind.__name__}, got {text!r}") from exc
         if not value > 0:
             raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
         return value
@@ -82,11 +95,12 @@ def _study_run(args) -> int:
 
 def _stored_designs(args):
     """The spec and its stored designs (a DataFrame), or (spec, None) after saying there are none."""
-    from morphopt.storage import StudyStorage
+    from morphopt.storage import StudyStorage, storage_exists
 
     spec = _study_spec(args)
-    frame = StudyStorage(spec.storage_url, spec.name).designs()
-    if frame.empty:
+    url = spec.storage_url
+    frame = StudyStorage(url, spec.name).designs() if storage_exists(url) else None  # reading creates no database
+    if frame is None or frame.empty:
         print(f"study '{spec.name}' has no stored designs in {spec.storage_url}")
         return spec, None
     return spec, frame
@@ -145,7 +159,6 @@ def _study_export(args) -> int:
 
 def _export(args) -> int:
     import math
-    import pathlib
 
     from morphopt.families import load_family
     from morphopt.formats import export_design
@@ -182,7 +195,7 @@ def _plain(value):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="morphopt", description="Closed-chain mechanism design optimization.")
+    parser = _Parser(prog="morphopt", description="Closed-chain mechanism design optimization.")
     parser.add_argument("--version", action="version", version=f"morphopt {__version__}")
     commands = parser.add_subparsers(dest="command", required=True)
     study = commands.add_parser("study", help="run, resume, show or plot a design study (TOML spec)")
@@ -225,22 +238,29 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
-    if args.command in ("study", "export"):
-        try:
-            return args.handler(args)
-        except ValueError as exc:
-            command = f"study {args.study_command}" if args.command == "study" else args.command
-            print(f"morphopt {command}: {exc}", file=sys.stderr)
-            return 2
-    if args.command == "demo" and args.device.startswith("cuda"):
-        import warp as wp
+def _check_demo_device(device: str) -> None:
+    import warp as wp
 
-        if not wp.is_cuda_available():
-            print(f"morphopt demo: device '{args.device}' requested but no CUDA device is available", file=sys.stderr)
-            return 2
-    return args.handler(args)
+    if device.startswith("cuda") and not wp.is_cuda_available():
+        raise ValueError(f"--device '{device}' requested but no CUDA device is available")
+    try:
+        wp.get_device(device)
+    except (RuntimeError, ValueError) as exc:
+        raise ValueError(f"--device '{device}': expected cpu, cuda or cuda:N of this machine ({exc})") from exc
+
+
+def main(argv=None) -> int:
+    """Run one command; returns its exit status (argparse exits with 2 itself on a bad argument)."""
+    args = build_parser().parse_args(argv)
+    command = f"study {args.study_command}" if args.command == "study" else args.command
+    try:
+        if args.command == "demo":
+            _check_demo_device(args.device)
+        return args.handler(args)
+    except (ValueError, OSError) as exc:  # bad input: one line naming it, no traceback
+        message = str(exc).replace("\n", " ")
+        print(f"morphopt {command}: {message}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -46,7 +46,8 @@ class Float:
         return self.low + u * (self.high - self.low)
 
     def contains(self, value) -> bool:
-        return isinstance(value, (int, float)) and self.low <= value <= self.high
+        real = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+        return real and self.low <= value <= self.high
 
     @property
     def center(self) -> float:

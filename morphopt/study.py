@@ -3,12 +3,17 @@
 Interrupting a run loses at most the generation in flight: each finished generation is stored
 with the optimizer's checkpoint in one transaction, and resume=True continues from it (the
 optimizer's random state included, so a resumed study ends where an uninterrupted one would).
+
+A run that fails leaves the stored results as they were: the spec, the family and the device are
+checked before the storage is opened; a fresh run removes the earlier designs only in the
+transaction that stores its first generation; resume reads the optimizer only from the study's
+own checkpoint row (morphopt.storage.load_checkpoint) and refuses one of another optimizer or
+design space.
 """
 
 from __future__ import annotations
 
 import math
-import pickle
 import time
 from dataclasses import dataclass
 
@@ -19,7 +24,7 @@ from morphopt.evaluate import evaluate_dynamic, evaluate_kinematic
 from morphopt.families import load_family
 from morphopt.metrics import path_error
 from morphopt.optimizers import CMAES, OptunaSampler, RandomSearch
-from morphopt.storage import StudyStorage
+from morphopt.storage import StudyStorage, dump_checkpoint, load_checkpoint, storage_exists
 from morphopt.study_spec import StudySpec
 
 __all__ = ["StudyResult", "objective_matrix", "objective_metric_names", "objective_values", "pareto_front", "run_study"]
@@ -128,21 +133,50 @@ def _scalars(metrics: dict) -> dict:
     return out
 
 
+OPTIMIZER_CLASSES = {"cma": CMAES, "optuna": OptunaSampler, "random": RandomSearch}
+
+
+def _check_device(spec: StudySpec) -> None:
+    """ValueError naming the spec and 'study.device' when Warp cannot use the device."""
+    import warp as wp
+
+    try:
+        wp.get_device(spec.device)
+    except (RuntimeError, ValueError) as exc:
+        raise ValueError(f"{spec.path}: 'study.device' {spec.device!r} is not available here ({exc})") from exc
+
+
+def _resumed_optimizer(spec: StudySpec, space, storage: StudyStorage, state: bytes):
+    """The checkpointed optimizer, checked against the spec: same optimizer, same design space."""
+    optimizer = load_checkpoint(state, storage.where)
+    expected = OPTIMIZER_CLASSES[spec.optimizer]
+    if type(optimizer) is not expected:
+        raise ValueError(f"{storage.where}: the checkpoint holds a {type(optimizer).__name__}, the spec asks for "
+                         f"optimizer '{spec.optimizer}' ({expected.__name__}); start afresh with 'study run'")
+    if getattr(getattr(optimizer, "space", None), "parameters", None) != space.parameters:
+        raise ValueError(f"{storage.where}: the checkpoint was made for another design space than the spec's "
+                         f"(its [space] or [fixed] changed); start afresh with 'study run'")
+    return optimizer
+
+
 def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -> StudyResult:
     """Run (or resume) a study; returns the best design found."""
     family = load_family(spec.family)
     space = spec.design_space(family)
+    _check_device(spec)
+    if resume and not storage_exists(spec.storage_url):
+        raise ValueError(f"study '{spec.name}' has nothing to resume: no database {spec.storage_url}")
     storage = StudyStorage(spec.storage_url, spec.name)
     checkpoint = storage.checkpoint() if resume else None
     if resume and checkpoint is None:
         raise ValueError(f"study '{spec.name}' has nothing to resume in {spec.storage_url}")
     if checkpoint:
         done, state, seconds = checkpoint
-        optimizer = pickle.loads(state)
+        optimizer = _resumed_optimizer(spec, space, storage, state)
         start = done + 1
     else:
-        storage.clear()
         optimizer, start, seconds = _make_optimizer(spec, space), 0, 0.0
+    fresh = not checkpoint
     sign = -1.0 if spec.direction == "maximize" else 1.0
     evaluating = outside = 0.0
     bar = tqdm(total=spec.generations, initial=start, desc=spec.name, unit="gen", disable=not progress)
@@ -165,7 +199,9 @@ def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -
         else:
             optimizer.tell(free, values.tolist())
         storage.write_generation(generation, params, sign * values, [_scalars(m) for m in evaluation.metrics],
-                                 evaluation.failures, pickle.dumps(optimizer), seconds + time.perf_counter() - t0)
+                                 evaluation.failures, dump_checkpoint(optimizer), seconds + time.perf_counter() - t0,
+                                 replace=fresh)
+        fresh = False
         t3 = time.perf_counter()
         seconds += t3 - t0
         evaluating += t2 - t1

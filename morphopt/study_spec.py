@@ -1,7 +1,8 @@
 """StudySpec: a study read from TOML and checked before anything runs.
 
-    [study]       name, family, mode ("kinematic" | "dynamic"), seed, generations, worlds,
-                  device, storage (path relative to the spec file, or an SQLAlchemy URL)
+    [study]       name (letters, digits, "_", "-", "."), family, mode ("kinematic" | "dynamic"),
+                  seed (>= 0), generations, worlds, device ("cpu", "cuda", "cuda:N"), storage (path
+                  relative to the spec file, or an SQLAlchemy URL)
     [objective]   metric (a metric name of the evaluation), direction ("minimize" | "maximize");
                   metric "path_error" also needs point (a tracked point) and target (a closed
                   curve [[x, y], ...] in metres)
@@ -19,17 +20,23 @@
     [fixed]       per parameter: a value held fixed
     [constraints] per metric: [low, high]; a design outside fails with the reason (TOML has inf)
 
-Every error names the file, the key and what was expected.
+``family`` is either the name of a module in designs/ (a plain identifier such as "four_bar")
+or an explicit path to a .py file (relative paths are taken from the spec file's folder); any
+other value is refused, so a study never loads code from elsewhere (see morphopt.families).
+
+A study file is data: it is parsed as TOML and checked, never executed. Every error names the
+file, the key and what was expected.
 """
 
 from __future__ import annotations
 
 import math
 import pathlib
+import re
 import tomllib
 from dataclasses import dataclass, field, replace
 
-from morphopt.design_space import DesignSpace, Float, Int
+from morphopt.design_space import Choice, DesignSpace, Float, Int
 from morphopt.families import load_family
 
 __all__ = ["Objective", "StudySpec", "load_study_spec"]
@@ -46,6 +53,8 @@ SECTIONS = {
     "constraints": None,
 }
 REQUIRED = {"study": ("name", "family")}
+NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,199}")  # a study name is also its default file name
+DEVICE_PATTERN = re.compile(r"cpu|cuda(:[0-9]+)?")
 OBJECTIVE_KEYS = {"metric": str, "direction": str, "point": str, "target": list, "weight": float}
 
 
@@ -127,7 +136,10 @@ class StudySpec:
         """A copy with command-line overrides (None values ignored), checked again."""
         changes = {k: v for k, v in changes.items() if v is not None}
         spec = replace(self, **changes)
-        _check_values(spec, str(self.path))
+        where = str(self.path)
+        if changes:
+            where += " (with " + ", ".join(f"{k}={v!r}" for k, v in changes.items()) + ")"
+        _check_values(spec, where)
         return spec
 
     def design_space(self, family) -> DesignSpace:
@@ -151,9 +163,13 @@ def load_study_spec(path) -> StudySpec:
     path = pathlib.Path(path)
     where = str(path)
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError as exc:
         raise ValueError(f"{where}: no such study file") from exc
+    except OSError as exc:
+        raise ValueError(f"{where}: cannot read the study file ({exc.strerror or exc})") from exc
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{where}: not a UTF-8 text file ({exc.reason} at byte {exc.start})") from exc
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"{where}: not valid TOML ({exc})") from exc
     values = {}
@@ -179,18 +195,33 @@ def load_study_spec(path) -> StudySpec:
     if "objective" in data and "metric" not in data["objective"]:
         raise ValueError(f"{where}: missing required key 'objective.metric'")
     if "target" in values:
-        values["target"] = tuple(tuple(p) for p in values["target"])
+        values["target"] = _curve(values["target"], "objective.target", where)
+    family = values.get("family", "")
+    if family.endswith(".py") and not pathlib.Path(family).is_absolute():
+        values["family"] = str((path.parent / family).resolve())  # relative to the spec file
     if "objectives" in data:
         values["objectives"] = _objectives(data["objectives"], where)
     constraints = dict(data.get("constraints", {}))
     for name, bounds in constraints.items():
-        if (not isinstance(bounds, list) or len(bounds) != 2
-                or not all(isinstance(b, (int, float)) and not isinstance(b, bool) for b in bounds) or bounds[0] > bounds[1]):
+        if (not _numbers(bounds, 2) or any(math.isnan(b) for b in bounds) or bounds[0] > bounds[1]):
             raise ValueError(f"{where}: 'constraints.{name}' must be [low, high] with low <= high, got {bounds!r}")
     spec = StudySpec(path=path, space_overrides=dict(data.get("space", {})), fixed=dict(data.get("fixed", {})),
                      constraints=constraints, **values)
     _check_values(spec, where)
     return spec
+
+
+def _numbers(value, count: int) -> bool:
+    """True for a list of ``count`` numbers (ints or floats, not booleans)."""
+    return (isinstance(value, list) and len(value) == count
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value))
+
+
+def _curve(value, key: str, where: str) -> tuple:
+    """A target curve [[x, y], ...] of finite numbers [m] as a tuple of (x, y) pairs."""
+    if not isinstance(value, list) or not all(_numbers(p, 2) and all(map(math.isfinite, p)) for p in value):
+        raise ValueError(f"{where}: '{key}' must be a list of [x, y] points (finite numbers, metres), got {value!r}")
+    return tuple(tuple(float(c) for c in p) for p in value)
 
 
 def _typed(table: dict, keys: dict, prefix: str, where: str) -> dict:
@@ -221,7 +252,7 @@ def _objectives(tables, where: str) -> tuple:
             raise ValueError(f"{where}: '{key}.direction' must be 'minimize' or 'maximize'")
         if not (math.isfinite(table.get("weight", 1.0)) and table.get("weight", 1.0) >= 0.0):
             raise ValueError(f"{where}: '{key}.weight' must be a finite number >= 0")
-        target = tuple(tuple(p) for p in table.get("target", ()))
+        target = _curve(table["target"], f"{key}.target", where) if "target" in table else ()
         objectives.append(Objective(table["metric"], table.get("direction", "maximize"), table.get("weight", 1.0),
                                     table.get("point", ""), target))
     return tuple(objectives)
@@ -229,6 +260,11 @@ def _objectives(tables, where: str) -> tuple:
 
 def _check_values(spec: StudySpec, where: str) -> None:
     checks = [
+        ("study.name", isinstance(spec.name, str) and NAME_PATTERN.fullmatch(spec.name) is not None,
+         "1 to 200 letters, digits, '_', '-' or '.' (it names the storage file), not starting with '.', '_' or '-'"),
+        ("study.device", isinstance(spec.device, str) and DEVICE_PATTERN.fullmatch(spec.device) is not None,
+         "'cpu', 'cuda' or 'cuda:N'"),
+        ("study.seed", spec.seed >= 0, "an integer >= 0"),
         ("study.mode", spec.mode in ("kinematic", "dynamic"), "'kinematic' or 'dynamic'"),
         ("objective.direction", spec.direction in ("minimize", "maximize"), "'minimize' or 'maximize'"),
         ("optimizer.name", spec.optimizer in ("cma", "optuna", "random"), "'cma', 'optuna' or 'random'"),
@@ -238,7 +274,7 @@ def _check_values(spec: StudySpec, where: str) -> None:
         ("study.generations", spec.generations >= 1, "an integer >= 1"),
         ("study.worlds", spec.worlds >= 2, "an integer >= 2"),
         ("optimizer.sigma0", 0.0 < spec.sigma0 <= 1.0, "a number in (0, 1]"),
-        ("simulation.duration", spec.duration > 0.0, "a positive number of seconds"),
+        ("simulation.duration", 0.0 < spec.duration < math.inf, "a positive finite number of seconds"),
         ("simulation.dt", 0.0 < spec.dt <= 0.1, "a time step in (0, 0.1] s"),
         ("simulation.crank_speed", spec.crank_speed is None or (spec.crank_speed != 0.0 and math.isfinite(spec.crank_speed)),
          "a non-zero speed"),
@@ -249,16 +285,16 @@ def _check_values(spec: StudySpec, where: str) -> None:
             raise ValueError(f"{where}: '{key}' must be {expected}")
     for k, objective in enumerate(spec.objectives):
         key = "objective" if not spec.multi_objective else f"objectives[{k}]"
-        if objective.metric == "path_error":
-            ok = (objective.point and len(objective.target) >= 3
-                  and all(len(p) == 2 and all(isinstance(c, (int, float)) for c in p) for p in objective.target))
-            if not ok:
-                raise ValueError(f"{where}: metric 'path_error' needs '{key}.point' and '{key}.target' "
-                                 f"as at least three [x, y] points")
+        if objective.metric == "path_error" and not (objective.point and len(objective.target) >= 3):
+            raise ValueError(f"{where}: metric 'path_error' needs '{key}.point' and '{key}.target' "
+                             f"as at least three [x, y] points")
     try:
         family = load_family(spec.family)
     except ValueError as exc:
         raise ValueError(f"{where}: 'study.family': {exc}") from exc
+    if spec.mode == "kinematic" and not hasattr(family, "generate"):
+        raise ValueError(f"{where}: 'study.mode' must be 'dynamic' for family '{spec.family}': it builds whole "
+                         f"worlds (build_spec), which have no kinematic evaluation")
     for section, table in (("space", spec.space_overrides), ("fixed", spec.fixed)):
         for name, value in table.items():
             if name not in family.space.parameters:
@@ -266,15 +302,23 @@ def _check_values(spec: StudySpec, where: str) -> None:
                                  f"(parameters: {', '.join(family.space.names)})")
             parameter = family.space.parameters[name]
             if section == "space":
-                if (not isinstance(value, list) or len(value) != 2
-                        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
-                    raise ValueError(f"{where}: 'space.{name}' must be [low, high], got {value!r}")
+                if isinstance(parameter, Choice):
+                    raise ValueError(f"{where}: 'space.{name}' cannot narrow a choice among {list(parameter.options)}; "
+                                     f"hold it with [fixed] instead")
+                integers = isinstance(parameter, Int)
+                if (not _numbers(value, 2) or not all(map(math.isfinite, value))
+                        or (integers and not all(isinstance(v, int) for v in value))):
+                    kind = "integers" if integers else "finite numbers"
+                    raise ValueError(f"{where}: 'space.{name}' must be [low, high] ({kind}), got {value!r}")
                 if not value[0] < value[1]:
                     raise ValueError(f"{where}: 'space.{name}' has inverted bounds {value}")
                 if value[0] < parameter.low or value[1] > parameter.high:
                     raise ValueError(f"{where}: 'space.{name}' {value} leaves the family's range "
                                      f"[{parameter.low}, {parameter.high}]")
             elif not parameter.contains(value):
-                raise ValueError(f"{where}: 'fixed.{name}' = {value!r} is outside the family's range")
+                expected = (f"one of {list(parameter.options)}" if isinstance(parameter, Choice)
+                            else f"in [{parameter.low}, {parameter.high}]")
+                raise ValueError(f"{where}: 'fixed.{name}' = {value!r} is outside the family's range: expected "
+                                 f"{expected}")
     if len(spec.fixed) == len(family.space.parameters):
         raise ValueError(f"{where}: every parameter is fixed; nothing to optimize")

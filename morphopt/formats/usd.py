@@ -38,7 +38,7 @@ import math
 import pathlib
 
 import numpy as np
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdShade, UsdValidation, Vt
+from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdPhysics, UsdShade, UsdValidation, Vt
 
 from engine import Body, GroundPlane, Joint, JointDrive, JointType, MechanismSpec, Shape, ShapeType, TrackedPoint
 from morphopt.formats.tree import matrix_to_quat, metadata_json, quat_to_matrix, spanning_tree
@@ -364,13 +364,25 @@ def read_usd(path, *, origin=(0.0, 0.0, 0.0), name: str | None = None) -> Mechan
     path = pathlib.Path(path)
     if not path.is_file():
         raise ValueError(f"{path}: no such USD file")
-    stage = Usd.Stage.Open(str(path))
+    try:
+        stage = Usd.Stage.Open(str(path))
+    except Tf.ErrorException as exc:  # USD's own reader errors: malformed or foreign files
+        raise ValueError(f"{path}: not a readable USD stage ({_usd_reason(exc)})") from None
     if stage is None:
         raise ValueError(f"{path}: not a readable USD stage")
     try:
         return _read_stage(stage, path, np.asarray(origin, float), name)
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from None
+    except Tf.ErrorException as exc:
+        raise ValueError(f"{path}: {_usd_reason(exc)}") from None
+
+
+def _usd_reason(exc) -> str:
+    """The message of USD's first error, without its source location."""
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    first = lines[0] if lines else type(exc).__name__
+    return first.rsplit(" : ", 1)[-1].strip("'")
 
 
 def _read_stage(stage, path, origin, name) -> MechanismSpec:
