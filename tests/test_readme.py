@@ -7,7 +7,7 @@ import re
 def test_readme_engine_example_runs(capsys):
     """The engine quick start builds a 64-world mixed batch and keeps its joints closed."""
     text = (pathlib.Path(__file__).parents[1] / "README.md").read_text()
-    code = re.search(r"```python\n(.*?)```", text, re.S).group(1)
+    code = re.search(r"## The engine in 20 lines\s*```python\n(.*?)```", text, re.S).group(1)
     namespace = {}
     exec(compile(code, "README.md", "exec"), namespace)
     assert namespace["trace"].points.shape == (101, 64, 1, 3)
