@@ -51,7 +51,7 @@ def _writer(path: pathlib.Path, fps: int):
 
 
 def animate_paths(paths: Mapping[str, np.ndarray], path, *, fps: int = 20, title: str | None = None,
-                  chain: Sequence[str] | None = None, units: str = "m") -> pathlib.Path:
+                  chain: Sequence[str] | None = None, closed: bool = False, units: str = "m") -> pathlib.Path:
     """Animate tracked points moving along their paths and save the animation; returns its path.
 
     paths: point name -> (N, 2) positions [m] over one crank turn (all of the same N), as in
@@ -59,7 +59,8 @@ def animate_paths(paths: Mapping[str, np.ndarray], path, *, fps: int = 20, title
     Every full path is drawn faintly, the current points as dots. chain: point names joined by
     a line in that order in every frame (a bar between consecutive points, e.g. the points along
     a leg); None joins nothing, since unrelated points (a torso and its feet) have no bar between
-    them. A file name ending in .gif is written with Pillow, one ending in .mp4 with ffmpeg
+    them. closed=True draws each faint path back to its start (a crank turn's closed curve; leave
+    it off for the paths of a walker, which travel). A file name ending in .gif is written with Pillow, one ending in .mp4 with ffmpeg
     (RuntimeError when ffmpeg is missing, ValueError for any other suffix).
     """
     import matplotlib.pyplot as plt
@@ -82,7 +83,8 @@ def animate_paths(paths: Mapping[str, np.ndarray], path, *, fps: int = 20, title
     dots = {}
     for k, (name, curve) in enumerate(curves.items()):
         colour = colours[k % len(colours)]
-        axes.plot(curve[:, 0], curve[:, 1], color=colour, alpha=0.3, linewidth=1.0)
+        trace = np.vstack([curve, curve[:1]]) if closed else curve
+        axes.plot(trace[:, 0], trace[:, 1], color=colour, alpha=0.3, linewidth=1.0)
         dots[name], = axes.plot([], [], "o", color=colour, markersize=6, label=name)
     bars, = axes.plot([], [], "-", color="0.2", linewidth=2.0)
     axes.set_xlim(low[0] - margin, high[0] + margin)
@@ -93,6 +95,7 @@ def animate_paths(paths: Mapping[str, np.ndarray], path, *, fps: int = 20, title
     if len(curves) <= 10:
         axes.legend(loc="upper right", fontsize="small")
     heading = axes.set_title(title or "")
+    figure.tight_layout()
 
     def draw(frame: int):
         for name, dot in dots.items():
@@ -130,7 +133,8 @@ def animate_design(family, params: Mapping, path, *, samples: int = 120, device:
         raise ValueError(f"design cannot be animated: {evaluation.failures[0]}")
     paths = evaluation.metrics[0]["paths"]
     name = getattr(family, "__name__", "design").removeprefix("morphopt_family_")
-    return animate_paths(paths, path, fps=fps, title=title or name, chain=list(paths) if len(paths) > 1 else None)
+    return animate_paths(paths, path, fps=fps, title=title or name,
+                         chain=list(paths) if len(paths) > 1 else None, closed=True)
 
 
 def load_study(study_file):

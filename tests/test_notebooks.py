@@ -15,12 +15,13 @@ ROOT = SWEEPS.parent.parent
 FIGURES = {
     "four_bar_coupler_sweep": ["four_bar_path_error_map.png", "four_bar_best_worst_curves.png"],
     "jansen_sensitivity": ["jansen_one_at_a_time.png", "jansen_2d_maps.png"],
+    "walker_topology_sweep": ["walker_pareto.png", "walker_best.gif"],
 }
 
 
 def test_every_notebook_declares_its_figures():
     notebooks = sorted(path.stem for path in SWEEPS.glob("*.py"))
-    assert len(notebooks) >= 2, notebooks
+    assert len(notebooks) >= 3, notebooks
     assert sorted(FIGURES) == notebooks
 
 

@@ -118,6 +118,20 @@ for label, i in (("best", best), ("worst", worst)):
           f"path error {1e3 * errors[i]:.2f} mm")
 print(f"median path error of the feasible designs: {1e3 * np.nanmedian(errors):.2f} mm")
 
+# A rough width of the valley along each axis: how far each length can move from the best cell,
+# the other length held, while the error stays below a tenth of the median error.
+TOLERANCE = 0.1 * np.nanmedian(errors)
+row, column = np.unravel_index(best, error_map.shape)
+padded = np.pad(np.nan_to_num(error_map, nan=np.inf), 1, constant_values=np.inf)
+neighbours = np.stack([padded[1 + di:padded.shape[0] - 1 + di, 1 + dj:padded.shape[1] - 1 + dj]
+                       for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj])
+local_minima = int((np.isfinite(error_map) & (error_map < neighbours.min(axis=0))).sum())
+print(f"local minima of the path error on the grid (8 neighbours): {local_minima}")
+for name, values, line in (("crank", crank_values, error_map[:, column]), ("rocker", rocker_values, error_map[row, :])):
+    inside = np.asarray(values)[np.nan_to_num(line, nan=np.inf) <= TOLERANCE]
+    print(f"{name:6s}: error <= {1e3 * TOLERANCE:.1f} mm for {name} in "
+          f"[{inside.min():.3f}, {inside.max():.3f}] m (width {inside.max() - inside.min():.3f} m)")
+
 # %% [markdown]
 # ## The picture: path error over the crank-rocker plane
 
@@ -154,6 +168,8 @@ plt.show()
 
 # %% [markdown]
 # ## The best and the worst feasible coupler curves over the target
+#
+# The dot on each curve marks where the coupler point is at crank angle zero.
 
 # %%
 fig, axes = plt.subplots(1, 2, figsize=(10, 4.6))
@@ -167,11 +183,10 @@ for ax, i, label, color in ((axes[0], best, "best", "tab:green"), (axes[1], wors
     ax.plot(path[0, 0], path[0, 1], marker="o", color=color)
     ax.set_title(f"{label} feasible design: path error {1e3 * errors[i]:.2f} mm")
     ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="best")
-for ax in axes:
-    ax.set_ylabel("y [m]")
 fig.tight_layout()
 fig.savefig(OUT / "four_bar_best_worst_curves.png", dpi=120)
 plt.show()
@@ -179,18 +194,18 @@ plt.show()
 # %% [markdown]
 # ## What the picture shows
 #
-# - **The reference is found.** The smallest path error sits next to the reference lengths, and the best
-#   feasible coupler curve lies almost on top of the target; with a finer grid it gets closer
-#   still, since the reference lies between grid nodes.
-# - **The valley is not round.** The error rises much faster along the crank axis than along the
-#   rocker axis: the crank length sets the size of the loop the coupler point draws, while a
-#   longer or shorter rocker mostly tilts and shifts the same loop. A synthesis that only needs
-#   a rough match has more freedom in the rocker than in the crank.
-# - **Feasibility ends in a hard edge.** The grey cells are designs whose coupler and rocker
-#   cannot meet for part of the crank turn (a long crank with a short rocker); the error does not
-#   fade out toward them, the mechanism simply stops closing. The worst feasible designs sit near
-#   that edge or in the far corner of the plane, and their coupler curves have a different size
-#   and shape from the target, not just an offset.
+# - **The reference is found.** The smallest path error sits next to the reference lengths, and
+#   the best feasible coupler curve lies almost on top of the target. It does not match exactly
+#   because the reference lies between grid nodes; a finer grid gets closer.
+# - **One smooth valley.** The error grows steadily in every direction away from the reference:
+#   within the two lengths swept here the map shows a single basin and no second design that draws
+#   nearly the same curve (the count of local minima printed above checks this on the grid).
+#   The printed valley widths say how precisely each length has to be held for a close match.
+# - **Feasibility ends at a hard edge.** The grey cells are designs with a long crank and a short
+#   rocker: coupler and rocker cannot meet for part of the crank turn, so the mechanism does not
+#   complete a cycle. The error does not fade out toward that edge; the designs next to it are
+#   among the worst feasible ones, and their coupler curves differ from the target in size, shape
+#   and position, not just by an offset.
 #
-# The numbers printed above (best, worst and median error, the count of infeasible designs)
-# come from this run and change with the grid size.
+# The numbers printed above (best, worst and median error, the valley widths, the count of
+# infeasible designs) come from this run and change with the grid size.
