@@ -95,12 +95,11 @@ def _study_run(args) -> int:
 
 def _stored_designs(args):
     """The spec and its stored designs (a DataFrame), or (spec, None) after saying there are none."""
-    from morphopt.storage import StudyStorage, storage_exists
+    from morphopt.storage import read_designs
 
     spec = _study_spec(args)
-    url = spec.storage_url
-    frame = StudyStorage(url, spec.name).designs() if storage_exists(url) else None  # reading creates no database
-    if frame is None or frame.empty:
+    frame = read_designs(spec.storage_url, spec.name)
+    if frame.empty:
         print(f"study '{spec.name}' has no stored designs in {spec.storage_url}")
         return spec, None
     return spec, frame

@@ -60,8 +60,9 @@ def animate_paths(paths: Mapping[str, np.ndarray], path, *, fps: int = 20, title
     a line in that order in every frame (a bar between consecutive points, e.g. the points along
     a leg); None joins nothing, since unrelated points (a torso and its feet) have no bar between
     them. closed=True draws each faint path back to its start (a crank turn's closed curve; leave
-    it off for the paths of a walker, which travel). A file name ending in .gif is written with Pillow, one ending in .mp4 with ffmpeg
-    (RuntimeError when ffmpeg is missing, ValueError for any other suffix).
+    it off for the paths of a walker, which travel). A file name ending in .gif is written with
+    Pillow, one ending in .mp4 with ffmpeg (RuntimeError when ffmpeg is missing, ValueError for
+    any other suffix).
     """
     import matplotlib.pyplot as plt
     from matplotlib import animation
@@ -146,13 +147,13 @@ def load_study(study_file):
     spec, holds the results). Raises ValueError naming the file when the spec is invalid or when
     nothing is stored for the study yet (run it first: ``morphopt study run <spec>``).
     """
-    from morphopt.storage import StudyStorage, storage_exists
+    from morphopt.storage import read_designs
     from morphopt.study_spec import load_study_spec
 
     spec = load_study_spec(study_file)
     url = spec.storage_url
-    frame = StudyStorage(url, spec.name).designs() if storage_exists(url) else None  # reading creates no database
-    if frame is None or frame.empty:
+    frame = read_designs(url, spec.name)
+    if frame.empty:
         raise ValueError(f"{study_file}: study '{spec.name}' has no stored designs in {url} "
                          f"(run it first: morphopt study run {study_file})")
     return frame

@@ -23,7 +23,7 @@ from typing import ClassVar
 import pandas as pd
 import sqlalchemy as sa
 
-__all__ = ["StudyStorage", "dump_checkpoint", "export_to_optuna", "load_checkpoint", "storage_exists"]
+__all__ = ["StudyStorage", "dump_checkpoint", "export_to_optuna", "load_checkpoint", "read_designs", "storage_exists"]
 
 METADATA = sa.MetaData()
 DESIGNS = sa.Table(
@@ -230,6 +230,12 @@ class StudyStorage:
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{self.where}: a stored design is not valid JSON ({exc})") from exc
         return pd.concat([frame.drop(columns="study"), params, metrics], axis=1)
+
+
+def read_designs(url: str, name: str) -> pd.DataFrame:
+    """Study ``name``'s stored designs (StudyStorage.designs); empty when ``url`` holds no
+    database yet (reading creates none)."""
+    return StudyStorage(url, name).designs() if storage_exists(url) else pd.DataFrame()
 
 
 def export_to_optuna(frame: pd.DataFrame, *, study_name: str, space, direction: str, storage: str) -> int:

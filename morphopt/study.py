@@ -96,20 +96,27 @@ def objective_values(spec: StudySpec, evaluation) -> np.ndarray:
     return np.where(np.isfinite(matrix).all(axis=1), score, math.inf)
 
 
+def nondominated(values) -> np.ndarray:
+    """True for the rows of ``values`` (designs x objectives, every objective minimized) that no
+    other row dominates (all objectives at least as good, one better)."""
+    values = np.asarray(values, dtype=float)
+    keep = np.ones(len(values), dtype=bool)
+    for i in range(len(values)):
+        better_or_equal = (values <= values[i]).all(axis=1)
+        strictly = (values < values[i]).any(axis=1)
+        keep[i] = not bool(np.any(better_or_equal & strictly))
+    return keep
+
+
 def pareto_front(frame, spec: StudySpec):
-    """The feasible designs of a stored study that no other feasible design dominates (all
-    objectives at least as good, one better), best score first."""
+    """The feasible designs of a stored study that no other feasible design dominates, best
+    score first."""
     feasible = frame[frame["failure"] == ""]
     columns = [f"metric_{name}" for name in objective_metric_names(spec)]
     values = feasible[columns].to_numpy(dtype=float) * np.array([o.sign for o in spec.objectives])
     keep = np.isfinite(values).all(axis=1)
     values, feasible = values[keep], feasible[keep]
-    dominated = np.zeros(len(values), dtype=bool)
-    for i in range(len(values)):
-        better_or_equal = (values <= values[i]).all(axis=1)
-        strictly = (values < values[i]).any(axis=1)
-        dominated[i] = bool(np.any(better_or_equal & strictly))
-    return feasible[~dominated].sort_values("value")
+    return feasible[nondominated(values)].sort_values("value")
 
 
 def apply_constraints(spec: StudySpec, evaluation) -> None:

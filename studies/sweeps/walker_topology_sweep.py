@@ -41,6 +41,7 @@ import pandas as pd
 from morphopt.evaluate import evaluate_dynamic
 from morphopt.families import load_family
 from morphopt.notebook import animate_paths
+from morphopt.study import nondominated
 from morphopt.sweep import grid
 
 SMALL = os.environ.get("MORPHOPT_SWEEP_SIZE") == "small"
@@ -104,18 +105,8 @@ with pd.option_context("display.width", 160, "display.max_colwidth", 70, "displa
 
 # %%
 ok = table[(table["failure"] == "") & np.isfinite(table["energy_per_distance"])].copy()
-
-
-def pareto_mask(speed: np.ndarray, energy: np.ndarray) -> np.ndarray:
-    """True for the points no other point beats on both speed (higher) and energy (lower)."""
-    keep = np.ones(len(speed), bool)
-    for i in range(len(speed)):
-        better = (speed >= speed[i]) & (energy <= energy[i]) & ((speed > speed[i]) | (energy < energy[i]))
-        keep[i] = not better.any()
-    return keep
-
-
-ok["pareto"] = pareto_mask(ok["walking_speed"].to_numpy(), ok["energy_per_distance"].to_numpy())
+# the Pareto front: faster (speed maximized, so negated) at no more energy per metre, or the reverse
+ok["pareto"] = nondominated(np.column_stack([-ok["walking_speed"], ok["energy_per_distance"]]))
 
 colours = dict(zip(LEG_FAMILIES, ["tab:blue", "tab:orange", "tab:green"]))
 markers = dict(zip(LEGS, ["o", "s", "^", "D", "v"]))
