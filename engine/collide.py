@@ -48,6 +48,7 @@ class Candidates:
 
 @wp.func
 def emit(c: Candidates, world: int, slot: int, point_a: wp.vec3, point_b: wp.vec3, normal: wp.vec3, distance: float):
+    """Write one contact candidate into ``slot`` of ``world`` and mark it valid."""
     c.valid[world, slot] = 1
     c.point_a[world, slot] = point_a
     c.point_b[world, slot] = point_b
@@ -132,6 +133,7 @@ def point_box(p: wp.vec3, X_box: wp.transform, half: wp.vec3):
 
 @wp.func
 def box_corner(X: wp.transform, half: wp.vec3, k: int):
+    """World position of corner ``k`` (bits 0, 1, 2 pick +x, +y, +z) of a box with half-extents ``half`` at pose X."""
     sx = float(1.0) if (k & 1) != 0 else float(-1.0)
     sy = float(1.0) if (k & 2) != 0 else float(-1.0)
     sz = float(1.0) if (k & 4) != 0 else float(-1.0)
@@ -140,6 +142,7 @@ def box_corner(X: wp.transform, half: wp.vec3, k: int):
 
 @wp.func
 def plane_distance(p: wp.vec3, normal: wp.vec3, offset: float):
+    """Signed distance of p above the plane normal . x = offset (unit normal)."""
     return wp.dot(normal, p) - offset
 
 

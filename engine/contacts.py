@@ -31,6 +31,7 @@ def contact_direction(n: wp.vec3, component: int):
 
 @wp.func
 def body_origin(body_q: wp.array2d(dtype=wp.transform), world: int, body: int):
+    """Position of the body's frame origin; the world origin for the ground (body < 0)."""
     if body < 0:
         return wp.vec3(0.0)
     return wp.transform_get_translation(body_q[world, body])

@@ -85,6 +85,7 @@ def mass_weighted(body: int, J: wp.spatial_vector, inv_mass: float, inv_inertia_
 
 @wp.func
 def body_twist_or_zero(body_qd: wp.array2d(dtype=wp.spatial_vector), world: int, body: int):
+    """The body's twist; zero for the ground (body < 0)."""
     if body < 0:
         return wp.spatial_vector()
     return body_qd[world, body]

@@ -165,6 +165,7 @@ class StepWork:
 
 @wp.func
 def is_bilateral(kind: int):
+    """True for a joint row (linear or angular), False for contact and limit rows."""
     return kind == ROW_LINEAR or kind == ROW_ANGULAR
 
 
@@ -189,10 +190,12 @@ def _define_tile_setters(size: int):
     callers place the barriers (overloads of tile_set, one per size)."""
 
     @wp.func_native("t.data(wp::tile_coord(i, j)) = value;")
-    def tile_set(t: wp.tile(dtype=float, shape=(size, size), storage="shared"), i: int, j: int, value: float): ...
+    def tile_set(t: wp.tile(dtype=float, shape=(size, size), storage="shared"), i: int, j: int, value: float):
+        """t[i, j] = value, without a barrier."""
 
     @wp.func_native("t.data(wp::tile_coord(i)) = value;")
-    def tile_set(t: wp.tile(dtype=float, shape=(size,), storage="shared"), i: int, value: float): ...  # noqa: F811
+    def tile_set(t: wp.tile(dtype=float, shape=(size,), storage="shared"), i: int, value: float):  # noqa: F811
+        """t[i] = value, without a barrier."""
 
     return tile_set
 

@@ -271,6 +271,7 @@ def apply_projection(
 
 @wp.func
 def transform_finite(X: wp.transform):
+    """True when all seven components of the pose are finite."""
     ok = True
     for k in range(7):
         if not wp.isfinite(X[k]):
@@ -280,6 +281,7 @@ def transform_finite(X: wp.transform):
 
 @wp.func
 def twist_finite(u: wp.spatial_vector):
+    """True when all six components of the twist are finite."""
     ok = True
     for k in range(6):
         if not wp.isfinite(u[k]):

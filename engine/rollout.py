@@ -90,6 +90,7 @@ class Stepper:
 
     @property
     def state(self) -> State:
+        """The state after the last step (the buffer the next step reads)."""
         return self._buffers[self._current]
 
     def _run(self, start: int):

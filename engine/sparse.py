@@ -110,6 +110,7 @@ class Analysis:
 
     @property
     def entries(self) -> int:
+        """Number of stored entries of the factor's pattern."""
         return len(self.entry_i)
 
 

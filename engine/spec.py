@@ -177,6 +177,7 @@ class JointDrive:
     effort_limit: float = math.inf
 
     def validate(self, where: str):
+        """Check the gains and limits (finite, non-negative; ``where`` names the joint in errors)."""
         self.stiffness = _scalar(self.stiffness, f"{where}: drive stiffness", minimum=0.0)
         self.damping = _scalar(self.damping, f"{where}: drive damping", minimum=0.0)
         self.target_position = _scalar(self.target_position, f"{where}: drive target_position")

@@ -81,11 +81,13 @@ class StageTimer:
         self._last = None
 
     def start(self):
+        """Synchronize the device and start timing a step."""
         wp.synchronize_device(self.device)
         self._last = time.perf_counter()
         self.calls += 1
 
     def mark(self, stage: str):
+        """Synchronize the device and add the time since the last mark to ``stage``."""
         wp.synchronize_device(self.device)
         now = time.perf_counter()
         self.seconds[stage] += now - self._last
@@ -93,6 +95,7 @@ class StageTimer:
         self._last = now
 
     def milliseconds_per_step(self) -> dict[str, float]:
+        """Mean milliseconds per step of each stage the step took."""
         return {k: 1e3 * v / max(self.calls, 1) for k, v in self.seconds.items() if k in self.marked}
 
 

@@ -141,6 +141,7 @@ def run(scene: str, num_worlds: int, steps: int, dt: float, device: str, *, chun
 
 
 def main(argv=None) -> int:
+    """Command line entry: time one scene and print its results (one JSON object with --json)."""
     parser = argparse.ArgumentParser(prog="python -m engine.testspeed", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", choices=[*ALL_SCENES, "mixed"], default="fourbar")

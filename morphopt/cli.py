@@ -194,6 +194,7 @@ def _plain(value):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``morphopt`` argument parser: ``study run|resume|show|plot`` and their options."""
     parser = _Parser(prog="morphopt", description="Closed-chain mechanism design optimization.")
     parser.add_argument("--version", action="version", version=f"morphopt {__version__}")
     commands = parser.add_subparsers(dest="command", required=True)

@@ -27,6 +27,7 @@ class Float:
     log: bool = False
 
     def check(self, name: str) -> None:
+        """Raise ValueError naming ``name`` when the bounds or the default are invalid."""
         if not (math.isfinite(self.low) and math.isfinite(self.high)) or self.low >= self.high:
             raise ValueError(f"parameter '{name}': bounds must be finite with low < high, got [{self.low}, {self.high}]")
         if self.log and self.low <= 0.0:
@@ -35,22 +36,26 @@ class Float:
             raise ValueError(f"parameter '{name}': default {self.default} outside [{self.low}, {self.high}]")
 
     def to_unit(self, value: float) -> float:
+        """Position of ``value`` in [0, 1] (linear or logarithmic in the range)."""
         if self.log:
             return (math.log(value) - math.log(self.low)) / (math.log(self.high) - math.log(self.low))
         return (value - self.low) / (self.high - self.low)
 
     def from_unit(self, u: float) -> float:
+        """The value at unit coordinate ``u`` (clipped into [0, 1])."""
         u = min(max(float(u), 0.0), 1.0)
         if self.log:
             return math.exp(math.log(self.low) + u * (math.log(self.high) - math.log(self.low)))
         return self.low + u * (self.high - self.low)
 
     def contains(self, value) -> bool:
+        """True for a real number (not a bool) within the bounds."""
         real = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
         return real and self.low <= value <= self.high
 
     @property
     def center(self) -> float:
+        """The default, or the middle of the range (geometric middle on a log scale)."""
         return self.default if self.default is not None else self.from_unit(0.5)
 
 
@@ -63,23 +68,28 @@ class Int:
     default: int | None = None
 
     def check(self, name: str) -> None:
+        """Raise ValueError naming ``name`` when the bounds or the default are invalid."""
         if int(self.low) != self.low or int(self.high) != self.high or self.low >= self.high:
             raise ValueError(f"parameter '{name}': integer bounds with low < high expected, got [{self.low}, {self.high}]")
         if self.default is not None and not self.low <= self.default <= self.high:
             raise ValueError(f"parameter '{name}': default {self.default} outside [{self.low}, {self.high}]")
 
     def to_unit(self, value: int) -> float:
+        """Centre of ``value``'s cell when [0, 1] is cut into one equal cell per integer."""
         return (value - self.low + 0.5) / (self.high - self.low + 1)
 
     def from_unit(self, u: float) -> int:
+        """The integer whose cell holds ``u`` (clipped into [0, 1])."""
         u = min(max(float(u), 0.0), 1.0)
         return min(self.high, self.low + int(math.floor(u * (self.high - self.low + 1))))
 
     def contains(self, value) -> bool:
+        """True for an integer (not a bool) within the bounds."""
         return isinstance(value, (int, np.integer)) and not isinstance(value, bool) and self.low <= value <= self.high
 
     @property
     def center(self) -> int:
+        """The default, or the integer in the middle of the range."""
         return self.default if self.default is not None else self.from_unit(0.5)
 
 
@@ -94,23 +104,28 @@ class Choice:
         object.__setattr__(self, "options", tuple(self.options))
 
     def check(self, name: str) -> None:
+        """Raise ValueError naming ``name`` when the options are empty or repeated, or the default is not one."""
         if len(self.options) < 1 or len(set(self.options)) != len(self.options):
             raise ValueError(f"parameter '{name}': choices must be distinct and non-empty, got {list(self.options)}")
         if self.default is not None and self.default not in self.options:
             raise ValueError(f"parameter '{name}': default {self.default!r} is not one of {list(self.options)}")
 
     def to_unit(self, value) -> float:
+        """Centre of ``value``'s cell when [0, 1] is cut into one equal cell per option."""
         return (self.options.index(value) + 0.5) / len(self.options)
 
     def from_unit(self, u: float):
+        """The option whose cell holds ``u`` (clipped into [0, 1])."""
         u = min(max(float(u), 0.0), 1.0)
         return self.options[min(len(self.options) - 1, int(math.floor(u * len(self.options))))]
 
     def contains(self, value) -> bool:
+        """True when ``value`` is one of the options."""
         return value in self.options
 
     @property
     def center(self):
+        """The default, or the first option."""
         return self.default if self.default is not None else self.options[0]
 
 
@@ -135,10 +150,12 @@ class DesignSpace:
 
     @property
     def names(self) -> list[str]:
+        """Parameter names in order."""
         return list(self.parameters)
 
     @property
     def dimension(self) -> int:
+        """Number of parameters."""
         return len(self.parameters)
 
     def default(self) -> dict:

@@ -119,6 +119,7 @@ class Evaluation:
 
     @property
     def feasible(self) -> np.ndarray:
+        """(designs,) bool: True where the design has no failure reason."""
         return np.array([not reason for reason in self.failures])
 
 

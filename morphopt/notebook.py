@@ -35,18 +35,37 @@ def _checked_paths(paths: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     return out
 
 
+def _ffmpeg(configured: str) -> str | None:
+    """The ffmpeg program: matplotlib's configured one when it runs here, else the one the
+    imageio-ffmpeg package ships, else None."""
+    found = shutil.which(configured)
+    if found:
+        return found
+    try:
+        import imageio_ffmpeg
+    except ImportError:
+        return None
+    try:
+        return imageio_ffmpeg.get_ffmpeg_exe()
+    except RuntimeError:  # the package without a binary for this platform
+        return None
+
+
 def _writer(path: pathlib.Path, fps: int):
     """The matplotlib writer for the file's suffix (.gif: Pillow, .mp4: FFmpeg)."""
-    from matplotlib import animation
+    from matplotlib import animation, rcParams
 
     suffix = path.suffix.lower()
     if suffix == ".gif":
         return animation.PillowWriter(fps=fps)
     if suffix == ".mp4":
-        if not animation.FFMpegWriter.isAvailable() or shutil.which("ffmpeg") is None:
-            raise RuntimeError(f"cannot write {path}: MP4 needs the ffmpeg program, which is not installed "
-                               f"(install ffmpeg, or save a .gif instead)")
-        return animation.FFMpegWriter(fps=fps)
+        program = _ffmpeg(rcParams["animation.ffmpeg_path"])
+        if program is None:
+            raise RuntimeError(f"cannot write {path}: MP4 needs ffmpeg, which is not installed (install ffmpeg or "
+                               f"pip install 'morphopt[notebook]', or save a .gif instead)")
+        rcParams["animation.ffmpeg_path"] = program
+        # H.264 in a yuv420p stream (what browsers and notebook front ends play)
+        return animation.FFMpegWriter(fps=fps, codec="libx264", extra_args=["-pix_fmt", "yuv420p"])
     raise ValueError(f"cannot write {path}: expected a file name ending in .gif or .mp4")
 
 
@@ -61,8 +80,9 @@ def animate_paths(paths: Mapping[str, np.ndarray], path, *, fps: int = 20, title
     a leg); None joins nothing, since unrelated points (a torso and its feet) have no bar between
     them. closed=True draws each faint path back to its start (a crank turn's closed curve; leave
     it off for the paths of a walker, which travel). A file name ending in .gif is written with
-    Pillow, one ending in .mp4 with ffmpeg (RuntimeError when ffmpeg is missing, ValueError for
-    any other suffix).
+    Pillow, one ending in .mp4 with ffmpeg as H.264 (the system's ffmpeg, else the one of the
+    imageio-ffmpeg package: ``pip install 'morphopt[notebook]'``; RuntimeError when there is
+    neither), ValueError for any other suffix.
     """
     import matplotlib.pyplot as plt
     from matplotlib import animation

@@ -241,6 +241,7 @@ class LinkageTables:
 
     @property
     def count(self) -> int:
+        """Number of designs in the tables."""
         return len(self.radius)
 
     @classmethod

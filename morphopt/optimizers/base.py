@@ -30,6 +30,7 @@ class Optimizer:
         self._worst_finite = -math.inf
 
     def ask(self, count: int) -> list[dict]:
+        """``count`` new parameter dicts to evaluate (every one inside the design space)."""
         raise TypeError(f"{type(self).__name__} does not implement ask()")
 
     def tell(self, params: Sequence[dict], values: Sequence[float]) -> None:

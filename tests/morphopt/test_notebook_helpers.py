@@ -29,6 +29,28 @@ def test_animate_paths_writes_one_frame_per_sample(tmp_path):
     assert _frames(out) == 24
 
 
+def test_animate_paths_writes_an_mp4_with_one_frame_per_sample(tmp_path):
+    """18 samples at 12 frames/s: ffmpeg's own count of the H.264 file is 18 frames, 1.5 s."""
+    import imageio_ffmpeg
+
+    angles = np.linspace(0.0, 2.0 * np.pi, 18, endpoint=False)
+    out = animate_paths({"a": np.stack([np.cos(angles), np.sin(angles)], axis=1)}, tmp_path / "circle.mp4", fps=12)
+    assert out.read_bytes()[4:8] == b"ftyp"  # an MP4 container
+    frames, seconds = imageio_ffmpeg.count_frames_and_secs(str(out))
+    assert frames == 18
+    assert seconds == pytest.approx(1.5, abs=0.1)
+
+
+def test_animate_paths_without_ffmpeg_names_the_way_out(tmp_path, monkeypatch):
+    """No ffmpeg anywhere: a RuntimeError that says how to get one, and no file."""
+    import morphopt.notebook as notebook
+
+    monkeypatch.setattr(notebook, "_ffmpeg", lambda configured: None)
+    with pytest.raises(RuntimeError, match=r"MP4 needs ffmpeg.*morphopt\[notebook\]"):
+        animate_paths({"a": np.zeros((4, 2))}, tmp_path / "x.mp4")
+    assert not (tmp_path / "x.mp4").exists()
+
+
 def test_animate_paths_refuses_bad_input(tmp_path):
     """Mismatched lengths, unknown chain points and unknown suffixes are named."""
     with pytest.raises(ValueError, match="'b' has 5 samples"):
