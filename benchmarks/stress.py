@@ -171,6 +171,25 @@ def crank_reference(theta0: float, speed: float, times: np.ndarray, inertia: flo
     return sol.y[0]
 
 
+def parallel_linkage_constants(spec: MechanismSpec) -> tuple[float, float]:
+    """(inertia, torque) of crank_reference for an n_fourbar spec, from its bodies: each crank
+    turns about its pivot (the body origin), inertia I_yy about its centre of mass plus m |com|^2
+    (the bars' thickness included), each coupler translates with the crank tips (1 m out), so it
+    counts with its mass; torque: gravity times the first moments about the pivots."""
+    inertia = torque = 0.0
+    for body in spec.bodies:
+        mass, com = float(body.mass), np.asarray(body.com, dtype=float)
+        if body.name.startswith("crank"):
+            tensor = np.asarray(body.inertia, dtype=float)  # 3x3, or its diagonal
+            inertia += float(tensor[1, 1] if tensor.ndim == 2 else tensor[1])
+            inertia += mass * float(com @ com)
+            torque += GRAVITY * mass * float(np.linalg.norm(com))
+        else:
+            inertia += mass
+            torque += GRAVITY * mass
+    return inertia, torque
+
+
 def case_s3(device: str, full: bool) -> dict:
     n, duration, dt = (40, 20.0, 1e-3) if full else (2, 4.0, 1e-3)
     theta0, speed = -0.5 * math.pi, 1.0  # cranks up, tips at 1 m/s: the cranks turn over and over
@@ -182,9 +201,9 @@ def case_s3(device: str, full: bool) -> dict:
         steps = round(duration / dt)
         trace, _ = rollout(model, model.state(), model.control(), steps, record_every=20)
         tip = trace.points[:, 0, 0]
-        # (count + 1) cranks (1/3 m l^2 about their pivots) and count translating couplers
-        reference = crank_reference(theta0, speed, trace.time, (count + 1) / 3.0 + count,
-                                    GRAVITY * ((count + 1) * 0.5 + count))
+        # (count + 1) cranks (m l^2 / 3 plus their thickness's share about their pivots) and
+        # count translating couplers
+        reference = crank_reference(theta0, speed, trace.time, *parallel_linkage_constants(spec))
         expected = np.stack([np.cos(reference), np.zeros_like(reference), -np.sin(reference)], axis=1)
         error = np.linalg.norm(tip - expected, axis=1)
         flat = int(np.sum(np.diff(np.sign(np.sin(reference))) != 0))  # passes through the flat position
@@ -200,7 +219,7 @@ def case_s3(device: str, full: bool) -> dict:
     spec = n_fourbar(0, theta0, speed)
     model = pack_worlds([spec], device=device, dt=dt)
     trace, _ = rollout(model, model.state(), model.control(), round(duration / dt), record_every=20)
-    reference = crank_reference(theta0, speed, trace.time, 1.0 / 3.0, GRAVITY * 0.5)
+    reference = crank_reference(theta0, speed, trace.time, *parallel_linkage_constants(spec))
     expected = np.stack([np.cos(reference), np.zeros_like(reference), -np.sin(reference)], axis=1)
     energy = trace.energy[:, 0]
     measured["lone_crank_floor"] = {
