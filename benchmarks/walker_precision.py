@@ -42,6 +42,7 @@ SETTINGS = {
     "relative tol 1e-3": (0.002, {"relative_tolerance": 1e-3}),
     "relative tol 1e-3, cap 40": (0.002, {"relative_tolerance": 1e-3, "max_iterations": 40}),
     "dt 4 ms": (0.004, {}),
+    "joint penalty uncapped": (0.002, {"cap_joint_penalty": False}),
 }
 
 

@@ -106,6 +106,7 @@ class StepModel:
     contact_row_start: wp.array(dtype=wp.int32)
     padmm_eta: wp.array(dtype=float)
     padmm_rho_init: wp.array(dtype=float)
+    padmm_rho_cap: wp.array(dtype=float)
     padmm_tolerance: wp.array(dtype=float)
     bilateral_row_count: wp.array(dtype=wp.int32)
 
@@ -205,13 +206,17 @@ for _size in range(TILE_ROWS, FUSED_MAX_ROWS + 1, TILE_ROWS):
 
 
 @wp.func
-def cholesky_lanes(world: int, lane: int, lanes: int, n: int, sigma: float, bilateral_only: int,
-                   row_kind: wp.array2d(dtype=wp.int32), matrix: Any, factor: Any):
-    """Lower Cholesky factor of the world's n x n matrix + sigma I (shared tiles), column by column
+def cholesky_lanes(world: int, lane: int, lanes: int, n: int, sigma: float, sigma_bilateral: float,
+                   bilateral_only: int, row_kind: wp.array2d(dtype=wp.int32), matrix: Any, factor: Any):
+    """Lower Cholesky factor of the world's n x n matrix plus a diagonal shift (sigma_bilateral on
+    joint rows, sigma on the others) (shared tiles), column by column
     (left-looking): every lane forms the column's pivot, the lanes share the column's entries below
     it; one barrier per column. The dot products run in the serial order. Entered after a barrier."""
     for j in range(n):
-        s = matrix_entry(world, j, j, bilateral_only, row_kind, matrix) + sigma
+        shift = sigma
+        if is_bilateral(row_kind[world, j]):
+            shift = sigma_bilateral
+        s = matrix_entry(world, j, j, bilateral_only, row_kind, matrix) + shift
         for k in range(j):
             s -= factor[j, k] * factor[j, k]
         d = wp.sqrt(wp.max(s, 1.0e-30))
@@ -374,9 +379,11 @@ def _make_kernel(tile_rows: int, max_registers: int):
             active = 1
         valid = active
         rho = w.rho[world]
+        cap = m.padmm_rho_cap[world]
         if rho <= 0.0:
             rho = m.padmm_rho_init[world]
         sigma = eta + rho
+
         block_sync()  # every lane has read rho before lane 0 writes it
         if lane == 0:
             w.active[world] = active
@@ -395,11 +402,11 @@ def _make_kernel(tile_rows: int, max_registers: int):
             for i in range(lane, n, lanes):
                 padmm_warmstart_of(world, i, warmstart_scale, row_lambda_in, w.row_precond, w.active, w.lo, w.hi, w.x,
                                    w.y, w.y_hat, w.z, w.z_hat)
-            cholesky_lanes(world, lane, lanes, n, sigma, 0, m.row_kind, D, F)
+            cholesky_lanes(world, lane, lanes, n, sigma, eta + wp.min(rho, cap), 0, m.row_kind, D, F)
         while active != 0:
             for i in range(lane, n, lanes):
-                padmm_rhs_of(world, i, m.padmm_eta, m.row_kind, w.rho, w.active, w.row_friction, w.v_f, w.x, w.y_hat,
-                             w.z_hat, w.x_prev, w.rhs)
+                padmm_rhs_of(world, i, m.padmm_eta, m.padmm_rho_cap, m.row_kind, w.rho, w.active, w.row_friction,
+                             w.v_f, w.x, w.y_hat, w.z_hat, w.x_prev, w.rhs)
             block_sync()
             cholesky_solve_lanes(world, lane, lanes, n, F, w.rhs, w.x, acc, sol)
             r = w.rho[world]
@@ -409,10 +416,10 @@ def _make_kernel(tile_rows: int, max_registers: int):
             change = float(0.0)
             scale = float(0.0)
             for i in range(lane, n, lanes):
-                padmm_project_of(world, i, m.row_kind, w.row_count, w.row_friction, w.rho, w.active, w.lo, w.hi, w.x,
-                                 w.z_hat, w.y, w.z, w.y_prev, w.z_prev)
-                s_i, p_i, d_i, c_i, m_i = row_residuals(world, i, eta, r, m.row_kind, w.x, w.x_prev, w.y, w.y_hat, w.z,
-                                                        w.z_hat)
+                padmm_project_of(world, i, m.padmm_rho_cap, m.row_kind, w.row_count, w.row_friction, w.rho, w.active,
+                                 w.lo, w.hi, w.x, w.z_hat, w.y, w.z, w.y_prev, w.z_prev)
+                s_i, p_i, d_i, c_i, m_i = row_residuals(world, i, eta, r, cap, m.row_kind, w.x, w.x_prev, w.y, w.y_hat,
+                                                        w.z, w.z_hat)
                 scale = wp.max(scale, s_i)
                 r_p = wp.max(r_p, p_i)
                 r_d = wp.max(r_d, d_i)
@@ -436,12 +443,14 @@ def _make_kernel(tile_rows: int, max_registers: int):
                     padmm_accelerate_of(world, i, w.active, w.momentum_beta, w.y, w.y_prev, w.z, w.z_prev, w.y_hat,
                                         w.z_hat)
                 if w.needs_factor[world] != 0:
-                    sigma = eta + w.rho[world]
+                    rho_now = w.rho[world]
+                    sigma = eta + rho_now
                     block_sync()  # every lane has read the flag before lane 0 clears it
                     if lane == 0:
                         w.sigma[world] = sigma
                         w.needs_factor[world] = 0
-                    cholesky_lanes(world, lane, lanes, n, sigma, 0, m.row_kind, D, F)
+                    cholesky_lanes(world, lane, lanes, n, sigma, eta + wp.min(rho_now, cap), 0, m.row_kind, D, F)
+
         for i in range(lane, max_rows, lanes):
             padmm_output_of(world, i, w.row_count, w.row_precond, w.y, w.diverged, w.halted, row_lambda_out)
         block_sync()
@@ -458,7 +467,9 @@ def _make_kernel(tile_rows: int, max_registers: int):
         if position_iterations > 0 and valid != 0 and m.bilateral_row_count[world] > 0:
             project = 1
         target = eta + m.padmm_rho_init[world]
-        refactor = project != 0 and (mask_projection != 0 or w.sigma[world] > target)
+        # the PADMM factor's joint rows carry at most this shift (their penalty is capped at
+        # rho_init): reused unless other rows need taking out of the matrix
+        refactor = project != 0 and mask_projection != 0
         block_sync()  # every lane has read sigma before lane 0 writes it
         if lane == 0:
             w.project[world] = project
@@ -466,7 +477,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
                 w.sigma[world] = target
         if project != 0:
             if refactor:
-                cholesky_lanes(world, lane, lanes, n, target, mask_projection, m.row_kind, D, F)
+                cholesky_lanes(world, lane, lanes, n, target, target, mask_projection, m.row_kind, D, F)
             passes = position_iterations
             shake = position_iterations
             if moreau != 0:  # the output projection gets as many iterations (engine.step)

@@ -367,19 +367,30 @@ def projection_shift(padmm_eta: wp.array(dtype=float), padmm_rho_init: wp.array(
                      bilateral_row_count: wp.array(dtype=wp.int32), valid: wp.array(dtype=wp.int32), always: int,
                      sigma: wp.array(dtype=float), needs_factor: wp.array(dtype=wp.int32),
                      project_out: wp.array(dtype=wp.int32)):
-    """Worlds to project: valid ones with bilateral joint rows. Of those, flag for a new factor all
-    (when ``always``) or the ones whose shift exceeds eta + rho_init, with that shift."""
+    """Worlds to project: valid ones with bilateral joint rows. Of those, flag for a new factor with
+    the shift eta + rho_init all of them when ``always`` (the batch has drive, limit or contact rows,
+    or no factor to reuse); otherwise the PADMM factor serves, its joint rows shifted by at most
+    that much (engine.padmm.row_penalty caps their penalty at rho_init)."""
     world = wp.tid()
     target = padmm_eta[world] + padmm_rho_init[world]
     project = int(0)
     if valid[world] != 0 and bilateral_row_count[world] > 0:
         project = 1
     flag = 0
-    if project != 0 and (always != 0 or sigma[world] > target):
+    if project != 0 and always != 0:
         sigma[world] = target
         flag = 1
     needs_factor[world] = flag
     project_out[world] = project
+
+
+@wp.kernel
+def uniform_shift(sigma: wp.array(dtype=float), needs_factor: wp.array(dtype=wp.int32),
+                  row_shift_out: wp.array2d(dtype=float)):
+    """row_shift = sigma on every row of the worlds flagged for a new factor."""
+    world, i = wp.tid()
+    if needs_factor[world] != 0:
+        row_shift_out[world, i] = sigma[world]
 
 
 def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
@@ -413,10 +424,13 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
                   inputs=[model.padmm_eta, model.padmm_rho_init, model.bilateral_row_count, work.valid,
                           int(model.has_unilateral_or_drive_rows or not direct), work.sigma, work.needs_factor,
                           work.project])
+        wp.launch(uniform_shift, dim=grid_rows, device=device, inputs=[work.sigma, work.needs_factor],
+                  outputs=[work.row_shift])
         if dense:
-            linear.factor(work.delassus, work.sigma, work.needs_factor, work.factor)
+            linear.factor(work.delassus, work.row_shift, work.needs_factor, work.factor)
         elif direct:
-            sparse.factor(model, work.sigma, work.needs_factor, bilateral_only=model.has_unilateral_or_drive_rows)
+            sparse.factor(model, work.row_shift, work.needs_factor, bilateral_only=model.has_unilateral_or_drive_rows)
+
     record = body_q_offset is not None
     offset = body_q_offset if record else work.body_qd_free  # any (W, B) spatial_vector array when unused
     for _ in range(iterations):

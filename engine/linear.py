@@ -1,6 +1,6 @@
 """Dense batched linear algebra on the per-world Delassus matrices: one tile block per world.
 
-Each world's (max_rows x max_rows) matrix is loaded as one Warp tile, shifted by sigma I and
+Each world's (max_rows x max_rows) matrix is loaded as one Warp tile, shifted on its diagonal and
 factored with ``wp.tile_cholesky``; solves reuse the stored factor. Kernels are specialized per
 tile size by cached factories. Worlds whose mask entry is 0 return at once.
 """
@@ -29,12 +29,12 @@ def block_sync():
 
 @functools.cache
 def cholesky_factor_kernel(size: int):
-    """Kernel: factor_out[w] = chol(matrix[w] + sigma[w] I) for worlds with mask[w] != 0."""
+    """Kernel: factor_out[w] = chol(matrix[w] + diag(shift[w])) for worlds with mask[w] != 0."""
 
     @wp.kernel(enable_backward=False, module="unique")
     def cholesky_factor(
         matrix: wp.array3d(dtype=float),
-        sigma: wp.array(dtype=float),
+        shift: wp.array2d(dtype=float),
         mask: wp.array(dtype=wp.int32),
         factor_out: wp.array3d(dtype=float),
     ):
@@ -42,7 +42,7 @@ def cholesky_factor_kernel(size: int):
         if mask[world] == 0:
             return
         a = wp.tile_load(matrix[world], shape=(size, size))
-        shifted = wp.tile_diag_add(a, wp.tile_full(shape=size, value=sigma[world], dtype=float))
+        shifted = wp.tile_diag_add(a, wp.tile_load(shift[world], shape=size))
         wp.tile_store(factor_out[world], wp.tile_cholesky(shifted))
 
     return cholesky_factor
@@ -69,10 +69,12 @@ def cholesky_solve_kernel(size: int):
     return cholesky_solve
 
 
-def factor(matrix, sigma, mask, factor_out):
-    """Factor every masked world's matrix + sigma I (shapes (W, R, R), (W,), (W,), (W, R, R))."""
+def factor(matrix, shift, mask, factor_out):
+    """Factor every masked world's matrix with shift added to its diagonal (shapes (W, R, R), (W, R),
+    (W,), (W, R, R))."""
     size = matrix.shape[1]
-    wp.launch_tiled(cholesky_factor_kernel(size), dim=[matrix.shape[0]], inputs=[matrix, sigma, mask],
+    wp.launch_tiled(cholesky_factor_kernel(size), dim=[matrix.shape[0]], inputs=[matrix, shift, mask],
+
                     outputs=[factor_out], block_dim=BLOCK_DIM, device=matrix.device)
 
 

@@ -1,6 +1,7 @@
 """Matrix-free solves with the per-world Delassus operator: no (rows x rows) matrix is ever formed.
 
-The operator of a world is A v = P J M^-1 J^T P v + (P R P + sigma) v. engine.dynamics already
+The operator of a world is A v = P J M^-1 J^T P v + (P R P + S) v, S the diagonal shift per row
+(work.row_shift: eta + the row's ADMM penalty). engine.dynamics already
 holds M^-1 J^T of every row (row_MJ_c, row_MJ_p), so one product costs two passes over the rows:
 scatter the row impulses P v into one twist per body (M^-1 J^T P v), then gather every row's
 velocity J (...) and scale by P. Memory is O(bodies + rows) per world instead of O(rows^2), so
@@ -8,7 +9,7 @@ worlds of any size run (multi-legged walkers, large robots), where the dense til
 limited to engine.pack.MAX_DENSE_ROWS rows.
 
 Linear systems A x = b are solved by Conjugate Residual (A is symmetric positive definite for
-sigma > 0), one thread block per world (128 threads over the rows on a GPU), warm-started from the
+S > 0), one thread block per world (128 threads over the rows on a GPU), warm-started from the
 caller's x:
 - inside PADMM the solve is inexact: it stops once the residual is below
   ``inner_tolerance_ratio`` times the outer iteration's own residual (inexact ADMM), or at
@@ -129,7 +130,7 @@ def _tiled_kernel(bodies: int, rows: int, sweeps: int):
         padmm_tolerance: wp.array(dtype=float),
         row_count: wp.array(dtype=wp.int32),
         mask: wp.array(dtype=wp.int32),
-        sigma: wp.array(dtype=float),
+        row_shift: wp.array2d(dtype=float),
         outer_iterations: wp.array(dtype=wp.int32),
         residual_primal: wp.array(dtype=float),
         residual_dual: wp.array(dtype=float),
@@ -149,7 +150,6 @@ def _tiled_kernel(bodies: int, rows: int, sweeps: int):
         if mask[world] == 0:
             return
         n = row_count[world]
-        s = sigma[world]
         J_c = wp.tile_load(row_J_c[world], shape=rows, storage="shared")
         J_p = wp.tile_load(row_J_p[world], shape=rows, storage="shared")
         MJ_c = wp.tile_load(row_MJ_c[world], shape=rows, storage="shared")
@@ -171,7 +171,7 @@ def _tiled_kernel(bodies: int, rows: int, sweeps: int):
                     body_p[k] = row_body_p[world, i]
                     pi = row_precond[world, i]
                     precond[k] = pi
-                    diag[k] = s + pi * pi * row_compliance[world, i]
+                    diag[k] = row_shift[world, i] + pi * pi * row_compliance[world, i]
                     b[k] = rhs[world, i]
                     xk[k] = x[world, i]
                     scale = wp.max(scale, wp.abs(b[k]))
@@ -236,7 +236,8 @@ def solve(model, rhs, mask, x, *, bilateral_only: bool = False) -> None:
         _TILED[key] = _tiled_kernel(*key)
     wp.launch_tiled(_TILED[key], dim=[model.num_worlds], block_dim=TILED_BLOCK, device=model.device,
                     inputs=[int(bilateral_only), cap, float(cfg.inner_tolerance_ratio), float(cfg.projection_tolerance), model.row_kind,
-                            model.padmm_tolerance, work.row_count, mask, work.sigma, work.iterations,
+                            model.padmm_tolerance, work.row_count, mask, work.row_shift, work.iterations,
+
                             work.residual_primal, work.residual_dual, work.row_body_c, work.row_body_p,
                             work.row_J_c, work.row_J_p, work.row_MJ_c, work.row_MJ_p, work.row_precond,
                             work.row_compliance, rhs],

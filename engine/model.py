@@ -60,6 +60,11 @@ class SolverConfig:
         eta: proximal weight (> 0; regularizes redundant constraints).
         rho: initial ADMM penalty.
         adaptive_rho: rescale rho (and refactor) when primal and dual residuals are unbalanced.
+        cap_joint_penalty: keep the penalty of the bilateral joint rows at or below rho. Their
+            projection is the identity, so the penalty only slows them: with the large rho that
+            contacts and effort limits call for, the joint rows' soft modes converged at
+            rho / (lambda + rho) per iteration (random walkers: 57 PADMM iterations per step and 30 %
+            of the steps at the cap with it off; 25 and 3 % with it on). Off: one rho for all rows.
         rho_update_interval: iterations between penalty updates.
         acceleration: Nesterov momentum with restart.
         warmstart: start each step from the last step's impulses.
@@ -118,6 +123,8 @@ class SolverConfig:
     eta: float = 1.0e-5
     rho: float = 1.0e-3
     adaptive_rho: bool = True
+    cap_joint_penalty: bool = True
+
     rho_update_interval: int = 4
     acceleration: bool = True
     warmstart: bool = True
@@ -196,7 +203,8 @@ class Model:
         row_kind, row_body_p, row_body_c (W, R) int32
         world_gravity (W,) vec3 [m/s^2]; world_dt (W,) [s]
         point_body (W, P) int32; point_local (W, P) vec3 in the COM frame [m]
-        padmm_eta, padmm_rho_init, padmm_tolerance (W,) float32
+        padmm_eta, padmm_rho_init, padmm_tolerance (W,) float32; padmm_rho_cap (W,): the largest
+        ADMM penalty of a bilateral joint row (engine.padmm.row_penalty)
         joint_limit_lower, joint_limit_upper (W, J) [rad]/[m]; joint_limit_lower_row,
         joint_limit_upper_row (W, J) int32, -1 when none
         shape_count (W,); shape_type, shape_body (W, S) int32; shape_X (W, S) transform in the
@@ -295,7 +303,10 @@ class Workspace:
     row Jacobians and body twists in shared memory); inner_iterations (W,) CR iterations summed over
     a step.
     PADMM vectors (W, R): v_f, lo, hi (preconditioned), x, x_prev, y, y_prev, y_hat, z, z_prev,
-    z_hat, rhs, delta. Per world (W,): rho, sigma, valid, iterations, residual_primal, residual_dual, converged,
+    z_hat, rhs, delta; row_shift (W, R): the factored matrix's diagonal shift per row (eta + the
+    row's penalty: engine.padmm.row_penalty). Per world (W,): rho, sigma (eta + rho), valid,
+    iterations, residual_primal, residual_dual, converged,
+
     active, needs_factor, momentum, momentum_beta, merit, diverged (non-finite state: frozen),
     halted (stopped by engine.rollout's halt: frozen, not flagged as diverged); active_count (1,).
     Metrics (W,): violation_linear [m], violation_angular [rad], energy [J].
@@ -321,6 +332,7 @@ class Workspace:
                      "rhs", "delta", "warm", "row_friction"):
             setattr(self, name, zeros((w, r)))
         # the dense path keeps P D P and its factor; the matrix-free path needs neither
+        self.row_shift = zeros((w, r))  # the factored matrix's diagonal shift per row
         self.delassus = zeros((w, r, r) if dense else (w, 1, 1))
         self.factor = zeros((w, r, r) if dense else (w, 1, 1))
         self.inner_iterations = zeros(w, wp.int32)

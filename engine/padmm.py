@@ -23,7 +23,7 @@ captured into a CUDA graph; converged, capped and diverged worlds do no more wor
 import warp as wp
 
 from engine import linear, matrix_free, sparse
-from engine.model import ROW_CONTACT_NORMAL, ROW_CONTACT_TANGENT, ROW_LIMIT
+from engine.model import ROW_ANGULAR, ROW_CONTACT_NORMAL, ROW_CONTACT_TANGENT, ROW_LIMIT, ROW_LINEAR
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
@@ -32,6 +32,19 @@ RHO_MAX = wp.constant(1.0e3)
 RHO_FACTOR = wp.constant(4.0)
 RHO_BALANCE = wp.constant(10.0)
 RESTART_RATIO = wp.constant(0.999)
+
+
+@wp.func
+def row_penalty(kind: int, rho: float, rho_bilateral_cap: float):
+    """The ADMM penalty of one row: rho, except on bilateral joint rows, whose projection is the
+    identity (y = x, z = 0): they need only the proximal pull, so their penalty is capped at
+    rho_bilateral_cap (the initial penalty). The large rho that contacts and effort limits ask
+    for would otherwise turn the joint rows into a slow proximal-point iteration, whose soft
+    modes (eigenvalue lambda of the Delassus matrix) shrink only by rho / (lambda + rho) per
+    iteration."""
+    if kind == ROW_LINEAR or kind == ROW_ANGULAR:
+        return wp.min(rho, rho_bilateral_cap)
+    return rho
 
 
 @wp.kernel
@@ -127,6 +140,7 @@ def padmm_warmstart(
 def padmm_rhs_of(
     world: int, i: int,
     padmm_eta: wp.array(dtype=float),
+    padmm_rho_cap: wp.array(dtype=float),
     row_kind: wp.array2d(dtype=wp.int32),
     rho: wp.array(dtype=float),
     active: wp.array(dtype=wp.int32),
@@ -139,18 +153,20 @@ def padmm_rhs_of(
     x_prev_out: wp.array2d(dtype=float),
     rhs_out: wp.array2d(dtype=float),
 ):
-    """rhs = -v_f + eta x + rho y_hat + z_hat (and remember x)."""
+    """rhs = -v_f + eta x + rho_i y_hat + z_hat with the row's penalty rho_i (and remember x)."""
     xi = x[world, i]
     x_prev_out[world, i] = xi
     de_saxce = float(0.0)
     if row_kind[world, i] == ROW_CONTACT_NORMAL and i + 2 < row_friction.shape[1]:
         de_saxce = row_friction[world, i] * wp.length(wp.vec2(z_hat[world, i + 1], z_hat[world, i + 2]))
-    rhs_out[world, i] = -v_f[world, i] - de_saxce + padmm_eta[world] * xi + rho[world] * y_hat[world, i] + z_hat[world, i]
+    r = row_penalty(row_kind[world, i], rho[world], padmm_rho_cap[world])
+    rhs_out[world, i] = -v_f[world, i] - de_saxce + padmm_eta[world] * xi + r * y_hat[world, i] + z_hat[world, i]
 
 
 @wp.kernel
 def padmm_rhs(
     padmm_eta: wp.array(dtype=float),
+    padmm_rho_cap: wp.array(dtype=float),
     row_kind: wp.array2d(dtype=wp.int32),
     rho: wp.array(dtype=float),
     active: wp.array(dtype=wp.int32),
@@ -163,11 +179,12 @@ def padmm_rhs(
     x_prev_out: wp.array2d(dtype=float),
     rhs_out: wp.array2d(dtype=float),
 ):
-    """rhs = -v_f + eta x + rho y_hat + z_hat (and remember x)."""
+    """rhs = -v_f + eta x + rho_i y_hat + z_hat with the row's penalty rho_i (and remember x)."""
     world, i = wp.tid()
     if active[world] == 0:
         return
-    padmm_rhs_of(world, i, padmm_eta, row_kind, rho, active, row_friction, v_f, x, y_hat, z_hat, x_prev_out, rhs_out)
+    padmm_rhs_of(world, i, padmm_eta, padmm_rho_cap, row_kind, rho, active, row_friction, v_f, x, y_hat, z_hat,
+                 x_prev_out, rhs_out)
 
 
 @wp.func
@@ -186,6 +203,7 @@ def project_cone(normal: float, t1: float, t2: float, mu: float):
 @wp.func
 def padmm_project_of(
     world: int, i: int,
+    padmm_rho_cap: wp.array(dtype=float),
     row_kind: wp.array2d(dtype=wp.int32),
     row_count: wp.array(dtype=wp.int32),
     row_friction: wp.array2d(dtype=float),
@@ -218,6 +236,7 @@ def padmm_project_of(
             y[world, i + k] = proj[k]
             z[world, i + k] = z_hat[world, i + k] - r * (x[world, i + k] - proj[k])
         return
+    r = row_penalty(kind, r, padmm_rho_cap[world])
     xi = x[world, i]
     zh = z_hat[world, i]
     yi = wp.clamp(xi - zh / r, lo[world, i], hi[world, i])
@@ -229,6 +248,7 @@ def padmm_project_of(
 
 @wp.kernel
 def padmm_project(
+    padmm_rho_cap: wp.array(dtype=float),
     row_kind: wp.array2d(dtype=wp.int32),
     row_count: wp.array(dtype=wp.int32),
     row_friction: wp.array2d(dtype=float),
@@ -249,22 +269,25 @@ def padmm_project(
     world, i = wp.tid()
     if active[world] == 0:
         return
-    padmm_project_of(world, i, row_kind, row_count, row_friction, rho, active, lo, hi, x, z_hat, y, z, y_prev_out,
-        z_prev_out)
+    padmm_project_of(world, i, padmm_rho_cap, row_kind, row_count, row_friction, rho, active, lo, hi, x, z_hat, y, z,
+                     y_prev_out, z_prev_out)
 
 
 @wp.func
-def row_residuals(world: int, i: int, eta: float, r: float, row_kind: wp.array2d(dtype=wp.int32),
+def row_residuals(world: int, i: int, eta: float, rho: float, rho_bilateral_cap: float,
+                  row_kind: wp.array2d(dtype=wp.int32),
                   x: wp.array2d(dtype=float), x_prev: wp.array2d(dtype=float), y: wp.array2d(dtype=float),
                   y_hat: wp.array2d(dtype=float), z: wp.array2d(dtype=float), z_hat: wp.array2d(dtype=float)):
     """Row i's share of a world's PADMM residuals: |y|, primal |x - y|, dual, complementarity and
-    the merit increment (rho |dy|^2 + |dz|^2 / rho)."""
+    the merit increment (rho_i |dy|^2 + |dz|^2 / rho_i), with the row's penalty rho_i."""
+    kind = row_kind[world, i]
+    r = row_penalty(kind, rho, rho_bilateral_cap)
     dy = y[world, i] - y_hat[world, i]
     dz = z[world, i] - z_hat[world, i]
     r_p = wp.abs(x[world, i] - y[world, i])
     r_d = wp.abs(eta * (x[world, i] - x_prev[world, i]) + r * dy)
     r_c = float(0.0)
-    kind = row_kind[world, i]
+
     if kind == ROW_LIMIT:
         r_c = wp.abs(y[world, i] * z[world, i])
     elif kind == ROW_CONTACT_NORMAL:
@@ -352,6 +375,7 @@ def padmm_convergence(
     # model
     row_kind: wp.array2d(dtype=wp.int32),
     padmm_eta: wp.array(dtype=float),
+    padmm_rho_cap: wp.array(dtype=float),
     padmm_tolerance: wp.array(dtype=float),
     # in
     row_count: wp.array(dtype=wp.int32),
@@ -384,6 +408,7 @@ def padmm_convergence(
     n = row_count[world]
     r = rho[world]
     eta = padmm_eta[world]
+    cap = padmm_rho_cap[world]
     r_p = float(0.0)
     r_d = float(0.0)
     r_c = float(0.0)
@@ -392,7 +417,7 @@ def padmm_convergence(
     for k in range((n + stride - 1) // stride):
         i = lane + k * stride
         if i < n:
-            s_i, p_i, d_i, c_i, m_i = row_residuals(world, i, eta, r, row_kind, x, x_prev, y, y_hat, z, z_hat)
+            s_i, p_i, d_i, c_i, m_i = row_residuals(world, i, eta, r, cap, row_kind, x, x_prev, y, y_hat, z, z_hat)
             scale = wp.max(scale, s_i)
             r_p = wp.max(r_p, p_i)
             r_d = wp.max(r_d, d_i)
@@ -450,12 +475,17 @@ def padmm_accelerate(
 
 
 @wp.kernel
-def sigma_of(padmm_eta: wp.array(dtype=float), rho: wp.array(dtype=float), needs_factor: wp.array(dtype=wp.int32),
-             sigma_out: wp.array(dtype=float)):
-    """sigma = eta + rho: the shift of the factored matrix."""
-    world = wp.tid()
-    if needs_factor[world] != 0:
-        sigma_out[world] = padmm_eta[world] + rho[world]
+def sigma_of(padmm_eta: wp.array(dtype=float), padmm_rho_cap: wp.array(dtype=float), rho: wp.array(dtype=float),
+             needs_factor: wp.array(dtype=wp.int32), row_kind: wp.array2d(dtype=wp.int32),
+             sigma_out: wp.array(dtype=float), row_shift_out: wp.array2d(dtype=float)):
+    """Shifts of the factored matrix: sigma = eta + rho, and per row eta + the row's penalty."""
+    world, i = wp.tid()
+    if needs_factor[world] == 0:
+        return
+    eta = padmm_eta[world]
+    if i == 0:
+        sigma_out[world] = eta + rho[world]
+    row_shift_out[world, i] = eta + row_penalty(row_kind[world, i], rho[world], padmm_rho_cap[world])
 
 
 @wp.kernel
@@ -500,12 +530,13 @@ def padmm_output(
 def refactor(model):
     """Factor P D P + (eta + rho) I for worlds flagged in needs_factor, then clear the flags."""
     work, W = model.work, model.num_worlds
-    wp.launch(sigma_of, dim=W, inputs=[model.padmm_eta, work.rho, work.needs_factor], outputs=[work.sigma],
-              device=model.device)
+    wp.launch(sigma_of, dim=(W, model.max_rows),
+              inputs=[model.padmm_eta, model.padmm_rho_cap, work.rho, work.needs_factor, model.row_kind],
+              outputs=[work.sigma, work.row_shift], device=model.device)
     if model.linear_solver == "dense":
-        linear.factor(work.delassus, work.sigma, work.needs_factor, work.factor)
+        linear.factor(work.delassus, work.row_shift, work.needs_factor, work.factor)
     elif model.linear_solver == "sparse":
-        sparse.factor(model, work.sigma, work.needs_factor)
+        sparse.factor(model, work.row_shift, work.needs_factor)
     wp.launch(clear_flags, dim=W, inputs=[work.needs_factor], device=model.device)
 
 
@@ -514,8 +545,8 @@ def padmm_iteration(model):
     work, cfg, device = model.work, model.config, model.device
     grid = (model.num_worlds, model.max_rows)
     wp.launch(padmm_rhs, dim=grid, device=device,
-              inputs=[model.padmm_eta, model.row_kind, work.rho, work.active, work.row_friction, work.v_f, work.x,
-                      work.y_hat, work.z_hat],
+              inputs=[model.padmm_eta, model.padmm_rho_cap, model.row_kind, work.rho, work.active, work.row_friction,
+                      work.v_f, work.x, work.y_hat, work.z_hat],
               outputs=[work.x_prev, work.rhs])
     if model.linear_solver == "dense":
         linear.solve(work.factor, work.rhs, work.active, work.x)
@@ -524,11 +555,12 @@ def padmm_iteration(model):
     else:  # inexact Conjugate Residual, warm-started from the last iterate
         matrix_free.solve(model, work.rhs, work.active, work.x)
     wp.launch(padmm_project, dim=grid, device=device,
-              inputs=[model.row_kind, work.row_count, work.row_friction, work.rho, work.active, work.lo, work.hi, work.x, work.z_hat, work.y, work.z,
-                      work.y_prev, work.z_prev])
+              inputs=[model.padmm_rho_cap, model.row_kind, work.row_count, work.row_friction, work.rho, work.active,
+                      work.lo, work.hi, work.x, work.z_hat, work.y, work.z, work.y_prev, work.z_prev])
     wp.launch_tiled(padmm_convergence, dim=[model.num_worlds], block_dim=CONVERGENCE_BLOCK, device=device,
               inputs=[cfg.max_iterations, float(cfg.relative_tolerance), cfg.rho_update_interval, int(cfg.adaptive_rho),
-                      int(cfg.acceleration), model.row_kind, model.padmm_eta, model.padmm_tolerance,
+                      int(cfg.acceleration), model.row_kind, model.padmm_eta, model.padmm_rho_cap, model.padmm_tolerance,
+
                       work.row_count, work.x, work.x_prev, work.y, work.y_hat, work.z, work.z_hat, work.rho, work.active,
                       work.converged, work.iterations, work.momentum, work.momentum_beta, work.merit,
                       work.needs_factor, work.residual_primal, work.residual_dual, work.residual_complementarity,

@@ -481,7 +481,7 @@ def sparse_matrix(
 def sparse_factor(
     pat: SparsePatterns,
     mask: wp.array(dtype=wp.int32),
-    sigma: wp.array(dtype=float),
+    shift: wp.array2d(dtype=float),
     bilateral_only: int,
     row_count: wp.array(dtype=wp.int32),
     row_kind: wp.array2d(dtype=wp.int32),
@@ -490,7 +490,8 @@ def sparse_factor(
     # out
     L: wp.array2d(dtype=float),
 ):
-    """L L^T = A + sigma I for worlds with mask != 0, A from sparse_matrix (with bilateral_only:
+    """L L^T = A + diag(shift) for worlds with mask != 0 (shift per row of this step; rows of the
+    pattern that stand for no row get shift[world, 0]), A from sparse_matrix (with bilateral_only:
     its bilateral joint block, the identity elsewhere). The factor stays in global memory:
     keeping it in shared memory while it is computed was 2x slower on an H100 (DR Legs standing,
     4096 worlds), as fewer worlds then fit on each multiprocessor at once."""
@@ -503,7 +504,6 @@ def sparse_factor(
     ub = pat.update_base[p]
     entries = pat.entry_base[p + 1] - eb
     n = row_count[world]
-    shift = sigma[world]
     Lw = L[world]
     e = lane
     while e < entries:
@@ -517,7 +517,10 @@ def sparse_factor(
                 if diagonal:
                     value = 1.0
         if diagonal:
-            value += shift
+            row = real[world, pat.perm[p, pat.entry_i[eb + e]]]
+            if row < 0 or row >= n:
+                row = 0
+            value += shift[world, row]
         Lw[e] = value
         e += lanes
     block_sync()
@@ -641,11 +644,13 @@ def solve_kernel(size: int):
     return sparse_solve
 
 
-def factor(model, sigma, mask, bilateral_only: bool = False) -> None:
-    """Factor P D P + sigma I (or its bilateral joint block) of every masked world into work.sparse_L."""
+def factor(model, shift, mask, bilateral_only: bool = False) -> None:
+    """Factor P D P + diag(shift) (shift (W, R) per row; or the bilateral joint block) of every
+    masked world into work.sparse_L."""
     work = model.work
     wp.launch_tiled(sparse_factor, dim=[model.num_worlds], block_dim=sparse_block(model.device), device=model.device,
-                    inputs=[model.sparse, mask, sigma, int(bilateral_only), work.row_count, model.row_kind,
+                    inputs=[model.sparse, mask, shift, int(bilateral_only), work.row_count, model.row_kind,
+
                             work.sparse_real, work.sparse_A],
                     outputs=[work.sparse_L])
 
