@@ -131,6 +131,7 @@ class StepWork:
     row_residual: wp.array2d(dtype=float)
     row_precond: wp.array2d(dtype=float)
     row_friction: wp.array2d(dtype=float)
+    row_free: wp.array2d(dtype=wp.int32)
     v_f: wp.array2d(dtype=float)
     lo: wp.array2d(dtype=float)
     hi: wp.array2d(dtype=float)
@@ -160,6 +161,7 @@ class StepWork:
     project: wp.array(dtype=wp.int32)
     active: wp.array(dtype=wp.int32)
     needs_factor: wp.array(dtype=wp.int32)
+    demote: wp.array(dtype=wp.int32)
     diverged: wp.array(dtype=wp.int32)
     halted: wp.array(dtype=wp.int32)
 
@@ -206,16 +208,17 @@ for _size in range(TILE_ROWS, FUSED_MAX_ROWS + 1, TILE_ROWS):
 
 
 @wp.func
-def cholesky_lanes(world: int, lane: int, lanes: int, n: int, sigma: float, sigma_bilateral: float,
-                   bilateral_only: int, row_kind: wp.array2d(dtype=wp.int32), matrix: Any, factor: Any):
-    """Lower Cholesky factor of the world's n x n matrix plus a diagonal shift (sigma_bilateral on
-    joint rows, sigma on the others) (shared tiles), column by column
+def cholesky_lanes(world: int, lane: int, lanes: int, n: int, sigma: float, sigma_free: float,
+                   bilateral_only: int, row_kind: wp.array2d(dtype=wp.int32), row_free: wp.array2d(dtype=wp.int32),
+                   matrix: Any, factor: Any):
+    """Lower Cholesky factor of the world's n x n matrix plus a diagonal shift (sigma_free on the
+    free rows of engine.padmm.row_is_free, sigma on the others) (shared tiles), column by column
     (left-looking): every lane forms the column's pivot, the lanes share the column's entries below
     it; one barrier per column. The dot products run in the serial order. Entered after a barrier."""
     for j in range(n):
         shift = sigma
-        if is_bilateral(row_kind[world, j]):
-            shift = sigma_bilateral
+        if row_free[world, j] != 0:
+            shift = sigma_free
         s = matrix_entry(world, j, j, bilateral_only, row_kind, matrix) + shift
         for k in range(j):
             s -= factor[j, k] * factor[j, k]
@@ -389,6 +392,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
             w.active[world] = active
             w.valid[world] = active
             w.needs_factor[world] = 0
+            w.demote[world] = 0
             w.converged[world] = 0
             w.iterations[world] = 0
             w.rho[world] = rho
@@ -400,13 +404,14 @@ def _make_kernel(tile_rows: int, max_registers: int):
         block_sync()
         if active != 0:
             for i in range(lane, n, lanes):
-                padmm_warmstart_of(world, i, warmstart_scale, row_lambda_in, w.row_precond, w.active, w.lo, w.hi, w.x,
-                                   w.y, w.y_hat, w.z, w.z_hat)
-            cholesky_lanes(world, lane, lanes, n, sigma, eta + wp.min(rho, cap), 0, m.row_kind, D, F)
+                padmm_warmstart_of(world, i, warmstart_scale, row_lambda_in, w.row_precond, w.active, w.lo, w.hi,
+                                   m.row_kind, w.x, w.y, w.y_hat, w.z, w.z_hat, w.row_free)
+            block_sync()  # the factor reads every row's free flag
+            cholesky_lanes(world, lane, lanes, n, sigma, eta + wp.min(rho, cap), 0, m.row_kind, w.row_free, D, F)
         while active != 0:
             for i in range(lane, n, lanes):
-                padmm_rhs_of(world, i, m.padmm_eta, m.padmm_rho_cap, m.row_kind, w.rho, w.active, w.row_friction,
-                             w.v_f, w.x, w.y_hat, w.z_hat, w.x_prev, w.rhs)
+                padmm_rhs_of(world, i, m.padmm_eta, m.padmm_rho_cap, m.row_kind, w.row_free, w.rho, w.active,
+                             w.row_friction, w.v_f, w.x, w.y_hat, w.z_hat, w.x_prev, w.rhs)
             block_sync()
             cholesky_solve_lanes(world, lane, lanes, n, F, w.rhs, w.x, acc, sol)
             r = w.rho[world]
@@ -416,10 +421,11 @@ def _make_kernel(tile_rows: int, max_registers: int):
             change = float(0.0)
             scale = float(0.0)
             for i in range(lane, n, lanes):
-                padmm_project_of(world, i, m.padmm_rho_cap, m.row_kind, w.row_count, w.row_friction, w.rho, w.active,
-                                 w.lo, w.hi, w.x, w.z_hat, w.y, w.z, w.y_prev, w.z_prev)
-                s_i, p_i, d_i, c_i, m_i = row_residuals(world, i, eta, r, cap, m.row_kind, w.x, w.x_prev, w.y, w.y_hat,
-                                                        w.z, w.z_hat)
+                padmm_project_of(world, i, m.padmm_rho_cap, m.row_kind, w.row_free, w.row_count, w.row_friction, w.rho,
+                                 w.active, w.lo, w.hi, w.x, w.z_hat, w.y, w.z, w.y_prev, w.z_prev, w.row_free,
+                                 w.demote)
+                s_i, p_i, d_i, c_i, m_i = row_residuals(world, i, eta, r, cap, m.row_kind, w.row_free, w.x, w.x_prev,
+                                                        w.y, w.y_hat, w.z, w.z_hat)
                 scale = wp.max(scale, s_i)
                 r_p = wp.max(r_p, p_i)
                 r_d = wp.max(r_d, d_i)
@@ -435,7 +441,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
                 padmm_decide(world, r_p, r_d, r_c, scale, change, max_iterations, relative_tolerance,
                              rho_update_interval, adaptive_rho, acceleration, m.padmm_tolerance, w.rho, w.active,
                              w.converged, w.iterations, w.momentum, w.momentum_beta, w.merit, w.needs_factor,
-                             w.residual_primal, w.residual_dual, w.residual_complementarity)
+                             w.residual_primal, w.residual_dual, w.residual_complementarity, w.demote)
             block_sync()
             active = w.active[world]
             if active != 0:
@@ -443,13 +449,18 @@ def _make_kernel(tile_rows: int, max_registers: int):
                     padmm_accelerate_of(world, i, w.active, w.momentum_beta, w.y, w.y_prev, w.z, w.z_prev, w.y_hat,
                                         w.z_hat)
                 if w.needs_factor[world] != 0:
+                    for i in range(lane, n, lanes):
+                        if w.row_free[world, i] == 2:  # a drive that met its bound: the world's penalty
+                            w.row_free[world, i] = 0
                     rho_now = w.rho[world]
+
                     sigma = eta + rho_now
                     block_sync()  # every lane has read the flag before lane 0 clears it
                     if lane == 0:
                         w.sigma[world] = sigma
                         w.needs_factor[world] = 0
-                    cholesky_lanes(world, lane, lanes, n, sigma, eta + wp.min(rho_now, cap), 0, m.row_kind, D, F)
+                    cholesky_lanes(world, lane, lanes, n, sigma, eta + wp.min(rho_now, cap), 0, m.row_kind, w.row_free,
+                                   D, F)
 
         for i in range(lane, max_rows, lanes):
             padmm_output_of(world, i, w.row_count, w.row_precond, w.y, w.diverged, w.halted, row_lambda_out)
@@ -477,7 +488,8 @@ def _make_kernel(tile_rows: int, max_registers: int):
                 w.sigma[world] = target
         if project != 0:
             if refactor:
-                cholesky_lanes(world, lane, lanes, n, target, target, mask_projection, m.row_kind, D, F)
+                cholesky_lanes(world, lane, lanes, n, target, target, mask_projection, m.row_kind, w.row_free, D, F)
+
             passes = position_iterations
             shake = position_iterations
             if moreau != 0:  # the output projection gets as many iterations (engine.step)

@@ -60,11 +60,12 @@ class SolverConfig:
         eta: proximal weight (> 0; regularizes redundant constraints).
         rho: initial ADMM penalty.
         adaptive_rho: rescale rho (and refactor) when primal and dual residuals are unbalanced.
-        cap_joint_penalty: keep the penalty of the bilateral joint rows at or below rho. Their
-            projection is the identity, so the penalty only slows them: with the large rho that
-            contacts and effort limits call for, the joint rows' soft modes converged at
-            rho / (lambda + rho) per iteration (random walkers: 57 PADMM iterations per step and 30 %
-            of the steps at the cap with it off; 25 and 3 % with it on). Off: one rho for all rows.
+        cap_joint_penalty: keep the ADMM penalty of the free rows at or below rho: the bilateral
+            joint rows, and the drive rows whose warm start lies within half of their effort
+            limits (a drive that meets its limit during the step takes the world's penalty again,
+            with a new factor). Their projection is the identity, so the penalty only slowed them:
+            with the large rho that contacts and saturated drives call for, their soft modes
+            converged at rho / (lambda + rho) per iteration. Off: one rho for all rows.
         rho_update_interval: iterations between penalty updates.
         acceleration: Nesterov momentum with restart.
         warmstart: start each step from the last step's impulses.
@@ -304,7 +305,10 @@ class Workspace:
     a step.
     PADMM vectors (W, R): v_f, lo, hi (preconditioned), x, x_prev, y, y_prev, y_hat, z, z_prev,
     z_hat, rhs, delta; row_shift (W, R): the factored matrix's diagonal shift per row (eta + the
-    row's penalty: engine.padmm.row_penalty). Per world (W,): rho, sigma (eta + rho), valid,
+    row's penalty: engine.padmm.row_penalty); row_free (W, R) int32: the rows whose penalty is
+    capped this step (engine.padmm.row_is_free; 2: a drive that met its bound, to lose the cap at
+    the next penalty update, flagged in demote (W,)). Per world (W,): rho, sigma (eta + rho), valid,
+
     iterations, residual_primal, residual_dual, converged,
 
     active, needs_factor, momentum, momentum_beta, merit, diverged (non-finite state: frozen),
@@ -333,13 +337,14 @@ class Workspace:
             setattr(self, name, zeros((w, r)))
         # the dense path keeps P D P and its factor; the matrix-free path needs neither
         self.row_shift = zeros((w, r))  # the factored matrix's diagonal shift per row
+        self.row_free = zeros((w, r), wp.int32)  # rows whose penalty is capped this step (engine.padmm)
         self.delassus = zeros((w, r, r) if dense else (w, 1, 1))
         self.factor = zeros((w, r, r) if dense else (w, 1, 1))
         self.inner_iterations = zeros(w, wp.int32)
         for name in ("rho", "sigma", "residual_primal", "residual_dual", "residual_complementarity", "momentum", "momentum_beta", "merit",
                      "violation_linear", "violation_angular", "energy"):
             setattr(self, name, zeros(w))
-        for name in ("iterations", "converged", "valid", "project", "projection_gate", "active", "needs_factor",
+        for name in ("iterations", "converged", "valid", "project", "projection_gate", "active", "needs_factor", "demote",
                      "diverged", "halted"):
             setattr(self, name, zeros(w, wp.int32))
         self.active_count = zeros(1, wp.int32)

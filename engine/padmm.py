@@ -1,7 +1,9 @@
 """Proximal ADMM on every world's dual problem at once (ENGINE.md), one kernel per line.
 
-In preconditioned variables (engine.dynamics), with proximal weight eta, penalty rho and the
-factor L L^T = P D P + (eta + rho) I, each iteration of an active world does
+In preconditioned variables (engine.dynamics), with proximal weight eta, penalty rho_i per row
+(row_penalty: the world's rho, capped at the initial rho on the free rows of this step, those
+whose bounds are out of play) and the factor L L^T = P D P + diag(eta + rho_i), each iteration of
+an active world does (rho standing for each row's rho_i)
     padmm_rhs:        rhs = -v_f - s + eta x + rho y_hat + z_hat, with the De Saxce correction
                       s = mu |z_hat_t| on contact normal rows
     linear.solve:     x = (L L^T)^-1 rhs
@@ -13,7 +15,8 @@ factor L L^T = P D P + (eta + rho) I, each iteration of an active world does
                       r_c <= that times |y|_inf, or at the iteration cap; Nesterov momentum with restart;
                       penalty update (which asks for a new factor)
     padmm_accelerate: y_hat = y + beta (y - y_prev), z_hat = z + beta (z - z_prev)
-    linear.factor:    only for worlds whose penalty changed
+    linear.factor:    only for worlds whose penalty changed, or in which a free drive row met its
+                      bound (it takes the world's rho from then on)
 With the matrix-free linear solver (engine.matrix_free) the solve is an inexact, warm-started
 Conjugate Residual solve with the Delassus operator and there is no factor.
 The loop runs under wp.capture_while on a device counter of active worlds, so it can be
@@ -23,7 +26,8 @@ captured into a CUDA graph; converged, capped and diverged worlds do no more wor
 import warp as wp
 
 from engine import linear, matrix_free, sparse
-from engine.model import ROW_ANGULAR, ROW_CONTACT_NORMAL, ROW_CONTACT_TANGENT, ROW_LIMIT, ROW_LINEAR
+from engine.model import ROW_ANGULAR, ROW_CONTACT_NORMAL, ROW_CONTACT_TANGENT, ROW_DYNAMICS, ROW_LIMIT, ROW_LINEAR
+
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
@@ -35,16 +39,28 @@ RESTART_RATIO = wp.constant(0.999)
 
 
 @wp.func
-def row_penalty(kind: int, rho: float, rho_bilateral_cap: float):
-    """The ADMM penalty of one row: rho, except on bilateral joint rows, whose projection is the
-    identity (y = x, z = 0): they need only the proximal pull, so their penalty is capped at
-    rho_bilateral_cap (the initial penalty). The large rho that contacts and effort limits ask
-    for would otherwise turn the joint rows into a slow proximal-point iteration, whose soft
+def row_penalty(free: int, rho: float, rho_free_cap: float):
+    """The ADMM penalty of one row: rho, except on free rows (padmm_warmstart's row_free: bilateral
+    joint rows, and drive rows whose warm start lies well inside their effort limits), whose
+    projection is the identity (y = x, z = 0): they need only the proximal pull, so their penalty
+    is capped at rho_free_cap (the initial penalty). The large rho that contacts and saturated
+    drives ask for would otherwise turn them into a slow proximal-point iteration, whose soft
     modes (eigenvalue lambda of the Delassus matrix) shrink only by rho / (lambda + rho) per
     iteration."""
-    if kind == ROW_LINEAR or kind == ROW_ANGULAR:
-        return wp.min(rho, rho_bilateral_cap)
+    if free != 0:
+        return wp.min(rho, rho_free_cap)
     return rho
+
+
+@wp.func
+def row_is_free(kind: int, x: float, lo: float, hi: float):
+    """1 for a row whose bounds stay out of play this step: a bilateral joint row, or a drive row
+    whose warm-start impulse x is within half of its effort limits; else 0."""
+    if kind == ROW_LINEAR or kind == ROW_ANGULAR:
+        return 1
+    if kind == ROW_DYNAMICS and 2.0 * x > lo and 2.0 * x < hi:
+        return 1
+    return 0
 
 
 @wp.kernel
@@ -65,6 +81,7 @@ def padmm_setup(
     momentum_beta_out: wp.array(dtype=float),
     merit_out: wp.array(dtype=float),
     needs_factor_out: wp.array(dtype=wp.int32),
+    demote_out: wp.array(dtype=wp.int32),
     active_count_out: wp.array(dtype=wp.int32),
 ):
     """Per world: activate worlds with rows that have neither diverged nor been halted; keep the
@@ -77,6 +94,7 @@ def padmm_setup(
     active_out[world] = active
     valid_out[world] = active
     needs_factor_out[world] = active
+    demote_out[world] = 0
     converged_out[world] = 0
     iterations_out[world] = 0
     if rho_out[world] <= 0.0:
@@ -96,15 +114,19 @@ def padmm_warmstart_of(
     active: wp.array(dtype=wp.int32),
     lo: wp.array2d(dtype=float),
     hi: wp.array2d(dtype=float),
+    row_kind: wp.array2d(dtype=wp.int32),
     # out
     x_out: wp.array2d(dtype=float),
     y_out: wp.array2d(dtype=float),
     y_hat_out: wp.array2d(dtype=float),
     z_out: wp.array2d(dtype=float),
     z_hat_out: wp.array2d(dtype=float),
+    row_free_out: wp.array2d(dtype=wp.int32),
 ):
-    """Start from the last step's impulses, in this step's preconditioned variables."""
+    """Start from the last step's impulses, in this step's preconditioned variables; mark the rows
+    that are free this step (row_is_free)."""
     x = wp.clamp(warmstart_scale * row_lambda[world, i] / row_precond[world, i], lo[world, i], hi[world, i])
+    row_free_out[world, i] = row_is_free(row_kind[world, i], x, lo[world, i], hi[world, i])
     x_out[world, i] = x
     y_out[world, i] = x
     y_hat_out[world, i] = x
@@ -121,19 +143,21 @@ def padmm_warmstart(
     active: wp.array(dtype=wp.int32),
     lo: wp.array2d(dtype=float),
     hi: wp.array2d(dtype=float),
+    row_kind: wp.array2d(dtype=wp.int32),
     # out
     x_out: wp.array2d(dtype=float),
     y_out: wp.array2d(dtype=float),
     y_hat_out: wp.array2d(dtype=float),
     z_out: wp.array2d(dtype=float),
     z_hat_out: wp.array2d(dtype=float),
+    row_free_out: wp.array2d(dtype=wp.int32),
 ):
     """Start from the last step's impulses, in this step's preconditioned variables."""
     world, i = wp.tid()
     if active[world] == 0:
         return
-    padmm_warmstart_of(world, i, warmstart_scale, row_lambda, row_precond, active, lo, hi, x_out, y_out, y_hat_out,
-        z_out, z_hat_out)
+    padmm_warmstart_of(world, i, warmstart_scale, row_lambda, row_precond, active, lo, hi, row_kind, x_out, y_out,
+                       y_hat_out, z_out, z_hat_out, row_free_out)
 
 
 @wp.func
@@ -142,6 +166,7 @@ def padmm_rhs_of(
     padmm_eta: wp.array(dtype=float),
     padmm_rho_cap: wp.array(dtype=float),
     row_kind: wp.array2d(dtype=wp.int32),
+    row_free: wp.array2d(dtype=wp.int32),
     rho: wp.array(dtype=float),
     active: wp.array(dtype=wp.int32),
     row_friction: wp.array2d(dtype=float),
@@ -159,7 +184,7 @@ def padmm_rhs_of(
     de_saxce = float(0.0)
     if row_kind[world, i] == ROW_CONTACT_NORMAL and i + 2 < row_friction.shape[1]:
         de_saxce = row_friction[world, i] * wp.length(wp.vec2(z_hat[world, i + 1], z_hat[world, i + 2]))
-    r = row_penalty(row_kind[world, i], rho[world], padmm_rho_cap[world])
+    r = row_penalty(row_free[world, i], rho[world], padmm_rho_cap[world])
     rhs_out[world, i] = -v_f[world, i] - de_saxce + padmm_eta[world] * xi + r * y_hat[world, i] + z_hat[world, i]
 
 
@@ -168,6 +193,7 @@ def padmm_rhs(
     padmm_eta: wp.array(dtype=float),
     padmm_rho_cap: wp.array(dtype=float),
     row_kind: wp.array2d(dtype=wp.int32),
+    row_free: wp.array2d(dtype=wp.int32),
     rho: wp.array(dtype=float),
     active: wp.array(dtype=wp.int32),
     row_friction: wp.array2d(dtype=float),
@@ -183,8 +209,8 @@ def padmm_rhs(
     world, i = wp.tid()
     if active[world] == 0:
         return
-    padmm_rhs_of(world, i, padmm_eta, padmm_rho_cap, row_kind, rho, active, row_friction, v_f, x, y_hat, z_hat,
-                 x_prev_out, rhs_out)
+    padmm_rhs_of(world, i, padmm_eta, padmm_rho_cap, row_kind, row_free, rho, active, row_friction, v_f, x, y_hat,
+                 z_hat, x_prev_out, rhs_out)
 
 
 @wp.func
@@ -205,6 +231,7 @@ def padmm_project_of(
     world: int, i: int,
     padmm_rho_cap: wp.array(dtype=float),
     row_kind: wp.array2d(dtype=wp.int32),
+    row_free: wp.array2d(dtype=wp.int32),
     row_count: wp.array(dtype=wp.int32),
     row_friction: wp.array2d(dtype=float),
     rho: wp.array(dtype=float),
@@ -218,9 +245,13 @@ def padmm_project_of(
     z: wp.array2d(dtype=float),
     y_prev_out: wp.array2d(dtype=float),
     z_prev_out: wp.array2d(dtype=float),
+    row_free_out: wp.array2d(dtype=wp.int32),
+    demote_out: wp.array(dtype=wp.int32),
 ):
-    """y = projection of x - z_hat / rho onto the row's set; z = z_hat - rho (x - y). The thread of
-    a contact normal row projects its whole triplet onto the friction cone."""
+    """y = projection of x - z_hat / rho_i onto the row's set; z = z_hat - rho_i (x - y). The thread
+    of a contact normal row projects its whole triplet onto the friction cone. A free drive row
+    whose bound comes into play is marked (row_free 2, demote) to lose its capped penalty at the
+    next penalty update, which refactors (padmm_decide, sigma_of)."""
     kind = row_kind[world, i]
     if kind == ROW_CONTACT_TANGENT and i < row_count[world]:
         return
@@ -236,10 +267,14 @@ def padmm_project_of(
             y[world, i + k] = proj[k]
             z[world, i + k] = z_hat[world, i + k] - r * (x[world, i + k] - proj[k])
         return
-    r = row_penalty(kind, r, padmm_rho_cap[world])
+    free = row_free[world, i]
+    r = row_penalty(free, r, padmm_rho_cap[world])
     xi = x[world, i]
     zh = z_hat[world, i]
     yi = wp.clamp(xi - zh / r, lo[world, i], hi[world, i])
+    if free == 1 and r < rho[world] and yi != xi - zh / r:
+        row_free_out[world, i] = 2
+        demote_out[world] = 1
     y_prev_out[world, i] = y[world, i]
     z_prev_out[world, i] = z[world, i]
     y[world, i] = yi
@@ -250,6 +285,7 @@ def padmm_project_of(
 def padmm_project(
     padmm_rho_cap: wp.array(dtype=float),
     row_kind: wp.array2d(dtype=wp.int32),
+    row_free: wp.array2d(dtype=wp.int32),
     row_count: wp.array(dtype=wp.int32),
     row_friction: wp.array2d(dtype=float),
     rho: wp.array(dtype=float),
@@ -263,25 +299,29 @@ def padmm_project(
     z: wp.array2d(dtype=float),
     y_prev_out: wp.array2d(dtype=float),
     z_prev_out: wp.array2d(dtype=float),
+    row_free_out: wp.array2d(dtype=wp.int32),
+    demote_out: wp.array(dtype=wp.int32),
 ):
-    """y = projection of x - z_hat / rho onto the row's set; z = z_hat - rho (x - y). The thread of
-    a contact normal row projects its whole triplet onto the friction cone."""
+    """y = projection of x - z_hat / rho_i onto the row's set; z = z_hat - rho_i (x - y). The thread
+    of a contact normal row projects its whole triplet onto the friction cone. A free drive row
+    whose bound comes into play is marked (row_free 2, demote) to lose its capped penalty at the
+    next penalty update, which refactors (padmm_decide, sigma_of)."""
     world, i = wp.tid()
     if active[world] == 0:
         return
-    padmm_project_of(world, i, padmm_rho_cap, row_kind, row_count, row_friction, rho, active, lo, hi, x, z_hat, y, z,
-                     y_prev_out, z_prev_out)
+    padmm_project_of(world, i, padmm_rho_cap, row_kind, row_free, row_count, row_friction, rho, active, lo, hi, x,
+                     z_hat, y, z, y_prev_out, z_prev_out, row_free_out, demote_out)
 
 
 @wp.func
-def row_residuals(world: int, i: int, eta: float, rho: float, rho_bilateral_cap: float,
-                  row_kind: wp.array2d(dtype=wp.int32),
+def row_residuals(world: int, i: int, eta: float, rho: float, rho_free_cap: float,
+                  row_kind: wp.array2d(dtype=wp.int32), row_free: wp.array2d(dtype=wp.int32),
                   x: wp.array2d(dtype=float), x_prev: wp.array2d(dtype=float), y: wp.array2d(dtype=float),
                   y_hat: wp.array2d(dtype=float), z: wp.array2d(dtype=float), z_hat: wp.array2d(dtype=float)):
     """Row i's share of a world's PADMM residuals: |y|, primal |x - y|, dual, complementarity and
     the merit increment (rho_i |dy|^2 + |dz|^2 / rho_i), with the row's penalty rho_i."""
     kind = row_kind[world, i]
-    r = row_penalty(kind, rho, rho_bilateral_cap)
+    r = row_penalty(row_free[world, i], rho, rho_free_cap)
     dy = y[world, i] - y_hat[world, i]
     dz = z[world, i] - z_hat[world, i]
     r_p = wp.abs(x[world, i] - y[world, i])
@@ -321,9 +361,11 @@ def padmm_decide(
     residual_primal: wp.array(dtype=float),
     residual_dual: wp.array(dtype=float),
     residual_complementarity: wp.array(dtype=float),
+    demote: wp.array(dtype=wp.int32),
 ):
     """End of a PADMM iteration of one world from its residuals: count it, stop (returns 1) when
-    converged or capped, else set the momentum for padmm_accelerate and update the penalty."""
+    converged or capped, else set the momentum for padmm_accelerate and update the penalty (and
+    at the same iterations take the capped penalty from drive rows that met their bounds)."""
     r = rho[world]
     its = iterations[world] + 1
     iterations[world] = its
@@ -358,6 +400,13 @@ def padmm_decide(
             momentum[world] = 1.0
             merit[world] = 1.0e30
             beta = 0.0
+    if demote[world] != 0 and its % rho_update_interval == 0:
+        demote[world] = 0
+        needs_factor[world] = 1
+    if needs_factor[world] != 0 and beta != 0.0:  # a row's penalty changed (a drive met its bound): restart
+        momentum[world] = 1.0
+        merit[world] = 1.0e30
+        beta = 0.0
     momentum_beta[world] = beta
     return 0
 
@@ -378,6 +427,7 @@ def padmm_convergence(
     padmm_rho_cap: wp.array(dtype=float),
     padmm_tolerance: wp.array(dtype=float),
     # in
+    row_free: wp.array2d(dtype=wp.int32),
     row_count: wp.array(dtype=wp.int32),
     x: wp.array2d(dtype=float),
     x_prev: wp.array2d(dtype=float),
@@ -397,6 +447,7 @@ def padmm_convergence(
     residual_primal: wp.array(dtype=float),
     residual_dual: wp.array(dtype=float),
     residual_complementarity: wp.array(dtype=float),
+    demote: wp.array(dtype=wp.int32),
     active_count: wp.array(dtype=wp.int32),
 ):
     """Per world (one thread block, rows spread over its threads): residuals, stop test, Nesterov
@@ -417,7 +468,8 @@ def padmm_convergence(
     for k in range((n + stride - 1) // stride):
         i = lane + k * stride
         if i < n:
-            s_i, p_i, d_i, c_i, m_i = row_residuals(world, i, eta, r, cap, row_kind, x, x_prev, y, y_hat, z, z_hat)
+            s_i, p_i, d_i, c_i, m_i = row_residuals(world, i, eta, r, cap, row_kind, row_free, x, x_prev, y, y_hat, z,
+                                                    z_hat)
             scale = wp.max(scale, s_i)
             r_p = wp.max(r_p, p_i)
             r_d = wp.max(r_d, d_i)
@@ -432,7 +484,8 @@ def padmm_convergence(
         return
     if padmm_decide(world, r_p, r_d, r_c, scale, change, max_iterations, relative_tolerance, rho_update_interval,
                     adaptive_rho, acceleration, padmm_tolerance, rho, active, converged, iterations, momentum,
-                    momentum_beta, merit, needs_factor, residual_primal, residual_dual, residual_complementarity) != 0:
+                    momentum_beta, merit, needs_factor, residual_primal, residual_dual, residual_complementarity,
+                    demote) != 0:
         wp.atomic_sub(active_count, 0, 1)
 
 
@@ -476,16 +529,20 @@ def padmm_accelerate(
 
 @wp.kernel
 def sigma_of(padmm_eta: wp.array(dtype=float), padmm_rho_cap: wp.array(dtype=float), rho: wp.array(dtype=float),
-             needs_factor: wp.array(dtype=wp.int32), row_kind: wp.array2d(dtype=wp.int32),
+             needs_factor: wp.array(dtype=wp.int32), row_free: wp.array2d(dtype=wp.int32),
              sigma_out: wp.array(dtype=float), row_shift_out: wp.array2d(dtype=float)):
     """Shifts of the factored matrix: sigma = eta + rho, and per row eta + the row's penalty."""
     world, i = wp.tid()
     if needs_factor[world] == 0:
         return
+    if row_free[world, i] == 2:  # a drive that met its bound: the world's penalty from now on
+        row_free[world, i] = 0
     eta = padmm_eta[world]
+
     if i == 0:
         sigma_out[world] = eta + rho[world]
-    row_shift_out[world, i] = eta + row_penalty(row_kind[world, i], rho[world], padmm_rho_cap[world])
+    row_shift_out[world, i] = eta + row_penalty(row_free[world, i], rho[world], padmm_rho_cap[world])
+
 
 
 @wp.kernel
@@ -531,7 +588,7 @@ def refactor(model):
     """Factor P D P + (eta + rho) I for worlds flagged in needs_factor, then clear the flags."""
     work, W = model.work, model.num_worlds
     wp.launch(sigma_of, dim=(W, model.max_rows),
-              inputs=[model.padmm_eta, model.padmm_rho_cap, work.rho, work.needs_factor, model.row_kind],
+              inputs=[model.padmm_eta, model.padmm_rho_cap, work.rho, work.needs_factor, work.row_free],
               outputs=[work.sigma, work.row_shift], device=model.device)
     if model.linear_solver == "dense":
         linear.factor(work.delassus, work.row_shift, work.needs_factor, work.factor)
@@ -545,8 +602,8 @@ def padmm_iteration(model):
     work, cfg, device = model.work, model.config, model.device
     grid = (model.num_worlds, model.max_rows)
     wp.launch(padmm_rhs, dim=grid, device=device,
-              inputs=[model.padmm_eta, model.padmm_rho_cap, model.row_kind, work.rho, work.active, work.row_friction,
-                      work.v_f, work.x, work.y_hat, work.z_hat],
+              inputs=[model.padmm_eta, model.padmm_rho_cap, model.row_kind, work.row_free, work.rho, work.active,
+                      work.row_friction, work.v_f, work.x, work.y_hat, work.z_hat],
               outputs=[work.x_prev, work.rhs])
     if model.linear_solver == "dense":
         linear.solve(work.factor, work.rhs, work.active, work.x)
@@ -555,21 +612,24 @@ def padmm_iteration(model):
     else:  # inexact Conjugate Residual, warm-started from the last iterate
         matrix_free.solve(model, work.rhs, work.active, work.x)
     wp.launch(padmm_project, dim=grid, device=device,
-              inputs=[model.padmm_rho_cap, model.row_kind, work.row_count, work.row_friction, work.rho, work.active,
-                      work.lo, work.hi, work.x, work.z_hat, work.y, work.z, work.y_prev, work.z_prev])
+              inputs=[model.padmm_rho_cap, model.row_kind, work.row_free, work.row_count, work.row_friction, work.rho,
+                      work.active, work.lo, work.hi, work.x, work.z_hat, work.y, work.z, work.y_prev, work.z_prev,
+                      work.row_free, work.demote])
     wp.launch_tiled(padmm_convergence, dim=[model.num_worlds], block_dim=CONVERGENCE_BLOCK, device=device,
-              inputs=[cfg.max_iterations, float(cfg.relative_tolerance), cfg.rho_update_interval, int(cfg.adaptive_rho),
-                      int(cfg.acceleration), model.row_kind, model.padmm_eta, model.padmm_rho_cap, model.padmm_tolerance,
-
-                      work.row_count, work.x, work.x_prev, work.y, work.y_hat, work.z, work.z_hat, work.rho, work.active,
+              inputs=[cfg.max_iterations, float(cfg.relative_tolerance), cfg.rho_update_interval,
+                      int(cfg.adaptive_rho), int(cfg.acceleration), model.row_kind, model.padmm_eta,
+                      model.padmm_rho_cap, model.padmm_tolerance, work.row_free, work.row_count, work.x, work.x_prev,
+                      work.y, work.y_hat, work.z, work.z_hat, work.rho, work.active,
                       work.converged, work.iterations, work.momentum, work.momentum_beta, work.merit,
                       work.needs_factor, work.residual_primal, work.residual_dual, work.residual_complementarity,
+                      work.demote,
                       work.active_count])
     wp.launch(padmm_accelerate, dim=grid, device=device,
               inputs=[work.active, work.momentum_beta, work.y, work.y_prev, work.z, work.z_prev],
               outputs=[work.y_hat, work.z_hat])
-    if cfg.adaptive_rho:
+    if cfg.adaptive_rho or cfg.cap_joint_penalty:  # new penalties, or drive rows that met their bounds
         refactor(model)
+
 
 
 def solve_padmm(model, row_lambda_warm, row_lambda_out):
@@ -581,11 +641,13 @@ def solve_padmm(model, row_lambda_warm, row_lambda_out):
     work.inner_iterations.zero_()
     wp.launch(padmm_setup, dim=model.num_worlds, device=device,
               inputs=[work.row_count, model.padmm_rho_init, work.diverged, work.halted],
-              outputs=[work.rho, work.valid, work.active, work.converged, work.iterations, work.momentum, work.momentum_beta,
-                       work.merit, work.needs_factor, work.active_count])
+              outputs=[work.rho, work.valid, work.active, work.converged, work.iterations, work.momentum,
+                       work.momentum_beta, work.merit, work.needs_factor, work.demote, work.active_count])
+
     wp.launch(padmm_warmstart, dim=grid, device=device,
-              inputs=[(1.0 - cfg.warmstart_decay) if cfg.warmstart else 0.0, row_lambda_warm, work.row_precond, work.active, work.lo, work.hi],
-              outputs=[work.x, work.y, work.y_hat, work.z, work.z_hat])
+              inputs=[(1.0 - cfg.warmstart_decay) if cfg.warmstart else 0.0, row_lambda_warm, work.row_precond,
+                      work.active, work.lo, work.hi, model.row_kind],
+              outputs=[work.x, work.y, work.y_hat, work.z, work.z_hat, work.row_free])
     if model.linear_solver == "sparse":
         sparse.prepare(model)
     refactor(model)

@@ -126,8 +126,9 @@ def test_auto_choice_and_errors():
 
 
 @wp.kernel(enable_backward=False)
-def factor_and_solve(n: wp.array(dtype=wp.int32), sigma: float, sigma_bilateral: float, bilateral_only: int,
-                     row_kind: wp.array2d(dtype=wp.int32), matrix: wp.array3d(dtype=float),
+def factor_and_solve(n: wp.array(dtype=wp.int32), sigma: float, sigma_free: float, bilateral_only: int,
+                     row_kind: wp.array2d(dtype=wp.int32), row_free: wp.array2d(dtype=wp.int32),
+                     matrix: wp.array3d(dtype=float),
                      rhs: wp.array2d(dtype=float), x: wp.array2d(dtype=float)):
     world, lane = wp.tid()
     a = wp.tile_load(matrix[world], shape=(48, 48), storage="shared")
@@ -135,7 +136,8 @@ def factor_and_solve(n: wp.array(dtype=wp.int32), sigma: float, sigma_bilateral:
     acc = wp.tile_zeros(shape=48, dtype=float, storage="shared")
     sol = wp.tile_zeros(shape=48, dtype=float, storage="shared")
     block_sync()
-    cholesky_lanes(world, lane, wp.block_dim(), n[world], sigma, sigma_bilateral, bilateral_only, row_kind, a, lower)
+    cholesky_lanes(world, lane, wp.block_dim(), n[world], sigma, sigma_free, bilateral_only, row_kind, row_free, a,
+                   lower)
     cholesky_solve_lanes(world, lane, wp.block_dim(), n[world], lower, rhs, x, acc, sol)
 
 
@@ -144,9 +146,10 @@ def test_lane_factor_and_solve_match_numpy(device, bilateral_only):
     """The fused step's factor and substitutions (lanes sharing columns; one lane on the CPU, a
     warp on a GPU) against NumPy on random SPD systems of several sizes, with the bilateral-only
     masking of the projection (non-bilateral rows and columns replaced by the identity) and the
-    PADMM factor's shifts (sigma_bilateral on joint rows, sigma on the others)."""
+    PADMM factor's shifts (sigma_free on the rows flagged free, sigma on the others)."""
     rng = np.random.default_rng(3)
-    sizes, R, sigma, sigma_bilateral = [1, 7, 24, 33, 48], 48, 0.05, 0.02
+    sizes, R, sigma, sigma_free = [1, 7, 24, 33, 48], 48, 0.05, 0.02
+    free = (rng.uniform(size=(len(sizes), R)) < 0.5).astype(np.int32)
     matrices = np.zeros((len(sizes), R, R), np.float32)
     kinds = np.full((len(sizes), R), ROW_LINEAR, np.int32)
     rhs = np.zeros((len(sizes), R), np.float32)
@@ -161,15 +164,16 @@ def test_lane_factor_and_solve_match_numpy(device, bilateral_only):
         if bilateral_only:
             keep = kinds[w, :n] == ROW_LINEAR
             used = np.where(np.outer(keep, keep), spd, np.eye(n))
-        shift = np.where(kinds[w, :n] == ROW_LINEAR, sigma_bilateral, sigma)
+        shift = np.where(free[w, :n] != 0, sigma_free, sigma)
         expected.append(np.linalg.solve(used + np.diag(shift), rhs[w, :n].astype(np.float64)))
     arrays = [wp.array(sizes, dtype=wp.int32, device=device), wp.array(kinds, device=device),
               wp.array(matrices, device=device), wp.array(rhs, device=device),
               wp.zeros((len(sizes), R), dtype=float, device=device)]
     lanes = 64 if wp.get_device(device).is_cuda else 1  # two warps: the lanes' strides cross a warp
     wp.launch_tiled(factor_and_solve, dim=[len(sizes)], block_dim=lanes, device=device,
-                    inputs=[arrays[0], sigma, sigma_bilateral, bilateral_only, arrays[1], arrays[2], arrays[3],
-                            arrays[4]])
+                    inputs=[arrays[0], sigma, sigma_free, bilateral_only, arrays[1], wp.array(free, device=device),
+                            arrays[2], arrays[3], arrays[4]])
+
 
     x = arrays[4].numpy()
     for w, n in enumerate(sizes):
