@@ -45,19 +45,19 @@ def main(argv=None) -> int:
         storage=f"sqlite:///{(out / 'walker_study.sqlite').resolve()}")
     family = load_family(spec.family)
     evaluate_dynamic(family, [{**family.space.default(), **spec.fixed}], duration=4 * spec.dt, dt=spec.dt,
-                     device=spec.device)  # compile the kernels outside the timed study
+                     device=spec.device, config=spec.solver_config())  # compile the kernels outside the timed study
     t0 = time.perf_counter()
     result = run_study(spec, progress=True)
     seconds = time.perf_counter() - t0
     default = {**family.space.default(), **spec.fixed}
     pair = evaluate_dynamic(family, [default, result.best_params], duration=spec.duration, dt=spec.dt,
-                            device=spec.device)
+                            device=spec.device, config=spec.solver_config())
     speeds = [m.get("walking_speed", float("nan")) for m in pair.metrics]
     report = {
         "device": wp.get_device(args.device).name if args.device != "cpu" else "cpu", "worlds": args.worlds,
         "generations": args.generations, "evaluations": result.evaluations, "seconds": seconds,
         "designs_per_s": result.evaluations / seconds, "overhead_share": result.overhead,
-        "simulated_s_per_design": spec.duration, "dt": spec.dt,
+        "simulated_s_per_design": spec.duration, "dt": spec.dt, "solver": spec.solver,
         "best_walking_speed": result.best_value, "best_params": result.best_params,
         "default_walking_speed": speeds[0], "best_rechecked_walking_speed": speeds[1],
         "best_over_default": speeds[1] / speeds[0] if speeds[0] > 0 else float("inf"),

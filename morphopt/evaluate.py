@@ -260,7 +260,7 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
                      crank_speed: float | None = None, record_every: int = 10,
                      spec_hook: Callable | None = None, loop_tolerance: float = 5e-3,
                      fall_tilt: float = np.radians(45.0), fall_height: float = 0.5,
-                     stall_time: float = 0.2) -> Evaluation:
+                     stall_time: float = 0.2, config=None) -> Evaluation:
     """Simulate every feasible design for ``duration`` [s] in one heterogeneous batch.
 
     Metrics: tracked-point paths over the last crank turn (planar, [m]), their stride and step
@@ -281,6 +281,7 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     A design whose velocity drive stays at its effort limit while turning at less than half its
     target speed for stall_time [s] fails as jammed (it locks mid-cycle, or the motor cannot move
     it); the reason names the joint and when it stalled.
+    config: the engine.SolverConfig of the batch (None: the defaults; a study's [solver] table).
     """
     from engine import pack_worlds, rollout
 
@@ -301,7 +302,8 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     evaluation = Evaluation(list(params), [{} for _ in params], failures)
     if not specs:
         return evaluation
-    model = pack_worlds(specs, device=device, dt=dt)
+    model = pack_worlds(specs, device=device, dt=dt, config=config)
+
     steps = max(record_every, int(round(duration / dt / record_every)) * record_every)
     torso = np.array([names.index("torso") if "torso" in names else -1 for names in model.point_names])
     up = np.array([names.index("torso_up") if "torso_up" in names else -1 for names in model.point_names])

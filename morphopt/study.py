@@ -197,7 +197,7 @@ def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -
                                             keep_paths=any(o.metric == "path_error" for o in spec.objectives))
         else:
             evaluation = evaluate_dynamic(family, params, duration=spec.duration, dt=spec.dt, device=spec.device,
-                                          crank_speed=spec.crank_speed)
+                                          crank_speed=spec.crank_speed, config=spec.solver_config())
         apply_constraints(spec, evaluation)
         values = objective_values(spec, evaluation)
         t2 = time.perf_counter()

@@ -16,6 +16,8 @@
                   ("tpe" | "nsga2" | "random", optuna)
     [simulation]  duration [s], dt [s], crank_speed [rad/s] (dynamic mode; default: the design's
                   own, 2 pi for linkage families), samples (points per crank turn, kinematic mode)
+    [solver]      engine settings of dynamic studies: any field of engine.SolverConfig (e.g.
+                  max_iterations, tolerance, linear_solver); default: SolverConfig's own
     [space]       per parameter: [low, high] to narrow the family's bounds
     [fixed]       per parameter: a value held fixed
     [constraints] per metric: [low, high]; a design outside fails with the reason (TOML has inf)
@@ -48,6 +50,7 @@ SECTIONS = {
     "objectives": None,
     "optimizer": {"name": str, "sigma0": float, "sampler": str, "restarts": int, "restart_strategy": str},
     "simulation": {"duration": float, "dt": float, "crank_speed": float, "samples": int},
+    "solver": None,
     "space": None,
     "fixed": None,
     "constraints": None,
@@ -105,6 +108,7 @@ class StudySpec:
     fixed: dict = field(default_factory=dict)
     constraints: dict = field(default_factory=dict)
     objectives: tuple = ()
+    solver: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if not self.objectives:
@@ -142,7 +146,16 @@ class StudySpec:
         _check_values(spec, where)
         return spec
 
+    def solver_config(self):
+        """The engine.SolverConfig of the [solver] table (None when the study sets nothing)."""
+        if not self.solver:
+            return None
+        from engine import SolverConfig
+
+        return SolverConfig(**self.solver)
+
     def design_space(self, family) -> DesignSpace:
+
         """The family's space narrowed by [space] and without the [fixed] parameters."""
         params = {}
         for name, parameter in family.space.parameters.items():
@@ -205,13 +218,43 @@ def load_study_spec(path) -> StudySpec:
     for name, bounds in constraints.items():
         if (not _numbers(bounds, 2) or any(math.isnan(b) for b in bounds) or bounds[0] > bounds[1]):
             raise ValueError(f"{where}: 'constraints.{name}' must be [low, high] with low <= high, got {bounds!r}")
+    solver = _solver(data.get("solver", {}), where)
     spec = StudySpec(path=path, space_overrides=dict(data.get("space", {})), fixed=dict(data.get("fixed", {})),
-                     constraints=constraints, **values)
+                     constraints=constraints, solver=solver, **values)
     _check_values(spec, where)
     return spec
 
 
+def _solver(table: dict, where: str) -> dict:
+    """The [solver] table checked by building an engine.SolverConfig from it: every key a field of
+    SolverConfig, every value of that field's kind and range."""
+    import dataclasses
+
+    from engine import SolverConfig
+
+    fields = {f.name: f for f in dataclasses.fields(SolverConfig)}
+    for key, value in table.items():
+        if key not in fields:
+            raise ValueError(f"{where}: unknown key 'solver.{key}'; expected a field of engine.SolverConfig: "
+                             f"{sorted(fields)}")
+        default = getattr(SolverConfig, key)
+        kind = bool if isinstance(default, bool) else int if isinstance(default, int) else (
+            float if isinstance(default, float) else str)
+        ok = isinstance(value, kind) and not (kind is not bool and isinstance(value, bool))
+        if kind is float and isinstance(value, int) and not isinstance(value, bool):
+            ok = True
+        if not ok:
+            raise ValueError(f"{where}: 'solver.{key}' must be {kind.__name__} "
+                             f"(like the default {default!r}), got {value!r}")
+    try:
+        SolverConfig(**table)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{where}: [solver]: {exc}") from exc
+    return dict(table)
+
+
 def _numbers(value, count: int) -> bool:
+
     """True for a list of ``count`` numbers (ints or floats, not booleans)."""
     return (isinstance(value, list) and len(value) == count
             and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value))

@@ -75,6 +75,14 @@ def test_resume_gives_the_uninterrupted_result(tmp_path):
     ("[study]\nname='s'\nfamily='hexapod'\n[objective]\nmetric='x'", r"'study.family': unknown design family"),
     ("[study]\nname='s'\n[objective]\nmetric='x'", r"missing required key 'study.family'"),
     ("[study]\nname='s'\nfamily='four_bar'\n[objective]\nmetric='x'\ndirection='up'", r"'objective.direction'"),
+    ("[study]\nname='s'\nfamily='four_bar'\n[objective]\nmetric='x'\n[solver]\nmax_iteration=50",
+     r"unknown key 'solver.max_iteration'; expected a field of engine.SolverConfig"),
+    ("[study]\nname='s'\nfamily='four_bar'\n[objective]\nmetric='x'\n[solver]\nmax_iterations=50.5",
+     r"'solver.max_iterations' must be int"),
+    ("[study]\nname='s'\nfamily='four_bar'\n[objective]\nmetric='x'\n[solver]\nmax_iterations=0",
+     r"\[solver\]: .*max_iterations"),
+    ("[study]\nname='s'\nfamily='four_bar'\n[objective]\nmetric='x'\n[solver]\nlinear_solver='qr'",
+     r"\[solver\]: .*linear_solver"),
 ])
 def test_bad_spec_names_file_and_key(tmp_path, body, message):
     """Every bad spec fails before running, naming the file and the key."""
@@ -219,3 +227,42 @@ def test_objectives_tables_are_checked(tmp_path):
                  name="both.toml")
     with pytest.raises(ValueError, match="either one"):
         load_study_spec(path)
+
+
+def test_solver_table_reaches_the_engine(tmp_path, monkeypatch):
+    """A dynamic study's [solver] table becomes the SolverConfig of every evaluated batch (and a
+    study without one uses the engine's defaults)."""
+    import morphopt.study as study_module
+    from engine import SolverConfig
+
+    seen = []
+    real = study_module.evaluate_dynamic
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("config"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(study_module, "evaluate_dynamic", spy)
+    body = """
+        [study]
+        name = "{name}"
+        family = "four_bar"
+        mode = "dynamic"
+        generations = 1
+        worlds = 2
+        [objective]
+        metric = "torque_rms"
+        direction = "minimize"
+        [simulation]
+        duration = 0.02
+        dt = 0.002
+        {solver}
+    """
+    spec = load_study_spec(write(tmp_path, body.format(name="tuned", solver="[solver]\nmax_iterations = 7\n"
+                                                       "linear_solver = 'dense'\ntolerance = 1e-5"), "tuned.toml"))
+    assert spec.solver == {"max_iterations": 7, "linear_solver": "dense", "tolerance": 1e-5}
+    run_study(spec, progress=False)
+    plain = load_study_spec(write(tmp_path, body.format(name="plain", solver=""), "plain.toml"))
+    run_study(plain, progress=False)
+    assert seen[0] == SolverConfig(max_iterations=7, linear_solver="dense", tolerance=1e-5)
+    assert seen[1] is None
