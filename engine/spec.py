@@ -82,7 +82,7 @@ def _vector(value, size: int, what: str) -> np.ndarray:
         raise ValueError(f"{what}: expected {size} numbers, got {value!r}") from exc
     if array.size != size:
         raise ValueError(f"{what}: expected {size} numbers, got {array.size}")
-    if not np.all(np.isfinite(array)):
+    if not np.isfinite(array).all():
         raise ValueError(f"{what}: must be finite, got {array.tolist()}")
     return array
 
@@ -105,7 +105,7 @@ def _scalar(value, what: str, *, minimum: float | None = None, strict: bool = Fa
 def _quaternion(value, what: str) -> np.ndarray:
     """A unit quaternion (x, y, z, w) from any non-zero finite 4-vector."""
     quat = _vector(value, 4, what)
-    norm = np.linalg.norm(quat)
+    norm = math.sqrt(float(quat @ quat))
     if norm < 1e-9:
         raise ValueError(f"{what}: quaternion must be non-zero, got {quat.tolist()}")
     return quat / norm
@@ -146,9 +146,9 @@ class Body:
             inertia = np.diag(inertia)
         if inertia.shape != (3, 3):
             raise ValueError(f"{where}: inertia must be 3x3 or a 3-vector, got shape {inertia.shape}")
-        if not np.all(np.isfinite(inertia)):
+        if not np.isfinite(inertia).all():
             raise ValueError(f"{where}: inertia must be finite, got {inertia.tolist()}")
-        if not np.allclose(inertia, inertia.T, rtol=1e-6, atol=1e-12):
+        if not (np.abs(inertia - inertia.T) <= 1e-12 + 1e-6 * np.abs(inertia.T)).all():  # np.allclose's test
             raise ValueError(f"{where}: inertia must be symmetric, got {inertia.tolist()}")
         if not np.linalg.eigvalsh(inertia).min() > 0.0:
             raise ValueError(f"{where}: inertia must be positive definite, got eigenvalues "
@@ -247,9 +247,10 @@ class Joint:
         self.child_orientation = _quaternion(self.child_orientation, f"{where}: child_orientation")
         for attr in ("axis", "axis2"):
             axis = _vector(getattr(self, attr), 3, f"{where}: {attr}")
-            if np.linalg.norm(axis) < 1e-9:
+            norm = math.sqrt(float(axis @ axis))
+            if norm < 1e-9:
                 raise ValueError(f"{where}: {attr} must be non-zero, got {axis.tolist()}")
-            setattr(self, attr, axis / np.linalg.norm(axis))
+            setattr(self, attr, axis / norm)
         self.armature = _scalar(self.armature, f"{where}: armature", minimum=0.0)
         self.damping = _scalar(self.damping, f"{where}: damping", minimum=0.0)
         drivable = self.type in DRIVABLE

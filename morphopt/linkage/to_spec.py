@@ -43,17 +43,20 @@ def planar_rotation(angle: float) -> tuple:
     return (0.0, -math.sin(0.5 * angle), 0.0, math.cos(0.5 * angle))
 
 
+_EYE = np.eye(3)
+_ACROSS_THICKNESS = np.diag([1.0, 0.0, 1.0])  # identity minus the outer product of the thickness direction (y)
+
+
 def _bar_inertia(start: np.ndarray, end: np.ndarray, style: BarStyle):
     """Mass [kg], centre (world) and inertia about the centre (world axes) of one bar."""
     axis = end - start
-    length = float(np.linalg.norm(axis))
+    length = math.sqrt(float(axis @ axis))
     mass = style.density * style.width * style.thickness * length
     u = axis / length
-    w = np.array([0.0, 1.0, 0.0])  # thickness direction
-    v = np.cross(w, u)  # width direction, in the plane
-    inertia = (mass / 12.0) * ((length**2) * (np.eye(3) - np.outer(u, u))
-                               + style.width**2 * (np.eye(3) - np.outer(v, v))
-                               + style.thickness**2 * (np.eye(3) - np.outer(w, w)))
+    v = np.array([u[2], 0.0, -u[0]])  # width direction in the plane: y x u (the thickness is along y)
+    inertia = (mass / 12.0) * ((length**2) * (_EYE - np.outer(u, u))
+                               + style.width**2 * (_EYE - np.outer(v, v))
+                               + style.thickness**2 * _ACROSS_THICKNESS)
     return mass, 0.5 * (start + end), inertia
 
 
@@ -141,9 +144,11 @@ def linkage_parts(linkage: Linkage, *, style: BarStyle = BarStyle(), crank_dampi
         # rigid-body velocity from the first two nodes' planar velocities
         v0, v1 = world(node_rate[link.nodes[0]]), world(node_rate[link.nodes[1]])
         r = points[1] - points[0]
-        omega_y = (np.cross(r, v1 - v0) / max(r @ r, 1e-300))[1]
-        com_world = points[0] + _matrix(body.orientation) @ body.com
-        body.velocity = v0 + np.cross(np.array([0.0, omega_y, 0.0]), com_world - points[0])
+        dv = v1 - v0
+        omega_y = (r[2] * dv[0] - r[0] * dv[2]) / max(float(r @ r), 1e-300)  # (r x dv)_y / |r|^2
+        arm = _matrix(body.orientation) @ body.com  # from points[0] to the centre of mass
+        body.velocity = v0 + np.array([omega_y * arm[2], 0.0, -omega_y * arm[0]])  # + (0, omega_y, 0) x arm
+
         body.angular_velocity = np.array([0.0, omega_y, 0.0])
         bodies.append(body)
         for node in link.nodes:
