@@ -16,8 +16,8 @@ import numpy as np
 
 from engine import GroundPlane, MechanismSpec, Shape, TrackedPoint
 from morphopt.design_space import Choice, DesignSpace, Float, Int
-from morphopt.linkage import BarStyle, linkage_parts, solve_at
-from morphopt.linkage.to_spec import link_body
+from morphopt.linkage import BarStyle, linkage_parts
+from morphopt.linkage.to_spec import assemble, link_body
 
 
 
@@ -72,8 +72,11 @@ def build_spec(params: dict, *, crank_speed: float | None = None, effort_limit: 
             phase = 2.0 * math.pi * k / count + p["side_phase"] * side
             placements.append((f"{'left' if side == 0 else 'right'}{k}_", (k - 0.5 * (count - 1)) * spacing, y,
                                leg_family.generate(leg, crank_speed=speed, phase=phase)))
-    lowest = min(solve_at([linkage], np.array([[linkage.crank.phase]]))[0].nodes["F"][0, 1]
-                 for _, _, _, linkage in placements)
+    solutions = assemble([linkage for _, _, _, linkage in placements])  # every leg in one batched solve
+    for (prefix, _, _, _), solution in zip(placements, solutions):
+        if not solution.feasible:
+            raise ValueError(f"leg '{prefix.rstrip('_')}' cannot be assembled: {solution.reason}")
+    lowest = min(solution.nodes["F"][0, 1] for solution in solutions)
     height = -lowest + foot_radius + 0.001
     torso = link_body("torso", [np.array([-half[0], 0.0, height]), np.array([half[0], 0.0, height])],
                       BarStyle(width=2 * half[1], thickness=2 * half[2], density=1.0))
@@ -85,10 +88,11 @@ def build_spec(params: dict, *, crank_speed: float | None = None, effort_limit: 
     shapes = [Shape("torso", "box", "torso", half, position=(half[0], 0.0, 0.0), collision_group=1)]
     # torso_up: one torso half-length above the centre, for the torso's tilt (falls are failures)
     points = [TrackedPoint("torso", "torso", (half[0], 0.0, 0.0)), TrackedPoint("torso_up", "torso", (half[0], 0.0, hx))]
-    for prefix, x, y, linkage in placements:
+    for (prefix, x, y, linkage), solution in zip(placements, solutions):
         leg_bodies, leg_joints, leg_points = linkage_parts(
             linkage, style=style, crank_damping=5.0, effort_limit=effort_limit, start_at_speed=False,
-            origin=(x, y, height), prefix=prefix, base=torso)
+            origin=(x, y, height), prefix=prefix, base=torso, solution=solution)
+
         bodies += leg_bodies
         joints += leg_joints
         points += leg_points

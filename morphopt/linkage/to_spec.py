@@ -19,7 +19,7 @@ from engine import Body, Joint, JointDrive, MechanismSpec, TrackedPoint
 from morphopt.linkage.graph import Linkage
 from morphopt.linkage.kinematics import solve_at
 
-__all__ = ["BarStyle", "link_body", "link_mesh", "linkage_parts", "to_spec"]
+__all__ = ["ASSEMBLY_STEP", "BarStyle", "assemble", "link_body", "link_mesh", "linkage_parts", "to_spec"]
 
 AXIS = (0.0, -1.0, 0.0)  # positive rotation is counter-clockwise in the planar (x, y) view
 
@@ -115,18 +115,30 @@ def to_spec(linkage: Linkage, *, style: BarStyle = BarStyle(), crank_damping: fl
     return MechanismSpec(bodies, joints, points, gravity=gravity, name=linkage.name)
 
 
+ASSEMBLY_STEP = 1e-6  # [rad]: the second crank angle of an assembly, for the finite-difference velocities
+
+
+def assemble(linkages: list[Linkage]) -> list:
+    """Every linkage solved at its crank phase and ASSEMBLY_STEP further, in one batched solve
+    (morphopt.linkage.solve_at): what linkage_parts needs, for several linkages at once."""
+    angles = np.array([[linkage.crank.phase, linkage.crank.phase + ASSEMBLY_STEP] for linkage in linkages])
+    return solve_at(linkages, angles.reshape(len(linkages), 2))
+
+
 def linkage_parts(linkage: Linkage, *, style: BarStyle = BarStyle(), crank_damping: float = 50.0,
                   effort_limit: float = 50.0, start_at_speed: bool = True, origin=(0.0, 0.0, 0.0), prefix: str = "",
-                  base: Body | None = None):
+                  base: Body | None = None, solution=None):
     """Bodies, joints and tracked points of ``linkage`` with its plane's origin at world ``origin``.
 
     Ground pivots join the ``base`` body (at rest) when given, else the world. Names get ``prefix``.
-    Raises ValueError when the linkage cannot be assembled at its crank phase.
+    solution: the linkage's entry of assemble() when it was solved in a batch with others (else
+    it is solved here). Raises ValueError when the linkage cannot be assembled at its crank phase.
     """
     crank = linkage.crank
-    h = 1e-6
-    angles = np.array([crank.phase, crank.phase + h])
-    solution = solve_at([linkage], angles[None, :])[0]
+    h = ASSEMBLY_STEP
+    if solution is None:
+        solution = assemble([linkage])[0]
+
     if not solution.feasible:
         raise ValueError(f"linkage '{linkage.name}' cannot be assembled: {solution.reason}")
     origin = np.asarray(origin, dtype=float)
