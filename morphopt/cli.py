@@ -183,7 +183,8 @@ def _export(args) -> int:
                     "member": int(record["member"]), "objective": {spec.metric: float(record["value"])},
                     "params": params, "metrics": metrics}
         path = export_design(family, params, args.format, out, name=name, metadata=metadata,
-                             motion_seconds=args.motion or 0.0)
+                             motion_seconds=args.motion or 0.0, motion_dt=spec.dt, config=spec.solver_config())
+
         print(f"{path}  ({spec.metric} {record['value']:.6g})")
     return 0
 
@@ -225,7 +226,8 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("--format", required=True, choices=("usd", "urdf", "mjcf", "svg", "dxf"))
     export.add_argument("--out", help="output folder (default: <study name>_export beside the spec)")
     export.add_argument("--motion", type=_positive(float),
-                        help="USD only: simulate this many seconds and add the motion as time samples")
+                        help="USD only: simulate this many seconds (the study's dt and [solver] settings) and add "
+                             "the motion as time samples")
     export.set_defaults(handler=_export)
     demo = commands.add_parser("demo", help="simulate a reference mechanism and print what was measured")
     demo.add_argument("scene", choices=DEMO_SCENES)

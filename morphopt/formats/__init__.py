@@ -36,12 +36,13 @@ def design_meshes(linkage, spec) -> dict:
 
 
 def export_design(family, params: dict, fmt: str, out_dir, *, name: str, metadata: dict | None = None,
-                  motion_seconds: float = 0.0) -> pathlib.Path:
+                  motion_seconds: float = 0.0, motion_dt: float = 1e-3, config=None) -> pathlib.Path:
     """Build the design ``params`` of ``family`` (a module from morphopt.families.load_family)
     and write it as ``out_dir/<name><suffix>`` in format ``fmt`` (usd, urdf, mjcf, svg, dxf).
 
     metadata (JSON-able: parameters, objective values) goes into the file; motion_seconds > 0
-    adds the simulated motion to a USD file (time samples). Returns the path written. Raises
+    adds the motion simulated at time step motion_dt [s] with the engine.SolverConfig ``config``
+    (None: the defaults) to a USD file (time samples). Returns the path written. Raises
     ValueError naming the format or the design when the design cannot be built or drawn.
     """
     if fmt not in FORMATS:
@@ -68,7 +69,8 @@ def export_design(family, params: dict, fmt: str, out_dir, *, name: str, metadat
     if fmt == "usd":
         from morphopt.formats.usd import record_motion, write_usd
 
-        motion = record_motion(spec, motion_seconds) if motion_seconds > 0 else None
+        motion = record_motion(spec, motion_seconds, dt=motion_dt, config=config) if motion_seconds > 0 else None
+
         return write_usd(spec, path, metadata=metadata, meshes=meshes, motion=motion)
     if fmt == "urdf":
         from morphopt.formats.urdf import write_urdf

@@ -103,3 +103,42 @@ def test_export_of_an_unknown_format_or_an_empty_study_fails_cleanly(tmp_path, c
     empty.write_text('[study]\nname = "empty"\nfamily = "four_bar"\n[objective]\nmetric = "foot_stride"\n')
     assert main(["export", str(empty), "--format", "usd"]) == 1
     assert "has no stored designs" in capsys.readouterr().out
+
+
+def test_export_motion_uses_the_studys_time_step_and_solver(tmp_path, monkeypatch):
+    """`export --motion` simulates with the study's dt and its [solver] table, and writes the
+    motion into the USD file (time samples at the export's frame rate)."""
+    import morphopt.formats.usd as usd
+
+    path = tmp_path / "tuned.toml"
+    path.write_text(textwrap.dedent("""
+        [study]
+        name = "tuned"
+        family = "jansen_leg"
+        seed = 2
+        generations = 1
+        worlds = 8
+        [objective]
+        metric = "foot_stride"
+        direction = "maximize"
+        [simulation]
+        samples = 36
+        dt = 0.002
+        [solver]
+        max_iterations = 9
+    """))
+    assert main(["study", "run", str(path)]) == 0
+    seen = []
+    real = usd.record_motion
+
+    def spy(spec, duration, **kwargs):
+        seen.append(kwargs)
+        return real(spec, duration, **kwargs)
+
+    monkeypatch.setattr(usd, "record_motion", spy)
+    out = tmp_path / "out"
+    assert main(["export", str(path), "--format", "usd", "--motion", "0.1", "--out", str(out)]) == 0
+    assert len(seen) == 1 and seen[0]["dt"] == 0.002 and seen[0]["config"].max_iterations == 9
+    (exported,) = out.glob("*.usda")
+    stage = Usd.Stage.Open(str(exported))
+    assert stage.GetEndTimeCode() > stage.GetStartTimeCode()  # the motion is there
