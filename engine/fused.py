@@ -48,6 +48,7 @@ from engine.padmm import (
     padmm_project_of,
     padmm_rhs_of,
     padmm_warmstart_of,
+    row_penalty,
     row_residuals,
 )
 
@@ -148,7 +149,6 @@ class StepWork:
     delassus: wp.array3d(dtype=float)
     factor: wp.array3d(dtype=float)
     rho: wp.array(dtype=float)
-    sigma: wp.array(dtype=float)
     residual_primal: wp.array(dtype=float)
     residual_dual: wp.array(dtype=float)
     residual_complementarity: wp.array(dtype=float)
@@ -386,7 +386,6 @@ def _make_kernel(tile_rows: int, max_registers: int):
         if rho <= 0.0:
             rho = m.padmm_rho_init[world]
         sigma = eta + rho
-
         block_sync()  # every lane has read rho before lane 0 writes it
         if lane == 0:
             w.active[world] = active
@@ -399,15 +398,14 @@ def _make_kernel(tile_rows: int, max_registers: int):
             w.momentum[world] = 1.0
             w.momentum_beta[world] = 0.0
             w.merit[world] = 1.0e30
-            if active != 0:
-                w.sigma[world] = sigma
         block_sync()
         if active != 0:
             for i in range(lane, n, lanes):
                 padmm_warmstart_of(world, i, warmstart_scale, row_lambda_in, w.row_precond, w.active, w.lo, w.hi,
                                    m.row_kind, w.x, w.y, w.y_hat, w.z, w.z_hat, w.row_free)
             block_sync()  # the factor reads every row's free flag
-            cholesky_lanes(world, lane, lanes, n, sigma, eta + wp.min(rho, cap), 0, m.row_kind, w.row_free, D, F)
+            cholesky_lanes(world, lane, lanes, n, sigma, eta + row_penalty(1, rho, cap), 0, m.row_kind, w.row_free,
+                           D, F)
         while active != 0:
             for i in range(lane, n, lanes):
                 padmm_rhs_of(world, i, m.padmm_eta, m.padmm_rho_cap, m.row_kind, w.row_free, w.rho, w.active,
@@ -453,14 +451,12 @@ def _make_kernel(tile_rows: int, max_registers: int):
                         if w.row_free[world, i] == 2:  # a drive that met its bound: the world's penalty
                             w.row_free[world, i] = 0
                     rho_now = w.rho[world]
-
                     sigma = eta + rho_now
                     block_sync()  # every lane has read the flag before lane 0 clears it
                     if lane == 0:
-                        w.sigma[world] = sigma
                         w.needs_factor[world] = 0
-                    cholesky_lanes(world, lane, lanes, n, sigma, eta + wp.min(rho_now, cap), 0, m.row_kind, w.row_free,
-                                   D, F)
+                    cholesky_lanes(world, lane, lanes, n, sigma, eta + row_penalty(1, rho_now, cap), 0, m.row_kind,
+                                   w.row_free, D, F)
 
         for i in range(lane, max_rows, lanes):
             padmm_output_of(world, i, w.row_count, w.row_precond, w.y, w.diverged, w.halted, row_lambda_out)
@@ -481,15 +477,12 @@ def _make_kernel(tile_rows: int, max_registers: int):
         # the PADMM factor's joint rows carry at most this shift (their penalty is capped at
         # rho_init): reused unless other rows need taking out of the matrix
         refactor = project != 0 and mask_projection != 0
-        block_sync()  # every lane has read sigma before lane 0 writes it
+        block_sync()  # cholesky_lanes is entered after a barrier
         if lane == 0:
             w.project[world] = project
-            if refactor:
-                w.sigma[world] = target
         if project != 0:
             if refactor:
                 cholesky_lanes(world, lane, lanes, n, target, target, mask_projection, m.row_kind, w.row_free, D, F)
-
             passes = position_iterations
             shake = position_iterations
             if moreau != 0:  # the output projection gets as many iterations (engine.step)

@@ -365,32 +365,24 @@ def bilateral_block(row_kind: wp.array2d(dtype=wp.int32), row_count: wp.array(dt
 @wp.kernel
 def projection_shift(padmm_eta: wp.array(dtype=float), padmm_rho_init: wp.array(dtype=float),
                      bilateral_row_count: wp.array(dtype=wp.int32), valid: wp.array(dtype=wp.int32), always: int,
-                     sigma: wp.array(dtype=float), needs_factor: wp.array(dtype=wp.int32),
-                     project_out: wp.array(dtype=wp.int32)):
+                     needs_factor: wp.array(dtype=wp.int32), project_out: wp.array(dtype=wp.int32),
+                     row_shift_out: wp.array2d(dtype=float)):
     """Worlds to project: valid ones with bilateral joint rows. Of those, flag for a new factor with
-    the shift eta + rho_init all of them when ``always`` (the batch has drive, limit or contact rows,
-    or no factor to reuse); otherwise the PADMM factor serves, its joint rows shifted by at most
-    that much (engine.padmm.row_penalty caps their penalty at rho_init)."""
-    world = wp.tid()
-    target = padmm_eta[world] + padmm_rho_init[world]
+    the shift eta + rho_init on every row all of them when ``always`` (the batch has drive, limit
+    or contact rows, or no factor to reuse); otherwise the PADMM factor serves, its joint rows
+    shifted by at most that much (engine.padmm.row_penalty caps their penalty at rho_init). One
+    thread per row; row 0 writes the world's flags."""
+    world, i = wp.tid()
     project = int(0)
     if valid[world] != 0 and bilateral_row_count[world] > 0:
         project = 1
-    flag = 0
+    flag = int(0)
     if project != 0 and always != 0:
-        sigma[world] = target
         flag = 1
-    needs_factor[world] = flag
-    project_out[world] = project
-
-
-@wp.kernel
-def uniform_shift(sigma: wp.array(dtype=float), needs_factor: wp.array(dtype=wp.int32),
-                  row_shift_out: wp.array2d(dtype=float)):
-    """row_shift = sigma on every row of the worlds flagged for a new factor."""
-    world, i = wp.tid()
-    if needs_factor[world] != 0:
-        row_shift_out[world, i] = sigma[world]
+        row_shift_out[world, i] = padmm_eta[world] + padmm_rho_init[world]
+    if i == 0:
+        needs_factor[world] = flag
+        project_out[world] = project
 
 
 def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
@@ -420,18 +412,16 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
         if dense and model.has_unilateral_or_drive_rows:
             wp.launch(bilateral_block, dim=(model.num_worlds, model.max_rows, model.max_rows), device=device,
                       inputs=[model.row_kind, work.row_count, work.delassus])
-        wp.launch(projection_shift, dim=model.num_worlds, device=device,
+        wp.launch(projection_shift, dim=grid_rows, device=device,
                   inputs=[model.padmm_eta, model.padmm_rho_init, model.bilateral_row_count, work.valid,
-                          int(model.has_unilateral_or_drive_rows or not direct), work.sigma, work.needs_factor,
-                          work.project])
-        wp.launch(uniform_shift, dim=grid_rows, device=device, inputs=[work.sigma, work.needs_factor],
-                  outputs=[work.row_shift])
+                          int(model.has_unilateral_or_drive_rows or not direct)],
+                  outputs=[work.needs_factor, work.project, work.row_shift])
         if dense:
             linear.factor(work.delassus, work.row_shift, work.needs_factor, work.factor)
         elif direct:
             sparse.factor(model, work.row_shift, work.needs_factor, bilateral_only=model.has_unilateral_or_drive_rows)
-
     record = body_q_offset is not None
+
     offset = body_q_offset if record else work.body_qd_free  # any (W, B) spatial_vector array when unused
     for _ in range(iterations):
         residual_fn(model, body_q, work.row_residual)

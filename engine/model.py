@@ -307,7 +307,7 @@ class Workspace:
     z_hat, rhs, delta; row_shift (W, R): the factored matrix's diagonal shift per row (eta + the
     row's penalty: engine.padmm.row_penalty); row_free (W, R) int32: the rows whose penalty is
     capped this step (engine.padmm.row_is_free; 2: a drive that met its bound, to lose the cap at
-    the next penalty update, flagged in demote (W,)). Per world (W,): rho, sigma (eta + rho), valid,
+    the next penalty update, flagged in demote (W,)). Per world (W,): rho, valid,
 
     iterations, residual_primal, residual_dual, converged,
 
@@ -341,7 +341,7 @@ class Workspace:
         self.delassus = zeros((w, r, r) if dense else (w, 1, 1))
         self.factor = zeros((w, r, r) if dense else (w, 1, 1))
         self.inner_iterations = zeros(w, wp.int32)
-        for name in ("rho", "sigma", "residual_primal", "residual_dual", "residual_complementarity", "momentum", "momentum_beta", "merit",
+        for name in ("rho", "residual_primal", "residual_dual", "residual_complementarity", "momentum", "momentum_beta", "merit",
                      "violation_linear", "violation_angular", "energy"):
             setattr(self, name, zeros(w))
         for name in ("iterations", "converged", "valid", "project", "projection_gate", "active", "needs_factor", "demote",

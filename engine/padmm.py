@@ -28,7 +28,6 @@ import warp as wp
 from engine import linear, matrix_free, sparse
 from engine.model import ROW_ANGULAR, ROW_CONTACT_NORMAL, ROW_CONTACT_TANGENT, ROW_DYNAMICS, ROW_LIMIT, ROW_LINEAR
 
-
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
 RHO_MIN = wp.constant(1.0e-5)
@@ -251,7 +250,7 @@ def padmm_project_of(
     """y = projection of x - z_hat / rho_i onto the row's set; z = z_hat - rho_i (x - y). The thread
     of a contact normal row projects its whole triplet onto the friction cone. A free drive row
     whose bound comes into play is marked (row_free 2, demote) to lose its capped penalty at the
-    next penalty update, which refactors (padmm_decide, sigma_of)."""
+    next penalty update, which refactors (padmm_decide, row_shifts)."""
     kind = row_kind[world, i]
     if kind == ROW_CONTACT_TANGENT and i < row_count[world]:
         return
@@ -305,7 +304,7 @@ def padmm_project(
     """y = projection of x - z_hat / rho_i onto the row's set; z = z_hat - rho_i (x - y). The thread
     of a contact normal row projects its whole triplet onto the friction cone. A free drive row
     whose bound comes into play is marked (row_free 2, demote) to lose its capped penalty at the
-    next penalty update, which refactors (padmm_decide, sigma_of)."""
+    next penalty update, which refactors (padmm_decide, row_shifts)."""
     world, i = wp.tid()
     if active[world] == 0:
         return
@@ -327,8 +326,8 @@ def row_residuals(world: int, i: int, eta: float, rho: float, rho_free_cap: floa
     r_p = wp.abs(x[world, i] - y[world, i])
     r_d = wp.abs(eta * (x[world, i] - x_prev[world, i]) + r * dy)
     r_c = float(0.0)
-
     if kind == ROW_LIMIT:
+
         r_c = wp.abs(y[world, i] * z[world, i])
     elif kind == ROW_CONTACT_NORMAL:
         gap = y[world, i] * z[world, i] + y[world, i + 1] * z[world, i + 1] + y[world, i + 2] * z[world, i + 2]
@@ -528,20 +527,17 @@ def padmm_accelerate(
 
 
 @wp.kernel
-def sigma_of(padmm_eta: wp.array(dtype=float), padmm_rho_cap: wp.array(dtype=float), rho: wp.array(dtype=float),
-             needs_factor: wp.array(dtype=wp.int32), row_free: wp.array2d(dtype=wp.int32),
-             sigma_out: wp.array(dtype=float), row_shift_out: wp.array2d(dtype=float)):
-    """Shifts of the factored matrix: sigma = eta + rho, and per row eta + the row's penalty."""
+def row_shifts(padmm_eta: wp.array(dtype=float), padmm_rho_cap: wp.array(dtype=float), rho: wp.array(dtype=float),
+               needs_factor: wp.array(dtype=wp.int32), row_free: wp.array2d(dtype=wp.int32),
+               row_shift_out: wp.array2d(dtype=float)):
+    """Diagonal shift of the factored matrix per row: eta + the row's penalty (worlds flagged for a
+    new factor)."""
     world, i = wp.tid()
     if needs_factor[world] == 0:
         return
     if row_free[world, i] == 2:  # a drive that met its bound: the world's penalty from now on
         row_free[world, i] = 0
-    eta = padmm_eta[world]
-
-    if i == 0:
-        sigma_out[world] = eta + rho[world]
-    row_shift_out[world, i] = eta + row_penalty(row_free[world, i], rho[world], padmm_rho_cap[world])
+    row_shift_out[world, i] = padmm_eta[world] + row_penalty(row_free[world, i], rho[world], padmm_rho_cap[world])
 
 
 
@@ -585,11 +581,11 @@ def padmm_output(
 
 
 def refactor(model):
-    """Factor P D P + (eta + rho) I for worlds flagged in needs_factor, then clear the flags."""
+    """Factor P D P + diag(eta + rho_i) for worlds flagged in needs_factor, then clear the flags."""
     work, W = model.work, model.num_worlds
-    wp.launch(sigma_of, dim=(W, model.max_rows),
+    wp.launch(row_shifts, dim=(W, model.max_rows),
               inputs=[model.padmm_eta, model.padmm_rho_cap, work.rho, work.needs_factor, work.row_free],
-              outputs=[work.sigma, work.row_shift], device=model.device)
+              outputs=[work.row_shift], device=model.device)
     if model.linear_solver == "dense":
         linear.factor(work.delassus, work.row_shift, work.needs_factor, work.factor)
     elif model.linear_solver == "sparse":

@@ -148,7 +148,7 @@ class Body:
             raise ValueError(f"{where}: inertia must be 3x3 or a 3-vector, got shape {inertia.shape}")
         if not np.isfinite(inertia).all():
             raise ValueError(f"{where}: inertia must be finite, got {inertia.tolist()}")
-        if not (np.abs(inertia - inertia.T) <= 1e-12 + 1e-6 * np.abs(inertia.T)).all():  # np.allclose's test
+        if not np.allclose(inertia, inertia.T, rtol=1e-6, atol=1e-12):
             raise ValueError(f"{where}: inertia must be symmetric, got {inertia.tolist()}")
         if not np.linalg.eigvalsh(inertia).min() > 0.0:
             raise ValueError(f"{where}: inertia must be positive definite, got eigenvalues "
