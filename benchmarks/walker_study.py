@@ -57,6 +57,7 @@ def main(argv=None) -> int:
         "device": wp.get_device(args.device).name if args.device != "cpu" else "cpu", "worlds": args.worlds,
         "generations": args.generations, "evaluations": result.evaluations, "seconds": seconds,
         "designs_per_s": result.evaluations / seconds, "overhead_share": result.overhead,
+        "seconds_by_stage": result.stages,
         "simulated_s_per_design": spec.duration, "dt": spec.dt, "solver": spec.solver,
         "best_walking_speed": result.best_value, "best_params": result.best_params,
         "default_walking_speed": speeds[0], "best_rechecked_walking_speed": speeds[1],

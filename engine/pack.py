@@ -29,10 +29,16 @@ ROW_TILE = 8  # the padded row count is a multiple of this (tile size of the Del
 MAX_DENSE_ROWS = 144  # largest per-world Delassus tile the dense solver factors in on-chip memory
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of (N, 3) arrays (np.cross's arithmetic, without its axis handling)."""
+    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+
+
 def _rotate(quat: np.ndarray, vec: np.ndarray) -> np.ndarray:
-    """Rotate vec by the unit quaternion (x, y, z, w)."""
-    u, s = quat[:3], quat[3]
-    return vec + 2.0 * np.cross(u, np.cross(u, vec) + s * vec)
+    """Rotate each row of vec (N, 3) by the unit quaternion (x, y, z, w) in the same row of quat (N, 4)."""
+    u, s = quat[:, :3], quat[:, 3:]
+    return vec + 2.0 * _cross(u, _cross(u, vec) + s * vec)
 
 
 def collision_pairs(spec: MechanismSpec) -> list[tuple[int, int]]:
@@ -206,6 +212,21 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         "pair_count": np.zeros(W, np.int32), "pair_shape_a": np.zeros((W, Q), np.int32),
         "pair_shape_b": np.full((W, Q), -1, np.int32), "contact_row_start": np.zeros(W, np.int32),
     }
+    # bodies of all worlds at once
+    counts = [len(spec.bodies) for spec in specs]
+    bodies = [body for spec in specs for body in spec.bodies]
+    at = (np.repeat(np.arange(W), counts), np.concatenate([np.arange(n) for n in counts]))
+    mass = np.array([body.mass for body in bodies], float)
+    inertia = np.array([body.inertia for body in bodies], float)
+    orientation = np.array([body.orientation for body in bodies], float)
+    com_world = np.array([body.position for body in bodies], float) + _rotate(
+        orientation, np.array([body.com for body in bodies], float))
+    h["body_mass"][at] = mass
+    h["body_inv_mass"][at] = 1.0 / mass
+    h["body_inertia"][at] = inertia
+    h["body_inv_inertia"][at] = np.linalg.inv(inertia)
+    h["body_q_init"][at] = np.concatenate([com_world, orientation], axis=1)
+    h["body_qd_init"][at] = np.array([np.concatenate([body.velocity, body.angular_velocity]) for body in bodies])
     for w, spec in enumerate(specs):
         index = spec.body_index
         coms = [body.com for body in spec.bodies]
@@ -213,14 +234,6 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         h["joint_count"][w] = len(spec.joints)
         h["point_count"][w] = len(spec.points)
         h["world_gravity"][w] = spec.gravity
-        for b, body in enumerate(spec.bodies):
-            h["body_mass"][w, b] = body.mass
-            h["body_inv_mass"][w, b] = 1.0 / body.mass
-            h["body_inertia"][w, b] = body.inertia
-            h["body_inv_inertia"][w, b] = np.linalg.inv(body.inertia)
-            com_world = body.position + _rotate(body.orientation, body.com)
-            h["body_q_init"][w, b] = np.concatenate([com_world, body.orientation])
-            h["body_qd_init"][w, b] = np.concatenate([body.velocity, body.angular_velocity])
         row = 0
         for j, joint in enumerate(spec.joints):
             parent = -1 if joint.parent is None else index[joint.parent]

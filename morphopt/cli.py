@@ -84,6 +84,8 @@ def _study_run(args) -> int:
     print(f"study '{spec.name}': {result.evaluations} designs in {result.seconds:.1f} s "
           f"({result.evaluations / max(result.seconds, 1e-9):,.0f} designs/s; sampling and storage "
           f"{100 * result.overhead:.1f} % of it), results in {spec.storage_url}")
+    if result.stages:
+        print("time by stage: " + ", ".join(f"{stage} {spent:.3g} s" for stage, spent in result.stages.items()))
     if result.best_params is None:
         print("no feasible design found")
         return 1

@@ -10,6 +10,7 @@ reason; the others in its batch carry on.
 from __future__ import annotations
 
 import operator
+import time
 from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -110,12 +111,15 @@ class Evaluation:
     """Results of one batch, in the order of ``params``.
 
     metrics: one dict per design (floats and, under "paths", tracked-point paths (N, 2) [m]);
-    failures: "" for a feasible design, else the reason.
+    failures: "" for a feasible design, else the reason; timings: wall seconds per stage of the
+    evaluation (dynamic: "build" (designs to MechanismSpecs), "pack", "simulate", "metrics";
+    kinematic: "build" (designs to linkage tables), "kinematics" (kernels and metrics)).
     """
 
     params: list
     metrics: list = field(default_factory=list)
     failures: list = field(default_factory=list)
+    timings: dict = field(default_factory=dict)
 
     @property
     def feasible(self) -> np.ndarray:
@@ -233,8 +237,10 @@ def evaluate_kinematic(family, params: Sequence[dict], *, samples: int = 360, de
     metrics, which saves their copy from a GPU when only the scalar metrics are needed."""
     if not hasattr(family, "generate"):
         raise ValueError("this design family builds whole worlds (build_spec): evaluate it with mode = 'dynamic'")
+    t0 = time.perf_counter()
     batches, failures = _generate_batched(family, params)
     evaluation = Evaluation(list(params), [{} for _ in params], failures)
+    t1 = time.perf_counter()
     for indices, tables, points in batches:
         names = list(points)
         result = solve_tables(tables, samples=samples, nodes=[points[n] for n in names], device=device,
@@ -253,6 +259,7 @@ def evaluate_kinematic(family, params: Sequence[dict], *, samples: int = 360, de
                 metrics[f"{n}_step_height"] = height[j][k]
             metrics["transmission_angle_min"] = transmission[j]
             evaluation.metrics[i] = metrics
+    evaluation.timings = {"build": t1 - t0, "kinematics": time.perf_counter() - t1}
     return evaluation
 
 
@@ -285,6 +292,7 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     """
     from engine import pack_worlds, rollout
 
+    t0 = time.perf_counter()
     specs, owners, failures = [], [], []
     for i, p in enumerate(params):
         try:
@@ -300,9 +308,12 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
         specs.append(spec)
         owners.append(i)
     evaluation = Evaluation(list(params), [{} for _ in params], failures)
+    t1 = time.perf_counter()
+    evaluation.timings = {"build": t1 - t0}
     if not specs:
         return evaluation
     model = pack_worlds(specs, device=device, dt=dt, config=config)
+    t2 = time.perf_counter()
 
     steps = max(record_every, int(round(duration / dt / record_every)) * record_every)
     torso = np.array([names.index("torso") if "torso" in names else -1 for names in model.point_names])
@@ -312,6 +323,7 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
         def halt(points, start):
             return _fallen_worlds(points[None], start, torso, up, fall_tilt, fall_height)
     trace, _ = rollout(model, model.state(), model.control(), steps, record_every=record_every, halt=halt)
+    t3 = time.perf_counter()
     record_dt = dt * record_every
     for world, i in enumerate(owners):
         if trace.diverged[world]:
@@ -344,4 +356,5 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
         metrics["torque_rms"] = float(np.sqrt(np.mean(drive**2)))
         metrics["loop_violation_max"] = float(trace.violation_linear[:, world].max())
         evaluation.metrics[i] = metrics
+    evaluation.timings.update(pack=t2 - t1, simulate=t3 - t2, metrics=time.perf_counter() - t3)
     return evaluation

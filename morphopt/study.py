@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -34,7 +34,9 @@ __all__ = ["StudyResult", "objective_matrix", "objective_metric_names", "objecti
 class StudyResult:
     """Best design (all parameters), its objective value (natural sign), evaluations, seconds
     (wall time of the generations run now and before a resume) and, of this run's time, the share
-    spent outside the evaluation (sampling, telling, storage): ``overhead``."""
+    spent outside the evaluation (sampling, telling, storage): ``overhead``. ``stages``: this run's
+    wall seconds per stage, summed over its generations: "ask", the evaluation's own stages
+    (morphopt.evaluate.Evaluation.timings), "objectives", "tell" and "storage"."""
 
     best_params: dict | None
     best_value: float
@@ -42,6 +44,7 @@ class StudyResult:
     generations: int
     seconds: float
     overhead: float = 0.0
+    stages: dict = field(default_factory=dict)
 
 
 def _make_optimizer(spec: StudySpec, space):
@@ -186,6 +189,7 @@ def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -
     fresh = not checkpoint
     sign = -1.0 if spec.direction == "maximize" else 1.0
     evaluating = outside = 0.0
+    stages = {}
     bar = tqdm(total=spec.generations, initial=start, desc=spec.name, unit="gen", disable=not progress)
     for generation in range(start, spec.generations):
         t0 = time.perf_counter()
@@ -198,6 +202,7 @@ def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -
         else:
             evaluation = evaluate_dynamic(family, params, duration=spec.duration, dt=spec.dt, device=spec.device,
                                           crank_speed=spec.crank_speed, config=spec.solver_config())
+        t_objectives = time.perf_counter()
         apply_constraints(spec, evaluation)
         values = objective_values(spec, evaluation)
         t2 = time.perf_counter()
@@ -205,6 +210,7 @@ def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -
             optimizer.tell(free, values.tolist(), objective_matrix(spec, evaluation))
         else:
             optimizer.tell(free, values.tolist())
+        t_told = time.perf_counter()
         storage.write_generation(generation, params, sign * values, [_scalars(m) for m in evaluation.metrics],
                                  evaluation.failures, dump_checkpoint(optimizer), seconds + time.perf_counter() - t0,
                                  replace=fresh)
@@ -213,6 +219,9 @@ def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -
         seconds += t3 - t0
         evaluating += t2 - t1
         outside += (t1 - t0) + (t3 - t2)
+        for stage, spent in (("ask", t1 - t0), *evaluation.timings.items(), ("objectives", t2 - t_objectives),
+                             ("tell", t_told - t2), ("storage", t3 - t_told)):
+            stages[stage] = stages.get(stage, 0.0) + spent
         bar.update(1)
         rate = optimizer.evaluations / max(seconds, 1e-9)
         best = sign * optimizer.best_value if math.isfinite(optimizer.best_value) else float("nan")
@@ -222,4 +231,4 @@ def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -
     best = {**optimizer.best_params, **spec.fixed} if optimizer.best_params is not None else None
     value = sign * optimizer.best_value if math.isfinite(optimizer.best_value) else math.nan
     return StudyResult(best, value, optimizer.evaluations, spec.generations, seconds,
-                       outside / max(evaluating + outside, 1e-12))
+                       outside / max(evaluating + outside, 1e-12), stages)

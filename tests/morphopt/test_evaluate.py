@@ -1,5 +1,7 @@
 """Batched evaluation: kinematic and dynamic paths agree, failures carry reasons, batches carry on."""
 
+import time
+
 import numpy as np
 
 from morphopt.evaluate import evaluate_dynamic, evaluate_kinematic
@@ -40,8 +42,14 @@ def test_torn_mechanisms_fail_as_diverged():
     under a tolerance above its real loop error."""
     family = load_family("four_bar")
     params = [family.space.default()]
+    start = time.perf_counter()
     ok = evaluate_dynamic(family, params, duration=0.2, record_every=5)
+    wall = time.perf_counter() - start
     assert ok.feasible.all()
+    # the stages' wall times are all there and add up to no more than the call's
+    assert set(ok.timings) == {"build", "pack", "simulate", "metrics"}
+    assert min(ok.timings.values()) >= 0.0 and sum(ok.timings.values()) <= wall
+    assert ok.timings["simulate"] > 0.0
     error = ok.metrics[0]["loop_violation_max"]
     assert 0.0 < error < 1e-5
     strict = evaluate_dynamic(family, params, duration=0.2, record_every=5, loop_tolerance=0.5 * error)

@@ -98,6 +98,9 @@ def test_cli_runs_shows_plots_and_resumes(tmp_path, capsys):
     assert main(["study", "run", str(spec), "--worlds", "6"]) == 0
     out = capsys.readouterr().out
     assert "best tip_step_height" in out and "18 designs" in out
+    stages = dict(part.rsplit(" ", 2)[:2] for part in out.split("time by stage: ")[1].splitlines()[0].split(", "))
+    assert set(stages) == {"ask", "build", "kinematics", "objectives", "tell", "storage"}
+    assert all(float(seconds) >= 0.0 for seconds in stages.values())
     assert main(["study", "show", str(spec), "--top", "2"]) == 0
     assert "3/3 generations" in capsys.readouterr().out
     png = tmp_path / "toy.png"
