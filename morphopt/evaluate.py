@@ -17,8 +17,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from morphopt.build import build_specs
 from morphopt.design_space import Float
-from morphopt.linkage import Linkage, to_spec
+from morphopt.linkage import Linkage
 from morphopt.linkage.kinematics import crank_turn_failure, placement_name
 from morphopt.linkage.kinematics_warp import LinkageTables, solve_tables
 from morphopt.metrics import stride_and_step_height
@@ -267,7 +268,7 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
                      crank_speed: float | None = None, record_every: int = 10,
                      spec_hook: Callable | None = None, loop_tolerance: float = 5e-3,
                      fall_tilt: float = np.radians(45.0), fall_height: float = 0.5,
-                     stall_time: float = 0.2, config=None) -> Evaluation:
+                     stall_time: float = 0.2, config=None, workers: int | None = None) -> Evaluation:
     """Simulate every feasible design for ``duration`` [s] in one heterogeneous batch.
 
     Metrics: tracked-point paths over the last crank turn (planar, [m]), their stride and step
@@ -289,19 +290,17 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     target speed for stall_time [s] fails as jammed (it locks mid-cycle, or the motor cannot move
     it); the reason names the joint and when it stalled.
     config: the engine.SolverConfig of the batch (None: the defaults; a study's [solver] table).
+    workers: processes that build the specs (morphopt.build.build_specs; None: one per core but
+    one for batches of 256 designs or more).
     """
     from engine import pack_worlds, rollout
 
     t0 = time.perf_counter()
     specs, owners, failures = [], [], []
-    for i, p in enumerate(params):
-        try:
-            if hasattr(family, "build_spec"):
-                spec = family.build_spec(family.space.validate(p), crank_speed=crank_speed)
-            else:
-                spec = to_spec(family.generate(family.space.validate(p), crank_speed=crank_speed or 2.0 * np.pi))
-        except ValueError as exc:
-            failures.append(f"cannot be built: {exc}")
+    for i, (p, spec) in enumerate(zip(params, build_specs(family, params, crank_speed=crank_speed,
+                                                           workers=workers))):
+        if isinstance(spec, str):  # the reason it cannot be built
+            failures.append(spec)
             continue
         spec = spec_hook(spec, p) if spec_hook else spec
         failures.append("")

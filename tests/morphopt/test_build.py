@@ -1,0 +1,50 @@
+"""Specs built by worker processes are the specs built here, to the last bit; failures keep their reasons."""
+
+import types
+
+import numpy as np
+import pytest
+import warp as wp
+
+from engine import pack_worlds
+from morphopt.build import build_specs
+from morphopt.families import load_family
+
+
+def _packed(specs):
+    model = pack_worlds(specs, device="cpu")
+    return {name: value.numpy() for name, value in vars(model).items() if isinstance(value, wp.array)}
+
+
+def test_worker_processes_build_the_same_specs_and_failures():
+    family = load_family("walker")
+    params = family.space.sample(np.random.default_rng(5), 5)
+    params.insert(2, {**params[0], "scale": 1.0e9})  # outside the design space: a reason, not a crash
+    here = build_specs(family, params, workers=1)
+    pooled = build_specs(family, params, workers=2)
+    assert len(pooled) == len(params)
+    assert isinstance(here[2], str) and here[2] == pooled[2] and "'scale'" in here[2]
+    built_here = [s for s in here if not isinstance(s, str)]
+    built_pooled = [s for s in pooled if not isinstance(s, str)]
+    assert [s.name for s in built_here] == [s.name for s in built_pooled] and len(built_here) >= 4
+    a, b = _packed(built_here), _packed(built_pooled)
+    assert a.keys() == b.keys() and len(a) > 40
+    for name in a:
+        assert a[name].dtype == b[name].dtype and np.array_equal(a[name], b[name]), name
+
+
+def test_a_family_without_a_file_is_built_here_and_bad_worker_counts_are_refused():
+    four_bar = load_family("four_bar")
+    calls = []
+
+    def build_spec(params, crank_speed=None):
+        calls.append(params)
+        return four_bar_spec
+
+    four_bar_spec = build_specs(four_bar, [four_bar.space.default()], workers=1)[0]
+    family = types.SimpleNamespace(space=four_bar.space, build_spec=build_spec)  # no module file
+    out = build_specs(family, [four_bar.space.default()] * 3, workers=2)
+    assert out == [four_bar_spec] * 3 and len(calls) == 3  # built in this process
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="workers must be a positive integer"):
+            build_specs(four_bar, [four_bar.space.default()], workers=bad)
