@@ -41,7 +41,9 @@ SETTINGS = {
     "cap 50": (0.002, {"max_iterations": 50}),
     "relative tol 1e-3": (0.002, {"relative_tolerance": 1e-3}),
     "relative tol 1e-3, cap 40": (0.002, {"relative_tolerance": 1e-3, "max_iterations": 40}),
+    "dt 3 ms": (0.003, {}),
     "dt 4 ms": (0.004, {}),
+    "rho interval 8": (0.002, {"rho_update_interval": 8}),
     "joint penalty uncapped": (0.002, {"cap_joint_penalty": False}),
 }
 
