@@ -44,6 +44,8 @@ SETTINGS = {
     "dt 3 ms": (0.003, {}),
     "dt 4 ms": (0.004, {}),
     "rho interval 8": (0.002, {"rho_update_interval": 8}),
+    "dt 3 ms, rho interval 8": (0.003, {"rho_update_interval": 8}),
+    "dt 3 ms, rho interval 8, cap 50": (0.003, {"rho_update_interval": 8, "max_iterations": 50}),
     "joint penalty uncapped": (0.002, {"cap_joint_penalty": False}),
 }
 
