@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from benchmarks import walker_precision, walker_steps
+from benchmarks import spec_build, walker_precision, walker_steps
 
 
 def test_walker_steps_reports_a_finite_batch_of_three_leg_walkers(tmp_path, capsys):
@@ -91,3 +91,11 @@ def test_padmm_bandwidth_counts_at_least_the_arrays_every_iteration_must_touch(t
     assert 0.0 < result["fraction_of_bandwidth"] < 1.0
     assert result["floor_ms"] == pytest.approx(result["bytes_per_iteration"] / (1e6 * result["bandwidth_GBps"]))
     assert (tmp_path / "padmm_bandwidth_cpu.csv").stat().st_size > 0
+
+
+def test_spec_build_benchmark_compares_the_pool_with_building_here(tmp_path, capsys):
+    assert spec_build.main(["--designs", "6", "--repeats", "1", "--workers", "2", "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "spec_build.json").read_text())
+    assert report == json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert report["identical"] is True and report["workers"] == 2 and report["built"] >= 1
+    assert report["here_s"] > 0 and report["pool_s"] > 0 and report["here_ms_per_design"] > 0
