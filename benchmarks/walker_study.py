@@ -64,9 +64,34 @@ def main(argv=None) -> int:
         "best_over_default": speeds[1] / speeds[0] if speeds[0] > 0 else float("inf"),
         "failures_of_pair": pair.failures, "warp": wp.config.version,
     }
-    (out / f"walker_study_{args.device.split(':')[0]}.json").write_text(json.dumps(report, indent=1))
+    stem = out / f"walker_study_{args.device.split(':')[0]}"
+    stem.with_suffix(".json").write_text(json.dumps(report, indent=1))
+    write_stages(result.stages, seconds, report["device"], stem)
     print(json.dumps(report))
     return 0
+
+
+def write_stages(stages: dict, seconds: float, device: str, stem: pathlib.Path) -> None:
+    """The study's time by stage as CSV (stage, seconds, share of the study) and a bar chart (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = sorted(stages.items(), key=lambda item: -item[1])
+    lines = ["stage,seconds,share"] + [f"{name},{spent:.6g},{spent / seconds:.6g}" for name, spent in rows]
+    stem.with_name(stem.name + "_stages.csv").write_text("\n".join(lines) + "\n")
+    fig, ax = plt.subplots(figsize=(6.4, 0.4 * len(rows) + 1.2))
+    ax.barh([name for name, _ in rows][::-1], [spent for _, spent in rows][::-1], color="tab:blue")
+    for k, (_, spent) in enumerate(rows[::-1]):
+        ax.annotate(f"{spent:.3g} s ({100 * spent / seconds:.1f} %)", (spent, k), xytext=(4, 0),
+                    textcoords="offset points", va="center", fontsize=8)
+    ax.set_xlabel("wall seconds")
+    ax.set_title(f"walker study, time by stage ({device}, {seconds:.1f} s in all)", fontsize=10)
+    ax.set_xlim(0, 1.3 * max(spent for _, spent in rows))
+    fig.tight_layout()
+    fig.savefig(stem.with_name(stem.name + "_stages.png"), dpi=120)
+    plt.close(fig)
 
 
 if __name__ == "__main__":

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from benchmarks import spec_build, walker_precision, walker_steps
+from benchmarks import spec_build, walker_precision, walker_steps, walker_study
 
 
 def test_walker_steps_reports_a_finite_batch_of_three_leg_walkers(tmp_path, capsys):
@@ -99,3 +99,14 @@ def test_spec_build_benchmark_compares_the_pool_with_building_here(tmp_path, cap
     assert report == json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert report["identical"] is True and report["workers"] == 2 and report["built"] >= 1
     assert report["here_s"] > 0 and report["pool_s"] > 0 and report["here_ms_per_design"] > 0
+
+
+def test_walker_study_writes_its_time_by_stage(tmp_path):
+    stages = {"ask": 0.5, "build": 3.0, "simulate": 12.0, "storage": 0.25}
+    walker_study.write_stages(stages, 16.0, "cpu", tmp_path / "walker_study_cpu")
+    lines = (tmp_path / "walker_study_cpu_stages.csv").read_text().splitlines()
+    assert lines[0] == "stage,seconds,share"
+    rows = [line.split(",") for line in lines[1:]]
+    assert [r[0] for r in rows] == ["simulate", "build", "ask", "storage"]  # largest first
+    assert [float(r[2]) for r in rows] == [0.75, 0.1875, 0.03125, 0.015625]
+    assert (tmp_path / "walker_study_cpu_stages.png").stat().st_size > 5000
