@@ -305,6 +305,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
         m: StepModel,
         w: StepWork,
         moreau: int,
+        output_projection: int,
         baumgarte: float,
         limit_margin: float,
         limit_stabilization: float,
@@ -485,7 +486,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
                 cholesky_lanes(world, lane, lanes, n, target, target, mask_projection, m.row_kind, w.row_free, D, F)
             passes = position_iterations
             shake = position_iterations
-            if moreau != 0:  # the output projection gets as many iterations (engine.step)
+            if moreau != 0 and output_projection != 0:  # the output projection gets as many iterations (engine.step)
                 passes = 2 * shake
             for _it in range(passes):
                 output = _it >= shake
@@ -517,7 +518,8 @@ def _make_kernel(tile_rows: int, max_registers: int):
                                         m.world_dt, update, w.row_MJ_c, w.row_MJ_p, w.row_precond,
                                         w.delta, wp.where(output, 1, 0), body_q_out, body_qd_out, body_q_offset_out)
                 block_sync()
-        if moreau != 0 and project == 0:  # no projection: the end of the step is half-way to the midpoint
+        if moreau != 0 and (project == 0 or output_projection == 0):  # the end of the step, half-way to the
+            # midpoint, unprojected
             block_sync()
             for b in range(lane, nb, lanes):
                 integrate_pose_of(world, b, m.body_count, m.world_dt, 0.5, w.body_q_mid, body_qd_out, body_q_out)
@@ -549,8 +551,9 @@ def _filled(struct_type, source):
     return instance
 
 
-def fused_step(model, state_in, state_out, control) -> None:
-    """Advance every world of a fused batch (engine.pack chose it) by one step in one launch."""
+def fused_step(model, state_in, state_out, control, output: bool = True) -> None:
+    """Advance every world of a fused batch (engine.pack chose it) by one step in one launch
+    (output: project the end of the step for output, engine.step)."""
     if model._fused_structs is None:
         model._fused_structs = (_filled(StepModel, model), _filled(StepWork, model.work))
     m, w = model._fused_structs
@@ -558,7 +561,7 @@ def fused_step(model, state_in, state_out, control) -> None:
     if model.fused_block is None:
         model.fused_block = fused_block(model.device)
     wp.launch_tiled(fused_kernel(model.max_rows, model.fused_registers), dim=[model.num_worlds], block_dim=model.fused_block, device=model.device,
-              inputs=[m, w, int(cfg.integrator.value == "moreau"), float(cfg.baumgarte), float(cfg.limit_margin),
+              inputs=[m, w, int(cfg.integrator.value == "moreau"), int(output), float(cfg.baumgarte), float(cfg.limit_margin),
                       float(cfg.limit_stabilization), (1.0 - cfg.warmstart_decay) if cfg.warmstart else 0.0, cfg.max_iterations,
                       float(cfg.relative_tolerance), cfg.rho_update_interval, int(cfg.adaptive_rho),
                       int(cfg.acceleration), cfg.position_iterations if model.has_bilateral_rows else 0,

@@ -100,7 +100,7 @@ class StageTimer:
 
 
 def step(model: Model, state_in: State, state_out: State, control: Control, dt: float | None = None, *,
-         timer: StageTimer | None = None) -> None:
+         timer: StageTimer | None = None, output: bool = True) -> None:
     """Advance every world by one step from state_in into state_out.
 
     Args:
@@ -110,6 +110,10 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
         dt: time step [s] for all worlds; None keeps model.world_dt (per-world device array).
             Changing it writes the device array, so pass None inside a captured graph.
         timer: optional StageTimer collecting the wall time of every stage.
+        output: (Moreau-Jean) project the end of the step onto the joints for output. The next
+            step undoes that projection when it finds its midpoint, so the motion is the same
+            without it (up to rounding): a loop that reads the state only every few steps (engine.rollout)
+            skips it on the others. Off, state_out.body_q is the end of the step unprojected.
     """
     mark = timer.mark if timer is not None else (lambda stage: None)
     if timer is not None:
@@ -119,7 +123,7 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
     if dt is not None:
         model.set_dt(dt)
     if model.step_kernel == "fused":  # the whole step in one launch (engine.fused)
-        fused_step(model, state_in, state_out, control)
+        fused_step(model, state_in, state_out, control, output=output)
         mark("fused")
         return
     work, device = model.work, model.device
@@ -167,8 +171,9 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
         wp.launch(integrate_poses, dim=bodies, device=device,
                   inputs=[model.body_count, model.world_dt, 0.5, body_q, state_out.body_qd],
                   outputs=[state_out.body_q])
-        project_positions(model, state_out.body_q, state_out.body_qd, compute_joint_residuals, velocity_update=False,
-                          body_q_offset=state_out.body_q_offset, prepare=False)
+        if output:
+            project_positions(model, state_out.body_q, state_out.body_qd, compute_joint_residuals,
+                              velocity_update=False, body_q_offset=state_out.body_q_offset, prepare=False)
     wp.launch(guard_divergence, dim=model.num_worlds, device=device,
               inputs=[model.body_count, state_in.body_q, state_in.body_qd, state_in.body_q_offset, work.halted,
                       float(model.config.max_speed)],
