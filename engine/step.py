@@ -11,7 +11,8 @@ The stages, in order (each a module of the engine):
    joint constraints by Gauss-Newton with SHAKE's velocity update (engine.integrate). Moreau-Jean
    then reports the end of the step half-way to that next midpoint, projected onto the joints
    for output only: the offset is kept in the State and undone when the next step finds its
-   midpoint, so the dynamics always run on projected midpoints. (Projecting the end of the step
+   midpoint, so the dynamics always run on projected midpoints; a loop that reads the state only
+   every few steps skips that output projection on the others (step(output=False)). (Projecting the end of the step
    itself and recovering the midpoint by half a step leaves a neutral period-two oscillation in
    the joint-normal direction that the velocity update feeds: it drained a parallelogram's energy
    through every flat pass.)
