@@ -561,7 +561,8 @@ def fused_step(model, state_in, state_out, control, output: bool = True) -> None
     if model.fused_block is None:
         model.fused_block = fused_block(model.device)
     wp.launch_tiled(fused_kernel(model.max_rows, model.fused_registers), dim=[model.num_worlds], block_dim=model.fused_block, device=model.device,
-              inputs=[m, w, int(cfg.integrator.value == "moreau"), int(output), float(cfg.baumgarte), float(cfg.limit_margin),
+              inputs=[m, w, int(cfg.integrator.value == "moreau"), int(output), float(cfg.baumgarte),
+                      float(cfg.limit_margin),
                       float(cfg.limit_stabilization), (1.0 - cfg.warmstart_decay) if cfg.warmstart else 0.0, cfg.max_iterations,
                       float(cfg.relative_tolerance), cfg.rho_update_interval, int(cfg.adaptive_rho),
                       int(cfg.acceleration), cfg.position_iterations if model.has_bilateral_rows else 0,
