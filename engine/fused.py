@@ -322,7 +322,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
         max_speed: float,
         body_q_in: wp.array2d(dtype=wp.transform),
         body_qd_in: wp.array2d(dtype=wp.spatial_vector),
-        body_q_offset_in: wp.array2d(dtype=wp.spatial_vector),
+        body_q_end_in: wp.array2d(dtype=wp.transform),
         row_lambda_in: wp.array2d(dtype=float),
         joint_target_position: wp.array2d(dtype=float),
         joint_target_velocity: wp.array2d(dtype=float),
@@ -331,7 +331,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
         # out
         body_q_out: wp.array2d(dtype=wp.transform),
         body_qd_out: wp.array2d(dtype=wp.spatial_vector),
-        body_q_offset_out: wp.array2d(dtype=wp.spatial_vector),
+        body_q_end_out: wp.array2d(dtype=wp.transform),
         row_lambda_out: wp.array2d(dtype=float),
     ):
         """One whole step of one world (engine.step's stages) in one thread block: the lanes share the
@@ -348,7 +348,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
         # 1. configuration of the dynamics: the midpoint (Moreau-Jean) or the start of the step
         for b in range(lane, nb, lanes):
             if moreau != 0:
-                midpoint_pose_of(world, b, m.world_dt, body_q_in, body_q_offset_in, body_qd_in, w.body_q_mid)
+                midpoint_pose_of(world, b, m.world_dt, body_q_end_in, body_qd_in, w.body_q_mid)
             else:
                 w.body_q_mid[world, b] = body_q_in[world, b]
         block_sync()
@@ -467,7 +467,6 @@ def _make_kernel(tile_rows: int, max_registers: int):
             apply_impulses_of(world, b, m.body_count, w.row_count, w.row_body_c, w.row_body_p, w.row_MJ_c, w.row_MJ_p,
                               row_lambda_out, w.row_precond, w.body_qd_free, body_qd_out)
             integrate_pose_of(world, b, m.body_count, m.world_dt, 1.0, w.body_q_mid, body_qd_out, body_q_out)
-            body_q_offset_out[world, b] = wp.spatial_vector()
         # 5. Gauss-Newton projection onto the joint constraints (engine.integrate.project_positions) of
         # the next step's configuration with SHAKE's velocity update; Moreau-Jean then projects the
         # end of the step, half-way there, for output only (engine.step)
@@ -495,6 +494,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
                     for b in range(lane, nb, lanes):
                         integrate_pose_of(world, b, m.body_count, m.world_dt, 0.5, w.body_q_mid, body_qd_out,
                                           body_q_out)
+                        body_q_end_out[world, b] = body_q_out[world, b]
                     block_sync()
                 for j in range(lane, nj, lanes):
                     joint_residuals_of(world, j, m.joint_count, m.joint_type, m.joint_parent, m.joint_child, m.joint_X_p,
@@ -516,18 +516,19 @@ def _make_kernel(tile_rows: int, max_registers: int):
                 for b in range(lane, nb, lanes):
                     apply_projection_of(world, b, m.body_count, w.row_count, w.row_body_c, w.row_body_p, w.valid,
                                         m.world_dt, update, w.row_MJ_c, w.row_MJ_p, w.row_precond,
-                                        w.delta, wp.where(output, 1, 0), body_q_out, body_qd_out, body_q_offset_out)
+                                        w.delta, body_q_out, body_qd_out)
                 block_sync()
         if moreau != 0 and (project == 0 or output_projection == 0):  # the end of the step, half-way to the
             # midpoint, unprojected
             block_sync()
             for b in range(lane, nb, lanes):
                 integrate_pose_of(world, b, m.body_count, m.world_dt, 0.5, w.body_q_mid, body_qd_out, body_q_out)
+                body_q_end_out[world, b] = body_q_out[world, b]
         # 6. divergence guard
         block_sync()
         if lane == 0:
-            guard_divergence_of(world, m.body_count, body_q_in, body_qd_in, body_q_offset_in, w.halted, max_speed,
-                                body_q_out, body_qd_out, body_q_offset_out, w.diverged)
+            guard_divergence_of(world, m.body_count, body_q_in, body_qd_in, body_q_end_in, w.halted, max_speed,
+                                body_q_out, body_qd_out, body_q_end_out, w.diverged)
 
     return fused_step_kernel
 
@@ -568,7 +569,7 @@ def fused_step(model, state_in, state_out, control, output: bool = True) -> None
                       int(cfg.acceleration), cfg.position_iterations if model.has_bilateral_rows else 0,
                       int(model.has_unilateral_or_drive_rows), int(cfg.projection_velocity_update),
                       float(cfg.projection_velocity_floor), float(cfg.max_speed),
-                      state_in.body_q, state_in.body_qd, state_in.body_q_offset, state_in.row_lambda,
+                      state_in.body_q, state_in.body_qd, state_in.body_q_end, state_in.row_lambda,
                       control.joint_target_position, control.joint_target_velocity, control.joint_effort,
                       control.body_f],
-              outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_offset, state_out.row_lambda])
+              outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_end, state_out.row_lambda])

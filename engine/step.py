@@ -10,9 +10,10 @@ The stages, in order (each a module of the engine):
 5. velocity update; a whole pose step from the configuration of the dynamics, projected onto the
    joint constraints by Gauss-Newton with SHAKE's velocity update (engine.integrate). Moreau-Jean
    then reports the end of the step half-way to that next midpoint, projected onto the joints
-   for output only: the offset is kept in the State and undone when the next step finds its
-   midpoint, so the dynamics always run on projected midpoints; a loop that reads the state only
-   every few steps skips that output projection on the others (step(output=False)). (Projecting the end of the step
+   for output only: the next step finds its midpoint half a step on from the unprojected end
+   (State.body_q_end), so the output projection never feeds back and the dynamics run on the
+   projected midpoints; a loop that reads the state only every few steps skips the output
+   projection on the others (step(output=False)), with the same motion. (Projecting the end of the step
    itself and recovering the midpoint by half a step leaves a neutral period-two oscillation in
    the joint-normal direction that the velocity update feeds: it drained a parallelogram's energy
    through every flat pass.)
@@ -112,9 +113,9 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
             Changing it writes the device array, so pass None inside a captured graph.
         timer: optional StageTimer collecting the wall time of every stage.
         output: (Moreau-Jean) project the end of the step onto the joints for output. The next
-            step undoes that projection when it finds its midpoint, so the motion is the same
-            without it (up to rounding): a loop that reads the state only every few steps (engine.rollout)
-            skips it on the others. Off, state_out.body_q is the end of the step unprojected.
+            step starts from the end before that projection, so the motion is the same to the last
+            bit without it: a loop that reads the state only every few steps (engine.rollout) skips
+            it on the others. Off, state_out.body_q is the end of the step unprojected.
     """
     mark = timer.mark if timer is not None else (lambda stage: None)
     if timer is not None:
@@ -133,7 +134,7 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
     body_q = state_in.body_q
     if moreau:
         wp.launch(midpoint_poses, dim=bodies, device=device,
-                  inputs=[model.body_count, model.world_dt, state_in.body_q, state_in.body_q_offset, state_in.body_qd],
+                  inputs=[model.body_count, model.world_dt, state_in.body_q_end, state_in.body_qd],
                   outputs=[work.body_q_mid])
         body_q = work.body_q_mid
     compute_joint_rows(model, body_q, state_in.body_qd, control)
@@ -168,15 +169,15 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
     if moreau:  # the end of the step: half-way to the next midpoint, projected for output only, as
         # often as the midpoint (one output iteration saved 6 % of DR Legs hanging's step on the
         # H100, 4.2 against 4.4 ms, but left the ten-second four-bar's loops at 9.5e-5 m)
-        state_out.body_q_offset.zero_()
         wp.launch(integrate_poses, dim=bodies, device=device,
                   inputs=[model.body_count, model.world_dt, 0.5, body_q, state_out.body_qd],
                   outputs=[state_out.body_q])
+        wp.copy(state_out.body_q_end, state_out.body_q)
         if output:
             project_positions(model, state_out.body_q, state_out.body_qd, compute_joint_residuals,
-                              velocity_update=False, body_q_offset=state_out.body_q_offset, prepare=False)
+                              velocity_update=False, prepare=False)
     wp.launch(guard_divergence, dim=model.num_worlds, device=device,
-              inputs=[model.body_count, state_in.body_q, state_in.body_qd, state_in.body_q_offset, work.halted,
+              inputs=[model.body_count, state_in.body_q, state_in.body_qd, state_in.body_q_end, work.halted,
                       float(model.config.max_speed)],
-              outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_offset, work.diverged])
+              outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_end, work.diverged])
     mark("projection")

@@ -1,6 +1,6 @@
-"""Moreau-Jean's output projection only moves the reported end of a step: the next step undoes it
-when it finds its midpoint. Skipping it on steps nobody reads (engine.rollout projects the last step
-of each recorded chunk) must leave the motion unchanged, up to float32 rounding."""
+"""Moreau-Jean's output projection only moves the reported end of a step: the next step starts from
+the end before that projection (State.body_q_end). Skipping it on steps nobody reads (engine.rollout
+projects the last step of each recorded chunk) must leave the motion unchanged to the last bit."""
 
 import numpy as np
 import pytest
@@ -33,11 +33,11 @@ def _run(kernel: str, every: int, steps: int = 240, record: int = 8):
 @pytest.mark.parametrize("kernel", ["fused", "staged"])
 def test_skipping_the_output_projection_leaves_the_motion_unchanged(kernel):
     """Four-bar at dt 2 ms for 0.48 s, the crank turning: projecting the output every step or only
-    every 8th gives the same poses at every 8th step (5e-6, float32 rounding carried over 240
-    steps), both closed to 1e-6 m there; in between, the unprojected ends of the steps are open
-    several times wider (the skip does skip something: here ~9e-7 m against ~9e-8 m)."""
+    every 8th gives bit-identical poses at every 8th step, closed to 1e-6 m there; in between, the
+    unprojected ends of the steps are open several times wider (the skip does skip something: here
+    ~9e-7 m against ~9e-8 m)."""
     every_step, closed, _ = _run(kernel, every=1)
     sparse, closed_sparse, between = _run(kernel, every=8)
-    assert np.abs(every_step - sparse).max() < 5e-6
+    assert np.array_equal(every_step, sparse)
     assert closed.max() < 1e-6 and closed_sparse.max() < 1e-6
     assert between > 4.0 * max(closed_sparse.max(), 1e-7)
