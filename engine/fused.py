@@ -305,7 +305,6 @@ def _make_kernel(tile_rows: int, max_registers: int):
         m: StepModel,
         w: StepWork,
         moreau: int,
-        output_projection: int,
         baumgarte: float,
         limit_margin: float,
         limit_stabilization: float,
@@ -322,7 +321,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
         max_speed: float,
         body_q_in: wp.array2d(dtype=wp.transform),
         body_qd_in: wp.array2d(dtype=wp.spatial_vector),
-        body_q_end_in: wp.array2d(dtype=wp.transform),
+        body_q_offset_in: wp.array2d(dtype=wp.spatial_vector),
         row_lambda_in: wp.array2d(dtype=float),
         joint_target_position: wp.array2d(dtype=float),
         joint_target_velocity: wp.array2d(dtype=float),
@@ -331,7 +330,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
         # out
         body_q_out: wp.array2d(dtype=wp.transform),
         body_qd_out: wp.array2d(dtype=wp.spatial_vector),
-        body_q_end_out: wp.array2d(dtype=wp.transform),
+        body_q_offset_out: wp.array2d(dtype=wp.spatial_vector),
         row_lambda_out: wp.array2d(dtype=float),
     ):
         """One whole step of one world (engine.step's stages) in one thread block: the lanes share the
@@ -348,7 +347,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
         # 1. configuration of the dynamics: the midpoint (Moreau-Jean) or the start of the step
         for b in range(lane, nb, lanes):
             if moreau != 0:
-                midpoint_pose_of(world, b, m.world_dt, body_q_end_in, body_qd_in, w.body_q_mid)
+                midpoint_pose_of(world, b, m.world_dt, body_q_in, body_q_offset_in, body_qd_in, w.body_q_mid)
             else:
                 w.body_q_mid[world, b] = body_q_in[world, b]
         block_sync()
@@ -467,6 +466,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
             apply_impulses_of(world, b, m.body_count, w.row_count, w.row_body_c, w.row_body_p, w.row_MJ_c, w.row_MJ_p,
                               row_lambda_out, w.row_precond, w.body_qd_free, body_qd_out)
             integrate_pose_of(world, b, m.body_count, m.world_dt, 1.0, w.body_q_mid, body_qd_out, body_q_out)
+            body_q_offset_out[world, b] = wp.spatial_vector()
         # 5. Gauss-Newton projection onto the joint constraints (engine.integrate.project_positions) of
         # the next step's configuration with SHAKE's velocity update; Moreau-Jean then projects the
         # end of the step, half-way there, for output only (engine.step)
@@ -485,7 +485,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
                 cholesky_lanes(world, lane, lanes, n, target, target, mask_projection, m.row_kind, w.row_free, D, F)
             passes = position_iterations
             shake = position_iterations
-            if moreau != 0 and output_projection != 0:  # the output projection gets as many iterations (engine.step)
+            if moreau != 0:  # the output projection gets as many iterations (engine.step)
                 passes = 2 * shake
             for _it in range(passes):
                 output = _it >= shake
@@ -494,7 +494,6 @@ def _make_kernel(tile_rows: int, max_registers: int):
                     for b in range(lane, nb, lanes):
                         integrate_pose_of(world, b, m.body_count, m.world_dt, 0.5, w.body_q_mid, body_qd_out,
                                           body_q_out)
-                        body_q_end_out[world, b] = body_q_out[world, b]
                     block_sync()
                 for j in range(lane, nj, lanes):
                     joint_residuals_of(world, j, m.joint_count, m.joint_type, m.joint_parent, m.joint_child, m.joint_X_p,
@@ -516,19 +515,17 @@ def _make_kernel(tile_rows: int, max_registers: int):
                 for b in range(lane, nb, lanes):
                     apply_projection_of(world, b, m.body_count, w.row_count, w.row_body_c, w.row_body_p, w.valid,
                                         m.world_dt, update, w.row_MJ_c, w.row_MJ_p, w.row_precond,
-                                        w.delta, body_q_out, body_qd_out)
+                                        w.delta, wp.where(output, 1, 0), body_q_out, body_qd_out, body_q_offset_out)
                 block_sync()
-        if moreau != 0 and (project == 0 or output_projection == 0):  # the end of the step, half-way to the
-            # midpoint, unprojected
+        if moreau != 0 and project == 0:  # no projection: the end of the step is half-way to the midpoint
             block_sync()
             for b in range(lane, nb, lanes):
                 integrate_pose_of(world, b, m.body_count, m.world_dt, 0.5, w.body_q_mid, body_qd_out, body_q_out)
-                body_q_end_out[world, b] = body_q_out[world, b]
         # 6. divergence guard
         block_sync()
         if lane == 0:
-            guard_divergence_of(world, m.body_count, body_q_in, body_qd_in, body_q_end_in, w.halted, max_speed,
-                                body_q_out, body_qd_out, body_q_end_out, w.diverged)
+            guard_divergence_of(world, m.body_count, body_q_in, body_qd_in, body_q_offset_in, w.halted, max_speed,
+                                body_q_out, body_qd_out, body_q_offset_out, w.diverged)
 
     return fused_step_kernel
 
@@ -552,9 +549,8 @@ def _filled(struct_type, source):
     return instance
 
 
-def fused_step(model, state_in, state_out, control, output: bool = True) -> None:
-    """Advance every world of a fused batch (engine.pack chose it) by one step in one launch
-    (output: project the end of the step for output, engine.step)."""
+def fused_step(model, state_in, state_out, control) -> None:
+    """Advance every world of a fused batch (engine.pack chose it) by one step in one launch."""
     if model._fused_structs is None:
         model._fused_structs = (_filled(StepModel, model), _filled(StepWork, model.work))
     m, w = model._fused_structs
@@ -562,14 +558,13 @@ def fused_step(model, state_in, state_out, control, output: bool = True) -> None
     if model.fused_block is None:
         model.fused_block = fused_block(model.device)
     wp.launch_tiled(fused_kernel(model.max_rows, model.fused_registers), dim=[model.num_worlds], block_dim=model.fused_block, device=model.device,
-              inputs=[m, w, int(cfg.integrator.value == "moreau"), int(output), float(cfg.baumgarte),
-                      float(cfg.limit_margin),
+              inputs=[m, w, int(cfg.integrator.value == "moreau"), float(cfg.baumgarte), float(cfg.limit_margin),
                       float(cfg.limit_stabilization), (1.0 - cfg.warmstart_decay) if cfg.warmstart else 0.0, cfg.max_iterations,
                       float(cfg.relative_tolerance), cfg.rho_update_interval, int(cfg.adaptive_rho),
                       int(cfg.acceleration), cfg.position_iterations if model.has_bilateral_rows else 0,
                       int(model.has_unilateral_or_drive_rows), int(cfg.projection_velocity_update),
                       float(cfg.projection_velocity_floor), float(cfg.max_speed),
-                      state_in.body_q, state_in.body_qd, state_in.body_q_end, state_in.row_lambda,
+                      state_in.body_q, state_in.body_qd, state_in.body_q_offset, state_in.row_lambda,
                       control.joint_target_position, control.joint_target_velocity, control.joint_effort,
                       control.body_f],
-              outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_end, state_out.row_lambda])
+              outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_offset, state_out.row_lambda])

@@ -106,25 +106,29 @@ def integrate_pose_of(
 def midpoint_pose_of(
     world: int, b: int,
     world_dt: wp.array(dtype=float),
-    body_q_end: wp.array2d(dtype=wp.transform),
+    body_q: wp.array2d(dtype=wp.transform),
+    body_q_offset: wp.array2d(dtype=wp.spatial_vector),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
     # out
     body_q_mid: wp.array2d(dtype=wp.transform),
 ):
-    """Moreau-Jean's midpoint: half a pose step with the twist from the end of the last step as
-    it was before its output projection (body_q_end), so the output projection never feeds back."""
-    X = body_q_end[world, b]
+    """Moreau-Jean's midpoint: undo the last step's output projection (body_q_offset: translation
+    [m] and rotation vector [rad] it moved the body by), then half a pose step with the twist."""
+    X = body_q[world, b]
+    o = body_q_offset[world, b]
     h = 0.5 * world_dt[world]
     u = body_qd[world, b]
-    body_q_mid[world, b] = wp.transform(wp.transform_get_translation(X) + h * wp.spatial_top(u),
-                                        quat_integrate(wp.transform_get_rotation(X), wp.spatial_bottom(u), h))
+    rotation = quat_rotate_vector(wp.transform_get_rotation(X), -wp.spatial_bottom(o))
+    body_q_mid[world, b] = wp.transform(wp.transform_get_translation(X) - wp.spatial_top(o) + h * wp.spatial_top(u),
+                                        quat_integrate(rotation, wp.spatial_bottom(u), h))
 
 
 @wp.kernel
 def midpoint_poses(
     body_count: wp.array(dtype=wp.int32),
     world_dt: wp.array(dtype=float),
-    body_q_end: wp.array2d(dtype=wp.transform),
+    body_q: wp.array2d(dtype=wp.transform),
+    body_q_offset: wp.array2d(dtype=wp.spatial_vector),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
     # out
     body_q_mid: wp.array2d(dtype=wp.transform),
@@ -133,7 +137,7 @@ def midpoint_poses(
     world, b = wp.tid()
     if b >= body_count[world]:
         return
-    midpoint_pose_of(world, b, world_dt, body_q_end, body_qd, body_q_mid)
+    midpoint_pose_of(world, b, world_dt, body_q, body_q_offset, body_qd, body_q_mid)
 
 
 @wp.kernel
@@ -213,19 +217,24 @@ def apply_projection_of(
     row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
     row_precond: wp.array2d(dtype=float),
     delta: wp.array2d(dtype=float),
+    record_offset: int,
     # in/out
     body_q: wp.array2d(dtype=wp.transform),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
+    body_q_offset: wp.array2d(dtype=wp.spatial_vector),
 ):
     """Move each body by M^-1 J^T (P delta): translation [m] and rotation vector [rad]; with
     velocity_update, add the same displacement / dt to the twist (SHAKE: the step stays
-    symplectic)."""
+    symplectic); with record_offset, add it to body_q_offset (an output projection the next
+    Moreau-Jean midpoint undoes)."""
     dx = row_sum_for_body(world, b, row_count[world], row_body_c, row_body_p, row_MJ_c, row_MJ_p, delta, row_precond, 1)
     X = body_q[world, b]
     body_q[world, b] = wp.transform(wp.transform_get_translation(X) + wp.spatial_top(dx),
                                     quat_rotate_vector(wp.transform_get_rotation(X), wp.spatial_bottom(dx)))
     if velocity_update != 0:
         body_qd[world, b] = body_qd[world, b] + dx / world_dt[world]
+    if record_offset != 0:
+        body_q_offset[world, b] = body_q_offset[world, b] + dx
 
 
 @wp.kernel
@@ -242,19 +251,22 @@ def apply_projection(
     row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
     row_precond: wp.array2d(dtype=float),
     delta: wp.array2d(dtype=float),
+    record_offset: int,
     # in/out
     body_q: wp.array2d(dtype=wp.transform),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
+    body_q_offset: wp.array2d(dtype=wp.spatial_vector),
 ):
     """Move each body by M^-1 J^T (P delta): translation [m] and rotation vector [rad]; with
     velocity_update, and where the world's gate is open (its joint error is above the rounding
     floor), add the same displacement / dt to the twist (SHAKE: the step stays
-    symplectic)."""
+    symplectic); with record_offset, add the displacement to body_q_offset."""
     world, b = wp.tid()
     if b >= body_count[world] or valid[world] == 0:
         return
     apply_projection_of(world, b, body_count, row_count, row_body_c, row_body_p, valid, world_dt,
-        velocity_update * gate[world], row_MJ_c, row_MJ_p, row_precond, delta, body_q, body_qd)
+        velocity_update * gate[world], row_MJ_c, row_MJ_p, row_precond, delta, record_offset, body_q, body_qd,
+        body_q_offset)
 
 
 @wp.func
@@ -283,13 +295,13 @@ def guard_divergence_of(
     body_count: wp.array(dtype=wp.int32),
     body_q_in: wp.array2d(dtype=wp.transform),
     body_qd_in: wp.array2d(dtype=wp.spatial_vector),
-    body_q_end_in: wp.array2d(dtype=wp.transform),
+    body_q_offset_in: wp.array2d(dtype=wp.spatial_vector),
     halted: wp.array(dtype=wp.int32),
     max_speed: float,
     # in/out
     body_q_out: wp.array2d(dtype=wp.transform),
     body_qd_out: wp.array2d(dtype=wp.spatial_vector),
-    body_q_end_out: wp.array2d(dtype=wp.transform),
+    body_q_offset_out: wp.array2d(dtype=wp.spatial_vector),
     diverged: wp.array(dtype=wp.int32),
 ):
     """Flag a world whose new state is not finite, or in which a body's centre of mass moves
@@ -309,7 +321,7 @@ def guard_divergence_of(
         for b in range(n):
             body_q_out[world, b] = body_q_in[world, b]
             body_qd_out[world, b] = body_qd_in[world, b]
-            body_q_end_out[world, b] = body_q_end_in[world, b]
+            body_q_offset_out[world, b] = body_q_offset_in[world, b]
 
 
 @wp.kernel
@@ -317,21 +329,21 @@ def guard_divergence(
     body_count: wp.array(dtype=wp.int32),
     body_q_in: wp.array2d(dtype=wp.transform),
     body_qd_in: wp.array2d(dtype=wp.spatial_vector),
-    body_q_end_in: wp.array2d(dtype=wp.transform),
+    body_q_offset_in: wp.array2d(dtype=wp.spatial_vector),
     halted: wp.array(dtype=wp.int32),
     max_speed: float,
     # in/out
     body_q_out: wp.array2d(dtype=wp.transform),
     body_qd_out: wp.array2d(dtype=wp.spatial_vector),
-    body_q_end_out: wp.array2d(dtype=wp.transform),
+    body_q_offset_out: wp.array2d(dtype=wp.spatial_vector),
     diverged: wp.array(dtype=wp.int32),
 ):
     """Flag a world whose new state is not finite, or in which a body's centre of mass moves
     faster than max_speed [m/s], and freeze it at its last state; a halted world (engine.rollout's
     halt) stays frozen as well, without the flag."""
     world = wp.tid()
-    guard_divergence_of(world, body_count, body_q_in, body_qd_in, body_q_end_in, halted, max_speed, body_q_out,
-                        body_qd_out, body_q_end_out, diverged)
+    guard_divergence_of(world, body_count, body_q_in, body_qd_in, body_q_offset_in, halted, max_speed, body_q_out,
+                        body_qd_out, body_q_offset_out, diverged)
 
 
 @wp.kernel
@@ -374,12 +386,13 @@ def projection_shift(padmm_eta: wp.array(dtype=float), padmm_rho_init: wp.array(
 
 
 def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
-                      velocity_update=None, prepare=True):
+                      velocity_update=None, body_q_offset=None, prepare=True):
     """Gauss-Newton projection of body_q onto the joint constraints.
 
     iterations: Gauss-Newton steps (config.position_iterations when None).
     velocity_update: add each displacement / dt to body_qd (config's
-    projection_velocity_update when None). prepare=False reuses the factor of an earlier call this step.
+    projection_velocity_update when None). body_q_offset: accumulate the displacements there
+    (Moreau-Jean's output projection). prepare=False reuses the factor of an earlier call this step.
     """
     work, device = model.work, model.device
     grid_rows = (model.num_worlds, model.max_rows)
@@ -407,6 +420,9 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
             linear.factor(work.delassus, work.row_shift, work.needs_factor, work.factor)
         elif direct:
             sparse.factor(model, work.row_shift, work.needs_factor, bilateral_only=model.has_unilateral_or_drive_rows)
+    record = body_q_offset is not None
+
+    offset = body_q_offset if record else work.body_qd_free  # any (W, B) spatial_vector array when unused
     for _ in range(iterations):
         residual_fn(model, body_q, work.row_residual)
         if velocity_update:
@@ -426,7 +442,7 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
         wp.launch(apply_projection, dim=grid_bodies, device=device,
                   inputs=[model.body_count, work.row_count, work.row_body_c, work.row_body_p, work.project,
                           model.world_dt, int(velocity_update), work.projection_gate, work.row_MJ_c,
-                          work.row_MJ_p, work.row_precond, work.delta, body_q, body_qd])
+                          work.row_MJ_p, work.row_precond, work.delta, int(record), body_q, body_qd, offset])
 
 
 __all__ = ["apply_impulses", "guard_divergence", "integrate_poses", "midpoint_poses", "project_positions"]

@@ -227,7 +227,7 @@ class Model:
         state = State()
         state.body_q = wp.clone(self.body_q_init)
         state.body_qd = wp.clone(self.body_qd_init)
-        state.body_q_end = wp.clone(self.body_q_init)
+        state.body_q_offset = wp.zeros((self.num_worlds, self.max_bodies), dtype=wp.spatial_vector, device=self.device)
         state.row_lambda = wp.zeros((self.num_worlds, self.max_rows), dtype=float, device=self.device)
         capacity = max(self.contact_capacity, 1)
         state.contact_count = wp.zeros(self.num_worlds, dtype=wp.int32, device=self.device)
@@ -260,17 +260,17 @@ class State:
     """Time-varying quantities, double-buffered by the caller.
 
     body_q (W, B) transform: COM pose, world frame. body_qd (W, B) spatial_vector (v, w), world
-    frame. body_q_end (W, B) transform: the end of the last Moreau-Jean step before its output
-    projection onto the joints; the next step's midpoint is half a step on from it (engine.step),
-    so the output projection never feeds back into the motion. The initial poses in a new State;
-    when body_q is set by hand, set body_q_end to the same poses. row_lambda (W, R): the last step's constraint impulses [N s] or [N m s] (warm start).
+    frame. body_q_offset (W, B) spatial_vector: how far the last Moreau-Jean step's output
+    projection moved each pose onto the joints (translation [m], rotation vector [rad]); the next
+    step undoes it to find its midpoint (engine.step). Zero in a new State; when body_q is set by
+    hand, zero it too (a stale offset only costs the next step a correction of its own size). row_lambda (W, R): the last step's constraint impulses [N s] or [N m s] (warm start).
     contact_count (W,), contact_key (W, C), contact_impulse (W, C) vec3: the last step's contacts
     and their impulses in the world frame [N s], matched by key to warm-start the next step.
     """
 
     body_q: wp.array
     body_qd: wp.array
-    body_q_end: wp.array
+    body_q_offset: wp.array
     row_lambda: wp.array
     contact_count: wp.array
     contact_key: wp.array

@@ -98,7 +98,7 @@ class Stepper:
         for k in range(self.chunk):
             src = self._buffers[(start + k) % 2]
             dst = self._buffers[(start + k + 1) % 2]
-            step(model, src, dst, self.control, output=k == self.chunk - 1)  # the state is read between chunks
+            step(model, src, dst, self.control)
             work = model.work
             wp.launch(accumulate_step_stats, dim=model.num_worlds, device=model.device,
                       inputs=[work.iterations, work.converged, work.valid, work.residual_complementarity,

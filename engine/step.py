@@ -10,10 +10,8 @@ The stages, in order (each a module of the engine):
 5. velocity update; a whole pose step from the configuration of the dynamics, projected onto the
    joint constraints by Gauss-Newton with SHAKE's velocity update (engine.integrate). Moreau-Jean
    then reports the end of the step half-way to that next midpoint, projected onto the joints
-   for output only: the next step finds its midpoint half a step on from the unprojected end
-   (State.body_q_end), so the output projection never feeds back and the dynamics run on the
-   projected midpoints; a loop that reads the state only every few steps skips the output
-   projection on the others (step(output=False)), with the same motion. (Projecting the end of the step
+   for output only: the offset is kept in the State and undone when the next step finds its
+   midpoint, so the dynamics always run on projected midpoints. (Projecting the end of the step
    itself and recovering the midpoint by half a step leaves a neutral period-two oscillation in
    the joint-normal direction that the velocity update feeds: it drained a parallelogram's energy
    through every flat pass.)
@@ -102,7 +100,7 @@ class StageTimer:
 
 
 def step(model: Model, state_in: State, state_out: State, control: Control, dt: float | None = None, *,
-         timer: StageTimer | None = None, output: bool = True) -> None:
+         timer: StageTimer | None = None) -> None:
     """Advance every world by one step from state_in into state_out.
 
     Args:
@@ -112,10 +110,6 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
         dt: time step [s] for all worlds; None keeps model.world_dt (per-world device array).
             Changing it writes the device array, so pass None inside a captured graph.
         timer: optional StageTimer collecting the wall time of every stage.
-        output: (Moreau-Jean) project the end of the step onto the joints for output. The next
-            step starts from the end before that projection, so the motion is the same to the last
-            bit without it: a loop that reads the state only every few steps (engine.rollout) skips
-            it on the others. Off, state_out.body_q is the end of the step unprojected.
     """
     mark = timer.mark if timer is not None else (lambda stage: None)
     if timer is not None:
@@ -125,7 +119,7 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
     if dt is not None:
         model.set_dt(dt)
     if model.step_kernel == "fused":  # the whole step in one launch (engine.fused)
-        fused_step(model, state_in, state_out, control, output=output)
+        fused_step(model, state_in, state_out, control)
         mark("fused")
         return
     work, device = model.work, model.device
@@ -134,7 +128,7 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
     body_q = state_in.body_q
     if moreau:
         wp.launch(midpoint_poses, dim=bodies, device=device,
-                  inputs=[model.body_count, model.world_dt, state_in.body_q_end, state_in.body_qd],
+                  inputs=[model.body_count, model.world_dt, state_in.body_q, state_in.body_q_offset, state_in.body_qd],
                   outputs=[work.body_q_mid])
         body_q = work.body_q_mid
     compute_joint_rows(model, body_q, state_in.body_qd, control)
@@ -169,15 +163,14 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
     if moreau:  # the end of the step: half-way to the next midpoint, projected for output only, as
         # often as the midpoint (one output iteration saved 6 % of DR Legs hanging's step on the
         # H100, 4.2 against 4.4 ms, but left the ten-second four-bar's loops at 9.5e-5 m)
+        state_out.body_q_offset.zero_()
         wp.launch(integrate_poses, dim=bodies, device=device,
                   inputs=[model.body_count, model.world_dt, 0.5, body_q, state_out.body_qd],
                   outputs=[state_out.body_q])
-        wp.copy(state_out.body_q_end, state_out.body_q)
-        if output:
-            project_positions(model, state_out.body_q, state_out.body_qd, compute_joint_residuals,
-                              velocity_update=False, prepare=False)
+        project_positions(model, state_out.body_q, state_out.body_qd, compute_joint_residuals, velocity_update=False,
+                          body_q_offset=state_out.body_q_offset, prepare=False)
     wp.launch(guard_divergence, dim=model.num_worlds, device=device,
-              inputs=[model.body_count, state_in.body_q, state_in.body_qd, state_in.body_q_end, work.halted,
+              inputs=[model.body_count, state_in.body_q, state_in.body_qd, state_in.body_q_offset, work.halted,
                       float(model.config.max_speed)],
-              outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_end, work.diverged])
+              outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_offset, work.diverged])
     mark("projection")
