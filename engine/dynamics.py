@@ -269,6 +269,10 @@ def build_dual_problem(model, body_q, body_qd, body_f):
                       work.row_count, work.row_body_p, work.row_body_c, body_q, work.body_qd_free, work.row_J_c,
                       work.row_J_p, work.row_bias, work.row_compliance, work.row_lo, work.row_hi],
               outputs=[work.row_MJ_c, work.row_MJ_p, work.row_precond, work.v_f, work.lo, work.hi])
+    if model.linear_solver == "sparse":
+        from engine import sparse  # engine.sparse builds on this module
+
+        sparse.roots(model, body_q)
     if model.linear_solver != "dense":
         return  # the operator is applied (engine.matrix_free) or factored (engine.sparse) from row_J and row_MJ
     wp.launch(delassus, dim=(W, model.max_rows, model.max_rows), device=device,

@@ -115,6 +115,10 @@ class SolverConfig:
             engine.fused; batches without contact shapes and at most engine.fused.FUSED_MAX_ROWS
             rows), "staged" (one kernel per stage, the PADMM loop as a captured while loop) or
             "auto" (fused where it fits).
+        sparse_body_nodes: the sparse solver keeps a body acted on by many rows (a walker's
+            torso) as six nodes of its factor instead of coupling all
+            its rows with each other, where its analysis estimates a shorter schedule
+            (engine.sparse.choose_body_nodes); off: the rows' own coupling pattern only.
     """
 
     integrator: Integrator = Integrator.MOREAU_JEAN
@@ -145,6 +149,7 @@ class SolverConfig:
     projection_tolerance: float = 1.0e-3
     max_speed: float = 1.0e3
     step_kernel: str = "auto"
+    sparse_body_nodes: bool = True
 
     def __post_init__(self):
         if not isinstance(self.integrator, Integrator):

@@ -340,9 +340,14 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     model.work.row_body_c = wp.clone(model.row_body_c)  # contact rows rewrite their bodies every step
     model.work.row_body_p = wp.clone(model.row_body_p)
     model.sparse = None
+    model.sparse_body_nodes = False
     if sparse:  # one factor schedule per distinct topology (engine.sparse)
         model.sparse_rows, rbc, rbp = factor_rows(specs, pairs, h)
-        model.sparse, model.sparse_analyses, entries = build_patterns(rbc, rbp, device)
+        model.sparse, model.sparse_analyses, entries = build_patterns(rbc, rbp, device,
+                                                                      body_nodes=config.sparse_body_nodes)
+        model.sparse_nodes = model.sparse_analyses[0].nodes
+        model.sparse_body_nodes = any(a.body_nodes for a in model.sparse_analyses)
+        model.work.sparse_root = wp.zeros((W, B), dtype=wp.mat33, device=device)
         model.work.sparse_A = wp.zeros((W, entries), dtype=float, device=device)
         model.work.sparse_L = wp.zeros((W, entries), dtype=float, device=device)
         model.work.sparse_real = wp.zeros((W, model.sparse_rows), dtype=wp.int32, device=device)
