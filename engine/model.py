@@ -116,9 +116,9 @@ class SolverConfig:
             rows), "staged" (one kernel per stage, the PADMM loop as a captured while loop) or
             "auto" (fused where it fits).
         sparse_body_nodes: the sparse solver keeps a body acted on by many rows (a walker's
-            torso) as six nodes of its factor instead of coupling all
-            its rows with each other, where its analysis estimates a shorter schedule
-            (engine.sparse.choose_body_nodes); off: the rows' own coupling pattern only.
+            torso) as six nodes of its factor instead of coupling all its rows with each other,
+            where its analysis estimates a shorter schedule (engine.sparse.choose_body_nodes);
+            off: the rows' own coupling pattern only.
     """
 
     integrator: Integrator = Integrator.MOREAU_JEAN
