@@ -59,7 +59,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from engine.dynamics import delassus_entry
+from engine.dynamics import delassus_entry_of
 from engine.linear import block_sync
 from engine.model import ROW_ANGULAR, ROW_LINEAR
 
@@ -428,8 +428,9 @@ def build_patterns(row_body_c: np.ndarray, row_body_p: np.ndarray, device, body_
     s = SparsePatterns()
     s.world_pattern = arr(world_pattern)
     s.perm = arr(np.stack([a.node_row() for a in analyses]))
-    s.node_body = arr(np.stack([a.node_body()[0] for a in analyses]))
-    s.node_comp = arr(np.stack([a.node_body()[1] for a in analyses]))
+    node_body, node_comp = zip(*(a.node_body() for a in analyses))
+    s.node_body = arr(np.stack(node_body))
+    s.node_comp = arr(np.stack(node_comp))
     flags = np.zeros((len(analyses), bodies), np.int32)
     for k, a in enumerate(analyses):
         flags[k, list(a.body_nodes)] = 1
@@ -587,36 +588,22 @@ def _col_sum(Lw: Any, v: Any, pat: SparsePatterns, p: int, eb: int, j: int, firs
 
 
 @wp.func
-def _shared_term(pat: SparsePatterns, p: int, body_of_row: int, J: wp.spatial_vector, other_body: int,
-                 MJ_other: wp.spatial_vector):
-    """J_i,b . (M^-1 J_j,b^T) when both rows act on the same body b and b is not a body node."""
-    if body_of_row >= 0 and body_of_row == other_body:
-        if pat.body_node[p, body_of_row] == 0:
-            return wp.dot(J, MJ_other)
-    return 0.0
-
-
-@wp.func
 def _row_row(pat: SparsePatterns, p: int, world: int, i: int, j: int, row_body_p: wp.array2d(dtype=wp.int32),
              row_body_c: wp.array2d(dtype=wp.int32), row_J_c: wp.array2d(dtype=wp.spatial_vector),
              row_J_p: wp.array2d(dtype=wp.spatial_vector), row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
              row_MJ_p: wp.array2d(dtype=wp.spatial_vector), row_compliance: wp.array2d(dtype=float),
              row_precond: wp.array2d(dtype=float)):
     """Entry (i, j) of P (J M^-1 J^T + R) P without the bodies kept as nodes (their share is U U^T)."""
-    if pat.has_body_nodes[p] == 0:
-        return delassus_entry(world, i, j, row_body_p, row_body_c, row_J_c, row_J_p, row_MJ_c, row_MJ_p,
-                              row_compliance, row_precond)
     ci = row_body_c[world, i]
     pi = row_body_p[world, i]
-    cj = row_body_c[world, j]
-    pj = row_body_p[world, j]
-    Jci = row_J_c[world, i]
-    Jpi = row_J_p[world, i]
-    d = _shared_term(pat, p, ci, Jci, cj, row_MJ_c[world, j]) + _shared_term(pat, p, ci, Jci, pj, row_MJ_p[world, j])
-    d += _shared_term(pat, p, pi, Jpi, cj, row_MJ_c[world, j]) + _shared_term(pat, p, pi, Jpi, pj, row_MJ_p[world, j])
-    if i == j:
-        d += row_compliance[world, i]
-    return row_precond[world, i] * d * row_precond[world, j]
+    count_c = int(1)
+    count_p = int(1)
+    if ci >= 0 and pat.body_node[p, ci] != 0:
+        count_c = 0
+    if pi >= 0 and pat.body_node[p, pi] != 0:
+        count_p = 0
+    return delassus_entry_of(world, i, j, row_body_p, row_body_c, row_J_c, row_J_p, row_MJ_c, row_MJ_p,
+                             row_compliance, row_precond, count_c, count_p)
 
 
 @wp.func
