@@ -15,9 +15,12 @@ import pathlib
 import numpy as np
 
 from engine import GroundPlane, MechanismSpec, Shape, TrackedPoint
+from engine.legged import LeggedSpec, LegPlacement
 from morphopt.design_space import Choice, DesignSpace, Float, Int
 from morphopt.linkage import BarStyle, linkage_parts
-from morphopt.linkage.to_spec import assemble, link_body
+from morphopt.linkage.kinematics import solve_at
+from morphopt.linkage.leg_table import leg_table
+from morphopt.linkage.to_spec import assemble, link_body, world
 
 
 
@@ -41,6 +44,7 @@ space = DesignSpace({
 })
 
 
+CRANK_DAMPING = 5.0  # [N m s/rad]: the crank motors' velocity gain
 SHOE_ALONG_X = np.array([0.0, math.sin(math.pi / 4), 0.0, math.cos(math.pi / 4)])  # capsule z -> world x
 
 
@@ -53,8 +57,13 @@ def _quat_conj(q):
     return np.array([-q[0], -q[1], -q[2], q[3]])
 
 
-def build_spec(params: dict, *, crank_speed: float | None = None, effort_limit: float = 20.0) -> MechanismSpec:
-    """The walker's MechanismSpec (crank_speed overrides the parameter when given) [rad/s]."""
+def _style(scale: float) -> BarStyle:
+    """The legs' bars at a walker's scale."""
+    return BarStyle(width=0.004 * scale, thickness=0.002 * scale, density=1200.0)
+
+
+def _layout(params: dict, crank_speed: float | None) -> dict:
+    """Everything both builds share: sizes, the legs' linkages and placements, assembled."""
     p = space.validate(params)
     scale, count = p["scale"], int(p["legs_per_side"])
     speed = p["crank_speed"] if crank_speed is None else crank_speed
@@ -64,8 +73,6 @@ def build_spec(params: dict, *, crank_speed: float | None = None, effort_limit: 
     spacing = p["stance"] * 2.0 * reach
     width = 0.6 * reach
     half = (0.5 * max(count, 1) * spacing + reach, width, 0.1 * reach)
-    foot_radius = 0.004 * scale
-    style = BarStyle(width=0.004 * scale, thickness=0.002 * scale, density=1200.0)
     placements = []
     for side, y in ((0, width + 0.01 * scale), (1, -(width + 0.01 * scale))):
         for k in range(count):
@@ -76,21 +83,33 @@ def build_spec(params: dict, *, crank_speed: float | None = None, effort_limit: 
     for (prefix, _, _, _), solution in zip(placements, solutions):
         if not solution.feasible:
             raise ValueError(f"leg '{prefix.rstrip('_')}' cannot be assembled: {solution.reason}")
+    foot_radius = 0.004 * scale
     lowest = min(solution.nodes["F"][0, 1] for solution in solutions)
-    height = -lowest + foot_radius + 0.001
+    hx, hy, hz = half
+    mass = p["torso_mass"]
+    return dict(p=p, scale=scale, speed=speed, leg_family=leg_family, reach=reach, half=half,
+                foot_radius=foot_radius, style=_style(scale),
+                placements=placements, solutions=solutions, height=-lowest + foot_radius + 0.001,
+                torso_inertia=mass / 3.0 * np.diag([hy * hy + hz * hz, hx * hx + hz * hz, hx * hx + hy * hy]))
+
+
+def build_spec(params: dict, *, crank_speed: float | None = None, effort_limit: float = 20.0) -> MechanismSpec:
+    """The walker's MechanismSpec (crank_speed overrides the parameter when given) [rad/s]."""
+    lay = _layout(params, crank_speed)
+    half, height, reach, foot_radius = lay["half"], lay["height"], lay["reach"], lay["foot_radius"]
     torso = link_body("torso", [np.array([-half[0], 0.0, height]), np.array([half[0], 0.0, height])],
                       BarStyle(width=2 * half[1], thickness=2 * half[2], density=1.0))
-    torso.mass = p["torso_mass"]
-    hx, hy, hz = half
-    torso.inertia = p["torso_mass"] / 3.0 * np.diag([hy * hy + hz * hz, hx * hx + hz * hz, hx * hx + hy * hy])
+    torso.mass = lay["p"]["torso_mass"]
+    torso.inertia = lay["torso_inertia"]
     torso.com = np.array([half[0], 0.0, 0.0])
     bodies, joints = [torso], []
     shapes = [Shape("torso", "box", "torso", half, position=(half[0], 0.0, 0.0), collision_group=1)]
     # torso_up: one torso half-length above the centre, for the torso's tilt (falls are failures)
-    points = [TrackedPoint("torso", "torso", (half[0], 0.0, 0.0)), TrackedPoint("torso_up", "torso", (half[0], 0.0, hx))]
-    for (prefix, x, y, linkage), solution in zip(placements, solutions):
+    points = [TrackedPoint("torso", "torso", (half[0], 0.0, 0.0)),
+              TrackedPoint("torso_up", "torso", (half[0], 0.0, half[0]))]
+    for (prefix, x, y, linkage), solution in zip(lay["placements"], lay["solutions"]):
         leg_bodies, leg_joints, leg_points = linkage_parts(
-            linkage, style=style, crank_damping=5.0, effort_limit=effort_limit, start_at_speed=False,
+            linkage, style=lay["style"], crank_damping=CRANK_DAMPING, effort_limit=effort_limit, start_at_speed=False,
             origin=(x, y, height), prefix=prefix, base=torso, solution=solution)
 
         bodies += leg_bodies
@@ -104,3 +123,50 @@ def build_spec(params: dict, *, crank_speed: float | None = None, effort_limit: 
         shapes.append(Shape(prefix + "foot", "capsule", foot.body, (foot_radius, 0.25 * reach), position=foot.position,
                             orientation=shoe, friction=1.0, collision_group=1))
     return MechanismSpec(bodies, joints, points, shapes=shapes, ground=GroundPlane(friction=1.0), name="walker")
+
+
+def _unit_leg(name: str) -> tuple:
+    """A leg family's table, link masses (K,) and inertias (K, 3, 3) at unit scale (bars of the
+    walker's style at scale 1); a walker at scale s has masses s^3 and inertias s^5 times these."""
+    if name not in _UNIT_LEGS:
+        family = LEG_FAMILIES[name]
+        linkage = family.generate(family.space.default())
+        table = leg_table(linkage)
+        nodes = solve_at([linkage], np.zeros((1, 1)))[0].nodes
+        bodies = [link_body(link.name, [world(nodes[n][0]) for n in link.nodes], _style(1.0)) for link in linkage.links]
+        _UNIT_LEGS[name] = (table, np.array([b.mass for b in bodies]), np.array([b.inertia for b in bodies]))
+    return _UNIT_LEGS[name]
+
+
+_UNIT_LEGS: dict = {}
+
+
+def build_legged(params: dict, *, crank_speed: float | None = None, effort_limit: float = 20.0) -> LeggedSpec:
+    """The same walker in reduced coordinates (engine.legged): the torso and one crank angle per
+    leg, every leg read from its family's table at the walker's scale (no assembly solve: the
+    legs are the family's default leg scaled); same masses, inertias, drives, shoes and friction
+    as build_spec (the start height from the table, within its interpolation error)."""
+    p = space.validate(params)
+    scale, count = p["scale"], int(p["legs_per_side"])
+    speed = p["crank_speed"] if crank_speed is None else crank_speed
+    table, unit_mass, unit_inertia = _unit_leg(p["leg_family"])
+    reach = 38.0e-3 * scale
+    spacing = p["stance"] * 2.0 * reach
+    width = 0.6 * reach
+    half = (0.5 * max(count, 1) * spacing + reach, width, 0.1 * reach)
+    foot_radius = 0.004 * scale
+    legs, lowest = [], math.inf
+    for side, y in ((0, width + 0.01 * scale), (1, -(width + 0.01 * scale))):
+        for k in range(count):
+            phase = 2.0 * math.pi * k / count + p["side_phase"] * side
+            links, foot = table.at(phase)
+            lowest = min(lowest, scale * foot[1])
+            legs.append(LegPlacement(f"{'left' if side == 0 else 'right'}{k}", table, scale,
+                                     ((k - 0.5 * (count - 1)) * spacing, y, 0.0), phase, unit_mass * scale**3,
+                                     unit_inertia * scale**5, speed, CRANK_DAMPING, effort_limit, foot_radius,
+                                     0.25 * reach, -float(links[table.foot_link, 2]), shoe_friction=1.0))
+    hx, hy, hz = half
+    mass = p["torso_mass"]
+    inertia = mass / 3.0 * np.diag([hy * hy + hz * hz, hx * hx + hz * hz, hx * hx + hy * hy])
+    return LeggedSpec("walker", mass, inertia, half, (0.0, 0.0, -lowest + foot_radius + 0.001), legs,
+                      torso_friction=0.8, ground_friction=1.0)

@@ -9,6 +9,7 @@ reason; the others in its batch carry on.
 
 from __future__ import annotations
 
+import math
 import operator
 import time
 from collections import defaultdict
@@ -268,7 +269,8 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
                      crank_speed: float | None = None, record_every: int = 10,
                      spec_hook: Callable | None = None, loop_tolerance: float = 5e-3,
                      fall_tilt: float = np.radians(45.0), fall_height: float = 0.5,
-                     stall_time: float = 0.2, config=None, workers: int | None = None) -> Evaluation:
+                     stall_time: float = 0.2, config=None, workers: int | None = None,
+                     model: str = "maximal") -> Evaluation:
     """Simulate every feasible design for ``duration`` [s] in one heterogeneous batch.
 
     Metrics: tracked-point paths over the last crank turn (planar, [m]), their stride and step
@@ -292,7 +294,17 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     config: the engine.SolverConfig of the batch (None: the defaults; a study's [solver] table).
     workers: processes that build the specs (morphopt.build.build_specs; None: one per core but
     one for batches of 256 designs or more).
+    model: "maximal" (engine: every link a body, every joint its rows) or "reduced" (engine.legged:
+    a torso and one crank angle per leg, the family's build_legged; walkers only), with the same
+    metrics, failure rules and halting; a reduced world's loops are closed by construction (its
+    loop_violation_max is the leg table's interpolation error at the walker's scale).
     """
+    if model not in ("maximal", "reduced"):
+        raise ValueError(f"evaluate_dynamic: model must be 'maximal' or 'reduced', got {model!r}")
+    if model == "reduced":
+        return _evaluate_reduced(family, params, duration=duration, dt=dt, device=device, crank_speed=crank_speed,
+                                 record_every=record_every, fall_tilt=fall_tilt, fall_height=fall_height,
+                                 stall_time=stall_time, config=config)
     from engine import pack_worlds, rollout
 
     t0 = time.perf_counter()
@@ -325,35 +337,94 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     t3 = time.perf_counter()
     record_dt = dt * record_every
     for world, i in enumerate(owners):
-        if trace.diverged[world]:
-            evaluation.failures[i] = "diverged: the simulation produced a non-finite state"
+        _world_metrics(evaluation, i, trace, world, model.point_names[world], specs[world].joints, record_dt,
+                       loop_tolerance, fall_tilt, fall_height, stall_time)
+    evaluation.timings.update(pack=t2 - t1, simulate=t3 - t2, metrics=time.perf_counter() - t3)
+    return evaluation
+
+
+def _world_metrics(evaluation: Evaluation, i: int, trace, world: int, names: list, joints: list, record_dt: float,
+                   loop_tolerance: float, fall_tilt: float, fall_height: float, stall_time: float,
+                   loop_violation: float | None = None) -> None:
+    """Metrics or the failure reason of design i, simulated as ``world`` of ``trace``; joints: the
+    entries of trace.drive_torque's last axis (objects with name, type and drive)."""
+    if trace.diverged[world]:
+        evaluation.failures[i] = "diverged: the simulation produced a non-finite state"
+        return
+    torn = float(trace.violation_linear[:, world].max())
+    if torn > loop_tolerance:
+        evaluation.failures[i] = (f"diverged: joints came apart by {torn:.3g} m "
+                                  f"(more than the {loop_tolerance:g} m tolerance)")
+        return
+    jammed = _jam(trace, world, joints, stall_time, record_dt)
+    if jammed:
+        evaluation.failures[i] = jammed
+        return
+    speeds = [abs(j.drive.target_velocity) for j in joints if j.drive is not None]
+    turn = int(round(2.0 * np.pi / max(speeds + [1e-9]) / record_dt)) if speeds else len(trace.time)
+    paths = {name: trace.points[-turn:, world, k][:, [0, 2]] for k, name in enumerate(names)}
+    metrics = _path_metrics(paths)
+    if "torso" in names:
+        metrics.update(_walking_metrics(trace, world, names.index("torso"), speeds, record_dt))
+    if "torso" in names and "torso_up" in names:
+        fell = _fall(trace, world, names.index("torso"), names.index("torso_up"), fall_tilt, fall_height)
+        metrics["torso_tilt_max"], metrics["torso_height_min"], reason = fell
+        if reason:
+            evaluation.failures[i] = reason
+            return
+    drive = trace.drive_torque[1:, world, :len(joints)]  # record 0 is the initial state
+    metrics["torque_peak"] = float(np.abs(drive).max())
+    metrics["torque_rms"] = float(np.sqrt(np.mean(drive**2)))
+    metrics["loop_violation_max"] = (float(trace.violation_linear[:, world].max()) if loop_violation is None
+                                     else loop_violation)
+    evaluation.metrics[i] = metrics
+
+
+def _evaluate_reduced(family, params: Sequence[dict], *, duration: float, dt: float, device: str,
+                      crank_speed: float | None, record_every: int, fall_tilt: float, fall_height: float,
+                      stall_time: float, config) -> Evaluation:
+    """evaluate_dynamic for model="reduced": engine.legged worlds from family.build_legged."""
+    from types import SimpleNamespace
+
+    from engine import JointDrive, JointType
+    from engine.legged import legged_rollout, pack_legged
+
+    if not hasattr(family, "build_legged"):
+        raise ValueError("model 'reduced' needs a family with build_legged (a walker of one-DoF legs); "
+                         "this family has none: use model 'maximal'")
+    t0 = time.perf_counter()
+    specs, owners, failures = [], [], []
+    for p in params:
+        try:
+            spec = family.build_legged(family.space.validate(p), crank_speed=crank_speed)
+        except ValueError as exc:
+            failures.append(f"cannot be built: {exc}")
             continue
-        torn = float(trace.violation_linear[:, world].max())
-        if torn > loop_tolerance:
-            evaluation.failures[i] = (f"diverged: joints came apart by {torn:.3g} m "
-                                      f"(more than the {loop_tolerance:g} m tolerance)")
-            continue
-        jammed = _jam(trace, world, specs[world].joints, stall_time, dt * record_every)
-        if jammed:
-            evaluation.failures[i] = jammed
-            continue
-        speeds = [abs(j.drive.target_velocity) for j in specs[world].joints if j.drive is not None]
-        turn = int(round(2.0 * np.pi / max(speeds + [1e-9]) / record_dt)) if speeds else len(trace.time)
-        names = model.point_names[world]
-        paths = {name: trace.points[-turn:, world, k][:, [0, 2]] for k, name in enumerate(names)}
-        metrics = _path_metrics(paths)
-        if "torso" in names:
-            metrics.update(_walking_metrics(trace, world, names.index("torso"), speeds, record_dt))
-        if "torso" in names and "torso_up" in names:
-            fell = _fall(trace, world, names.index("torso"), names.index("torso_up"), fall_tilt, fall_height)
-            metrics["torso_tilt_max"], metrics["torso_height_min"], reason = fell
-            if reason:
-                evaluation.failures[i] = reason
-                continue
-        drive = trace.drive_torque[1:, world]  # record 0 is the initial state
-        metrics["torque_peak"] = float(np.abs(drive).max())
-        metrics["torque_rms"] = float(np.sqrt(np.mean(drive**2)))
-        metrics["loop_violation_max"] = float(trace.violation_linear[:, world].max())
-        evaluation.metrics[i] = metrics
+        failures.append("")
+        specs.append(spec)
+        owners.append(len(failures) - 1)
+    evaluation = Evaluation(list(params), [{} for _ in params], failures)
+    t1 = time.perf_counter()
+    evaluation.timings = {"build": t1 - t0}
+    if not specs:
+        return evaluation
+    model = pack_legged(specs, device=device, dt=dt, config=config)
+    t2 = time.perf_counter()
+    steps = max(record_every, int(round(duration / dt / record_every)) * record_every)
+    torso, up = np.zeros(len(specs), int), np.ones(len(specs), int)  # points 0 and 1 of every legged world
+
+    def halt(points, start):
+        return _fallen_worlds(points[None], start, torso, up, fall_tilt, fall_height)
+
+    trace = legged_rollout(model, steps, record_every=record_every, halt=halt)
+    t3 = time.perf_counter()
+    for world, i in enumerate(owners):
+        spec = specs[world]
+        drives = [SimpleNamespace(name=f"{leg.name}_crank", type=JointType.REVOLUTE,
+                                  drive=JointDrive(damping=leg.damping, target_velocity=leg.target_speed,
+                                                   effort_limit=leg.effort_limit)) for leg in spec.legs]
+        closure = max(leg.table.closure_error * leg.scale for leg in spec.legs)
+        _world_metrics(evaluation, i, trace, world, spec.point_names, drives, dt * record_every, math.inf, fall_tilt,
+                       fall_height, stall_time, loop_violation=closure)
     evaluation.timings.update(pack=t2 - t1, simulate=t3 - t2, metrics=time.perf_counter() - t3)
     return evaluation

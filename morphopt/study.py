@@ -174,6 +174,9 @@ def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -
     family = load_family(spec.family)
     space = spec.design_space(family)
     _check_device(spec)
+    if spec.mode == "dynamic" and spec.model == "reduced" and not hasattr(family, "build_legged"):
+        raise ValueError(f"{spec.path}: 'simulation.model' = 'reduced' needs a family with build_legged "
+                         f"(a walker of one-DoF legs); family '{spec.family}' has none")
     if resume and not storage_exists(spec.storage_url):
         raise ValueError(f"study '{spec.name}' has nothing to resume: no database {spec.storage_url}")
     storage = StudyStorage(spec.storage_url, spec.name)
@@ -201,7 +204,7 @@ def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -
                                             keep_paths=any(o.metric == "path_error" for o in spec.objectives))
         else:
             evaluation = evaluate_dynamic(family, params, duration=spec.duration, dt=spec.dt, device=spec.device,
-                                          crank_speed=spec.crank_speed, config=spec.solver_config())
+                                          crank_speed=spec.crank_speed, config=spec.solver_config(), model=spec.model)
         t_objectives = time.perf_counter()
         apply_constraints(spec, evaluation)
         values = objective_values(spec, evaluation)

@@ -15,7 +15,9 @@
                   ("ipop" | "bipop") (cma), sampler
                   ("tpe" | "nsga2" | "random", optuna)
     [simulation]  duration [s], dt [s], crank_speed [rad/s] (dynamic mode; default: the design's
-                  own, 2 pi for linkage families), samples (points per crank turn, kinematic mode)
+                  own, 2 pi for linkage families), samples (points per crank turn, kinematic mode),
+                  model ("maximal", the default, or "reduced": walkers in reduced coordinates,
+                  engine.legged, for families with build_legged)
     [solver]      engine settings of dynamic studies: any field of engine.SolverConfig (e.g.
                   max_iterations, tolerance, linear_solver); default: SolverConfig's own
     [space]       per parameter: [low, high] to narrow the family's bounds
@@ -49,7 +51,7 @@ SECTIONS = {
     "objective": {"metric": str, "direction": str, "point": str, "target": list},
     "objectives": None,
     "optimizer": {"name": str, "sigma0": float, "sampler": str, "restarts": int, "restart_strategy": str},
-    "simulation": {"duration": float, "dt": float, "crank_speed": float, "samples": int},
+    "simulation": {"duration": float, "dt": float, "crank_speed": float, "samples": int, "model": str},
     "solver": None,
     "space": None,
     "fixed": None,
@@ -104,6 +106,7 @@ class StudySpec:
     dt: float = 1e-3
     crank_speed: float | None = None
     samples: int = 360
+    model: str = "maximal"
     space_overrides: dict = field(default_factory=dict)
     fixed: dict = field(default_factory=dict)
     constraints: dict = field(default_factory=dict)
@@ -322,6 +325,8 @@ def _check_values(spec: StudySpec, where: str) -> None:
         ("simulation.crank_speed", spec.crank_speed is None or (spec.crank_speed != 0.0 and math.isfinite(spec.crank_speed)),
          "a non-zero speed"),
         ("simulation.samples", spec.samples >= 8, "an integer >= 8"),
+        ("simulation.model", spec.model in ("maximal", "reduced"),
+         "'maximal' (every link a body) or 'reduced' (a walker's torso and crank angles: engine.legged)"),
     ]
     for key, ok, expected in checks:
         if not ok:

@@ -1,0 +1,1116 @@
+"""Legged worlds in reduced coordinates: a rigid torso carrying one-DoF planar legs.
+
+A leg whose links form a one-degree-of-freedom closed chain on the torso (a Jansen or Klann leg
+turned by its crank) has one coordinate, its crank angle psi: every link's pose in the torso
+frame is a function of psi. Tabulated over a crank turn (LegTable: the centre of mass and the
+angle of every link, and the foot, with their first and second derivatives in psi), the whole
+walker has 6 + L coordinates (torso pose, L crank angles) instead of 6 per body, and its loops
+are closed by construction. engine.legged steps such worlds with the same physics as the
+maximal-coordinate engine (same drives, contacts, friction cones and PADMM), with the constraint
+rows reduced to the drives and the contacts:
+
+- generalized velocity u = (v, w, psi_dot_1..L): the torso's centre-of-mass velocity and angular
+  velocity (world frame) and the crank rates; a link k of leg l moves with
+  v_k = v + w x d_k + e_k psi_dot_l and w_k = w + a phi_k' psi_dot_l, where d_k = R (o_l + c_k(psi)),
+  e_k = R c_k'(psi), a = -R y (the legs turn about the torso's -y axis) and phi_k the link's
+  planar angle;
+- mass matrix M(q) = sum_k J_k^T diag(m_k, I_k) J_k and bias forces h(q, u) (gravity, the
+  velocity-product terms from c_k'' and phi_k'' and the gyroscopic torques) summed link by link;
+- semi-implicit Euler: u_f = u + dt M^-1 h, then the dual problem over the rows (crank drives with
+  the implicit damping law and effort bounds; contact triplets with the engine's stabilization
+  and Coulomb cones with the De Saxce correction) by PADMM with a Jacobi preconditioner; its
+  linear solves use the Woodbury identity (D + S)^-1 = S^-1 - S^-1 J (M + J^T S^-1 J)^-1 J^T S^-1,
+  so that a factor is of the (6 + L)-square matrix, never of the rows' Delassus matrix;
+- then u+ = u_f + M^-1 J^T lambda, positions and the torso's orientation (exponential map)
+  integrated with u+.
+
+Contacts: the torso box's corners and both ends of every foot's shoe capsule against the ground
+plane z = 0, kept within SolverConfig.contact_margin. One thread steps one world; the contact
+candidates have fixed slots (their warm-start keys). A world whose state turns non-finite or
+whose torso moves faster than max_speed is flagged diverged and frozen; halted worlds are frozen.
+"""
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from engine.model import SolverConfig
+
+wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
+
+__all__ = ["LeggedModel", "LeggedSpec", "LegPlacement", "LegTable", "legged_rollout", "pack_legged"]
+
+MAX_LEGS = wp.constant(8)
+NV = wp.constant(6 + 8)  # generalized velocities of the largest world
+MAX_LINKS = wp.constant(8)  # links per leg
+TORSO_CORNERS = wp.constant(8)
+MAX_CONTACTS = TORSO_CORNERS + 2 * MAX_LEGS  # slot k < 8: torso corner k; 8 + 2 l + e: end e of leg l's shoe
+MAX_ROWS = wp.constant(MAX_LEGS + 3 * MAX_CONTACTS)
+TWO_PI = wp.constant(2.0 * math.pi)
+ROW_STRIDE = wp.constant(10)  # floats per row in the rows' scratch (see row_at)
+
+
+@dataclass
+class LegTable:
+    """Kinematics of one leg linkage over a crank turn, at unit length scale.
+
+    samples crank angles psi_n = 2 pi n / N. links (N, K, 3): per link its centre of mass in the
+    leg plane (x, z) [m] and its planar angle phi [rad] (counter-clockwise seen from +y... i.e. a
+    rotation about the torso's -y axis); links_d1, links_d2 the derivatives in psi; foot (N, 3):
+    the foot point (x, z, 0) and foot_d1, foot_d2; foot_link: the link that carries the foot.
+    closure_error: the largest distance [m, unit scale] between a pivot placed by the two links
+    it joins when both are read from the table between samples (linear interpolation): the
+    loop-closure error the table stands for.
+    """
+
+    name: str
+    links: np.ndarray
+    links_d1: np.ndarray
+    links_d2: np.ndarray
+    foot: np.ndarray
+    foot_d1: np.ndarray
+    foot_d2: np.ndarray
+    foot_link: int
+    link_names: list = field(default_factory=list)
+    closure_error: float = 0.0
+
+    def __post_init__(self):
+        n, k, three = np.shape(self.links)
+        if three != 3 or not 1 <= k <= MAX_LINKS or n < 16:
+            raise ValueError(f"leg table '{self.name}': links must be (N >= 16, K <= {MAX_LINKS}, 3), "
+                             f"got {np.shape(self.links)}")
+        for name in ("links_d1", "links_d2"):
+            if np.shape(getattr(self, name)) != (n, k, 3):
+                raise ValueError(f"leg table '{self.name}': {name} must be {(n, k, 3)}")
+        for name in ("foot", "foot_d1", "foot_d2"):
+            if np.shape(getattr(self, name)) != (n, 3):
+                raise ValueError(f"leg table '{self.name}': {name} must be {(n, 3)}")
+        if not 0 <= self.foot_link < k:
+            raise ValueError(f"leg table '{self.name}': foot_link {self.foot_link} is not one of its {k} links")
+
+    @property
+    def samples(self) -> int:
+        return int(np.shape(self.links)[0])
+
+    def at(self, psi: float) -> tuple:
+        """Links (K, 3) and foot (3,) at crank angle psi [rad], interpolated as the kernels do."""
+        n = self.samples
+        u = (psi / (2.0 * math.pi) * n) % n
+        i0 = min(int(u), n - 1)
+        i1, f = (i0 + 1) % n, u - i0
+        a, b = self.links[i0], self.links[i1]
+        step = b - a
+        step[:, 2] -= 2.0 * math.pi * np.round(step[:, 2] / (2.0 * math.pi))
+        return a + f * step, (1.0 - f) * self.foot[i0] + f * self.foot[i1]
+
+
+@dataclass
+class LegPlacement:
+    """One leg on the torso: its table, length scale, plane origin in the torso frame relative to
+    the torso's centre of mass [m], initial crank angle [rad], link masses (K,) [kg] and inertias
+    (K, 3, 3) about their centres in the link frame (x along the link's planar angle, y the leg
+    plane's normal) [kg m^2], the crank's velocity drive (target [rad/s], damping [N m s/rad],
+    effort limit [N m]) and the foot's shoe: a capsule of radius [m] and half length [m] whose
+    axis makes shoe_angle [rad] with the foot link's x axis in the leg plane."""
+
+    name: str
+    table: LegTable
+    scale: float
+    origin: tuple
+    angle: float
+    link_mass: np.ndarray
+    link_inertia: np.ndarray
+    target_speed: float
+    damping: float
+    effort_limit: float
+    shoe_radius: float
+    shoe_half_length: float
+    shoe_angle: float
+    shoe_friction: float = 1.0
+
+
+@dataclass
+class LeggedSpec:
+    """One legged world: a box torso (mass [kg], inertia about its centre in its frame [kg m^2],
+    half extents [m], centre-of-mass position [m] at the start, axes aligned with the world's)
+    carrying legs, on the ground plane z = 0 (ground=False: no ground)."""
+
+    name: str
+    torso_mass: float
+    torso_inertia: np.ndarray
+    torso_half: tuple
+    torso_position: tuple
+    legs: list
+    torso_friction: float = 0.8
+    ground_friction: float = 1.0
+    ground: bool = True
+    gravity: tuple = (0.0, 0.0, -9.81)
+
+    def __post_init__(self):
+        where = f"legged world '{self.name}'"
+        if not 1 <= len(self.legs) <= MAX_LEGS:
+            raise ValueError(f"{where}: needs 1 to {MAX_LEGS} legs, got {len(self.legs)}")
+        if not (np.isfinite(self.torso_mass) and self.torso_mass > 0.0):
+            raise ValueError(f"{where}: torso_mass must be positive, got {self.torso_mass}")
+        for leg in self.legs:
+            k = np.shape(leg.table.links)[1]
+            if np.shape(leg.link_mass) != (k,) or np.shape(leg.link_inertia) != (k, 3, 3):
+                raise ValueError(f"{where}, leg '{leg.name}': link_mass must be ({k},) and link_inertia ({k}, 3, 3)")
+            if not leg.scale > 0.0:
+                raise ValueError(f"{where}, leg '{leg.name}': scale must be positive, got {leg.scale}")
+
+    @property
+    def point_names(self) -> list:
+        """Tracked points: torso centre, a point one torso half-length above it, every foot."""
+        return ["torso", "torso_up", *(f"{leg.name}_foot" for leg in self.legs)]
+
+
+vecnv = wp.types.vector(length=NV, dtype=wp.float32)
+
+
+class LeggedModel:
+    """A batch of legged worlds on one device: tables, per-world parameters, state and scratch."""
+
+    def __init__(self, specs: list, device, dt: float, config: SolverConfig):
+        self.device, self.dt, self.config = wp.get_device(device), float(dt), config
+        self.num_worlds = W = len(specs)
+        self.specs = specs
+        tables, table_index = [], {}
+        for spec in specs:
+            for leg in spec.legs:
+                if id(leg.table) not in table_index:
+                    table_index[id(leg.table)] = len(tables)
+                    tables.append(leg.table)
+        samples = {t.samples for t in tables}
+        if len(samples) != 1:
+            raise ValueError(f"pack_legged: every leg table needs the same number of samples, got {sorted(samples)}")
+        N = samples.pop()
+        T = len(tables)
+        links = np.zeros((3, T, N, MAX_LINKS, 3), np.float32)
+        foot = np.zeros((3, T, N, 3), np.float32)
+        table_links = np.zeros(T, np.int32)
+        table_foot_link = np.zeros(T, np.int32)
+        for t, table in enumerate(tables):
+            k = table.links.shape[1]
+            links[0, t, :, :k], links[1, t, :, :k], links[2, t, :, :k] = table.links, table.links_d1, table.links_d2
+            foot[0, t], foot[1, t], foot[2, t] = table.foot, table.foot_d1, table.foot_d2
+            table_links[t], table_foot_link[t] = k, table.foot_link
+        L = MAX_LEGS
+        leg_count = np.zeros(W, np.int32)
+        leg_table = np.zeros((W, L), np.int32)
+        leg_scale = np.ones((W, L), np.float32)
+        leg_origin = np.zeros((W, L, 3), np.float32)
+        leg_angle = np.zeros((W, L), np.float32)
+        link_mass = np.zeros((W, L * MAX_LINKS), np.float32)
+        link_inertia = np.zeros((W, L * MAX_LINKS, 3, 3), np.float32)
+        drive = np.zeros((W, L, 3), np.float32)
+        shoe = np.zeros((W, L, 4), np.float32)
+        torso = np.zeros((W, 4), np.float32)  # mass, friction with the ground, ground on, spare
+        torso_inertia = np.zeros((W, 3, 3), np.float32)
+        torso_half = np.zeros((W, 3), np.float32)
+        gravity = np.zeros((W, 3), np.float32)
+        position = np.zeros((W, 3), np.float32)
+        for w, spec in enumerate(specs):
+            leg_count[w] = len(spec.legs)
+            torso[w] = (spec.torso_mass, math.sqrt(spec.torso_friction * spec.ground_friction), float(spec.ground), 0)
+            torso_inertia[w] = spec.torso_inertia
+            torso_half[w] = spec.torso_half
+            gravity[w] = spec.gravity
+            position[w] = spec.torso_position
+            for li, leg in enumerate(spec.legs):
+                k = leg.table.links.shape[1]
+                leg_table[w, li] = table_index[id(leg.table)]
+                leg_scale[w, li] = leg.scale
+                leg_origin[w, li] = leg.origin
+                leg_angle[w, li] = leg.angle
+                link_mass[w, li * MAX_LINKS:li * MAX_LINKS + k] = leg.link_mass
+                link_inertia[w, li * MAX_LINKS:li * MAX_LINKS + k] = leg.link_inertia
+                drive[w, li] = (leg.target_speed, leg.damping, leg.effort_limit)
+                shoe[w, li] = (leg.shoe_radius, leg.shoe_half_length, leg.shoe_angle,
+                              math.sqrt(leg.shoe_friction * spec.ground_friction))
+        d = self.device
+        self.samples = N
+        self.table_links = wp.array(table_links, dtype=wp.int32, device=d)
+        self.table_foot_link = wp.array(table_foot_link, dtype=wp.int32, device=d)
+        self.links = [wp.array(links[i], dtype=wp.vec3, device=d) for i in range(3)]
+        self.foot = [wp.array(foot[i], dtype=wp.vec3, device=d) for i in range(3)]
+        self.leg_count = wp.array(leg_count, dtype=wp.int32, device=d)
+        self.leg_table = wp.array(leg_table, dtype=wp.int32, device=d)
+        self.leg_scale = wp.array(leg_scale, dtype=float, device=d)
+        self.leg_origin = wp.array(leg_origin, dtype=wp.vec3, device=d)
+        self.link_mass = wp.array(link_mass, dtype=float, device=d)
+        self.link_inertia = wp.array(link_inertia, dtype=wp.mat33, device=d)
+        self.drive = wp.array(drive, dtype=wp.vec3, device=d)
+        self.shoe = wp.array(shoe, dtype=wp.vec4, device=d)
+        self.torso = wp.array(torso, dtype=wp.vec4, device=d)
+        self.torso_inertia = wp.array(torso_inertia, dtype=wp.mat33, device=d)
+        self.torso_half = wp.array(torso_half, dtype=wp.vec3, device=d)
+        self.gravity = wp.array(gravity, dtype=wp.vec3, device=d)
+        # state
+        self.position = wp.array(position, dtype=wp.vec3, device=d)
+        self.orientation = wp.array(np.tile([0.0, 0.0, 0.0, 1.0], (W, 1)).astype(np.float32), dtype=wp.quat, device=d)
+        self.velocity = wp.zeros(W, dtype=wp.vec3, device=d)
+        self.angular_velocity = wp.zeros(W, dtype=wp.vec3, device=d)
+        self.psi = wp.array(leg_angle, dtype=float, device=d)
+        self.psi_dot = wp.zeros((W, L), dtype=float, device=d)
+        self.impulse = wp.zeros((W, MAX_ROWS), dtype=float, device=d)  # warm start, by row slot
+        self.frozen = wp.zeros(W, dtype=wp.int32, device=d)
+        self.diverged = wp.zeros(W, dtype=wp.int32, device=d)
+        self.iterations = wp.zeros(W, dtype=wp.int32, device=d)
+        self.contacts = wp.zeros(W, dtype=wp.int32, device=d)
+        # scratch of the step, per world
+        self.rows_J = wp.zeros((W, MAX_ROWS * NV), dtype=float, device=d)
+        self.rows = wp.zeros((W, MAX_ROWS * ROW_STRIDE), dtype=float, device=d)
+        self.mass = wp.zeros((W, NV * NV), dtype=float, device=d)
+        self.factor = wp.zeros((W, NV * NV), dtype=float, device=d)
+        self.work = [wp.zeros((W, MAX_ROWS), dtype=float, device=d) for _ in range(8)]  # x, y, z, tmp, b, xp, yp, zp
+        self.slot_of = wp.zeros((W, MAX_ROWS), dtype=wp.int32, device=d)
+        self.drive_torque = wp.zeros((W, MAX_LEGS), dtype=float, device=d)
+        self.points = wp.zeros((W, 2 + MAX_LEGS), dtype=wp.vec3, device=d)
+        self.energy = wp.zeros(W, dtype=float, device=d)
+
+    @property
+    def point_names(self) -> list:
+        return [spec.point_names for spec in self.specs]
+
+
+def pack_legged(specs: list, *, device="cpu", dt: float = 2e-3, config: SolverConfig | None = None) -> LeggedModel:
+    """One batch of legged worlds (see LeggedSpec) on ``device``, stepped with ``dt`` [s]."""
+    if not specs:
+        raise ValueError("pack_legged: needs at least one world")
+    if not dt > 0.0:
+        raise ValueError(f"pack_legged: dt must be positive, got {dt}")
+    return LeggedModel(list(specs), device, dt, config or SolverConfig())
+
+
+# -- kernels ---------------------------------------------------------------------------------------
+
+
+@wp.func
+def table_read(table: wp.array3d(dtype=wp.vec3), t: int, i0: int, i1: int, f: float, k: int):
+    return table[t, i0, k] * (1.0 - f) + table[t, i1, k] * f
+
+
+@wp.func
+def link_read(table: wp.array3d(dtype=wp.vec3), t: int, i0: int, i1: int, f: float, k: int):
+    """A link's (x, z, angle) between two samples; the angle steps by its difference wrapped to
+    (-pi, pi] (a crank's angle wraps once per turn between the last sample and the first)."""
+    a = table[t, i0, k]
+    b = table[t, i1, k]
+    d = b[2] - a[2]
+    d = d - TWO_PI * wp.round(d / TWO_PI)
+    return wp.vec3(a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]), a[2] + f * d)
+
+
+@wp.func
+def foot_read(table: wp.array2d(dtype=wp.vec3), t: int, i0: int, i1: int, f: float):
+    return table[t, i0] * (1.0 - f) + table[t, i1] * f
+
+
+@wp.func
+def plane(R: wp.mat33, p: wp.vec3):
+    """Leg-plane vector (x, z, .) in the world frame: torso R times (x, 0, z)."""
+    return R * wp.vec3(p[0], 0.0, p[1])
+
+
+@wp.func
+def rot_minus_y(angle: float):
+    """Rotation by ``angle`` about -y (counter-clockwise in the leg plane)."""
+    c = wp.cos(angle)
+    s = wp.sin(angle)
+    return wp.mat33(c, 0.0, -s, 0.0, 1.0, 0.0, s, 0.0, c)
+
+
+@wp.func
+def mat_add(m: wp.array2d(dtype=float), w: int, i: int, j: int, value: float):
+    m[w, i * NV + j] = m[w, i * NV + j] + value
+
+
+@wp.func
+def add_block(m: wp.array2d(dtype=float), w: int, i0: int, j0: int, b: wp.mat33):
+    for i in range(3):
+        for j in range(3):
+            mat_add(m, w, i0 + i, j0 + j, b[i, j])
+
+
+@wp.func
+def cholesky(a: wp.array2d(dtype=float), w: int, n: int, out: wp.array2d(dtype=float)):
+    """Lower Cholesky factor of a's leading n x n block into out (row-major, NV columns)."""
+    for j in range(n):
+        s = a[w, j * NV + j]
+        for k in range(j):
+            s -= out[w, j * NV + k] * out[w, j * NV + k]
+        d = wp.sqrt(wp.max(s, 1.0e-20))
+        out[w, j * NV + j] = d
+        for i in range(j + 1, n):
+            t = a[w, i * NV + j]
+            for k in range(j):
+                t -= out[w, i * NV + k] * out[w, j * NV + k]
+            out[w, i * NV + j] = t / d
+
+
+@wp.func
+def chol_solve(L: wp.array2d(dtype=float), w: int, n: int, b: vecnv):
+    y = b
+    for i in range(n):
+        s = y[i]
+        for k in range(i):
+            s -= L[w, i * NV + k] * y[k]
+        y[i] = s / L[w, i * NV + i]
+    for ii in range(n):
+        i = n - 1 - ii
+        s = y[i]
+        for k in range(i + 1, n):
+            s -= L[w, k * NV + i] * y[k]
+        y[i] = s / L[w, i * NV + i]
+    return y
+
+
+# row scratch layout (ROW_STRIDE floats per row): 0 preconditioner P, 1 compliance R (unscaled),
+# 2 free velocity v_f (preconditioned), 3 friction mu (contacts; -1 drive), 4 lower, 5 upper
+# bounds (drives, preconditioned), 6 ADMM penalty, 7 row velocity at the last iterate, 8 free
+# drive flag
+@wp.func
+def row_at(rows: wp.array2d(dtype=float), w: int, r: int, c: int):
+    return rows[w, r * ROW_STRIDE + c]
+
+
+@wp.func
+def set_row(rows: wp.array2d(dtype=float), w: int, r: int, c: int, value: float):
+    rows[w, r * ROW_STRIDE + c] = value
+
+
+@wp.func
+def penalty(rows: wp.array2d(dtype=float), w: int, r: int):
+    """A row's ADMM penalty."""
+    return rows[w, r * ROW_STRIDE + 6]
+
+
+@wp.func
+def set_penalties(rows: wp.array2d(dtype=float), w: int, m: int, rho: float, rho0: float):
+    """Every row's penalty: rho, or min(rho, rho0) for a free drive row."""
+    for r in range(m):
+        value = rho
+        if rows[w, r * ROW_STRIDE + 8] == 1.0:
+            value = wp.min(rho, rho0)
+        rows[w, r * ROW_STRIDE + 6] = value
+
+
+@wp.func
+def jrow_dot(J: wp.array2d(dtype=float), w: int, r: int, n: int, u: vecnv):
+    s = float(0.0)
+    for c in range(n):
+        s += J[w, r * NV + c] * u[c]
+    return s
+
+
+@wp.func
+def woodbury_solve(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=float), K: wp.array2d(dtype=float),
+                   w: int, m: int, n: int, sigma_base: float, b: wp.array2d(dtype=float), x: wp.array2d(dtype=float),
+                   tmp: wp.array2d(dtype=float)):
+    """x = (J M^-1 J^T + S)^-1 b, S = diag(sigma_base + P^2 R), with K the factor of M + J^T S^-1 J."""
+    g = vecnv()
+    for r in range(m):
+        p = row_at(rows, w, r, 0)
+        sig = sigma_base + penalty(rows, w, r) + p * p * row_at(rows, w, r, 1)
+        t = b[w, r] / sig
+        tmp[w, r] = t
+        for c in range(n):
+            g[c] += J[w, r * NV + c] * t
+    y = chol_solve(K, w, n, g)
+    for r in range(m):
+        p = row_at(rows, w, r, 0)
+        sig = sigma_base + penalty(rows, w, r) + p * p * row_at(rows, w, r, 1)
+        x[w, r] = tmp[w, r] - jrow_dot(J, w, r, n, y) / sig
+
+
+@wp.func
+def woodbury_factor(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=float), M: wp.array2d(dtype=float),
+                    K: wp.array2d(dtype=float), w: int, m: int, n: int, sigma_base: float):
+    """K <- Cholesky factor of M + J^T S^-1 J (uses K's storage for the sum first)."""
+    for i in range(n):
+        for j in range(i + 1):
+            K[w, i * NV + j] = M[w, i * NV + j]
+    for r in range(m):
+        p = row_at(rows, w, r, 0)
+        sig = sigma_base + penalty(rows, w, r) + p * p * row_at(rows, w, r, 1)
+        for i in range(n):
+            ji = J[w, r * NV + i] / sig
+            if ji != 0.0:
+                for j in range(i + 1):
+                    K[w, i * NV + j] = K[w, i * NV + j] + ji * J[w, r * NV + j]
+    # in-place Cholesky of the lower triangle
+    for j in range(n):
+        s = K[w, j * NV + j]
+        for k in range(j):
+            s -= K[w, j * NV + k] * K[w, j * NV + k]
+        d = wp.sqrt(wp.max(s, 1.0e-20))
+        K[w, j * NV + j] = d
+        for i in range(j + 1, n):
+            t = K[w, i * NV + j]
+            for k in range(j):
+                t -= K[w, i * NV + k] * K[w, j * NV + k]
+            K[w, i * NV + j] = t / d
+
+
+@wp.func
+def project_row(rows: wp.array2d(dtype=float), w: int, r: int, a: float, b: float, c: float):
+    """Projection of a row's value (a drive: clamp) or a contact triplet's (a, b, c) onto its cone;
+    returns the projected triplet (drives use the first component only)."""
+    mu = row_at(rows, w, r, 3)
+    if mu < 0.0:
+        return wp.vec3(wp.clamp(a, row_at(rows, w, r, 4), row_at(rows, w, r, 5)), 0.0, 0.0)
+    t = wp.sqrt(b * b + c * c)
+    if t <= mu * a:
+        return wp.vec3(a, b, c)
+    if mu * t <= -a:
+        return wp.vec3(0.0, 0.0, 0.0)
+    n = (a + mu * t) / (1.0 + mu * mu)
+    return wp.vec3(n, mu * n * b / t, mu * n * c / t)
+
+
+@wp.kernel
+def legged_step(
+    dt: float,
+    eta: float,
+    rho0: float,
+    tolerance: float,
+    relative_tolerance: float,
+    max_iterations: int,
+    rho_update_interval: int,
+    margin: float,
+    stabilization: float,
+    max_speed: float,
+    # tables
+    table_links: wp.array(dtype=wp.int32),
+    table_foot_link: wp.array(dtype=wp.int32),
+    links0: wp.array3d(dtype=wp.vec3),
+    links1: wp.array3d(dtype=wp.vec3),
+    links2: wp.array3d(dtype=wp.vec3),
+    foot0: wp.array2d(dtype=wp.vec3),
+    foot1: wp.array2d(dtype=wp.vec3),
+    foot2: wp.array2d(dtype=wp.vec3),
+    samples: int,
+    # worlds
+    leg_count: wp.array(dtype=wp.int32),
+    leg_table: wp.array2d(dtype=wp.int32),
+    leg_scale: wp.array2d(dtype=float),
+    leg_origin: wp.array2d(dtype=wp.vec3),
+    link_mass: wp.array2d(dtype=float),
+    link_inertia: wp.array2d(dtype=wp.mat33),
+    drive: wp.array2d(dtype=wp.vec3),
+    shoe: wp.array2d(dtype=wp.vec4),
+    torso: wp.array(dtype=wp.vec4),
+    torso_inertia: wp.array(dtype=wp.mat33),
+    torso_half: wp.array(dtype=wp.vec3),
+    gravity: wp.array(dtype=wp.vec3),
+    # state (in/out)
+    position: wp.array(dtype=wp.vec3),
+    orientation: wp.array(dtype=wp.quat),
+    velocity: wp.array(dtype=wp.vec3),
+    angular_velocity: wp.array(dtype=wp.vec3),
+    psi: wp.array2d(dtype=float),
+    psi_dot: wp.array2d(dtype=float),
+    impulse: wp.array2d(dtype=float),
+    frozen: wp.array(dtype=wp.int32),
+    diverged: wp.array(dtype=wp.int32),
+    # out
+    iterations_out: wp.array(dtype=wp.int32),
+    contacts_out: wp.array(dtype=wp.int32),
+    drive_torque: wp.array2d(dtype=float),
+    # scratch
+    J: wp.array2d(dtype=float),
+    rows: wp.array2d(dtype=float),
+    M: wp.array2d(dtype=float),
+    K: wp.array2d(dtype=float),
+    x: wp.array2d(dtype=float),
+    y: wp.array2d(dtype=float),
+    z: wp.array2d(dtype=float),
+    tmp: wp.array2d(dtype=float),
+    b: wp.array2d(dtype=float),
+    xp: wp.array2d(dtype=float),
+    yp: wp.array2d(dtype=float),
+    zp: wp.array2d(dtype=float),
+    slot_of: wp.array2d(dtype=wp.int32),
+):
+    w = wp.tid()
+    if frozen[w] != 0:
+        return
+    L = leg_count[w]
+    n = 6 + L
+    p = position[w]
+    q = orientation[w]
+    v = velocity[w]
+    om = angular_velocity[w]
+    R = wp.quat_to_matrix(q)
+    axis = -(R * wp.vec3(0.0, 1.0, 0.0))
+    g = gravity[w]
+    mt = torso[w][0]
+    for i in range(NV * NV):
+        M[w, i] = 0.0
+    h = vecnv()
+    # torso
+    It = R * torso_inertia[w] * wp.transpose(R)
+    for i in range(3):
+        mat_add(M, w, i, i, mt)
+    add_block(M, w, 3, 3, It)
+    gyro = -wp.cross(om, It * om)
+    for i in range(3):
+        h[i] += mt * g[i]
+        h[3 + i] += gyro[i]
+    # legs: mass matrix and bias forces, link by link
+    scale_n = float(samples) / TWO_PI
+    for li in range(L):
+        t = leg_table[w, li]
+        s = leg_scale[w, li]
+        ang = psi[w, li]
+        rate = psi_dot[w, li]
+        u = ang * scale_n
+        u = u - float(samples) * wp.floor(u / float(samples))
+        i0 = int(u)
+        if i0 >= samples:
+            i0 = samples - 1
+        f = u - float(i0)
+        i1 = i0 + 1
+        if i1 >= samples:
+            i1 = 0
+        col = 6 + li
+        o = leg_origin[w, li]
+        for k in range(table_links[t]):
+            c0 = link_read(links0, t, i0, i1, f, k)
+            c1 = table_read(links1, t, i0, i1, f, k)
+            c2 = table_read(links2, t, i0, i1, f, k)
+            mk = link_mass[w, li * MAX_LINKS + k]
+            d = R * (o + wp.vec3(s * c0[0], 0.0, s * c0[1]))
+            e = plane(R, c1) * s
+            e2 = plane(R, c2) * s
+            Rk = R * rot_minus_y(c0[2])
+            Ik = Rk * link_inertia[w, li * MAX_LINKS + k] * wp.transpose(Rk)
+            ax = axis * c1[2]
+            for i in range(3):
+                mat_add(M, w, i, i, mk)
+            dx = wp.skew(d)
+            add_block(M, w, 0, 3, -mk * dx)
+            add_block(M, w, 3, 0, mk * dx)
+            add_block(M, w, 3, 3, Ik + mk * (wp.dot(d, d) * wp.identity(n=3, dtype=float) - wp.outer(d, d)))
+            mwj = mk * wp.cross(d, e) + Ik * ax
+            for i in range(3):
+                mat_add(M, w, i, col, mk * e[i])
+                mat_add(M, w, col, i, mk * e[i])
+                mat_add(M, w, 3 + i, col, mwj[i])
+                mat_add(M, w, col, 3 + i, mwj[i])
+            mat_add(M, w, col, col, mk * wp.dot(e, e) + wp.dot(ax, Ik * ax))
+            wk = om + ax * rate
+            acc = wp.cross(om, wp.cross(om, d)) + 2.0 * rate * wp.cross(om, e) + e2 * (rate * rate)
+            alpha = rate * wp.cross(om, ax) + axis * (c2[2] * rate * rate)
+            f_lin = mk * (g - acc)
+            f_ang = -(Ik * alpha) - wp.cross(wk, Ik * wk)
+            tor = wp.cross(d, f_lin) + f_ang
+            for i in range(3):
+                h[i] += f_lin[i]
+                h[3 + i] += tor[i]
+            h[col] += wp.dot(e, f_lin) + wp.dot(ax, f_ang)
+    cholesky(M, w, n, K)
+    uu = vecnv()
+    for i in range(3):
+        uu[i] = v[i]
+        uu[3 + i] = om[i]
+    for li in range(L):
+        uu[6 + li] = psi_dot[w, li]
+    acc_free = chol_solve(K, w, n, h)
+    uf = uu + dt * acc_free
+    # rows: drives, then contacts within the margin
+    m = int(0)
+    for li in range(L):
+        dr = drive[w, li]
+        for c in range(NV):
+            J[w, m * NV + c] = 0.0
+        J[w, m * NV + 6 + li] = 1.0
+        kd = dr[1]
+        bound = dt * dr[2]
+        compliance = 1.0e6
+        if kd > 0.0:
+            compliance = 1.0 / (dt * kd)
+        set_row(rows, w, m, 1, compliance)
+        set_row(rows, w, m, 2, uf[6 + li] - dr[0] * wp.min(1.0, kd * 1.0e6))
+        set_row(rows, w, m, 3, -1.0)
+        set_row(rows, w, m, 4, -bound)
+        set_row(rows, w, m, 5, bound)
+        set_row(rows, w, m, 7, 0.0)
+        slot_of[w, m] = li
+        m += 1
+    count = int(0)
+    if torso[w][2] > 0.0:
+        half = torso_half[w]
+        for k in range(TORSO_CORNERS + 2 * L):
+            arm = wp.vec3()
+            lin = wp.vec3()  # the point's velocity per unit crank rate (shoe ends)
+            leg = int(-1)
+            mu = torso[w][1]
+            dist = float(0.0)
+            if k < TORSO_CORNERS:
+                sx = float(1.0)
+                sy = float(1.0)
+                sz = float(1.0)
+                if k % 2 == 1:
+                    sx = -1.0
+                if (k / 2) % 2 == 1:
+                    sy = -1.0
+                if k >= 4:
+                    sz = -1.0
+                arm = R * wp.vec3(sx * half[0], sy * half[1], sz * half[2])
+                dist = p[2] + arm[2]
+            else:
+                leg = (k - TORSO_CORNERS) / 2
+                end = float(1.0)
+                if (k - TORSO_CORNERS) % 2 == 1:
+                    end = -1.0
+                t = leg_table[w, leg]
+                s = leg_scale[w, leg]
+                u = psi[w, leg] * scale_n
+                u = u - float(samples) * wp.floor(u / float(samples))
+                i0 = int(u)
+                if i0 >= samples:
+                    i0 = samples - 1
+                f = u - float(i0)
+                i1 = i0 + 1
+                if i1 >= samples:
+                    i1 = 0
+                fl = table_foot_link[t]
+                sh = shoe[w, leg]
+                phi = link_read(links0, t, i0, i1, f, fl)
+                phi1 = table_read(links1, t, i0, i1, f, fl)
+                beta = phi[2] + sh[2]
+                dirn = wp.vec3(wp.cos(beta), wp.sin(beta), 0.0)
+                perp = wp.vec3(-wp.sin(beta), wp.cos(beta), 0.0)
+                fp = foot_read(foot0, t, i0, i1, f) * s + dirn * (end * sh[1])
+                fv = foot_read(foot1, t, i0, i1, f) * s + perp * (end * sh[1] * phi1[2])
+                arm = R * leg_origin[w, leg] + plane(R, fp)
+                lin = plane(R, fv)
+                dist = p[2] + arm[2] - sh[0]
+                mu = sh[3]
+            if dist < margin:
+                count += 1
+                for comp in range(3):
+                    nrm = wp.vec3(0.0, 0.0, 1.0)
+                    if comp == 1:
+                        nrm = wp.vec3(1.0, 0.0, 0.0)
+                    if comp == 2:
+                        nrm = wp.vec3(0.0, 1.0, 0.0)
+                    rxn = wp.cross(arm, nrm)
+                    for c in range(NV):
+                        J[w, m * NV + c] = 0.0
+                    for i in range(3):
+                        J[w, m * NV + i] = nrm[i]
+                        J[w, m * NV + 3 + i] = rxn[i]
+                    if leg >= 0:
+                        J[w, m * NV + 6 + leg] = wp.dot(nrm, lin)
+                    vrow = jrow_dot(J, w, m, n, uf)
+                    if comp == 0:
+                        if dist > 0.0:
+                            vrow += dist / dt
+                        else:
+                            vrow += stabilization * dist / dt
+                    set_row(rows, w, m, 1, 0.0)
+                    set_row(rows, w, m, 2, vrow)
+                    set_row(rows, w, m, 3, mu)
+                    set_row(rows, w, m, 7, 0.0)
+                    slot_of[w, m] = MAX_LEGS + 3 * k + comp
+                    m += 1
+    contacts_out[w] = count
+    # Jacobi preconditioner: P = diag(J M^-1 J^T + R)^-1/2, one value per contact triplet
+    r = int(0)
+    while r < m:
+        mu = row_at(rows, w, r, 3)
+        span = int(1)
+        if mu >= 0.0:
+            span = 3
+        dsum = float(0.0)
+        for rr in range(r, r + span):
+            jr = vecnv()
+            for c in range(n):
+                jr[c] = J[w, rr * NV + c]
+            mj = chol_solve(K, w, n, jr)
+            dsum += wp.dot(jr, mj) + row_at(rows, w, rr, 1)
+        pr = 1.0 / wp.sqrt(wp.max(dsum / float(span), 1.0e-12))
+        for rr in range(r, r + span):
+            set_row(rows, w, rr, 0, pr)
+            set_row(rows, w, rr, 2, pr * row_at(rows, w, rr, 2))
+            set_row(rows, w, rr, 4, row_at(rows, w, rr, 4) / pr)
+            set_row(rows, w, rr, 5, row_at(rows, w, rr, 5) / pr)
+            for c in range(n):
+                J[w, rr * NV + c] = pr * J[w, rr * NV + c]
+        r += span
+    # PADMM in preconditioned units; warm start from the last step's impulses by slot. A drive row
+    # whose warm start lies within half its bounds keeps the penalty at or below rho0 (its
+    # projection is then the identity, and a large penalty only slows it), as in engine.padmm.
+    rho = rho0
+    r = int(0)
+    while r < m:
+        span = int(1)
+        if row_at(rows, w, r, 3) >= 0.0:
+            span = 3
+        for c in range(span):
+            x[w, r + c] = impulse[w, slot_of[w, r + c]] / row_at(rows, w, r + c, 0)
+            z[w, r + c] = 0.0
+            zp[w, r + c] = 0.0
+        a1 = float(0.0)
+        a2 = float(0.0)
+        if span == 3:
+            a1 = x[w, r + 1]
+            a2 = x[w, r + 2]
+        pj = project_row(rows, w, r, x[w, r], a1, a2)
+        for c in range(span):
+            y[w, r + c] = pj[c]
+            yp[w, r + c] = pj[c]
+        free = float(0.0)
+        if span == 1 and wp.abs(x[w, r]) < 0.5 * row_at(rows, w, r, 5):
+            free = 1.0
+        set_row(rows, w, r, 8, free)
+        r += span
+    # the dual variable from the warm start: z = -(D y + v_f + s), the (shifted) velocity it
+    # gives, so that an unchanged contact set starts at its fixed point
+    gy = vecnv()
+    for r in range(m):
+        for c in range(n):
+            gy[c] += J[w, r * NV + c] * y[w, r]
+    my = chol_solve(K, w, n, gy)  # K holds the factor of M here
+    for r in range(m):
+        pr = row_at(rows, w, r, 0)
+        set_row(rows, w, r, 7, jrow_dot(J, w, r, n, my) + pr * pr * row_at(rows, w, r, 1) * y[w, r]
+                + row_at(rows, w, r, 2))
+    r = int(0)
+    while r < m:
+        span = int(1)
+        shift = float(0.0)
+        if row_at(rows, w, r, 3) >= 0.0:
+            span = 3
+            vt1 = row_at(rows, w, r + 1, 7)
+            vt2 = row_at(rows, w, r + 2, 7)
+            shift = row_at(rows, w, r, 3) * wp.sqrt(vt1 * vt1 + vt2 * vt2)
+        for c in range(span):
+            z[w, r + c] = -row_at(rows, w, r + c, 7)
+        z[w, r] = z[w, r] - shift
+        for c in range(span):
+            zp[w, r + c] = z[w, r + c]
+        r += span
+    set_penalties(rows, w, m, rho, rho0)
+    woodbury_factor(J, rows, M, K, w, m, n, eta)
+    its = int(0)
+    converged = int(0)
+    momentum = float(1.0)
+    merit = float(1.0e30)
+    beta = float(0.0)
+    while its < max_iterations and converged == 0 and m > 0:
+        # right-hand side at the extrapolated (y, z), with the De Saxce shift from the velocity at
+        # the last iterate
+        for r in range(m):
+            pen = penalty(rows, w, r)
+            yh = y[w, r] + beta * (y[w, r] - yp[w, r])
+            zh = z[w, r] + beta * (z[w, r] - zp[w, r])
+            yp[w, r] = yh  # yp, zp hold the extrapolated pair during the iteration
+            zp[w, r] = zh
+            b[w, r] = -row_at(rows, w, r, 2) + eta * x[w, r] + pen * yh - zh
+            xp[w, r] = x[w, r]
+        r = int(0)
+        while r < m:
+            if row_at(rows, w, r, 3) >= 0.0:
+                vt1 = row_at(rows, w, r + 1, 7)
+                vt2 = row_at(rows, w, r + 2, 7)
+                b[w, r] = b[w, r] - row_at(rows, w, r, 3) * wp.sqrt(vt1 * vt1 + vt2 * vt2)
+                r += 3
+            else:
+                r += 1
+        woodbury_solve(J, rows, K, w, m, n, eta, b, x, tmp)
+        rp = float(0.0)
+        rd = float(0.0)
+        rn = float(0.0)
+        ymax = float(0.0)
+        change = float(0.0)
+        r = int(0)
+        while r < m:
+            span = int(1)
+            if row_at(rows, w, r, 3) >= 0.0:
+                span = 3
+            pen = penalty(rows, w, r)
+            a0 = x[w, r] + zp[w, r] / pen
+            a1 = float(0.0)
+            a2 = float(0.0)
+            if span == 3:
+                a1 = x[w, r + 1] + zp[w, r + 1] / pen
+                a2 = x[w, r + 2] + zp[w, r + 2] / pen
+            pj = project_row(rows, w, r, a0, a1, a2)
+            # velocities at the new x, D x + v_f = rhs - (eta + rho) x + v_f, and the natural
+            # residual x - Pi(x - v^), v^ with the De Saxce shift (in the dual cone at a solution)
+            vel = wp.vec3()
+            for c in range(span):
+                i = r + c
+                vel[c] = b[w, i] - (eta + pen) * x[w, i] + row_at(rows, w, i, 2)
+                set_row(rows, w, i, 7, vel[c])
+            xs = wp.vec3(x[w, r], 0.0, 0.0)
+            if span == 3:
+                xs = wp.vec3(x[w, r], x[w, r + 1], x[w, r + 2])
+                vel[0] = vel[0] + row_at(rows, w, r, 3) * wp.sqrt(vel[1] * vel[1] + vel[2] * vel[2])
+            nat = xs - project_row(rows, w, r, xs[0] - vel[0], xs[1] - vel[1], xs[2] - vel[2])
+            rn = wp.max(rn, wp.max(wp.abs(nat[0]), wp.max(wp.abs(nat[1]), wp.abs(nat[2]))))
+            for c in range(span):
+                i = r + c
+                yn = pj[c]
+                xr = x[w, i]
+                zn = zp[w, i] + pen * (xr - yn)
+                dy = yn - yp[w, i]
+                dz = zn - zp[w, i]
+                rp = wp.max(rp, wp.abs(xr - yn))
+                rd = wp.max(rd, wp.abs(eta * (xr - xp[w, i]) + pen * dy))
+                change += pen * dy * dy + dz * dz / pen
+                yp[w, i] = y[w, i]
+                zp[w, i] = z[w, i]
+                y[w, i] = yn
+                z[w, i] = zn
+                ymax = wp.max(ymax, wp.abs(yn))
+            r += span
+        its += 1
+        tol = tolerance + relative_tolerance * ymax
+        if rp < tol and rd < tol and rn < tol:
+            converged = 1
+        else:
+            beta = 0.0
+            if change < 0.999 * merit:
+                a_next = 0.5 * (1.0 + wp.sqrt(1.0 + 4.0 * momentum * momentum))
+                beta = (momentum - 1.0) / a_next
+                momentum = a_next
+            else:
+                momentum = 1.0
+            merit = change
+            if its % rho_update_interval == 0:
+                new_rho = rho
+                if rp > 10.0 * rd:
+                    new_rho = wp.min(rho * 4.0, 1.0e3)
+                elif rd > 10.0 * rp:
+                    new_rho = wp.max(rho / 4.0, 1.0e-5)
+                if new_rho != rho:
+                    for i in range(m):
+                        tmp[w, i] = penalty(rows, w, i)
+                    set_penalties(rows, w, m, new_rho, rho0)
+                    for i in range(m):
+                        ratio = penalty(rows, w, i) / tmp[w, i]
+                        z[w, i] = z[w, i] * ratio
+                        zp[w, i] = z[w, i]
+                        yp[w, i] = y[w, i]
+                    rho = new_rho
+                    woodbury_factor(J, rows, M, K, w, m, n, eta)
+                    momentum = 1.0
+                    merit = 1.0e30
+                    beta = 0.0
+    iterations_out[w] = its
+    # impulses, velocity update
+    for i in range(MAX_ROWS):
+        impulse[w, i] = 0.0
+    jl = vecnv()
+    for r in range(m):
+        lam = y[w, r] * row_at(rows, w, r, 0)
+        impulse[w, slot_of[w, r]] = lam
+        for c in range(n):
+            jl[c] += J[w, r * NV + c] * y[w, r]  # J is preconditioned: J~^T y = J^T lambda
+    cholesky(M, w, n, K)
+    un = uf + chol_solve(K, w, n, jl)
+    for li in range(L):
+        drive_torque[w, li] = impulse[w, li] / dt
+    v = wp.vec3(un[0], un[1], un[2])
+    om = wp.vec3(un[3], un[4], un[5])
+    p = p + dt * v
+    spin = wp.length(om)
+    if spin > 1.0e-12:
+        q = wp.normalize(wp.quat_from_axis_angle(om / spin, spin * dt) * q)
+    ok = wp.isfinite(p) and wp.isfinite(v) and wp.isfinite(om) and wp.length(v) < max_speed
+    for li in range(L):
+        rate = un[6 + li]
+        ang = psi[w, li] + dt * rate
+        ang = ang - TWO_PI * wp.floor(ang / TWO_PI)
+        psi[w, li] = ang
+        psi_dot[w, li] = rate
+        if not (wp.isfinite(ang) and wp.isfinite(rate)):
+            ok = False
+    position[w] = p
+    orientation[w] = q
+    velocity[w] = v
+    angular_velocity[w] = om
+    if not ok:
+        diverged[w] = 1
+        frozen[w] = 1
+
+
+@wp.func
+def table_index(ang: float, samples: int):
+    """Sample pair and weight of a crank angle: (i0, i1, f) packed as a vec3."""
+    u = ang * float(samples) / TWO_PI
+    u = u - float(samples) * wp.floor(u / float(samples))
+    i0 = int(u)
+    if i0 >= samples:
+        i0 = samples - 1
+    i1 = i0 + 1
+    if i1 >= samples:
+        i1 = 0
+    return wp.vec3(float(i0), float(i1), u - float(i0))
+
+
+@wp.kernel
+def legged_record(
+    samples: int,
+    table_links: wp.array(dtype=wp.int32),
+    links0: wp.array3d(dtype=wp.vec3),
+    links1: wp.array3d(dtype=wp.vec3),
+    foot0: wp.array2d(dtype=wp.vec3),
+    leg_count: wp.array(dtype=wp.int32),
+    leg_table: wp.array2d(dtype=wp.int32),
+    leg_scale: wp.array2d(dtype=float),
+    leg_origin: wp.array2d(dtype=wp.vec3),
+    link_mass: wp.array2d(dtype=float),
+    link_inertia: wp.array2d(dtype=wp.mat33),
+    torso: wp.array(dtype=wp.vec4),
+    torso_inertia: wp.array(dtype=wp.mat33),
+    torso_half: wp.array(dtype=wp.vec3),
+    gravity: wp.array(dtype=wp.vec3),
+    position: wp.array(dtype=wp.vec3),
+    orientation: wp.array(dtype=wp.quat),
+    velocity: wp.array(dtype=wp.vec3),
+    angular_velocity: wp.array(dtype=wp.vec3),
+    psi: wp.array2d(dtype=float),
+    psi_dot: wp.array2d(dtype=float),
+    # out
+    points: wp.array2d(dtype=wp.vec3),
+    energy: wp.array(dtype=float),
+):
+    """Tracked points (torso centre, torso_up, feet) and the mechanical energy [J], link by link:
+    kinetic energy of every link's own velocity plus the potential of gravity."""
+    w = wp.tid()
+    p = position[w]
+    R = wp.quat_to_matrix(orientation[w])
+    v = velocity[w]
+    om = angular_velocity[w]
+    axis = -(R * wp.vec3(0.0, 1.0, 0.0))
+    g = gravity[w]
+    mt = torso[w][0]
+    It = R * torso_inertia[w] * wp.transpose(R)
+    e = 0.5 * mt * wp.dot(v, v) + 0.5 * wp.dot(om, It * om) - mt * wp.dot(g, p)
+    points[w, 0] = p
+    points[w, 1] = p + R * wp.vec3(0.0, 0.0, torso_half[w][0])
+    for li in range(leg_count[w]):
+        t = leg_table[w, li]
+        s = leg_scale[w, li]
+        ix = table_index(psi[w, li], samples)
+        i0 = int(ix[0])
+        i1 = int(ix[1])
+        f = ix[2]
+        rate = psi_dot[w, li]
+        o = leg_origin[w, li]
+        points[w, 2 + li] = p + R * o + plane(R, foot_read(foot0, t, i0, i1, f)) * s
+        for k in range(table_links[t]):
+            c0 = link_read(links0, t, i0, i1, f, k)
+            c1 = table_read(links1, t, i0, i1, f, k)
+            mk = link_mass[w, li * MAX_LINKS + k]
+            d = R * (o + wp.vec3(s * c0[0], 0.0, s * c0[1]))
+            vk = v + wp.cross(om, d) + plane(R, c1) * (s * rate)
+            wk = om + axis * (c1[2] * rate)
+            Rk = R * rot_minus_y(c0[2])
+            Ik = Rk * link_inertia[w, li * MAX_LINKS + k] * wp.transpose(Rk)
+            e += 0.5 * mk * wp.dot(vk, vk) + 0.5 * wp.dot(wk, Ik * wk) - mk * wp.dot(g, p + d)
+    energy[w] = e
+
+
+@wp.kernel
+def freeze_worlds(halted: wp.array(dtype=wp.int32), frozen: wp.array(dtype=wp.int32)):
+    w = wp.tid()
+    if halted[w] != 0:
+        frozen[w] = 1
+
+
+def _step_inputs(model: LeggedModel) -> list:
+    c = model.config
+    return [model.dt, c.eta, c.rho, c.tolerance, c.relative_tolerance, c.max_iterations, c.rho_update_interval,
+            c.contact_margin, c.contact_stabilization, c.max_speed,
+            model.table_links, model.table_foot_link, *model.links, *model.foot, model.samples,
+            model.leg_count, model.leg_table, model.leg_scale, model.leg_origin, model.link_mass, model.link_inertia,
+            model.drive, model.shoe, model.torso, model.torso_inertia, model.torso_half, model.gravity,
+            model.position, model.orientation, model.velocity, model.angular_velocity, model.psi, model.psi_dot,
+            model.impulse, model.frozen, model.diverged,
+            model.iterations, model.contacts, model.drive_torque,
+            model.rows_J, model.rows, model.mass, model.factor, *model.work, model.slot_of]
+
+
+def legged_step_batch(model: LeggedModel, steps: int = 1):
+    """Advance every world of ``model`` by ``steps`` steps."""
+    inputs = _step_inputs(model)
+    for _ in range(steps):
+        wp.launch(legged_step, dim=model.num_worlds, inputs=inputs, device=model.device)
+
+
+def legged_points(model: LeggedModel) -> tuple:
+    """Tracked points (W, 2 + max legs, 3) [m] and energy (W,) [J] of the current state."""
+    wp.launch(legged_record, dim=model.num_worlds, device=model.device,
+              inputs=[model.samples, model.table_links, model.links[0], model.links[1], model.foot[0],
+                      model.leg_count, model.leg_table, model.leg_scale, model.leg_origin, model.link_mass,
+                      model.link_inertia, model.torso, model.torso_inertia, model.torso_half, model.gravity,
+                      model.position, model.orientation, model.velocity, model.angular_velocity, model.psi,
+                      model.psi_dot],
+              outputs=[model.points, model.energy])
+    return model.points.numpy(), model.energy.numpy()
+
+
+def legged_rollout(model: LeggedModel, steps: int, *, record_every: int = 10, halt=None):
+    """Step ``model`` ``steps`` times (a multiple of record_every), recording every record_every
+    steps: returns an engine.Trace (points, drive torques and speeds per leg, energy; the loops
+    are closed by construction, so the violations are zero). halt(points (W, P, 3), start) -> (W,)
+    bool freezes worlds, as engine.rollout's halt does. On CUDA a chunk of record_every steps is
+    captured once as a graph and replayed."""
+    from engine.rollout import Trace
+
+    if steps < record_every or steps % record_every:
+        raise ValueError(f"legged_rollout: steps ({steps}) must be a positive multiple of "
+                         f"record_every ({record_every})")
+    W = model.num_worlds
+    records = steps // record_every + 1
+    names = model.point_names
+    P = 2 + MAX_LEGS
+    points = np.zeros((records, W, P, 3), np.float32)
+    energy = np.zeros((records, W), np.float32)
+    torque = np.zeros((records, W, MAX_LEGS), np.float32)
+    speed = np.zeros((records, W, MAX_LEGS), np.float32)
+    iterations = np.zeros((records, W), np.int32)
+    halted_at = np.full(W, -1.0)
+    points[0], energy[0] = legged_points(model)
+    speed[0] = model.psi_dot.numpy()
+    graph = None
+    if model.device.is_cuda:
+        legged_step_batch(model, 1)  # compile, outside the capture
+        wp.synchronize_device(model.device)
+        with wp.ScopedCapture(device=model.device) as capture:
+            legged_step_batch(model, record_every)
+        graph = capture.graph
+        steps_done = 1
+    else:
+        steps_done = 0
+    halted = wp.zeros(W, dtype=wp.int32, device=model.device)
+    for r in range(1, records):
+        if graph is not None and r == 1:
+            legged_step_batch(model, record_every - steps_done)
+        elif graph is not None:
+            wp.capture_launch(graph)
+        else:
+            legged_step_batch(model, record_every)
+        points[r], energy[r] = legged_points(model)
+        torque[r] = model.drive_torque.numpy()
+        speed[r] = model.psi_dot.numpy()
+        iterations[r] = model.iterations.numpy()
+        if halt is not None:
+            stop = np.asarray(halt(points[r], points[0])) & (halted_at < 0)
+            if stop.any():
+                halted_at[stop] = r * record_every * model.dt
+                halted.assign(stop.astype(np.int32))
+                wp.launch(freeze_worlds, dim=W, inputs=[halted, model.frozen], device=model.device)
+    diverged = model.diverged.numpy().astype(bool)
+    zeros = np.zeros((records, W), np.float32)
+    return Trace(np.arange(records) * record_every * model.dt, points, zeros, zeros.copy(), energy, iterations,
+                 torque, speed, diverged, names, halted_at)
