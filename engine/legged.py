@@ -261,12 +261,12 @@ class LeggedModel:
         self.iterations = wp.zeros(W, dtype=wp.int32, device=d)
         self.contacts = wp.zeros(W, dtype=wp.int32, device=d)
         # scratch of the step, per world
-        self.rows_J = wp.zeros((W, MAX_ROWS * NV), dtype=float, device=d)
-        self.rows = wp.zeros((W, MAX_ROWS * ROW_STRIDE), dtype=float, device=d)
-        self.mass = wp.zeros((W, NV * NV), dtype=float, device=d)
-        self.factor = wp.zeros((W, NV * NV), dtype=float, device=d)
-        self.work = [wp.zeros((W, MAX_ROWS), dtype=float, device=d) for _ in range(8)]  # x, y, z, tmp, b, xp, yp, zp
-        self.slot_of = wp.zeros((W, MAX_ROWS), dtype=wp.int32, device=d)
+        self.rows_J = wp.zeros((MAX_ROWS * NV, W), dtype=float, device=d)
+        self.rows = wp.zeros((MAX_ROWS * ROW_STRIDE, W), dtype=float, device=d)
+        self.mass = wp.zeros((NV * NV, W), dtype=float, device=d)
+        self.factor = wp.zeros((NV * NV, W), dtype=float, device=d)
+        self.work = [wp.zeros((MAX_ROWS, W), dtype=float, device=d) for _ in range(8)]  # x, y, z, tmp, b, xp, yp, zp
+        self.slot_of = wp.zeros((MAX_ROWS, W), dtype=wp.int32, device=d)
         self.drive_torque = wp.zeros((W, MAX_LEGS), dtype=float, device=d)
         self.points = wp.zeros((W, 2 + MAX_LEGS), dtype=wp.vec3, device=d)
         self.energy = wp.zeros(W, dtype=float, device=d)
@@ -325,7 +325,7 @@ def rot_minus_y(angle: float):
 
 @wp.func
 def mat_add(m: wp.array2d(dtype=float), w: int, i: int, j: int, value: float):
-    m[w, i * NV + j] = m[w, i * NV + j] + value
+    m[i * NV + j, w] = m[i * NV + j, w] + value
 
 
 @wp.func
@@ -339,16 +339,16 @@ def add_block(m: wp.array2d(dtype=float), w: int, i0: int, j0: int, b: wp.mat33)
 def cholesky(a: wp.array2d(dtype=float), w: int, n: int, out: wp.array2d(dtype=float)):
     """Lower Cholesky factor of a's leading n x n block into out (row-major, NV columns)."""
     for j in range(n):
-        s = a[w, j * NV + j]
+        s = a[j * NV + j, w]
         for k in range(j):
-            s -= out[w, j * NV + k] * out[w, j * NV + k]
+            s -= out[j * NV + k, w] * out[j * NV + k, w]
         d = wp.sqrt(wp.max(s, 1.0e-20))
-        out[w, j * NV + j] = d
+        out[j * NV + j, w] = d
         for i in range(j + 1, n):
-            t = a[w, i * NV + j]
+            t = a[i * NV + j, w]
             for k in range(j):
-                t -= out[w, i * NV + k] * out[w, j * NV + k]
-            out[w, i * NV + j] = t / d
+                t -= out[i * NV + k, w] * out[j * NV + k, w]
+            out[i * NV + j, w] = t / d
 
 
 @wp.func
@@ -357,14 +357,14 @@ def chol_solve(L: wp.array2d(dtype=float), w: int, n: int, b: vecnv):
     for i in range(n):
         s = y[i]
         for k in range(i):
-            s -= L[w, i * NV + k] * y[k]
-        y[i] = s / L[w, i * NV + i]
+            s -= L[i * NV + k, w] * y[k]
+        y[i] = s / L[i * NV + i, w]
     for ii in range(n):
         i = n - 1 - ii
         s = y[i]
         for k in range(i + 1, n):
-            s -= L[w, k * NV + i] * y[k]
-        y[i] = s / L[w, i * NV + i]
+            s -= L[k * NV + i, w] * y[k]
+        y[i] = s / L[i * NV + i, w]
     return y
 
 
@@ -374,18 +374,18 @@ def chol_solve(L: wp.array2d(dtype=float), w: int, n: int, b: vecnv):
 # drive flag
 @wp.func
 def row_at(rows: wp.array2d(dtype=float), w: int, r: int, c: int):
-    return rows[w, r * ROW_STRIDE + c]
+    return rows[r * ROW_STRIDE + c, w]
 
 
 @wp.func
 def set_row(rows: wp.array2d(dtype=float), w: int, r: int, c: int, value: float):
-    rows[w, r * ROW_STRIDE + c] = value
+    rows[r * ROW_STRIDE + c, w] = value
 
 
 @wp.func
 def penalty(rows: wp.array2d(dtype=float), w: int, r: int):
     """A row's ADMM penalty."""
-    return rows[w, r * ROW_STRIDE + 6]
+    return rows[r * ROW_STRIDE + 6, w]
 
 
 @wp.func
@@ -393,16 +393,16 @@ def set_penalties(rows: wp.array2d(dtype=float), w: int, m: int, rho: float, rho
     """Every row's penalty: rho, or min(rho, rho0) for a free drive row."""
     for r in range(m):
         value = rho
-        if rows[w, r * ROW_STRIDE + 8] == 1.0:
+        if rows[r * ROW_STRIDE + 8, w] == 1.0:
             value = wp.min(rho, rho0)
-        rows[w, r * ROW_STRIDE + 6] = value
+        rows[r * ROW_STRIDE + 6, w] = value
 
 
 @wp.func
 def jrow_dot(J: wp.array2d(dtype=float), w: int, r: int, n: int, u: vecnv):
     s = float(0.0)
-    for c in range(n):
-        s += J[w, r * NV + c] * u[c]
+    for c in range(NV):
+        s += J[r * NV + c, w] * u[c]
     return s
 
 
@@ -415,15 +415,15 @@ def woodbury_solve(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=float), K:
     for r in range(m):
         p = row_at(rows, w, r, 0)
         sig = sigma_base + penalty(rows, w, r) + p * p * row_at(rows, w, r, 1)
-        t = b[w, r] / sig
-        tmp[w, r] = t
-        for c in range(n):
-            g[c] += J[w, r * NV + c] * t
+        t = b[r, w] / sig
+        tmp[r, w] = t
+        for c in range(NV):
+            g[c] += J[r * NV + c, w] * t
     y = chol_solve(K, w, n, g)
     for r in range(m):
         p = row_at(rows, w, r, 0)
         sig = sigma_base + penalty(rows, w, r) + p * p * row_at(rows, w, r, 1)
-        x[w, r] = tmp[w, r] - jrow_dot(J, w, r, n, y) / sig
+        x[r, w] = tmp[r, w] - jrow_dot(J, w, r, n, y) / sig
 
 
 @wp.func
@@ -432,27 +432,27 @@ def woodbury_factor(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=float), M
     """K <- Cholesky factor of M + J^T S^-1 J (uses K's storage for the sum first)."""
     for i in range(n):
         for j in range(i + 1):
-            K[w, i * NV + j] = M[w, i * NV + j]
+            K[i * NV + j, w] = M[i * NV + j, w]
     for r in range(m):
         p = row_at(rows, w, r, 0)
         sig = sigma_base + penalty(rows, w, r) + p * p * row_at(rows, w, r, 1)
         for i in range(n):
-            ji = J[w, r * NV + i] / sig
+            ji = J[r * NV + i, w] / sig
             if ji != 0.0:
                 for j in range(i + 1):
-                    K[w, i * NV + j] = K[w, i * NV + j] + ji * J[w, r * NV + j]
+                    K[i * NV + j, w] = K[i * NV + j, w] + ji * J[r * NV + j, w]
     # in-place Cholesky of the lower triangle
     for j in range(n):
-        s = K[w, j * NV + j]
+        s = K[j * NV + j, w]
         for k in range(j):
-            s -= K[w, j * NV + k] * K[w, j * NV + k]
+            s -= K[j * NV + k, w] * K[j * NV + k, w]
         d = wp.sqrt(wp.max(s, 1.0e-20))
-        K[w, j * NV + j] = d
+        K[j * NV + j, w] = d
         for i in range(j + 1, n):
-            t = K[w, i * NV + j]
+            t = K[i * NV + j, w]
             for k in range(j):
-                t -= K[w, i * NV + k] * K[w, j * NV + k]
-            K[w, i * NV + j] = t / d
+                t -= K[i * NV + k, w] * K[j * NV + k, w]
+            K[i * NV + j, w] = t / d
 
 
 @wp.func
@@ -549,7 +549,7 @@ def legged_step(
     g = gravity[w]
     mt = torso[w][0]
     for i in range(NV * NV):
-        M[w, i] = 0.0
+        M[i, w] = 0.0
     h = vecnv()
     # torso
     It = R * torso_inertia[w] * wp.transpose(R)
@@ -626,8 +626,8 @@ def legged_step(
     for li in range(L):
         dr = drive[w, li]
         for c in range(NV):
-            J[w, m * NV + c] = 0.0
-        J[w, m * NV + 6 + li] = 1.0
+            J[m * NV + c, w] = 0.0
+        J[m * NV + 6 + li, w] = 1.0
         kd = dr[1]
         bound = dt * dr[2]
         compliance = 1.0e6
@@ -639,7 +639,7 @@ def legged_step(
         set_row(rows, w, m, 4, -bound)
         set_row(rows, w, m, 5, bound)
         set_row(rows, w, m, 7, 0.0)
-        slot_of[w, m] = li
+        slot_of[m, w] = li
         m += 1
     count = int(0)
     if torso[w][2] > 0.0:
@@ -701,12 +701,12 @@ def legged_step(
                         nrm = wp.vec3(0.0, 1.0, 0.0)
                     rxn = wp.cross(arm, nrm)
                     for c in range(NV):
-                        J[w, m * NV + c] = 0.0
+                        J[m * NV + c, w] = 0.0
                     for i in range(3):
-                        J[w, m * NV + i] = nrm[i]
-                        J[w, m * NV + 3 + i] = rxn[i]
+                        J[m * NV + i, w] = nrm[i]
+                        J[m * NV + 3 + i, w] = rxn[i]
                     if leg >= 0:
-                        J[w, m * NV + 6 + leg] = wp.dot(nrm, lin)
+                        J[m * NV + 6 + leg, w] = wp.dot(nrm, lin)
                     vrow = jrow_dot(J, w, m, n, uf)
                     if comp == 0:
                         if dist > 0.0:
@@ -717,7 +717,7 @@ def legged_step(
                     set_row(rows, w, m, 2, vrow)
                     set_row(rows, w, m, 3, mu)
                     set_row(rows, w, m, 7, 0.0)
-                    slot_of[w, m] = MAX_LEGS + 3 * k + comp
+                    slot_of[m, w] = MAX_LEGS + 3 * k + comp
                     m += 1
     contacts_out[w] = count
     # Jacobi preconditioner: P = diag(J M^-1 J^T + R)^-1/2, one value per contact triplet
@@ -730,8 +730,8 @@ def legged_step(
         dsum = float(0.0)
         for rr in range(r, r + span):
             jr = vecnv()
-            for c in range(n):
-                jr[c] = J[w, rr * NV + c]
+            for c in range(NV):
+                jr[c] = J[rr * NV + c, w]
             mj = chol_solve(K, w, n, jr)
             dsum += wp.dot(jr, mj) + row_at(rows, w, rr, 1)
         pr = 1.0 / wp.sqrt(wp.max(dsum / float(span), 1.0e-12))
@@ -740,8 +740,8 @@ def legged_step(
             set_row(rows, w, rr, 2, pr * row_at(rows, w, rr, 2))
             set_row(rows, w, rr, 4, row_at(rows, w, rr, 4) / pr)
             set_row(rows, w, rr, 5, row_at(rows, w, rr, 5) / pr)
-            for c in range(n):
-                J[w, rr * NV + c] = pr * J[w, rr * NV + c]
+            for c in range(NV):
+                J[rr * NV + c, w] = pr * J[rr * NV + c, w]
         r += span
     # PADMM in preconditioned units; warm start from the last step's impulses by slot. A drive row
     # whose warm start lies within half its bounds keeps the penalty at or below rho0 (its
@@ -753,20 +753,20 @@ def legged_step(
         if row_at(rows, w, r, 3) >= 0.0:
             span = 3
         for c in range(span):
-            x[w, r + c] = impulse[w, slot_of[w, r + c]] / row_at(rows, w, r + c, 0)
-            z[w, r + c] = 0.0
-            zp[w, r + c] = 0.0
+            x[r + c, w] = impulse[w, slot_of[r + c, w]] / row_at(rows, w, r + c, 0)
+            z[r + c, w] = 0.0
+            zp[r + c, w] = 0.0
         a1 = float(0.0)
         a2 = float(0.0)
         if span == 3:
-            a1 = x[w, r + 1]
-            a2 = x[w, r + 2]
-        pj = project_row(rows, w, r, x[w, r], a1, a2)
+            a1 = x[r + 1, w]
+            a2 = x[r + 2, w]
+        pj = project_row(rows, w, r, x[r, w], a1, a2)
         for c in range(span):
-            y[w, r + c] = pj[c]
-            yp[w, r + c] = pj[c]
+            y[r + c, w] = pj[c]
+            yp[r + c, w] = pj[c]
         free = float(0.0)
-        if span == 1 and wp.abs(x[w, r]) < 0.5 * row_at(rows, w, r, 5):
+        if span == 1 and wp.abs(x[r, w]) < 0.5 * row_at(rows, w, r, 5):
             free = 1.0
         set_row(rows, w, r, 8, free)
         r += span
@@ -774,12 +774,12 @@ def legged_step(
     # gives, so that an unchanged contact set starts at its fixed point
     gy = vecnv()
     for r in range(m):
-        for c in range(n):
-            gy[c] += J[w, r * NV + c] * y[w, r]
+        for c in range(NV):
+            gy[c] += J[r * NV + c, w] * y[r, w]
     my = chol_solve(K, w, n, gy)  # K holds the factor of M here
     for r in range(m):
         pr = row_at(rows, w, r, 0)
-        set_row(rows, w, r, 7, jrow_dot(J, w, r, n, my) + pr * pr * row_at(rows, w, r, 1) * y[w, r]
+        set_row(rows, w, r, 7, jrow_dot(J, w, r, n, my) + pr * pr * row_at(rows, w, r, 1) * y[r, w]
                 + row_at(rows, w, r, 2))
     r = int(0)
     while r < m:
@@ -791,10 +791,10 @@ def legged_step(
             vt2 = row_at(rows, w, r + 2, 7)
             shift = row_at(rows, w, r, 3) * wp.sqrt(vt1 * vt1 + vt2 * vt2)
         for c in range(span):
-            z[w, r + c] = -row_at(rows, w, r + c, 7)
-        z[w, r] = z[w, r] - shift
+            z[r + c, w] = -row_at(rows, w, r + c, 7)
+        z[r, w] = z[r, w] - shift
         for c in range(span):
-            zp[w, r + c] = z[w, r + c]
+            zp[r + c, w] = z[r + c, w]
         r += span
     set_penalties(rows, w, m, rho, rho0)
     woodbury_factor(J, rows, M, K, w, m, n, eta)
@@ -808,18 +808,18 @@ def legged_step(
         # the last iterate
         for r in range(m):
             pen = penalty(rows, w, r)
-            yh = y[w, r] + beta * (y[w, r] - yp[w, r])
-            zh = z[w, r] + beta * (z[w, r] - zp[w, r])
-            yp[w, r] = yh  # yp, zp hold the extrapolated pair during the iteration
-            zp[w, r] = zh
-            b[w, r] = -row_at(rows, w, r, 2) + eta * x[w, r] + pen * yh - zh
-            xp[w, r] = x[w, r]
+            yh = y[r, w] + beta * (y[r, w] - yp[r, w])
+            zh = z[r, w] + beta * (z[r, w] - zp[r, w])
+            yp[r, w] = yh  # yp, zp hold the extrapolated pair during the iteration
+            zp[r, w] = zh
+            b[r, w] = -row_at(rows, w, r, 2) + eta * x[r, w] + pen * yh - zh
+            xp[r, w] = x[r, w]
         r = int(0)
         while r < m:
             if row_at(rows, w, r, 3) >= 0.0:
                 vt1 = row_at(rows, w, r + 1, 7)
                 vt2 = row_at(rows, w, r + 2, 7)
-                b[w, r] = b[w, r] - row_at(rows, w, r, 3) * wp.sqrt(vt1 * vt1 + vt2 * vt2)
+                b[r, w] = b[r, w] - row_at(rows, w, r, 3) * wp.sqrt(vt1 * vt1 + vt2 * vt2)
                 r += 3
             else:
                 r += 1
@@ -835,40 +835,40 @@ def legged_step(
             if row_at(rows, w, r, 3) >= 0.0:
                 span = 3
             pen = penalty(rows, w, r)
-            a0 = x[w, r] + zp[w, r] / pen
+            a0 = x[r, w] + zp[r, w] / pen
             a1 = float(0.0)
             a2 = float(0.0)
             if span == 3:
-                a1 = x[w, r + 1] + zp[w, r + 1] / pen
-                a2 = x[w, r + 2] + zp[w, r + 2] / pen
+                a1 = x[r + 1, w] + zp[r + 1, w] / pen
+                a2 = x[r + 2, w] + zp[r + 2, w] / pen
             pj = project_row(rows, w, r, a0, a1, a2)
             # velocities at the new x, D x + v_f = rhs - (eta + rho) x + v_f, and the natural
             # residual x - Pi(x - v^), v^ with the De Saxce shift (in the dual cone at a solution)
             vel = wp.vec3()
             for c in range(span):
                 i = r + c
-                vel[c] = b[w, i] - (eta + pen) * x[w, i] + row_at(rows, w, i, 2)
+                vel[c] = b[i, w] - (eta + pen) * x[i, w] + row_at(rows, w, i, 2)
                 set_row(rows, w, i, 7, vel[c])
-            xs = wp.vec3(x[w, r], 0.0, 0.0)
+            xs = wp.vec3(x[r, w], 0.0, 0.0)
             if span == 3:
-                xs = wp.vec3(x[w, r], x[w, r + 1], x[w, r + 2])
+                xs = wp.vec3(x[r, w], x[r + 1, w], x[r + 2, w])
                 vel[0] = vel[0] + row_at(rows, w, r, 3) * wp.sqrt(vel[1] * vel[1] + vel[2] * vel[2])
             nat = xs - project_row(rows, w, r, xs[0] - vel[0], xs[1] - vel[1], xs[2] - vel[2])
             rn = wp.max(rn, wp.max(wp.abs(nat[0]), wp.max(wp.abs(nat[1]), wp.abs(nat[2]))))
             for c in range(span):
                 i = r + c
                 yn = pj[c]
-                xr = x[w, i]
-                zn = zp[w, i] + pen * (xr - yn)
-                dy = yn - yp[w, i]
-                dz = zn - zp[w, i]
+                xr = x[i, w]
+                zn = zp[i, w] + pen * (xr - yn)
+                dy = yn - yp[i, w]
+                dz = zn - zp[i, w]
                 rp = wp.max(rp, wp.abs(xr - yn))
-                rd = wp.max(rd, wp.abs(eta * (xr - xp[w, i]) + pen * dy))
+                rd = wp.max(rd, wp.abs(eta * (xr - xp[i, w]) + pen * dy))
                 change += pen * dy * dy + dz * dz / pen
-                yp[w, i] = y[w, i]
-                zp[w, i] = z[w, i]
-                y[w, i] = yn
-                z[w, i] = zn
+                yp[i, w] = y[i, w]
+                zp[i, w] = z[i, w]
+                y[i, w] = yn
+                z[i, w] = zn
                 ymax = wp.max(ymax, wp.abs(yn))
             r += span
         its += 1
@@ -891,14 +891,10 @@ def legged_step(
                 elif rd > 10.0 * rp:
                     new_rho = wp.max(rho / 4.0, 1.0e-5)
                 if new_rho != rho:
-                    for i in range(m):
-                        tmp[w, i] = penalty(rows, w, i)
                     set_penalties(rows, w, m, new_rho, rho0)
-                    for i in range(m):
-                        ratio = penalty(rows, w, i) / tmp[w, i]
-                        z[w, i] = z[w, i] * ratio
-                        zp[w, i] = z[w, i]
-                        yp[w, i] = y[w, i]
+                    for i in range(m):  # z is the unscaled multiplier: it stays; the momentum restarts
+                        zp[i, w] = z[i, w]
+                        yp[i, w] = y[i, w]
                     rho = new_rho
                     woodbury_factor(J, rows, M, K, w, m, n, eta)
                     momentum = 1.0
@@ -910,10 +906,10 @@ def legged_step(
         impulse[w, i] = 0.0
     jl = vecnv()
     for r in range(m):
-        lam = y[w, r] * row_at(rows, w, r, 0)
-        impulse[w, slot_of[w, r]] = lam
-        for c in range(n):
-            jl[c] += J[w, r * NV + c] * y[w, r]  # J is preconditioned: J~^T y = J^T lambda
+        lam = y[r, w] * row_at(rows, w, r, 0)
+        impulse[w, slot_of[r, w]] = lam
+        for c in range(NV):
+            jl[c] += J[r * NV + c, w] * y[r, w]  # J is preconditioned: J~^T y = J^T lambda
     cholesky(M, w, n, K)
     un = uf + chol_solve(K, w, n, jl)
     for li in range(L):
