@@ -324,18 +324,6 @@ def rot_minus_y(angle: float):
 
 
 @wp.func
-def mat_add(m: wp.array2d(dtype=float), w: int, i: int, j: int, value: float):
-    m[i * NV + j, w] = m[i * NV + j, w] + value
-
-
-@wp.func
-def add_block(m: wp.array2d(dtype=float), w: int, i0: int, j0: int, b: wp.mat33):
-    for i in range(3):
-        for j in range(3):
-            mat_add(m, w, i0 + i, j0 + j, b[i, j])
-
-
-@wp.func
 def cholesky(a: wp.array2d(dtype=float), w: int, n: int, out: wp.array2d(dtype=float)):
     """Lower Cholesky factor of a's leading n x n block into out (row-major, NV columns)."""
     for j in range(n):
@@ -428,19 +416,19 @@ def woodbury_solve(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=float), K:
 
 @wp.func
 def woodbury_factor(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=float), M: wp.array2d(dtype=float),
-                    K: wp.array2d(dtype=float), w: int, m: int, n: int, sigma_base: float):
-    """K <- Cholesky factor of M + J^T S^-1 J (uses K's storage for the sum first)."""
-    for i in range(n):
-        for j in range(i + 1):
-            K[i * NV + j, w] = M[i * NV + j, w]
+                    K: wp.array2d(dtype=float), w: int, m: int, n: int, sigma_base: float,
+                    tmp: wp.array2d(dtype=float)):
+    """K <- Cholesky factor of M + J^T S^-1 J (uses K's storage for the sum first; tmp holds the
+    rows' 1 / S on the way)."""
     for r in range(m):
         p = row_at(rows, w, r, 0)
-        sig = sigma_base + penalty(rows, w, r) + p * p * row_at(rows, w, r, 1)
-        for i in range(n):
-            ji = J[r * NV + i, w] / sig
-            if ji != 0.0:
-                for j in range(i + 1):
-                    K[i * NV + j, w] = K[i * NV + j, w] + ji * J[r * NV + j, w]
+        tmp[r, w] = 1.0 / (sigma_base + penalty(rows, w, r) + p * p * row_at(rows, w, r, 1))
+    for i in range(n):
+        for j in range(i + 1):
+            acc = M[i * NV + j, w]
+            for r in range(m):
+                acc += J[r * NV + i, w] * J[r * NV + j, w] * tmp[r, w]
+            K[i * NV + j, w] = acc
     # in-place Cholesky of the lower triangle
     for j in range(n):
         s = K[j * NV + j, w]
@@ -548,18 +536,18 @@ def legged_step(
     axis = -(R * wp.vec3(0.0, 1.0, 0.0))
     g = gravity[w]
     mt = torso[w][0]
-    for i in range(NV * NV):
-        M[i, w] = 0.0
     h = vecnv()
-    # torso
+    # torso; the torso blocks of M are summed in registers over every link, each leg's column once
     It = R * torso_inertia[w] * wp.transpose(R)
-    for i in range(3):
-        mat_add(M, w, i, i, mt)
-    add_block(M, w, 3, 3, It)
+    m_sum = mt
+    md_sum = wp.vec3()  # sum of m_k d_k
+    rot_sum = It  # angular block
     gyro = -wp.cross(om, It * om)
     for i in range(3):
         h[i] += mt * g[i]
         h[3 + i] += gyro[i]
+    for i in range(NV * NV):
+        M[i, w] = 0.0
     # legs: mass matrix and bias forces, link by link
     scale_n = float(samples) / TWO_PI
     for li in range(L):
@@ -578,6 +566,10 @@ def legged_step(
             i1 = 0
         col = 6 + li
         o = leg_origin[w, li]
+        me_sum = wp.vec3()  # the leg's column: linear part
+        mw_sum = wp.vec3()  # angular part
+        mjj = float(0.0)
+        hj = float(0.0)
         for k in range(table_links[t]):
             c0 = link_read(links0, t, i0, i1, f, k)
             c1 = table_read(links1, t, i0, i1, f, k)
@@ -589,19 +581,12 @@ def legged_step(
             Rk = R * rot_minus_y(c0[2])
             Ik = Rk * link_inertia[w, li * MAX_LINKS + k] * wp.transpose(Rk)
             ax = axis * c1[2]
-            for i in range(3):
-                mat_add(M, w, i, i, mk)
-            dx = wp.skew(d)
-            add_block(M, w, 0, 3, -mk * dx)
-            add_block(M, w, 3, 0, mk * dx)
-            add_block(M, w, 3, 3, Ik + mk * (wp.dot(d, d) * wp.identity(n=3, dtype=float) - wp.outer(d, d)))
-            mwj = mk * wp.cross(d, e) + Ik * ax
-            for i in range(3):
-                mat_add(M, w, i, col, mk * e[i])
-                mat_add(M, w, col, i, mk * e[i])
-                mat_add(M, w, 3 + i, col, mwj[i])
-                mat_add(M, w, col, 3 + i, mwj[i])
-            mat_add(M, w, col, col, mk * wp.dot(e, e) + wp.dot(ax, Ik * ax))
+            m_sum += mk
+            md_sum += mk * d
+            rot_sum += Ik + mk * (wp.dot(d, d) * wp.identity(n=3, dtype=float) - wp.outer(d, d))
+            me_sum += mk * e
+            mw_sum += mk * wp.cross(d, e) + Ik * ax
+            mjj += mk * wp.dot(e, e) + wp.dot(ax, Ik * ax)
             wk = om + ax * rate
             acc = wp.cross(om, wp.cross(om, d)) + 2.0 * rate * wp.cross(om, e) + e2 * (rate * rate)
             alpha = rate * wp.cross(om, ax) + axis * (c2[2] * rate * rate)
@@ -611,7 +596,22 @@ def legged_step(
             for i in range(3):
                 h[i] += f_lin[i]
                 h[3 + i] += tor[i]
-            h[col] += wp.dot(e, f_lin) + wp.dot(ax, f_ang)
+            hj += wp.dot(e, f_lin) + wp.dot(ax, f_ang)
+        h[col] = hj
+        for i in range(3):
+            M[i * NV + col, w] = me_sum[i]
+            M[col * NV + i, w] = me_sum[i]
+            M[(3 + i) * NV + col, w] = mw_sum[i]
+            M[col * NV + 3 + i, w] = mw_sum[i]
+        M[col * NV + col, w] = mjj
+    # M_vv = m I, M_vw = -[sum m d]x, M_ww = the angular sum
+    cross = wp.skew(md_sum)
+    for i in range(3):
+        M[i * NV + i, w] = m_sum
+        for j in range(3):
+            M[i * NV + 3 + j, w] = -cross[i, j]
+            M[(3 + i) * NV + j, w] = cross[i, j]
+            M[(3 + i) * NV + 3 + j, w] = rot_sum[i, j]
     cholesky(M, w, n, K)
     uu = vecnv()
     for i in range(3):
@@ -797,7 +797,7 @@ def legged_step(
             zp[r + c, w] = z[r + c, w]
         r += span
     set_penalties(rows, w, m, rho, rho0)
-    woodbury_factor(J, rows, M, K, w, m, n, eta)
+    woodbury_factor(J, rows, M, K, w, m, n, eta, tmp)
     its = int(0)
     converged = int(0)
     momentum = float(1.0)
@@ -896,7 +896,7 @@ def legged_step(
                         zp[i, w] = z[i, w]
                         yp[i, w] = y[i, w]
                     rho = new_rho
-                    woodbury_factor(J, rows, M, K, w, m, n, eta)
+                    woodbury_factor(J, rows, M, K, w, m, n, eta, tmp)
                     momentum = 1.0
                     merit = 1.0e30
                     beta = 0.0
