@@ -49,8 +49,9 @@ def main(argv=None) -> int:
         device=args.device, worlds=args.worlds, generations=args.generations, model=args.model,
         storage=f"sqlite:///{(out / 'walker_study.sqlite').resolve()}")
     family = load_family(spec.family)
+    # compile the kernels outside the timed study
     evaluate_dynamic(family, [{**family.space.default(), **spec.fixed}], duration=4 * spec.dt, dt=spec.dt,
-                     device=spec.device, config=spec.solver_config(), model=spec.model)  # compile the kernels outside the timed study
+                     device=spec.device, config=spec.solver_config(), model=spec.model)
     t0 = time.perf_counter()
     result = run_study(spec, progress=True)
     seconds = time.perf_counter() - t0

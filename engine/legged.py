@@ -24,6 +24,10 @@ rows reduced to the drives and the contacts:
 - then u+ = u_f + M^-1 J^T lambda, positions and the torso's orientation (exponential map)
   integrated with u+.
 
+Of engine.SolverConfig it uses eta, rho, tolerance, relative_tolerance, max_iterations,
+rho_update_interval, contact_margin, contact_stabilization and max_speed; it always integrates
+with semi-implicit Euler and has no joint rows, so no projection.
+
 Contacts: the torso box's corners and both ends of every foot's shoe capsule against the ground
 plane z = 0, kept within SolverConfig.contact_margin. One thread steps one world; the contact
 candidates have fixed slots (their warm-start keys). A world whose state turns non-finite or
@@ -92,6 +96,7 @@ class LegTable:
 
     @property
     def samples(self) -> int:
+        """Crank angles in the table (N)."""
         return int(np.shape(self.links)[0])
 
     def at(self, psi: float) -> tuple:
@@ -273,6 +278,7 @@ class LeggedModel:
 
     @property
     def point_names(self) -> list:
+        """Tracked point names per world (torso, torso_up, one foot per leg)."""
         return [spec.point_names for spec in self.specs]
 
 
@@ -290,6 +296,7 @@ def pack_legged(specs: list, *, device="cpu", dt: float = 2e-3, config: SolverCo
 
 @wp.func
 def table_read(table: wp.array3d(dtype=wp.vec3), t: int, i0: int, i1: int, f: float, k: int):
+    """Entry k of table t between samples i0 and i1 (weight f on i1), linearly."""
     return table[t, i0, k] * (1.0 - f) + table[t, i1, k] * f
 
 
@@ -306,6 +313,7 @@ def link_read(table: wp.array3d(dtype=wp.vec3), t: int, i0: int, i1: int, f: flo
 
 @wp.func
 def foot_read(table: wp.array2d(dtype=wp.vec3), t: int, i0: int, i1: int, f: float):
+    """The foot entry of table t between samples i0 and i1, linearly."""
     return table[t, i0] * (1.0 - f) + table[t, i1] * f
 
 
@@ -341,6 +349,7 @@ def cholesky(a: wp.array2d(dtype=float), w: int, n: int, out: wp.array2d(dtype=f
 
 @wp.func
 def chol_solve(L: wp.array2d(dtype=float), w: int, n: int, b: vecnv):
+    """(L L^T)^-1 b for the lower factor L of world w (its leading n x n block)."""
     y = b
     for i in range(n):
         s = y[i]
@@ -362,11 +371,13 @@ def chol_solve(L: wp.array2d(dtype=float), w: int, n: int, b: vecnv):
 # drive flag
 @wp.func
 def row_at(rows: wp.array2d(dtype=float), w: int, r: int, c: int):
+    """Field c of row r of world w in the rows' scratch."""
     return rows[r * ROW_STRIDE + c, w]
 
 
 @wp.func
 def set_row(rows: wp.array2d(dtype=float), w: int, r: int, c: int, value: float):
+    """Set field c of row r of world w in the rows' scratch."""
     rows[r * ROW_STRIDE + c, w] = value
 
 
@@ -388,6 +399,7 @@ def set_penalties(rows: wp.array2d(dtype=float), w: int, m: int, rho: float, rho
 
 @wp.func
 def jrow_dot(J: wp.array2d(dtype=float), w: int, r: int, n: int, u: vecnv):
+    """Row r of world w's Jacobian times u."""
     s = float(0.0)
     for c in range(NV):
         s += J[r * NV + c, w] * u[c]
@@ -523,6 +535,9 @@ def legged_step(
     zp: wp.array2d(dtype=float),
     slot_of: wp.array2d(dtype=wp.int32),
 ):
+    """One step of every legged world (one thread per world): mass matrix and bias forces,
+    free velocity, drive and contact rows, preconditioned PADMM with Woodbury solves, velocity
+    update and integration; a non-finite or too fast world is flagged diverged and frozen."""
     w = wp.tid()
     if frozen[w] != 0:
         return
@@ -1018,6 +1033,7 @@ def legged_record(
 
 @wp.kernel
 def freeze_worlds(halted: wp.array(dtype=wp.int32), frozen: wp.array(dtype=wp.int32)):
+    """Freeze the worlds that rollout's halt stopped."""
     w = wp.tid()
     if halted[w] != 0:
         frozen[w] = 1

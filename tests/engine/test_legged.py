@@ -138,8 +138,8 @@ def centre_of_mass(model, spec):
     p = model.position.numpy()[0].astype(float)
     psi = model.psi.numpy()[0]
     moment, mass = spec.torso_mass * p, spec.torso_mass
-    for l, leg in enumerate(spec.legs):
-        links, _ = leg.table.at(float(psi[l]))
+    for index, leg in enumerate(spec.legs):
+        links, _ = leg.table.at(float(psi[index]))
         for k, m in enumerate(leg.link_mass):
             local = np.asarray(leg.origin) + leg.scale * np.array([links[k, 0], 0.0, links[k, 1]])
             moment = moment + m * (p + R @ local)
