@@ -29,11 +29,18 @@ rho_update_interval, contact_margin, contact_stabilization and max_speed; it alw
 with semi-implicit Euler and has no joint rows, so no projection.
 
 Contacts: the torso box's corners and both ends of every foot's shoe capsule against the ground
-plane z = 0, kept within SolverConfig.contact_margin. One thread steps one world; the contact
-candidates have fixed slots (their warm-start keys). A world whose state turns non-finite or
+plane z = 0, kept within SolverConfig.contact_margin; the contact candidates have fixed slots
+(their warm-start keys).
+
+On a GPU a batch of up to TILED_MAX_WORLDS worlds steps one warp per world: lane 0 sums the mass
+matrix and builds the rows, the lanes share the rows and contact triplets of the preconditioner,
+the warm start and every PADMM iteration, and the entries of M + J^T S^-1 J; the (6 + L)-square
+inverse is applied by every lane. Larger batches (and the CPU) step one thread per world: more
+worlds than a GPU has warps keep it busy anyway. Both compute the same step. A world whose state turns non-finite or
 whose torso moves faster than max_speed is flagged diverged and frozen; halted worlds are frozen.
 """
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -55,6 +62,7 @@ TORSO_CORNERS = wp.constant(8)
 MAX_CONTACTS = TORSO_CORNERS + 2 * MAX_LEGS  # slot k < 8: torso corner k; 8 + 2 l + e: end e of leg l's shoe
 MAX_ROWS = wp.constant(MAX_LEGS + 3 * MAX_CONTACTS)
 TWO_PI = wp.constant(2.0 * math.pi)
+TILED_MAX_WORLDS = 8192  # see LeggedModel.lanes (H200: 4096 walkers 5.2 ms per step tiled against 10.1)
 ROW_STRIDE = wp.constant(10)  # floats per row in the rows' scratch (see row_at)
 
 
@@ -277,7 +285,10 @@ class LeggedModel:
         self.row_count = wp.zeros(W, dtype=wp.int32, device=d)
         self.ufree = wp.zeros((W, NV), dtype=float, device=d)
         self.factor_inverse = wp.zeros((W, NV * NV), dtype=float, device=d)
-        self.lanes = 32 if self.device.is_cuda else 1  # one warp per world on a GPU, one thread on the CPU
+        # one warp per world on a GPU up to TILED_MAX_WORLDS worlds (the lanes share each world's
+        # rows), one thread per world beyond (more worlds than warps keep a GPU busy) and on the CPU
+        self.tiled = self.device.is_cuda and W <= TILED_MAX_WORLDS
+        self.lanes = 32 if self.device.is_cuda else 1  # per world, when tiled (a block is one thread on the CPU)
         self.drive_torque = wp.zeros((W, MAX_LEGS), dtype=float, device=d)
         self.points = wp.zeros((W, 2 + MAX_LEGS), dtype=wp.vec3, device=d)
         self.energy = wp.zeros(W, dtype=float, device=d)
@@ -288,13 +299,19 @@ class LeggedModel:
         return [spec.point_names for spec in self.specs]
 
 
-def pack_legged(specs: list, *, device="cpu", dt: float = 2e-3, config: SolverConfig | None = None) -> LeggedModel:
-    """One batch of legged worlds (see LeggedSpec) on ``device``, stepped with ``dt`` [s]."""
+def pack_legged(specs: list, *, device="cpu", dt: float = 2e-3, config: SolverConfig | None = None,
+                tiled: bool | None = None) -> LeggedModel:
+    """One batch of legged worlds (see LeggedSpec) on ``device``, stepped with ``dt`` [s].
+    tiled: one block of lanes per world (default on a GPU up to TILED_MAX_WORLDS worlds) or one
+    thread per world; both compute the same step (on the CPU a block is one thread)."""
     if not specs:
         raise ValueError("pack_legged: needs at least one world")
     if not dt > 0.0:
         raise ValueError(f"pack_legged: dt must be positive, got {dt}")
-    return LeggedModel(list(specs), device, dt, config or SolverConfig())
+    model = LeggedModel(list(specs), device, dt, config or SolverConfig())
+    if tiled is not None:
+        model.tiled = bool(tiled)
+    return model
 
 
 # -- kernels ---------------------------------------------------------------------------------------
@@ -433,53 +450,6 @@ def woodbury_solve(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=float), K:
 
 
 @wp.func
-def woodbury_factor(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=float), M: wp.array2d(dtype=float),
-                    K: wp.array2d(dtype=float), Kinv: wp.array2d(dtype=float), w: int, m: int, n: int,
-                    sigma_base: float, tmp: wp.array2d(dtype=float), lane: int, lanes: int):
-    """Kinv <- (M + J^T S^-1 J)^-1 (K holds its Cholesky factor on the way; tmp the rows' 1 / S).
-    The lanes share the rows, then the matrix's entries, then the inverse's columns; lane 0
-    factors. Every lane of the block must call it."""
-    for r in range(lane, m, lanes):
-        p = row_at(rows, w, r, 0)
-        tmp[w, r] = 1.0 / (sigma_base + penalty(rows, w, r) + p * p * row_at(rows, w, r, 1))
-    block_sync()
-    entries = n * (n + 1) / 2
-    for e in range(lane, entries, lanes):
-        i = int((wp.sqrt(8.0 * float(e) + 1.0) - 1.0) * 0.5)
-        while i * (i + 1) / 2 > e:
-            i -= 1
-        while (i + 1) * (i + 2) / 2 <= e:
-            i += 1
-        j = e - i * (i + 1) / 2
-        acc = M[w, i * NV + j]
-        for r in range(m):
-            acc += J[w, r * NV + i] * J[w, r * NV + j] * tmp[w, r]
-        K[w, i * NV + j] = acc
-    block_sync()
-    if lane == 0:  # in-place Cholesky of the lower triangle
-        for j in range(n):
-            s = K[w, j * NV + j]
-            for k in range(j):
-                s -= K[w, j * NV + k] * K[w, j * NV + k]
-            d = wp.sqrt(wp.max(s, 1.0e-20))
-            K[w, j * NV + j] = d
-            for i in range(j + 1, n):
-                t = K[w, i * NV + j]
-                for k in range(j):
-                    t -= K[w, i * NV + k] * K[w, j * NV + k]
-                K[w, i * NV + j] = t / d
-    block_sync()
-    for j in range(lane, NV, lanes):
-        col = vecnv()
-        if j < n:
-            col[j] = 1.0
-            col = chol_solve(K, w, n, col)
-        for i in range(NV):
-            Kinv[w, i * NV + j] = col[i]
-    block_sync()
-
-
-@wp.func
 def project_row(rows: wp.array2d(dtype=float), w: int, r: int, a: float, b: float, c: float):
     """Projection of a row's value (a drive: clamp) or a contact triplet's (a, b, c) onto its cone;
     returns the projected triplet (drives use the first component only)."""
@@ -495,412 +465,353 @@ def project_row(rows: wp.array2d(dtype=float), w: int, r: int, a: float, b: floa
     return wp.vec3(n, mu * n * b / t, mu * n * c / t)
 
 
-@wp.kernel
-def legged_step(
-    dt: float,
-    eta: float,
-    rho0: float,
-    tolerance: float,
-    relative_tolerance: float,
-    max_iterations: int,
-    rho_update_interval: int,
-    margin: float,
-    stabilization: float,
-    max_speed: float,
-    # tables
-    table_links: wp.array(dtype=wp.int32),
-    table_foot_link: wp.array(dtype=wp.int32),
-    links0: wp.array3d(dtype=wp.vec3),
-    links1: wp.array3d(dtype=wp.vec3),
-    links2: wp.array3d(dtype=wp.vec3),
-    foot0: wp.array2d(dtype=wp.vec3),
-    foot1: wp.array2d(dtype=wp.vec3),
-    foot2: wp.array2d(dtype=wp.vec3),
-    samples: int,
-    # worlds
-    leg_count: wp.array(dtype=wp.int32),
-    leg_table: wp.array2d(dtype=wp.int32),
-    leg_scale: wp.array2d(dtype=float),
-    leg_origin: wp.array2d(dtype=wp.vec3),
-    link_mass: wp.array2d(dtype=float),
-    link_inertia: wp.array2d(dtype=wp.mat33),
-    drive: wp.array2d(dtype=wp.vec3),
-    shoe: wp.array2d(dtype=wp.vec4),
-    torso: wp.array(dtype=wp.vec4),
-    torso_inertia: wp.array(dtype=wp.mat33),
-    torso_half: wp.array(dtype=wp.vec3),
-    gravity: wp.array(dtype=wp.vec3),
-    # state (in/out)
-    position: wp.array(dtype=wp.vec3),
-    orientation: wp.array(dtype=wp.quat),
-    velocity: wp.array(dtype=wp.vec3),
-    angular_velocity: wp.array(dtype=wp.vec3),
-    psi: wp.array2d(dtype=float),
-    psi_dot: wp.array2d(dtype=float),
-    impulse: wp.array2d(dtype=float),
-    frozen: wp.array(dtype=wp.int32),
-    diverged: wp.array(dtype=wp.int32),
-    # out
-    iterations_out: wp.array(dtype=wp.int32),
-    contacts_out: wp.array(dtype=wp.int32),
-    drive_torque: wp.array2d(dtype=float),
-    # scratch
-    J: wp.array2d(dtype=float),
-    rows: wp.array2d(dtype=float),
-    M: wp.array2d(dtype=float),
-    K: wp.array2d(dtype=float),
-    x: wp.array2d(dtype=float),
-    y: wp.array2d(dtype=float),
-    z: wp.array2d(dtype=float),
-    tmp: wp.array2d(dtype=float),
-    b: wp.array2d(dtype=float),
-    xp: wp.array2d(dtype=float),
-    yp: wp.array2d(dtype=float),
-    zp: wp.array2d(dtype=float),
-    slot_of: wp.array2d(dtype=wp.int32),
-    row_count: wp.array(dtype=wp.int32),
-    ufree: wp.array2d(dtype=float),
-    Kinv: wp.array2d(dtype=float),
-):
-    """One step of every legged world (one thread per world): mass matrix and bias forces,
-    free velocity, drive and contact rows, preconditioned PADMM with Woodbury solves, velocity
-    update and integration; a non-finite or too fast world is flagged diverged and frozen."""
-    w, lane = wp.tid()
-    lanes = wp.block_dim()
-    if frozen[w] != 0:
-        return
-    L = leg_count[w]
-    n = 6 + L
-    # set-up on lane 0: mass matrix, free velocity, rows, preconditioner, warm start, first factor
-    if lane == 0:
-        p = position[w]
-        q = orientation[w]
-        v = velocity[w]
-        om = angular_velocity[w]
-        R = wp.quat_to_matrix(q)
-        axis = -(R * wp.vec3(0.0, 1.0, 0.0))
-        g = gravity[w]
-        mt = torso[w][0]
-        h = vecnv()
-        # torso; the torso blocks of M are summed in registers over every link, each leg's column once
-        It = R * torso_inertia[w] * wp.transpose(R)
-        m_sum = mt
-        md_sum = wp.vec3()  # sum of m_k d_k
-        rot_sum = It  # angular block
-        gyro = -wp.cross(om, It * om)
-        for i in range(3):
-            h[i] += mt * g[i]
-            h[3 + i] += gyro[i]
-        for i in range(NV * NV):
-            M[w, i] = 0.0
-        # legs: mass matrix and bias forces, link by link
-        scale_n = float(samples) / TWO_PI
-        for li in range(L):
-            t = leg_table[w, li]
-            s = leg_scale[w, li]
-            ang = psi[w, li]
-            rate = psi_dot[w, li]
-            u = ang * scale_n
-            u = u - float(samples) * wp.floor(u / float(samples))
-            i0 = int(u)
-            if i0 >= samples:
-                i0 = samples - 1
-            f = u - float(i0)
-            i1 = i0 + 1
-            if i1 >= samples:
-                i1 = 0
-            col = 6 + li
-            o = leg_origin[w, li]
-            me_sum = wp.vec3()  # the leg's column: linear part
-            mw_sum = wp.vec3()  # angular part
-            mjj = float(0.0)
-            hj = float(0.0)
-            for k in range(table_links[t]):
-                c0 = link_read(links0, t, i0, i1, f, k)
-                c1 = table_read(links1, t, i0, i1, f, k)
-                c2 = table_read(links2, t, i0, i1, f, k)
-                mk = link_mass[w, li * MAX_LINKS + k]
-                d = R * (o + wp.vec3(s * c0[0], 0.0, s * c0[1]))
-                e = plane(R, c1) * s
-                e2 = plane(R, c2) * s
-                Rk = R * rot_minus_y(c0[2])
-                Ik = Rk * link_inertia[w, li * MAX_LINKS + k] * wp.transpose(Rk)
-                ax = axis * c1[2]
-                m_sum += mk
-                md_sum += mk * d
-                rot_sum += Ik + mk * (wp.dot(d, d) * wp.identity(n=3, dtype=float) - wp.outer(d, d))
-                me_sum += mk * e
-                mw_sum += mk * wp.cross(d, e) + Ik * ax
-                mjj += mk * wp.dot(e, e) + wp.dot(ax, Ik * ax)
-                wk = om + ax * rate
-                acc = wp.cross(om, wp.cross(om, d)) + 2.0 * rate * wp.cross(om, e) + e2 * (rate * rate)
-                alpha = rate * wp.cross(om, ax) + axis * (c2[2] * rate * rate)
-                f_lin = mk * (g - acc)
-                f_ang = -(Ik * alpha) - wp.cross(wk, Ik * wk)
-                tor = wp.cross(d, f_lin) + f_ang
-                for i in range(3):
-                    h[i] += f_lin[i]
-                    h[3 + i] += tor[i]
-                hj += wp.dot(e, f_lin) + wp.dot(ax, f_ang)
-            h[col] = hj
+@functools.cache
+def step_kernel(tiled: bool):
+    """The step kernel: tiled (launch_tiled, one block of lanes per world, lanes sharing the
+    PADMM rows) or one thread per world (wp.launch; no block operations)."""
+
+    @wp.func
+    def sync():
+        """Barrier of the world's lanes (tiled only)."""
+        if wp.static(tiled):
+            block_sync()
+
+    @wp.func
+    def reduce_sum(value: float):
+        """Sum over the world's lanes."""
+        if wp.static(tiled):
+            return block_sum(value)
+        return value
+
+    @wp.func
+    def reduce_max(value: float):
+        """Largest value over the world's lanes."""
+        if wp.static(tiled):
+            return block_max(value)
+        return value
+
+    @wp.func
+    def woodbury_factor(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=float), M: wp.array2d(dtype=float),
+                        K: wp.array2d(dtype=float), Kinv: wp.array2d(dtype=float), w: int, m: int, n: int,
+                        sigma_base: float, tmp: wp.array2d(dtype=float), lane: int, lanes: int):
+        """Kinv <- (M + J^T S^-1 J)^-1 (K holds its Cholesky factor on the way; tmp the rows' 1 / S).
+        The lanes share the rows, then the matrix's entries, then the inverse's columns; lane 0
+        factors. Every lane of the block must call it."""
+        for r in range(lane, m, lanes):
+            p = row_at(rows, w, r, 0)
+            tmp[w, r] = 1.0 / (sigma_base + penalty(rows, w, r) + p * p * row_at(rows, w, r, 1))
+        sync()
+        entries = n * (n + 1) / 2
+        for e in range(lane, entries, lanes):
+            i = int((wp.sqrt(8.0 * float(e) + 1.0) - 1.0) * 0.5)
+            while i * (i + 1) / 2 > e:
+                i -= 1
+            while (i + 1) * (i + 2) / 2 <= e:
+                i += 1
+            j = e - i * (i + 1) / 2
+            acc = M[w, i * NV + j]
+            for r in range(m):
+                acc += J[w, r * NV + i] * J[w, r * NV + j] * tmp[w, r]
+            K[w, i * NV + j] = acc
+        sync()
+        if lane == 0:  # in-place Cholesky of the lower triangle
+            for j in range(n):
+                s = K[w, j * NV + j]
+                for k in range(j):
+                    s -= K[w, j * NV + k] * K[w, j * NV + k]
+                d = wp.sqrt(wp.max(s, 1.0e-20))
+                K[w, j * NV + j] = d
+                for i in range(j + 1, n):
+                    t = K[w, i * NV + j]
+                    for k in range(j):
+                        t -= K[w, i * NV + k] * K[w, j * NV + k]
+                    K[w, i * NV + j] = t / d
+        sync()
+        for j in range(lane, NV, lanes):
+            col = vecnv()
+            if j < n:
+                col[j] = 1.0
+                col = chol_solve(K, w, n, col)
+            for i in range(NV):
+                Kinv[w, i * NV + j] = col[i]
+        sync()
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def legged_step(
+        dt: float,
+        eta: float,
+        rho0: float,
+        tolerance: float,
+        relative_tolerance: float,
+        max_iterations: int,
+        rho_update_interval: int,
+        margin: float,
+        stabilization: float,
+        max_speed: float,
+        # tables
+        table_links: wp.array(dtype=wp.int32),
+        table_foot_link: wp.array(dtype=wp.int32),
+        links0: wp.array3d(dtype=wp.vec3),
+        links1: wp.array3d(dtype=wp.vec3),
+        links2: wp.array3d(dtype=wp.vec3),
+        foot0: wp.array2d(dtype=wp.vec3),
+        foot1: wp.array2d(dtype=wp.vec3),
+        foot2: wp.array2d(dtype=wp.vec3),
+        samples: int,
+        # worlds
+        leg_count: wp.array(dtype=wp.int32),
+        leg_table: wp.array2d(dtype=wp.int32),
+        leg_scale: wp.array2d(dtype=float),
+        leg_origin: wp.array2d(dtype=wp.vec3),
+        link_mass: wp.array2d(dtype=float),
+        link_inertia: wp.array2d(dtype=wp.mat33),
+        drive: wp.array2d(dtype=wp.vec3),
+        shoe: wp.array2d(dtype=wp.vec4),
+        torso: wp.array(dtype=wp.vec4),
+        torso_inertia: wp.array(dtype=wp.mat33),
+        torso_half: wp.array(dtype=wp.vec3),
+        gravity: wp.array(dtype=wp.vec3),
+        # state (in/out)
+        position: wp.array(dtype=wp.vec3),
+        orientation: wp.array(dtype=wp.quat),
+        velocity: wp.array(dtype=wp.vec3),
+        angular_velocity: wp.array(dtype=wp.vec3),
+        psi: wp.array2d(dtype=float),
+        psi_dot: wp.array2d(dtype=float),
+        impulse: wp.array2d(dtype=float),
+        frozen: wp.array(dtype=wp.int32),
+        diverged: wp.array(dtype=wp.int32),
+        # out
+        iterations_out: wp.array(dtype=wp.int32),
+        contacts_out: wp.array(dtype=wp.int32),
+        drive_torque: wp.array2d(dtype=float),
+        # scratch
+        J: wp.array2d(dtype=float),
+        rows: wp.array2d(dtype=float),
+        M: wp.array2d(dtype=float),
+        K: wp.array2d(dtype=float),
+        x: wp.array2d(dtype=float),
+        y: wp.array2d(dtype=float),
+        z: wp.array2d(dtype=float),
+        tmp: wp.array2d(dtype=float),
+        b: wp.array2d(dtype=float),
+        xp: wp.array2d(dtype=float),
+        yp: wp.array2d(dtype=float),
+        zp: wp.array2d(dtype=float),
+        slot_of: wp.array2d(dtype=wp.int32),
+        row_count: wp.array(dtype=wp.int32),
+        ufree: wp.array2d(dtype=float),
+        Kinv: wp.array2d(dtype=float),
+    ):
+        """One step of every legged world (a block of lanes or one thread per world): mass matrix and bias forces,
+        free velocity, drive and contact rows, preconditioned PADMM with Woodbury solves, velocity
+        update and integration; a non-finite or too fast world is flagged diverged and frozen."""
+        if wp.static(tiled):
+            w, lane = wp.tid()
+            lanes = wp.block_dim()
+        else:
+            w = wp.tid()
+            lane = 0
+            lanes = 1
+        if frozen[w] != 0:
+            return
+        L = leg_count[w]
+        n = 6 + L
+        # set-up on lane 0: mass matrix, free velocity, rows, preconditioner, warm start, first factor
+        if lane == 0:
+            p = position[w]
+            q = orientation[w]
+            v = velocity[w]
+            om = angular_velocity[w]
+            R = wp.quat_to_matrix(q)
+            axis = -(R * wp.vec3(0.0, 1.0, 0.0))
+            g = gravity[w]
+            mt = torso[w][0]
+            h = vecnv()
+            # torso; the torso blocks of M are summed in registers over every link, each leg's column once
+            It = R * torso_inertia[w] * wp.transpose(R)
+            m_sum = mt
+            md_sum = wp.vec3()  # sum of m_k d_k
+            rot_sum = It  # angular block
+            gyro = -wp.cross(om, It * om)
             for i in range(3):
-                M[w, i * NV + col] = me_sum[i]
-                M[w, col * NV + i] = me_sum[i]
-                M[w, (3 + i) * NV + col] = mw_sum[i]
-                M[w, col * NV + 3 + i] = mw_sum[i]
-            M[w, col * NV + col] = mjj
-        # M_vv = m I, M_vw = -[sum m d]x, M_ww = the angular sum
-        cross = wp.skew(md_sum)
-        for i in range(3):
-            M[w, i * NV + i] = m_sum
-            for j in range(3):
-                M[w, i * NV + 3 + j] = -cross[i, j]
-                M[w, (3 + i) * NV + j] = cross[i, j]
-                M[w, (3 + i) * NV + 3 + j] = rot_sum[i, j]
-        cholesky(M, w, n, K)
-        uu = vecnv()
-        for i in range(3):
-            uu[i] = v[i]
-            uu[3 + i] = om[i]
-        for li in range(L):
-            uu[6 + li] = psi_dot[w, li]
-        acc_free = chol_solve(K, w, n, h)
-        uf = uu + dt * acc_free
-        # rows: drives, then contacts within the margin
-        m = int(0)
-        for li in range(L):
-            dr = drive[w, li]
+                h[i] += mt * g[i]
+                h[3 + i] += gyro[i]
+            for i in range(NV * NV):
+                M[w, i] = 0.0
+            # legs: mass matrix and bias forces, link by link
+            for li in range(L):
+                t = leg_table[w, li]
+                s = leg_scale[w, li]
+                ang = psi[w, li]
+                rate = psi_dot[w, li]
+                ix = table_index(ang, samples)
+                i0 = int(ix[0])
+                i1 = int(ix[1])
+                f = ix[2]
+                col = 6 + li
+                o = leg_origin[w, li]
+                me_sum = wp.vec3()  # the leg's column: linear part
+                mw_sum = wp.vec3()  # angular part
+                mjj = float(0.0)
+                hj = float(0.0)
+                for k in range(table_links[t]):
+                    c0 = link_read(links0, t, i0, i1, f, k)
+                    c1 = table_read(links1, t, i0, i1, f, k)
+                    c2 = table_read(links2, t, i0, i1, f, k)
+                    mk = link_mass[w, li * MAX_LINKS + k]
+                    d = R * (o + wp.vec3(s * c0[0], 0.0, s * c0[1]))
+                    e = plane(R, c1) * s
+                    e2 = plane(R, c2) * s
+                    Rk = R * rot_minus_y(c0[2])
+                    Ik = Rk * link_inertia[w, li * MAX_LINKS + k] * wp.transpose(Rk)
+                    ax = axis * c1[2]
+                    m_sum += mk
+                    md_sum += mk * d
+                    rot_sum += Ik + mk * (wp.dot(d, d) * wp.identity(n=3, dtype=float) - wp.outer(d, d))
+                    me_sum += mk * e
+                    mw_sum += mk * wp.cross(d, e) + Ik * ax
+                    mjj += mk * wp.dot(e, e) + wp.dot(ax, Ik * ax)
+                    wk = om + ax * rate
+                    acc = wp.cross(om, wp.cross(om, d)) + 2.0 * rate * wp.cross(om, e) + e2 * (rate * rate)
+                    alpha = rate * wp.cross(om, ax) + axis * (c2[2] * rate * rate)
+                    f_lin = mk * (g - acc)
+                    f_ang = -(Ik * alpha) - wp.cross(wk, Ik * wk)
+                    tor = wp.cross(d, f_lin) + f_ang
+                    for i in range(3):
+                        h[i] += f_lin[i]
+                        h[3 + i] += tor[i]
+                    hj += wp.dot(e, f_lin) + wp.dot(ax, f_ang)
+                h[col] = hj
+                for i in range(3):
+                    M[w, i * NV + col] = me_sum[i]
+                    M[w, col * NV + i] = me_sum[i]
+                    M[w, (3 + i) * NV + col] = mw_sum[i]
+                    M[w, col * NV + 3 + i] = mw_sum[i]
+                M[w, col * NV + col] = mjj
+            # M_vv = m I, M_vw = -[sum m d]x, M_ww = the angular sum
+            cross = wp.skew(md_sum)
+            for i in range(3):
+                M[w, i * NV + i] = m_sum
+                for j in range(3):
+                    M[w, i * NV + 3 + j] = -cross[i, j]
+                    M[w, (3 + i) * NV + j] = cross[i, j]
+                    M[w, (3 + i) * NV + 3 + j] = rot_sum[i, j]
+            cholesky(M, w, n, K)
+            uu = vecnv()
+            for i in range(3):
+                uu[i] = v[i]
+                uu[3 + i] = om[i]
+            for li in range(L):
+                uu[6 + li] = psi_dot[w, li]
+            acc_free = chol_solve(K, w, n, h)
+            uf = uu + dt * acc_free
+            # rows: drives, then contacts within the margin
+            m = int(0)
+            for li in range(L):
+                dr = drive[w, li]
+                for c in range(NV):
+                    J[w, m * NV + c] = 0.0
+                J[w, m * NV + 6 + li] = 1.0
+                kd = dr[1]
+                bound = dt * dr[2]
+                compliance = 1.0e6
+                if kd > 0.0:
+                    compliance = 1.0 / (dt * kd)
+                set_row(rows, w, m, 1, compliance)
+                set_row(rows, w, m, 2, uf[6 + li] - dr[0] * wp.min(1.0, kd * 1.0e6))
+                set_row(rows, w, m, 3, -1.0)
+                set_row(rows, w, m, 4, -bound)
+                set_row(rows, w, m, 5, bound)
+                set_row(rows, w, m, 7, 0.0)
+                slot_of[w, m] = li
+                m += 1
+            count = int(0)
+            if torso[w][2] > 0.0:
+                half = torso_half[w]
+                for k in range(TORSO_CORNERS + 2 * L):
+                    arm = wp.vec3()
+                    lin = wp.vec3()  # the point's velocity per unit crank rate (shoe ends)
+                    leg = int(-1)
+                    mu = torso[w][1]
+                    dist = float(0.0)
+                    if k < TORSO_CORNERS:
+                        sx = float(1.0)
+                        sy = float(1.0)
+                        sz = float(1.0)
+                        if k % 2 == 1:
+                            sx = -1.0
+                        if (k / 2) % 2 == 1:
+                            sy = -1.0
+                        if k >= 4:
+                            sz = -1.0
+                        arm = R * wp.vec3(sx * half[0], sy * half[1], sz * half[2])
+                        dist = p[2] + arm[2]
+                    else:
+                        leg = (k - TORSO_CORNERS) / 2
+                        end = float(1.0)
+                        if (k - TORSO_CORNERS) % 2 == 1:
+                            end = -1.0
+                        t = leg_table[w, leg]
+                        s = leg_scale[w, leg]
+                        ix = table_index(psi[w, leg], samples)
+                        i0 = int(ix[0])
+                        i1 = int(ix[1])
+                        f = ix[2]
+                        fl = table_foot_link[t]
+                        sh = shoe[w, leg]
+                        phi = link_read(links0, t, i0, i1, f, fl)
+                        phi1 = table_read(links1, t, i0, i1, f, fl)
+                        beta = phi[2] + sh[2]
+                        dirn = wp.vec3(wp.cos(beta), wp.sin(beta), 0.0)
+                        perp = wp.vec3(-wp.sin(beta), wp.cos(beta), 0.0)
+                        fp = foot_read(foot0, t, i0, i1, f) * s + dirn * (end * sh[1])
+                        fv = foot_read(foot1, t, i0, i1, f) * s + perp * (end * sh[1] * phi1[2])
+                        arm = R * leg_origin[w, leg] + plane(R, fp)
+                        lin = plane(R, fv)
+                        dist = p[2] + arm[2] - sh[0]
+                        mu = sh[3]
+                    if dist < margin:
+                        count += 1
+                        for comp in range(3):
+                            nrm = wp.vec3(0.0, 0.0, 1.0)
+                            if comp == 1:
+                                nrm = wp.vec3(1.0, 0.0, 0.0)
+                            if comp == 2:
+                                nrm = wp.vec3(0.0, 1.0, 0.0)
+                            rxn = wp.cross(arm, nrm)
+                            for c in range(NV):
+                                J[w, m * NV + c] = 0.0
+                            for i in range(3):
+                                J[w, m * NV + i] = nrm[i]
+                                J[w, m * NV + 3 + i] = rxn[i]
+                            if leg >= 0:
+                                J[w, m * NV + 6 + leg] = wp.dot(nrm, lin)
+                            vrow = jrow_dot(J, w, m, n, uf)
+                            if comp == 0:
+                                if dist > 0.0:
+                                    vrow += dist / dt
+                                else:
+                                    vrow += stabilization * dist / dt
+                            set_row(rows, w, m, 1, 0.0)
+                            set_row(rows, w, m, 2, vrow)
+                            set_row(rows, w, m, 3, mu)
+                            set_row(rows, w, m, 7, 0.0)
+                            slot_of[w, m] = MAX_LEGS + 3 * k + comp
+                            m += 1
+            contacts_out[w] = count
             for c in range(NV):
-                J[w, m * NV + c] = 0.0
-            J[w, m * NV + 6 + li] = 1.0
-            kd = dr[1]
-            bound = dt * dr[2]
-            compliance = 1.0e6
-            if kd > 0.0:
-                compliance = 1.0 / (dt * kd)
-            set_row(rows, w, m, 1, compliance)
-            set_row(rows, w, m, 2, uf[6 + li] - dr[0] * wp.min(1.0, kd * 1.0e6))
-            set_row(rows, w, m, 3, -1.0)
-            set_row(rows, w, m, 4, -bound)
-            set_row(rows, w, m, 5, bound)
-            set_row(rows, w, m, 7, 0.0)
-            slot_of[w, m] = li
-            m += 1
-        count = int(0)
-        if torso[w][2] > 0.0:
-            half = torso_half[w]
-            for k in range(TORSO_CORNERS + 2 * L):
-                arm = wp.vec3()
-                lin = wp.vec3()  # the point's velocity per unit crank rate (shoe ends)
-                leg = int(-1)
-                mu = torso[w][1]
-                dist = float(0.0)
-                if k < TORSO_CORNERS:
-                    sx = float(1.0)
-                    sy = float(1.0)
-                    sz = float(1.0)
-                    if k % 2 == 1:
-                        sx = -1.0
-                    if (k / 2) % 2 == 1:
-                        sy = -1.0
-                    if k >= 4:
-                        sz = -1.0
-                    arm = R * wp.vec3(sx * half[0], sy * half[1], sz * half[2])
-                    dist = p[2] + arm[2]
-                else:
-                    leg = (k - TORSO_CORNERS) / 2
-                    end = float(1.0)
-                    if (k - TORSO_CORNERS) % 2 == 1:
-                        end = -1.0
-                    t = leg_table[w, leg]
-                    s = leg_scale[w, leg]
-                    u = psi[w, leg] * scale_n
-                    u = u - float(samples) * wp.floor(u / float(samples))
-                    i0 = int(u)
-                    if i0 >= samples:
-                        i0 = samples - 1
-                    f = u - float(i0)
-                    i1 = i0 + 1
-                    if i1 >= samples:
-                        i1 = 0
-                    fl = table_foot_link[t]
-                    sh = shoe[w, leg]
-                    phi = link_read(links0, t, i0, i1, f, fl)
-                    phi1 = table_read(links1, t, i0, i1, f, fl)
-                    beta = phi[2] + sh[2]
-                    dirn = wp.vec3(wp.cos(beta), wp.sin(beta), 0.0)
-                    perp = wp.vec3(-wp.sin(beta), wp.cos(beta), 0.0)
-                    fp = foot_read(foot0, t, i0, i1, f) * s + dirn * (end * sh[1])
-                    fv = foot_read(foot1, t, i0, i1, f) * s + perp * (end * sh[1] * phi1[2])
-                    arm = R * leg_origin[w, leg] + plane(R, fp)
-                    lin = plane(R, fv)
-                    dist = p[2] + arm[2] - sh[0]
-                    mu = sh[3]
-                if dist < margin:
-                    count += 1
-                    for comp in range(3):
-                        nrm = wp.vec3(0.0, 0.0, 1.0)
-                        if comp == 1:
-                            nrm = wp.vec3(1.0, 0.0, 0.0)
-                        if comp == 2:
-                            nrm = wp.vec3(0.0, 1.0, 0.0)
-                        rxn = wp.cross(arm, nrm)
-                        for c in range(NV):
-                            J[w, m * NV + c] = 0.0
-                        for i in range(3):
-                            J[w, m * NV + i] = nrm[i]
-                            J[w, m * NV + 3 + i] = rxn[i]
-                        if leg >= 0:
-                            J[w, m * NV + 6 + leg] = wp.dot(nrm, lin)
-                        vrow = jrow_dot(J, w, m, n, uf)
-                        if comp == 0:
-                            if dist > 0.0:
-                                vrow += dist / dt
-                            else:
-                                vrow += stabilization * dist / dt
-                        set_row(rows, w, m, 1, 0.0)
-                        set_row(rows, w, m, 2, vrow)
-                        set_row(rows, w, m, 3, mu)
-                        set_row(rows, w, m, 7, 0.0)
-                        slot_of[w, m] = MAX_LEGS + 3 * k + comp
-                        m += 1
-        contacts_out[w] = count
-        for c in range(NV):
-            ufree[w, c] = uf[c]
-        row_count[w] = m
-    block_sync()
-    m = row_count[w]
-    units = L + (m - L) / 3
-    # Jacobi preconditioner P = diag(J M^-1 J^T + R)^-1/2 (one value per contact triplet) and the
-    # warm start from the last step's impulses by slot, unit by unit over the lanes (K holds the
-    # factor of M). A drive row whose warm start lies within half its bounds keeps the penalty at
-    # or below rho0 (its projection is then the identity, and a large penalty only slows it).
-    rho = rho0
-    gyl = vecnv()
-    unit = lane
-    while unit < units:
-        r = unit
-        span = int(1)
-        if unit >= L:
-            r = L + 3 * (unit - L)
-            span = 3
-        dsum = float(0.0)
-        for rr in range(r, r + span):
-            jr = vecnv()
-            for c in range(NV):
-                jr[c] = J[w, rr * NV + c]
-            mj = chol_solve(K, w, n, jr)
-            dsum += wp.dot(jr, mj) + row_at(rows, w, rr, 1)
-        pr = 1.0 / wp.sqrt(wp.max(dsum / float(span), 1.0e-12))
-        for rr in range(r, r + span):
-            set_row(rows, w, rr, 0, pr)
-            set_row(rows, w, rr, 2, pr * row_at(rows, w, rr, 2))
-            set_row(rows, w, rr, 4, row_at(rows, w, rr, 4) / pr)
-            set_row(rows, w, rr, 5, row_at(rows, w, rr, 5) / pr)
-            set_row(rows, w, rr, 6, rho0)
-            for c in range(NV):
-                J[w, rr * NV + c] = pr * J[w, rr * NV + c]
-            x[w, rr] = impulse[w, slot_of[w, rr]] / pr
-        a1 = float(0.0)
-        a2 = float(0.0)
-        if span == 3:
-            a1 = x[w, r + 1]
-            a2 = x[w, r + 2]
-        pj = project_row(rows, w, r, x[w, r], a1, a2)
-        for c in range(span):
-            y[w, r + c] = pj[c]
-            yp[w, r + c] = pj[c]
-            for k in range(NV):
-                gyl[k] += J[w, (r + c) * NV + k] * pj[c]
-        free = float(0.0)
-        if span == 1 and wp.abs(x[w, r]) < 0.5 * row_at(rows, w, r, 5):
-            free = 1.0
-        set_row(rows, w, r, 8, free)
-        unit += lanes
-    # the dual variable from the warm start: z = -(D y + v_f + s), the (shifted) velocity it
-    # gives, so that an unchanged contact set starts at its fixed point
-    gy = vecnv()
-    for k in range(NV):
-        gy[k] = block_sum(gyl[k])
-    my = chol_solve(K, w, n, gy)
-    unit = lane
-    while unit < units:
-        r = unit
-        span = int(1)
-        if unit >= L:
-            r = L + 3 * (unit - L)
-            span = 3
-        for c in range(span):
-            i = r + c
-            pr = row_at(rows, w, i, 0)
-            set_row(rows, w, i, 7, jrow_dot(J, w, i, n, my) + pr * pr * row_at(rows, w, i, 1) * y[w, i]
-                    + row_at(rows, w, i, 2))
-        shift = float(0.0)
-        if span == 3:
-            vt1 = row_at(rows, w, r + 1, 7)
-            vt2 = row_at(rows, w, r + 2, 7)
-            shift = row_at(rows, w, r, 3) * wp.sqrt(vt1 * vt1 + vt2 * vt2)
-        for c in range(span):
-            z[w, r + c] = -row_at(rows, w, r + c, 7)
-        z[w, r] = z[w, r] - shift
-        for c in range(span):
-            zp[w, r + c] = z[w, r + c]
-        unit += lanes
-    block_sync()  # every lane is done with the factor of M
-    woodbury_factor(J, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
-    its = int(0)
-    converged = int(0)
-    momentum = float(1.0)
-    merit = float(1.0e30)
-    beta = float(0.0)
-    while its < max_iterations and converged == 0 and m > 0:
-        # each lane takes units (a drive row or a contact triplet) lane, lane + lanes, ...: the
-        # right-hand side at the extrapolated (y, z) with the De Saxce shift from the velocity at the
-        # last iterate, t = S^-1 b and its share of J^T t
-        gl = vecnv()
-        unit = lane
-        while unit < units:
-            r0 = unit
-            span = int(1)
-            if unit >= L:
-                r0 = L + 3 * (unit - L)
-                span = 3
-            for c in range(span):
-                i = r0 + c
-                pen = penalty(rows, w, i)
-                yh = y[w, i] + beta * (y[w, i] - yp[w, i])
-                zh = z[w, i] + beta * (z[w, i] - zp[w, i])
-                yp[w, i] = yh  # yp, zp hold the extrapolated pair during the iteration
-                zp[w, i] = zh
-                b[w, i] = -row_at(rows, w, i, 2) + eta * x[w, i] + pen * yh - zh
-                xp[w, i] = x[w, i]
-            if span == 3:
-                vt1 = row_at(rows, w, r0 + 1, 7)
-                vt2 = row_at(rows, w, r0 + 2, 7)
-                b[w, r0] = b[w, r0] - row_at(rows, w, r0, 3) * wp.sqrt(vt1 * vt1 + vt2 * vt2)
-            for c in range(span):
-                i = r0 + c
-                pr = row_at(rows, w, i, 0)
-                tv = b[w, i] / (eta + penalty(rows, w, i) + pr * pr * row_at(rows, w, i, 1))
-                tmp[w, i] = tv
-                for k in range(NV):
-                    gl[k] += J[w, i * NV + k] * tv
-            unit += lanes
-        # Woodbury: x = t - S^-1 J (M + J^T S^-1 J)^-1 J^T t, the small inverse applied by every lane
-        gsum = vecnv()
-        for k in range(NV):
-            gsum[k] = block_sum(gl[k])
-        yv = vecnv()
-        for k in range(NV):
-            accv = float(0.0)
-            for j in range(NV):
-                accv += Kinv[w, k * NV + j] * gsum[j]
-            yv[k] = accv
-        rp = float(0.0)
-        rd = float(0.0)
-        rn = float(0.0)
-        ymax = float(0.0)
-        change = float(0.0)
+                ufree[w, c] = uf[c]
+            row_count[w] = m
+        sync()
+        m = row_count[w]
+        units = L + (m - L) / 3
+        # Jacobi preconditioner P = diag(J M^-1 J^T + R)^-1/2 (one value per contact triplet) and the
+        # warm start from the last step's impulses by slot, unit by unit over the lanes (K holds the
+        # factor of M). A drive row whose warm start lies within half its bounds keeps the penalty at
+        # or below rho0 (its projection is then the identity, and a large penalty only slows it).
+        rho = rho0
+        gyl = vecnv()
         unit = lane
         while unit < units:
             r = unit
@@ -908,128 +819,254 @@ def legged_step(
             if unit >= L:
                 r = L + 3 * (unit - L)
                 span = 3
-            pen = penalty(rows, w, r)
-            for c in range(span):
-                i = r + c
-                pr = row_at(rows, w, i, 0)
-                x[w, i] = tmp[w, i] - jrow_dot(J, w, i, n, yv) / (eta + pen + pr * pr * row_at(rows, w, i, 1))
-            a0 = x[w, r] + zp[w, r] / pen
+            dsum = float(0.0)
+            for rr in range(r, r + span):
+                jr = vecnv()
+                for c in range(NV):
+                    jr[c] = J[w, rr * NV + c]
+                mj = chol_solve(K, w, n, jr)
+                dsum += wp.dot(jr, mj) + row_at(rows, w, rr, 1)
+            pr = 1.0 / wp.sqrt(wp.max(dsum / float(span), 1.0e-12))
+            for rr in range(r, r + span):
+                set_row(rows, w, rr, 0, pr)
+                set_row(rows, w, rr, 2, pr * row_at(rows, w, rr, 2))
+                set_row(rows, w, rr, 4, row_at(rows, w, rr, 4) / pr)
+                set_row(rows, w, rr, 5, row_at(rows, w, rr, 5) / pr)
+                set_row(rows, w, rr, 6, rho0)
+                for c in range(NV):
+                    J[w, rr * NV + c] = pr * J[w, rr * NV + c]
+                x[w, rr] = impulse[w, slot_of[w, rr]] / pr
             a1 = float(0.0)
             a2 = float(0.0)
             if span == 3:
-                a1 = x[w, r + 1] + zp[w, r + 1] / pen
-                a2 = x[w, r + 2] + zp[w, r + 2] / pen
-            pj = project_row(rows, w, r, a0, a1, a2)
-            # velocities at the new x, D x + v_f = rhs - (eta + rho) x + v_f, and the natural
-            # residual x - Pi(x - v^), v^ with the De Saxce shift (in the dual cone at a solution)
-            vel = wp.vec3()
+                a1 = x[w, r + 1]
+                a2 = x[w, r + 2]
+            pj = project_row(rows, w, r, x[w, r], a1, a2)
             for c in range(span):
-                i = r + c
-                vel[c] = b[w, i] - (eta + pen) * x[w, i] + row_at(rows, w, i, 2)
-                set_row(rows, w, i, 7, vel[c])
-            xs = wp.vec3(x[w, r], 0.0, 0.0)
-            if span == 3:
-                xs = wp.vec3(x[w, r], x[w, r + 1], x[w, r + 2])
-                vel[0] = vel[0] + row_at(rows, w, r, 3) * wp.sqrt(vel[1] * vel[1] + vel[2] * vel[2])
-            nat = xs - project_row(rows, w, r, xs[0] - vel[0], xs[1] - vel[1], xs[2] - vel[2])
-            rn = wp.max(rn, wp.max(wp.abs(nat[0]), wp.max(wp.abs(nat[1]), wp.abs(nat[2]))))
-            for c in range(span):
-                i = r + c
-                yn = pj[c]
-                xr = x[w, i]
-                zn = zp[w, i] + pen * (xr - yn)
-                dy = yn - yp[w, i]
-                dz = zn - zp[w, i]
-                rp = wp.max(rp, wp.abs(xr - yn))
-                rd = wp.max(rd, wp.abs(eta * (xr - xp[w, i]) + pen * dy))
-                change += pen * dy * dy + dz * dz / pen
-                yp[w, i] = y[w, i]
-                zp[w, i] = z[w, i]
-                y[w, i] = yn
-                z[w, i] = zn
-                ymax = wp.max(ymax, wp.abs(yn))
+                y[w, r + c] = pj[c]
+                yp[w, r + c] = pj[c]
+                for k in range(NV):
+                    gyl[k] += J[w, (r + c) * NV + k] * pj[c]
+            free = float(0.0)
+            if span == 1 and wp.abs(x[w, r]) < 0.5 * row_at(rows, w, r, 5):
+                free = 1.0
+            set_row(rows, w, r, 8, free)
             unit += lanes
-        rp = block_max(rp)
-        rd = block_max(rd)
-        rn = block_max(rn)
-        ymax = block_max(ymax)
-        change = block_sum(change)
-        its += 1
-        tol = tolerance + relative_tolerance * ymax
-        if rp < tol and rd < tol and rn < tol:
-            converged = 1
-        else:
-            beta = 0.0
-            if change < 0.999 * merit:
-                a_next = 0.5 * (1.0 + wp.sqrt(1.0 + 4.0 * momentum * momentum))
-                beta = (momentum - 1.0) / a_next
-                momentum = a_next
+        # the dual variable from the warm start: z = -(D y + v_f + s), the (shifted) velocity it
+        # gives, so that an unchanged contact set starts at its fixed point
+        gy = vecnv()
+        for k in range(NV):
+            gy[k] = reduce_sum(gyl[k])
+        my = chol_solve(K, w, n, gy)
+        unit = lane
+        while unit < units:
+            r = unit
+            span = int(1)
+            if unit >= L:
+                r = L + 3 * (unit - L)
+                span = 3
+            for c in range(span):
+                i = r + c
+                pr = row_at(rows, w, i, 0)
+                set_row(rows, w, i, 7, jrow_dot(J, w, i, n, my) + pr * pr * row_at(rows, w, i, 1) * y[w, i]
+                        + row_at(rows, w, i, 2))
+            shift = float(0.0)
+            if span == 3:
+                vt1 = row_at(rows, w, r + 1, 7)
+                vt2 = row_at(rows, w, r + 2, 7)
+                shift = row_at(rows, w, r, 3) * wp.sqrt(vt1 * vt1 + vt2 * vt2)
+            for c in range(span):
+                z[w, r + c] = -row_at(rows, w, r + c, 7)
+            z[w, r] = z[w, r] - shift
+            for c in range(span):
+                zp[w, r + c] = z[w, r + c]
+            unit += lanes
+        sync()  # every lane is done with the factor of M
+        woodbury_factor(J, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
+        its = int(0)
+        converged = int(0)
+        momentum = float(1.0)
+        merit = float(1.0e30)
+        beta = float(0.0)
+        while its < max_iterations and converged == 0 and m > 0:
+            # each lane takes units (a drive row or a contact triplet) lane, lane + lanes, ...: the
+            # right-hand side at the extrapolated (y, z) with the De Saxce shift from the velocity at the
+            # last iterate, t = S^-1 b and its share of J^T t
+            gl = vecnv()
+            unit = lane
+            while unit < units:
+                r0 = unit
+                span = int(1)
+                if unit >= L:
+                    r0 = L + 3 * (unit - L)
+                    span = 3
+                for c in range(span):
+                    i = r0 + c
+                    pen = penalty(rows, w, i)
+                    yh = y[w, i] + beta * (y[w, i] - yp[w, i])
+                    zh = z[w, i] + beta * (z[w, i] - zp[w, i])
+                    yp[w, i] = yh  # yp, zp hold the extrapolated pair during the iteration
+                    zp[w, i] = zh
+                    b[w, i] = -row_at(rows, w, i, 2) + eta * x[w, i] + pen * yh - zh
+                    xp[w, i] = x[w, i]
+                if span == 3:
+                    vt1 = row_at(rows, w, r0 + 1, 7)
+                    vt2 = row_at(rows, w, r0 + 2, 7)
+                    b[w, r0] = b[w, r0] - row_at(rows, w, r0, 3) * wp.sqrt(vt1 * vt1 + vt2 * vt2)
+                for c in range(span):
+                    i = r0 + c
+                    pr = row_at(rows, w, i, 0)
+                    tv = b[w, i] / (eta + penalty(rows, w, i) + pr * pr * row_at(rows, w, i, 1))
+                    tmp[w, i] = tv
+                    for k in range(NV):
+                        gl[k] += J[w, i * NV + k] * tv
+                unit += lanes
+            # Woodbury: x = t - S^-1 J (M + J^T S^-1 J)^-1 J^T t, the small inverse applied by every lane
+            gsum = vecnv()
+            for k in range(NV):
+                gsum[k] = reduce_sum(gl[k])
+            yv = vecnv()
+            for k in range(NV):
+                accv = float(0.0)
+                for j in range(NV):
+                    accv += Kinv[w, k * NV + j] * gsum[j]
+                yv[k] = accv
+            rp = float(0.0)
+            rd = float(0.0)
+            rn = float(0.0)
+            ymax = float(0.0)
+            change = float(0.0)
+            unit = lane
+            while unit < units:
+                r = unit
+                span = int(1)
+                if unit >= L:
+                    r = L + 3 * (unit - L)
+                    span = 3
+                pen = penalty(rows, w, r)
+                for c in range(span):
+                    i = r + c
+                    pr = row_at(rows, w, i, 0)
+                    x[w, i] = tmp[w, i] - jrow_dot(J, w, i, n, yv) / (eta + pen + pr * pr * row_at(rows, w, i, 1))
+                a0 = x[w, r] + zp[w, r] / pen
+                a1 = float(0.0)
+                a2 = float(0.0)
+                if span == 3:
+                    a1 = x[w, r + 1] + zp[w, r + 1] / pen
+                    a2 = x[w, r + 2] + zp[w, r + 2] / pen
+                pj = project_row(rows, w, r, a0, a1, a2)
+                # velocities at the new x, D x + v_f = rhs - (eta + rho) x + v_f, and the natural
+                # residual x - Pi(x - v^), v^ with the De Saxce shift (in the dual cone at a solution)
+                vel = wp.vec3()
+                for c in range(span):
+                    i = r + c
+                    vel[c] = b[w, i] - (eta + pen) * x[w, i] + row_at(rows, w, i, 2)
+                    set_row(rows, w, i, 7, vel[c])
+                xs = wp.vec3(x[w, r], 0.0, 0.0)
+                if span == 3:
+                    xs = wp.vec3(x[w, r], x[w, r + 1], x[w, r + 2])
+                    vel[0] = vel[0] + row_at(rows, w, r, 3) * wp.sqrt(vel[1] * vel[1] + vel[2] * vel[2])
+                nat = xs - project_row(rows, w, r, xs[0] - vel[0], xs[1] - vel[1], xs[2] - vel[2])
+                rn = wp.max(rn, wp.max(wp.abs(nat[0]), wp.max(wp.abs(nat[1]), wp.abs(nat[2]))))
+                for c in range(span):
+                    i = r + c
+                    yn = pj[c]
+                    xr = x[w, i]
+                    zn = zp[w, i] + pen * (xr - yn)
+                    dy = yn - yp[w, i]
+                    dz = zn - zp[w, i]
+                    rp = wp.max(rp, wp.abs(xr - yn))
+                    rd = wp.max(rd, wp.abs(eta * (xr - xp[w, i]) + pen * dy))
+                    change += pen * dy * dy + dz * dz / pen
+                    yp[w, i] = y[w, i]
+                    zp[w, i] = z[w, i]
+                    y[w, i] = yn
+                    z[w, i] = zn
+                    ymax = wp.max(ymax, wp.abs(yn))
+                unit += lanes
+            rp = reduce_max(rp)
+            rd = reduce_max(rd)
+            rn = reduce_max(rn)
+            ymax = reduce_max(ymax)
+            change = reduce_sum(change)
+            its += 1
+            tol = tolerance + relative_tolerance * ymax
+            if rp < tol and rd < tol and rn < tol:
+                converged = 1
             else:
-                momentum = 1.0
-            merit = change
-            if its % rho_update_interval == 0:
-                new_rho = rho
-                if rp > 10.0 * rd:
-                    new_rho = wp.min(rho * 4.0, 1.0e3)
-                elif rd > 10.0 * rp:
-                    new_rho = wp.max(rho / 4.0, 1.0e-5)
-                if new_rho != rho:
-                    block_sync()  # every lane is done with the rows and the inverse
-                    if lane == 0:
-                        set_penalties(rows, w, m, new_rho, rho0)
-                        for i in range(m):  # z is the unscaled multiplier: it stays; the momentum restarts
-                            zp[w, i] = z[w, i]
-                            yp[w, i] = y[w, i]
-                    block_sync()
-                    woodbury_factor(J, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
-                    rho = new_rho
+                beta = 0.0
+                if change < 0.999 * merit:
+                    a_next = 0.5 * (1.0 + wp.sqrt(1.0 + 4.0 * momentum * momentum))
+                    beta = (momentum - 1.0) / a_next
+                    momentum = a_next
+                else:
                     momentum = 1.0
-                    merit = 1.0e30
-                    beta = 0.0
-    block_sync()
-    if lane != 0:
-        return
-    iterations_out[w] = its
-    # impulses, velocity update
-    for i in range(MAX_ROWS):
-        impulse[w, i] = 0.0
-    jl = vecnv()
-    for r in range(m):
-        lam = y[w, r] * row_at(rows, w, r, 0)
-        impulse[w, slot_of[w, r]] = lam
+                merit = change
+                if its % rho_update_interval == 0:
+                    new_rho = rho
+                    if rp > 10.0 * rd:
+                        new_rho = wp.min(rho * 4.0, 1.0e3)
+                    elif rd > 10.0 * rp:
+                        new_rho = wp.max(rho / 4.0, 1.0e-5)
+                    if new_rho != rho:
+                        sync()  # every lane is done with the rows and the inverse
+                        if lane == 0:
+                            set_penalties(rows, w, m, new_rho, rho0)
+                            for i in range(m):  # z is the unscaled multiplier: it stays; the momentum restarts
+                                zp[w, i] = z[w, i]
+                                yp[w, i] = y[w, i]
+                        sync()
+                        woodbury_factor(J, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
+                        rho = new_rho
+                        momentum = 1.0
+                        merit = 1.0e30
+                        beta = 0.0
+        sync()
+        if lane != 0:
+            return
+        iterations_out[w] = its
+        # impulses, velocity update
+        for i in range(MAX_ROWS):
+            impulse[w, i] = 0.0
+        jl = vecnv()
+        for r in range(m):
+            lam = y[w, r] * row_at(rows, w, r, 0)
+            impulse[w, slot_of[w, r]] = lam
+            for c in range(NV):
+                jl[c] += J[w, r * NV + c] * y[w, r]  # J is preconditioned: J~^T y = J^T lambda
+        cholesky(M, w, n, K)
+        uf = vecnv()
         for c in range(NV):
-            jl[c] += J[w, r * NV + c] * y[w, r]  # J is preconditioned: J~^T y = J^T lambda
-    cholesky(M, w, n, K)
-    uf = vecnv()
-    for c in range(NV):
-        uf[c] = ufree[w, c]
-    un = uf + chol_solve(K, w, n, jl)
-    p = position[w]
-    q = orientation[w]
-    for li in range(L):
-        drive_torque[w, li] = impulse[w, li] / dt
-    v = wp.vec3(un[0], un[1], un[2])
-    om = wp.vec3(un[3], un[4], un[5])
-    p = p + dt * v
-    spin = wp.length(om)
-    if spin > 1.0e-12:
-        q = wp.normalize(wp.quat_from_axis_angle(om / spin, spin * dt) * q)
-    ok = wp.isfinite(p) and wp.isfinite(v) and wp.isfinite(om) and wp.length(v) < max_speed
-    for li in range(L):
-        rate = un[6 + li]
-        ang = psi[w, li] + dt * rate
-        ang = ang - TWO_PI * wp.floor(ang / TWO_PI)
-        psi[w, li] = ang
-        psi_dot[w, li] = rate
-        if not (wp.isfinite(ang) and wp.isfinite(rate)):
-            ok = False
-    position[w] = p
-    orientation[w] = q
-    velocity[w] = v
-    angular_velocity[w] = om
-    if not ok:
-        diverged[w] = 1
-        frozen[w] = 1
+            uf[c] = ufree[w, c]
+        un = uf + chol_solve(K, w, n, jl)
+        p = position[w]
+        q = orientation[w]
+        for li in range(L):
+            drive_torque[w, li] = impulse[w, li] / dt
+        v = wp.vec3(un[0], un[1], un[2])
+        om = wp.vec3(un[3], un[4], un[5])
+        p = p + dt * v
+        spin = wp.length(om)
+        if spin > 1.0e-12:
+            q = wp.normalize(wp.quat_from_axis_angle(om / spin, spin * dt) * q)
+        ok = wp.isfinite(p) and wp.isfinite(v) and wp.isfinite(om) and wp.length(v) < max_speed
+        for li in range(L):
+            rate = un[6 + li]
+            ang = psi[w, li] + dt * rate
+            ang = ang - TWO_PI * wp.floor(ang / TWO_PI)
+            psi[w, li] = ang
+            psi_dot[w, li] = rate
+            if not (wp.isfinite(ang) and wp.isfinite(rate)):
+                ok = False
+        position[w] = p
+        orientation[w] = q
+        velocity[w] = v
+        angular_velocity[w] = om
+        if not ok:
+            diverged[w] = 1
+            frozen[w] = 1
+
+    return legged_step
 
 
 @wp.func
@@ -1135,9 +1172,15 @@ def _step_inputs(model: LeggedModel) -> list:
 def legged_step_batch(model: LeggedModel, steps: int = 1):
     """Advance every world of ``model`` by ``steps`` steps."""
     inputs = _step_inputs(model)
+    if model.tiled:
+        kernel = step_kernel(True)
+        for _ in range(steps):
+            wp.launch_tiled(kernel, dim=[model.num_worlds], block_dim=model.lanes, inputs=inputs,
+                            device=model.device)
+        return
+    kernel = step_kernel(False)
     for _ in range(steps):
-        wp.launch_tiled(legged_step, dim=[model.num_worlds], block_dim=model.lanes, inputs=inputs,
-                        device=model.device)
+        wp.launch(kernel, dim=model.num_worlds, inputs=inputs, device=model.device)
 
 
 def legged_points(model: LeggedModel) -> tuple:
