@@ -372,9 +372,10 @@ def _world_metrics(evaluation: Evaluation, i: int, trace, world: int, names: lis
         if reason:
             evaluation.failures[i] = reason
             return
-    drive = trace.drive_torque[1:, world, :len(joints)]  # record 0 is the initial state
+    driven = [j for j, joint in enumerate(joints) if joint.drive is not None]
+    drive = trace.drive_torque[1:, world][:, driven] if driven else np.zeros((1, 1))  # record 0: the start
     metrics["torque_peak"] = float(np.abs(drive).max())
-    metrics["torque_rms"] = float(np.sqrt(np.mean(drive**2)))
+    metrics["torque_rms"] = float(np.sqrt(np.mean(drive**2)))  # over the driven joints
     metrics["loop_violation_max"] = (float(trace.violation_linear[:, world].max()) if loop_violation is None
                                      else loop_violation)
     evaluation.metrics[i] = metrics
