@@ -29,7 +29,8 @@ rho_update_interval, contact_margin, contact_stabilization and max_speed; it alw
 with semi-implicit Euler and has no joint rows, so no projection.
 
 Contacts: the torso box's corners and both ends of every foot's shoe capsule against the ground
-plane z = 0, kept within SolverConfig.contact_margin; the contact candidates have fixed slots
+plane z = 0 (the contact point on the capsule's surface below the end), kept within
+SolverConfig.contact_margin; the contact candidates have fixed slots
 (their warm-start keys).
 
 On a GPU a batch of up to TILED_MAX_WORLDS worlds steps one warp per world: lane 0 sums the mass
@@ -430,26 +431,6 @@ def jrow_dot(J: wp.array2d(dtype=float), w: int, r: int, n: int, u: vecnv):
 
 
 @wp.func
-def woodbury_solve(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=float), K: wp.array2d(dtype=float),
-                   w: int, m: int, n: int, sigma_base: float, b: wp.array2d(dtype=float), x: wp.array2d(dtype=float),
-                   tmp: wp.array2d(dtype=float)):
-    """x = (J M^-1 J^T + S)^-1 b, S = diag(sigma_base + P^2 R), with K the factor of M + J^T S^-1 J."""
-    g = vecnv()
-    for r in range(m):
-        p = row_at(rows, w, r, 0)
-        sig = sigma_base + penalty(rows, w, r) + p * p * row_at(rows, w, r, 1)
-        t = b[w, r] / sig
-        tmp[w, r] = t
-        for c in range(NV):
-            g[c] += J[w, r * NV + c] * t
-    y = chol_solve(K, w, n, g)
-    for r in range(m):
-        p = row_at(rows, w, r, 0)
-        sig = sigma_base + penalty(rows, w, r) + p * p * row_at(rows, w, r, 1)
-        x[w, r] = tmp[w, r] - jrow_dot(J, w, r, n, y) / sig
-
-
-@wp.func
 def project_row(rows: wp.array2d(dtype=float), w: int, r: int, a: float, b: float, c: float):
     """Projection of a row's value (a drive: clamp) or a contact triplet's (a, b, c) onto its cone;
     returns the projected triplet (drives use the first component only)."""
@@ -767,9 +748,13 @@ def step_kernel(tiled: bool):
                         perp = wp.vec3(-wp.sin(beta), wp.cos(beta), 0.0)
                         fp = foot_read(foot0, t, i0, i1, f) * s + dirn * (end * sh[1])
                         fv = foot_read(foot1, t, i0, i1, f) * s + perp * (end * sh[1] * phi1[2])
-                        arm = R * leg_origin[w, leg] + plane(R, fp)
-                        lin = plane(R, fv)
-                        dist = p[2] + arm[2] - sh[0]
+                        # the contact point: on the shoe's surface, one radius below its end's
+                        # centre; it moves with the foot link (turning at axis * phi' per unit
+                        # crank rate about the end's centre)
+                        down = wp.vec3(0.0, 0.0, -sh[0])
+                        arm = R * leg_origin[w, leg] + plane(R, fp) + down
+                        lin = plane(R, fv) + wp.cross(axis * phi1[2], down)
+                        dist = p[2] + arm[2]
                         mu = sh[3]
                     if dist < margin:
                         count += 1

@@ -302,6 +302,9 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     if model not in ("maximal", "reduced"):
         raise ValueError(f"evaluate_dynamic: model must be 'maximal' or 'reduced', got {model!r}")
     if model == "reduced":
+        if spec_hook is not None:
+            raise ValueError("evaluate_dynamic: spec_hook changes MechanismSpecs, which model 'reduced' does not "
+                             "build; use model 'maximal'")
         return _evaluate_reduced(family, params, duration=duration, dt=dt, device=device, crank_speed=crank_speed,
                                  record_every=record_every, fall_tilt=fall_tilt, fall_height=fall_height,
                                  stall_time=stall_time, config=config)

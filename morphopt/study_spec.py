@@ -327,6 +327,8 @@ def _check_values(spec: StudySpec, where: str) -> None:
         ("simulation.samples", spec.samples >= 8, "an integer >= 8"),
         ("simulation.model", spec.model in ("maximal", "reduced"),
          "'maximal' (every link a body) or 'reduced' (a walker's torso and crank angles: engine.legged)"),
+        ("simulation.model", spec.model == "maximal" or spec.mode == "dynamic",
+         "'maximal' in kinematic mode (the reduced model simulates dynamics)"),
     ]
     for key, ok, expected in checks:
         if not ok:

@@ -291,6 +291,14 @@ def test_study_simulation_model(tmp_path):
     four_bar = load_study_spec(study_file(tmp_path, "four", "four_bar", "reduced"))
     with pytest.raises(ValueError, match="build_legged"):
         run_study(four_bar, progress=False)
+    kinematic = study_file(tmp_path, "kin", "four_bar", "reduced").read_text().replace('mode = "dynamic"',
+                                                                                      'mode = "kinematic"')
+    (tmp_path / "kin.toml").write_text(kinematic)
+    with pytest.raises(ValueError, match="simulation.model"):
+        load_study_spec(tmp_path / "kin.toml")
+    with pytest.raises(ValueError, match="spec_hook"):
+        evaluate_dynamic(WALKER, [WALKER.space.default()], duration=0.02, dt=2e-3, model="reduced",
+                         spec_hook=lambda spec, params: spec)
     from morphopt.storage import StudyStorage
 
     spec = load_study_spec(study_file(tmp_path, "walk", "walker", "reduced"))
