@@ -62,35 +62,40 @@ def _style(scale: float) -> BarStyle:
     return BarStyle(width=0.004 * scale, thickness=0.002 * scale, density=1200.0)
 
 
-def _layout(params: dict, crank_speed: float | None) -> dict:
-    """Everything both builds share: sizes, the legs' linkages and placements, assembled."""
+def _sizes(params: dict, crank_speed: float | None) -> dict:
+    """What both builds share before any kinematics: the validated parameters, scale, crank
+    speed, body sizes, the torso's inertia about its centre and every leg's place (name, x and y
+    of its plane's origin relative to the torso centre, crank phase)."""
     p = space.validate(params)
     scale, count = p["scale"], int(p["legs_per_side"])
-    speed = p["crank_speed"] if crank_speed is None else crank_speed
-    leg_family = LEG_FAMILIES[p["leg_family"]]
-    leg = {k: v * scale for k, v in leg_family.space.default().items()}
     reach = 38.0e-3 * scale  # crank axle to frame pivot of Jansen's drawing, sets the body size
     spacing = p["stance"] * 2.0 * reach
     width = 0.6 * reach
     half = (0.5 * max(count, 1) * spacing + reach, width, 0.1 * reach)
-    placements = []
-    for side, y in ((0, width + 0.01 * scale), (1, -(width + 0.01 * scale))):
-        for k in range(count):
-            phase = 2.0 * math.pi * k / count + p["side_phase"] * side
-            placements.append((f"{'left' if side == 0 else 'right'}{k}_", (k - 0.5 * (count - 1)) * spacing, y,
-                               leg_family.generate(leg, crank_speed=speed, phase=phase)))
+    places = [(f"{'left' if side == 0 else 'right'}{k}", (k - 0.5 * (count - 1)) * spacing, y,
+               2.0 * math.pi * k / count + p["side_phase"] * side)
+              for side, y in ((0, width + 0.01 * scale), (1, -(width + 0.01 * scale))) for k in range(count)]
+    hx, hy, hz = half
+    inertia = p["torso_mass"] / 3.0 * np.diag([hy * hy + hz * hz, hx * hx + hz * hz, hx * hx + hy * hy])
+    return dict(p=p, scale=scale, speed=p["crank_speed"] if crank_speed is None else crank_speed, reach=reach,
+                half=half, foot_radius=0.004 * scale, places=places, torso_inertia=inertia)
+
+
+def _layout(params: dict, crank_speed: float | None) -> dict:
+    """_sizes plus the legs' linkages, assembled in one batched solve, and the start height."""
+    lay = _sizes(params, crank_speed)
+    scale, speed = lay["scale"], lay["speed"]
+    leg_family = LEG_FAMILIES[lay["p"]["leg_family"]]
+    leg = {k: v * scale for k, v in leg_family.space.default().items()}
+    placements = [(f"{name}_", x, y, leg_family.generate(leg, crank_speed=speed, phase=phase))
+                  for name, x, y, phase in lay["places"]]
     solutions = assemble([linkage for _, _, _, linkage in placements])  # every leg in one batched solve
     for (prefix, _, _, _), solution in zip(placements, solutions):
         if not solution.feasible:
             raise ValueError(f"leg '{prefix.rstrip('_')}' cannot be assembled: {solution.reason}")
-    foot_radius = 0.004 * scale
     lowest = min(solution.nodes["F"][0, 1] for solution in solutions)
-    hx, hy, hz = half
-    mass = p["torso_mass"]
-    return dict(p=p, scale=scale, speed=speed, leg_family=leg_family, reach=reach, half=half,
-                foot_radius=foot_radius, style=_style(scale),
-                placements=placements, solutions=solutions, height=-lowest + foot_radius + 0.001,
-                torso_inertia=mass / 3.0 * np.diag([hy * hy + hz * hz, hx * hx + hz * hz, hx * hx + hy * hy]))
+    return dict(lay, style=_style(scale), placements=placements, solutions=solutions,
+                height=-lowest + lay["foot_radius"] + 0.001)
 
 
 def build_spec(params: dict, *, crank_speed: float | None = None, effort_limit: float = 20.0) -> MechanismSpec:
@@ -146,27 +151,15 @@ def build_legged(params: dict, *, crank_speed: float | None = None, effort_limit
     leg, every leg read from its family's table at the walker's scale (no assembly solve: the
     legs are the family's default leg scaled); same masses, inertias, drives, shoes and friction
     as build_spec (the start height from the table, within its interpolation error)."""
-    p = space.validate(params)
-    scale, count = p["scale"], int(p["legs_per_side"])
-    speed = p["crank_speed"] if crank_speed is None else crank_speed
-    table, unit_mass, unit_inertia = _unit_leg(p["leg_family"])
-    reach = 38.0e-3 * scale
-    spacing = p["stance"] * 2.0 * reach
-    width = 0.6 * reach
-    half = (0.5 * max(count, 1) * spacing + reach, width, 0.1 * reach)
-    foot_radius = 0.004 * scale
+    lay = _sizes(params, crank_speed)
+    scale, reach, foot_radius = lay["scale"], lay["reach"], lay["foot_radius"]
+    table, unit_mass, unit_inertia = _unit_leg(lay["p"]["leg_family"])
     legs, lowest = [], math.inf
-    for side, y in ((0, width + 0.01 * scale), (1, -(width + 0.01 * scale))):
-        for k in range(count):
-            phase = 2.0 * math.pi * k / count + p["side_phase"] * side
-            links, foot = table.at(phase)
-            lowest = min(lowest, scale * foot[1])
-            legs.append(LegPlacement(f"{'left' if side == 0 else 'right'}{k}", table, scale,
-                                     ((k - 0.5 * (count - 1)) * spacing, y, 0.0), phase, unit_mass * scale**3,
-                                     unit_inertia * scale**5, speed, CRANK_DAMPING, effort_limit, foot_radius,
-                                     0.25 * reach, -float(links[table.foot_link, 2]), shoe_friction=1.0))
-    hx, hy, hz = half
-    mass = p["torso_mass"]
-    inertia = mass / 3.0 * np.diag([hy * hy + hz * hz, hx * hx + hz * hz, hx * hx + hy * hy])
-    return LeggedSpec("walker", mass, inertia, half, (0.0, 0.0, -lowest + foot_radius + 0.001), legs,
-                      torso_friction=0.8, ground_friction=1.0)
+    for name, x, y, phase in lay["places"]:
+        links, foot = table.at(phase)
+        lowest = min(lowest, scale * foot[1])
+        legs.append(LegPlacement(name, table, scale, (x, y, 0.0), phase, unit_mass * scale**3, unit_inertia * scale**5,
+                                 lay["speed"], CRANK_DAMPING, effort_limit, foot_radius, 0.25 * reach,
+                                 -float(links[table.foot_link, 2]), shoe_friction=1.0))
+    return LeggedSpec("walker", lay["p"]["torso_mass"], lay["torso_inertia"], lay["half"],
+                      (0.0, 0.0, -lowest + foot_radius + 0.001), legs, torso_friction=0.8, ground_friction=1.0)

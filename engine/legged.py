@@ -54,7 +54,8 @@ from engine.model import SolverConfig
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
-__all__ = ["LeggedModel", "LeggedSpec", "LegPlacement", "LegTable", "legged_rollout", "pack_legged"]
+__all__ = ["LeggedModel", "LeggedSpec", "LeggedState", "LeggedWorlds", "LegPlacement", "LegTable", "legged_rollout",
+           "pack_legged"]
 
 MAX_LEGS = wp.constant(8)
 NV = wp.constant(6 + 8)  # generalized velocities of the largest world
@@ -205,13 +206,13 @@ class LeggedModel:
         N = samples.pop()
         T = len(tables)
         links = np.zeros((3, T, N, MAX_LINKS, 3), np.float32)
-        foot = np.zeros((3, T, N, 3), np.float32)
+        foot = np.zeros((2, T, N, 3), np.float32)
         table_links = np.zeros(T, np.int32)
         table_foot_link = np.zeros(T, np.int32)
         for t, table in enumerate(tables):
             k = table.links.shape[1]
             links[0, t, :, :k], links[1, t, :, :k], links[2, t, :, :k] = table.links, table.links_d1, table.links_d2
-            foot[0, t], foot[1, t], foot[2, t] = table.foot, table.foot_d1, table.foot_d2
+            foot[0, t], foot[1, t] = table.foot, table.foot_d1
             table_links[t], table_foot_link[t] = k, table.foot_link
         L = MAX_LEGS
         leg_count = np.zeros(W, np.int32)
@@ -251,7 +252,8 @@ class LeggedModel:
         self.table_links = wp.array(table_links, dtype=wp.int32, device=d)
         self.table_foot_link = wp.array(table_foot_link, dtype=wp.int32, device=d)
         self.links = [wp.array(links[i], dtype=wp.vec3, device=d) for i in range(3)]
-        self.foot = [wp.array(foot[i], dtype=wp.vec3, device=d) for i in range(3)]
+        # the foot's position and rate (the contact rows need no second derivative of the foot)
+        self.foot = [wp.array(foot[i], dtype=wp.vec3, device=d) for i in range(2)]
         self.leg_count = wp.array(leg_count, dtype=wp.int32, device=d)
         self.leg_table = wp.array(leg_table, dtype=wp.int32, device=d)
         self.leg_scale = wp.array(leg_scale, dtype=float, device=d)
@@ -280,7 +282,8 @@ class LeggedModel:
         self.rows_J = wp.zeros((W, MAX_ROWS * NV), dtype=float, device=d)
         self.rows = wp.zeros((W, MAX_ROWS * ROW_STRIDE), dtype=float, device=d)
         self.mass = wp.zeros((W, NV * NV), dtype=float, device=d)
-        self.factor = wp.zeros((W, NV * NV), dtype=float, device=d)
+        self.mass_factor = wp.zeros((W, NV * NV), dtype=float, device=d)  # Cholesky factor of M
+        self.factor = wp.zeros((W, NV * NV), dtype=float, device=d)  # of M + J^T S^-1 J
         self.work = [wp.zeros((W, MAX_ROWS), dtype=float, device=d) for _ in range(8)]  # x, y, z, tmp, b, xp, yp, zp
         self.slot_of = wp.zeros((W, MAX_ROWS), dtype=wp.int32, device=d)
         self.row_count = wp.zeros(W, dtype=wp.int32, device=d)
@@ -313,6 +316,46 @@ def pack_legged(specs: list, *, device="cpu", dt: float = 2e-3, config: SolverCo
     if tiled is not None:
         model.tiled = bool(tiled)
     return model
+
+
+@wp.struct
+class LeggedWorlds:
+    """The batch's leg tables (value, first and second derivative in the crank angle) and every
+    world's parameters, as the kernels read them (see LeggedModel)."""
+
+    samples: int
+    table_links: wp.array(dtype=wp.int32)
+    table_foot_link: wp.array(dtype=wp.int32)
+    links0: wp.array3d(dtype=wp.vec3)
+    links1: wp.array3d(dtype=wp.vec3)
+    links2: wp.array3d(dtype=wp.vec3)
+    foot0: wp.array2d(dtype=wp.vec3)
+    foot1: wp.array2d(dtype=wp.vec3)
+    leg_count: wp.array(dtype=wp.int32)
+    leg_table: wp.array2d(dtype=wp.int32)
+    leg_scale: wp.array2d(dtype=float)
+    leg_origin: wp.array2d(dtype=wp.vec3)
+    link_mass: wp.array2d(dtype=float)
+    link_inertia: wp.array2d(dtype=wp.mat33)
+    drive: wp.array2d(dtype=wp.vec3)
+    shoe: wp.array2d(dtype=wp.vec4)
+    torso: wp.array(dtype=wp.vec4)
+    torso_inertia: wp.array(dtype=wp.mat33)
+    torso_half: wp.array(dtype=wp.vec3)
+    gravity: wp.array(dtype=wp.vec3)
+
+
+@wp.struct
+class LeggedState:
+    """Every world's state: torso centre-of-mass position, orientation, velocity and angular
+    velocity (world frame), crank angles and rates."""
+
+    position: wp.array(dtype=wp.vec3)
+    orientation: wp.array(dtype=wp.quat)
+    velocity: wp.array(dtype=wp.vec3)
+    angular_velocity: wp.array(dtype=wp.vec3)
+    psi: wp.array2d(dtype=float)
+    psi_dot: wp.array2d(dtype=float)
 
 
 # -- kernels ---------------------------------------------------------------------------------------
@@ -495,18 +538,8 @@ def step_kernel(tiled: bool):
                 acc += J[w, r * NV + i] * J[w, r * NV + j] * tmp[w, r]
             K[w, i * NV + j] = acc
         sync()
-        if lane == 0:  # in-place Cholesky of the lower triangle
-            for j in range(n):
-                s = K[w, j * NV + j]
-                for k in range(j):
-                    s -= K[w, j * NV + k] * K[w, j * NV + k]
-                d = wp.sqrt(wp.max(s, 1.0e-20))
-                K[w, j * NV + j] = d
-                for i in range(j + 1, n):
-                    t = K[w, i * NV + j]
-                    for k in range(j):
-                        t -= K[w, i * NV + k] * K[w, j * NV + k]
-                    K[w, i * NV + j] = t / d
+        if lane == 0:
+            cholesky(K, w, n, K)  # in place: each entry is read before it is overwritten
         sync()
         for j in range(lane, NV, lanes):
             col = vecnv()
@@ -529,36 +562,8 @@ def step_kernel(tiled: bool):
         margin: float,
         stabilization: float,
         max_speed: float,
-        # tables
-        table_links: wp.array(dtype=wp.int32),
-        table_foot_link: wp.array(dtype=wp.int32),
-        links0: wp.array3d(dtype=wp.vec3),
-        links1: wp.array3d(dtype=wp.vec3),
-        links2: wp.array3d(dtype=wp.vec3),
-        foot0: wp.array2d(dtype=wp.vec3),
-        foot1: wp.array2d(dtype=wp.vec3),
-        foot2: wp.array2d(dtype=wp.vec3),
-        samples: int,
-        # worlds
-        leg_count: wp.array(dtype=wp.int32),
-        leg_table: wp.array2d(dtype=wp.int32),
-        leg_scale: wp.array2d(dtype=float),
-        leg_origin: wp.array2d(dtype=wp.vec3),
-        link_mass: wp.array2d(dtype=float),
-        link_inertia: wp.array2d(dtype=wp.mat33),
-        drive: wp.array2d(dtype=wp.vec3),
-        shoe: wp.array2d(dtype=wp.vec4),
-        torso: wp.array(dtype=wp.vec4),
-        torso_inertia: wp.array(dtype=wp.mat33),
-        torso_half: wp.array(dtype=wp.vec3),
-        gravity: wp.array(dtype=wp.vec3),
-        # state (in/out)
-        position: wp.array(dtype=wp.vec3),
-        orientation: wp.array(dtype=wp.quat),
-        velocity: wp.array(dtype=wp.vec3),
-        angular_velocity: wp.array(dtype=wp.vec3),
-        psi: wp.array2d(dtype=float),
-        psi_dot: wp.array2d(dtype=float),
+        worlds: LeggedWorlds,
+        state: LeggedState,
         impulse: wp.array2d(dtype=float),
         frozen: wp.array(dtype=wp.int32),
         diverged: wp.array(dtype=wp.int32),
@@ -570,6 +575,7 @@ def step_kernel(tiled: bool):
         J: wp.array2d(dtype=float),
         rows: wp.array2d(dtype=float),
         M: wp.array2d(dtype=float),
+        LM: wp.array2d(dtype=float),
         K: wp.array2d(dtype=float),
         x: wp.array2d(dtype=float),
         y: wp.array2d(dtype=float),
@@ -596,6 +602,32 @@ def step_kernel(tiled: bool):
             lanes = 1
         if frozen[w] != 0:
             return
+        samples = worlds.samples
+        table_links = worlds.table_links
+        table_foot_link = worlds.table_foot_link
+        links0 = worlds.links0
+        links1 = worlds.links1
+        links2 = worlds.links2
+        foot0 = worlds.foot0
+        foot1 = worlds.foot1
+        leg_count = worlds.leg_count
+        leg_table = worlds.leg_table
+        leg_scale = worlds.leg_scale
+        leg_origin = worlds.leg_origin
+        link_mass = worlds.link_mass
+        link_inertia = worlds.link_inertia
+        drive = worlds.drive
+        shoe = worlds.shoe
+        torso = worlds.torso
+        torso_inertia = worlds.torso_inertia
+        torso_half = worlds.torso_half
+        gravity = worlds.gravity
+        position = state.position
+        orientation = state.orientation
+        velocity = state.velocity
+        angular_velocity = state.angular_velocity
+        psi = state.psi
+        psi_dot = state.psi_dot
         L = leg_count[w]
         n = 6 + L
         # set-up on lane 0: mass matrix, free velocity, rows, preconditioner, warm start, first factor
@@ -678,14 +710,14 @@ def step_kernel(tiled: bool):
                     M[w, i * NV + 3 + j] = -cross[i, j]
                     M[w, (3 + i) * NV + j] = cross[i, j]
                     M[w, (3 + i) * NV + 3 + j] = rot_sum[i, j]
-            cholesky(M, w, n, K)
+            cholesky(M, w, n, LM)
             uu = vecnv()
             for i in range(3):
                 uu[i] = v[i]
                 uu[3 + i] = om[i]
             for li in range(L):
                 uu[6 + li] = psi_dot[w, li]
-            acc_free = chol_solve(K, w, n, h)
+            acc_free = chol_solve(LM, w, n, h)
             uf = uu + dt * acc_free
             # rows: drives, then contacts within the margin
             m = int(0)
@@ -792,8 +824,8 @@ def step_kernel(tiled: bool):
         m = row_count[w]
         units = L + (m - L) / 3
         # Jacobi preconditioner P = diag(J M^-1 J^T + R)^-1/2 (one value per contact triplet) and the
-        # warm start from the last step's impulses by slot, unit by unit over the lanes (K holds the
-        # factor of M). A drive row whose warm start lies within half its bounds keeps the penalty at
+        # warm start from the last step's impulses by slot, unit by unit over the lanes (LM holds
+        # the factor of M). A drive row whose warm start lies within half its bounds keeps the penalty at
         # or below rho0 (its projection is then the identity, and a large penalty only slows it).
         rho = rho0
         gyl = vecnv()
@@ -809,7 +841,7 @@ def step_kernel(tiled: bool):
                 jr = vecnv()
                 for c in range(NV):
                     jr[c] = J[w, rr * NV + c]
-                mj = chol_solve(K, w, n, jr)
+                mj = chol_solve(LM, w, n, jr)
                 dsum += wp.dot(jr, mj) + row_at(rows, w, rr, 1)
             pr = 1.0 / wp.sqrt(wp.max(dsum / float(span), 1.0e-12))
             for rr in range(r, r + span):
@@ -842,7 +874,7 @@ def step_kernel(tiled: bool):
         gy = vecnv()
         for k in range(NV):
             gy[k] = reduce_sum(gyl[k])
-        my = chol_solve(K, w, n, gy)
+        my = chol_solve(LM, w, n, gy)
         unit = lane
         while unit < units:
             r = unit
@@ -866,7 +898,7 @@ def step_kernel(tiled: bool):
             for c in range(span):
                 zp[w, r + c] = z[w, r + c]
             unit += lanes
-        sync()  # every lane is done with the factor of M
+        sync()  # every lane is done with the rows' set-up
         woodbury_factor(J, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
         its = int(0)
         converged = int(0)
@@ -1019,11 +1051,10 @@ def step_kernel(tiled: bool):
             impulse[w, slot_of[w, r]] = lam
             for c in range(NV):
                 jl[c] += J[w, r * NV + c] * y[w, r]  # J is preconditioned: J~^T y = J^T lambda
-        cholesky(M, w, n, K)
         uf = vecnv()
         for c in range(NV):
             uf[c] = ufree[w, c]
-        un = uf + chol_solve(K, w, n, jl)
+        un = uf + chol_solve(LM, w, n, jl)
         p = position[w]
         q = orientation[w]
         for li in range(L):
@@ -1070,27 +1101,8 @@ def table_index(ang: float, samples: int):
 
 @wp.kernel
 def legged_record(
-    samples: int,
-    table_links: wp.array(dtype=wp.int32),
-    links0: wp.array3d(dtype=wp.vec3),
-    links1: wp.array3d(dtype=wp.vec3),
-    foot0: wp.array2d(dtype=wp.vec3),
-    leg_count: wp.array(dtype=wp.int32),
-    leg_table: wp.array2d(dtype=wp.int32),
-    leg_scale: wp.array2d(dtype=float),
-    leg_origin: wp.array2d(dtype=wp.vec3),
-    link_mass: wp.array2d(dtype=float),
-    link_inertia: wp.array2d(dtype=wp.mat33),
-    torso: wp.array(dtype=wp.vec4),
-    torso_inertia: wp.array(dtype=wp.mat33),
-    torso_half: wp.array(dtype=wp.vec3),
-    gravity: wp.array(dtype=wp.vec3),
-    position: wp.array(dtype=wp.vec3),
-    orientation: wp.array(dtype=wp.quat),
-    velocity: wp.array(dtype=wp.vec3),
-    angular_velocity: wp.array(dtype=wp.vec3),
-    psi: wp.array2d(dtype=float),
-    psi_dot: wp.array2d(dtype=float),
+    worlds: LeggedWorlds,
+    state: LeggedState,
     # out
     points: wp.array2d(dtype=wp.vec3),
     energy: wp.array(dtype=float),
@@ -1098,6 +1110,27 @@ def legged_record(
     """Tracked points (torso centre, torso_up, feet) and the mechanical energy [J], link by link:
     kinetic energy of every link's own velocity plus the potential of gravity."""
     w = wp.tid()
+    samples = worlds.samples
+    table_links = worlds.table_links
+    links0 = worlds.links0
+    links1 = worlds.links1
+    foot0 = worlds.foot0
+    leg_count = worlds.leg_count
+    leg_table = worlds.leg_table
+    leg_scale = worlds.leg_scale
+    leg_origin = worlds.leg_origin
+    link_mass = worlds.link_mass
+    link_inertia = worlds.link_inertia
+    torso = worlds.torso
+    torso_inertia = worlds.torso_inertia
+    torso_half = worlds.torso_half
+    gravity = worlds.gravity
+    position = state.position
+    orientation = state.orientation
+    velocity = state.velocity
+    angular_velocity = state.angular_velocity
+    psi = state.psi
+    psi_dot = state.psi_dot
     p = position[w]
     R = wp.quat_to_matrix(orientation[w])
     v = velocity[w]
@@ -1140,18 +1173,26 @@ def freeze_worlds(halted: wp.array(dtype=wp.int32), frozen: wp.array(dtype=wp.in
         frozen[w] = 1
 
 
+def _structs(model: LeggedModel) -> tuple:
+    """The LeggedWorlds and LeggedState of ``model`` (their arrays are the model's own)."""
+    worlds, state = LeggedWorlds(), LeggedState()
+    for name in LeggedWorlds.vars:
+        source = {"links0": model.links[0], "links1": model.links[1], "links2": model.links[2],
+                  "foot0": model.foot[0], "foot1": model.foot[1]}.get(name)
+        setattr(worlds, name, getattr(model, name) if source is None else source)
+    for name in LeggedState.vars:
+        setattr(state, name, getattr(model, name))
+    return worlds, state
+
+
 def _step_inputs(model: LeggedModel) -> list:
     c = model.config
     return [model.dt, c.eta, c.rho, c.tolerance, c.relative_tolerance, c.max_iterations, c.rho_update_interval,
-            c.contact_margin, c.contact_stabilization, c.max_speed,
-            model.table_links, model.table_foot_link, *model.links, *model.foot, model.samples,
-            model.leg_count, model.leg_table, model.leg_scale, model.leg_origin, model.link_mass, model.link_inertia,
-            model.drive, model.shoe, model.torso, model.torso_inertia, model.torso_half, model.gravity,
-            model.position, model.orientation, model.velocity, model.angular_velocity, model.psi, model.psi_dot,
+            c.contact_margin, c.contact_stabilization, c.max_speed, *_structs(model),
             model.impulse, model.frozen, model.diverged,
             model.iterations, model.contacts, model.drive_torque,
-            model.rows_J, model.rows, model.mass, model.factor, *model.work, model.slot_of, model.row_count,
-            model.ufree, model.factor_inverse]
+            model.rows_J, model.rows, model.mass, model.mass_factor, model.factor, *model.work, model.slot_of,
+            model.row_count, model.ufree, model.factor_inverse]
 
 
 def legged_step_batch(model: LeggedModel, steps: int = 1):
@@ -1171,11 +1212,7 @@ def legged_step_batch(model: LeggedModel, steps: int = 1):
 def legged_points(model: LeggedModel) -> tuple:
     """Tracked points (W, 2 + max legs, 3) [m] and energy (W,) [J] of the current state."""
     wp.launch(legged_record, dim=model.num_worlds, device=model.device,
-              inputs=[model.samples, model.table_links, model.links[0], model.links[1], model.foot[0],
-                      model.leg_count, model.leg_table, model.leg_scale, model.leg_origin, model.link_mass,
-                      model.link_inertia, model.torso, model.torso_inertia, model.torso_half, model.gravity,
-                      model.position, model.orientation, model.velocity, model.angular_velocity, model.psi,
-                      model.psi_dot],
+              inputs=[*_structs(model)],
               outputs=[model.points, model.energy])
     return model.points.numpy(), model.energy.numpy()
 

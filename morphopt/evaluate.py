@@ -311,21 +311,13 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     from engine import pack_worlds, rollout
 
     t0 = time.perf_counter()
-    specs, owners, failures = [], [], []
-    for i, (p, spec) in enumerate(zip(params, build_specs(family, params, crank_speed=crank_speed,
-                                                           workers=workers))):
-        if isinstance(spec, str):  # the reason it cannot be built
-            failures.append(spec)
-            continue
-        spec = spec_hook(spec, p) if spec_hook else spec
-        failures.append("")
-        specs.append(spec)
-        owners.append(i)
-    evaluation = Evaluation(list(params), [{} for _ in params], failures)
-    t1 = time.perf_counter()
-    evaluation.timings = {"build": t1 - t0}
+    built = build_specs(family, params, crank_speed=crank_speed, workers=workers)
+    if spec_hook:
+        built = [spec if isinstance(spec, str) else spec_hook(spec, p) for p, spec in zip(params, built)]
+    evaluation, specs, owners = _built(params, built, t0)
     if not specs:
         return evaluation
+    t1 = time.perf_counter()
     model = pack_worlds(specs, device=device, dt=dt, config=config)
     t2 = time.perf_counter()
 
@@ -344,6 +336,16 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
                        loop_tolerance, fall_tilt, fall_height, stall_time)
     evaluation.timings.update(pack=t2 - t1, simulate=t3 - t2, metrics=time.perf_counter() - t3)
     return evaluation
+
+
+def _built(params: Sequence[dict], built: list, t0: float) -> tuple:
+    """The Evaluation of a batch whose worlds were built (``built``: per design its world, or the
+    reason it cannot be built), its "build" time since t0, the worlds and their designs' indices."""
+    failures = [spec if isinstance(spec, str) else "" for spec in built]
+    owners = [i for i, spec in enumerate(built) if not isinstance(spec, str)]
+    evaluation = Evaluation(list(params), [{} for _ in params], failures)
+    evaluation.timings = {"build": time.perf_counter() - t0}
+    return evaluation, [built[i] for i in owners], owners
 
 
 def _world_metrics(evaluation: Evaluation, i: int, trace, world: int, names: list, joints: list, record_dt: float,
@@ -397,21 +399,16 @@ def _evaluate_reduced(family, params: Sequence[dict], *, duration: float, dt: fl
         raise ValueError("model 'reduced' needs a family with build_legged (a walker of one-DoF legs); "
                          "this family has none: use model 'maximal'")
     t0 = time.perf_counter()
-    specs, owners, failures = [], [], []
+    built = []
     for p in params:
         try:
-            spec = family.build_legged(family.space.validate(p), crank_speed=crank_speed)
+            built.append(family.build_legged(family.space.validate(p), crank_speed=crank_speed))
         except ValueError as exc:
-            failures.append(f"cannot be built: {exc}")
-            continue
-        failures.append("")
-        specs.append(spec)
-        owners.append(len(failures) - 1)
-    evaluation = Evaluation(list(params), [{} for _ in params], failures)
-    t1 = time.perf_counter()
-    evaluation.timings = {"build": t1 - t0}
+            built.append(f"cannot be built: {exc}")
+    evaluation, specs, owners = _built(params, built, t0)
     if not specs:
         return evaluation
+    t1 = time.perf_counter()
     model = pack_legged(specs, device=device, dt=dt, config=config)
     t2 = time.perf_counter()
     steps = max(record_every, int(round(duration / dt / record_every)) * record_every)
