@@ -65,7 +65,7 @@ MAX_CONTACTS = TORSO_CORNERS + 2 * MAX_LEGS  # slot k < 8: torso corner k; 8 + 2
 MAX_ROWS = wp.constant(MAX_LEGS + 3 * MAX_CONTACTS)
 TWO_PI = wp.constant(2.0 * math.pi)
 TILED_MAX_WORLDS = 8192  # see LeggedModel.lanes (H200: 4096 walkers 5.2 ms per step tiled against 10.1)
-ROW_STRIDE = wp.constant(10)  # floats per row in the rows' scratch (see row_at)
+ROW_STRIDE = wp.constant(12)  # floats per row in the rows' scratch (see row_at)
 
 
 @dataclass
@@ -435,7 +435,10 @@ def chol_solve(L: wp.array2d(dtype=float), w: int, n: int, b: vecnv):
 # row scratch layout (ROW_STRIDE floats per row): 0 preconditioner P, 1 compliance R (unscaled),
 # 2 free velocity v_f (preconditioned), 3 friction mu (contacts; -1 drive), 4 lower, 5 upper
 # bounds (drives, preconditioned), 6 ADMM penalty, 7 row velocity at the last iterate, 8 free
-# drive flag
+# drive flag, 9 the row's crank column (6 + leg; -1 for a torso corner), 10 1 / (eta + penalty +
+# P^2 R) (set with the Woodbury factor). A drive row's Jacobian is zero but in its crank column, a
+# contact row's but in the torso's six columns and its crank column: the PADMM iterations read
+# only those (row_dot, row_add).
 @wp.func
 def row_at(rows: wp.array2d(dtype=float), w: int, r: int, c: int):
     """Field c of row r of world w in the rows' scratch."""
@@ -462,6 +465,39 @@ def set_penalties(rows: wp.array2d(dtype=float), w: int, m: int, rho: float, rho
         if rows[w, r * ROW_STRIDE + 8] == 1.0:
             value = wp.min(rho, rho0)
         rows[w, r * ROW_STRIDE + 6] = value
+
+
+@wp.func
+def row_dot(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=float), w: int, r: int, u: vecnv):
+    """Row r of world w's Jacobian times u, from its nonzero columns (see the rows' layout)."""
+    s = float(0.0)
+    if row_at(rows, w, r, 3) >= 0.0:  # a contact: the torso's columns
+        for c in range(6):
+            s += J[w, r * NV + c] * u[c]
+    col = int(row_at(rows, w, r, 9))
+    if col >= 6:
+        uc = float(0.0)
+        for c in range(6, NV):  # a select over constant indices keeps u in registers
+            if c == col:
+                uc = u[c]
+        s += J[w, r * NV + col] * uc
+    return s
+
+
+@wp.func
+def row_add(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=float), w: int, r: int, t: float, g: vecnv):
+    """g + t times row r of world w's Jacobian, from its nonzero columns (see row_dot)."""
+    out = g
+    if row_at(rows, w, r, 3) >= 0.0:
+        for c in range(6):
+            out[c] += J[w, r * NV + c] * t
+    col = int(row_at(rows, w, r, 9))
+    if col >= 6:
+        a = J[w, r * NV + col] * t
+        for c in range(6, NV):
+            if c == col:
+                out[c] += a
+    return out
 
 
 @wp.func
@@ -523,7 +559,9 @@ def step_kernel(tiled: bool):
         factors. Every lane of the block must call it."""
         for r in range(lane, m, lanes):
             p = row_at(rows, w, r, 0)
-            tmp[w, r] = 1.0 / (sigma_base + penalty(rows, w, r) + p * p * row_at(rows, w, r, 1))
+            inverse = 1.0 / (sigma_base + penalty(rows, w, r) + p * p * row_at(rows, w, r, 1))
+            tmp[w, r] = inverse
+            set_row(rows, w, r, 10, inverse)
         sync()
         entries = n * (n + 1) / 2
         for e in range(lane, entries, lanes):
@@ -737,6 +775,7 @@ def step_kernel(tiled: bool):
                 set_row(rows, w, m, 4, -bound)
                 set_row(rows, w, m, 5, bound)
                 set_row(rows, w, m, 7, 0.0)
+                set_row(rows, w, m, 9, float(6 + li))
                 slot_of[w, m] = li
                 m += 1
             count = int(0)
@@ -814,6 +853,7 @@ def step_kernel(tiled: bool):
                             set_row(rows, w, m, 2, vrow)
                             set_row(rows, w, m, 3, mu)
                             set_row(rows, w, m, 7, 0.0)
+                            set_row(rows, w, m, 9, float(6 + leg))  # -1 + 6 < 6 for a torso corner
                             slot_of[w, m] = MAX_LEGS + 3 * k + comp
                             m += 1
             contacts_out[w] = count
@@ -932,22 +972,24 @@ def step_kernel(tiled: bool):
                     b[w, r0] = b[w, r0] - row_at(rows, w, r0, 3) * wp.sqrt(vt1 * vt1 + vt2 * vt2)
                 for c in range(span):
                     i = r0 + c
-                    pr = row_at(rows, w, i, 0)
-                    tv = b[w, i] / (eta + penalty(rows, w, i) + pr * pr * row_at(rows, w, i, 1))
+                    tv = b[w, i] * row_at(rows, w, i, 10)
                     tmp[w, i] = tv
-                    for k in range(NV):
-                        gl[k] += J[w, i * NV + k] * tv
+                    gl = row_add(J, rows, w, i, tv, gl)
                 unit += lanes
             # Woodbury: x = t - S^-1 J (M + J^T S^-1 J)^-1 J^T t, the small inverse applied by every lane
+            # (symmetric: its lower triangle read once; the rows and columns past n are zero)
             gsum = vecnv()
             for k in range(NV):
                 gsum[k] = reduce_sum(gl[k])
             yv = vecnv()
             for k in range(NV):
-                accv = float(0.0)
-                for j in range(NV):
-                    accv += Kinv[w, k * NV + j] * gsum[j]
-                yv[k] = accv
+                if k < n:
+                    for j in range(NV):
+                        if j < k:
+                            kij = Kinv[w, k * NV + j]
+                            yv[k] += kij * gsum[j]
+                            yv[j] += kij * gsum[k]
+                    yv[k] += Kinv[w, k * NV + k] * gsum[k]
             rp = float(0.0)
             rd = float(0.0)
             rn = float(0.0)
@@ -963,8 +1005,7 @@ def step_kernel(tiled: bool):
                 pen = penalty(rows, w, r)
                 for c in range(span):
                     i = r + c
-                    pr = row_at(rows, w, i, 0)
-                    x[w, i] = tmp[w, i] - jrow_dot(J, w, i, n, yv) / (eta + pen + pr * pr * row_at(rows, w, i, 1))
+                    x[w, i] = tmp[w, i] - row_dot(J, rows, w, i, yv) * row_at(rows, w, i, 10)
                 a0 = x[w, r] + zp[w, r] / pen
                 a1 = float(0.0)
                 a2 = float(0.0)
