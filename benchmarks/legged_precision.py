@@ -53,6 +53,8 @@ SETTINGS = [
     ("dt 8 ms, loose", 8e-3, LOOSE),
     ("dt 10 ms, loose", 1e-2, LOOSE),
     ("dt 10 ms, loose, cap 30", 1e-2, {**LOOSE, "max_iterations": 30}),
+    ("dt 16 ms, loose, cap 30", 1.6e-2, {**LOOSE, "max_iterations": 30}),
+    ("dt 20 ms, loose, cap 30", 2e-2, {**LOOSE, "max_iterations": 30}),
 ]
 REFERENCE = ("reference: dt 0.5 ms, rho 1, cap 400", 5e-4, {"rho": 1.0, "max_iterations": 400})
 

@@ -138,6 +138,46 @@ def _path_metrics(paths: dict) -> dict:
     return metrics
 
 
+def _batch_world_metrics(trace, turn: np.ndarray, torso: np.ndarray, up: np.ndarray, effort: np.ndarray,
+                         target: np.ndarray, fall_tilt: float, fall_height: float, stall_time: float,
+                         record_dt: float) -> dict:
+    """The costly parts of _world_metrics for every world of ``trace`` at once (NumPy over the
+    worlds instead of one small call per world and path): per world and tracked point the stride
+    and step height over the last ``turn`` (W,) records (stride_and_step_height's rule); per world
+    the largest torso tilt, the lowest torso height and whether the walker fell (torso, up (W,)
+    point indices; fall_tilt, fall_height: see _fall); whether a drive may have jammed (effort,
+    target (W, J): effort limit and target speed per drive, target 0 for none; see _jam, which
+    then words the reason). Returns arrays indexed by world; _world_metrics(pre=...) reads them
+    and gives the same metrics."""
+    points = trace.points
+    T, W, P = points.shape[:3]
+    window = np.where((turn <= 0) | (turn > T), T, turn)
+    inside = np.arange(T)[:, None] >= (T - window)[None, :]  # (T, W)
+    x, z = points[..., 0], points[..., 2]
+    mask = inside[:, :, None]
+    finite = np.where(mask[..., None], np.isfinite(points[..., [0, 2]]), True).all(axis=(0, 3))
+    low = np.where(mask, z, np.inf).min(axis=0)
+    high = np.where(mask, z, -np.inf).max(axis=0)
+    with np.errstate(invalid="ignore"):
+        stance = mask & (z <= low + 0.02 * (high - low))
+        stride = np.where(stance, x, -np.inf).max(axis=0) - np.where(stance, x, np.inf).min(axis=0)
+        height = high - low
+    stride = np.where(finite, stride, np.nan)
+    height = np.where(finite, height, np.nan)
+    tilts, heights = _torso_tilt_height(points, points[0], torso, up)
+    needed = max(2, int(np.ceil(stall_time / record_dt)))
+    torque = np.abs(trace.drive_torque[1:, :, :effort.shape[1]])
+    speed = trace.drive_speed[1:, :, :effort.shape[1]] * np.sign(target)
+    driven = (target != 0.0) & np.isfinite(effort)
+    stalled = driven & (torque >= 0.95 * effort) & (speed < 0.5 * np.abs(target))  # (T - 1, W, J)
+    runs = np.zeros((W, effort.shape[1]), bool)
+    if stalled.shape[0] >= needed:
+        counts = np.concatenate([np.zeros((1, W, effort.shape[1]), int), np.cumsum(stalled, axis=0)])
+        runs = ((counts[needed:] - counts[:-needed]) >= needed).any(axis=0)
+    return {"stride": stride, "height": height, "tilt": tilts.max(axis=0), "lowest": heights.min(axis=0),
+            "fell": ((tilts > fall_tilt) | (heights < fall_height)).any(axis=0), "jam": runs.any(axis=1)}
+
+
 def _generate_batched(family, params: Sequence[dict], **kwargs) -> tuple[list, list]:
     """Generate every design with one call of the family per topology.
 
@@ -350,9 +390,10 @@ def _built(params: Sequence[dict], built: list, t0: float) -> tuple:
 
 def _world_metrics(evaluation: Evaluation, i: int, trace, world: int, names: list, joints: list, record_dt: float,
                    loop_tolerance: float, fall_tilt: float, fall_height: float, stall_time: float,
-                   loop_violation: float | None = None) -> None:
+                   loop_violation: float | None = None, pre: dict | None = None) -> None:
     """Metrics or the failure reason of design i, simulated as ``world`` of ``trace``; joints: the
-    entries of trace.drive_torque's last axis (objects with name, type and drive)."""
+    entries of trace.drive_torque's last axis (objects with name, type and drive). pre: the
+    batch's _batch_world_metrics (the same metrics, computed for every world at once)."""
     if trace.diverged[world]:
         evaluation.failures[i] = "diverged: the simulation produced a non-finite state"
         return
@@ -361,18 +402,27 @@ def _world_metrics(evaluation: Evaluation, i: int, trace, world: int, names: lis
         evaluation.failures[i] = (f"diverged: joints came apart by {torn:.3g} m "
                                   f"(more than the {loop_tolerance:g} m tolerance)")
         return
-    jammed = _jam(trace, world, joints, stall_time, record_dt)
+    jammed = _jam(trace, world, joints, stall_time, record_dt) if pre is None or pre["jam"][world] else ""
     if jammed:
         evaluation.failures[i] = jammed
         return
     speeds = [abs(j.drive.target_velocity) for j in joints if j.drive is not None]
     turn = int(round(2.0 * np.pi / max(speeds + [1e-9]) / record_dt)) if speeds else len(trace.time)
     paths = {name: trace.points[-turn:, world, k][:, [0, 2]] for k, name in enumerate(names)}
-    metrics = _path_metrics(paths)
+    if pre is None:
+        metrics = _path_metrics(paths)
+    else:
+        metrics = {"paths": paths}
+        for k, name in enumerate(names):
+            metrics[f"{name}_stride"] = float(pre["stride"][world, k])
+            metrics[f"{name}_step_height"] = float(pre["height"][world, k])
     if "torso" in names:
         metrics.update(_walking_metrics(trace, world, names.index("torso"), speeds, record_dt))
     if "torso" in names and "torso_up" in names:
-        fell = _fall(trace, world, names.index("torso"), names.index("torso_up"), fall_tilt, fall_height)
+        if pre is None or pre["fell"][world]:
+            fell = _fall(trace, world, names.index("torso"), names.index("torso_up"), fall_tilt, fall_height)
+        else:
+            fell = float(pre["tilt"][world]), float(pre["lowest"][world]), ""
         metrics["torso_tilt_max"], metrics["torso_height_min"], reason = fell
         if reason:
             evaluation.failures[i] = reason
@@ -393,7 +443,7 @@ def _evaluate_reduced(family, params: Sequence[dict], *, duration: float, dt: fl
     from types import SimpleNamespace
 
     from engine import JointDrive, JointType
-    from engine.legged import legged_rollout, pack_legged
+    from engine.legged import MAX_LEGS, legged_rollout, pack_legged
 
     if not hasattr(family, "build_legged"):
         raise ValueError("model 'reduced' needs a family with build_legged (a walker of one-DoF legs); "
@@ -419,13 +469,22 @@ def _evaluate_reduced(family, params: Sequence[dict], *, duration: float, dt: fl
 
     trace = legged_rollout(model, steps, record_every=record_every, halt=halt)
     t3 = time.perf_counter()
+    record_dt = dt * record_every
+    effort, target = np.zeros((len(specs), MAX_LEGS)), np.zeros((len(specs), MAX_LEGS))
+    for world, spec in enumerate(specs):
+        for li, leg in enumerate(spec.legs):
+            effort[world, li], target[world, li] = leg.effort_limit, leg.target_speed
+    fastest = np.abs(target).max(axis=1)
+    turn = np.where(fastest > 0.0, np.round(2.0 * np.pi / np.maximum(fastest, 1e-9) / record_dt), len(trace.time))
+    pre = _batch_world_metrics(trace, turn.astype(int), torso, up, effort, target, fall_tilt, fall_height, stall_time,
+                               record_dt)
     for world, i in enumerate(owners):
         spec = specs[world]
         drives = [SimpleNamespace(name=f"{leg.name}_crank", type=JointType.REVOLUTE,
                                   drive=JointDrive(damping=leg.damping, target_velocity=leg.target_speed,
                                                    effort_limit=leg.effort_limit)) for leg in spec.legs]
         closure = max(leg.table.closure_error * leg.scale for leg in spec.legs)
-        _world_metrics(evaluation, i, trace, world, spec.point_names, drives, dt * record_every, math.inf, fall_tilt,
-                       fall_height, stall_time, loop_violation=closure)
+        _world_metrics(evaluation, i, trace, world, spec.point_names, drives, record_dt, math.inf, fall_tilt,
+                       fall_height, stall_time, loop_violation=closure, pre=pre)
     evaluation.timings.update(pack=t2 - t1, simulate=t3 - t2, metrics=time.perf_counter() - t3)
     return evaluation

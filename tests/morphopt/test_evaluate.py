@@ -175,3 +175,67 @@ def test_jammed_designs_fail_with_the_drive_and_the_time_and_short_stalls_do_not
     assert _jam(trace, 0, joints, stall_time=0.35, record_dt=0.01) == ""
     speed[10:40, 0, 0] = 1.2  # slowed down but above half the target: a heavy load, not a jam
     assert _jam(trace, 0, joints, stall_time=0.2, record_dt=0.01) == ""
+
+
+def test_batched_walker_metrics_equal_the_per_world_ones():
+    """_batch_world_metrics (every world at once, as the reduced model's evaluation uses it) gives
+    each walker the metrics and failure reasons of the per-world computation (_world_metrics
+    without pre): on six simulated walkers, with one world's records edited into a jam, one into
+    a fall, one into a non-finite foot path and one with a crank speed of zero."""
+    import dataclasses
+    import math
+    from types import SimpleNamespace
+
+    from engine import JointDrive, JointType, SolverConfig
+    from engine.legged import MAX_LEGS, legged_rollout, pack_legged
+    from morphopt.evaluate import Evaluation, _batch_world_metrics, _world_metrics
+
+    walker = load_family("walker")
+    params = [walker.space.default()] + walker.space.sample(np.random.default_rng(3), 5)
+    params = [{**p, "legs_per_side": 3} for p in params]
+    specs = [walker.build_legged(walker.space.validate(p)) for p in params]
+    specs[5] = dataclasses.replace(specs[5], legs=[dataclasses.replace(leg, target_speed=0.0)
+                                                   for leg in specs[5].legs])
+    dt, every = 5e-3, 4
+    model = pack_legged(specs, dt=dt, config=SolverConfig(rho=1.0, tolerance=1e-4, relative_tolerance=1e-3,
+                                                          max_iterations=30))
+    trace = legged_rollout(model, 160, record_every=every)
+    record_dt = dt * every
+    trace.drive_torque[5:30, 1, 2] = specs[1].legs[2].effort_limit  # leg 2 of world 1 stalls at its limit
+    trace.drive_speed[5:30, 1, 2] = 0.1 * specs[1].legs[2].target_speed
+    trace.points[20:, 2, 1] = trace.points[20:, 2, 0] + np.array([0.3, 0.0, 0.01])  # world 2 tips over
+    trace.points[-3, 3, 4, 0] = np.nan  # a foot of world 3 leaves no finite path
+    effort, target = np.zeros((6, MAX_LEGS)), np.zeros((6, MAX_LEGS))
+    for w, spec in enumerate(specs):
+        for li, leg in enumerate(spec.legs):
+            effort[w, li], target[w, li] = leg.effort_limit, leg.target_speed
+    fastest = np.abs(target).max(axis=1)
+    turn = np.where(fastest > 0.0, np.round(2.0 * np.pi / np.maximum(fastest, 1e-9) / record_dt), len(trace.time))
+    zeros, ones = np.zeros(6, int), np.ones(6, int)
+    pre = _batch_world_metrics(trace, turn.astype(int), zeros, ones, effort, target, np.radians(45.0), 0.5, 0.2,
+                               record_dt)
+    batched, single = Evaluation(params, [None] * 6, [""] * 6), Evaluation(params, [None] * 6, [""] * 6)
+    for w, spec in enumerate(specs):
+        drives = [SimpleNamespace(name=f"{leg.name}_crank", type=JointType.REVOLUTE,
+                                  drive=JointDrive(damping=leg.damping, target_velocity=leg.target_speed,
+                                                   effort_limit=leg.effort_limit)) for leg in spec.legs]
+        for evaluation, extra in ((batched, {"pre": pre}), (single, {})):
+            _world_metrics(evaluation, w, trace, w, spec.point_names, drives, record_dt, math.inf, np.radians(45.0),
+                           0.5, 0.2, loop_violation=0.0, **extra)
+    assert batched.failures == single.failures
+    assert batched.failures[1].startswith(f"jammed: the drive of joint '{specs[1].legs[2].name}_crank'"), \
+        batched.failures[1]
+    assert batched.failures[2].startswith("fell after"), batched.failures[2]
+    for w in range(6):
+        a, b = batched.metrics[w], single.metrics[w]
+        assert (a is None) == (b is None)
+        if a is None:
+            continue
+        assert a.keys() == b.keys()
+        for key in a:
+            if key == "paths":
+                continue
+            same = (math.isnan(a[key]) and math.isnan(b[key])) or abs(a[key] - b[key]) <= 1e-6 * max(1.0, abs(b[key]))
+            assert same, (w, key, a[key], b[key])
+    assert math.isnan(batched.metrics[3][f"{specs[3].legs[2].name}_foot_stride"])
+    assert batched.metrics[5] is not None and batched.metrics[0] is not None
