@@ -52,6 +52,13 @@ def main(argv=None) -> int:
     # compile the kernels outside the timed study
     evaluate_dynamic(family, [{**family.space.default(), **spec.fixed}], duration=4 * spec.dt, dt=spec.dt,
                      device=spec.device, config=spec.solver_config(), model=spec.model)
+    if spec.model == "reduced":  # both step kernels (a batch of one world takes the one-warp kernel)
+        from engine.legged import legged_step_batch, pack_legged
+
+        one = [family.build_legged({**family.space.default(), **spec.fixed})]
+        for tiled in (True, False):
+            legged_step_batch(pack_legged(one, device=spec.device, dt=spec.dt, config=spec.solver_config(),
+                                          tiled=tiled))
     t0 = time.perf_counter()
     result = run_study(spec, progress=True)
     seconds = time.perf_counter() - t0
