@@ -156,10 +156,10 @@ def build_legged(params: dict, *, crank_speed: float | None = None, effort_limit
     table, unit_mass, unit_inertia = _unit_leg(lay["p"]["leg_family"])
     legs, lowest = [], math.inf
     for name, x, y, phase in lay["places"]:
-        links, foot = table.at(phase)
+        foot, foot_angle = table.foot_at(phase)
         lowest = min(lowest, scale * foot[1])
         legs.append(LegPlacement(name, table, scale, (x, y, 0.0), phase, unit_mass * scale**3, unit_inertia * scale**5,
                                  lay["speed"], CRANK_DAMPING, effort_limit, foot_radius, 0.25 * reach,
-                                 -float(links[table.foot_link, 2]), shoe_friction=1.0))
+                                 -foot_angle, shoe_friction=1.0))
     return LeggedSpec("walker", lay["p"]["torso_mass"], lay["torso_inertia"], lay["half"],
                       (0.0, 0.0, -lowest + foot_radius + 0.001), legs, torso_friction=0.8, ground_friction=1.0)

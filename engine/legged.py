@@ -122,6 +122,18 @@ class LegTable:
         step[:, 2] -= 2.0 * math.pi * np.round(step[:, 2] / (2.0 * math.pi))
         return a + f * step, (1.0 - f) * self.foot[i0] + f * self.foot[i1]
 
+    def foot_at(self, psi: float) -> tuple:
+        """The foot (3,) and its link's planar angle [rad] at crank angle psi, as ``at`` gives them
+        (without interpolating every link: a walker's build needs only these)."""
+        n = self.samples
+        u = (psi / (2.0 * math.pi) * n) % n
+        i0 = min(int(u), n - 1)
+        i1, f = (i0 + 1) % n, u - i0
+        a, b = float(self.links[i0, self.foot_link, 2]), float(self.links[i1, self.foot_link, 2])
+        step = b - a
+        step -= 2.0 * math.pi * round(step / (2.0 * math.pi))
+        return (1.0 - f) * self.foot[i0] + f * self.foot[i1], a + f * step
+
 
 @dataclass
 class LegPlacement:

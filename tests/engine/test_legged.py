@@ -97,7 +97,9 @@ def test_leg_table_between_samples_places_pivots_within_its_closure_error(name):
     _, _, exact = exact_poses(linkage, psi)
     errors = np.zeros(len(psi))
     for i, angle in enumerate(psi):
-        links, _ = table.at(angle)
+        links, foot = table.at(angle)
+        foot_only, foot_angle = table.foot_at(angle)  # what a walker's build reads
+        assert np.array_equal(foot_only, foot) and abs(foot_angle - links[table.foot_link, 2]) < 1e-12
         for k, link in enumerate(linkage.links):
             c, s = math.cos(links[k, 2]), math.sin(links[k, 2])
             for m, off in zip(link.nodes, offsets[k]):
