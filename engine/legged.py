@@ -49,7 +49,7 @@ import numpy as np
 import warp as wp
 
 from engine.linear import block_sync
-from engine.matrix_free import block_max, block_sum
+from engine.matrix_free import block_sum
 from engine.model import SolverConfig
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
@@ -556,10 +556,17 @@ def step_kernel(tiled: bool):
         return value
 
     @wp.func
-    def reduce_max(value: float):
-        """Largest value over the world's lanes."""
+    def reduce_vector(value: vecnv):
+        """Sum of a vector over the world's lanes, in one reduction."""
         if wp.static(tiled):
-            return block_max(value)
+            return wp.tile_extract(wp.tile_reduce(wp.add, wp.tile(value, preserve_type=True)), 0)
+        return value
+
+    @wp.func
+    def reduce_max4(value: wp.vec4):
+        """Componentwise largest of a vec4 over the world's lanes, in one reduction."""
+        if wp.static(tiled):
+            return wp.tile_extract(wp.tile_reduce(wp.max, wp.tile(value, preserve_type=True)), 0)
         return value
 
     @wp.func
@@ -923,9 +930,7 @@ def step_kernel(tiled: bool):
             unit += lanes
         # the dual variable from the warm start: z = -(D y + v_f + s), the (shifted) velocity it
         # gives, so that an unchanged contact set starts at its fixed point
-        gy = vecnv()
-        for k in range(NV):
-            gy[k] = reduce_sum(gyl[k])
+        gy = reduce_vector(gyl)
         my = chol_solve(LM, w, n, gy)
         unit = lane
         while unit < units:
@@ -990,9 +995,7 @@ def step_kernel(tiled: bool):
                 unit += lanes
             # Woodbury: x = t - S^-1 J (M + J^T S^-1 J)^-1 J^T t, the small inverse applied by every lane
             # (symmetric: its lower triangle read once; the rows and columns past n are zero)
-            gsum = vecnv()
-            for k in range(NV):
-                gsum[k] = reduce_sum(gl[k])
+            gsum = reduce_vector(gl)
             yv = vecnv()
             for k in range(NV):
                 if k < n:
@@ -1054,10 +1057,11 @@ def step_kernel(tiled: bool):
                     z[w, i] = zn
                     ymax = wp.max(ymax, wp.abs(yn))
                 unit += lanes
-            rp = reduce_max(rp)
-            rd = reduce_max(rd)
-            rn = reduce_max(rn)
-            ymax = reduce_max(ymax)
+            largest = reduce_max4(wp.vec4(rp, rd, rn, ymax))
+            rp = largest[0]
+            rd = largest[1]
+            rn = largest[2]
+            ymax = largest[3]
             change = reduce_sum(change)
             its += 1
             tol = tolerance + relative_tolerance * ymax
