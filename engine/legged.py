@@ -197,6 +197,10 @@ class LeggedSpec:
 
 
 vecnv = wp.types.vector(length=NV, dtype=wp.float32)
+veclegs = wp.types.vector(length=MAX_LEGS, dtype=wp.float32)
+# the legs' sums of a step's set-up: mass, m d (3), the angular block (9), the torso's bias force and
+# torque (6), each leg's bias force (MAX_LEGS)
+vecsetup = wp.types.vector(length=19 + MAX_LEGS, dtype=wp.float32)
 
 
 class LeggedModel:
@@ -563,6 +567,13 @@ def step_kernel(tiled: bool):
         return value
 
     @wp.func
+    def reduce_setup(value: vecsetup):
+        """Sum of the set-up's leg sums over the world's lanes, in one reduction."""
+        if wp.static(tiled):
+            return wp.tile_extract(wp.tile_reduce(wp.add, wp.tile(value, preserve_type=True)), 0)
+        return value
+
+    @wp.func
     def reduce_max4(value: wp.vec4):
         """Componentwise largest of a vec4 over the world's lanes, in one reduction."""
         if wp.static(tiled):
@@ -687,78 +698,100 @@ def step_kernel(tiled: bool):
         psi_dot = state.psi_dot
         L = leg_count[w]
         n = 6 + L
-        # set-up on lane 0: mass matrix, free velocity, rows, preconditioner, warm start, first factor
+        # set-up: every leg's column of M and its share of the torso blocks and bias forces, one leg
+        # per lane (summed over the lanes as one vector); then on lane 0 the torso blocks, the
+        # factor of M, the free velocity and the rows
+        p = position[w]
+        q = orientation[w]
+        v = velocity[w]
+        om = angular_velocity[w]
+        R = wp.quat_to_matrix(q)
+        axis = -(R * wp.vec3(0.0, 1.0, 0.0))
+        g = gravity[w]
+        mt = torso[w][0]
+        for i in range(lane, NV * NV, lanes):
+            M[w, i] = 0.0
+        sync()
+        m_part = float(0.0)  # this lane's legs: sum of m_k
+        md_part = wp.vec3()  # sum of m_k d_k
+        rot_part = wp.mat33()  # angular block
+        f_part = wp.vec3()  # bias force on the torso
+        t_part = wp.vec3()  # bias torque on the torso
+        h_legs = veclegs()  # each leg's bias force (its own lane's entry)
+        for li in range(lane, L, lanes):
+            t = leg_table[w, li]
+            s = leg_scale[w, li]
+            ang = psi[w, li]
+            rate = psi_dot[w, li]
+            ix = table_index(ang, samples)
+            i0 = int(ix[0])
+            i1 = int(ix[1])
+            f = ix[2]
+            col = 6 + li
+            o = leg_origin[w, li]
+            me_sum = wp.vec3()  # the leg's column: linear part
+            mw_sum = wp.vec3()  # angular part
+            mjj = float(0.0)
+            hj = float(0.0)
+            for k in range(table_links[t]):
+                c0 = link_read(links0, t, i0, i1, f, k)
+                c1 = table_read(links1, t, i0, i1, f, k)
+                c2 = table_read(links2, t, i0, i1, f, k)
+                mk = link_mass[w, li * MAX_LINKS + k]
+                d = R * (o + wp.vec3(s * c0[0], 0.0, s * c0[1]))
+                e = plane(R, c1) * s
+                e2 = plane(R, c2) * s
+                Rk = R * rot_minus_y(c0[2])
+                Ik = Rk * link_inertia[w, li * MAX_LINKS + k] * wp.transpose(Rk)
+                ax = axis * c1[2]
+                m_part += mk
+                md_part += mk * d
+                rot_part += Ik + mk * (wp.dot(d, d) * wp.identity(n=3, dtype=float) - wp.outer(d, d))
+                me_sum += mk * e
+                mw_sum += mk * wp.cross(d, e) + Ik * ax
+                mjj += mk * wp.dot(e, e) + wp.dot(ax, Ik * ax)
+                wk = om + ax * rate
+                acc = wp.cross(om, wp.cross(om, d)) + 2.0 * rate * wp.cross(om, e) + e2 * (rate * rate)
+                alpha = rate * wp.cross(om, ax) + axis * (c2[2] * rate * rate)
+                f_lin = mk * (g - acc)
+                f_ang = -(Ik * alpha) - wp.cross(wk, Ik * wk)
+                f_part += f_lin
+                t_part += wp.cross(d, f_lin) + f_ang
+                hj += wp.dot(e, f_lin) + wp.dot(ax, f_ang)
+            for c in range(MAX_LEGS):  # a select over constant indices keeps h_legs in registers
+                if c == li:
+                    h_legs[c] = hj
+            for i in range(3):
+                M[w, i * NV + col] = me_sum[i]
+                M[w, col * NV + i] = me_sum[i]
+                M[w, (3 + i) * NV + col] = mw_sum[i]
+                M[w, col * NV + 3 + i] = mw_sum[i]
+            M[w, col * NV + col] = mjj
+        part = vecsetup()
+        part[0] = m_part
+        for i in range(3):
+            part[1 + i] = md_part[i]
+            part[13 + i] = f_part[i]
+            part[16 + i] = t_part[i]
+            for j in range(3):
+                part[4 + 3 * i + j] = rot_part[i, j]
+        for c in range(MAX_LEGS):
+            part[19 + c] = h_legs[c]
+        total = reduce_setup(part)
+        sync()  # every lane's leg columns are in M
         if lane == 0:
-            p = position[w]
-            q = orientation[w]
-            v = velocity[w]
-            om = angular_velocity[w]
-            R = wp.quat_to_matrix(q)
-            axis = -(R * wp.vec3(0.0, 1.0, 0.0))
-            g = gravity[w]
-            mt = torso[w][0]
             h = vecnv()
-            # torso; the torso blocks of M are summed in registers over every link, each leg's column once
             It = R * torso_inertia[w] * wp.transpose(R)
-            m_sum = mt
-            md_sum = wp.vec3()  # sum of m_k d_k
-            rot_sum = It  # angular block
             gyro = -wp.cross(om, It * om)
             for i in range(3):
-                h[i] += mt * g[i]
-                h[3 + i] += gyro[i]
-            for i in range(NV * NV):
-                M[w, i] = 0.0
-            # legs: mass matrix and bias forces, link by link
-            for li in range(L):
-                t = leg_table[w, li]
-                s = leg_scale[w, li]
-                ang = psi[w, li]
-                rate = psi_dot[w, li]
-                ix = table_index(ang, samples)
-                i0 = int(ix[0])
-                i1 = int(ix[1])
-                f = ix[2]
-                col = 6 + li
-                o = leg_origin[w, li]
-                me_sum = wp.vec3()  # the leg's column: linear part
-                mw_sum = wp.vec3()  # angular part
-                mjj = float(0.0)
-                hj = float(0.0)
-                for k in range(table_links[t]):
-                    c0 = link_read(links0, t, i0, i1, f, k)
-                    c1 = table_read(links1, t, i0, i1, f, k)
-                    c2 = table_read(links2, t, i0, i1, f, k)
-                    mk = link_mass[w, li * MAX_LINKS + k]
-                    d = R * (o + wp.vec3(s * c0[0], 0.0, s * c0[1]))
-                    e = plane(R, c1) * s
-                    e2 = plane(R, c2) * s
-                    Rk = R * rot_minus_y(c0[2])
-                    Ik = Rk * link_inertia[w, li * MAX_LINKS + k] * wp.transpose(Rk)
-                    ax = axis * c1[2]
-                    m_sum += mk
-                    md_sum += mk * d
-                    rot_sum += Ik + mk * (wp.dot(d, d) * wp.identity(n=3, dtype=float) - wp.outer(d, d))
-                    me_sum += mk * e
-                    mw_sum += mk * wp.cross(d, e) + Ik * ax
-                    mjj += mk * wp.dot(e, e) + wp.dot(ax, Ik * ax)
-                    wk = om + ax * rate
-                    acc = wp.cross(om, wp.cross(om, d)) + 2.0 * rate * wp.cross(om, e) + e2 * (rate * rate)
-                    alpha = rate * wp.cross(om, ax) + axis * (c2[2] * rate * rate)
-                    f_lin = mk * (g - acc)
-                    f_ang = -(Ik * alpha) - wp.cross(wk, Ik * wk)
-                    tor = wp.cross(d, f_lin) + f_ang
-                    for i in range(3):
-                        h[i] += f_lin[i]
-                        h[3 + i] += tor[i]
-                    hj += wp.dot(e, f_lin) + wp.dot(ax, f_ang)
-                h[col] = hj
-                for i in range(3):
-                    M[w, i * NV + col] = me_sum[i]
-                    M[w, col * NV + i] = me_sum[i]
-                    M[w, (3 + i) * NV + col] = mw_sum[i]
-                    M[w, col * NV + 3 + i] = mw_sum[i]
-                M[w, col * NV + col] = mjj
+                h[i] = mt * g[i] + total[13 + i]
+                h[3 + i] = gyro[i] + total[16 + i]
+            for c in range(MAX_LEGS):
+                h[6 + c] = total[19 + c]
+            m_sum = mt + total[0]
+            md_sum = wp.vec3(total[1], total[2], total[3])
+            rot_sum = It + wp.mat33(total[4], total[5], total[6], total[7], total[8], total[9], total[10], total[11],
+                                    total[12])
             # M_vv = m I, M_vw = -[sum m d]x, M_ww = the angular sum
             cross = wp.skew(md_sum)
             for i in range(3):
