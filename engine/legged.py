@@ -33,12 +33,14 @@ plane z = 0 (the contact point on the capsule's surface below the end), kept wit
 SolverConfig.contact_margin; the contact candidates have fixed slots
 (their warm-start keys).
 
-On a GPU a batch of up to TILED_MAX_WORLDS worlds steps one warp per world: lane 0 sums the mass
-matrix and builds the rows, the lanes share the rows and contact triplets of the preconditioner,
-the warm start and every PADMM iteration, and the entries of M + J^T S^-1 J; the (6 + L)-square
-inverse is applied by every lane. Larger batches (and the CPU) step one thread per world: more
-worlds than a GPU has warps keep it busy anyway. Both compute the same step. A world whose state turns non-finite or
-whose torso moves faster than max_speed is flagged diverged and frozen; halted worlds are frozen.
+On a GPU a batch of up to TILED_MAX_WORLDS worlds steps one warp per world: the lanes sum the
+mass matrix and bias forces one leg each, lane 0 assembles the torso blocks, factors and builds
+the rows, the lanes share the rows and contact triplets of the preconditioner, the warm start and
+every PADMM iteration (their sums and maxima reduced as one vector each), and the entries of
+M + J^T S^-1 J; the (6 + L)-square inverse is applied by every lane. Larger batches (and the CPU)
+step one thread per world: more worlds than a GPU has warps keep it busy anyway. Both compute the
+same step. A world whose state turns non-finite or whose torso moves faster than max_speed is
+flagged diverged and frozen; halted worlds are frozen.
 """
 
 import functools

@@ -110,3 +110,35 @@ def test_walker_study_writes_its_time_by_stage(tmp_path):
     assert [r[0] for r in rows] == ["simulate", "build", "ask", "storage"]  # largest first
     assert [float(r[2]) for r in rows] == [0.75, 0.1875, 0.03125, 0.015625]
     assert (tmp_path / "walker_study_cpu_stages.png").stat().st_size > 5000
+
+
+def test_legged_steps_reports_the_reduced_walkers_time_per_step(tmp_path, capsys):
+    from benchmarks import legged_steps
+
+    assert legged_steps.main(["--device", "cpu", "--worlds", "2", "--steps", "20", "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "legged_steps_cpu.json").read_text())
+    assert report["dt"] == 0.005 and report["solver"]["max_iterations"] == 30  # the walker study's settings
+    (run,) = report["runs"]
+    assert run["worlds"] == 2 and run["tiled"] is False and run["diverged"] == 0
+    assert run["rollout_ms_per_step"] > 0 and 1 <= run["iterations_mean"] <= 30
+    assert run["simulated_s_per_s"] == pytest.approx(2 * 20 * 0.005 / run["rollout_s"])
+
+
+def test_legged_precision_compares_the_study_and_settings_with_the_reference(tmp_path):
+    import pandas as pd
+
+    from benchmarks import legged_precision
+
+    assert legged_precision.main(["--device", "cpu", "--designs", "3", "--duration", "0.1", "--quick",
+                                  "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "legged_precision_cpu.json").read_text())
+    assert report["designs"] == 3 and report["duration"] == 0.1
+    assert [r["setting"] for r in report["results"]] == ["study (dt 5 ms, its [solver])", "dt 2 ms, rho 1",
+                                                         "dt 5 ms, loose, cap 30", "dt 10 ms, loose"]
+    study, _, same_settings, _ = report["results"]
+    for key in ("same_outcome", "walk_in_both", "speed_error_median"):  # the study runs dt 5 ms, loose, cap 30
+        assert study[key] == same_settings[key]
+    assert all(0.0 <= r["same_outcome"] <= 1.0 for r in report["results"])
+    rows = pd.read_csv(tmp_path / "legged_precision_cpu.csv.gz")
+    assert len(rows) == 4 * 3 and set(rows["design"]) == {0, 1, 2}
+    assert (tmp_path / "legged_precision_cpu.png").stat().st_size > 1000
