@@ -4,9 +4,9 @@
     [--kernel auto|tiled|thread]
 
 Random three-leg walkers of the walker family (seeded), with the walker study's time step and
-solver settings (studies/walker.toml; --dt overrides the time step): a rollout of --steps steps
-(records every 10), then, on CUDA, the replay of a captured graph of 10 steps 20 times. Prints
-one JSON object and writes legged_steps_<device>[_<kernel>].json.
+solver settings (studies/walker.toml; --dt and --max-iterations override them): a rollout of
+--steps steps (records every 10), then, on CUDA, the replay of a captured graph of 10 steps 20
+times. Prints one JSON object and writes legged_steps_<device>[_<kernel>].json.
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ def main(argv=None) -> int:
     parser.add_argument("--worlds", type=int, nargs="+", default=[64])
     parser.add_argument("--steps", type=int, default=1000)
     parser.add_argument("--dt", type=float, default=None, help="time step [s] (default: the walker study's)")
+    parser.add_argument("--max-iterations", type=int, default=None, help="PADMM cap (default: the walker study's)")
     parser.add_argument("--kernel", choices=["auto", "tiled", "thread"], default="auto",
                         help="one warp per world (tiled), one thread per world, or the model's choice (auto)")
     parser.add_argument("--out", default=".")
@@ -47,6 +48,8 @@ def main(argv=None) -> int:
     study = load_study_spec(ROOT / "studies" / "walker.toml")
     args.dt = args.dt or study.dt
     config = study.solver_config() or SolverConfig()
+    if args.max_iterations:
+        config = dataclasses.replace(config, max_iterations=args.max_iterations)
     rng = np.random.default_rng(0)
     runs = []
     for worlds in args.worlds:
