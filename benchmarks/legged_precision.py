@@ -124,7 +124,8 @@ def main(argv=None) -> int:
     results, rows = [], []
     study = (f"study (dt {spec.dt * 1e3:g} ms, its [solver])", spec.dt, None)
     for label, dt, overrides in [study, *settings]:
-        evaluation, seconds = run(dt, overrides or {}, None if overrides is not None else spec.solver_config())
+        evaluation, seconds = run(dt, overrides or {},
+                                  None if overrides is not None else spec.solver_config() or SolverConfig())
         simulate = evaluation.timings.get("simulate", seconds)
         speed = np.array([m.get("walking_speed", np.nan) for m in evaluation.metrics])
         kind = [outcome(r) for r in evaluation.failures]
@@ -133,7 +134,7 @@ def main(argv=None) -> int:
         err = np.abs(speed[both] - ref_speed[both])
         rank = float(pd.Series(speed[both]).corr(pd.Series(ref_speed[both]), method="spearman")) \
             if both.sum() > 2 else None
-        settings_used = spec.solver if overrides is None else overrides
+        settings_used = (spec.solver or {}) if overrides is None else overrides
         result = {"setting": label, "dt": dt, **settings_used, "designs": len(params),
                   "simulate_s": simulate, "evaluate_s": seconds,
                   "simulated_s_per_s": len(params) * duration / simulate,

@@ -453,7 +453,7 @@ def chol_solve(L: wp.array2d(dtype=float), w: int, n: int, b: vecnv):
 # row scratch layout (ROW_STRIDE floats per row): 0 preconditioner P, 1 compliance R (unscaled),
 # 2 free velocity v_f (preconditioned), 3 friction mu (contacts; -1 drive), 4 lower, 5 upper
 # bounds (drives, preconditioned), 6 ADMM penalty, 7 row velocity at the last iterate, 8 free
-# drive flag, 9 the row's crank column (6 + leg; -1 for a torso corner), 10 1 / (eta + penalty +
+# drive flag, 9 the row's crank column (6 + leg; 5, below 6, for a torso corner: none), 10 1 / (eta + penalty +
 # P^2 R) (set with the Woodbury factor). A drive row's Jacobian is zero but in its crank column, a
 # contact row's but in the torso's six columns and its crank column: the PADMM iterations read
 # only those (row_dot, row_add).

@@ -167,9 +167,10 @@ def _batch_world_metrics(trace, turn: np.ndarray, torso: np.ndarray, up: np.ndar
     tilts, heights = _torso_tilt_height(points, points[0], torso, up)
     needed = max(2, int(np.ceil(stall_time / record_dt)))
     torque = np.abs(trace.drive_torque[1:, :, :effort.shape[1]])
-    speed = trace.drive_speed[1:, :, :effort.shape[1]] * np.sign(target)
+    dtype = torque.dtype  # compare in the records' precision, as _jam does
+    speed = trace.drive_speed[1:, :, :effort.shape[1]] * np.sign(target).astype(dtype)
     driven = (target != 0.0) & np.isfinite(effort)
-    stalled = driven & (torque >= 0.95 * effort) & (speed < 0.5 * np.abs(target))  # (T - 1, W, J)
+    stalled = driven & (torque >= (0.95 * effort).astype(dtype)) & (speed < (0.5 * np.abs(target)).astype(dtype))
     runs = np.zeros((W, effort.shape[1]), bool)
     if stalled.shape[0] >= needed:
         counts = np.concatenate([np.zeros((1, W, effort.shape[1]), int), np.cumsum(stalled, axis=0)])

@@ -214,6 +214,8 @@ def test_batched_walker_metrics_equal_the_per_world_ones():
     zeros, ones = np.zeros(6, int), np.ones(6, int)
     pre = _batch_world_metrics(trace, turn.astype(int), zeros, ones, effort, target, np.radians(45.0), 0.5, 0.2,
                                record_dt)
+    assert list(np.flatnonzero(pre["jam"])) == [1] and list(np.flatnonzero(pre["fell"])) == [2]
+    assert np.isnan(pre["stride"][3, 4]) and np.isfinite(pre["stride"][[0, 1, 2, 4, 5]]).all()
     batched, single = Evaluation(params, [None] * 6, [""] * 6), Evaluation(params, [None] * 6, [""] * 6)
     for w, spec in enumerate(specs):
         drives = [SimpleNamespace(name=f"{leg.name}_crank", type=JointType.REVOLUTE,
