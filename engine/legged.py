@@ -113,12 +113,17 @@ class LegTable:
         """Crank angles in the table (N)."""
         return int(np.shape(self.links)[0])
 
-    def at(self, psi: float) -> tuple:
-        """Links (K, 3) and foot (3,) at crank angle psi [rad], interpolated as the kernels do."""
+    def _between(self, psi: float) -> tuple:
+        """The samples around crank angle psi [rad] and the weight of the second (i0, i1, f), as the
+        kernels' table_index."""
         n = self.samples
         u = (psi / (2.0 * math.pi) * n) % n
         i0 = min(int(u), n - 1)
-        i1, f = (i0 + 1) % n, u - i0
+        return i0, (i0 + 1) % n, u - i0
+
+    def at(self, psi: float) -> tuple:
+        """Links (K, 3) and foot (3,) at crank angle psi [rad], interpolated as the kernels do."""
+        i0, i1, f = self._between(psi)
         a, b = self.links[i0], self.links[i1]
         step = b - a
         step[:, 2] -= 2.0 * math.pi * np.round(step[:, 2] / (2.0 * math.pi))
@@ -127,10 +132,7 @@ class LegTable:
     def foot_at(self, psi: float) -> tuple:
         """The foot (3,) and its link's planar angle [rad] at crank angle psi, as ``at`` gives them
         (without interpolating every link: a walker's build needs only these)."""
-        n = self.samples
-        u = (psi / (2.0 * math.pi) * n) % n
-        i0 = min(int(u), n - 1)
-        i1, f = (i0 + 1) % n, u - i0
+        i0, i1, f = self._between(psi)
         a, b = float(self.links[i0, self.foot_link, 2]), float(self.links[i1, self.foot_link, 2])
         step = b - a
         step -= 2.0 * math.pi * round(step / (2.0 * math.pi))

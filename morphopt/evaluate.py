@@ -437,6 +437,21 @@ def _world_metrics(evaluation: Evaluation, i: int, trace, world: int, names: lis
     evaluation.metrics[i] = metrics
 
 
+def _legged_drives(specs: list, record_dt: float, records: int) -> tuple:
+    """For _batch_world_metrics, of legged worlds (engine.legged.LeggedSpec): the records of a crank
+    turn at the fastest drive (all ``records`` without one), and every crank drive's effort limit
+    and target speed (worlds, MAX_LEGS; zero past a world's legs)."""
+    from engine.legged import MAX_LEGS
+
+    effort, target = np.zeros((len(specs), MAX_LEGS)), np.zeros((len(specs), MAX_LEGS))
+    for world, spec in enumerate(specs):
+        for li, leg in enumerate(spec.legs):
+            effort[world, li], target[world, li] = leg.effort_limit, leg.target_speed
+    fastest = np.abs(target).max(axis=1)
+    turn = np.where(fastest > 0.0, np.round(2.0 * np.pi / np.maximum(fastest, 1e-9) / record_dt), records)
+    return turn.astype(int), effort, target
+
+
 def _evaluate_reduced(family, params: Sequence[dict], *, duration: float, dt: float, device: str,
                       crank_speed: float | None, record_every: int, fall_tilt: float, fall_height: float,
                       stall_time: float, config) -> Evaluation:
@@ -444,7 +459,7 @@ def _evaluate_reduced(family, params: Sequence[dict], *, duration: float, dt: fl
     from types import SimpleNamespace
 
     from engine import JointDrive, JointType
-    from engine.legged import MAX_LEGS, legged_rollout, pack_legged
+    from engine.legged import legged_rollout, pack_legged
 
     if not hasattr(family, "build_legged"):
         raise ValueError("model 'reduced' needs a family with build_legged (a walker of one-DoF legs); "
@@ -471,14 +486,8 @@ def _evaluate_reduced(family, params: Sequence[dict], *, duration: float, dt: fl
     trace = legged_rollout(model, steps, record_every=record_every, halt=halt)
     t3 = time.perf_counter()
     record_dt = dt * record_every
-    effort, target = np.zeros((len(specs), MAX_LEGS)), np.zeros((len(specs), MAX_LEGS))
-    for world, spec in enumerate(specs):
-        for li, leg in enumerate(spec.legs):
-            effort[world, li], target[world, li] = leg.effort_limit, leg.target_speed
-    fastest = np.abs(target).max(axis=1)
-    turn = np.where(fastest > 0.0, np.round(2.0 * np.pi / np.maximum(fastest, 1e-9) / record_dt), len(trace.time))
-    pre = _batch_world_metrics(trace, turn.astype(int), torso, up, effort, target, fall_tilt, fall_height, stall_time,
-                               record_dt)
+    turn, effort, target = _legged_drives(specs, record_dt, len(trace.time))
+    pre = _batch_world_metrics(trace, turn, torso, up, effort, target, fall_tilt, fall_height, stall_time, record_dt)
     for world, i in enumerate(owners):
         spec = specs[world]
         drives = [SimpleNamespace(name=f"{leg.name}_crank", type=JointType.REVOLUTE,

@@ -187,8 +187,8 @@ def test_batched_walker_metrics_equal_the_per_world_ones():
     from types import SimpleNamespace
 
     from engine import JointDrive, JointType, SolverConfig
-    from engine.legged import MAX_LEGS, legged_rollout, pack_legged
-    from morphopt.evaluate import Evaluation, _batch_world_metrics, _world_metrics
+    from engine.legged import legged_rollout, pack_legged
+    from morphopt.evaluate import Evaluation, _batch_world_metrics, _legged_drives, _world_metrics
 
     walker = load_family("walker")
     params = [walker.space.default()] + walker.space.sample(np.random.default_rng(3), 5)
@@ -205,15 +205,11 @@ def test_batched_walker_metrics_equal_the_per_world_ones():
     trace.drive_speed[5:30, 1, 2] = 0.1 * specs[1].legs[2].target_speed
     trace.points[20:, 2, 1] = trace.points[20:, 2, 0] + np.array([0.3, 0.0, 0.01])  # world 2 tips over
     trace.points[-3, 3, 4, 0] = np.nan  # a foot of world 3 leaves no finite path
-    effort, target = np.zeros((6, MAX_LEGS)), np.zeros((6, MAX_LEGS))
-    for w, spec in enumerate(specs):
-        for li, leg in enumerate(spec.legs):
-            effort[w, li], target[w, li] = leg.effort_limit, leg.target_speed
-    fastest = np.abs(target).max(axis=1)
-    turn = np.where(fastest > 0.0, np.round(2.0 * np.pi / np.maximum(fastest, 1e-9) / record_dt), len(trace.time))
-    zeros, ones = np.zeros(6, int), np.ones(6, int)
-    pre = _batch_world_metrics(trace, turn.astype(int), zeros, ones, effort, target, np.radians(45.0), 0.5, 0.2,
-                               record_dt)
+    turn, effort, target = _legged_drives(specs, record_dt, len(trace.time))
+    assert list(turn[:5]) == [round(2.0 * np.pi / abs(spec.legs[0].target_speed) / record_dt) for spec in specs[:5]]
+    assert turn[5] == len(trace.time) and effort[0, 5] == specs[0].legs[5].effort_limit and effort[0, 6] == 0.0
+    pre = _batch_world_metrics(trace, turn, np.zeros(6, int), np.ones(6, int), effort, target, np.radians(45.0), 0.5,
+                               0.2, record_dt)
     assert list(np.flatnonzero(pre["jam"])) == [1] and list(np.flatnonzero(pre["fell"])) == [2]
     assert np.isnan(pre["stride"][3, 4]) and np.isfinite(pre["stride"][[0, 1, 2, 4, 5]]).all()
     batched, single = Evaluation(params, [None] * 6, [""] * 6), Evaluation(params, [None] * 6, [""] * 6)
