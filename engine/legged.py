@@ -45,6 +45,7 @@ flagged diverged and frozen; halted worlds are frozen.
 
 import functools
 import math
+from typing import Any
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -564,15 +565,8 @@ def step_kernel(tiled: bool):
         return value
 
     @wp.func
-    def reduce_vector(value: vecnv):
+    def reduce_vector(value: Any):
         """Sum of a vector over the world's lanes, in one reduction."""
-        if wp.static(tiled):
-            return wp.tile_extract(wp.tile_reduce(wp.add, wp.tile(value, preserve_type=True)), 0)
-        return value
-
-    @wp.func
-    def reduce_setup(value: vecsetup):
-        """Sum of the set-up's leg sums over the world's lanes, in one reduction."""
         if wp.static(tiled):
             return wp.tile_extract(wp.tile_reduce(wp.add, wp.tile(value, preserve_type=True)), 0)
         return value
@@ -781,7 +775,7 @@ def step_kernel(tiled: bool):
                 part[4 + 3 * i + j] = rot_part[i, j]
         for c in range(MAX_LEGS):
             part[19 + c] = h_legs[c]
-        total = reduce_setup(part)
+        total = reduce_vector(part)
         sync()  # every lane's leg columns are in M
         if lane == 0:
             h = vecnv()
