@@ -134,15 +134,6 @@ def apply_constraints(spec: StudySpec, evaluation) -> None:
                 break
 
 
-def _scalars(metrics: dict) -> dict:
-    """The scalar metrics as JSON-able floats (None for inf and NaN)."""
-    out = {}
-    for key, value in metrics.items():
-        if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
-            out[key] = float(value) if math.isfinite(value) else None
-    return out
-
-
 OPTIMIZER_CLASSES = {"cma": CMAES, "optuna": OptunaSampler, "random": RandomSearch}
 
 
@@ -214,7 +205,7 @@ def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -
         else:
             optimizer.tell(free, values.tolist())
         t_told = time.perf_counter()
-        storage.write_generation(generation, params, sign * values, [_scalars(m) for m in evaluation.metrics],
+        storage.write_generation(generation, params, sign * values, evaluation.metrics,
                                  evaluation.failures, dump_checkpoint(optimizer), seconds + time.perf_counter() - t0,
                                  replace=fresh)
         fresh = False

@@ -104,7 +104,8 @@ class CMAES(Optimizer):
             raise ValueError("CMA-ES: tell() must follow ask() with the same batch")
         super().tell(params, values)
         self.es.tell(self._pending, self.penalized(values).tolist())
-        self._pending = None
+        self.es._tell2_args = None  # pycma's copy of tell's arguments, for inspection only: kept, every
+        self._pending = None        # checkpoint would pickle its population array by array (10 ms at 4096)
         self.generations_in[self.regime] += 1
         if self.restarts_left > 0 and self.es.stop():
             self.restarts_left -= 1
