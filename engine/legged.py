@@ -68,7 +68,7 @@ MAX_CONTACTS = TORSO_CORNERS + 2 * MAX_LEGS  # slot k < 8: torso corner k; 8 + 2
 MAX_ROWS = wp.constant(MAX_LEGS + 3 * MAX_CONTACTS)
 TWO_PI = wp.constant(2.0 * math.pi)
 TILED_MAX_WORLDS = 8192  # see LeggedModel.lanes (H200: 4096 walkers 5.2 ms per step tiled against 10.1)
-ROW_STRIDE = wp.constant(12)  # floats per row in the rows' scratch (see row_at)
+ROW_VECS = wp.constant(3)  # vec4 per row in the rows' scratch (see row_at)
 
 
 @dataclass
@@ -301,11 +301,15 @@ class LeggedModel:
         self.contacts = wp.zeros(W, dtype=wp.int32, device=d)
         # scratch of the step, per world
         self.rows_J = wp.zeros((W, MAX_ROWS * NV), dtype=float, device=d)
-        self.rows = wp.zeros((W, MAX_ROWS * ROW_STRIDE), dtype=float, device=d)
+        self.rows_Jc = wp.zeros((W, MAX_ROWS * 2), dtype=wp.vec4, device=d)  # compact rows (see row_dot)
+        self.rows = wp.zeros((W, MAX_ROWS * ROW_VECS), dtype=wp.vec4, device=d)
         self.mass = wp.zeros((W, NV * NV), dtype=float, device=d)
         self.mass_factor = wp.zeros((W, NV * NV), dtype=float, device=d)  # Cholesky factor of M
         self.factor = wp.zeros((W, NV * NV), dtype=float, device=d)  # of M + J^T S^-1 J
-        self.work = [wp.zeros((W, MAX_ROWS), dtype=float, device=d) for _ in range(8)]  # x, y, z, tmp, b, xp, yp, zp
+        # PADMM's per-row state, loaded and stored 16 bytes at a time: (x, x before, b, S^-1 b) and
+        # (y, z, y and z before: extrapolated during an iteration)
+        self.work = [wp.zeros((W, MAX_ROWS), dtype=wp.vec4, device=d) for _ in range(2)]
+        self.row_inverse = wp.zeros((W, MAX_ROWS), dtype=float, device=d)  # 1 / S, for the Woodbury factor
         self.slot_of = wp.zeros((W, MAX_ROWS), dtype=wp.int32, device=d)
         self.row_count = wp.zeros(W, dtype=wp.int32, device=d)
         self.ufree = wp.zeros((W, NV), dtype=float, device=d)
@@ -453,71 +457,80 @@ def chol_solve(L: wp.array2d(dtype=float), w: int, n: int, b: vecnv):
     return y
 
 
-# row scratch layout (ROW_STRIDE floats per row): 0 preconditioner P, 1 compliance R (unscaled),
-# 2 free velocity v_f (preconditioned), 3 friction mu (contacts; -1 drive), 4 lower, 5 upper
-# bounds (drives, preconditioned), 6 ADMM penalty, 7 row velocity at the last iterate, 8 free
-# drive flag, 9 the row's crank column (6 + leg; 5, below 6, for a torso corner: none), 10 1 / (eta + penalty +
-# P^2 R) (set with the Woodbury factor). A drive row's Jacobian is zero but in its crank column, a
-# contact row's but in the torso's six columns and its crank column: the PADMM iterations read
-# only those (row_dot, row_add).
+# row scratch layout (three vec4 per row, fields 0-11): 0 preconditioner P, 1 compliance R
+# (unscaled), 2 free velocity v_f (preconditioned), 3 friction mu (contacts; -1 drive), 4 lower,
+# 5 upper bounds (drives, preconditioned), 6 ADMM penalty, 7 row velocity at the last iterate,
+# 8 free drive flag, 9 the row's crank column (6 + leg; 5, below 6, for a torso corner: none),
+# 10 1 / (eta + penalty + P^2 R) (set with the Woodbury factor). A drive row's Jacobian is zero
+# but in its crank column, a contact row's but in the torso's six columns and its crank column:
+# the PADMM iterations read a compact copy of the preconditioned rows, two vec4 per row (the
+# torso's six entries, the crank column's, 0; row_dot, row_add).
 @wp.func
-def row_at(rows: wp.array2d(dtype=float), w: int, r: int, c: int):
+def row_at(rows: wp.array2d(dtype=wp.vec4), w: int, r: int, c: int):
     """Field c of row r of world w in the rows' scratch."""
-    return rows[w, r * ROW_STRIDE + c]
+    return rows[w, r * ROW_VECS + c / 4][c % 4]
 
 
 @wp.func
-def set_row(rows: wp.array2d(dtype=float), w: int, r: int, c: int, value: float):
+def set_row(rows: wp.array2d(dtype=wp.vec4), w: int, r: int, c: int, value: float):
     """Set field c of row r of world w in the rows' scratch."""
-    rows[w, r * ROW_STRIDE + c] = value
+    v = rows[w, r * ROW_VECS + c / 4]
+    v[c % 4] = value
+    rows[w, r * ROW_VECS + c / 4] = v
 
 
 @wp.func
-def penalty(rows: wp.array2d(dtype=float), w: int, r: int):
+def penalty(rows: wp.array2d(dtype=wp.vec4), w: int, r: int):
     """A row's ADMM penalty."""
-    return rows[w, r * ROW_STRIDE + 6]
+    return rows[w, r * ROW_VECS + 1][2]
 
 
 @wp.func
-def set_penalties(rows: wp.array2d(dtype=float), w: int, m: int, rho: float, rho0: float):
+def set_penalties(rows: wp.array2d(dtype=wp.vec4), w: int, m: int, rho: float, rho0: float):
     """Every row's penalty: rho, or min(rho, rho0) for a free drive row."""
     for r in range(m):
         value = rho
-        if rows[w, r * ROW_STRIDE + 8] == 1.0:
+        if rows[w, r * ROW_VECS + 2][0] == 1.0:
             value = wp.min(rho, rho0)
-        rows[w, r * ROW_STRIDE + 6] = value
+        set_row(rows, w, r, 6, value)
 
 
 @wp.func
-def row_dot(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=float), w: int, r: int, u: vecnv):
-    """Row r of world w's Jacobian times u, from its nonzero columns (see the rows' layout)."""
+def row_dot(Jc: wp.array2d(dtype=wp.vec4), w: int, r: int, contact: bool, col: int, u: vecnv):
+    """Row r of world w's (preconditioned) Jacobian times u, from its compact copy: a contact
+    row's torso columns, and the crank column ``col`` (below 6: none)."""
+    b = Jc[w, 2 * r + 1]
     s = float(0.0)
-    if row_at(rows, w, r, 3) >= 0.0:  # a contact: the torso's columns
-        for c in range(6):
-            s += J[w, r * NV + c] * u[c]
-    col = int(row_at(rows, w, r, 9))
+    if contact:
+        a = Jc[w, 2 * r]
+        s = a[0] * u[0] + a[1] * u[1] + a[2] * u[2] + a[3] * u[3] + b[0] * u[4] + b[1] * u[5]
     if col >= 6:
         uc = float(0.0)
         for c in range(6, NV):  # a select over constant indices keeps u in registers
             if c == col:
                 uc = u[c]
-        s += J[w, r * NV + col] * uc
+        s += b[2] * uc
     return s
 
 
 @wp.func
-def row_add(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=float), w: int, r: int, t: float, g: vecnv):
-    """g + t times row r of world w's Jacobian, from its nonzero columns (see row_dot)."""
+def row_add(Jc: wp.array2d(dtype=wp.vec4), w: int, r: int, contact: bool, col: int, t: float, g: vecnv):
+    """g + t times row r of world w's (preconditioned) Jacobian (see row_dot)."""
     out = g
-    if row_at(rows, w, r, 3) >= 0.0:
-        for c in range(6):
-            out[c] += J[w, r * NV + c] * t
-    col = int(row_at(rows, w, r, 9))
+    b = Jc[w, 2 * r + 1]
+    if contact:
+        a = Jc[w, 2 * r]
+        out[0] += a[0] * t
+        out[1] += a[1] * t
+        out[2] += a[2] * t
+        out[3] += a[3] * t
+        out[4] += b[0] * t
+        out[5] += b[1] * t
     if col >= 6:
-        a = J[w, r * NV + col] * t
+        v = b[2] * t
         for c in range(6, NV):
             if c == col:
-                out[c] += a
+                out[c] += v
     return out
 
 
@@ -531,12 +544,18 @@ def jrow_dot(J: wp.array2d(dtype=float), w: int, r: int, n: int, u: vecnv):
 
 
 @wp.func
-def project_row(rows: wp.array2d(dtype=float), w: int, r: int, a: float, b: float, c: float):
+def project_row(rows: wp.array2d(dtype=wp.vec4), w: int, r: int, a: float, b: float, c: float):
     """Projection of a row's value (a drive: clamp) or a contact triplet's (a, b, c) onto its cone;
     returns the projected triplet (drives use the first component only)."""
     mu = row_at(rows, w, r, 3)
     if mu < 0.0:
         return wp.vec3(wp.clamp(a, row_at(rows, w, r, 4), row_at(rows, w, r, 5)), 0.0, 0.0)
+    return project_cone(mu, a, b, c)
+
+
+@wp.func
+def project_cone(mu: float, a: float, b: float, c: float):
+    """Projection of a contact triplet (normal a, tangents b, c) onto the cone of friction mu."""
     t = wp.sqrt(b * b + c * c)
     if t <= mu * a:
         return wp.vec3(a, b, c)
@@ -579,12 +598,12 @@ def step_kernel(tiled: bool):
         return value
 
     @wp.func
-    def woodbury_factor(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=float), M: wp.array2d(dtype=float),
+    def woodbury_factor(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=wp.vec4), M: wp.array2d(dtype=float),
                         K: wp.array2d(dtype=float), Kinv: wp.array2d(dtype=float), w: int, m: int, n: int,
                         sigma_base: float, tmp: wp.array2d(dtype=float), lane: int, lanes: int):
-        """Kinv <- (M + J^T S^-1 J)^-1 (K holds its Cholesky factor on the way; tmp the rows' 1 / S).
-        The lanes share the rows, then the matrix's entries, then the inverse's columns; lane 0
-        factors. Every lane of the block must call it."""
+        """Kinv <- (M + J^T S^-1 J)^-1 (K holds its Cholesky factor on the way; the rows' 1 / S go
+        to their field 10 and to tmp). The lanes share the rows, then the matrix's entries, then
+        the inverse's columns; lane 0 factors. Every lane of the block must call it."""
         for r in range(lane, m, lanes):
             p = row_at(rows, w, r, 0)
             inverse = 1.0 / (sigma_base + penalty(rows, w, r) + p * p * row_at(rows, w, r, 1))
@@ -639,18 +658,14 @@ def step_kernel(tiled: bool):
         drive_torque: wp.array2d(dtype=float),
         # scratch
         J: wp.array2d(dtype=float),
-        rows: wp.array2d(dtype=float),
+        Jc: wp.array2d(dtype=wp.vec4),
+        rows: wp.array2d(dtype=wp.vec4),
         M: wp.array2d(dtype=float),
         LM: wp.array2d(dtype=float),
         K: wp.array2d(dtype=float),
-        x: wp.array2d(dtype=float),
-        y: wp.array2d(dtype=float),
-        z: wp.array2d(dtype=float),
+        s1: wp.array2d(dtype=wp.vec4),
+        s2: wp.array2d(dtype=wp.vec4),
         tmp: wp.array2d(dtype=float),
-        b: wp.array2d(dtype=float),
-        xp: wp.array2d(dtype=float),
-        yp: wp.array2d(dtype=float),
-        zp: wp.array2d(dtype=float),
         slot_of: wp.array2d(dtype=wp.int32),
         row_count: wp.array(dtype=wp.int32),
         ufree: wp.array2d(dtype=float),
@@ -913,10 +928,11 @@ def step_kernel(tiled: bool):
         sync()
         m = row_count[w]
         units = L + (m - L) / 3
-        # Jacobi preconditioner P = diag(J M^-1 J^T + R)^-1/2 (one value per contact triplet) and the
-        # warm start from the last step's impulses by slot, unit by unit over the lanes (LM holds
-        # the factor of M). A drive row whose warm start lies within half its bounds keeps the penalty at
-        # or below rho0 (its projection is then the identity, and a large penalty only slows it).
+        # Jacobi preconditioner P = diag(J M^-1 J^T + R)^-1/2 (one value per contact triplet), the
+        # compact copy of the preconditioned rows, and the warm start from the last step's impulses
+        # by slot, unit by unit over the lanes (LM holds the factor of M). A drive row whose warm
+        # start lies within half its bounds keeps the penalty at or below rho0 (its projection is
+        # then the identity, and a large penalty only slows it).
         rho = rho0
         gyl = vecnv()
         unit = lane
@@ -934,28 +950,33 @@ def step_kernel(tiled: bool):
                 mj = chol_solve(LM, w, n, jr)
                 dsum += wp.dot(jr, mj) + row_at(rows, w, rr, 1)
             pr = 1.0 / wp.sqrt(wp.max(dsum / float(span), 1.0e-12))
-            for rr in range(r, r + span):
+            xs = wp.vec3()
+            for c in range(span):
+                rr = r + c
                 set_row(rows, w, rr, 0, pr)
                 set_row(rows, w, rr, 2, pr * row_at(rows, w, rr, 2))
                 set_row(rows, w, rr, 4, row_at(rows, w, rr, 4) / pr)
                 set_row(rows, w, rr, 5, row_at(rows, w, rr, 5) / pr)
                 set_row(rows, w, rr, 6, rho0)
-                for c in range(NV):
-                    J[w, rr * NV + c] = pr * J[w, rr * NV + c]
-                x[w, rr] = impulse[w, slot_of[w, rr]] / pr
-            a1 = float(0.0)
-            a2 = float(0.0)
-            if span == 3:
-                a1 = x[w, r + 1]
-                a2 = x[w, r + 2]
-            pj = project_row(rows, w, r, x[w, r], a1, a2)
+                for k in range(NV):
+                    J[w, rr * NV + k] = pr * J[w, rr * NV + k]
+                col = int(row_at(rows, w, rr, 9))
+                crank = float(0.0)
+                for k in range(6, NV):
+                    if k == col:
+                        crank = J[w, rr * NV + k]
+                base = rr * NV
+                Jc[w, 2 * rr] = wp.vec4(J[w, base], J[w, base + 1], J[w, base + 2], J[w, base + 3])
+                Jc[w, 2 * rr + 1] = wp.vec4(J[w, base + 4], J[w, base + 5], crank, 0.0)
+                xs[c] = impulse[w, slot_of[w, rr]] / pr
+            pj = project_row(rows, w, r, xs[0], xs[1], xs[2])
             for c in range(span):
-                y[w, r + c] = pj[c]
-                yp[w, r + c] = pj[c]
+                s1[w, r + c] = wp.vec4(xs[c], xs[c], 0.0, 0.0)
+                s2[w, r + c] = wp.vec4(pj[c], 0.0, pj[c], 0.0)  # y and its last value; z below
                 for k in range(NV):
                     gyl[k] += J[w, (r + c) * NV + k] * pj[c]
             free = float(0.0)
-            if span == 1 and wp.abs(x[w, r]) < 0.5 * row_at(rows, w, r, 5):
+            if span == 1 and wp.abs(xs[0]) < 0.5 * row_at(rows, w, r, 5):
                 free = 1.0
             set_row(rows, w, r, 8, free)
             unit += lanes
@@ -970,21 +991,22 @@ def step_kernel(tiled: bool):
             if unit >= L:
                 r = L + 3 * (unit - L)
                 span = 3
+            vels = wp.vec3()
             for c in range(span):
                 i = r + c
                 pr = row_at(rows, w, i, 0)
-                set_row(rows, w, i, 7, jrow_dot(J, w, i, n, my) + pr * pr * row_at(rows, w, i, 1) * y[w, i]
-                        + row_at(rows, w, i, 2))
+                vc = jrow_dot(J, w, i, n, my) + pr * pr * row_at(rows, w, i, 1) * s2[w, i][0] + row_at(rows, w, i, 2)
+                set_row(rows, w, i, 7, vc)
+                vels[c] = vc
             shift = float(0.0)
             if span == 3:
-                vt1 = row_at(rows, w, r + 1, 7)
-                vt2 = row_at(rows, w, r + 2, 7)
-                shift = row_at(rows, w, r, 3) * wp.sqrt(vt1 * vt1 + vt2 * vt2)
+                shift = row_at(rows, w, r, 3) * wp.sqrt(vels[1] * vels[1] + vels[2] * vels[2])
             for c in range(span):
-                z[w, r + c] = -row_at(rows, w, r + c, 7)
-            z[w, r] = z[w, r] - shift
-            for c in range(span):
-                zp[w, r + c] = z[w, r + c]
+                zc = -vels[c]
+                if c == 0:
+                    zc -= shift
+                prior = s2[w, r + c]
+                s2[w, r + c] = wp.vec4(prior[0], zc, prior[2], zc)
             unit += lanes
         sync()  # every lane is done with the rows' set-up
         woodbury_factor(J, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
@@ -995,34 +1017,50 @@ def step_kernel(tiled: bool):
         beta = float(0.0)
         while its < max_iterations and converged == 0 and m > 0:
             # each lane takes units (a drive row or a contact triplet) lane, lane + lanes, ...: the
-            # right-hand side at the extrapolated (y, z) with the De Saxce shift from the velocity at the
-            # last iterate, t = S^-1 b and its share of J^T t
+            # right-hand side b at the extrapolated (y, z) with the De Saxce shift from the velocity
+            # at the last iterate, t = S^-1 b and its share of J^T t. A row's PADMM state is two
+            # vec4, (x, x before, b, t) and (y, z, y and z before), its fields three: each loaded
+            # once and stored once
             gl = vecnv()
             unit = lane
             while unit < units:
-                r0 = unit
-                span = int(1)
-                if unit >= L:
+                if unit < L:
+                    i = unit
+                    a1 = s1[w, i]
+                    a2 = s2[w, i]
+                    f0 = rows[w, ROW_VECS * i]
+                    f1 = rows[w, ROW_VECS * i + 1]
+                    f2 = rows[w, ROW_VECS * i + 2]
+                    yh = a2[0] + beta * (a2[0] - a2[2])
+                    zh = a2[1] + beta * (a2[1] - a2[3])
+                    s2[w, i] = wp.vec4(a2[0], a2[1], yh, zh)  # the extrapolated pair during the iteration
+                    bi = -f0[2] + eta * a1[0] + f1[2] * yh - zh
+                    tv = bi * f2[2]
+                    s1[w, i] = wp.vec4(a1[0], a1[0], bi, tv)
+                    gl = row_add(Jc, w, i, False, int(f2[1]), tv, gl)
+                else:
                     r0 = L + 3 * (unit - L)
-                    span = 3
-                for c in range(span):
-                    i = r0 + c
-                    pen = penalty(rows, w, i)
-                    yh = y[w, i] + beta * (y[w, i] - yp[w, i])
-                    zh = z[w, i] + beta * (z[w, i] - zp[w, i])
-                    yp[w, i] = yh  # yp, zp hold the extrapolated pair during the iteration
-                    zp[w, i] = zh
-                    b[w, i] = -row_at(rows, w, i, 2) + eta * x[w, i] + pen * yh - zh
-                    xp[w, i] = x[w, i]
-                if span == 3:
-                    vt1 = row_at(rows, w, r0 + 1, 7)
-                    vt2 = row_at(rows, w, r0 + 2, 7)
-                    b[w, r0] = b[w, r0] - row_at(rows, w, r0, 3) * wp.sqrt(vt1 * vt1 + vt2 * vt2)
-                for c in range(span):
-                    i = r0 + c
-                    tv = b[w, i] * row_at(rows, w, i, 10)
-                    tmp[w, i] = tv
-                    gl = row_add(J, rows, w, i, tv, gl)
+                    bs = wp.vec3()
+                    xs = wp.vec3()
+                    vts = wp.vec3()
+                    for c in range(3):
+                        i = r0 + c
+                        a1 = s1[w, i]
+                        a2 = s2[w, i]
+                        f1 = rows[w, ROW_VECS * i + 1]
+                        yh = a2[0] + beta * (a2[0] - a2[2])
+                        zh = a2[1] + beta * (a2[1] - a2[3])
+                        s2[w, i] = wp.vec4(a2[0], a2[1], yh, zh)
+                        bs[c] = -rows[w, ROW_VECS * i][2] + eta * a1[0] + f1[2] * yh - zh
+                        xs[c] = a1[0]
+                        vts[c] = f1[3]
+                    bs[0] = bs[0] - rows[w, ROW_VECS * r0][3] * wp.sqrt(vts[1] * vts[1] + vts[2] * vts[2])
+                    col = int(rows[w, ROW_VECS * r0 + 2][1])
+                    for c in range(3):
+                        i = r0 + c
+                        tv = bs[c] * rows[w, ROW_VECS * i + 2][2]
+                        s1[w, i] = wp.vec4(xs[c], xs[c], bs[c], tv)
+                        gl = row_add(Jc, w, i, True, col, tv, gl)
                 unit += lanes
             # Woodbury: x = t - S^-1 J (M + J^T S^-1 J)^-1 J^T t, the small inverse applied by every lane
             # (symmetric: its lower triangle read once; the rows and columns past n are zero)
@@ -1043,50 +1081,79 @@ def step_kernel(tiled: bool):
             change = float(0.0)
             unit = lane
             while unit < units:
-                r = unit
-                span = int(1)
-                if unit >= L:
-                    r = L + 3 * (unit - L)
-                    span = 3
-                pen = penalty(rows, w, r)
-                for c in range(span):
-                    i = r + c
-                    x[w, i] = tmp[w, i] - row_dot(J, rows, w, i, yv) * row_at(rows, w, i, 10)
-                a0 = x[w, r] + zp[w, r] / pen
-                a1 = float(0.0)
-                a2 = float(0.0)
-                if span == 3:
-                    a1 = x[w, r + 1] + zp[w, r + 1] / pen
-                    a2 = x[w, r + 2] + zp[w, r + 2] / pen
-                pj = project_row(rows, w, r, a0, a1, a2)
-                # velocities at the new x, D x + v_f = rhs - (eta + rho) x + v_f, and the natural
-                # residual x - Pi(x - v^), v^ with the De Saxce shift (in the dual cone at a solution)
-                vel = wp.vec3()
-                for c in range(span):
-                    i = r + c
-                    vel[c] = b[w, i] - (eta + pen) * x[w, i] + row_at(rows, w, i, 2)
-                    set_row(rows, w, i, 7, vel[c])
-                xs = wp.vec3(x[w, r], 0.0, 0.0)
-                if span == 3:
-                    xs = wp.vec3(x[w, r], x[w, r + 1], x[w, r + 2])
-                    vel[0] = vel[0] + row_at(rows, w, r, 3) * wp.sqrt(vel[1] * vel[1] + vel[2] * vel[2])
-                nat = xs - project_row(rows, w, r, xs[0] - vel[0], xs[1] - vel[1], xs[2] - vel[2])
-                rn = wp.max(rn, wp.max(wp.abs(nat[0]), wp.max(wp.abs(nat[1]), wp.abs(nat[2]))))
-                for c in range(span):
-                    i = r + c
-                    yn = pj[c]
-                    xr = x[w, i]
-                    zn = zp[w, i] + pen * (xr - yn)
-                    dy = yn - yp[w, i]
-                    dz = zn - zp[w, i]
+                # x, the projection of x + z / rho, the velocities at the new x, D x + v_f =
+                # b - (eta + rho) x + v_f, the natural residual x - Pi(x - v^) (v^ with the De Saxce
+                # shift: in the dual cone at a solution), then y, z and the residuals
+                if unit < L:
+                    i = unit
+                    a1 = s1[w, i]
+                    a2 = s2[w, i]
+                    f0 = rows[w, ROW_VECS * i]
+                    f1 = rows[w, ROW_VECS * i + 1]
+                    f2 = rows[w, ROW_VECS * i + 2]
+                    pen = f1[2]
+                    xr = a1[3] - row_dot(Jc, w, i, False, int(f2[1]), yv) * f2[2]
+                    yn = wp.clamp(xr + a2[3] / pen, f1[0], f1[1])
+                    vd = a1[2] - (eta + pen) * xr + f0[2]
+                    rows[w, ROW_VECS * i + 1] = wp.vec4(f1[0], f1[1], pen, vd)
+                    rn = wp.max(rn, wp.abs(xr - wp.clamp(xr - vd, f1[0], f1[1])))
+                    zn = a2[3] + pen * (xr - yn)
+                    dy = yn - a2[2]
+                    dz = zn - a2[3]
                     rp = wp.max(rp, wp.abs(xr - yn))
-                    rd = wp.max(rd, wp.abs(eta * (xr - xp[w, i]) + pen * dy))
+                    rd = wp.max(rd, wp.abs(eta * (xr - a1[1]) + pen * dy))
                     change += pen * dy * dy + dz * dz / pen
-                    yp[w, i] = y[w, i]
-                    zp[w, i] = z[w, i]
-                    y[w, i] = yn
-                    z[w, i] = zn
+                    s2[w, i] = wp.vec4(yn, zn, a2[0], a2[1])
+                    s1[w, i] = wp.vec4(xr, a1[1], a1[2], a1[3])
                     ymax = wp.max(ymax, wp.abs(yn))
+                else:
+                    r0 = L + 3 * (unit - L)
+                    mu = rows[w, ROW_VECS * r0][3]
+                    col = int(rows[w, ROW_VECS * r0 + 2][1])
+                    pen = rows[w, ROW_VECS * r0 + 1][2]
+                    xs = wp.vec3()
+                    xps = wp.vec3()
+                    bs = wp.vec3()
+                    ts = wp.vec3()
+                    yo = wp.vec3()
+                    zo = wp.vec3()
+                    yhs = wp.vec3()
+                    zhs = wp.vec3()
+                    for c in range(3):
+                        i = r0 + c
+                        a1 = s1[w, i]
+                        a2 = s2[w, i]
+                        xr = a1[3] - row_dot(Jc, w, i, True, col, yv) * rows[w, ROW_VECS * i + 2][2]
+                        xs[c] = xr
+                        xps[c] = a1[1]
+                        bs[c] = a1[2]
+                        ts[c] = a1[3]
+                        yo[c] = a2[0]
+                        zo[c] = a2[1]
+                        yhs[c] = a2[2]
+                        zhs[c] = a2[3]
+                    pj = project_cone(mu, xs[0] + zhs[0] / pen, xs[1] + zhs[1] / pen, xs[2] + zhs[2] / pen)
+                    vel = wp.vec3()
+                    for c in range(3):
+                        i = r0 + c
+                        f1 = rows[w, ROW_VECS * i + 1]
+                        vel[c] = bs[c] - (eta + pen) * xs[c] + rows[w, ROW_VECS * i][2]
+                        rows[w, ROW_VECS * i + 1] = wp.vec4(f1[0], f1[1], f1[2], vel[c])
+                    vel[0] = vel[0] + mu * wp.sqrt(vel[1] * vel[1] + vel[2] * vel[2])
+                    nat = xs - project_cone(mu, xs[0] - vel[0], xs[1] - vel[1], xs[2] - vel[2])
+                    rn = wp.max(rn, wp.max(wp.abs(nat[0]), wp.max(wp.abs(nat[1]), wp.abs(nat[2]))))
+                    for c in range(3):
+                        yn = pj[c]
+                        xr = xs[c]
+                        zn = zhs[c] + pen * (xr - yn)
+                        dy = yn - yhs[c]
+                        dz = zn - zhs[c]
+                        rp = wp.max(rp, wp.abs(xr - yn))
+                        rd = wp.max(rd, wp.abs(eta * (xr - xps[c]) + pen * dy))
+                        change += pen * dy * dy + dz * dz / pen
+                        s2[w, r0 + c] = wp.vec4(yn, zn, yo[c], zo[c])
+                        s1[w, r0 + c] = wp.vec4(xr, xps[c], bs[c], ts[c])
+                        ymax = wp.max(ymax, wp.abs(yn))
                 unit += lanes
             largest = reduce_max4(wp.vec4(rp, rd, rn, ymax))
             rp = largest[0]
@@ -1118,8 +1185,8 @@ def step_kernel(tiled: bool):
                         if lane == 0:
                             set_penalties(rows, w, m, new_rho, rho0)
                             for i in range(m):  # z is the unscaled multiplier: it stays; the momentum restarts
-                                zp[w, i] = z[w, i]
-                                yp[w, i] = y[w, i]
+                                prior = s2[w, i]
+                                s2[w, i] = wp.vec4(prior[0], prior[1], prior[0], prior[1])
                         sync()
                         woodbury_factor(J, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
                         rho = new_rho
@@ -1135,10 +1202,11 @@ def step_kernel(tiled: bool):
             impulse[w, i] = 0.0
         jl = vecnv()
         for r in range(m):
-            lam = y[w, r] * row_at(rows, w, r, 0)
+            yr = s2[w, r][0]
+            lam = yr * row_at(rows, w, r, 0)
             impulse[w, slot_of[w, r]] = lam
             for c in range(NV):
-                jl[c] += J[w, r * NV + c] * y[w, r]  # J is preconditioned: J~^T y = J^T lambda
+                jl[c] += J[w, r * NV + c] * yr  # J is preconditioned: J~^T y = J^T lambda
         uf = vecnv()
         for c in range(NV):
             uf[c] = ufree[w, c]
@@ -1279,7 +1347,8 @@ def _step_inputs(model: LeggedModel) -> list:
             c.contact_margin, c.contact_stabilization, c.max_speed, *_structs(model),
             model.impulse, model.frozen, model.diverged,
             model.iterations, model.contacts, model.drive_torque,
-            model.rows_J, model.rows, model.mass, model.mass_factor, model.factor, *model.work, model.slot_of,
+            model.rows_J, model.rows_Jc, model.rows, model.mass, model.mass_factor, model.factor, *model.work,
+            model.row_inverse, model.slot_of,
             model.row_count, model.ufree, model.factor_inverse]
 
 
