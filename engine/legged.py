@@ -69,6 +69,19 @@ MAX_ROWS = wp.constant(MAX_LEGS + 3 * MAX_CONTACTS)
 TWO_PI = wp.constant(2.0 * math.pi)
 TILED_MAX_WORLDS = 8192  # see LeggedModel.lanes (H200: 4096 walkers 5.2 ms per step tiled against 10.1)
 ROW_VECS = wp.constant(3)  # vec4 per row in the rows' scratch (see row_at)
+# a row's fields: the first two vec4 are what the PADMM iterations read (and the row velocity they write)
+F_RHS = wp.constant(0)  # free velocity v_f (preconditioned)
+F_MU = wp.constant(1)  # friction mu (contacts; -1 drive)
+F_PEN = wp.constant(2)  # ADMM penalty
+F_INV = wp.constant(3)  # 1 / (eta + penalty + P^2 R), set with the Woodbury factor
+F_LO = wp.constant(4)  # lower and upper bounds (drives, preconditioned)
+F_HI = wp.constant(5)
+F_COL = wp.constant(6)  # the row's crank column (6 + leg; 5, below 6, for a torso corner: none)
+F_VEL = wp.constant(7)  # row velocity at the last iterate
+F_P = wp.constant(8)  # preconditioner P
+F_R = wp.constant(9)  # compliance R (unscaled)
+F_FREE = wp.constant(10)  # free drive flag
+KINV_VECS = wp.constant(4)  # vec4 per row of the Woodbury inverse (NV <= 16 entries)
 
 
 @dataclass
@@ -313,7 +326,7 @@ class LeggedModel:
         self.slot_of = wp.zeros((W, MAX_ROWS), dtype=wp.int32, device=d)
         self.row_count = wp.zeros(W, dtype=wp.int32, device=d)
         self.ufree = wp.zeros((W, NV), dtype=float, device=d)
-        self.factor_inverse = wp.zeros((W, NV * NV), dtype=float, device=d)
+        self.factor_inverse = wp.zeros((W, NV * KINV_VECS), dtype=wp.vec4, device=d)
         # one warp per world on a GPU up to TILED_MAX_WORLDS worlds (the lanes share each world's
         # rows), one thread per world beyond (more worlds than warps keep a GPU busy) and on the CPU
         self.tiled = self.device.is_cuda and W <= TILED_MAX_WORLDS
@@ -457,14 +470,11 @@ def chol_solve(L: wp.array2d(dtype=float), w: int, n: int, b: vecnv):
     return y
 
 
-# row scratch layout (three vec4 per row, fields 0-11): 0 preconditioner P, 1 compliance R
-# (unscaled), 2 free velocity v_f (preconditioned), 3 friction mu (contacts; -1 drive), 4 lower,
-# 5 upper bounds (drives, preconditioned), 6 ADMM penalty, 7 row velocity at the last iterate,
-# 8 free drive flag, 9 the row's crank column (6 + leg; 5, below 6, for a torso corner: none),
-# 10 1 / (eta + penalty + P^2 R) (set with the Woodbury factor). A drive row's Jacobian is zero
-# but in its crank column, a contact row's but in the torso's six columns and its crank column:
-# the PADMM iterations read a compact copy of the preconditioned rows, two vec4 per row (the
-# torso's six entries, the crank column's, 0; row_dot, row_add).
+# row scratch layout: three vec4 per row, fields F_RHS ... F_FREE (an iteration reads the first
+# two: (v_f, mu, penalty, 1 / S) and (lower, upper, crank column, velocity)). A drive row's
+# Jacobian is zero but in its crank column, a contact row's but in the torso's six columns and
+# its crank column: the PADMM iterations read a compact copy of the preconditioned rows, two vec4
+# per row (the torso's six entries, the crank column's, 0; row_dot, row_add).
 @wp.func
 def row_at(rows: wp.array2d(dtype=wp.vec4), w: int, r: int, c: int):
     """Field c of row r of world w in the rows' scratch."""
@@ -482,7 +492,7 @@ def set_row(rows: wp.array2d(dtype=wp.vec4), w: int, r: int, c: int, value: floa
 @wp.func
 def penalty(rows: wp.array2d(dtype=wp.vec4), w: int, r: int):
     """A row's ADMM penalty."""
-    return rows[w, r * ROW_VECS + 1][2]
+    return rows[w, r * ROW_VECS][F_PEN]
 
 
 @wp.func
@@ -490,9 +500,9 @@ def set_penalties(rows: wp.array2d(dtype=wp.vec4), w: int, m: int, rho: float, r
     """Every row's penalty: rho, or min(rho, rho0) for a free drive row."""
     for r in range(m):
         value = rho
-        if rows[w, r * ROW_VECS + 2][0] == 1.0:
+        if row_at(rows, w, r, F_FREE) == 1.0:
             value = wp.min(rho, rho0)
-        set_row(rows, w, r, 6, value)
+        set_row(rows, w, r, F_PEN, value)
 
 
 @wp.func
@@ -547,9 +557,9 @@ def jrow_dot(J: wp.array2d(dtype=float), w: int, r: int, n: int, u: vecnv):
 def project_row(rows: wp.array2d(dtype=wp.vec4), w: int, r: int, a: float, b: float, c: float):
     """Projection of a row's value (a drive: clamp) or a contact triplet's (a, b, c) onto its cone;
     returns the projected triplet (drives use the first component only)."""
-    mu = row_at(rows, w, r, 3)
+    mu = row_at(rows, w, r, F_MU)
     if mu < 0.0:
-        return wp.vec3(wp.clamp(a, row_at(rows, w, r, 4), row_at(rows, w, r, 5)), 0.0, 0.0)
+        return wp.vec3(wp.clamp(a, row_at(rows, w, r, F_LO), row_at(rows, w, r, F_HI)), 0.0, 0.0)
     return project_cone(mu, a, b, c)
 
 
@@ -599,16 +609,16 @@ def step_kernel(tiled: bool):
 
     @wp.func
     def woodbury_factor(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=wp.vec4), M: wp.array2d(dtype=float),
-                        K: wp.array2d(dtype=float), Kinv: wp.array2d(dtype=float), w: int, m: int, n: int,
+                        K: wp.array2d(dtype=float), Kinv: wp.array2d(dtype=wp.vec4), w: int, m: int, n: int,
                         sigma_base: float, tmp: wp.array2d(dtype=float), lane: int, lanes: int):
         """Kinv <- (M + J^T S^-1 J)^-1 (K holds its Cholesky factor on the way; the rows' 1 / S go
         to their field 10 and to tmp). The lanes share the rows, then the matrix's entries, then
         the inverse's columns; lane 0 factors. Every lane of the block must call it."""
         for r in range(lane, m, lanes):
-            p = row_at(rows, w, r, 0)
-            inverse = 1.0 / (sigma_base + penalty(rows, w, r) + p * p * row_at(rows, w, r, 1))
+            p = row_at(rows, w, r, F_P)
+            inverse = 1.0 / (sigma_base + penalty(rows, w, r) + p * p * row_at(rows, w, r, F_R))
             tmp[w, r] = inverse
-            set_row(rows, w, r, 10, inverse)
+            set_row(rows, w, r, F_INV, inverse)
         sync()
         entries = n * (n + 1) / 2
         for e in range(lane, entries, lanes):
@@ -631,8 +641,12 @@ def step_kernel(tiled: bool):
             if j < n:
                 col[j] = 1.0
                 col = chol_solve(K, w, n, col)
-            for i in range(NV):
-                Kinv[w, i * NV + j] = col[i]
+            for kv in range(KINV_VECS):  # symmetric: column j is row j, written whole by its lane
+                part = wp.vec4()
+                for t in range(4):
+                    if 4 * kv + t < NV:
+                        part[t] = col[4 * kv + t]
+                Kinv[w, j * KINV_VECS + kv] = part
         sync()
 
     @wp.kernel(enable_backward=False, module="unique")
@@ -669,7 +683,7 @@ def step_kernel(tiled: bool):
         slot_of: wp.array2d(dtype=wp.int32),
         row_count: wp.array(dtype=wp.int32),
         ufree: wp.array2d(dtype=float),
-        Kinv: wp.array2d(dtype=float),
+        Kinv: wp.array2d(dtype=wp.vec4),
     ):
         """One step of every legged world (a block of lanes or one thread per world): mass matrix and bias forces,
         free velocity, drive and contact rows, preconditioned PADMM with Woodbury solves, velocity
@@ -834,13 +848,13 @@ def step_kernel(tiled: bool):
                 compliance = 1.0e6
                 if kd > 0.0:
                     compliance = 1.0 / (dt * kd)
-                set_row(rows, w, m, 1, compliance)
-                set_row(rows, w, m, 2, uf[6 + li] - dr[0] * wp.min(1.0, kd * 1.0e6))
-                set_row(rows, w, m, 3, -1.0)
-                set_row(rows, w, m, 4, -bound)
-                set_row(rows, w, m, 5, bound)
-                set_row(rows, w, m, 7, 0.0)
-                set_row(rows, w, m, 9, float(6 + li))
+                set_row(rows, w, m, F_R, compliance)
+                set_row(rows, w, m, F_RHS, uf[6 + li] - dr[0] * wp.min(1.0, kd * 1.0e6))
+                set_row(rows, w, m, F_MU, -1.0)
+                set_row(rows, w, m, F_LO, -bound)
+                set_row(rows, w, m, F_HI, bound)
+                set_row(rows, w, m, F_VEL, 0.0)
+                set_row(rows, w, m, F_COL, float(6 + li))
                 slot_of[w, m] = li
                 m += 1
             count = int(0)
@@ -914,11 +928,11 @@ def step_kernel(tiled: bool):
                                     vrow += dist / dt
                                 else:
                                     vrow += stabilization * dist / dt
-                            set_row(rows, w, m, 1, 0.0)
-                            set_row(rows, w, m, 2, vrow)
-                            set_row(rows, w, m, 3, mu)
-                            set_row(rows, w, m, 7, 0.0)
-                            set_row(rows, w, m, 9, float(6 + leg))  # -1 + 6 < 6 for a torso corner
+                            set_row(rows, w, m, F_R, 0.0)
+                            set_row(rows, w, m, F_RHS, vrow)
+                            set_row(rows, w, m, F_MU, mu)
+                            set_row(rows, w, m, F_VEL, 0.0)
+                            set_row(rows, w, m, F_COL, float(6 + leg))  # -1 + 6 < 6 for a torso corner
                             slot_of[w, m] = MAX_LEGS + 3 * k + comp
                             m += 1
             contacts_out[w] = count
@@ -948,19 +962,19 @@ def step_kernel(tiled: bool):
                 for c in range(NV):
                     jr[c] = J[w, rr * NV + c]
                 mj = chol_solve(LM, w, n, jr)
-                dsum += wp.dot(jr, mj) + row_at(rows, w, rr, 1)
+                dsum += wp.dot(jr, mj) + row_at(rows, w, rr, F_R)
             pr = 1.0 / wp.sqrt(wp.max(dsum / float(span), 1.0e-12))
             xs = wp.vec3()
             for c in range(span):
                 rr = r + c
-                set_row(rows, w, rr, 0, pr)
-                set_row(rows, w, rr, 2, pr * row_at(rows, w, rr, 2))
-                set_row(rows, w, rr, 4, row_at(rows, w, rr, 4) / pr)
-                set_row(rows, w, rr, 5, row_at(rows, w, rr, 5) / pr)
-                set_row(rows, w, rr, 6, rho0)
+                set_row(rows, w, rr, F_P, pr)
+                set_row(rows, w, rr, F_RHS, pr * row_at(rows, w, rr, F_RHS))
+                set_row(rows, w, rr, F_LO, row_at(rows, w, rr, F_LO) / pr)
+                set_row(rows, w, rr, F_HI, row_at(rows, w, rr, F_HI) / pr)
+                set_row(rows, w, rr, F_PEN, rho0)
                 for k in range(NV):
                     J[w, rr * NV + k] = pr * J[w, rr * NV + k]
-                col = int(row_at(rows, w, rr, 9))
+                col = int(row_at(rows, w, rr, F_COL))
                 crank = float(0.0)
                 for k in range(6, NV):
                     if k == col:
@@ -976,9 +990,9 @@ def step_kernel(tiled: bool):
                 for k in range(NV):
                     gyl[k] += J[w, (r + c) * NV + k] * pj[c]
             free = float(0.0)
-            if span == 1 and wp.abs(xs[0]) < 0.5 * row_at(rows, w, r, 5):
+            if span == 1 and wp.abs(xs[0]) < 0.5 * row_at(rows, w, r, F_HI):
                 free = 1.0
-            set_row(rows, w, r, 8, free)
+            set_row(rows, w, r, F_FREE, free)
             unit += lanes
         # the dual variable from the warm start: z = -(D y + v_f + s), the (shifted) velocity it
         # gives, so that an unchanged contact set starts at its fixed point
@@ -994,13 +1008,13 @@ def step_kernel(tiled: bool):
             vels = wp.vec3()
             for c in range(span):
                 i = r + c
-                pr = row_at(rows, w, i, 0)
-                vc = jrow_dot(J, w, i, n, my) + pr * pr * row_at(rows, w, i, 1) * s2[w, i][0] + row_at(rows, w, i, 2)
-                set_row(rows, w, i, 7, vc)
+                pr = row_at(rows, w, i, F_P)
+                vc = jrow_dot(J, w, i, n, my) + pr * pr * row_at(rows, w, i, F_R) * s2[w, i][0] + row_at(rows, w, i, F_RHS)
+                set_row(rows, w, i, F_VEL, vc)
                 vels[c] = vc
             shift = float(0.0)
             if span == 3:
-                shift = row_at(rows, w, r, 3) * wp.sqrt(vels[1] * vels[1] + vels[2] * vels[2])
+                shift = row_at(rows, w, r, F_MU) * wp.sqrt(vels[1] * vels[1] + vels[2] * vels[2])
             for c in range(span):
                 zc = -vels[c]
                 if c == 0:
@@ -1028,52 +1042,60 @@ def step_kernel(tiled: bool):
                     i = unit
                     a1 = s1[w, i]
                     a2 = s2[w, i]
-                    f0 = rows[w, ROW_VECS * i]
-                    f1 = rows[w, ROW_VECS * i + 1]
-                    f2 = rows[w, ROW_VECS * i + 2]
+                    f0 = rows[w, ROW_VECS * i]  # v_f, mu, penalty, 1 / S
+                    f1 = rows[w, ROW_VECS * i + 1]  # lower, upper, crank column, velocity
                     yh = a2[0] + beta * (a2[0] - a2[2])
                     zh = a2[1] + beta * (a2[1] - a2[3])
                     s2[w, i] = wp.vec4(a2[0], a2[1], yh, zh)  # the extrapolated pair during the iteration
-                    bi = -f0[2] + eta * a1[0] + f1[2] * yh - zh
-                    tv = bi * f2[2]
+                    bi = -f0[0] + eta * a1[0] + f0[2] * yh - zh
+                    tv = bi * f0[3]
                     s1[w, i] = wp.vec4(a1[0], a1[0], bi, tv)
-                    gl = row_add(Jc, w, i, False, int(f2[1]), tv, gl)
+                    gl = row_add(Jc, w, i, False, int(f1[2]), tv, gl)
                 else:
                     r0 = L + 3 * (unit - L)
                     bs = wp.vec3()
                     xs = wp.vec3()
                     vts = wp.vec3()
+                    invs = wp.vec3()
+                    head = rows[w, ROW_VECS * r0]
+                    col = int(rows[w, ROW_VECS * r0 + 1][2])
                     for c in range(3):
                         i = r0 + c
                         a1 = s1[w, i]
                         a2 = s2[w, i]
+                        f0 = rows[w, ROW_VECS * i]
                         f1 = rows[w, ROW_VECS * i + 1]
                         yh = a2[0] + beta * (a2[0] - a2[2])
                         zh = a2[1] + beta * (a2[1] - a2[3])
                         s2[w, i] = wp.vec4(a2[0], a2[1], yh, zh)
-                        bs[c] = -rows[w, ROW_VECS * i][2] + eta * a1[0] + f1[2] * yh - zh
+                        bs[c] = -f0[0] + eta * a1[0] + f0[2] * yh - zh
                         xs[c] = a1[0]
                         vts[c] = f1[3]
-                    bs[0] = bs[0] - rows[w, ROW_VECS * r0][3] * wp.sqrt(vts[1] * vts[1] + vts[2] * vts[2])
-                    col = int(rows[w, ROW_VECS * r0 + 2][1])
+                        invs[c] = f0[3]
+                    bs[0] = bs[0] - head[1] * wp.sqrt(vts[1] * vts[1] + vts[2] * vts[2])
                     for c in range(3):
                         i = r0 + c
-                        tv = bs[c] * rows[w, ROW_VECS * i + 2][2]
+                        tv = bs[c] * invs[c]
                         s1[w, i] = wp.vec4(xs[c], xs[c], bs[c], tv)
                         gl = row_add(Jc, w, i, True, col, tv, gl)
                 unit += lanes
             # Woodbury: x = t - S^-1 J (M + J^T S^-1 J)^-1 J^T t, the small inverse applied by every lane
-            # (symmetric: its lower triangle read once; the rows and columns past n are zero)
+            # (symmetric: its lower triangle read once, four entries per load; the rows and columns
+            # past n are zero)
             gsum = reduce_vector(gl)
             yv = vecnv()
             for k in range(NV):
                 if k < n:
-                    for j in range(NV):
-                        if j < k:
-                            kij = Kinv[w, k * NV + j]
-                            yv[k] += kij * gsum[j]
-                            yv[j] += kij * gsum[k]
-                    yv[k] += Kinv[w, k * NV + k] * gsum[k]
+                    for kv in range(KINV_VECS):
+                        if 4 * kv <= k:
+                            kq = Kinv[w, k * KINV_VECS + kv]
+                            for t in range(4):
+                                j = 4 * kv + t
+                                if j < k:
+                                    yv[k] += kq[t] * gsum[j]
+                                    yv[j] += kq[t] * gsum[k]
+                                elif j == k:
+                                    yv[k] += kq[t] * gsum[k]
             rp = float(0.0)
             rd = float(0.0)
             rn = float(0.0)
@@ -1090,12 +1112,11 @@ def step_kernel(tiled: bool):
                     a2 = s2[w, i]
                     f0 = rows[w, ROW_VECS * i]
                     f1 = rows[w, ROW_VECS * i + 1]
-                    f2 = rows[w, ROW_VECS * i + 2]
-                    pen = f1[2]
-                    xr = a1[3] - row_dot(Jc, w, i, False, int(f2[1]), yv) * f2[2]
+                    pen = f0[2]
+                    xr = a1[3] - row_dot(Jc, w, i, False, int(f1[2]), yv) * f0[3]
                     yn = wp.clamp(xr + a2[3] / pen, f1[0], f1[1])
-                    vd = a1[2] - (eta + pen) * xr + f0[2]
-                    rows[w, ROW_VECS * i + 1] = wp.vec4(f1[0], f1[1], pen, vd)
+                    vd = a1[2] - (eta + pen) * xr + f0[0]
+                    rows[w, ROW_VECS * i + 1] = wp.vec4(f1[0], f1[1], f1[2], vd)
                     rn = wp.max(rn, wp.abs(xr - wp.clamp(xr - vd, f1[0], f1[1])))
                     zn = a2[3] + pen * (xr - yn)
                     dy = yn - a2[2]
@@ -1108,9 +1129,10 @@ def step_kernel(tiled: bool):
                     ymax = wp.max(ymax, wp.abs(yn))
                 else:
                     r0 = L + 3 * (unit - L)
-                    mu = rows[w, ROW_VECS * r0][3]
-                    col = int(rows[w, ROW_VECS * r0 + 2][1])
-                    pen = rows[w, ROW_VECS * r0 + 1][2]
+                    head = rows[w, ROW_VECS * r0]
+                    mu = head[1]
+                    pen = head[2]
+                    col = int(rows[w, ROW_VECS * r0 + 1][2])
                     xs = wp.vec3()
                     xps = wp.vec3()
                     bs = wp.vec3()
@@ -1119,11 +1141,14 @@ def step_kernel(tiled: bool):
                     zo = wp.vec3()
                     yhs = wp.vec3()
                     zhs = wp.vec3()
+                    rhs = wp.vec3()
                     for c in range(3):
                         i = r0 + c
                         a1 = s1[w, i]
                         a2 = s2[w, i]
-                        xr = a1[3] - row_dot(Jc, w, i, True, col, yv) * rows[w, ROW_VECS * i + 2][2]
+                        f0 = rows[w, ROW_VECS * i]
+                        rhs[c] = f0[0]
+                        xr = a1[3] - row_dot(Jc, w, i, True, col, yv) * f0[3]
                         xs[c] = xr
                         xps[c] = a1[1]
                         bs[c] = a1[2]
@@ -1137,7 +1162,7 @@ def step_kernel(tiled: bool):
                     for c in range(3):
                         i = r0 + c
                         f1 = rows[w, ROW_VECS * i + 1]
-                        vel[c] = bs[c] - (eta + pen) * xs[c] + rows[w, ROW_VECS * i][2]
+                        vel[c] = bs[c] - (eta + pen) * xs[c] + rhs[c]
                         rows[w, ROW_VECS * i + 1] = wp.vec4(f1[0], f1[1], f1[2], vel[c])
                     vel[0] = vel[0] + mu * wp.sqrt(vel[1] * vel[1] + vel[2] * vel[2])
                     nat = xs - project_cone(mu, xs[0] - vel[0], xs[1] - vel[1], xs[2] - vel[2])
@@ -1203,7 +1228,7 @@ def step_kernel(tiled: bool):
         jl = vecnv()
         for r in range(m):
             yr = s2[w, r][0]
-            lam = yr * row_at(rows, w, r, 0)
+            lam = yr * row_at(rows, w, r, F_P)
             impulse[w, slot_of[w, r]] = lam
             for c in range(NV):
                 jl[c] += J[w, r * NV + c] * yr  # J is preconditioned: J~^T y = J^T lambda
