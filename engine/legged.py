@@ -38,9 +38,12 @@ mass matrix and bias forces one leg each, lane 0 assembles the torso blocks, fac
 the rows, the lanes share the rows and contact triplets of the preconditioner, the warm start and
 every PADMM iteration (their sums and maxima reduced as one vector each), and the entries of
 M + J^T S^-1 J; the (6 + L)-square inverse is applied by every lane. Larger batches (and the CPU)
-step one thread per world: more worlds than a GPU has warps keep it busy anyway. Both compute the
-same step. A world whose state turns non-finite or whose torso moves faster than max_speed is
-flagged diverged and frozen; halted worlds are frozen.
+step one thread per world, as two kernels (the set-up through the Woodbury factor, then the
+PADMM iterations and the integration): more worlds than a GPU has warps keep it busy anyway. Both
+compute the same step. A row's PADMM state and fields are vec4s, each loaded and stored once per
+iteration: with one thread per world a warp's loads touch 32 worlds' cache lines, so the number
+of load instructions, not the bytes, sets the time. A world whose state turns non-finite or whose
+torso moves faster than max_speed is flagged diverged and frozen; halted worlds are frozen.
 """
 
 import functools
@@ -576,9 +579,11 @@ def project_cone(mu: float, a: float, b: float, c: float):
 
 
 @functools.cache
-def step_kernel(tiled: bool):
+def step_kernel(tiled: bool, phase: str = "all"):
     """The step kernel: tiled (launch_tiled, one block of lanes per world, lanes sharing the
-    PADMM rows) or one thread per world (wp.launch; no block operations)."""
+    PADMM rows) or one thread per world (wp.launch; no block operations). phase: the whole step
+    ("all"), or its set-up (through the Woodbury factor, "setup") and the PADMM iterations and
+    the integration ("solve") as two kernels, each with the registers it needs."""
 
     @wp.func
     def sync():
@@ -725,305 +730,312 @@ def step_kernel(tiled: bool):
         psi_dot = state.psi_dot
         L = leg_count[w]
         n = 6 + L
-        # set-up: every leg's column of M and its share of the torso blocks and bias forces, one leg
-        # per lane (summed over the lanes as one vector); then on lane 0 the torso blocks, the
-        # factor of M, the free velocity and the rows
-        p = position[w]
-        q = orientation[w]
-        v = velocity[w]
-        om = angular_velocity[w]
-        R = wp.quat_to_matrix(q)
-        axis = -(R * wp.vec3(0.0, 1.0, 0.0))
-        g = gravity[w]
-        mt = torso[w][0]
-        for i in range(lane, NV * NV, lanes):
-            M[w, i] = 0.0
-        sync()
-        m_part = float(0.0)  # this lane's legs: sum of m_k
-        md_part = wp.vec3()  # sum of m_k d_k
-        rot_part = wp.mat33()  # angular block
-        f_part = wp.vec3()  # bias force on the torso
-        t_part = wp.vec3()  # bias torque on the torso
-        h_legs = veclegs()  # each leg's bias force (its own lane's entry)
-        for li in range(lane, L, lanes):
-            t = leg_table[w, li]
-            s = leg_scale[w, li]
-            ang = psi[w, li]
-            rate = psi_dot[w, li]
-            ix = table_index(ang, samples)
-            i0 = int(ix[0])
-            i1 = int(ix[1])
-            f = ix[2]
-            col = 6 + li
-            o = leg_origin[w, li]
-            me_sum = wp.vec3()  # the leg's column: linear part
-            mw_sum = wp.vec3()  # angular part
-            mjj = float(0.0)
-            hj = float(0.0)
-            for k in range(table_links[t]):
-                c0 = link_read(links0, t, i0, i1, f, k)
-                c1 = table_read(links1, t, i0, i1, f, k)
-                c2 = table_read(links2, t, i0, i1, f, k)
-                mk = link_mass[w, li * MAX_LINKS + k]
-                d = R * (o + wp.vec3(s * c0[0], 0.0, s * c0[1]))
-                e = plane(R, c1) * s
-                e2 = plane(R, c2) * s
-                Rk = R * rot_minus_y(c0[2])
-                Ik = Rk * link_inertia[w, li * MAX_LINKS + k] * wp.transpose(Rk)
-                ax = axis * c1[2]
-                m_part += mk
-                md_part += mk * d
-                rot_part += Ik + mk * (wp.dot(d, d) * wp.identity(n=3, dtype=float) - wp.outer(d, d))
-                me_sum += mk * e
-                mw_sum += mk * wp.cross(d, e) + Ik * ax
-                mjj += mk * wp.dot(e, e) + wp.dot(ax, Ik * ax)
-                wk = om + ax * rate
-                acc = wp.cross(om, wp.cross(om, d)) + 2.0 * rate * wp.cross(om, e) + e2 * (rate * rate)
-                alpha = rate * wp.cross(om, ax) + axis * (c2[2] * rate * rate)
-                f_lin = mk * (g - acc)
-                f_ang = -(Ik * alpha) - wp.cross(wk, Ik * wk)
-                f_part += f_lin
-                t_part += wp.cross(d, f_lin) + f_ang
-                hj += wp.dot(e, f_lin) + wp.dot(ax, f_ang)
-            for c in range(MAX_LEGS):  # a select over constant indices keeps h_legs in registers
-                if c == li:
-                    h_legs[c] = hj
+        if wp.static(phase != "solve"):
+            # set-up: every leg's column of M and its share of the torso blocks and bias forces, one leg
+            # per lane (summed over the lanes as one vector); then on lane 0 the torso blocks, the
+            # factor of M, the free velocity and the rows
+            p = position[w]
+            q = orientation[w]
+            v = velocity[w]
+            om = angular_velocity[w]
+            R = wp.quat_to_matrix(q)
+            axis = -(R * wp.vec3(0.0, 1.0, 0.0))
+            g = gravity[w]
+            mt = torso[w][0]
+            for i in range(lane, NV * NV, lanes):
+                M[w, i] = 0.0
+            sync()
+            m_part = float(0.0)  # this lane's legs: sum of m_k
+            md_part = wp.vec3()  # sum of m_k d_k
+            rot_part = wp.mat33()  # angular block
+            f_part = wp.vec3()  # bias force on the torso
+            t_part = wp.vec3()  # bias torque on the torso
+            h_legs = veclegs()  # each leg's bias force (its own lane's entry)
+            for li in range(lane, L, lanes):
+                t = leg_table[w, li]
+                s = leg_scale[w, li]
+                ang = psi[w, li]
+                rate = psi_dot[w, li]
+                ix = table_index(ang, samples)
+                i0 = int(ix[0])
+                i1 = int(ix[1])
+                f = ix[2]
+                col = 6 + li
+                o = leg_origin[w, li]
+                me_sum = wp.vec3()  # the leg's column: linear part
+                mw_sum = wp.vec3()  # angular part
+                mjj = float(0.0)
+                hj = float(0.0)
+                for k in range(table_links[t]):
+                    c0 = link_read(links0, t, i0, i1, f, k)
+                    c1 = table_read(links1, t, i0, i1, f, k)
+                    c2 = table_read(links2, t, i0, i1, f, k)
+                    mk = link_mass[w, li * MAX_LINKS + k]
+                    d = R * (o + wp.vec3(s * c0[0], 0.0, s * c0[1]))
+                    e = plane(R, c1) * s
+                    e2 = plane(R, c2) * s
+                    Rk = R * rot_minus_y(c0[2])
+                    Ik = Rk * link_inertia[w, li * MAX_LINKS + k] * wp.transpose(Rk)
+                    ax = axis * c1[2]
+                    m_part += mk
+                    md_part += mk * d
+                    rot_part += Ik + mk * (wp.dot(d, d) * wp.identity(n=3, dtype=float) - wp.outer(d, d))
+                    me_sum += mk * e
+                    mw_sum += mk * wp.cross(d, e) + Ik * ax
+                    mjj += mk * wp.dot(e, e) + wp.dot(ax, Ik * ax)
+                    wk = om + ax * rate
+                    acc = wp.cross(om, wp.cross(om, d)) + 2.0 * rate * wp.cross(om, e) + e2 * (rate * rate)
+                    alpha = rate * wp.cross(om, ax) + axis * (c2[2] * rate * rate)
+                    f_lin = mk * (g - acc)
+                    f_ang = -(Ik * alpha) - wp.cross(wk, Ik * wk)
+                    f_part += f_lin
+                    t_part += wp.cross(d, f_lin) + f_ang
+                    hj += wp.dot(e, f_lin) + wp.dot(ax, f_ang)
+                for c in range(MAX_LEGS):  # a select over constant indices keeps h_legs in registers
+                    if c == li:
+                        h_legs[c] = hj
+                for i in range(3):
+                    M[w, i * NV + col] = me_sum[i]
+                    M[w, col * NV + i] = me_sum[i]
+                    M[w, (3 + i) * NV + col] = mw_sum[i]
+                    M[w, col * NV + 3 + i] = mw_sum[i]
+                M[w, col * NV + col] = mjj
+            part = vecsetup()
+            part[0] = m_part
             for i in range(3):
-                M[w, i * NV + col] = me_sum[i]
-                M[w, col * NV + i] = me_sum[i]
-                M[w, (3 + i) * NV + col] = mw_sum[i]
-                M[w, col * NV + 3 + i] = mw_sum[i]
-            M[w, col * NV + col] = mjj
-        part = vecsetup()
-        part[0] = m_part
-        for i in range(3):
-            part[1 + i] = md_part[i]
-            part[13 + i] = f_part[i]
-            part[16 + i] = t_part[i]
-            for j in range(3):
-                part[4 + 3 * i + j] = rot_part[i, j]
-        for c in range(MAX_LEGS):
-            part[19 + c] = h_legs[c]
-        total = reduce_vector(part)
-        sync()  # every lane's leg columns are in M
-        if lane == 0:
-            h = vecnv()
-            It = R * torso_inertia[w] * wp.transpose(R)
-            gyro = -wp.cross(om, It * om)
-            for i in range(3):
-                h[i] = mt * g[i] + total[13 + i]
-                h[3 + i] = gyro[i] + total[16 + i]
-            for c in range(MAX_LEGS):
-                h[6 + c] = total[19 + c]
-            m_sum = mt + total[0]
-            md_sum = wp.vec3(total[1], total[2], total[3])
-            rot_sum = It + wp.mat33(total[4], total[5], total[6], total[7], total[8], total[9], total[10], total[11],
-                                    total[12])
-            # M_vv = m I, M_vw = -[sum m d]x, M_ww = the angular sum
-            cross = wp.skew(md_sum)
-            for i in range(3):
-                M[w, i * NV + i] = m_sum
+                part[1 + i] = md_part[i]
+                part[13 + i] = f_part[i]
+                part[16 + i] = t_part[i]
                 for j in range(3):
-                    M[w, i * NV + 3 + j] = -cross[i, j]
-                    M[w, (3 + i) * NV + j] = cross[i, j]
-                    M[w, (3 + i) * NV + 3 + j] = rot_sum[i, j]
-            cholesky(M, w, n, LM)
-            uu = vecnv()
-            for i in range(3):
-                uu[i] = v[i]
-                uu[3 + i] = om[i]
-            for li in range(L):
-                uu[6 + li] = psi_dot[w, li]
-            acc_free = chol_solve(LM, w, n, h)
-            uf = uu + dt * acc_free
-            # rows: drives, then contacts within the margin
-            m = int(0)
-            for li in range(L):
-                dr = drive[w, li]
+                    part[4 + 3 * i + j] = rot_part[i, j]
+            for c in range(MAX_LEGS):
+                part[19 + c] = h_legs[c]
+            total = reduce_vector(part)
+            sync()  # every lane's leg columns are in M
+            if lane == 0:
+                h = vecnv()
+                It = R * torso_inertia[w] * wp.transpose(R)
+                gyro = -wp.cross(om, It * om)
+                for i in range(3):
+                    h[i] = mt * g[i] + total[13 + i]
+                    h[3 + i] = gyro[i] + total[16 + i]
+                for c in range(MAX_LEGS):
+                    h[6 + c] = total[19 + c]
+                m_sum = mt + total[0]
+                md_sum = wp.vec3(total[1], total[2], total[3])
+                rot_sum = It + wp.mat33(total[4], total[5], total[6], total[7], total[8], total[9], total[10],
+                                        total[11], total[12])
+                # M_vv = m I, M_vw = -[sum m d]x, M_ww = the angular sum
+                cross = wp.skew(md_sum)
+                for i in range(3):
+                    M[w, i * NV + i] = m_sum
+                    for j in range(3):
+                        M[w, i * NV + 3 + j] = -cross[i, j]
+                        M[w, (3 + i) * NV + j] = cross[i, j]
+                        M[w, (3 + i) * NV + 3 + j] = rot_sum[i, j]
+                cholesky(M, w, n, LM)
+                uu = vecnv()
+                for i in range(3):
+                    uu[i] = v[i]
+                    uu[3 + i] = om[i]
+                for li in range(L):
+                    uu[6 + li] = psi_dot[w, li]
+                acc_free = chol_solve(LM, w, n, h)
+                uf = uu + dt * acc_free
+                # rows: drives, then contacts within the margin
+                m = int(0)
+                for li in range(L):
+                    dr = drive[w, li]
+                    for c in range(NV):
+                        J[w, m * NV + c] = 0.0
+                    J[w, m * NV + 6 + li] = 1.0
+                    kd = dr[1]
+                    bound = dt * dr[2]
+                    compliance = 1.0e6
+                    if kd > 0.0:
+                        compliance = 1.0 / (dt * kd)
+                    set_row(rows, w, m, F_R, compliance)
+                    set_row(rows, w, m, F_RHS, uf[6 + li] - dr[0] * wp.min(1.0, kd * 1.0e6))
+                    set_row(rows, w, m, F_MU, -1.0)
+                    set_row(rows, w, m, F_LO, -bound)
+                    set_row(rows, w, m, F_HI, bound)
+                    set_row(rows, w, m, F_VEL, 0.0)
+                    set_row(rows, w, m, F_COL, float(6 + li))
+                    slot_of[w, m] = li
+                    m += 1
+                count = int(0)
+                if torso[w][2] > 0.0:
+                    half = torso_half[w]
+                    for k in range(TORSO_CORNERS + 2 * L):
+                        arm = wp.vec3()
+                        lin = wp.vec3()  # the point's velocity per unit crank rate (shoe ends)
+                        leg = int(-1)
+                        mu = torso[w][1]
+                        dist = float(0.0)
+                        if k < TORSO_CORNERS:
+                            sx = float(1.0)
+                            sy = float(1.0)
+                            sz = float(1.0)
+                            if k % 2 == 1:
+                                sx = -1.0
+                            if (k / 2) % 2 == 1:
+                                sy = -1.0
+                            if k >= 4:
+                                sz = -1.0
+                            arm = R * wp.vec3(sx * half[0], sy * half[1], sz * half[2])
+                            dist = p[2] + arm[2]
+                        else:
+                            leg = (k - TORSO_CORNERS) / 2
+                            end = float(1.0)
+                            if (k - TORSO_CORNERS) % 2 == 1:
+                                end = -1.0
+                            t = leg_table[w, leg]
+                            s = leg_scale[w, leg]
+                            ix = table_index(psi[w, leg], samples)
+                            i0 = int(ix[0])
+                            i1 = int(ix[1])
+                            f = ix[2]
+                            fl = table_foot_link[t]
+                            sh = shoe[w, leg]
+                            phi = link_read(links0, t, i0, i1, f, fl)
+                            phi1 = table_read(links1, t, i0, i1, f, fl)
+                            beta = phi[2] + sh[2]
+                            dirn = wp.vec3(wp.cos(beta), wp.sin(beta), 0.0)
+                            perp = wp.vec3(-wp.sin(beta), wp.cos(beta), 0.0)
+                            fp = foot_read(foot0, t, i0, i1, f) * s + dirn * (end * sh[1])
+                            fv = foot_read(foot1, t, i0, i1, f) * s + perp * (end * sh[1] * phi1[2])
+                            # the contact point: on the shoe's surface, one radius below its end's
+                            # centre; it moves with the foot link (turning at axis * phi' per unit
+                            # crank rate about the end's centre)
+                            down = wp.vec3(0.0, 0.0, -sh[0])
+                            arm = R * leg_origin[w, leg] + plane(R, fp) + down
+                            lin = plane(R, fv) + wp.cross(axis * phi1[2], down)
+                            dist = p[2] + arm[2]
+                            mu = sh[3]
+                        if dist < margin:
+                            count += 1
+                            for comp in range(3):
+                                nrm = wp.vec3(0.0, 0.0, 1.0)
+                                if comp == 1:
+                                    nrm = wp.vec3(1.0, 0.0, 0.0)
+                                if comp == 2:
+                                    nrm = wp.vec3(0.0, 1.0, 0.0)
+                                rxn = wp.cross(arm, nrm)
+                                for c in range(NV):
+                                    J[w, m * NV + c] = 0.0
+                                for i in range(3):
+                                    J[w, m * NV + i] = nrm[i]
+                                    J[w, m * NV + 3 + i] = rxn[i]
+                                if leg >= 0:
+                                    J[w, m * NV + 6 + leg] = wp.dot(nrm, lin)
+                                vrow = jrow_dot(J, w, m, n, uf)
+                                if comp == 0:
+                                    if dist > 0.0:
+                                        vrow += dist / dt
+                                    else:
+                                        vrow += stabilization * dist / dt
+                                set_row(rows, w, m, F_R, 0.0)
+                                set_row(rows, w, m, F_RHS, vrow)
+                                set_row(rows, w, m, F_MU, mu)
+                                set_row(rows, w, m, F_VEL, 0.0)
+                                set_row(rows, w, m, F_COL, float(6 + leg))  # -1 + 6 < 6 for a torso corner
+                                slot_of[w, m] = MAX_LEGS + 3 * k + comp
+                                m += 1
+                contacts_out[w] = count
                 for c in range(NV):
-                    J[w, m * NV + c] = 0.0
-                J[w, m * NV + 6 + li] = 1.0
-                kd = dr[1]
-                bound = dt * dr[2]
-                compliance = 1.0e6
-                if kd > 0.0:
-                    compliance = 1.0 / (dt * kd)
-                set_row(rows, w, m, F_R, compliance)
-                set_row(rows, w, m, F_RHS, uf[6 + li] - dr[0] * wp.min(1.0, kd * 1.0e6))
-                set_row(rows, w, m, F_MU, -1.0)
-                set_row(rows, w, m, F_LO, -bound)
-                set_row(rows, w, m, F_HI, bound)
-                set_row(rows, w, m, F_VEL, 0.0)
-                set_row(rows, w, m, F_COL, float(6 + li))
-                slot_of[w, m] = li
-                m += 1
-            count = int(0)
-            if torso[w][2] > 0.0:
-                half = torso_half[w]
-                for k in range(TORSO_CORNERS + 2 * L):
-                    arm = wp.vec3()
-                    lin = wp.vec3()  # the point's velocity per unit crank rate (shoe ends)
-                    leg = int(-1)
-                    mu = torso[w][1]
-                    dist = float(0.0)
-                    if k < TORSO_CORNERS:
-                        sx = float(1.0)
-                        sy = float(1.0)
-                        sz = float(1.0)
-                        if k % 2 == 1:
-                            sx = -1.0
-                        if (k / 2) % 2 == 1:
-                            sy = -1.0
-                        if k >= 4:
-                            sz = -1.0
-                        arm = R * wp.vec3(sx * half[0], sy * half[1], sz * half[2])
-                        dist = p[2] + arm[2]
-                    else:
-                        leg = (k - TORSO_CORNERS) / 2
-                        end = float(1.0)
-                        if (k - TORSO_CORNERS) % 2 == 1:
-                            end = -1.0
-                        t = leg_table[w, leg]
-                        s = leg_scale[w, leg]
-                        ix = table_index(psi[w, leg], samples)
-                        i0 = int(ix[0])
-                        i1 = int(ix[1])
-                        f = ix[2]
-                        fl = table_foot_link[t]
-                        sh = shoe[w, leg]
-                        phi = link_read(links0, t, i0, i1, f, fl)
-                        phi1 = table_read(links1, t, i0, i1, f, fl)
-                        beta = phi[2] + sh[2]
-                        dirn = wp.vec3(wp.cos(beta), wp.sin(beta), 0.0)
-                        perp = wp.vec3(-wp.sin(beta), wp.cos(beta), 0.0)
-                        fp = foot_read(foot0, t, i0, i1, f) * s + dirn * (end * sh[1])
-                        fv = foot_read(foot1, t, i0, i1, f) * s + perp * (end * sh[1] * phi1[2])
-                        # the contact point: on the shoe's surface, one radius below its end's
-                        # centre; it moves with the foot link (turning at axis * phi' per unit
-                        # crank rate about the end's centre)
-                        down = wp.vec3(0.0, 0.0, -sh[0])
-                        arm = R * leg_origin[w, leg] + plane(R, fp) + down
-                        lin = plane(R, fv) + wp.cross(axis * phi1[2], down)
-                        dist = p[2] + arm[2]
-                        mu = sh[3]
-                    if dist < margin:
-                        count += 1
-                        for comp in range(3):
-                            nrm = wp.vec3(0.0, 0.0, 1.0)
-                            if comp == 1:
-                                nrm = wp.vec3(1.0, 0.0, 0.0)
-                            if comp == 2:
-                                nrm = wp.vec3(0.0, 1.0, 0.0)
-                            rxn = wp.cross(arm, nrm)
-                            for c in range(NV):
-                                J[w, m * NV + c] = 0.0
-                            for i in range(3):
-                                J[w, m * NV + i] = nrm[i]
-                                J[w, m * NV + 3 + i] = rxn[i]
-                            if leg >= 0:
-                                J[w, m * NV + 6 + leg] = wp.dot(nrm, lin)
-                            vrow = jrow_dot(J, w, m, n, uf)
-                            if comp == 0:
-                                if dist > 0.0:
-                                    vrow += dist / dt
-                                else:
-                                    vrow += stabilization * dist / dt
-                            set_row(rows, w, m, F_R, 0.0)
-                            set_row(rows, w, m, F_RHS, vrow)
-                            set_row(rows, w, m, F_MU, mu)
-                            set_row(rows, w, m, F_VEL, 0.0)
-                            set_row(rows, w, m, F_COL, float(6 + leg))  # -1 + 6 < 6 for a torso corner
-                            slot_of[w, m] = MAX_LEGS + 3 * k + comp
-                            m += 1
-            contacts_out[w] = count
-            for c in range(NV):
-                ufree[w, c] = uf[c]
-            row_count[w] = m
-        sync()
-        m = row_count[w]
+                    ufree[w, c] = uf[c]
+                row_count[w] = m
+            sync()
+            m = row_count[w]
+            units = L + (m - L) / 3
+            # Jacobi preconditioner P = diag(J M^-1 J^T + R)^-1/2 (one value per contact triplet), the
+            # compact copy of the preconditioned rows, and the warm start from the last step's impulses
+            # by slot, unit by unit over the lanes (LM holds the factor of M). A drive row whose warm
+            # start lies within half its bounds keeps the penalty at or below rho0 (its projection is
+            # then the identity, and a large penalty only slows it).
+            rho = rho0
+            gyl = vecnv()
+            unit = lane
+            while unit < units:
+                r = unit
+                span = int(1)
+                if unit >= L:
+                    r = L + 3 * (unit - L)
+                    span = 3
+                dsum = float(0.0)
+                for rr in range(r, r + span):
+                    jr = vecnv()
+                    for c in range(NV):
+                        jr[c] = J[w, rr * NV + c]
+                    mj = chol_solve(LM, w, n, jr)
+                    dsum += wp.dot(jr, mj) + row_at(rows, w, rr, F_R)
+                pr = 1.0 / wp.sqrt(wp.max(dsum / float(span), 1.0e-12))
+                xs = wp.vec3()
+                for c in range(span):
+                    rr = r + c
+                    set_row(rows, w, rr, F_P, pr)
+                    set_row(rows, w, rr, F_RHS, pr * row_at(rows, w, rr, F_RHS))
+                    set_row(rows, w, rr, F_LO, row_at(rows, w, rr, F_LO) / pr)
+                    set_row(rows, w, rr, F_HI, row_at(rows, w, rr, F_HI) / pr)
+                    set_row(rows, w, rr, F_PEN, rho0)
+                    for k in range(NV):
+                        J[w, rr * NV + k] = pr * J[w, rr * NV + k]
+                    col = int(row_at(rows, w, rr, F_COL))
+                    crank = float(0.0)
+                    for k in range(6, NV):
+                        if k == col:
+                            crank = J[w, rr * NV + k]
+                    base = rr * NV
+                    Jc[w, 2 * rr] = wp.vec4(J[w, base], J[w, base + 1], J[w, base + 2], J[w, base + 3])
+                    Jc[w, 2 * rr + 1] = wp.vec4(J[w, base + 4], J[w, base + 5], crank, 0.0)
+                    xs[c] = impulse[w, slot_of[w, rr]] / pr
+                pj = project_row(rows, w, r, xs[0], xs[1], xs[2])
+                for c in range(span):
+                    s1[w, r + c] = wp.vec4(xs[c], xs[c], 0.0, 0.0)
+                    s2[w, r + c] = wp.vec4(pj[c], 0.0, pj[c], 0.0)  # y and its last value; z below
+                    for k in range(NV):
+                        gyl[k] += J[w, (r + c) * NV + k] * pj[c]
+                free = float(0.0)
+                if span == 1 and wp.abs(xs[0]) < 0.5 * row_at(rows, w, r, F_HI):
+                    free = 1.0
+                set_row(rows, w, r, F_FREE, free)
+                unit += lanes
+            # the dual variable from the warm start: z = -(D y + v_f + s), the (shifted) velocity it
+            # gives, so that an unchanged contact set starts at its fixed point
+            gy = reduce_vector(gyl)
+            my = chol_solve(LM, w, n, gy)
+            unit = lane
+            while unit < units:
+                r = unit
+                span = int(1)
+                if unit >= L:
+                    r = L + 3 * (unit - L)
+                    span = 3
+                vels = wp.vec3()
+                for c in range(span):
+                    i = r + c
+                    pr = row_at(rows, w, i, F_P)
+                    vc = (jrow_dot(J, w, i, n, my) + pr * pr * row_at(rows, w, i, F_R) * s2[w, i][0]
+                          + row_at(rows, w, i, F_RHS))
+                    set_row(rows, w, i, F_VEL, vc)
+                    vels[c] = vc
+                shift = float(0.0)
+                if span == 3:
+                    shift = row_at(rows, w, r, F_MU) * wp.sqrt(vels[1] * vels[1] + vels[2] * vels[2])
+                for c in range(span):
+                    zc = -vels[c]
+                    if c == 0:
+                        zc -= shift
+                    prior = s2[w, r + c]
+                    s2[w, r + c] = wp.vec4(prior[0], zc, prior[2], zc)
+                unit += lanes
+            sync()  # every lane is done with the rows' set-up
+            woodbury_factor(J, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
+        if wp.static(phase == "setup"):
+            return
+        m = row_count[w]  # (again, for the solve phase's kernel)
         units = L + (m - L) / 3
-        # Jacobi preconditioner P = diag(J M^-1 J^T + R)^-1/2 (one value per contact triplet), the
-        # compact copy of the preconditioned rows, and the warm start from the last step's impulses
-        # by slot, unit by unit over the lanes (LM holds the factor of M). A drive row whose warm
-        # start lies within half its bounds keeps the penalty at or below rho0 (its projection is
-        # then the identity, and a large penalty only slows it).
         rho = rho0
-        gyl = vecnv()
-        unit = lane
-        while unit < units:
-            r = unit
-            span = int(1)
-            if unit >= L:
-                r = L + 3 * (unit - L)
-                span = 3
-            dsum = float(0.0)
-            for rr in range(r, r + span):
-                jr = vecnv()
-                for c in range(NV):
-                    jr[c] = J[w, rr * NV + c]
-                mj = chol_solve(LM, w, n, jr)
-                dsum += wp.dot(jr, mj) + row_at(rows, w, rr, F_R)
-            pr = 1.0 / wp.sqrt(wp.max(dsum / float(span), 1.0e-12))
-            xs = wp.vec3()
-            for c in range(span):
-                rr = r + c
-                set_row(rows, w, rr, F_P, pr)
-                set_row(rows, w, rr, F_RHS, pr * row_at(rows, w, rr, F_RHS))
-                set_row(rows, w, rr, F_LO, row_at(rows, w, rr, F_LO) / pr)
-                set_row(rows, w, rr, F_HI, row_at(rows, w, rr, F_HI) / pr)
-                set_row(rows, w, rr, F_PEN, rho0)
-                for k in range(NV):
-                    J[w, rr * NV + k] = pr * J[w, rr * NV + k]
-                col = int(row_at(rows, w, rr, F_COL))
-                crank = float(0.0)
-                for k in range(6, NV):
-                    if k == col:
-                        crank = J[w, rr * NV + k]
-                base = rr * NV
-                Jc[w, 2 * rr] = wp.vec4(J[w, base], J[w, base + 1], J[w, base + 2], J[w, base + 3])
-                Jc[w, 2 * rr + 1] = wp.vec4(J[w, base + 4], J[w, base + 5], crank, 0.0)
-                xs[c] = impulse[w, slot_of[w, rr]] / pr
-            pj = project_row(rows, w, r, xs[0], xs[1], xs[2])
-            for c in range(span):
-                s1[w, r + c] = wp.vec4(xs[c], xs[c], 0.0, 0.0)
-                s2[w, r + c] = wp.vec4(pj[c], 0.0, pj[c], 0.0)  # y and its last value; z below
-                for k in range(NV):
-                    gyl[k] += J[w, (r + c) * NV + k] * pj[c]
-            free = float(0.0)
-            if span == 1 and wp.abs(xs[0]) < 0.5 * row_at(rows, w, r, F_HI):
-                free = 1.0
-            set_row(rows, w, r, F_FREE, free)
-            unit += lanes
-        # the dual variable from the warm start: z = -(D y + v_f + s), the (shifted) velocity it
-        # gives, so that an unchanged contact set starts at its fixed point
-        gy = reduce_vector(gyl)
-        my = chol_solve(LM, w, n, gy)
-        unit = lane
-        while unit < units:
-            r = unit
-            span = int(1)
-            if unit >= L:
-                r = L + 3 * (unit - L)
-                span = 3
-            vels = wp.vec3()
-            for c in range(span):
-                i = r + c
-                pr = row_at(rows, w, i, F_P)
-                vc = jrow_dot(J, w, i, n, my) + pr * pr * row_at(rows, w, i, F_R) * s2[w, i][0] + row_at(rows, w, i, F_RHS)
-                set_row(rows, w, i, F_VEL, vc)
-                vels[c] = vc
-            shift = float(0.0)
-            if span == 3:
-                shift = row_at(rows, w, r, F_MU) * wp.sqrt(vels[1] * vels[1] + vels[2] * vels[2])
-            for c in range(span):
-                zc = -vels[c]
-                if c == 0:
-                    zc -= shift
-                prior = s2[w, r + c]
-                s2[w, r + c] = wp.vec4(prior[0], zc, prior[2], zc)
-            unit += lanes
-        sync()  # every lane is done with the rows' set-up
-        woodbury_factor(J, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
         its = int(0)
         converged = int(0)
         momentum = float(1.0)
@@ -1386,9 +1398,10 @@ def legged_step_batch(model: LeggedModel, steps: int = 1):
             wp.launch_tiled(kernel, dim=[model.num_worlds], block_dim=model.lanes, inputs=inputs,
                             device=model.device)
         return
-    kernel = step_kernel(False)
-    for _ in range(steps):
-        wp.launch(kernel, dim=model.num_worlds, inputs=inputs, device=model.device)
+    setup, solve = step_kernel(False, "setup"), step_kernel(False, "solve")
+    for _ in range(steps):  # one thread per world: the set-up and the solve as two kernels (see step_kernel)
+        wp.launch(setup, dim=model.num_worlds, inputs=inputs, device=model.device)
+        wp.launch(solve, dim=model.num_worlds, inputs=inputs, device=model.device)
 
 
 def legged_points(model: LeggedModel) -> tuple:
