@@ -218,6 +218,7 @@ class LeggedSpec:
 
 
 vecnv = wp.types.vector(length=NV, dtype=wp.float32)
+vectorso = wp.types.vector(length=21, dtype=wp.float32)  # lower triangle of a 6-square (torso) block
 veclegs = wp.types.vector(length=MAX_LEGS, dtype=wp.float32)
 # the legs' sums of a step's set-up: mass, m d (3), the angular block (9), the torso's bias force and
 # torque (6), each leg's bias force (MAX_LEGS)
@@ -473,6 +474,21 @@ def chol_solve(L: wp.array2d(dtype=float), w: int, n: int, b: vecnv):
     return y
 
 
+@wp.func
+def forward_norm2(L: wp.array2d(dtype=float), w: int, n: int, b: vecnv, first: int):
+    """|L^-1 b|^2 = b^T (L L^T)^-1 b for the lower factor L of world w, b zero before index first
+    (so is L^-1 b: the forward substitution starts there)."""
+    y = b
+    total = float(0.0)
+    for i in range(first, n):
+        s = y[i]
+        for k in range(first, i):
+            s -= L[w, i * NV + k] * y[k]
+        y[i] = s / L[w, i * NV + i]
+        total += y[i] * y[i]
+    return total
+
+
 # row scratch layout: three vec4 per row, fields F_RHS ... F_FREE (an iteration reads the first
 # two: (v_f, mu, penalty, 1 / S) and (lower, upper, crank column, velocity)). A drive row's
 # Jacobian is zero but in its crank column, a contact row's but in the torso's six columns and
@@ -613,8 +629,9 @@ def step_kernel(tiled: bool, phase: str = "all"):
         return value
 
     @wp.func
-    def woodbury_factor(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=wp.vec4), M: wp.array2d(dtype=float),
-                        K: wp.array2d(dtype=float), Kinv: wp.array2d(dtype=wp.vec4), w: int, m: int, n: int,
+    def woodbury_factor(J: wp.array2d(dtype=float), Jc: wp.array2d(dtype=wp.vec4), rows: wp.array2d(dtype=wp.vec4),
+                        M: wp.array2d(dtype=float), K: wp.array2d(dtype=float), Kinv: wp.array2d(dtype=wp.vec4),
+                        w: int, m: int, n: int,
                         sigma_base: float, tmp: wp.array2d(dtype=float), lane: int, lanes: int):
         """Kinv <- (M + J^T S^-1 J)^-1 (K holds its Cholesky factor on the way; the rows' 1 / S go
         to their field 10 and to tmp). The lanes share the rows, then the matrix's entries, then
@@ -625,18 +642,47 @@ def step_kernel(tiled: bool, phase: str = "all"):
             tmp[w, r] = inverse
             set_row(rows, w, r, F_INV, inverse)
         sync()
-        entries = n * (n + 1) / 2
-        for e in range(lane, entries, lanes):
-            i = int((wp.sqrt(8.0 * float(e) + 1.0) - 1.0) * 0.5)
-            while i * (i + 1) / 2 > e:
-                i -= 1
-            while (i + 1) * (i + 2) / 2 <= e:
-                i += 1
-            j = e - i * (i + 1) / 2
-            acc = M[w, i * NV + j]
+        shared = False  # the lanes share the entries, each summed over the rows
+        if wp.static(tiled):
+            shared = lanes > 1
+        if shared:
+            entries = n * (n + 1) / 2
+            for e in range(lane, entries, lanes):
+                i = int((wp.sqrt(8.0 * float(e) + 1.0) - 1.0) * 0.5)
+                while i * (i + 1) / 2 > e:
+                    i -= 1
+                while (i + 1) * (i + 2) / 2 <= e:
+                    i += 1
+                j = e - i * (i + 1) / 2
+                acc = M[w, i * NV + j]
+                for r in range(m):
+                    acc += J[w, r * NV + i] * J[w, r * NV + j] * tmp[w, r]
+                K[w, i * NV + j] = acc
+        else:  # one lane: row by row from the compact rows (J^T S^-1 J has M's arrow pattern: the
+            # torso block, each crank's column of the torso rows and its diagonal), the torso
+            # block summed in registers
+            for i in range(n):
+                for j in range(i + 1):
+                    K[w, i * NV + j] = M[w, i * NV + j]
+            torso_block = vectorso()
             for r in range(m):
-                acc += J[w, r * NV + i] * J[w, r * NV + j] * tmp[w, r]
-            K[w, i * NV + j] = acc
+                inverse = tmp[w, r]
+                b = Jc[w, 2 * r + 1]
+                crank = int(row_at(rows, w, r, F_COL))
+                if row_at(rows, w, r, F_MU) >= 0.0:  # a contact: the torso's columns
+                    a = Jc[w, 2 * r]
+                    jt = wp.types.vector(a[0], a[1], a[2], a[3], b[0], b[1], length=6, dtype=float)
+                    for i in range(6):
+                        for j in range(i + 1):
+                            torso_block[i * (i + 1) / 2 + j] += jt[i] * jt[j] * inverse
+                    if crank >= 6:
+                        for i in range(6):
+                            K[w, crank * NV + i] += jt[i] * b[2] * inverse
+                if crank >= 6:
+                    K[w, crank * NV + crank] += b[2] * b[2] * inverse
+            for i in range(6):
+                for j in range(i + 1):
+                    K[w, i * NV + j] += torso_block[i * (i + 1) / 2 + j]
         sync()
         if lane == 0:
             cholesky(K, w, n, K)  # in place: each entry is read before it is overwritten
@@ -967,8 +1013,10 @@ def step_kernel(tiled: bool, phase: str = "all"):
                     jr = vecnv()
                     for c in range(NV):
                         jr[c] = J[w, rr * NV + c]
-                    mj = chol_solve(LM, w, n, jr)
-                    dsum += wp.dot(jr, mj) + row_at(rows, w, rr, F_R)
+                    first = int(0)  # a drive row: zero before its crank column
+                    if row_at(rows, w, rr, F_MU) < 0.0:
+                        first = int(row_at(rows, w, rr, F_COL))
+                    dsum += forward_norm2(LM, w, n, jr, first) + row_at(rows, w, rr, F_R)
                 pr = 1.0 / wp.sqrt(wp.max(dsum / float(span), 1.0e-12))
                 xs = wp.vec3()
                 for c in range(span):
@@ -1030,7 +1078,7 @@ def step_kernel(tiled: bool, phase: str = "all"):
                     s2[w, r + c] = wp.vec4(prior[0], zc, prior[2], zc)
                 unit += lanes
             sync()  # every lane is done with the rows' set-up
-            woodbury_factor(J, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
+            woodbury_factor(J, Jc, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
         if wp.static(phase == "setup"):
             return
         m = row_count[w]  # (again, for the solve phase's kernel)
@@ -1225,7 +1273,7 @@ def step_kernel(tiled: bool, phase: str = "all"):
                                 prior = s2[w, i]
                                 s2[w, i] = wp.vec4(prior[0], prior[1], prior[0], prior[1])
                         sync()
-                        woodbury_factor(J, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
+                        woodbury_factor(J, Jc, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
                         rho = new_rho
                         momentum = 1.0
                         merit = 1.0e30
