@@ -218,7 +218,6 @@ class LeggedSpec:
 
 
 vecnv = wp.types.vector(length=NV, dtype=wp.float32)
-vectorso = wp.types.vector(length=21, dtype=wp.float32)  # lower triangle of a 6-square (torso) block
 veclegs = wp.types.vector(length=MAX_LEGS, dtype=wp.float32)
 # the legs' sums of a step's set-up: mass, m d (3), the angular block (9), the torso's bias force and
 # torque (6), each leg's bias force (MAX_LEGS)
@@ -629,9 +628,8 @@ def step_kernel(tiled: bool, phase: str = "all"):
         return value
 
     @wp.func
-    def woodbury_factor(J: wp.array2d(dtype=float), Jc: wp.array2d(dtype=wp.vec4), rows: wp.array2d(dtype=wp.vec4),
-                        M: wp.array2d(dtype=float), K: wp.array2d(dtype=float), Kinv: wp.array2d(dtype=wp.vec4),
-                        w: int, m: int, n: int,
+    def woodbury_factor(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=wp.vec4), M: wp.array2d(dtype=float),
+                        K: wp.array2d(dtype=float), Kinv: wp.array2d(dtype=wp.vec4), w: int, m: int, n: int,
                         sigma_base: float, tmp: wp.array2d(dtype=float), lane: int, lanes: int):
         """Kinv <- (M + J^T S^-1 J)^-1 (K holds its Cholesky factor on the way; the rows' 1 / S go
         to their field 10 and to tmp). The lanes share the rows, then the matrix's entries, then
@@ -642,47 +640,18 @@ def step_kernel(tiled: bool, phase: str = "all"):
             tmp[w, r] = inverse
             set_row(rows, w, r, F_INV, inverse)
         sync()
-        shared = False  # the lanes share the entries, each summed over the rows
-        if wp.static(tiled):
-            shared = lanes > 1
-        if shared:
-            entries = n * (n + 1) / 2
-            for e in range(lane, entries, lanes):
-                i = int((wp.sqrt(8.0 * float(e) + 1.0) - 1.0) * 0.5)
-                while i * (i + 1) / 2 > e:
-                    i -= 1
-                while (i + 1) * (i + 2) / 2 <= e:
-                    i += 1
-                j = e - i * (i + 1) / 2
-                acc = M[w, i * NV + j]
-                for r in range(m):
-                    acc += J[w, r * NV + i] * J[w, r * NV + j] * tmp[w, r]
-                K[w, i * NV + j] = acc
-        else:  # one lane: row by row from the compact rows (J^T S^-1 J has M's arrow pattern: the
-            # torso block, each crank's column of the torso rows and its diagonal), the torso
-            # block summed in registers
-            for i in range(n):
-                for j in range(i + 1):
-                    K[w, i * NV + j] = M[w, i * NV + j]
-            torso_block = vectorso()
+        entries = n * (n + 1) / 2
+        for e in range(lane, entries, lanes):
+            i = int((wp.sqrt(8.0 * float(e) + 1.0) - 1.0) * 0.5)
+            while i * (i + 1) / 2 > e:
+                i -= 1
+            while (i + 1) * (i + 2) / 2 <= e:
+                i += 1
+            j = e - i * (i + 1) / 2
+            acc = M[w, i * NV + j]
             for r in range(m):
-                inverse = tmp[w, r]
-                b = Jc[w, 2 * r + 1]
-                crank = int(row_at(rows, w, r, F_COL))
-                if row_at(rows, w, r, F_MU) >= 0.0:  # a contact: the torso's columns
-                    a = Jc[w, 2 * r]
-                    jt = wp.types.vector(a[0], a[1], a[2], a[3], b[0], b[1], length=6, dtype=float)
-                    for i in range(6):
-                        for j in range(i + 1):
-                            torso_block[i * (i + 1) / 2 + j] += jt[i] * jt[j] * inverse
-                    if crank >= 6:
-                        for i in range(6):
-                            K[w, crank * NV + i] += jt[i] * b[2] * inverse
-                if crank >= 6:
-                    K[w, crank * NV + crank] += b[2] * b[2] * inverse
-            for i in range(6):
-                for j in range(i + 1):
-                    K[w, i * NV + j] += torso_block[i * (i + 1) / 2 + j]
+                acc += J[w, r * NV + i] * J[w, r * NV + j] * tmp[w, r]
+            K[w, i * NV + j] = acc
         sync()
         if lane == 0:
             cholesky(K, w, n, K)  # in place: each entry is read before it is overwritten
@@ -1078,7 +1047,7 @@ def step_kernel(tiled: bool, phase: str = "all"):
                     s2[w, r + c] = wp.vec4(prior[0], zc, prior[2], zc)
                 unit += lanes
             sync()  # every lane is done with the rows' set-up
-            woodbury_factor(J, Jc, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
+            woodbury_factor(J, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
         if wp.static(phase == "setup"):
             return
         m = row_count[w]  # (again, for the solve phase's kernel)
@@ -1273,7 +1242,7 @@ def step_kernel(tiled: bool, phase: str = "all"):
                                 prior = s2[w, i]
                                 s2[w, i] = wp.vec4(prior[0], prior[1], prior[0], prior[1])
                         sync()
-                        woodbury_factor(J, Jc, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
+                        woodbury_factor(J, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
                         rho = new_rho
                         momentum = 1.0
                         merit = 1.0e30
