@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import enum
 import io
+import itertools
 import json
 import math
 import operator
@@ -243,9 +244,12 @@ def _scalar_or_nan(value) -> float:
 def encode_metrics(dicts: list[dict]) -> tuple[list, np.ndarray]:
     """(names, (designs, names) float64) of the scalar metrics (numbers, not bools) of a
     generation's metric dicts; a design without a metric, or with a non-finite one, has NaN."""
-    groups = {}
-    for i, d in enumerate(dicts):
-        groups.setdefault(tuple(d), []).append(i)
+    if dicts and all(map(dicts[0].keys().__eq__, map(dict.keys, dicts))):  # the common case: one key set
+        groups = {tuple(dicts[0]): range(len(dicts))}
+    else:
+        groups = {}
+        for i, d in enumerate(dicts):
+            groups.setdefault(tuple(d), []).append(i)
     selected = {}
     for keyset, rows in groups.items():
         first = dicts[rows[0]]
@@ -259,10 +263,14 @@ def encode_metrics(dicts: list[dict]) -> tuple[list, np.ndarray]:
             continue
         getter = operator.itemgetter(*keys)
         values = [getter(dicts[i]) for i in rows] if len(keys) > 1 else [(dicts[i][keys[0]],) for i in rows]
-        try:
-            block = np.array(values, dtype=np.float64)
-        except (TypeError, ValueError):  # a later design has something else than a number under a key
-            block = np.array([[_scalar_or_nan(v) for v in row] for row in values], dtype=np.float64)
+        try:  # the values as one flat sequence of numbers
+            block = np.fromiter(itertools.chain.from_iterable(values), np.float64, len(values) * len(keys))
+            block = block.reshape(len(values), len(keys))
+        except (TypeError, ValueError):
+            try:  # None among them (a non-finite metric): NaN
+                block = np.array(values, dtype=np.float64)
+            except (TypeError, ValueError):  # a later design has something else than a number under a key
+                block = np.array([[_scalar_or_nan(v) for v in row] for row in values], dtype=np.float64)
         matrix[np.asarray(rows)[:, None], [where[k] for k in keys]] = block
     matrix[~np.isfinite(matrix)] = np.nan
     return [str(name) for name in names], matrix
