@@ -632,7 +632,7 @@ def step_kernel(tiled: bool, phase: str = "all"):
                         K: wp.array2d(dtype=float), Kinv: wp.array2d(dtype=wp.vec4), w: int, m: int, n: int,
                         sigma_base: float, tmp: wp.array2d(dtype=float), lane: int, lanes: int):
         """Kinv <- (M + J^T S^-1 J)^-1 (K holds its Cholesky factor on the way; the rows' 1 / S go
-        to their field 10 and to tmp). The lanes share the rows, then the matrix's entries, then
+        to their field F_INV and to tmp). The lanes share the rows, then the matrix's entries, then
         the inverse's columns; lane 0 factors. Every lane of the block must call it."""
         for r in range(lane, m, lanes):
             p = row_at(rows, w, r, F_P)
