@@ -80,7 +80,7 @@ F_INV = wp.constant(3)  # 1 / (eta + penalty + P^2 R), set with the Woodbury fac
 F_LO = wp.constant(4)  # lower and upper bounds (drives, preconditioned)
 F_HI = wp.constant(5)
 F_COL = wp.constant(6)  # the row's crank column (6 + leg; 5, below 6, for a torso corner: none)
-F_VEL = wp.constant(7)  # row velocity at the last iterate
+# 7: unused (the row velocity at the last iterate is PADMM state, in s1)
 F_P = wp.constant(8)  # preconditioner P
 F_R = wp.constant(9)  # compliance R (unscaled)
 F_FREE = wp.constant(10)  # free drive flag
@@ -322,7 +322,8 @@ class LeggedModel:
         self.mass = wp.zeros((W, NV * NV), dtype=float, device=d)
         self.mass_factor = wp.zeros((W, NV * NV), dtype=float, device=d)  # Cholesky factor of M
         self.factor = wp.zeros((W, NV * NV), dtype=float, device=d)  # of M + J^T S^-1 J
-        # PADMM's per-row state, loaded and stored 16 bytes at a time: (x, x before, b, S^-1 b) and
+        # PADMM's per-row state, loaded and stored 16 bytes at a time: (x, x before, b (the row's
+        # velocity at the last iterate between iterations), S^-1 b) and
         # (y, z, y and z before: extrapolated during an iteration)
         self.work = [wp.zeros((W, MAX_ROWS), dtype=wp.vec4, device=d) for _ in range(2)]
         self.row_inverse = wp.zeros((W, MAX_ROWS), dtype=float, device=d)  # 1 / S, for the Woodbury factor
@@ -874,7 +875,6 @@ def step_kernel(tiled: bool, phase: str = "all"):
                     set_row(rows, w, m, F_MU, -1.0)
                     set_row(rows, w, m, F_LO, -bound)
                     set_row(rows, w, m, F_HI, bound)
-                    set_row(rows, w, m, F_VEL, 0.0)
                     set_row(rows, w, m, F_COL, float(6 + li))
                     slot_of[w, m] = li
                     m += 1
@@ -952,7 +952,6 @@ def step_kernel(tiled: bool, phase: str = "all"):
                                 set_row(rows, w, m, F_R, 0.0)
                                 set_row(rows, w, m, F_RHS, vrow)
                                 set_row(rows, w, m, F_MU, mu)
-                                set_row(rows, w, m, F_VEL, 0.0)
                                 set_row(rows, w, m, F_COL, float(6 + leg))  # -1 + 6 < 6 for a torso corner
                                 slot_of[w, m] = MAX_LEGS + 3 * k + comp
                                 m += 1
@@ -1034,7 +1033,8 @@ def step_kernel(tiled: bool, phase: str = "all"):
                     pr = row_at(rows, w, i, F_P)
                     vc = (jrow_dot(J, w, i, n, my) + pr * pr * row_at(rows, w, i, F_R) * s2[w, i][0]
                           + row_at(rows, w, i, F_RHS))
-                    set_row(rows, w, i, F_VEL, vc)
+                    prior = s1[w, i]
+                    s1[w, i] = wp.vec4(prior[0], prior[1], vc, prior[3])
                     vels[c] = vc
                 shift = float(0.0)
                 if span == 3:
@@ -1062,8 +1062,8 @@ def step_kernel(tiled: bool, phase: str = "all"):
             # each lane takes units (a drive row or a contact triplet) lane, lane + lanes, ...: the
             # right-hand side b at the extrapolated (y, z) with the De Saxce shift from the velocity
             # at the last iterate, t = S^-1 b and its share of J^T t. A row's PADMM state is two
-            # vec4, (x, x before, b, t) and (y, z, y and z before), its fields three: each loaded
-            # once and stored once
+            # vec4, (x, x before, b or the row velocity, t) and (y, z, y and z before), its fields
+            # read from two (drive rows) or one: each loaded once and stored once
             gl = vecnv()
             unit = lane
             while unit < units:
@@ -1072,14 +1072,13 @@ def step_kernel(tiled: bool, phase: str = "all"):
                     a1 = s1[w, i]
                     a2 = s2[w, i]
                     f0 = rows[w, ROW_VECS * i]  # v_f, mu, penalty, 1 / S
-                    f1 = rows[w, ROW_VECS * i + 1]  # lower, upper, crank column, velocity
                     yh = a2[0] + beta * (a2[0] - a2[2])
                     zh = a2[1] + beta * (a2[1] - a2[3])
                     s2[w, i] = wp.vec4(a2[0], a2[1], yh, zh)  # the extrapolated pair during the iteration
                     bi = -f0[0] + eta * a1[0] + f0[2] * yh - zh
                     tv = bi * f0[3]
                     s1[w, i] = wp.vec4(a1[0], a1[0], bi, tv)
-                    gl = row_add(Jc, w, i, False, int(f1[2]), tv, gl)
+                    gl = row_add(Jc, w, i, False, 6 + i, tv, gl)  # drive row i turns leg i
                 else:
                     r0 = L + 3 * (unit - L)
                     bs = wp.vec3()
@@ -1093,13 +1092,12 @@ def step_kernel(tiled: bool, phase: str = "all"):
                         a1 = s1[w, i]
                         a2 = s2[w, i]
                         f0 = rows[w, ROW_VECS * i]
-                        f1 = rows[w, ROW_VECS * i + 1]
                         yh = a2[0] + beta * (a2[0] - a2[2])
                         zh = a2[1] + beta * (a2[1] - a2[3])
                         s2[w, i] = wp.vec4(a2[0], a2[1], yh, zh)
                         bs[c] = -f0[0] + eta * a1[0] + f0[2] * yh - zh
                         xs[c] = a1[0]
-                        vts[c] = f1[3]
+                        vts[c] = a1[2]  # the velocity at the last iterate
                         invs[c] = f0[3]
                     bs[0] = bs[0] - head[1] * wp.sqrt(vts[1] * vts[1] + vts[2] * vts[2])
                     for c in range(3):
@@ -1142,10 +1140,9 @@ def step_kernel(tiled: bool, phase: str = "all"):
                     f0 = rows[w, ROW_VECS * i]
                     f1 = rows[w, ROW_VECS * i + 1]
                     pen = f0[2]
-                    xr = a1[3] - row_dot(Jc, w, i, False, int(f1[2]), yv) * f0[3]
+                    xr = a1[3] - row_dot(Jc, w, i, False, 6 + i, yv) * f0[3]
                     yn = wp.clamp(xr + a2[3] / pen, f1[0], f1[1])
                     vd = a1[2] - (eta + pen) * xr + f0[0]
-                    rows[w, ROW_VECS * i + 1] = wp.vec4(f1[0], f1[1], f1[2], vd)
                     rn = wp.max(rn, wp.abs(xr - wp.clamp(xr - vd, f1[0], f1[1])))
                     zn = a2[3] + pen * (xr - yn)
                     dy = yn - a2[2]
@@ -1154,7 +1151,7 @@ def step_kernel(tiled: bool, phase: str = "all"):
                     rd = wp.max(rd, wp.abs(eta * (xr - a1[1]) + pen * dy))
                     change += pen * dy * dy + dz * dz / pen
                     s2[w, i] = wp.vec4(yn, zn, a2[0], a2[1])
-                    s1[w, i] = wp.vec4(xr, a1[1], a1[2], a1[3])
+                    s1[w, i] = wp.vec4(xr, a1[1], vd, a1[3])
                     ymax = wp.max(ymax, wp.abs(yn))
                 else:
                     r0 = L + 3 * (unit - L)
@@ -1189,10 +1186,8 @@ def step_kernel(tiled: bool, phase: str = "all"):
                     pj = project_cone(mu, xs[0] + zhs[0] / pen, xs[1] + zhs[1] / pen, xs[2] + zhs[2] / pen)
                     vel = wp.vec3()
                     for c in range(3):
-                        i = r0 + c
-                        f1 = rows[w, ROW_VECS * i + 1]
                         vel[c] = bs[c] - (eta + pen) * xs[c] + rhs[c]
-                        rows[w, ROW_VECS * i + 1] = wp.vec4(f1[0], f1[1], f1[2], vel[c])
+                    vels3 = wp.vec3(vel[0], vel[1], vel[2])  # kept for the next iteration's De Saxce shift
                     vel[0] = vel[0] + mu * wp.sqrt(vel[1] * vel[1] + vel[2] * vel[2])
                     nat = xs - project_cone(mu, xs[0] - vel[0], xs[1] - vel[1], xs[2] - vel[2])
                     rn = wp.max(rn, wp.max(wp.abs(nat[0]), wp.max(wp.abs(nat[1]), wp.abs(nat[2]))))
@@ -1206,7 +1201,7 @@ def step_kernel(tiled: bool, phase: str = "all"):
                         rd = wp.max(rd, wp.abs(eta * (xr - xps[c]) + pen * dy))
                         change += pen * dy * dy + dz * dz / pen
                         s2[w, r0 + c] = wp.vec4(yn, zn, yo[c], zo[c])
-                        s1[w, r0 + c] = wp.vec4(xr, xps[c], bs[c], ts[c])
+                        s1[w, r0 + c] = wp.vec4(xr, xps[c], vels3[c], ts[c])
                         ymax = wp.max(ymax, wp.abs(yn))
                 unit += lanes
             largest = reduce_max4(wp.vec4(rp, rd, rn, ymax))
