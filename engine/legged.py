@@ -322,9 +322,8 @@ class LeggedModel:
         self.mass = wp.zeros((W, NV * NV), dtype=float, device=d)
         self.mass_factor = wp.zeros((W, NV * NV), dtype=float, device=d)  # Cholesky factor of M
         self.factor = wp.zeros((W, NV * NV), dtype=float, device=d)  # of M + J^T S^-1 J
-        # PADMM's per-row state, loaded and stored 16 bytes at a time: (x, x before, b (the row's
-        # velocity at the last iterate between iterations), S^-1 b) and
-        # (y, z, y and z before: extrapolated during an iteration)
+        # PADMM's per-row state, loaded and stored 16 bytes at a time: (x, x before, the row's
+        # velocity at x, S^-1 b) and (y, z, y and z before)
         self.work = [wp.zeros((W, MAX_ROWS), dtype=wp.vec4, device=d) for _ in range(2)]
         self.row_inverse = wp.zeros((W, MAX_ROWS), dtype=float, device=d)  # 1 / S, for the Woodbury factor
         self.slot_of = wp.zeros((W, MAX_ROWS), dtype=wp.int32, device=d)
@@ -1062,8 +1061,9 @@ def step_kernel(tiled: bool, phase: str = "all"):
             # each lane takes units (a drive row or a contact triplet) lane, lane + lanes, ...: the
             # right-hand side b at the extrapolated (y, z) with the De Saxce shift from the velocity
             # at the last iterate, t = S^-1 b and its share of J^T t. A row's PADMM state is two
-            # vec4, (x, x before, b or the row velocity, t) and (y, z, y and z before), its fields
-            # read from two (drive rows) or one: each loaded once and stored once
+            # vec4, (x, x before, its velocity at x, t) and (y, z, y and z before), its fields
+            # read from two (drive rows) or one: each loaded once per pass, stored once (second
+            # pass only, which computes b and t again rather than read them back)
             gl = vecnv()
             unit = lane
             while unit < units:
@@ -1074,37 +1074,30 @@ def step_kernel(tiled: bool, phase: str = "all"):
                     f0 = rows[w, ROW_VECS * i]  # v_f, mu, penalty, 1 / S
                     yh = a2[0] + beta * (a2[0] - a2[2])
                     zh = a2[1] + beta * (a2[1] - a2[3])
-                    s2[w, i] = wp.vec4(a2[0], a2[1], yh, zh)  # the extrapolated pair during the iteration
                     bi = -f0[0] + eta * a1[0] + f0[2] * yh - zh
-                    tv = bi * f0[3]
-                    s1[w, i] = wp.vec4(a1[0], a1[0], bi, tv)
-                    gl = row_add(Jc, w, i, False, 6 + i, tv, gl)  # drive row i turns leg i
+                    gl = row_add(Jc, w, i, False, 6 + i, bi * f0[3], gl)  # drive row i turns leg i
                 else:
                     r0 = L + 3 * (unit - L)
+                    col = int(rows[w, ROW_VECS * r0 + 1][2])
+                    mu = float(0.0)
                     bs = wp.vec3()
-                    xs = wp.vec3()
                     vts = wp.vec3()
                     invs = wp.vec3()
-                    head = rows[w, ROW_VECS * r0]
-                    col = int(rows[w, ROW_VECS * r0 + 1][2])
                     for c in range(3):
                         i = r0 + c
                         a1 = s1[w, i]
                         a2 = s2[w, i]
                         f0 = rows[w, ROW_VECS * i]
+                        if c == 0:
+                            mu = f0[1]
                         yh = a2[0] + beta * (a2[0] - a2[2])
                         zh = a2[1] + beta * (a2[1] - a2[3])
-                        s2[w, i] = wp.vec4(a2[0], a2[1], yh, zh)
                         bs[c] = -f0[0] + eta * a1[0] + f0[2] * yh - zh
-                        xs[c] = a1[0]
                         vts[c] = a1[2]  # the velocity at the last iterate
                         invs[c] = f0[3]
-                    bs[0] = bs[0] - head[1] * wp.sqrt(vts[1] * vts[1] + vts[2] * vts[2])
+                    bs[0] = bs[0] - mu * wp.sqrt(vts[1] * vts[1] + vts[2] * vts[2])
                     for c in range(3):
-                        i = r0 + c
-                        tv = bs[c] * invs[c]
-                        s1[w, i] = wp.vec4(xs[c], xs[c], bs[c], tv)
-                        gl = row_add(Jc, w, i, True, col, tv, gl)
+                        gl = row_add(Jc, w, r0 + c, True, col, bs[c] * invs[c], gl)
                 unit += lanes
             # Woodbury: x = t - S^-1 J (M + J^T S^-1 J)^-1 J^T t, the small inverse applied by every lane
             # (symmetric: its lower triangle read once, four entries per load; the rows and columns
@@ -1130,7 +1123,8 @@ def step_kernel(tiled: bool, phase: str = "all"):
             change = float(0.0)
             unit = lane
             while unit < units:
-                # x, the projection of x + z / rho, the velocities at the new x, D x + v_f =
+                # b and t again as in the first pass (the state is not written there), x, the
+                # projection of x + z / rho, the velocities at the new x, D x + v_f =
                 # b - (eta + rho) x + v_f, the natural residual x - Pi(x - v^) (v^ with the De Saxce
                 # shift: in the dual cone at a solution), then y, z and the residuals
                 if unit < L:
@@ -1140,25 +1134,28 @@ def step_kernel(tiled: bool, phase: str = "all"):
                     f0 = rows[w, ROW_VECS * i]
                     f1 = rows[w, ROW_VECS * i + 1]
                     pen = f0[2]
-                    xr = a1[3] - row_dot(Jc, w, i, False, 6 + i, yv) * f0[3]
-                    yn = wp.clamp(xr + a2[3] / pen, f1[0], f1[1])
-                    vd = a1[2] - (eta + pen) * xr + f0[0]
+                    yh = a2[0] + beta * (a2[0] - a2[2])
+                    zh = a2[1] + beta * (a2[1] - a2[3])
+                    bi = -f0[0] + eta * a1[0] + pen * yh - zh
+                    tv = bi * f0[3]
+                    xr = tv - row_dot(Jc, w, i, False, 6 + i, yv) * f0[3]
+                    yn = wp.clamp(xr + zh / pen, f1[0], f1[1])
+                    vd = bi - (eta + pen) * xr + f0[0]
                     rn = wp.max(rn, wp.abs(xr - wp.clamp(xr - vd, f1[0], f1[1])))
-                    zn = a2[3] + pen * (xr - yn)
-                    dy = yn - a2[2]
-                    dz = zn - a2[3]
+                    zn = zh + pen * (xr - yn)
+                    dy = yn - yh
+                    dz = zn - zh
                     rp = wp.max(rp, wp.abs(xr - yn))
-                    rd = wp.max(rd, wp.abs(eta * (xr - a1[1]) + pen * dy))
+                    rd = wp.max(rd, wp.abs(eta * (xr - a1[0]) + pen * dy))
                     change += pen * dy * dy + dz * dz / pen
                     s2[w, i] = wp.vec4(yn, zn, a2[0], a2[1])
-                    s1[w, i] = wp.vec4(xr, a1[1], vd, a1[3])
+                    s1[w, i] = wp.vec4(xr, a1[0], vd, tv)
                     ymax = wp.max(ymax, wp.abs(yn))
                 else:
                     r0 = L + 3 * (unit - L)
-                    head = rows[w, ROW_VECS * r0]
-                    mu = head[1]
-                    pen = head[2]
                     col = int(rows[w, ROW_VECS * r0 + 1][2])
+                    mu = float(0.0)
+                    pen = float(0.0)
                     xs = wp.vec3()
                     xps = wp.vec3()
                     bs = wp.vec3()
@@ -1168,21 +1165,31 @@ def step_kernel(tiled: bool, phase: str = "all"):
                     yhs = wp.vec3()
                     zhs = wp.vec3()
                     rhs = wp.vec3()
+                    vts = wp.vec3()
+                    invs = wp.vec3()
                     for c in range(3):
                         i = r0 + c
                         a1 = s1[w, i]
                         a2 = s2[w, i]
                         f0 = rows[w, ROW_VECS * i]
+                        if c == 0:
+                            mu = f0[1]
+                            pen = f0[2]
+                        yh = a2[0] + beta * (a2[0] - a2[2])
+                        zh = a2[1] + beta * (a2[1] - a2[3])
+                        bs[c] = -f0[0] + eta * a1[0] + f0[2] * yh - zh
+                        vts[c] = a1[2]
+                        invs[c] = f0[3]
                         rhs[c] = f0[0]
-                        xr = a1[3] - row_dot(Jc, w, i, True, col, yv) * f0[3]
-                        xs[c] = xr
-                        xps[c] = a1[1]
-                        bs[c] = a1[2]
-                        ts[c] = a1[3]
+                        xps[c] = a1[0]
                         yo[c] = a2[0]
                         zo[c] = a2[1]
-                        yhs[c] = a2[2]
-                        zhs[c] = a2[3]
+                        yhs[c] = yh
+                        zhs[c] = zh
+                    bs[0] = bs[0] - mu * wp.sqrt(vts[1] * vts[1] + vts[2] * vts[2])
+                    for c in range(3):
+                        ts[c] = bs[c] * invs[c]
+                        xs[c] = ts[c] - row_dot(Jc, w, r0 + c, True, col, yv) * invs[c]
                     pj = project_cone(mu, xs[0] + zhs[0] / pen, xs[1] + zhs[1] / pen, xs[2] + zhs[2] / pen)
                     vel = wp.vec3()
                     for c in range(3):
