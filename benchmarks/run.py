@@ -14,7 +14,9 @@ Scenes and settings are data (benchmarks/scenes.py). Per scene:
   body's centre of mass from the reference at records every 50 ms; the reference is MuJoCo C
   (float64, RK4 at dt / 20, the MJCF export) when installed, else our engine at dt / 10 with
   tolerance 1e-9 and 4 projections; run time as wall seconds per simulated second of the batch;
-- peers (--peers): MuJoCo Warp (benchmarks/peers.py) with the same errors measured the same way.
+- peers (--peers): MuJoCo Warp (benchmarks/peers.py, from our MJCF export) with the same errors
+  measured the same way; on scenes read from a USD file (DR Legs) Newton's SolverKamino and
+  SolverMuJoCo on Newton's own import of the same file (benchmarks/peers_newton.py).
 Writes <out>/<scene>.json (device, versions, command, every configuration), <scene>.csv and
 <scene>.png (throughput and work-precision, ours and the peers' on the same axes); prints one JSON
 line per configuration. --quick: small batches and short runs (CPU, CI).
@@ -172,11 +174,37 @@ def run_scene(name: str, declared: Declared, args) -> dict:
         if args.peers and declared.peers and peer_reason is None:
             result["peers"] += peer_precision(specs, scene, worlds, dt, duration, record_dt, reference, args)
     if args.peers and declared.peers and "throughput" in args.parts:
-        if peer_reason is not None:
+        if scene.usd is not None:
+            result["peers"] += newton_throughput(scene, worlds_list[-2:], dt, steps, args)
+        elif peer_reason is not None:
             result["peers"].append({"engine": "mujoco_warp", "error": peer_reason})
         else:
             result["peers"] += peer_throughput(specs, worlds_list[-2:], dt, steps, args)
     return result
+
+
+def newton_throughput(scene, worlds_list, dt, steps, args) -> list:
+    """Kamino and MuJoCo Warp through Newton on a scene read from a USD file, Newton loading the
+    same file (benchmarks/peers_newton.py)."""
+    from benchmarks.peers_newton import available, joint_parameters, newton_drlegs_run
+
+    reason = available()
+    if reason is not None:
+        return [{"engine": engine, "error": reason} for engine in ("kamino", "mujoco_warp")]
+    joints = joint_parameters(scene.specs[0])
+    rows = []
+    for solver, label in (("mujoco", "MuJoCo Warp (Newton)"), ("kamino", "Kamino (Newton)")):
+        for worlds in worlds_list:
+            try:
+                row = newton_drlegs_run(scene.usd, standing=scene.standing, solver=solver, worlds=worlds, dt=dt,
+                                        steps=steps, record_every=10, device=args.device, joints=joints)
+            except Exception as exc:  # noqa: BLE001  (a peer failing is a result, not a crash of the benchmark)
+                row = {"engine": "kamino" if solver == "kamino" else "mujoco_warp", "num_worlds": worlds,
+                       "error": repr(exc)}
+            row.update(kind="throughput", label=label)
+            rows.append(row)
+            print(json.dumps(row, default=str), flush=True)
+    return rows
 
 
 def reference_run(specs, scene, duration, record_dt, dt, declared, args):
@@ -189,7 +217,8 @@ def reference_run(specs, scene, duration, record_dt, dt, declared, args):
         t0 = time.perf_counter()
         positions = mujoco_reference(specs, duration=duration, record_dt=record_dt, dt=dt / 20)
         return positions, {"engine": "mujoco C (float64)", "integrator": "RK4", "dt": dt / 20,
-                           "loops": "MJCF export equality constraints, time constant 2 dt", "run_s": time.perf_counter() - t0}
+                           "loops": "MJCF export equality constraints, time constant 2 dt",
+                           "run_s": time.perf_counter() - t0}
     except ImportError:
         ref_dt = dt / 10
         ref = declared.reference
@@ -310,7 +339,8 @@ def main(argv=None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     parser.add_argument("--quick", action="store_true", help="small batches and short runs (CPU, CI)")
-    parser.add_argument("--peers", action="store_true", help="also run MuJoCo Warp on the same mechanisms")
+    parser.add_argument("--peers", action="store_true",
+                        help="also run the peers (MuJoCo Warp; Kamino on USD scenes) on the same mechanisms")
     parser.add_argument("--parts", nargs="+", choices=["throughput", "precision"], default=["throughput", "precision"],
                         help="what to measure (default both)")
     parser.add_argument("--only", nargs="+", choices=sorted(SCENES_DECLARED), default=None, help="scenes to run")

@@ -26,6 +26,8 @@ class BenchScene:
     specs: list[MechanismSpec]
     potential_min: np.ndarray | None
     note: str
+    usd: pathlib.Path | None = None  # the file the scene was read from (peers through Newton load it too)
+    standing: bool = False
 
 
 def _engine_scenes(names) -> BenchScene:
@@ -46,9 +48,15 @@ def dr_legs_path(assets: str | None = None) -> pathlib.Path | None:
     return None
 
 
-def dr_legs(standing: bool, assets: str | None = None) -> BenchScene:
+# Newton's DR Legs example (examples/kamino/example_kamino_robot_dr_legs.py): PD gains 10 N m/rad and
+# 2 N m s/rad on the 12 drives, armature 0.011 kg m^2 and damping 0.044 N m s/rad on every joint
+NEWTON_EXAMPLE_JOINTS = dict(stiffness=10.0, drive_damping=2.0, armature=0.011, damping=0.044)
+
+
+def dr_legs(standing: bool, assets: str | None = None, joints: dict | None = None) -> BenchScene:
     """DR Legs from its USD file through morphopt's import: standing on its PD drives on the
-    ground, or hanging passively from a welded pelvis (no drives, no contacts)."""
+    ground, or hanging passively from a welded pelvis (no drives, no contacts). ``joints`` replaces
+    the file's drive gains and gives every joint an armature and damping (NEWTON_EXAMPLE_JOINTS)."""
     from morphopt.formats.usd import read_usd
 
     path = dr_legs_path(assets)
@@ -57,14 +65,24 @@ def dr_legs(standing: bool, assets: str | None = None) -> BenchScene:
     if standing:
         spec = read_usd(path, origin=(0.0, 0.0, 0.265))
         spec = dataclasses.replace(spec, ground=GroundPlane())
-        return BenchScene([spec], None, "DR Legs standing on its 12 PD drives (file gains), ground contact")
+        note = "DR Legs standing on its 12 PD drives (file gains), ground contact"
+        if joints is not None:
+            spec = dataclasses.replace(spec, joints=[dataclasses.replace(
+                j, armature=joints["armature"], damping=joints["damping"],
+                drive=None if j.drive is None else dataclasses.replace(
+                    j.drive, stiffness=joints["stiffness"], damping=joints["drive_damping"]))
+                for j in spec.joints])
+            note = ("DR Legs standing as in Newton's example: PD gains {stiffness} / {drive_damping}, armature "
+                    "{armature} and damping {damping} on every joint, ground contact").format(**joints)
+        return BenchScene([spec], None, note, usd=path, standing=True)
     spec = read_usd(path, origin=(0.0, 0.0, 0.5))
     pelvis = spec.bodies[spec.body_index["pelvis"]]
     joints = [dataclasses.replace(j, drive=None) for j in spec.joints]
     joints.append(Joint("weld", "fixed", None, "pelvis", parent_position=pelvis.position,
                         parent_orientation=pelvis.orientation))
     spec = dataclasses.replace(spec, joints=joints, shapes=[])
-    return BenchScene([spec], None, "DR Legs hanging passively from a welded pelvis (36 revolute joints, 6 loops)")
+    return BenchScene([spec], None, "DR Legs hanging passively from a welded pelvis (36 revolute joints, 6 loops)",
+                      usd=path)
 
 
 def walkers(count: int = 64, seed: int = 1) -> BenchScene:
@@ -104,7 +122,7 @@ class Declared:
     reference: dict = field(default_factory=dict)
     throughput_steps: int = 300
     record_dt: float = 0.05
-    peers: bool = False
+    peers: bool = False  # MuJoCo Warp from the MJCF export, or both Newton peers where the scene has a USD file
     quick_worlds: list[int] = field(default_factory=lambda: [1, 8])
 
 
@@ -141,4 +159,7 @@ SCENES_DECLARED = {
     "drlegs_standing": Declared(lambda assets: dr_legs(True, assets), dt=1e-2, duration=0.0,
                                 throughput_worlds=[1, 1024, 4096], precision_worlds=0, throughput_steps=50,
                                 peers=True, quick_worlds=[1]),
+    "drlegs_standing_newton": Declared(lambda assets: dr_legs(True, assets, NEWTON_EXAMPLE_JOINTS), dt=1e-2,
+                                       duration=0.0, throughput_worlds=[1, 1024, 4096], precision_worlds=0,
+                                       throughput_steps=50, peers=True, quick_worlds=[1]),
 }
