@@ -142,3 +142,46 @@ def test_legged_precision_compares_the_study_and_settings_with_the_reference(tmp
     rows = pd.read_csv(tmp_path / "legged_precision_cpu.csv.gz")
     assert len(rows) == 4 * 3 and set(rows["design"]) == {0, 1, 2}
     assert (tmp_path / "legged_precision_cpu.png").stat().st_size > 1000
+
+
+def test_newton_peer_quaternion_helpers_match_rotation_matrices():
+    """The Newton peer's error metric rotates anchors and multiplies quaternions (x, y, z, w) in
+    NumPy: checked against rotation matrices built from the axis-angle formula."""
+    from benchmarks.peers_newton import _multiply, _rotate
+
+    rng = np.random.default_rng(3)
+
+    def matrix(q):
+        x, y, z, w = q
+        return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+    q = rng.normal(size=(5, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    p = rng.normal(size=(5, 4))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    v = rng.normal(size=(5, 3))
+    for k in range(5):
+        assert np.allclose(_rotate(q[k], v[k]), matrix(q[k]) @ v[k], atol=1e-12)
+        assert np.allclose(matrix(_multiply(q[k], p[k])), matrix(q[k]) @ matrix(p[k]), atol=1e-12)
+    assert np.allclose(_rotate(q, v), np.stack([matrix(q[k]) @ v[k] for k in range(5)]), atol=1e-12)
+
+
+def test_newton_peer_takes_the_joint_settings_of_our_spec_and_names_a_spec_it_cannot_take():
+    from benchmarks.peers_newton import joint_parameters
+    from engine import JointDrive
+    from engine.scenes import make_scene
+    import dataclasses
+
+    spec = make_scene("fourbar").spec
+    drive = JointDrive(stiffness=10.0, damping=2.0, effort_limit=5.0)
+    joints = [dataclasses.replace(j, armature=0.01, damping=0.04, drive=drive if k == 0 else None)
+              for k, j in enumerate(spec.joints)]
+    params = joint_parameters(dataclasses.replace(spec, joints=joints))
+    assert params == {"stiffness": 10.0, "damping": 2.0, "effort_limit": 5.0, "armature": 0.01,
+                      "joint_damping": 0.04, "driven": True}
+    assert joint_parameters(spec)["driven"] is False
+    joints[1] = dataclasses.replace(joints[1], armature=0.02)
+    with pytest.raises(ValueError, match=spec.name):
+        joint_parameters(dataclasses.replace(spec, joints=joints))
