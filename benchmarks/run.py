@@ -7,6 +7,8 @@ MuJoCo Warp on the same mechanisms in the same run (--peers).
 Scenes and settings are data (benchmarks/scenes.py). Per scene:
 - throughput: world-steps/s at each batch size of the scene (default solver settings), CUDA graphs
   of 10 steps (engine.rollout.Stepper), median time per step after the compile and capture chunks;
+  memory: the engine's arrays (model, workspace, states) and, on CUDA, the growth of Warp's memory
+  pool over the run (graphs and scratch included; the peers' the same way);
 - work-precision (linkage scenes): each setting of the sweep (dt, step kernel, linear solver,
   tolerance, stabilization, integrator) simulates the scene's duration on the precision batch;
   errors: largest loop-closure violation [m] over all worlds and records, energy drift
@@ -58,11 +60,41 @@ def versions() -> dict:
     return {"warp": wp.config.version, "numpy": np.__version__, "python": platform.python_version()}
 
 
+def array_megabytes(*objects) -> float:
+    """Megabytes held by the Warp arrays that are attributes of ``objects`` (one level of nested
+    objects and dataclasses, e.g. Model.work and the sparse patterns), each array counted once."""
+    seen, total = set(), 0
+
+    def visit(obj, depth):
+        nonlocal total
+        for value in vars(obj).values() if hasattr(obj, "__dict__") else ():
+            if isinstance(value, wp.array):
+                if id(value) not in seen:
+                    seen.add(id(value))
+                    total += value.capacity
+            elif depth > 0 and hasattr(value, "__dict__") and not isinstance(value, type):
+                visit(value, depth - 1)
+
+    for obj in objects:
+        visit(obj, 2)
+    return total / 2**20
+
+
+def mempool_megabytes(device: str) -> float | None:
+    """Device memory in use from Warp's CUDA memory pool [MB] (None on the CPU)."""
+    dev = wp.get_device(device)
+    if not dev.is_cuda or not wp.is_mempool_enabled(dev):
+        return None
+    return wp.get_mempool_used_mem_current(dev) / 2**20
+
+
 def engine_run(specs, worlds: int, dt: float, steps: int, record_every: int, config: SolverConfig, device: str,
                sample: np.ndarray, potential_min=None) -> dict:
     """Simulate ``worlds`` worlds (cycling through ``specs``); time every chunk of ``record_every``
     steps after the first two (compile, capture); record errors and sample positions per chunk."""
     batch = [specs[w % len(specs)] for w in range(worlds)]
+    wp.synchronize_device(device)
+    pool_before = mempool_megabytes(device)
     t0 = time.perf_counter()
     model = pack_worlds(batch, device=device, config=config, dt=dt)
     pack_s = time.perf_counter() - t0
@@ -95,6 +127,7 @@ def engine_run(specs, worlds: int, dt: float, steps: int, record_every: int, con
     timed = times[2:] if len(times) > 2 else times
     step_s = float(np.median(timed))
     solved = np.maximum(stepper.solved_steps.numpy(), 1)
+    pool_after = mempool_megabytes(device)
     return {
         "num_worlds": worlds, "dt": dt, "steps": done, "step_ms_median": step_s * 1e3,
         "world_steps_per_s": worlds / step_s, "wall_s_per_simulated_s": step_s / dt,
@@ -108,6 +141,8 @@ def engine_run(specs, worlds: int, dt: float, steps: int, record_every: int, con
         "step_kernel": model.step_kernel, "linear_solver": model.linear_solver, "max_rows": model.max_rows,
         "fused_block": model.fused_block, "cuda_graph": bool(stepper.capture),
         "positions": np.array(positions), "run_s": time.perf_counter() - t_first,
+        "engine_arrays_mb": array_megabytes(model, model.work, stepper, *stepper._buffers),
+        "device_memory_mb": None if pool_before is None else pool_after - pool_before,
     }
 
 
@@ -276,7 +311,8 @@ def peer_throughput(specs, worlds_list, dt, steps, args) -> list:
     return rows
 
 
-CSV_FIELDS = ["kind", "engine", "label", "integrator", "num_worlds", "dt", "steps", "step_ms_median",
+CSV_FIELDS = ["kind", "engine", "label", "integrator", "num_worlds", "dt", "steps", "step_ms_median", "device_memory_mb",
+              "engine_arrays_mb",
               "world_steps_per_s", "wall_s_per_simulated_s", "loop_error_m", "loop_error_rad", "energy_drift_rel",
               "trajectory_error_m", "padmm_iterations_mean", "padmm_iterations_max", "step_kernel", "linear_solver",
               "max_rows", "diverged_worlds", "error"]

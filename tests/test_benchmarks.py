@@ -53,6 +53,9 @@ def test_benchmark_runner_quick_fourbar_writes_results_with_a_float64_reference(
     assert rows["dt x4"]["trajectory_error_m"] > 10 * rows["default"]["trajectory_error_m"]
     for ext in ("csv", "png"):
         assert (tmp_path / f"fourbar.{ext}").stat().st_size > 0
+    # memory: the engine's arrays grow with the batch (the CPU has no memory pool to read)
+    memory = {r["num_worlds"]: r["engine_arrays_mb"] for r in result["throughput"]}
+    assert 0 < memory[1] < memory[8] and all(r["device_memory_mb"] is None for r in result["throughput"])
 
 
 def test_mujoco_warp_capacities_cover_a_host_rollout():
