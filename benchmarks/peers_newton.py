@@ -240,7 +240,8 @@ def newton_drlegs_run(path, *, standing: bool, solver: str, worlds: int, dt: flo
                "steps": done, "step_ms_median": step_s * 1e3, "world_steps_per_s": worlds / step_s,
                "wall_s_per_simulated_s": step_s / dt, "loop_error_m": loop_m, "loop_error_rad": loop_rad,
                "joint_error_m": joint_m, "finite": finite,
-               "device_memory_mb": (wp.get_mempool_used_mem_current(dev) - pool_before) / 2**20 if pool else None, "first_step_s": first_s, "setup_s": setup_s,
+               "device_memory_mb": (wp.get_mempool_used_mem_current(dev) - pool_before) / 2**20 if pool else None,
+               "first_step_s": first_s, "setup_s": setup_s,
                "cuda_graph": graph is not None, "settings": settings, "joints": joints,
                "loop_joints_per_world": int(errors.loop.sum()) // worlds,
                "newton_version": getattr(newton, "__version__", "?")}

@@ -311,8 +311,8 @@ def peer_throughput(specs, worlds_list, dt, steps, args) -> list:
     return rows
 
 
-CSV_FIELDS = ["kind", "engine", "label", "integrator", "num_worlds", "dt", "steps", "step_ms_median", "device_memory_mb",
-              "engine_arrays_mb",
+CSV_FIELDS = ["kind", "engine", "label", "integrator", "num_worlds", "dt", "steps", "step_ms_median",
+              "device_memory_mb", "engine_arrays_mb",
               "world_steps_per_s", "wall_s_per_simulated_s", "loop_error_m", "loop_error_rad", "energy_drift_rel",
               "trajectory_error_m", "padmm_iterations_mean", "padmm_iterations_max", "step_kernel", "linear_solver",
               "max_rows", "diverged_worlds", "error"]
