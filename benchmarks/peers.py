@@ -64,6 +64,10 @@ def mujoco_warp_run(spec, *, worlds: int, dt: float, steps: int, record_every: i
     device_model = mujoco.MjModel.from_xml_string(xml)
     body_ids = [mujoco.mj_name2id(host_model, mujoco.mjtObj.mjOBJ_BODY, n) for n in body_names]
     has_contacts = bool(spec.shapes)
+    dev = wp.get_device(device)
+    pool = dev.is_cuda and wp.is_mempool_enabled(dev)
+    wp.synchronize_device(device)
+    pool_before = wp.get_mempool_used_mem_current(dev) if pool else 0
     with wp.ScopedDevice(device):
         t0 = time.perf_counter()
         model = mjw.put_model(device_model)
@@ -124,12 +128,13 @@ def mujoco_warp_run(spec, *, worlds: int, dt: float, steps: int, record_every: i
             done += record_every
             measure()
         finite = bool(np.all(np.isfinite(data.qpos.numpy())))
+        memory = (wp.get_mempool_used_mem_current(dev) - pool_before) / 2**20 if pool else None
     energies = np.array(energies)
     return {
         "engine": f"mujoco_warp {mjw.__version__}", "integrator": integrator, "num_worlds": worlds, "dt": dt,
         "steps": done, "compile_s": compile_s, "step_ms_median": float(np.median(chunk_times) * 1e3),
         "world_steps_per_s": worlds / float(np.median(chunk_times)), "loop_error_m": float(max(loop_error)),
-        "energy": energies, "positions": np.array(positions), "finite": finite,
+        "energy": energies, "positions": np.array(positions), "finite": finite, "device_memory_mb": memory,
         "versions": {"mujoco": mujoco.__version__, "mujoco_warp": mjw.__version__},
         "solver": {"solver": int(device_model.opt.solver), "iterations": int(device_model.opt.iterations),
                    "tolerance": float(device_model.opt.tolerance), "cone": int(device_model.opt.cone),
