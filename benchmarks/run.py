@@ -337,7 +337,8 @@ def plot(result: dict, path: pathlib.Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = 3 if result["precision"] else 1
+    peer_rows = [r for r in result["peers"] if r.get("kind") == "throughput" and "error" not in r]
+    panels = 3 if result["precision"] else (2 if peer_rows else 1)
     fig, axes = plt.subplots(1, panels, figsize=(5.2 * panels, 4.0), squeeze=False)
     ax = axes[0, 0]
     ours = [r for r in result["throughput"] if "error" not in r]
@@ -350,6 +351,21 @@ def plot(result: dict, path: pathlib.Path) -> None:
     ax.set_title(f"{result['scene']}: throughput")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
+    if not result["precision"] and peer_rows:  # time per step against loop error, each engine's batches
+        ax = axes[0, 1]
+        engines = [("morphopt", ours)] + [(label, [r for r in peer_rows if r.get("label") == label])
+                                          for label in sorted({r["label"] for r in peer_rows})]
+        for k, (label, rows) in enumerate(engines):
+            rows = [r for r in rows if r.get("loop_error_m") is not None]
+            ax.loglog([r["step_ms_median"] for r in rows], [max(r["loop_error_m"], 1e-9) for r in rows],
+                      "o" if k == 0 else "s", color=f"C{k}", label=label)
+            for r in rows:
+                ax.annotate(f"{r['num_worlds']}", (r["step_ms_median"], max(r["loop_error_m"], 1e-9)), fontsize=6)
+        ax.set_xlabel("ms per step (labels: worlds)")
+        ax.set_ylabel("loop-closure error [m]")
+        ax.set_title(f"{result['scene']}: error against time per step", fontsize=8)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
     if result["precision"]:
         for ax, key, unit in ((axes[0, 1], "trajectory_error_m", "trajectory error [m]"),
                               (axes[0, 2], "loop_error_m", "loop-closure error [m]")):
