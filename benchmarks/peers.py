@@ -64,10 +64,9 @@ def mujoco_warp_run(spec, *, worlds: int, dt: float, steps: int, record_every: i
     device_model = mujoco.MjModel.from_xml_string(xml)
     body_ids = [mujoco.mj_name2id(host_model, mujoco.mjtObj.mjOBJ_BODY, n) for n in body_names]
     has_contacts = bool(spec.shapes)
-    dev = wp.get_device(device)
-    pool = dev.is_cuda and wp.is_mempool_enabled(dev)
-    wp.synchronize_device(device)
-    pool_before = wp.get_mempool_used_mem_current(dev) if pool else 0
+    from benchmarks.run import mempool_megabytes
+
+    pool_before = mempool_megabytes(device)
     with wp.ScopedDevice(device):
         t0 = time.perf_counter()
         model = mjw.put_model(device_model)
@@ -128,7 +127,7 @@ def mujoco_warp_run(spec, *, worlds: int, dt: float, steps: int, record_every: i
             done += record_every
             measure()
         finite = bool(np.all(np.isfinite(data.qpos.numpy())))
-        memory = (wp.get_mempool_used_mem_current(dev) - pool_before) / 2**20 if pool else None
+        memory = None if pool_before is None else mempool_megabytes(device) - pool_before
     energies = np.array(energies)
     return {
         "engine": f"mujoco_warp {mjw.__version__}", "integrator": integrator, "num_worlds": worlds, "dt": dt,

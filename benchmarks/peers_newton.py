@@ -22,6 +22,8 @@ import time
 
 import numpy as np
 
+from engine.pack import _rotate  # row-wise rotation of (N, 3) vectors by (N, 4) quaternions (x, y, z, w)
+
 __all__ = ["available", "joint_parameters", "newton_drlegs_run"]
 
 
@@ -51,15 +53,9 @@ def joint_parameters(spec) -> dict:
             "armature": float(armature), "joint_damping": float(joint_damping), "driven": bool(drives)}
 
 
-def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Rotate vectors v by unit quaternions q (x, y, z, w), row by row."""
-    u, w = q[..., :3], q[..., 3:4]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
-
-
 def _multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Quaternion products a b (x, y, z, w), row by row."""
+    """Quaternion products a b (x, y, z, w), row by row (the row-wise counterpart of the single
+    product in morphopt.formats.usd)."""
     av, aw = a[..., :3], a[..., 3:4]
     bv, bw = b[..., :3], b[..., 3:4]
     return np.concatenate([aw * bv + bw * av + np.cross(av, bv), aw * bw - np.sum(av * bv, -1, keepdims=True)], -1)
@@ -175,10 +171,9 @@ def newton_drlegs_run(path, *, standing: bool, solver: str, worlds: int, dt: flo
     import newton
     import warp as wp
 
-    dev = wp.get_device(device)
-    pool = dev.is_cuda and wp.is_mempool_enabled(dev)
-    wp.synchronize_device(device)
-    pool_before = wp.get_mempool_used_mem_current(dev) if pool else 0
+    from benchmarks.run import mempool_megabytes
+
+    pool_before = mempool_megabytes(device)
     t0 = time.perf_counter()
     with wp.ScopedDevice(device):
         model = _build(path, standing, worlds, joints, device)
@@ -240,7 +235,7 @@ def newton_drlegs_run(path, *, standing: bool, solver: str, worlds: int, dt: flo
                "steps": done, "step_ms_median": step_s * 1e3, "world_steps_per_s": worlds / step_s,
                "wall_s_per_simulated_s": step_s / dt, "loop_error_m": loop_m, "loop_error_rad": loop_rad,
                "joint_error_m": joint_m, "finite": finite,
-               "device_memory_mb": (wp.get_mempool_used_mem_current(dev) - pool_before) / 2**20 if pool else None,
+               "device_memory_mb": None if pool_before is None else mempool_megabytes(device) - pool_before,
                "first_step_s": first_s, "setup_s": setup_s,
                "cuda_graph": graph is not None, "settings": settings, "joints": joints,
                "loop_joints_per_world": int(errors.loop.sum()) // worlds,

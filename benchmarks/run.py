@@ -81,10 +81,12 @@ def array_megabytes(*objects) -> float:
 
 
 def mempool_megabytes(device: str) -> float | None:
-    """Device memory in use from Warp's CUDA memory pool [MB] (None on the CPU)."""
+    """Device memory in use from Warp's CUDA memory pool [MB] once the device is idle (None on the
+    CPU); the peers measure theirs with it too."""
     dev = wp.get_device(device)
     if not dev.is_cuda or not wp.is_mempool_enabled(dev):
         return None
+    wp.synchronize_device(dev)
     return wp.get_mempool_used_mem_current(dev) / 2**20
 
 
@@ -93,7 +95,6 @@ def engine_run(specs, worlds: int, dt: float, steps: int, record_every: int, con
     """Simulate ``worlds`` worlds (cycling through ``specs``); time every chunk of ``record_every``
     steps after the first two (compile, capture); record errors and sample positions per chunk."""
     batch = [specs[w % len(specs)] for w in range(worlds)]
-    wp.synchronize_device(device)
     pool_before = mempool_megabytes(device)
     t0 = time.perf_counter()
     model = pack_worlds(batch, device=device, config=config, dt=dt)

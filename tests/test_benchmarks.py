@@ -165,9 +165,9 @@ def test_newton_peer_quaternion_helpers_match_rotation_matrices():
     p = rng.normal(size=(5, 4))
     p /= np.linalg.norm(p, axis=1, keepdims=True)
     v = rng.normal(size=(5, 3))
+    products = _multiply(q, p)
     for k in range(5):
-        assert np.allclose(_rotate(q[k], v[k]), matrix(q[k]) @ v[k], atol=1e-12)
-        assert np.allclose(matrix(_multiply(q[k], p[k])), matrix(q[k]) @ matrix(p[k]), atol=1e-12)
+        assert np.allclose(matrix(products[k]), matrix(q[k]) @ matrix(p[k]), atol=1e-12)
     assert np.allclose(_rotate(q, v), np.stack([matrix(q[k]) @ v[k] for k in range(5)]), atol=1e-12)
 
 
