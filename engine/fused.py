@@ -26,6 +26,7 @@ fit ``FUSED_MAX_ROWS``; SolverConfig.step_kernel chooses: "auto" (fused where it
 
 from typing import Any
 
+import numpy as np
 import warp as wp
 
 from engine.dynamics import body_term, free_velocity_of, row_operator_of
@@ -54,7 +55,8 @@ from engine.padmm import (
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
-__all__ = ["FUSED_MAX_ROWS", "FUSED_REGISTERS", "fused_block", "fused_fits", "fused_step"]
+__all__ = ["FUSED_MAX_ROWS", "FUSED_REGISTERS", "STAGES", "fused_block", "fused_fits", "fused_inverse", "fused_profile",
+           "fused_step"]
 
 FUSED_MAX_ROWS = 64
 FUSED_REGISTERS = 128  # register cap per thread: 158 uncapped leave 12 worlds per SM, 128 allow 16
@@ -264,6 +266,57 @@ def cholesky_solve_lanes(world: int, lane: int, lanes: int, n: int, factor: Any,
 
 
 @wp.func
+def triangular_inverse_lanes(lane: int, lanes: int, n: int, factor: Any, inverse: Any):
+    """G = L^-1 of the world's n x n lower factor into the shared tile ``inverse`` (its lower
+    triangle), the lanes taking one column each by forward substitution on a unit vector. Entered
+    after a barrier; leaves a barrier behind."""
+    for j in range(lane, n, lanes):
+        tile_set(inverse, j, j, 1.0 / factor[j, j])
+        for i in range(j + 1, n):
+            s = float(0.0)
+            for k in range(j, i):
+                s += factor[i, k] * inverse[k, j]
+            tile_set(inverse, i, j, -s / factor[i, i])
+    block_sync()
+
+
+@wp.func
+def inverse_solve_lanes(world: int, lane: int, lanes: int, n: int, inverse: Any, rhs: wp.array2d(dtype=float),
+                        x: wp.array2d(dtype=float), acc: Any, sol: Any):
+    """x = G^T (G rhs) = (L L^T)^-1 rhs with G = L^-1 (triangular_inverse_lanes): two triangular
+    products, each lane forming whole entries (no chain of dependent substitution steps). Entered
+    after a barrier; leaves x written and a barrier behind."""
+    for i in range(lane, n, lanes):
+        tile_set(acc, i, rhs[world, i])
+    block_sync()
+    for i in range(lane, n, lanes):  # y = G rhs
+        s = float(0.0)
+        for k in range(i + 1):
+            s += inverse[i, k] * acc[k]
+        tile_set(sol, i, s)
+    block_sync()
+    for k in range(lane, n, lanes):  # x = G^T y, also into acc
+        s = float(0.0)
+        for i in range(k, n):
+            s += inverse[i, k] * sol[i]
+        x[world, k] = s
+    block_sync()
+
+
+# On a GPU, worlds padded to at most this many rows solve with G = L^-1 (fused_inverse). NVIDIA H100,
+# four-bar (24 rows), one world: 5 solves 95 k -> 17 k cycles, the factor 26 k -> 40 k with G.
+INVERSE_MAX_ROWS = 32
+
+
+def fused_inverse(device, max_rows: int) -> bool:
+    """Whether the fused step solves through G = L^-1 instead of substituting: on a GPU, where a
+    substitution is a chain of 2 n dependent steps and a product with G none, for padded problems
+    of at most INVERSE_MAX_ROWS rows (G takes a third matrix tile of shared memory). On the CPU a
+    block is one thread and forming G only adds work."""
+    return wp.get_device(device).is_cuda and max_rows <= INVERSE_MAX_ROWS
+
+
+@wp.func
 def delassus_lower_of(world: int, i: int, row_body_p: wp.array2d(dtype=wp.int32),
                       row_body_c: wp.array2d(dtype=wp.int32), row_J_c: wp.array2d(dtype=wp.spatial_vector),
                       row_J_p: wp.array2d(dtype=wp.spatial_vector), row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
@@ -293,12 +346,45 @@ def delassus_lower_of(world: int, i: int, row_body_p: wp.array2d(dtype=wp.int32)
         tile_set(matrix, j, i, value)
 
 
+_CLOCK = """
+#if defined(__CUDA_ARCH__)
+return clock64();
+#else
+return int64_t(0);
+#endif
+"""
+
+
+@wp.func_native(_CLOCK)
+def clock() -> wp.int64:
+    """The multiprocessor's cycle counter (0 on the CPU)."""
+    ...
+
+
+# Stages of the fused step whose cycles fused_profile counts (summed over a stage's passes).
+STAGES = ("rows", "delassus", "factor", "padmm_rhs", "padmm_solve", "padmm_project", "padmm_decide",
+          "padmm_refactor", "velocity", "projection_factor", "projection_residuals", "projection_rhs",
+          "projection_solve", "projection_apply", "guard")
+_STAGE = {name: k for k, name in enumerate(STAGES)}
+
+
+@wp.func
+def tick(stamps: wp.array2d(dtype=wp.int64), world: int, k: int, lane: int, last: wp.int64):
+    """Lane 0 adds the cycles since ``last`` to stage k's count; returns the counter now."""
+    now = clock()
+    if lane == 0:
+        stamps[world, k] = stamps[world, k] + (now - last)
+    return now
+
 _KERNELS = {}
 
 
-def _make_kernel(tile_rows: int, max_registers: int):
+def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_inverse: bool = False):
     """The fused step for worlds of at most tile_rows rows: the world's matrix and factor live in
-    shared-memory tiles of that size (the loads of a factor or substitution never leave the SM)."""
+    shared-memory tiles of that size (the loads of a factor or substitution never leave the SM).
+    With ``timed`` lane 0 adds each stage's cycles (STAGES) into stamps. With ``with_inverse`` the
+    solves multiply by G = L^-1, formed once per factor, instead of substituting."""
+    inverse_rows = tile_rows if with_inverse else 1
 
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=max_registers)
     def fused_step_kernel(
@@ -332,6 +418,7 @@ def _make_kernel(tile_rows: int, max_registers: int):
         body_qd_out: wp.array2d(dtype=wp.spatial_vector),
         body_q_offset_out: wp.array2d(dtype=wp.spatial_vector),
         row_lambda_out: wp.array2d(dtype=float),
+        stamps: wp.array2d(dtype=wp.int64),
     ):
         """One whole step of one world (engine.step's stages) in one thread block: the lanes share the
         world's bodies, joints and rows, with a barrier wherever a stage reads what another lane wrote.
@@ -340,10 +427,14 @@ def _make_kernel(tile_rows: int, max_registers: int):
         lanes = wp.block_dim()
         D = wp.tile_zeros(shape=(tile_rows, tile_rows), dtype=float, storage="shared")  # P D P of the world
         F = wp.tile_zeros(shape=(tile_rows, tile_rows), dtype=float, storage="shared")  # its Cholesky factor
+        G = wp.tile_zeros(shape=(inverse_rows, inverse_rows), dtype=float, storage="shared")  # L^-1
         acc = wp.tile_zeros(shape=tile_rows, dtype=float, storage="shared")  # substitution vectors
         sol = wp.tile_zeros(shape=tile_rows, dtype=float, storage="shared")
         nb = m.body_count[world]
         nj = m.joint_count[world]
+        last = wp.int64(0)
+        if wp.static(timed):
+            last = clock()
         # 1. configuration of the dynamics: the midpoint (Moreau-Jean) or the start of the step
         for b in range(lane, nb, lanes):
             if moreau != 0:
@@ -372,6 +463,8 @@ def _make_kernel(tile_rows: int, max_registers: int):
                             w.row_compliance, w.row_lo, w.row_hi, w.row_MJ_c, w.row_MJ_p, w.row_precond, w.v_f, w.lo,
                             w.hi)
         block_sync()
+        if wp.static(timed):
+            last = tick(stamps, world, wp.static(_STAGE["rows"]), lane, last)
         for i in range(lane, n, lanes):
             delassus_lower_of(world, i, w.row_body_p, w.row_body_c, w.row_J_c, w.row_J_p, w.row_MJ_c, w.row_MJ_p,
                               w.row_compliance, w.row_precond, D)
@@ -387,6 +480,8 @@ def _make_kernel(tile_rows: int, max_registers: int):
             rho = m.padmm_rho_init[world]
         sigma = eta + rho
         block_sync()  # every lane has read rho before lane 0 writes it
+        if wp.static(timed):
+            last = tick(stamps, world, wp.static(_STAGE["delassus"]), lane, last)
         if lane == 0:
             w.active[world] = active
             w.valid[world] = active
@@ -406,12 +501,23 @@ def _make_kernel(tile_rows: int, max_registers: int):
             block_sync()  # the factor reads every row's free flag
             cholesky_lanes(world, lane, lanes, n, sigma, eta + row_penalty(1, rho, cap), 0, m.row_kind, w.row_free,
                            D, F)
+            if wp.static(with_inverse):
+                triangular_inverse_lanes(lane, lanes, n, F, G)
+        if wp.static(timed):
+            last = tick(stamps, world, wp.static(_STAGE["factor"]), lane, last)
         while active != 0:
             for i in range(lane, n, lanes):
                 padmm_rhs_of(world, i, m.padmm_eta, m.padmm_rho_cap, m.row_kind, w.row_free, w.rho, w.active,
                              w.row_friction, w.v_f, w.x, w.y_hat, w.z_hat, w.x_prev, w.rhs)
             block_sync()
-            cholesky_solve_lanes(world, lane, lanes, n, F, w.rhs, w.x, acc, sol)
+            if wp.static(timed):
+                last = tick(stamps, world, wp.static(_STAGE["padmm_rhs"]), lane, last)
+            if wp.static(with_inverse):
+                inverse_solve_lanes(world, lane, lanes, n, G, w.rhs, w.x, acc, sol)
+            else:
+                cholesky_solve_lanes(world, lane, lanes, n, F, w.rhs, w.x, acc, sol)
+            if wp.static(timed):
+                last = tick(stamps, world, wp.static(_STAGE["padmm_solve"]), lane, last)
             r = w.rho[world]
             r_p = float(0.0)
             r_d = float(0.0)
@@ -435,12 +541,16 @@ def _make_kernel(tile_rows: int, max_registers: int):
                 r_d = block_max(r_d)
                 r_c = block_max(r_c)
                 change = block_sum(change)
+            if wp.static(timed):
+                last = tick(stamps, world, wp.static(_STAGE["padmm_project"]), lane, last)
             if lane == 0:
                 padmm_decide(world, r_p, r_d, r_c, scale, change, max_iterations, relative_tolerance,
                              rho_update_interval, adaptive_rho, acceleration, m.padmm_tolerance, w.rho, w.active,
                              w.converged, w.iterations, w.momentum, w.momentum_beta, w.merit, w.needs_factor,
                              w.residual_primal, w.residual_dual, w.residual_complementarity, w.demote)
             block_sync()
+            if wp.static(timed):
+                last = tick(stamps, world, wp.static(_STAGE["padmm_decide"]), lane, last)
             active = w.active[world]
             if active != 0:
                 for i in range(lane, n, lanes):
@@ -457,6 +567,10 @@ def _make_kernel(tile_rows: int, max_registers: int):
                         w.needs_factor[world] = 0
                     cholesky_lanes(world, lane, lanes, n, sigma, eta + row_penalty(1, rho_now, cap), 0, m.row_kind,
                                    w.row_free, D, F)
+                    if wp.static(with_inverse):
+                        triangular_inverse_lanes(lane, lanes, n, F, G)
+                if wp.static(timed):
+                    last = tick(stamps, world, wp.static(_STAGE["padmm_refactor"]), lane, last)
 
         for i in range(lane, max_rows, lanes):
             padmm_output_of(world, i, w.row_count, w.row_precond, w.y, w.diverged, w.halted, row_lambda_out)
@@ -478,11 +592,17 @@ def _make_kernel(tile_rows: int, max_registers: int):
         # rho_init): reused unless other rows need taking out of the matrix
         refactor = project != 0 and mask_projection != 0
         block_sync()  # cholesky_lanes is entered after a barrier
+        if wp.static(timed):
+            last = tick(stamps, world, wp.static(_STAGE["velocity"]), lane, last)
         if lane == 0:
             w.project[world] = project
         if project != 0:
             if refactor:
                 cholesky_lanes(world, lane, lanes, n, target, target, mask_projection, m.row_kind, w.row_free, D, F)
+                if wp.static(with_inverse):
+                    triangular_inverse_lanes(lane, lanes, n, F, G)
+            if wp.static(timed):
+                last = tick(stamps, world, wp.static(_STAGE["projection_factor"]), lane, last)
             passes = position_iterations
             shake = position_iterations
             if moreau != 0:  # the output projection gets as many iterations (engine.step)
@@ -500,6 +620,8 @@ def _make_kernel(tile_rows: int, max_registers: int):
                                        m.joint_X_c, m.joint_axis, m.joint_axis2, m.joint_row_start, m.joint_inertia_row,
                                        m.joint_drive_row, body_q_out, w.row_residual)
                 block_sync()
+                if wp.static(timed):
+                    last = tick(stamps, world, wp.static(_STAGE["projection_residuals"]), lane, last)
                 largest = float(0.0)
                 for i in range(lane, n, lanes):
                     phi = bilateral_residual_of(world, i, w.row_count, m.row_kind, w.row_residual)
@@ -511,12 +633,21 @@ def _make_kernel(tile_rows: int, max_registers: int):
                 if largest > velocity_floor and not output:  # above float32 rounding: SHAKE's velocity update
                     update = velocity_update
                 block_sync()
-                cholesky_solve_lanes(world, lane, lanes, n, F, w.rhs, w.delta, acc, sol)
+                if wp.static(timed):
+                    last = tick(stamps, world, wp.static(_STAGE["projection_rhs"]), lane, last)
+                if wp.static(with_inverse):
+                    inverse_solve_lanes(world, lane, lanes, n, G, w.rhs, w.delta, acc, sol)
+                else:
+                    cholesky_solve_lanes(world, lane, lanes, n, F, w.rhs, w.delta, acc, sol)
+                if wp.static(timed):
+                    last = tick(stamps, world, wp.static(_STAGE["projection_solve"]), lane, last)
                 for b in range(lane, nb, lanes):
                     apply_projection_of(world, b, m.body_count, w.row_count, w.row_body_c, w.row_body_p, w.valid,
                                         m.world_dt, update, w.row_MJ_c, w.row_MJ_p, w.row_precond,
                                         w.delta, wp.where(output, 1, 0), body_q_out, body_qd_out, body_q_offset_out)
                 block_sync()
+                if wp.static(timed):
+                    last = tick(stamps, world, wp.static(_STAGE["projection_apply"]), lane, last)
         if moreau != 0 and project == 0:  # no projection: the end of the step is half-way to the midpoint
             block_sync()
             for b in range(lane, nb, lanes):
@@ -526,16 +657,20 @@ def _make_kernel(tile_rows: int, max_registers: int):
         if lane == 0:
             guard_divergence_of(world, m.body_count, body_q_in, body_qd_in, body_q_offset_in, w.halted, max_speed,
                                 body_q_out, body_qd_out, body_q_offset_out, w.diverged)
+        if wp.static(timed):
+            block_sync()
+            last = tick(stamps, world, wp.static(_STAGE["guard"]), lane, last)
 
     return fused_step_kernel
 
 
-def fused_kernel(max_rows: int, max_registers: int = FUSED_REGISTERS):
-    """The fused step kernel for a padded row count (cached per tile size and register cap)."""
+def fused_kernel(max_rows: int, max_registers: int = FUSED_REGISTERS, timed: bool = False, inverse: bool = False):
+    """The fused step kernel for a padded row count (cached per tile size, register cap, timing and
+    solve form)."""
     tile_rows = max(TILE_ROWS, -(-max_rows // TILE_ROWS) * TILE_ROWS)
     if tile_rows > FUSED_MAX_ROWS:
         raise ValueError(f"the fused step takes at most {FUSED_MAX_ROWS} rows per world, not {max_rows}")
-    key = (tile_rows, max_registers)
+    key = (tile_rows, max_registers, timed, inverse)
     if key not in _KERNELS:
         _KERNELS[key] = _make_kernel(*key)
     return _KERNELS[key]
@@ -549,15 +684,23 @@ def _filled(struct_type, source):
     return instance
 
 
-def fused_step(model, state_in, state_out, control) -> None:
-    """Advance every world of a fused batch (engine.pack chose it) by one step in one launch."""
+def fused_step(model, state_in, state_out, control, stamps=None) -> None:
+    """Advance every world of a fused batch (engine.pack chose it) by one step in one launch; with
+    ``stamps`` (int64, (num_worlds, len(STAGES))) the timed kernel records the cycle counter at
+    the end of each stage (fused_profile)."""
     if model._fused_structs is None:
         model._fused_structs = (_filled(StepModel, model), _filled(StepWork, model.work))
     m, w = model._fused_structs
     cfg = model.config
     if model.fused_block is None:
         model.fused_block = fused_block(model.device)
-    wp.launch_tiled(fused_kernel(model.max_rows, model.fused_registers), dim=[model.num_worlds], block_dim=model.fused_block, device=model.device,
+    timed = stamps is not None
+    inverse = model.fused_inverse
+    if inverse is None:
+        inverse = fused_inverse(model.device, model.max_rows)
+    if stamps is None:
+        stamps = wp.empty((1, 1), dtype=wp.int64, device=model.device)
+    wp.launch_tiled(fused_kernel(model.max_rows, model.fused_registers, timed, inverse), dim=[model.num_worlds], block_dim=model.fused_block, device=model.device,
               inputs=[m, w, int(cfg.integrator.value == "moreau"), float(cfg.baumgarte), float(cfg.limit_margin),
                       float(cfg.limit_stabilization), (1.0 - cfg.warmstart_decay) if cfg.warmstart else 0.0, cfg.max_iterations,
                       float(cfg.relative_tolerance), cfg.rho_update_interval, int(cfg.adaptive_rho),
@@ -567,4 +710,26 @@ def fused_step(model, state_in, state_out, control) -> None:
                       state_in.body_q, state_in.body_qd, state_in.body_q_offset, state_in.row_lambda,
                       control.joint_target_position, control.joint_target_velocity, control.joint_effort,
                       control.body_f],
-              outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_offset, state_out.row_lambda])
+              outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_offset, state_out.row_lambda, stamps])
+
+
+def fused_profile(model, state, control, steps: int = 20) -> dict:
+    """Cycles per stage of the fused step (STAGES: a stage's cycles summed over its passes in a
+    step, as lane 0 of each world's block counts them; medians over worlds and ``steps`` steps) and
+    the median whole step; all 0 on the CPU. Advances ``state`` by ``steps`` steps."""
+    W = model.num_worlds
+    stamps = wp.zeros((W, len(STAGES)), dtype=wp.int64, device=model.device)
+    other = model.state()
+    samples = []
+    for _ in range(steps):
+        stamps.zero_()
+        fused_step(model, state, other, control, stamps=stamps)
+        samples.append(stamps.numpy().astype(np.float64))
+        state, other = other, state
+    if steps % 2:  # the caller's state object holds the latest step
+        for name in ("body_q", "body_qd", "body_q_offset", "row_lambda"):
+            wp.copy(getattr(other, name), getattr(state, name))
+    t = np.stack(samples).reshape(-1, len(STAGES))
+    out = {name: float(np.median(t[:, k])) for k, name in enumerate(STAGES)}
+    out["step"] = float(np.median(t.sum(axis=1)))
+    return out

@@ -10,7 +10,8 @@ import pytest
 import warp as wp
 
 from engine import SolverConfig, pack_worlds, step
-from engine.fused import block_sync, cholesky_lanes, cholesky_solve_lanes, fused_block
+from engine.fused import (block_sync, cholesky_lanes, cholesky_solve_lanes, fused_block, inverse_solve_lanes,
+                          triangular_inverse_lanes)
 from engine.model import ROW_LIMIT, ROW_LINEAR
 from engine.scenes import chain, fourbar, pendulum, sixbar
 from engine.scenes_contact import CONTACT_SCENES
@@ -48,10 +49,11 @@ CASES = {
 STRICT = SolverConfig(projection_velocity_update=False)
 
 
-def trajectory(specs, kind, steps, config=None, control_fn=None, device="cpu"):
+def trajectory(specs, kind, steps, config=None, control_fn=None, device="cpu", inverse=None):
     config = dataclasses.replace(config or STRICT, step_kernel=kind)
     model = pack_worlds(specs, device=device, config=config, dt=1e-3)
     assert model.step_kernel == kind
+    model.fused_inverse = inverse
     state, other, control = model.state(), model.state(), model.control()
     if control_fn is not None:
         control_fn(model, control)
@@ -66,14 +68,15 @@ def trajectory(specs, kind, steps, config=None, control_fn=None, device="cpu"):
 
 @pytest.mark.parametrize("case", list(CASES))
 @pytest.mark.parametrize("integrator", ["euler", "moreau"])
-def test_fused_step_matches_staged_step(case, integrator):
+@pytest.mark.parametrize("inverse", [False, True])
+def test_fused_step_matches_staged_step(case, integrator, inverse):
     """Same poses, twists, impulses and PADMM iterations over 200 steps (both run on the CPU; the
-    lanes' substitutions and the tile Cholesky solve may differ in rounding only: poses within
-    2e-6, about 16 float32 ulps of 1, after 200 steps of a contact scene)."""
+    lanes' substitutions or products with L^-1 and the tile Cholesky solve may differ in rounding
+    only: poses within 2e-6, about 16 float32 ulps of 1, after 200 steps of a contact scene)."""
     specs = CASES[case]()
     config = dataclasses.replace(STRICT, integrator=integrator)
     staged_model, staged = trajectory(specs, "staged", 200, config)
-    fused_model, fused = trajectory(specs, "fused", 200, config)
+    fused_model, fused = trajectory(specs, "fused", 200, config, inverse=inverse)
     for name, tolerance in (("body_q", 2e-6), ("body_qd", 1e-5), ("row_lambda", 1e-5)):
         a, b = getattr(staged, name).numpy(), getattr(fused, name).numpy()
         assert np.all(np.isfinite(b)), name
@@ -81,13 +84,15 @@ def test_fused_step_matches_staged_step(case, integrator):
     np.testing.assert_array_equal(staged_model.iterations_seen, fused_model.iterations_seen)
 
 
-def test_fused_penalty_updates_refactor_like_the_staged_path():
+@pytest.mark.parametrize("inverse", [False, True])
+def test_fused_penalty_updates_refactor_like_the_staged_path(inverse):
     """With a penalty update every iteration and a tight tolerance (many refactorizations per
-    step, joint limits active) both paths still agree and use the same iterations."""
+    step, joint limits active; with ``inverse`` L^-1 formed again after each) both paths still
+    agree and use the same iterations."""
     config = dataclasses.replace(STRICT, rho_update_interval=1, tolerance=1e-9, relative_tolerance=0.0, max_iterations=40)
     specs = CASES["limits"]() + CASES["jansen_drive"]()[:1]
     staged_model, staged = trajectory(specs, "staged", 100, config)
-    fused_model, fused = trajectory(specs, "fused", 100, config)
+    fused_model, fused = trajectory(specs, "fused", 100, config, inverse=inverse)
     assert len(np.unique(staged_model.rho_seen)) > 2  # the penalty changed (and the matrix was refactored)
     np.testing.assert_array_equal(staged_model.rho_seen, fused_model.rho_seen)
     assert np.abs(staged.body_q.numpy() - fused.body_q.numpy()).max() < 1e-6
@@ -129,7 +134,7 @@ def test_auto_choice_and_errors():
 def factor_and_solve(n: wp.array(dtype=wp.int32), sigma: float, sigma_free: float, bilateral_only: int,
                      row_kind: wp.array2d(dtype=wp.int32), row_free: wp.array2d(dtype=wp.int32),
                      matrix: wp.array3d(dtype=float),
-                     rhs: wp.array2d(dtype=float), x: wp.array2d(dtype=float)):
+                     rhs: wp.array2d(dtype=float), x: wp.array2d(dtype=float), x_inverse: wp.array2d(dtype=float)):
     world, lane = wp.tid()
     a = wp.tile_load(matrix[world], shape=(48, 48), storage="shared")
     lower = wp.tile_zeros(shape=(48, 48), dtype=float, storage="shared")
@@ -139,14 +144,19 @@ def factor_and_solve(n: wp.array(dtype=wp.int32), sigma: float, sigma_free: floa
     cholesky_lanes(world, lane, wp.block_dim(), n[world], sigma, sigma_free, bilateral_only, row_kind, row_free, a,
                    lower)
     cholesky_solve_lanes(world, lane, wp.block_dim(), n[world], lower, rhs, x, acc, sol)
+    inverse = wp.tile_zeros(shape=(48, 48), dtype=float, storage="shared")
+    block_sync()
+    triangular_inverse_lanes(lane, wp.block_dim(), n[world], lower, inverse)
+    inverse_solve_lanes(world, lane, wp.block_dim(), n[world], inverse, rhs, x_inverse, acc, sol)
 
 
 @pytest.mark.parametrize("bilateral_only", [0, 1])
 def test_lane_factor_and_solve_match_numpy(device, bilateral_only):
-    """The fused step's factor and substitutions (lanes sharing columns; one lane on the CPU, a
-    warp on a GPU) against NumPy on random SPD systems of several sizes, with the bilateral-only
-    masking of the projection (non-bilateral rows and columns replaced by the identity) and the
-    PADMM factor's shifts (sigma_free on the rows flagged free, sigma on the others)."""
+    """The fused step's factor, its substitutions and its solve through G = L^-1 (lanes sharing
+    columns; one lane on the CPU, a warp on a GPU) against NumPy on random SPD systems of several
+    sizes, with the bilateral-only masking of the projection (non-bilateral rows and columns
+    replaced by the identity) and the PADMM factor's shifts (sigma_free on the rows flagged free,
+    sigma on the others)."""
     rng = np.random.default_rng(3)
     sizes, R, sigma, sigma_free = [1, 7, 24, 33, 48], 48, 0.05, 0.02
     free = (rng.uniform(size=(len(sizes), R)) < 0.5).astype(np.int32)
@@ -168,16 +178,15 @@ def test_lane_factor_and_solve_match_numpy(device, bilateral_only):
         expected.append(np.linalg.solve(used + np.diag(shift), rhs[w, :n].astype(np.float64)))
     arrays = [wp.array(sizes, dtype=wp.int32, device=device), wp.array(kinds, device=device),
               wp.array(matrices, device=device), wp.array(rhs, device=device),
+              wp.zeros((len(sizes), R), dtype=float, device=device),
               wp.zeros((len(sizes), R), dtype=float, device=device)]
     lanes = 64 if wp.get_device(device).is_cuda else 1  # two warps: the lanes' strides cross a warp
     wp.launch_tiled(factor_and_solve, dim=[len(sizes)], block_dim=lanes, device=device,
                     inputs=[arrays[0], sigma, sigma_free, bilateral_only, arrays[1], wp.array(free, device=device),
-                            arrays[2], arrays[3], arrays[4]])
-
-
-    x = arrays[4].numpy()
-    for w, n in enumerate(sizes):
-        np.testing.assert_allclose(x[w, :n], expected[w], rtol=2e-4, atol=2e-4 * np.abs(expected[w]).max())
+                            arrays[2], arrays[3], arrays[4], arrays[5]])
+    for x in (arrays[4].numpy(), arrays[5].numpy()):
+        for w, n in enumerate(sizes):
+            np.testing.assert_allclose(x[w, :n], expected[w], rtol=2e-4, atol=2e-4 * np.abs(expected[w]).max())
 
 
 def test_fused_step_on_the_device_matches_the_staged_step(device):
