@@ -190,17 +190,22 @@ def projection_gate(
     row_count: wp.array(dtype=wp.int32),
     row_kind: wp.array2d(dtype=wp.int32),
     row_residual: wp.array2d(dtype=float),
+    project: wp.array(dtype=wp.int32),
     floor: float,
+    skip_floor: float,
     # out
     gate: wp.array(dtype=wp.int32),
+    mask: wp.array(dtype=wp.int32),
 ):
-    """gate = 1 where the world's largest bilateral joint error exceeds floor (its projection
-    iteration may update the velocities), else 0 (the correction is rounding)."""
+    """From the world's largest bilateral joint error: gate = 1 where it exceeds floor (the
+    projection iteration may update the velocities), else 0 (the correction is mostly rounding);
+    mask = project where it exceeds skip_floor, else 0 (the iteration is skipped)."""
     world = wp.tid()
     largest = float(0.0)
     for i in range(row_count[world]):
         largest = wp.max(largest, wp.abs(bilateral_residual_of(world, i, row_count, row_kind, row_residual)))
     gate[world] = wp.where(largest > floor, 1, 0)
+    mask[world] = wp.where(largest > skip_floor, project[world], 0)
 
 
 @wp.func
@@ -423,24 +428,26 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
     record = body_q_offset is not None
 
     offset = body_q_offset if record else work.body_qd_free  # any (W, B) spatial_vector array when unused
+    cfg = model.config
+    mask = work.projection_mask  # the worlds whose joint error is above cfg.projection_skip_floor
     for _ in range(iterations):
         residual_fn(model, body_q, work.row_residual)
-        if velocity_update:
-            wp.launch(projection_gate, dim=model.num_worlds, device=device,
-                      inputs=[work.row_count, model.row_kind, work.row_residual,
-                              float(model.config.projection_velocity_floor)], outputs=[work.projection_gate])
+        wp.launch(projection_gate, dim=model.num_worlds, device=device,
+                  inputs=[work.row_count, model.row_kind, work.row_residual, work.project,
+                          float(cfg.projection_velocity_floor), float(cfg.projection_skip_floor)],
+                  outputs=[work.projection_gate, mask])
         wp.launch(projection_rhs, dim=grid_rows, device=device,
-                  inputs=[work.row_count, model.row_kind, work.project, work.row_precond, work.row_residual],
+                  inputs=[work.row_count, model.row_kind, mask, work.row_precond, work.row_residual],
                   outputs=[work.rhs])
         if dense:
-            linear.solve(work.factor, work.rhs, work.project, work.delta)
+            linear.solve(work.factor, work.rhs, mask, work.delta)
         elif direct:
-            sparse.solve(model, work.rhs, work.project, work.delta)
+            sparse.solve(model, work.rhs, mask, work.delta)
         else:  # Conjugate Residual on the bilateral rows, from zero
             work.delta.zero_()
-            matrix_free.solve(model, work.rhs, work.project, work.delta, bilateral_only=True)
+            matrix_free.solve(model, work.rhs, mask, work.delta, bilateral_only=True)
         wp.launch(apply_projection, dim=grid_bodies, device=device,
-                  inputs=[model.body_count, work.row_count, work.row_body_c, work.row_body_p, work.project,
+                  inputs=[model.body_count, work.row_count, work.row_body_c, work.row_body_p, mask,
                           model.world_dt, int(velocity_update), work.projection_gate, work.row_MJ_c,
                           work.row_MJ_p, work.row_precond, work.delta, int(record), body_q, body_qd, offset])
 
