@@ -355,8 +355,8 @@ class Workspace:
         for name in ("rho", "residual_primal", "residual_dual", "residual_complementarity", "momentum", "momentum_beta", "merit",
                      "violation_linear", "violation_angular", "energy"):
             setattr(self, name, zeros(w))
-        for name in ("iterations", "converged", "valid", "project", "projection_gate", "projection_mask", "active", "needs_factor", "demote",
-                     "diverged", "halted"):
+        for name in ("iterations", "converged", "valid", "project", "projection_gate", "projection_mask", "active",
+                     "needs_factor", "demote", "diverged", "halted"):
             setattr(self, name, zeros(w, wp.int32))
         self.active_count = zeros(1, wp.int32)
         self.row_count = zeros(w, wp.int32)  # rows of this step: joint, drive, limit and 3 per contact
