@@ -22,7 +22,12 @@ formed by the lanes (a column each) after every factor: a solve is then two tria
 which every lane forms whole entries, instead of 2 n substitution steps each a shared store and a
 barrier apart. Per-stage cycle counts of the kernel (fused_profile; engine.testspeed reports them
 as fused_stage_cycles) on an H100, four-bar, one world: 240 k -> 170 k cycles per step, its five
-solves 95 k -> 17 k, the factor 26 k -> 40 k with G; 4096 worlds 0.350 -> 0.282 ms per step. Measured on an H100 at 4096 worlds, dt 1 ms (engine.testspeed): four-bar (24 rows)
+solves 95 k -> 17 k, the factor 26 k -> 40 k with G. Same run, 4096 / 16384 worlds
+(benchmarks.step_variants): 0.350 / 1.34 ms per step substituting, 0.285 / 1.17 through G, and
+0.256 / 1.03 with the projection's rounding skip as well (SolverConfig.projection_skip_floor).
+Tried and not kept (no change beyond noise on the H100): the substitutions in registers with warp
+shuffles instead of shared vectors and barriers; matrix tiles padded to 33 columns against bank
+conflicts; the projection reading its solution from the shared vector instead of global memory. Measured on an H100 at 4096 worlds, dt 1 ms (engine.testspeed): four-bar (24 rows)
 0.27 ms per step (staged 1.26 ms; one thread per world 0.45 ms), six-bar (40 rows) 0.62 ms, 10-link
 chain (56 rows) 1.40 ms (staged 2.53 ms). It takes batches without contact shapes whose padded rows
 fit ``FUSED_MAX_ROWS``; SolverConfig.step_kernel chooses: "auto" (fused where it fits), "fused"

@@ -188,3 +188,21 @@ def test_newton_peer_takes_the_joint_settings_of_our_spec_and_names_a_spec_it_ca
     joints[1] = dataclasses.replace(joints[1], armature=0.02)
     with pytest.raises(ValueError, match=spec.name):
         joint_parameters(dataclasses.replace(spec, joints=joints))
+
+
+def test_step_variants_times_every_combination_and_restores_the_inverse_choice(tmp_path, capsys):
+    """benchmarks.step_variants on the CPU: one timing per combination of solve form and skip
+    floor, finite and positive, the CPU never solving through L^-1, and the module's threshold
+    restored after the runs."""
+    from benchmarks import step_variants
+    from engine import fused
+
+    before = fused.INVERSE_MAX_ROWS
+    out = tmp_path / "variants.json"
+    assert step_variants.main(["--device", "cpu", "--worlds", "2", "--repeats", "1", "--out", str(out)]) == 0
+    assert fused.INVERSE_MAX_ROWS == before
+    rows = json.loads(out.read_text())["measurements"]
+    assert {(r["projection_skip_floor"] > 0) for r in rows} == {True, False}
+    assert len(rows) == 4 and all(r["step_ms"] > 0 and np.isfinite(r["step_ms"]) for r in rows)
+    assert not any(r["inverse"] for r in rows)
+    assert len(capsys.readouterr().out.strip().splitlines()) == 4
