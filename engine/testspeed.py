@@ -23,7 +23,7 @@ import time
 import numpy as np
 import warp as wp
 
-from engine.fused import fused_profile
+from engine.fused import fused_inverse, fused_profile
 from engine.metrics import compute_metrics
 from engine.model import Integrator, SolverConfig
 from engine.pack import pack_worlds
@@ -138,6 +138,9 @@ def run(scene: str, num_worlds: int, steps: int, dt: float, device: str, *, chun
         "complementarity_max": float(stepper.complementarity_max.numpy().max()),
         "warp_version": wp.config.version, "cuda_graph": bool(stepper.capture), "fused_block": model.fused_block, "fused_registers": model.fused_registers,
     }
+    if model.step_kernel == "fused":  # solves through L^-1 (engine.fused.fused_inverse) or by substitution
+        chosen = model.fused_inverse
+        result["fused_inverse"] = bool(fused_inverse(model.device, model.max_rows) if chosen is None else chosen)
     if stages:
         if model.step_kernel == "fused":  # one launch per step: the stages' cycles inside it
             result["fused_stage_cycles"] = fused_profile(model, stepper.state, control)
