@@ -25,7 +25,8 @@ import numpy as np
 import warp as wp
 
 
-def timed(specs, worlds: int, dt: float, config, device: str, chunks: int = 6, chunk: int = 10) -> tuple[float, bool]:
+def timed(specs, worlds: int, dt: float, config, device: str, chunks: int = 6,
+          chunk: int = 10) -> tuple[float, bool]:
     """Median ms per step of ``worlds`` copies of ``specs`` (cycled), and whether the fused step
     solved through L^-1."""
     from engine import pack_worlds
@@ -77,7 +78,8 @@ def main(argv=None) -> int:
                 fused.INVERSE_MAX_ROWS = default_rows if allow else 0  # fused_inverse reads it at each step
                 for skip in (skip_on, 0.0):
                     for worlds in args.worlds:
-                        ms, inverse = timed(fourbar, worlds, 1e-3, SolverConfig(projection_skip_floor=skip), args.device)
+                        config = SolverConfig(projection_skip_floor=skip)
+                        ms, inverse = timed(fourbar, worlds, 1e-3, config, args.device)
                         record(scene="fourbar", num_worlds=worlds, dt=1e-3, inverse=inverse,
                                projection_skip_floor=skip, repeat=repeat, step_ms=ms)
     finally:
@@ -94,7 +96,8 @@ def main(argv=None) -> int:
     if args.out:
         device = wp.get_device(args.device)
         result = {"device": str(device), "device_name": device.name, "versions": {"warp": wp.config.version},
-                  "command": "python -m benchmarks.step_variants " + " ".join(argv if argv is not None else sys.argv[1:]),
+                  "command": "python -m benchmarks.step_variants "
+                             + " ".join(argv if argv is not None else sys.argv[1:]),
                   "measurements": rows}
         with open(args.out, "w") as f:
             json.dump(result, f, indent=1)

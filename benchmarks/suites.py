@@ -46,7 +46,8 @@ SUITES = {
 FIELDS = ["scene", "num_worlds", "steps", "dt", "integrator", "stabilization", "step_ms_median", "world_steps_per_s",
           "max_constraint_violation_m", "max_constraint_violation_rad", "energy_drift_rel", "padmm_iterations_mean",
           "padmm_iterations_max", "diverged_worlds", "contacts_mean", "contacts_max", "contact_overflow_worlds",
-          "max_penetration_m", "complementarity_max", "stage_ms", "compile_s", "device", "device_name", "repeats"]
+          "max_penetration_m", "complementarity_max", "stage_ms", "fused_stage_cycles", "fused_inverse", "compile_s",
+          "device", "device_name", "repeats"]
 
 
 def run_case(case: dict, device: str, worlds: int, repeats: int) -> dict:

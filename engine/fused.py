@@ -17,21 +17,23 @@ joints and rows, with a block barrier wherever a stage reads what another lane w
 
 Shared memory keeps the factor's and the substitutions' dependent loads on the SM; a register cap
 (FUSED_REGISTERS) lets more worlds share an SM. On the CPU a block is one thread and the same code
-runs serially. On a GPU, problems of at most INVERSE_MAX_ROWS padded rows solve through G = L^-1,
-formed by the lanes (a column each) after every factor: a solve is then two triangular products in
-which every lane forms whole entries, instead of 2 n substitution steps each a shared store and a
-barrier apart. Per-stage cycle counts of the kernel (fused_profile; engine.testspeed reports them
-as fused_stage_cycles) on an H100, four-bar, one world: 240 k -> 170 k cycles per step, its five
+runs serially. Measured on an H100 at 4096 worlds, dt 1 ms (engine.testspeed), before the solves
+through L^-1: four-bar (24 rows) 0.27-0.35 ms per step (staged 1.26 ms; one thread per world
+0.45 ms), six-bar (40 rows) 0.62 ms, 10-link chain (56 rows) 1.40 ms (staged 2.53 ms). It takes
+batches without contact shapes whose padded rows fit ``FUSED_MAX_ROWS``; SolverConfig.step_kernel
+chooses: "auto" (fused where it fits), "fused" (error where it does not) or "staged".
+
+On a GPU, problems of at most INVERSE_MAX_ROWS padded rows solve through G = L^-1, formed by the
+lanes (a column each) after every factor: a solve is then two triangular products in which every
+lane forms whole entries, instead of 2 n substitution steps each a shared store and a barrier
+apart. Per-stage cycle counts of the kernel (fused_profile; engine.testspeed reports them as
+fused_stage_cycles) on an H100, four-bar, one world: 240 k -> 170 k cycles per step, its five
 solves 95 k -> 17 k, the factor 26 k -> 40 k with G. Same run, 4096 / 16384 worlds
 (benchmarks.step_variants): 0.350 / 1.34 ms per step substituting, 0.285 / 1.17 through G, and
 0.256 / 1.03 with the projection's rounding skip as well (SolverConfig.projection_skip_floor).
 Tried and not kept (no change beyond noise on the H100): the substitutions in registers with warp
 shuffles instead of shared vectors and barriers; matrix tiles padded to 33 columns against bank
-conflicts; the projection reading its solution from the shared vector instead of global memory. Measured on an H100 at 4096 worlds, dt 1 ms (engine.testspeed): four-bar (24 rows)
-0.27 ms per step (staged 1.26 ms; one thread per world 0.45 ms), six-bar (40 rows) 0.62 ms, 10-link
-chain (56 rows) 1.40 ms (staged 2.53 ms). It takes batches without contact shapes whose padded rows
-fit ``FUSED_MAX_ROWS``; SolverConfig.step_kernel chooses: "auto" (fused where it fits), "fused"
-(error where it does not) or "staged".
+conflicts; the projection reading its solution from the shared vector instead of global memory.
 """
 
 from typing import Any
@@ -306,7 +308,7 @@ def inverse_solve_lanes(world: int, lane: int, lanes: int, n: int, inverse: Any,
             s += inverse[i, k] * acc[k]
         tile_set(sol, i, s)
     block_sync()
-    for k in range(lane, n, lanes):  # x = G^T y, also into acc
+    for k in range(lane, n, lanes):  # x = G^T y
         s = float(0.0)
         for i in range(k, n):
             s += inverse[i, k] * sol[i]
@@ -374,8 +376,8 @@ def clock() -> wp.int64:
 
 # Stages of the fused step whose cycles fused_profile counts (summed over a stage's passes).
 STAGES = ("rows", "delassus", "factor", "padmm_rhs", "padmm_solve", "padmm_project", "padmm_decide",
-          "padmm_refactor", "velocity", "projection_factor", "projection_residuals", "projection_rhs",
-          "projection_solve", "projection_apply", "guard")
+          "padmm_accelerate_refactor", "velocity", "projection_factor", "projection_residuals", "projection_rhs",
+          "projection_solve", "projection_apply", "end_of_step")
 _STAGE = {name: k for k, name in enumerate(STAGES)}
 
 
@@ -582,7 +584,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                     if wp.static(with_inverse):
                         triangular_inverse_lanes(lane, lanes, n, F, G)
                 if wp.static(timed):
-                    last = tick(stamps, world, wp.static(_STAGE["padmm_refactor"]), lane, last)
+                    last = tick(stamps, world, wp.static(_STAGE["padmm_accelerate_refactor"]), lane, last)
 
         for i in range(lane, max_rows, lanes):
             padmm_output_of(world, i, w.row_count, w.row_precond, w.y, w.diverged, w.halted, row_lambda_out)
@@ -608,6 +610,8 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
             last = tick(stamps, world, wp.static(_STAGE["velocity"]), lane, last)
         if lane == 0:
             w.project[world] = project
+            if project == 0:  # as engine.integrate.projection_gate leaves it for such a world
+                w.projection_mask[world] = 0
         if project != 0:
             if refactor:
                 cholesky_lanes(world, lane, lanes, n, target, target, mask_projection, m.row_kind, w.row_free, D, F)
@@ -675,7 +679,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                                 body_q_out, body_qd_out, body_q_offset_out, w.diverged)
         if wp.static(timed):
             block_sync()
-            last = tick(stamps, world, wp.static(_STAGE["guard"]), lane, last)
+            last = tick(stamps, world, wp.static(_STAGE["end_of_step"]), lane, last)
 
     return fused_step_kernel
 
@@ -714,9 +718,10 @@ def fused_step(model, state_in, state_out, control, stamps=None) -> None:
     inverse = model.fused_inverse
     if inverse is None:
         inverse = fused_inverse(model.device, model.max_rows)
-    if stamps is None:
-        stamps = wp.empty((1, 1), dtype=wp.int64, device=model.device)
-    wp.launch_tiled(fused_kernel(model.max_rows, model.fused_registers, timed, inverse), dim=[model.num_worlds], block_dim=model.fused_block, device=model.device,
+    if stamps is None:  # the untimed kernel never touches it
+        stamps = model._fused_no_stamps
+    kernel = fused_kernel(model.max_rows, model.fused_registers, timed, inverse)
+    wp.launch_tiled(kernel, dim=[model.num_worlds], block_dim=model.fused_block, device=model.device,
               inputs=[m, w, int(cfg.integrator.value == "moreau"), float(cfg.baumgarte), float(cfg.limit_margin),
                       float(cfg.limit_stabilization), (1.0 - cfg.warmstart_decay) if cfg.warmstart else 0.0, cfg.max_iterations,
                       float(cfg.relative_tolerance), cfg.rho_update_interval, int(cfg.adaptive_rho),
@@ -732,7 +737,9 @@ def fused_step(model, state_in, state_out, control, stamps=None) -> None:
 def fused_profile(model, state, control, steps: int = 20) -> dict:
     """Cycles per stage of the fused step (STAGES: a stage's cycles summed over its passes in a
     step, as lane 0 of each world's block counts them; medians over worlds and ``steps`` steps) and
-    the median whole step; all 0 on the CPU. Advances ``state`` by ``steps`` steps."""
+    the median whole step; all 0 on the CPU. Advances ``state`` by ``steps`` (>= 1) steps."""
+    if steps < 1:
+        raise ValueError(f"fused_profile: steps must be >= 1, got {steps}")
     W = model.num_worlds
     stamps = wp.zeros((W, len(STAGES)), dtype=wp.int64, device=model.device)
     other = model.state()

@@ -333,6 +333,8 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
                          f"step_kernel='auto' or 'staged'")
     model.step_kernel = "fused" if config.step_kernel == "fused" or (config.step_kernel == "auto" and fits) else "staged"
     model._fused_structs = None  # built on the first fused step
+    # the untimed fused kernel's (unused) cycle stamps: allocated here, as steps may be captured
+    model._fused_no_stamps = wp.zeros((1, 1), dtype=wp.int64, device=device)
     model.fused_block = None  # threads per world of the fused step (None: engine.fused.fused_block)
     model.fused_registers = FUSED_REGISTERS  # register cap per thread of the fused step
     model.fused_inverse = None  # solve through L^-1 in the fused step (None: engine.fused.fused_inverse)

@@ -10,7 +10,8 @@ otherwise). PADMM iterations, contact counts and overflow, penetration and compl
 accumulated on the device at every step. Finally stage_ms times each stage of step() [ms per
 step] over 20 synchronized eager steps: a scene without shapes shows collision 0. A fused batch
 (one launch per step) reports fused_stage_cycles instead: the cycles each stage takes inside the
-kernel, as the cycle counter of each world's block reads them (medians; 0 on the CPU).
+kernel, as the cycle counter of each world's block reads them (medians; 0 on the CPU), from a
+timed variant of the kernel compiled for it (not counted in compile_s).
 """
 
 from __future__ import annotations

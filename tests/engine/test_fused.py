@@ -10,8 +10,8 @@ import pytest
 import warp as wp
 
 from engine import SolverConfig, pack_worlds, step
-from engine.fused import (block_sync, cholesky_lanes, cholesky_solve_lanes, fused_block, inverse_solve_lanes,
-                          triangular_inverse_lanes)
+from engine.fused import (INVERSE_MAX_ROWS, block_sync, cholesky_lanes, cholesky_solve_lanes, fused_block,
+                          fused_inverse, inverse_solve_lanes, triangular_inverse_lanes)
 from engine.model import ROW_LIMIT, ROW_LINEAR
 from engine.scenes import chain, fourbar, pendulum, sixbar
 from engine.scenes_contact import CONTACT_SCENES
@@ -189,13 +189,23 @@ def test_lane_factor_and_solve_match_numpy(device, bilateral_only):
             np.testing.assert_allclose(x[w, :n], expected[w], rtol=2e-4, atol=2e-4 * np.abs(expected[w]).max())
 
 
-def test_fused_step_on_the_device_matches_the_staged_step(device):
+@pytest.mark.parametrize("batch", ["mixed", "small"])
+def test_fused_step_on_the_device_matches_the_staged_step(device, batch):
     """On a GPU the fused step's lanes share a world (barriers between stages): it must still give
-    the staged step's trajectories (rounding apart) on a batch of mixed linkages and drives."""
-    specs = CASES["mixed"]() + CASES["jansen_drive"]()[:1] + CASES["limits"]()[:1]
-    staged_model, staged = trajectory(specs, "staged", 100, device=device)
-    fused_model, fused = trajectory(specs, "fused", 100, device=device)
+    the staged step's trajectories (rounding apart) on a batch of mixed linkages and drives (48
+    rows: substitutions), and on one of at most 32 rows (on a GPU: solves through L^-1, formed
+    again after every penalty update and projection refactor; the projection's rounding skip)."""
+    if batch == "mixed":
+        specs, config = CASES["mixed"]() + CASES["jansen_drive"]()[:1] + CASES["limits"]()[:1], STRICT
+    else:
+        specs = CASES["limits"]()[:1] + CASES["armature"]()[:1] + CASES["fourbar"]()[:1]
+        config = dataclasses.replace(STRICT, rho_update_interval=1)
+    staged_model, staged = trajectory(specs, "staged", 100, config, device=device)
+    fused_model, fused = trajectory(specs, "fused", 100, config, device=device)
     assert fused_model.fused_block == fused_block(device) == (32 if wp.get_device(device).is_cuda else 1)
+    small = fused_model.max_rows <= INVERSE_MAX_ROWS
+    assert small == (batch == "small")
+    assert fused_inverse(device, fused_model.max_rows) == (small and wp.get_device(device).is_cuda)
     scale = np.abs(staged.body_q.numpy()).max()
     assert np.abs(staged.body_q.numpy() - fused.body_q.numpy()).max() < 1e-5 * scale
     a, b = staged.row_lambda.numpy(), fused.row_lambda.numpy()
