@@ -399,6 +399,24 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
     solves multiply by G = L^-1, formed once per factor, instead of substituting."""
     inverse_rows = tile_rows if with_inverse else 1
 
+    @wp.func
+    def factor_world(world: int, lane: int, lanes: int, n: int, sigma: float, sigma_free: float, bilateral_only: int,
+                     row_kind: wp.array2d(dtype=wp.int32), row_free: wp.array2d(dtype=wp.int32), D: Any, F: Any,
+                     G: Any):
+        """cholesky_lanes into F, then (with_inverse) G = F^-1."""
+        cholesky_lanes(world, lane, lanes, n, sigma, sigma_free, bilateral_only, row_kind, row_free, D, F)
+        if wp.static(with_inverse):
+            triangular_inverse_lanes(lane, lanes, n, F, G)
+
+    @wp.func
+    def solve_world(world: int, lane: int, lanes: int, n: int, F: Any, G: Any, rhs: wp.array2d(dtype=float),
+                    x: wp.array2d(dtype=float), acc: Any, sol: Any):
+        """x = (F F^T)^-1 rhs: products with G (with_inverse) or substitutions with F."""
+        if wp.static(with_inverse):
+            inverse_solve_lanes(world, lane, lanes, n, G, rhs, x, acc, sol)
+        else:
+            cholesky_solve_lanes(world, lane, lanes, n, F, rhs, x, acc, sol)
+
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=max_registers)
     def fused_step_kernel(
         m: StepModel,
@@ -513,10 +531,8 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                 padmm_warmstart_of(world, i, warmstart_scale, row_lambda_in, w.row_precond, w.active, w.lo, w.hi,
                                    m.row_kind, w.x, w.y, w.y_hat, w.z, w.z_hat, w.row_free)
             block_sync()  # the factor reads every row's free flag
-            cholesky_lanes(world, lane, lanes, n, sigma, eta + row_penalty(1, rho, cap), 0, m.row_kind, w.row_free,
-                           D, F)
-            if wp.static(with_inverse):
-                triangular_inverse_lanes(lane, lanes, n, F, G)
+            factor_world(world, lane, lanes, n, sigma, eta + row_penalty(1, rho, cap), 0, m.row_kind, w.row_free,
+                         D, F, G)
         if wp.static(timed):
             last = tick(stamps, world, wp.static(_STAGE["factor"]), lane, last)
         while active != 0:
@@ -526,10 +542,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
             block_sync()
             if wp.static(timed):
                 last = tick(stamps, world, wp.static(_STAGE["padmm_rhs"]), lane, last)
-            if wp.static(with_inverse):
-                inverse_solve_lanes(world, lane, lanes, n, G, w.rhs, w.x, acc, sol)
-            else:
-                cholesky_solve_lanes(world, lane, lanes, n, F, w.rhs, w.x, acc, sol)
+            solve_world(world, lane, lanes, n, F, G, w.rhs, w.x, acc, sol)
             if wp.static(timed):
                 last = tick(stamps, world, wp.static(_STAGE["padmm_solve"]), lane, last)
             r = w.rho[world]
@@ -579,10 +592,8 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                     block_sync()  # every lane has read the flag before lane 0 clears it
                     if lane == 0:
                         w.needs_factor[world] = 0
-                    cholesky_lanes(world, lane, lanes, n, sigma, eta + row_penalty(1, rho_now, cap), 0, m.row_kind,
-                                   w.row_free, D, F)
-                    if wp.static(with_inverse):
-                        triangular_inverse_lanes(lane, lanes, n, F, G)
+                    factor_world(world, lane, lanes, n, sigma, eta + row_penalty(1, rho_now, cap), 0, m.row_kind,
+                                 w.row_free, D, F, G)
                 if wp.static(timed):
                     last = tick(stamps, world, wp.static(_STAGE["padmm_accelerate_refactor"]), lane, last)
 
@@ -614,9 +625,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                 w.projection_mask[world] = 0
         if project != 0:
             if refactor:
-                cholesky_lanes(world, lane, lanes, n, target, target, mask_projection, m.row_kind, w.row_free, D, F)
-                if wp.static(with_inverse):
-                    triangular_inverse_lanes(lane, lanes, n, F, G)
+                factor_world(world, lane, lanes, n, target, target, mask_projection, m.row_kind, w.row_free, D, F, G)
             if wp.static(timed):
                 last = tick(stamps, world, wp.static(_STAGE["projection_factor"]), lane, last)
             passes = position_iterations
@@ -655,10 +664,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                     w.projection_mask[world] = wp.where(largest > skip_floor, 1, 0)
                 if largest <= skip_floor:  # the correction would be rounding: skip the iteration
                     continue
-                if wp.static(with_inverse):
-                    inverse_solve_lanes(world, lane, lanes, n, G, w.rhs, w.delta, acc, sol)
-                else:
-                    cholesky_solve_lanes(world, lane, lanes, n, F, w.rhs, w.delta, acc, sol)
+                solve_world(world, lane, lanes, n, F, G, w.rhs, w.delta, acc, sol)
                 if wp.static(timed):
                     last = tick(stamps, world, wp.static(_STAGE["projection_solve"]), lane, last)
                 for b in range(lane, nb, lanes):
