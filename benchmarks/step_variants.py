@@ -1,16 +1,20 @@
-"""The fused step's solve form and the projection's rounding skip, switched on and off in one run.
+"""The fused step's options switched on and off in one run.
 
-    python -m benchmarks.step_variants --device cuda [--worlds 4096 16384] [--repeats 2] [--assets DIR]
-        [--out FILE]
+    python -m benchmarks.step_variants --device cuda [--worlds 4096 16384] [--scenes fourbar sixbar]
+        [--variants default split_off ...] [--repeats 2] [--assets DIR] [--out FILE]
 
-Four-bar (engine.scenes, dt 1 ms): every combination of the fused step's solves through G = L^-1
-(engine.fused.fused_inverse; off: substitutions with the Cholesky factor) and of the projection's
-skip of iterations whose joint error is at float32 rounding (SolverConfig.projection_skip_floor 1e-7;
-off: 0), at each batch size, the combinations interleaved and repeated. With --assets: DR Legs
-hanging (sparse staged step, dt 10 ms, 4096 worlds) at skip floors 0, 1e-7 and 1e-6. Each timing
-is the median ms per step over 6 chunks of 10 steps replayed as CUDA graphs (engine.rollout.Stepper)
-after a compile and a capture chunk. Prints one JSON line per measurement and writes them all, with
-the device, the versions and the command, to --out.
+Scenes of engine.scenes (dt 1 ms) under named variants of the fused step: "default" (everything as
+pack_worlds chooses it), "split_off" (the lanes take a whole joint's rows each instead of one part
+of a joint each, engine.fused.SHARE_JOINT_PARTS), "groups_off" (one lane sums a body's rows instead
+of a group of lanes, SHARE_BODY_SUMS), "sharing_off" (neither), "inverse_off" (substitutions with the Cholesky factor
+instead of products with G = L^-1, engine.fused.fused_inverse), "skip_off" (no skip of projection
+iterations whose joint error is at float32 rounding, SolverConfig.projection_skip_floor 0) and
+"before" (the solves, the skip and the sharing off). The variants are interleaved and repeated; each timing is the median ms
+per step over 6 chunks of 10 steps replayed as CUDA graphs (engine.rollout.Stepper) after a compile
+and a capture chunk, and each row also has the fused step's median cycles per world-step and per
+stage (engine.fused.fused_profile, GPU only). With --assets: DR Legs hanging (sparse staged step, dt
+10 ms, 4096 worlds) at skip floors 0, 1e-7 and 1e-6. Prints one JSON line per measurement and
+writes them all, with the device, the versions and the command, to --out.
 """
 
 import argparse
@@ -25,15 +29,29 @@ import numpy as np
 import warp as wp
 
 
+VARIANTS = {  # (solve through L^-1 where fused_inverse allows it, projection skip floor on, the lanes' sharing
+    # flags: None as fused_sharing chooses, else engine.fused.SHARE_* bits)
+    "default": (True, True, None),
+    "split_off": (True, True, 2),  # SHARE_BODY_SUMS only
+    "groups_off": (True, True, 1),  # SHARE_JOINT_PARTS only
+    "sharing_off": (True, True, 0),
+    "inverse_off": (False, True, None),
+    "skip_off": (True, False, None),
+    "before": (False, False, 0),
+}
+
+
 def timed(specs, worlds: int, dt: float, config, device: str, chunks: int = 6,
-          chunk: int = 10) -> tuple[float, bool]:
-    """Median ms per step of ``worlds`` copies of ``specs`` (cycled), and whether the fused step
-    solved through L^-1."""
+          chunk: int = 10, sharing: int | None = None, profile: bool = False) -> dict:
+    """Median ms per step of ``worlds`` copies of ``specs`` (cycled), whether the fused step solved
+    through L^-1, how its lanes shared joints and bodies (engine.fused.SHARE_* flags), and
+    (``profile``, fused steps) its cycles per stage."""
     from engine import pack_worlds
-    from engine.fused import fused_inverse
+    from engine.fused import fused_inverse, fused_profile, fused_sharing
     from engine.rollout import Stepper
 
     model = pack_worlds([specs[w % len(specs)] for w in range(worlds)], device=device, dt=dt, config=config)
+    model.fused_sharing = sharing
     stepper = Stepper(model, model.state(), model.control(), chunk=chunk)
     stepper.advance()  # compiles
     stepper.advance()  # captures the graph (CUDA)
@@ -44,14 +62,21 @@ def timed(specs, worlds: int, dt: float, config, device: str, chunks: int = 6,
         stepper.advance()
         wp.synchronize_device(model.device)
         times.append((time.perf_counter() - t0) / chunk)
-    inverse = model.step_kernel == "fused" and fused_inverse(model.device, model.max_rows)
-    return float(np.median(times) * 1e3), bool(inverse)
+    fused = model.step_kernel == "fused"
+    out = {"step_ms": float(np.median(times) * 1e3),
+           "inverse": bool(fused and fused_inverse(model.device, model.max_rows)),
+           "sharing": int(fused_sharing(model.device) if sharing is None else sharing) if fused else 0}
+    if profile and fused:
+        out["fused_stage_cycles"] = fused_profile(model, stepper.state, model.control(), steps=5)
+    return out
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--worlds", type=int, nargs="+", default=[4096, 16384])
+    parser.add_argument("--scenes", nargs="+", default=["fourbar"], help="engine.scenes names")
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--assets", default=None, help="folder holding disneyresearch/dr_legs (adds DR Legs hanging)")
     parser.add_argument("--out", default=None, help="JSON file for all measurements")
@@ -61,8 +86,11 @@ def main(argv=None) -> int:
     wp.config.log_level = wp.LOG_WARNING
     import engine.fused as fused
     from engine import SolverConfig
-    from engine.scenes import make_scene
+    from engine.scenes import SCENES, make_scene
 
+    unknown = [name for name in args.scenes if name not in SCENES]
+    if unknown:
+        parser.error(f"--scenes: unknown {unknown}; engine.scenes has {sorted(SCENES)}")
     skip_on = SolverConfig().projection_skip_floor
     rows = []
 
@@ -70,18 +98,20 @@ def main(argv=None) -> int:
         rows.append(row)
         print(json.dumps(row), flush=True)
 
-    fourbar = [make_scene("fourbar").spec]
     default_rows = fused.INVERSE_MAX_ROWS
     try:
         for repeat in range(args.repeats):
-            for allow in (True, False):  # the CPU never solves through L^-1 (engine.fused.fused_inverse)
-                fused.INVERSE_MAX_ROWS = default_rows if allow else 0  # fused_inverse reads it at each step
-                for skip in (skip_on, 0.0):
+            for name in args.scenes:
+                specs = [make_scene(name).spec]
+                for variant in args.variants:
+                    inverse, skip, sharing = VARIANTS[variant]
+                    fused.INVERSE_MAX_ROWS = default_rows if inverse else 0  # fused_inverse reads it at each step
+                    config = SolverConfig(projection_skip_floor=skip_on if skip else 0.0)
                     for worlds in args.worlds:
-                        config = SolverConfig(projection_skip_floor=skip)
-                        ms, inverse = timed(fourbar, worlds, 1e-3, config, args.device)
-                        record(scene="fourbar", num_worlds=worlds, dt=1e-3, inverse=inverse,
-                               projection_skip_floor=skip, repeat=repeat, step_ms=ms)
+                        result = timed(specs, worlds, 1e-3, config, args.device, sharing=sharing,
+                                       profile=repeat == 0)
+                        record(scene=name, num_worlds=worlds, dt=1e-3, variant=variant,
+                               projection_skip_floor=config.projection_skip_floor, repeat=repeat, **result)
     finally:
         fused.INVERSE_MAX_ROWS = default_rows
     if args.assets:
@@ -90,9 +120,9 @@ def main(argv=None) -> int:
         legs = dr_legs(False, args.assets).specs
         for repeat in range(args.repeats):
             for skip in (0.0, skip_on, 1e-6):
-                ms, _ = timed(legs, 4096, 1e-2, SolverConfig(projection_skip_floor=skip), args.device, chunks=4)
+                result = timed(legs, 4096, 1e-2, SolverConfig(projection_skip_floor=skip), args.device, chunks=4)
                 record(scene="drlegs_hanging", num_worlds=4096, dt=1e-2, projection_skip_floor=skip, repeat=repeat,
-                       step_ms=ms)
+                       step_ms=result["step_ms"])
     if args.out:
         device = wp.get_device(args.device)
         result = {"device": str(device), "device_name": device.name, "versions": {"warp": wp.config.version},

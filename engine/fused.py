@@ -43,17 +43,17 @@ import warp as wp
 
 from engine.dynamics import body_term, free_velocity_of, row_operator_of
 from engine.integrate import (
-    apply_impulses_of,
-    apply_projection_of,
     bilateral_residual_of,
     guard_divergence_of,
     integrate_pose_of,
     midpoint_pose_of,
+    move_body_of,
 )
-from engine.joints import joint_residuals_of, joint_rows_of
+from engine.joints import JOINT_PARTS, joint_residuals_of, joint_rows_of
 from engine.linear import block_sync
 from engine.matrix_free import block_max, block_sum
 from engine.model import ROW_ANGULAR, ROW_LINEAR
+from engine.sparse import group_sum
 from engine.padmm import (
     padmm_accelerate_of,
     padmm_decide,
@@ -67,8 +67,8 @@ from engine.padmm import (
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
-__all__ = ["FUSED_MAX_ROWS", "FUSED_REGISTERS", "STAGES", "fused_block", "fused_fits", "fused_inverse", "fused_profile",
-           "fused_step"]
+__all__ = ["FUSED_MAX_ROWS", "FUSED_REGISTERS", "SHARE_BODY_SUMS", "SHARE_JOINT_PARTS", "STAGES", "fused_block",
+           "fused_fits", "fused_inverse", "fused_profile", "fused_sharing", "fused_step"]
 
 FUSED_MAX_ROWS = 64
 FUSED_REGISTERS = 128  # register cap per thread: 158 uncapped leave 12 worlds per SM, 128 allow 16
@@ -392,6 +392,65 @@ def tick(stamps: wp.array2d(dtype=wp.int64), world: int, k: int, lane: int, last
 _KERNELS = {}
 
 
+# How the lanes share a world's joints and bodies (bit flags; engine.pack leaves model.fused_sharing
+# None: fused_sharing chooses): a joint's rows one part each (engine.joints.JOINT_PARTS) instead of
+# a joint each, where one pass of the lanes takes every part; each body's sums over rows by a group
+# of lanes (body_row_sum) instead of one lane.
+SHARE_JOINT_PARTS = wp.constant(1)
+SHARE_BODY_SUMS = wp.constant(2)
+
+
+def fused_sharing(device) -> int:
+    """Both forms of sharing on a GPU; none on the CPU (one lane: they would only add work)."""
+    return int(SHARE_JOINT_PARTS | SHARE_BODY_SUMS) if wp.get_device(device).is_cuda else 0
+
+
+@wp.func
+def joint_task(t: int, nj: int, split: int):
+    """Joint and part of lane task t: with ``split`` part t // nj of joint t % nj (the lanes that
+    take the same part of different joints run the same branch), else all of joint t."""
+    if split != 0:
+        return t % nj, t // nj
+    return t, -1
+
+
+@wp.func
+def body_group(nb: int, lanes: int):
+    """Lanes that share each body's sum over rows (body_row_sum): a power of two, as many as the
+    block holds for all nb bodies at once (at most a warp; one on the CPU)."""
+    g = int(1)
+    while 2 * g <= 32 and 2 * g * nb <= lanes:
+        g = 2 * g
+    return g
+
+
+@wp.func
+def body_row_sum(world: int, t: int, g: int, nb: int, n: int, row_body_c: wp.array2d(dtype=wp.int32),
+                 row_body_p: wp.array2d(dtype=wp.int32), row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
+                 row_MJ_p: wp.array2d(dtype=wp.spatial_vector), weight: wp.array2d(dtype=float),
+                 row_precond: wp.array2d(dtype=float), scale_by_precond: int):
+    """engine.integrate.row_sum_for_body of body t // g shared by the aligned group of g lanes
+    t, t + 1, ..: each sums the rows t % g, t % g + g, .. (whose loads are then in flight on g
+    lanes at once instead of one after the other on one), and the group adds its parts with warp
+    shuffles; every lane of the group gets the total (zero past the last body). Every lane of the
+    warp must call it."""
+    b = t // g
+    total = wp.spatial_vector()
+    if b < nb:
+        for i in range(t % g, n, g):
+            s = weight[world, i]
+            if scale_by_precond != 0:
+                s = s * row_precond[world, i]
+            if row_body_c[world, i] == b:
+                total += s * row_MJ_c[world, i]
+            if row_body_p[world, i] == b:
+                total += s * row_MJ_p[world, i]
+    if g > 1:
+        total = wp.spatial_vector(group_sum(total[0], g), group_sum(total[1], g), group_sum(total[2], g),
+                                  group_sum(total[3], g), group_sum(total[4], g), group_sum(total[5], g))
+    return total
+
+
 def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_inverse: bool = False):
     """The fused step for worlds of at most tile_rows rows: the world's matrix and factor live in
     shared-memory tiles of that size (the loads of a factor or substitution never leave the SM).
@@ -437,6 +496,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         velocity_floor: float,
         skip_floor: float,
         max_speed: float,
+        sharing: int,
         body_q_in: wp.array2d(dtype=wp.transform),
         body_qd_in: wp.array2d(dtype=wp.spatial_vector),
         body_q_offset_in: wp.array2d(dtype=wp.spatial_vector),
@@ -474,9 +534,17 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
             else:
                 w.body_q_mid[world, b] = body_q_in[world, b]
         block_sync()
-        for j in range(lane, nj, lanes):
-            joint_rows_of(world, j, m.joint_count, m.joint_type, m.joint_parent, m.joint_child, m.joint_X_p, m.joint_X_c,
-                          m.joint_axis, m.joint_axis2, m.joint_row_start, m.joint_inertia_row, m.joint_drive_row,
+        joint_tasks = nj
+        split = int(0)
+        # split where one pass of the lanes takes every part (more passes were slower: six-bar,
+        # chain); a one-thread block (the CPU) runs the parts one after the other, when asked
+        if (sharing & SHARE_JOINT_PARTS) != 0 and (nj * JOINT_PARTS <= lanes or lanes == 1):
+            split = 1
+            joint_tasks = nj * JOINT_PARTS
+        for t in range(lane, joint_tasks, lanes):
+            j, part = joint_task(t, nj, split)
+            joint_rows_of(world, j, part, m.joint_count, m.joint_type, m.joint_parent, m.joint_child, m.joint_X_p,
+                          m.joint_X_c, m.joint_axis, m.joint_axis2, m.joint_row_start, m.joint_inertia_row, m.joint_drive_row,
                           m.joint_armature, m.joint_damping, m.joint_stiffness, m.joint_drive_damping,
                           m.joint_effort_limit, m.joint_limit_lower, m.joint_limit_upper, m.joint_limit_lower_row,
                           m.joint_limit_upper_row, m.world_dt, baumgarte, limit_margin, limit_stabilization,
@@ -600,12 +668,20 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         for i in range(lane, max_rows, lanes):
             padmm_output_of(world, i, w.row_count, w.row_precond, w.y, w.diverged, w.halted, row_lambda_out)
         block_sync()
-        # 4. velocity update and poses
-        for b in range(lane, nb, lanes):
-            apply_impulses_of(world, b, m.body_count, w.row_count, w.row_body_c, w.row_body_p, w.row_MJ_c, w.row_MJ_p,
-                              row_lambda_out, w.row_precond, w.body_qd_free, body_qd_out)
-            integrate_pose_of(world, b, m.body_count, m.world_dt, 1.0, w.body_q_mid, body_qd_out, body_q_out)
-            body_q_offset_out[world, b] = wp.spatial_vector()
+        # 4. velocity update and poses (engine.integrate.apply_impulses_of, each body's rows summed
+        # by a group of lanes)
+        group = int(1)
+        if (sharing & SHARE_BODY_SUMS) != 0:
+            group = body_group(nb, lanes)
+        body_tasks = -(-nb * group // lanes) * lanes  # whole warps: the groups' shuffles take every lane
+        for t in range(lane, body_tasks, lanes):
+            du = body_row_sum(world, t, group, nb, n, w.row_body_c, w.row_body_p, w.row_MJ_c, w.row_MJ_p,
+                              row_lambda_out, w.row_precond, 0)
+            b = t // group
+            if b < nb and t % group == 0:
+                body_qd_out[world, b] = w.body_qd_free[world, b] + du
+                integrate_pose_of(world, b, m.body_count, m.world_dt, 1.0, w.body_q_mid, body_qd_out, body_q_out)
+                body_q_offset_out[world, b] = wp.spatial_vector()
         # 5. Gauss-Newton projection onto the joint constraints (engine.integrate.project_positions) of
         # the next step's configuration with SHAKE's velocity update; Moreau-Jean then projects the
         # end of the step, half-way there, for output only (engine.step)
@@ -640,8 +716,9 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                         integrate_pose_of(world, b, m.body_count, m.world_dt, 0.5, w.body_q_mid, body_qd_out,
                                           body_q_out)
                     block_sync()
-                for j in range(lane, nj, lanes):
-                    joint_residuals_of(world, j, m.joint_count, m.joint_type, m.joint_parent, m.joint_child, m.joint_X_p,
+                for t in range(lane, joint_tasks, lanes):
+                    j, part = joint_task(t, nj, split)
+                    joint_residuals_of(world, j, part, m.joint_count, m.joint_type, m.joint_parent, m.joint_child, m.joint_X_p,
                                        m.joint_X_c, m.joint_axis, m.joint_axis2, m.joint_row_start, m.joint_inertia_row,
                                        m.joint_drive_row, body_q_out, w.row_residual)
                 block_sync()
@@ -667,10 +744,13 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                 solve_world(world, lane, lanes, n, F, G, w.rhs, w.delta, acc, sol)
                 if wp.static(timed):
                     last = tick(stamps, world, wp.static(_STAGE["projection_solve"]), lane, last)
-                for b in range(lane, nb, lanes):
-                    apply_projection_of(world, b, m.body_count, w.row_count, w.row_body_c, w.row_body_p, w.valid,
-                                        m.world_dt, update, w.row_MJ_c, w.row_MJ_p, w.row_precond,
-                                        w.delta, wp.where(output, 1, 0), body_q_out, body_qd_out, body_q_offset_out)
+                for t in range(lane, body_tasks, lanes):  # engine.integrate.apply_projection_of
+                    dx = body_row_sum(world, t, group, nb, n, w.row_body_c, w.row_body_p, w.row_MJ_c, w.row_MJ_p,
+                                      w.delta, w.row_precond, 1)
+                    b = t // group
+                    if b < nb and t % group == 0:
+                        move_body_of(world, b, dx, m.world_dt, update, wp.where(output, 1, 0), body_q_out, body_qd_out,
+                                     body_q_offset_out)
                 block_sync()
                 if wp.static(timed):
                     last = tick(stamps, world, wp.static(_STAGE["projection_apply"]), lane, last)
@@ -724,6 +804,9 @@ def fused_step(model, state_in, state_out, control, stamps=None) -> None:
     inverse = model.fused_inverse
     if inverse is None:
         inverse = fused_inverse(model.device, model.max_rows)
+    sharing = model.fused_sharing
+    if sharing is None:
+        sharing = fused_sharing(model.device)
     if stamps is None:  # the untimed kernel never touches it
         stamps = model._fused_no_stamps
     kernel = fused_kernel(model.max_rows, model.fused_registers, timed, inverse)
@@ -734,7 +817,7 @@ def fused_step(model, state_in, state_out, control, stamps=None) -> None:
                       int(cfg.acceleration), cfg.position_iterations if model.has_bilateral_rows else 0,
                       int(model.has_unilateral_or_drive_rows), int(cfg.projection_velocity_update),
                       float(cfg.projection_velocity_floor), float(cfg.projection_skip_floor), float(cfg.max_speed),
-                      state_in.body_q, state_in.body_qd, state_in.body_q_offset, state_in.row_lambda,
+                      int(sharing), state_in.body_q, state_in.body_qd, state_in.body_q_offset, state_in.row_lambda,
                       control.joint_target_position, control.joint_target_velocity, control.joint_effort,
                       control.body_f],
               outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_offset, state_out.row_lambda, stamps])

@@ -233,6 +233,14 @@ def apply_projection_of(
     symplectic); with record_offset, add it to body_q_offset (an output projection the next
     Moreau-Jean midpoint undoes)."""
     dx = row_sum_for_body(world, b, row_count[world], row_body_c, row_body_p, row_MJ_c, row_MJ_p, delta, row_precond, 1)
+    move_body_of(world, b, dx, world_dt, velocity_update, record_offset, body_q, body_qd, body_q_offset)
+
+
+@wp.func
+def move_body_of(world: int, b: int, dx: wp.spatial_vector, world_dt: wp.array(dtype=float), velocity_update: int,
+                 record_offset: int, body_q: wp.array2d(dtype=wp.transform),
+                 body_qd: wp.array2d(dtype=wp.spatial_vector), body_q_offset: wp.array2d(dtype=wp.spatial_vector)):
+    """Body b's share of apply_projection_of, given its displacement dx = (M^-1 J^T P delta)_b."""
     X = body_q[world, b]
     body_q[world, b] = wp.transform(wp.transform_get_translation(X) + wp.spatial_top(dx),
                                     quat_rotate_vector(wp.transform_get_rotation(X), wp.spatial_bottom(dx)))
@@ -452,4 +460,4 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
                           work.row_MJ_p, work.row_precond, work.delta, int(record), body_q, body_qd, offset])
 
 
-__all__ = ["apply_impulses", "guard_divergence", "integrate_poses", "midpoint_poses", "project_positions"]
+__all__ = ["apply_impulses", "guard_divergence", "integrate_poses", "midpoint_poses", "move_body_of", "project_positions"]

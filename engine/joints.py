@@ -47,6 +47,22 @@ def bilateral_row_count(joint_type: int):
     return 5
 
 
+# A joint's rows split into this many parts, one per lane of the fused step (engine.fused): its
+# bilateral rows 0-5 one each (parts past the joint's count are empty), then its coordinate rows
+# (limits, armature, drive) together. part < 0 in joint_rows_of / joint_residuals_of: all of them.
+JOINT_PARTS = wp.constant(7)
+COORDINATE_PART = wp.constant(6)
+
+
+@wp.func
+def part_rows(joint_type: int, part: int):
+    """Bilateral rows [begin, end) of a part of a joint and whether it holds the coordinate rows."""
+    count = bilateral_row_count(joint_type)
+    if part < 0:
+        return 0, count, True
+    return part, wp.min(part + 1, count), part == COORDINATE_PART
+
+
 @wp.func
 def normal_basis(a: wp.vec3, k: int):
     """Unit vector k (0 or 1) of an orthonormal pair normal to the unit vector a."""
@@ -186,7 +202,7 @@ def limit_row(world: int, row: int, side: float, gap: float, gap_rate: float, J_
 
 @wp.func
 def joint_rows_of(
-    world: int, j: int,
+    world: int, j: int, part: int,
     # model
     joint_count: wp.array(dtype=wp.int32),
     joint_type: wp.array2d(dtype=wp.int32),
@@ -227,14 +243,24 @@ def joint_rows_of(
     row_hi_out: wp.array2d(dtype=float),
     row_residual_out: wp.array2d(dtype=float),
 ):
-    """Rows of every joint: J, bias c, compliance R and bounds, so that J u+ + R lambda = c."""
+    """Rows of joint j: J, bias c, compliance R and bounds, so that J u+ + R lambda = c; all of them
+    (part < 0) or one part (JOINT_PARTS)."""
     jtype = joint_type[world, j]
+    begin, end, coordinate = part_rows(jtype, part)
+    inertia_row = joint_inertia_row[world, j]
+    drive_row = joint_drive_row[world, j]
+    lower_row = joint_limit_lower_row[world, j]
+    upper_row = joint_limit_upper_row[world, j]
+    if inertia_row < 0 and drive_row < 0 and lower_row < 0 and upper_row < 0:
+        coordinate = False
+    if begin >= end and not coordinate:
+        return
     parent = joint_parent[world, j]
     child = joint_child[world, j]
     X_wp, X_wc, r_p, r_c = joint_frames(body_q, world, parent, child, joint_X_p[world, j], joint_X_c[world, j])
     dt = world_dt[world]
     start = joint_row_start[world, j]
-    for k in range(bilateral_row_count(jtype)):
+    for k in range(begin, end):
         J_c, J_p, phi = bilateral_row(jtype, k, X_wp, X_wc, r_p, r_c, joint_axis[world, j], joint_axis2[world, j])
         row = start + k
         row_J_c_out[world, row] = J_c
@@ -244,11 +270,7 @@ def joint_rows_of(
         row_lo_out[world, row] = -UNBOUNDED
         row_hi_out[world, row] = UNBOUNDED
         row_residual_out[world, row] = phi
-    inertia_row = joint_inertia_row[world, j]
-    drive_row = joint_drive_row[world, j]
-    lower_row = joint_limit_lower_row[world, j]
-    upper_row = joint_limit_upper_row[world, j]
-    if inertia_row < 0 and drive_row < 0 and lower_row < 0 and upper_row < 0:
+    if not coordinate:
         return
     J_c, J_p, q = joint_coordinate_row(jtype, X_wp, X_wc, r_p, r_c, joint_axis[world, j])
     dq = wp.dot(J_c, body_twist(body_qd, world, child)) + wp.dot(J_p, body_twist(body_qd, world, parent))
@@ -332,7 +354,7 @@ def joint_rows(
     world, j = wp.tid()
     if j >= joint_count[world]:
         return
-    joint_rows_of(world, j, joint_count, joint_type, joint_parent, joint_child, joint_X_p, joint_X_c, joint_axis,
+    joint_rows_of(world, j, -1, joint_count, joint_type, joint_parent, joint_child, joint_X_p, joint_X_c, joint_axis,
         joint_axis2, joint_row_start, joint_inertia_row, joint_drive_row, joint_armature, joint_damping,
         joint_stiffness, joint_drive_damping, joint_effort_limit, joint_limit_lower, joint_limit_upper,
         joint_limit_lower_row, joint_limit_upper_row, world_dt, baumgarte, limit_margin, limit_stabilization,
@@ -342,7 +364,7 @@ def joint_rows(
 
 @wp.func
 def joint_residuals_of(
-    world: int, j: int,
+    world: int, j: int, part: int,
     # model
     joint_count: wp.array(dtype=wp.int32),
     joint_type: wp.array2d(dtype=wp.int32),
@@ -360,14 +382,20 @@ def joint_residuals_of(
     # out
     row_residual_out: wp.array2d(dtype=float),
 ):
-    """Position-level residuals of every joint's rows at body_q (0 for dynamics rows)."""
+    """Position-level residuals of joint j's rows at body_q (0 for dynamics rows): all of them
+    (part < 0) or one part (JOINT_PARTS)."""
     jtype = joint_type[world, j]
-    X_wp, X_wc, r_p, r_c = joint_frames(body_q, world, joint_parent[world, j], joint_child[world, j],
-                                        joint_X_p[world, j], joint_X_c[world, j])
-    start = joint_row_start[world, j]
-    for k in range(bilateral_row_count(jtype)):
-        J_c, J_p, phi = bilateral_row(jtype, k, X_wp, X_wc, r_p, r_c, joint_axis[world, j], joint_axis2[world, j])
-        row_residual_out[world, start + k] = phi
+    begin, end, coordinate = part_rows(jtype, part)
+    if begin < end:
+        X_wp, X_wc, r_p, r_c = joint_frames(body_q, world, joint_parent[world, j], joint_child[world, j],
+                                            joint_X_p[world, j], joint_X_c[world, j])
+        start = joint_row_start[world, j]
+        for k in range(begin, end):
+            J_c, J_p, phi = bilateral_row(jtype, k, X_wp, X_wc, r_p, r_c, joint_axis[world, j],
+                                          joint_axis2[world, j])
+            row_residual_out[world, start + k] = phi
+    if not coordinate:
+        return
     if joint_inertia_row[world, j] >= 0:
         row_residual_out[world, joint_inertia_row[world, j]] = 0.0
     if joint_drive_row[world, j] >= 0:
@@ -397,7 +425,7 @@ def joint_residuals(
     world, j = wp.tid()
     if j >= joint_count[world]:
         return
-    joint_residuals_of(world, j, joint_count, joint_type, joint_parent, joint_child, joint_X_p, joint_X_c,
+    joint_residuals_of(world, j, -1, joint_count, joint_type, joint_parent, joint_child, joint_X_p, joint_X_c,
         joint_axis, joint_axis2, joint_row_start, joint_inertia_row, joint_drive_row, body_q, row_residual_out)
 
 
@@ -428,5 +456,5 @@ def compute_joint_residuals(model, body_q, residual_out):
               inputs=[*joint_model_inputs(model), body_q], outputs=[residual_out])
 
 
-__all__ = ["JOINT_CYLINDRICAL", "JOINT_FIXED", "JOINT_INLINE", "JOINT_PRISMATIC", "JOINT_REVOLUTE", "JOINT_SPHERICAL",
+__all__ = ["JOINT_CYLINDRICAL", "JOINT_FIXED", "JOINT_INLINE", "JOINT_PARTS", "JOINT_PRISMATIC", "JOINT_REVOLUTE", "JOINT_SPHERICAL",
            "JOINT_UNIVERSAL", "compute_joint_residuals", "compute_joint_rows"]

@@ -338,6 +338,7 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     model.fused_block = None  # threads per world of the fused step (None: engine.fused.fused_block)
     model.fused_registers = FUSED_REGISTERS  # register cap per thread of the fused step
     model.fused_inverse = None  # solve through L^-1 in the fused step (None: engine.fused.fused_inverse)
+    model.fused_sharing = None  # how the fused step's lanes share joints and bodies (None: engine.fused.fused_sharing)
     model.work = Workspace(W, B, R, device, max_pairs=max_pairs, contact_capacity=capacity, dense=dense)
     model.work.row_count.assign(h["row_count"])
     model.work.row_body_c = wp.clone(model.row_body_c)  # contact rows rewrite their bodies every step

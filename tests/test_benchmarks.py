@@ -190,19 +190,26 @@ def test_newton_peer_takes_the_joint_settings_of_our_spec_and_names_a_spec_it_ca
         joint_parameters(dataclasses.replace(spec, joints=joints))
 
 
-def test_step_variants_times_every_combination_and_restores_the_inverse_choice(tmp_path, capsys):
-    """benchmarks.step_variants on the CPU: one timing per combination of solve form and skip
-    floor, finite and positive, the CPU never solving through L^-1, and the module's threshold
-    restored after the runs."""
+def test_step_variants_times_every_variant_and_restores_the_inverse_choice(tmp_path, capsys):
+    """benchmarks.step_variants on the CPU: one timing per variant and scene, finite and positive,
+    the variants' settings as named (the CPU never solves through L^-1 nor splits joints by
+    itself), the module's threshold restored after the runs, and an unknown scene refused."""
     from benchmarks import step_variants
     from engine import fused
 
     before = fused.INVERSE_MAX_ROWS
     out = tmp_path / "variants.json"
-    assert step_variants.main(["--device", "cpu", "--worlds", "2", "--repeats", "1", "--out", str(out)]) == 0
+    assert step_variants.main(["--device", "cpu", "--worlds", "2", "--repeats", "1", "--scenes", "fourbar",
+                               "pendulum", "--out", str(out)]) == 0
     assert fused.INVERSE_MAX_ROWS == before
     rows = json.loads(out.read_text())["measurements"]
-    assert {(r["projection_skip_floor"] > 0) for r in rows} == {True, False}
-    assert len(rows) == 4 and all(r["step_ms"] > 0 and np.isfinite(r["step_ms"]) for r in rows)
+    assert len(rows) == 2 * len(step_variants.VARIANTS)
+    assert all(r["step_ms"] > 0 and np.isfinite(r["step_ms"]) for r in rows)
+    by_variant = {r["variant"]: r for r in rows if r["scene"] == "fourbar"}
+    assert by_variant["skip_off"]["projection_skip_floor"] == 0.0 < by_variant["default"]["projection_skip_floor"]
     assert not any(r["inverse"] for r in rows)
-    assert len(capsys.readouterr().out.strip().splitlines()) == 4
+    assert {r["sharing"] for r in rows if r["variant"] in ("default", "sharing_off")} == {0}
+    assert by_variant["groups_off"]["sharing"] == 1 and by_variant["split_off"]["sharing"] == 2
+    assert len(capsys.readouterr().out.strip().splitlines()) == len(rows)
+    with pytest.raises(SystemExit):
+        step_variants.main(["--device", "cpu", "--scenes", "pentagon"])
