@@ -3,18 +3,19 @@
     python -m benchmarks.step_variants --device cuda [--worlds 4096 16384] [--scenes fourbar sixbar]
         [--variants default split_off ...] [--repeats 2] [--assets DIR] [--out FILE]
 
-Scenes of engine.scenes (dt 1 ms) under named variants of the fused step: "default" (everything as
-pack_worlds chooses it), "split_off" (the lanes take a whole joint's rows each instead of one part
-of a joint each, engine.fused.SHARE_JOINT_PARTS), "groups_off" (one lane sums a body's rows instead
-of a group of lanes, SHARE_BODY_SUMS), "sharing_off" (neither), "inverse_off" (substitutions with the Cholesky factor
-instead of products with G = L^-1, engine.fused.fused_inverse), "skip_off" (no skip of projection
-iterations whose joint error is at float32 rounding, SolverConfig.projection_skip_floor 0) and
-"before" (the solves, the skip and the sharing off). The variants are interleaved and repeated; each timing is the median ms
-per step over 6 chunks of 10 steps replayed as CUDA graphs (engine.rollout.Stepper) after a compile
-and a capture chunk, and each row also has the fused step's median cycles per world-step and per
-stage (engine.fused.fused_profile, GPU only). With --assets: DR Legs hanging (sparse staged step, dt
-10 ms, 4096 worlds) at skip floors 0, 1e-7 and 1e-6. Prints one JSON line per measurement and
-writes them all, with the device, the versions and the command, to --out.
+Scenes of engine.scenes (dt 1 ms) under named variants of the fused step: "default" (everything
+as pack_worlds chooses it), "split_off" (the lanes take a whole joint's rows each instead of one
+part of a joint each, engine.fused.SHARE_JOINT_PARTS), "groups_off" (one lane sums a body's rows
+instead of a group of lanes, SHARE_BODY_SUMS), "sharing_off" (neither), "inverse_off"
+(substitutions with the Cholesky factor instead of products with G = L^-1,
+engine.fused.fused_inverse), "skip_off" (no skip of projection iterations whose joint error is at
+float32 rounding, SolverConfig.projection_skip_floor 0) and "before" (the solves, the skip and the
+sharing off). The variants are interleaved and repeated; each timing is the median ms per step over
+6 chunks of 10 steps replayed as CUDA graphs (engine.rollout.Stepper) after a compile and a
+capture chunk, and the first repeat's rows also have the fused step's median cycles per world-step
+and per stage (engine.fused.fused_profile, GPU only). With --assets: DR Legs hanging (sparse staged
+step, dt 10 ms, 4096 worlds) at skip floors 0, 1e-7 and 1e-6. Prints one JSON line per measurement
+and writes them all, with the device, the versions and the command, to --out.
 """
 
 import argparse

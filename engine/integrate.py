@@ -460,4 +460,5 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
                           work.row_MJ_p, work.row_precond, work.delta, int(record), body_q, body_qd, offset])
 
 
-__all__ = ["apply_impulses", "guard_divergence", "integrate_poses", "midpoint_poses", "move_body_of", "project_positions"]
+__all__ = ["apply_impulses", "guard_divergence", "integrate_poses", "midpoint_poses", "move_body_of",
+           "project_positions"]

@@ -456,5 +456,5 @@ def compute_joint_residuals(model, body_q, residual_out):
               inputs=[*joint_model_inputs(model), body_q], outputs=[residual_out])
 
 
-__all__ = ["JOINT_CYLINDRICAL", "JOINT_FIXED", "JOINT_INLINE", "JOINT_PARTS", "JOINT_PRISMATIC", "JOINT_REVOLUTE", "JOINT_SPHERICAL",
-           "JOINT_UNIVERSAL", "compute_joint_residuals", "compute_joint_rows"]
+__all__ = ["JOINT_CYLINDRICAL", "JOINT_FIXED", "JOINT_INLINE", "JOINT_PARTS", "JOINT_PRISMATIC", "JOINT_REVOLUTE",
+           "JOINT_SPHERICAL", "JOINT_UNIVERSAL", "compute_joint_residuals", "compute_joint_rows"]
