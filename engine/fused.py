@@ -555,7 +555,8 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                           m.joint_drive_damping, m.joint_effort_limit, m.joint_limit_lower, m.joint_limit_upper,
                           m.joint_limit_lower_row, m.joint_limit_upper_row, m.world_dt, baumgarte, limit_margin,
                           limit_stabilization, w.body_q_mid, body_qd_in, joint_target_position, joint_target_velocity,
-                          joint_effort, w.row_J_c, w.row_J_p, w.row_bias, w.row_compliance, w.row_lo, w.row_hi, w.row_residual)
+                          joint_effort, w.row_J_c, w.row_J_p, w.row_bias, w.row_compliance, w.row_lo, w.row_hi,
+                          w.row_residual)
         # 2. the dual problem
         n = w.row_count[world]
         max_rows = row_lambda_out.shape[1]
