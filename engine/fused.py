@@ -435,7 +435,8 @@ def body_row_sum(world: int, t: int, g: int, nb: int, n: int, row_body_c: wp.arr
                  row_body_p: wp.array2d(dtype=wp.int32), row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
                  row_MJ_p: wp.array2d(dtype=wp.spatial_vector), weight: wp.array2d(dtype=float),
                  row_precond: wp.array2d(dtype=float), scale_by_precond: int):
-    """engine.integrate.row_sum_for_body of body t // g shared by the aligned group of g lanes
+    """The sum over the rows touching body t // g of (M^-1 J^T)_b weight (times P when asked;
+    engine.integrate.row_sum_listed), shared by the aligned group of g lanes
     t, t + 1, ..: each sums the rows t % g, t % g + g, .. (whose loads are then in flight on g
     lanes at once instead of one after the other on one), and the group adds its parts with warp
     shuffles; every lane of the group gets the total (zero past the last body). Every lane of the
@@ -675,7 +676,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         for i in range(lane, max_rows, lanes):
             padmm_output_of(world, i, w.row_count, w.row_precond, w.y, w.diverged, w.halted, row_lambda_out)
         block_sync()
-        # 4. velocity update and poses (engine.integrate.apply_impulses_of, each body's rows summed
+        # 4. velocity update and poses (engine.integrate.apply_impulses, each body's rows summed
         # by a group of lanes)
         group = int(1)
         if (sharing & SHARE_BODY_SUMS) != 0:
@@ -751,7 +752,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                 solve_world(world, lane, lanes, n, F, G, w.rhs, w.delta, acc, sol)
                 if wp.static(timed):
                     last = tick(stamps, world, wp.static(_STAGE["projection_solve"]), lane, last)
-                for t in range(lane, body_tasks, lanes):  # engine.integrate.apply_projection_of
+                for t in range(lane, body_tasks, lanes):  # engine.integrate.apply_projection
                     dx = body_row_sum(world, t, group, nb, n, w.row_body_c, w.row_body_p, w.row_MJ_c, w.row_MJ_p,
                                       w.delta, w.row_precond, 1)
                     b = t // group

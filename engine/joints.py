@@ -308,8 +308,24 @@ def joint_rows_of(
                       row_compliance_out, row_lo_out, row_hi_out, row_residual_out)
 
 
+@wp.func
+def joint_thread(t: int, joints: int, parts: int):
+    """Joint and part (-1: all of it) of thread t of the joint kernels."""
+    if parts > 1:
+        return t % joints, t // joints
+    return t, -1
+
+
+def joint_parts(device) -> int:
+    """Threads per joint of the staged joint kernels: JOINT_PARTS on a GPU (DR Legs, 4096 worlds:
+    more threads with shorter chains), one on the CPU (its threads run one after the other, and the
+    parts would repeat each joint's frames)."""
+    return int(JOINT_PARTS) if wp.get_device(device).is_cuda else 1
+
+
 @wp.kernel
 def joint_rows(
+    parts: int,
     # model
     joint_count: wp.array(dtype=wp.int32),
     joint_type: wp.array2d(dtype=wp.int32),
@@ -350,11 +366,13 @@ def joint_rows(
     row_hi_out: wp.array2d(dtype=float),
     row_residual_out: wp.array2d(dtype=float),
 ):
-    """Rows of every joint: J, bias c, compliance R and bounds, so that J u+ + R lambda = c."""
-    world, j = wp.tid()
+    """Rows of every joint: J, bias c, compliance R and bounds, so that J u+ + R lambda = c; a
+    thread per joint, or with parts > 1 per part of a joint (thread t: part t // J of joint t % J)."""
+    world, t = wp.tid()
+    j, part = joint_thread(t, joint_type.shape[1], parts)
     if j >= joint_count[world]:
         return
-    joint_rows_of(world, j, -1, joint_count, joint_type, joint_parent, joint_child, joint_X_p, joint_X_c, joint_axis,
+    joint_rows_of(world, j, part, joint_count, joint_type, joint_parent, joint_child, joint_X_p, joint_X_c, joint_axis,
         joint_axis2, joint_row_start, joint_inertia_row, joint_drive_row, joint_armature, joint_damping,
         joint_stiffness, joint_drive_damping, joint_effort_limit, joint_limit_lower, joint_limit_upper,
         joint_limit_lower_row, joint_limit_upper_row, world_dt, baumgarte, limit_margin, limit_stabilization,
@@ -404,6 +422,7 @@ def joint_residuals_of(
 
 @wp.kernel
 def joint_residuals(
+    parts: int,
     # model
     joint_count: wp.array(dtype=wp.int32),
     joint_type: wp.array2d(dtype=wp.int32),
@@ -421,11 +440,13 @@ def joint_residuals(
     # out
     row_residual_out: wp.array2d(dtype=float),
 ):
-    """Position-level residuals of every joint's rows at body_q (0 for dynamics rows)."""
-    world, j = wp.tid()
+    """Position-level residuals of every joint's rows at body_q (0 for dynamics rows); threads as
+    joint_rows."""
+    world, t = wp.tid()
+    j, part = joint_thread(t, joint_type.shape[1], parts)
     if j >= joint_count[world]:
         return
-    joint_residuals_of(world, j, -1, joint_count, joint_type, joint_parent, joint_child, joint_X_p, joint_X_c,
+    joint_residuals_of(world, j, part, joint_count, joint_type, joint_parent, joint_child, joint_X_p, joint_X_c,
         joint_axis, joint_axis2, joint_row_start, joint_inertia_row, joint_drive_row, body_q, row_residual_out)
 
 
@@ -439,8 +460,9 @@ def joint_model_inputs(model):
 def compute_joint_rows(model, body_q, body_qd, control):
     """Launch joint_rows for the batch into model.work."""
     work = model.work
-    wp.launch(joint_rows, dim=(model.num_worlds, model.max_joints), device=model.device,
-              inputs=[*joint_model_inputs(model), model.joint_armature, model.joint_damping,
+    parts = joint_parts(model.device)
+    wp.launch(joint_rows, dim=(model.num_worlds, model.max_joints * parts), device=model.device,
+              inputs=[parts, *joint_model_inputs(model), model.joint_armature, model.joint_damping,
                       model.joint_stiffness, model.joint_drive_damping, model.joint_effort_limit,
                       model.joint_limit_lower, model.joint_limit_upper, model.joint_limit_lower_row,
                       model.joint_limit_upper_row, model.world_dt, float(model.config.baumgarte),
@@ -452,8 +474,9 @@ def compute_joint_rows(model, body_q, body_qd, control):
 
 def compute_joint_residuals(model, body_q, residual_out):
     """Launch joint_residuals for the batch."""
-    wp.launch(joint_residuals, dim=(model.num_worlds, model.max_joints), device=model.device,
-              inputs=[*joint_model_inputs(model), body_q], outputs=[residual_out])
+    parts = joint_parts(model.device)
+    wp.launch(joint_residuals, dim=(model.num_worlds, model.max_joints * parts), device=model.device,
+              inputs=[parts, *joint_model_inputs(model), body_q], outputs=[residual_out])
 
 
 __all__ = ["JOINT_CYLINDRICAL", "JOINT_FIXED", "JOINT_INLINE", "JOINT_PARTS", "JOINT_PRISMATIC", "JOINT_REVOLUTE",

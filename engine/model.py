@@ -229,6 +229,8 @@ class Model:
         ground_normal (W,) vec3, ground_offset (W,) [m], ground_friction, ground_restitution (W,)
         pair_count (W,); pair_shape_a, pair_shape_b (W, max_pairs) int32 (b = -1: ground plane)
         contact_row_start (W,) int32: first contact row = number of joint, drive and limit rows
+        body_row_begin, body_row_end (W, B) int32 into body_row (W, K) int32: each body's rows below
+        contact_row_start in row order, coded 2 i + side (0: child, 1: parent; engine.pack.body_row_lists)
         bilateral_row_count (W,) int32: joint rows the position projection works on
     Host: contact_capacity (contacts per world, 0 when the batch has no shapes), max_pairs,
     has_contacts, has_limits, has_bilateral_rows, has_unilateral_or_drive_rows.

@@ -86,6 +86,33 @@ def dense_rows_needed(spec: MechanismSpec, contact_capacity: int | None = None) 
     return spec.row_count + 3 * capacity
 
 
+def body_row_lists(row_body_c: np.ndarray, row_body_p: np.ndarray, contact_row_start: np.ndarray, bodies: int):
+    """Per world, each body's joint, drive and limit rows (those below contact_row_start, whose
+    bodies never change) in row order, coded 2 i + side (side 0: the body is the row's child, 1:
+    its parent): (W, B) begin and end into the (W, K) codes. engine.integrate.row_sum_listed sums a
+    body's rows through them, in the order a scan of all rows would."""
+    W = len(row_body_c)
+    begin = np.zeros((W, bodies), np.int32)
+    end = np.zeros((W, bodies), np.int32)
+    lists = []
+    for w in range(W):
+        rows = np.arange(int(contact_row_start[w]))
+        codes = np.concatenate([2 * rows, 2 * rows + 1])
+        owner = np.concatenate([row_body_c[w, rows], row_body_p[w, rows]])
+        keep = owner >= 0
+        codes, owner = codes[keep], owner[keep]
+        order = np.lexsort((codes, owner))  # by body, then by row (a row never has one body on both sides)
+        codes, owner = codes[order], owner[order]
+        counts = np.bincount(owner, minlength=bodies)[:bodies]
+        end[w] = np.cumsum(counts)
+        begin[w] = end[w] - counts
+        lists.append(codes)
+    out = np.zeros((W, max(1, max(len(c) for c in lists))), np.int32)
+    for w, codes in enumerate(lists):
+        out[w, :len(codes)] = codes
+    return begin, end, out
+
+
 def factor_rows(specs, pairs, h) -> tuple[int, np.ndarray, np.ndarray]:
     """The rows of the sparse solver's factor (engine.sparse) and their bodies, per world: the
     joint rows, then three rows for each candidate contact slot of every collision pair (pair p,
@@ -297,6 +324,8 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
             h["point_body"][w, p] = b
             h["point_local"][w, p] = point.position - coms[b]
 
+    h["body_row_begin"], h["body_row_end"], h["body_row"] = body_row_lists(h["row_body_c"], h["row_body_p"],
+                                                                          h["contact_row_start"], B)
     model = Model()
     model.device = device
     model.config = config

@@ -150,7 +150,8 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
                   outputs=[state_out.contact_count, state_out.contact_key, state_out.contact_impulse])
     mark("padmm")
     wp.launch(apply_impulses, dim=bodies, device=device,
-              inputs=[model.body_count, work.row_count, work.row_body_c, work.row_body_p, work.row_MJ_c,
+              inputs=[model.body_count, work.row_count, model.contact_row_start, model.body_row_begin,
+                      model.body_row_end, model.body_row, work.row_body_c, work.row_body_p, work.row_MJ_c,
                       work.row_MJ_p, state_out.row_lambda, work.row_precond, work.body_qd_free],
               outputs=[state_out.body_qd])
     # a whole step from the configuration of the dynamics: the next step's (Moreau-Jean: the next

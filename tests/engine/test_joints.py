@@ -98,3 +98,47 @@ def test_assembled_joint_has_zero_residual(device):
     residual = wp.zeros((1, model.max_rows), dtype=float, device=device)
     compute_joint_residuals(model, model.state().body_q, residual)
     assert np.abs(residual.numpy()[0, :5]).max() < 1e-7
+
+
+def test_joint_kernels_by_part_give_the_rows_of_whole_joints():
+    """A thread per part of a joint (the GPU's layout, engine.joints.joint_parts) writes exactly
+    the rows and residuals of a thread per joint (the CPU's): every joint type, drives, limits and
+    armature rows, with the worlds' joint counts differing."""
+    import dataclasses
+
+    from engine import joints as J
+
+    rng = np.random.default_rng(5)
+    specs = []
+    for k, joint_type in enumerate(JointType):
+        spec = joint_spec(joint_type, rng, world_parent=k % 2 == 0)
+        extra = {}
+        if joint_type in (JointType.REVOLUTE, JointType.PRISMATIC):  # the types with a coordinate
+            extra = dict(limit_lower=-0.3, limit_upper=0.2, armature=0.01 * k, damping=0.02)
+        joint = dataclasses.replace(spec.joints[0], **extra)
+        specs.append(dataclasses.replace(spec, joints=[dataclasses.replace(joint, name=f"j{n}")
+                                                       for n in range(1 + k % 3)]))
+    model = pack_worlds(specs, device="cpu")
+    state, control = model.state(), model.control()
+    state.body_qd.assign(rng.normal(size=(len(specs), model.max_bodies, 6)).astype(np.float32))
+    outputs = {}
+    for parts in (1, int(J.JOINT_PARTS)):
+        work = model.work
+        for name in ("row_J_c", "row_J_p", "row_bias", "row_compliance", "row_lo", "row_hi", "row_residual"):
+            getattr(work, name).fill_(7.0)  # rows nobody writes keep it in both runs
+        original = J.joint_parts
+        J.joint_parts = lambda device, parts=parts: parts
+        try:
+            compute_joint_rows(model, state.body_q, state.body_qd, control)
+            rows = {name: getattr(work, name).numpy().copy() for name in
+                    ("row_J_c", "row_J_p", "row_bias", "row_compliance", "row_lo", "row_hi", "row_residual")}
+            residual = wp.zeros_like(work.row_residual)
+            compute_joint_residuals(model, state.body_q, residual)
+            rows["residual"] = residual.numpy()
+        finally:
+            J.joint_parts = original
+        outputs[parts] = rows
+    for name, whole in outputs[1].items():
+        np.testing.assert_array_equal(outputs[int(J.JOINT_PARTS)][name], whole, err_msg=name)
+    assert np.abs(outputs[1]["residual"]).max() > 1e-3  # random poses: the joints are far from assembled
+    assert (outputs[1]["row_compliance"] != 7.0).sum() > len(specs) * 3  # rows were written
