@@ -213,3 +213,28 @@ def test_step_variants_times_every_variant_and_restores_the_inverse_choice(tmp_p
     assert len(capsys.readouterr().out.strip().splitlines()) == len(rows)
     with pytest.raises(SystemExit):
         step_variants.main(["--device", "cpu", "--scenes", "pentagon"])
+
+
+def test_kernel_times_account_for_every_launch_of_a_staged_step(tmp_path, capsys):
+    """benchmarks.kernel_times on the CPU (the default walker: staged, contacts): one row per
+    scene, every kernel with a positive time and whole launches per step, the stages' kernels
+    present (joint rows, PADMM, the projection), the per-kernel times summing to the total, the
+    library's launch functions restored; an unknown scene is refused."""
+    import warp as wp
+
+    from benchmarks import kernel_times
+
+    launch, launch_tiled = wp.launch, wp.launch_tiled
+    out = tmp_path / "kernels.json"
+    assert kernel_times.main(["--device", "cpu", "--scenes", "walker_default", "--worlds", "2", "--steps", "2",
+                              "--out", str(out)]) == 0
+    assert (wp.launch, wp.launch_tiled) == (launch, launch_tiled)
+    (row,) = json.loads(out.read_text())["results"]
+    assert row["step_kernel"] == "staged"
+    kernels = row["kernels"]
+    assert {"joint_rows", "padmm_rhs", "apply_impulses", "apply_projection", "projection_gate"} <= set(kernels)
+    assert all(ms > 0 and count >= 1 and float(count * 2).is_integer() for ms, count in kernels.values())
+    assert sum(ms for ms, _ in kernels.values()) == pytest.approx(row["total_ms_per_step"], rel=1e-3)
+    assert len(capsys.readouterr().out.strip().splitlines()) == 1
+    with pytest.raises(SystemExit):
+        kernel_times.main(["--device", "cpu", "--scenes", "pentagon"])

@@ -1,0 +1,103 @@
+"""Where a staged step spends its time: every kernel launch of a few eager steps, timed on its own.
+
+    python -m benchmarks.kernel_times --device cuda --scenes drlegs_hanging drlegs_standing --worlds 4096 --assets DIR
+        [--steps 5] [--out FILE]
+
+Scenes of benchmarks.scenes (their dt). After two graph chunks of 10 steps (compile, capture, the
+scene settled a little), ``--steps`` eager steps run with the device synchronized before and after
+every launch, and each launch's host wall time is added to its kernel's total: per kernel, ms per
+step and launches per step. The times include a launch's overhead (about 25 us each on an H100 with
+warp 1.19), so a kernel that does little shows that floor; what counts is the difference between
+kernels, and between versions measured the same way. Batches the fused step takes are one launch
+per step (see engine.testspeed's fused_stage_cycles instead). Prints one JSON line per scene and
+writes them to --out.
+"""
+
+import argparse
+import collections
+import json
+import os
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+import warp as wp
+
+
+def kernel_times(specs, worlds: int, dt: float, device: str, steps: int = 5) -> dict:
+    """Per kernel: [ms per step, launches per step], sorted by time, and the model's step kernel."""
+    from engine import pack_worlds, step
+    from engine.rollout import Stepper
+
+    model = pack_worlds([specs[w % len(specs)] for w in range(worlds)], device=device, dt=dt)
+    stepper = Stepper(model, model.state(), model.control(), chunk=10)
+    stepper.advance()
+    stepper.advance()
+    seconds = collections.defaultdict(float)
+    launches = collections.Counter()
+    launch, launch_tiled = wp.launch, wp.launch_tiled
+
+    def timed(original):
+        def run(kernel, *args, **kwargs):
+            wp.synchronize_device(model.device)
+            t0 = time.perf_counter()
+            result = original(kernel, *args, **kwargs)
+            wp.synchronize_device(model.device)
+            name = getattr(kernel, "key", str(kernel))
+            seconds[name] += time.perf_counter() - t0
+            launches[name] += 1
+            return result
+        return run
+
+    state, other, control = stepper.state, model.state(), model.control()
+    wp.launch, wp.launch_tiled = timed(launch), timed(launch_tiled)
+    try:
+        for _ in range(steps):
+            step(model, state, other, control)
+            state, other = other, state
+    finally:
+        wp.launch, wp.launch_tiled = launch, launch_tiled
+    per_kernel = {name: [round(1e3 * t / steps, 4), launches[name] / steps]
+                  for name, t in sorted(seconds.items(), key=lambda kv: -kv[1])}
+    return {"step_kernel": model.step_kernel, "linear_solver": model.linear_solver,
+            "total_ms_per_step": round(1e3 * sum(seconds.values()) / steps, 4),
+            "launches_per_step": sum(launches.values()) / steps, "kernels": per_kernel}
+
+
+def main(argv=None) -> int:
+    from benchmarks.scenes import SCENES_DECLARED
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--scenes", nargs="+", default=["drlegs_hanging"], choices=sorted(SCENES_DECLARED))
+    parser.add_argument("--worlds", type=int, default=4096)
+    parser.add_argument("--steps", type=int, default=5)
+    parser.add_argument("--assets", default=None, help="folder holding disneyresearch/dr_legs")
+    parser.add_argument("--out", default=None, help="JSON file for the results")
+    args = parser.parse_args(argv)
+    if args.worlds < 1 or args.steps < 1:
+        parser.error("--worlds and --steps must be >= 1")
+    wp.config.log_level = wp.LOG_WARNING
+    rows = []
+    for name in args.scenes:
+        declared = SCENES_DECLARED[name]
+        try:
+            scene = declared.build(args.assets)
+        except FileNotFoundError as error:
+            parser.error(f"--scenes {name}: {error}")
+        row = {"scene": name, "num_worlds": args.worlds, "dt": declared.dt,
+               **kernel_times(scene.specs, args.worlds, declared.dt, args.device, args.steps)}
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    if args.out:
+        device = wp.get_device(args.device)
+        with open(args.out, "w") as f:
+            json.dump({"device": str(device), "device_name": device.name, "versions": {"warp": wp.config.version},
+                       "command": "python -m benchmarks.kernel_times " + " ".join(argv if argv is not None else sys.argv[1:]),
+                       "results": rows}, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
