@@ -317,8 +317,9 @@ class Workspace:
     (position-level residual [m]/[rad]), row_precond (P).
     Matrices (W, R, R), dense solver only: delassus (P D P), factor (its Cholesky factor with
     (eta + rho) I added). Sparse solver: sparse_A, sparse_L (W, entries) this step's P D P and its
-    factor on the factor's pattern (engine.sparse), sparse_real (W, factor rows) the row each factor row stands for this
-    step (-1: unused). Matrix-free: no extra arrays (Conjugate Residual vectors live in registers,
+    factor on the factor's pattern (engine.sparse), sparse_L_rows (W, entries left of the diagonals)
+    the factor's rows (copied for the forward substitution), sparse_real (W, factor rows) the row each
+    factor row stands for this step (-1: unused). Matrix-free: no extra arrays (Conjugate Residual vectors live in registers,
     row Jacobians and body twists in shared memory); inner_iterations (W,) CR iterations summed over
     a step.
     PADMM vectors (W, R): v_f, lo, hi (preconditioned), x, x_prev, y, y_prev, y_hat, z, z_prev,

@@ -383,5 +383,7 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         model.work.sparse_root = wp.zeros((W, B), dtype=wp.mat33, device=device)
         model.work.sparse_A = wp.zeros((W, entries), dtype=float, device=device)
         model.work.sparse_L = wp.zeros((W, entries), dtype=float, device=device)
+        row_entries = max(1, max(len(a.row_entry) for a in model.sparse_analyses))
+        model.work.sparse_L_rows = wp.zeros((W, row_entries), dtype=float, device=device)  # L's rows (engine.sparse)
         model.work.sparse_real = wp.zeros((W, model.sparse_rows), dtype=wp.int32, device=device)
     return model

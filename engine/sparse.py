@@ -383,11 +383,24 @@ class SparsePatterns:
     row_base: wp.array(dtype=wp.int32)  # (P + 1,)
     row_entry: wp.array(dtype=wp.int32)
     row_col: wp.array(dtype=wp.int32)
+    diag_row: wp.array(dtype=wp.vec3i)  # per entry (diagonals only): column j and its row's range in row_entry
+    diag_col: wp.array(dtype=wp.vec3i)  # per entry (diagonals only): column j and its entries below the diagonal
+    entry_pivot: wp.array(dtype=wp.int32)  # per entry: the diagonal entry of its column
     level_base: wp.array(dtype=wp.int32)  # (P + 1,)
     level_first: wp.array(dtype=wp.int32)
     level_diag_end: wp.array(dtype=wp.int32)
     level_end: wp.array(dtype=wp.int32)
     level_mode: wp.array(dtype=wp.int32)
+
+
+def diagonal_ranges(a: Analysis, begin: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """(E, 3) per factor entry: for a diagonal entry of column j, (j, begin[j], end[j]); zeros
+    elsewhere. A substitution step then finds its column and its range in one load instead of
+    two dependent ones."""
+    out = np.zeros((a.entries, 3), np.int32)
+    j = a.entry_j[a.diag]
+    out[a.diag] = np.stack([j, begin[j], end[j]], axis=1)
+    return out
 
 
 def build_patterns(row_body_c: np.ndarray, row_body_p: np.ndarray, device, body_nodes: bool = True
@@ -447,6 +460,9 @@ def build_patterns(row_body_c: np.ndarray, row_body_p: np.ndarray, device, body_
     for name in ("entry_i", "entry_j", "entry_coupled", "update_begin", "update_end",
                  "row_entry", "row_col", "level_first", "level_diag_end", "level_end", "level_mode"):
         setattr(s, name, flat(name))
+    s.diag_row = arr(np.concatenate([diagonal_ranges(a, a.row_begin, a.row_end) for a in analyses]), dtype=wp.vec3i)
+    s.diag_col = arr(np.concatenate([diagonal_ranges(a, a.col_begin, a.col_end) for a in analyses]), dtype=wp.vec3i)
+    s.entry_pivot = arr(np.concatenate([a.diag[a.entry_j] for a in analyses]).astype(np.int32))
     return s, analyses, max(a.entries for a in analyses)
 
 
@@ -553,29 +569,27 @@ def _entry_sum(Lw: Any, pat: SparsePatterns, eb: int, ub: int, e: int, first: in
 
 
 @wp.func
-def _row_sum(Lw: Any, v: Any, pat: SparsePatterns, p: int, rb: int, j: int, first: int, stride: int):
-    """Part of row j's entries left of the diagonal times the solved values."""
+def _row_sum(Lr: Any, v: Any, pat: SparsePatterns, rb: int, begin: int, end: int, first: int, stride: int):
+    """Part of a row's entries left of the diagonal (Lr: the factor's row-major copy, entries
+    begin .. end) times the solved values."""
     acc = float(0.0)
-    r = pat.row_begin[p, j] + first
-    end = pat.row_end[p, j]
+    r = begin + first
     while r + 3 * stride < end:  # four entries per pass
-        acc += (Lw[pat.row_entry[rb + r]] * v[pat.row_col[rb + r]]
-                + Lw[pat.row_entry[rb + r + stride]] * v[pat.row_col[rb + r + stride]]
-                + Lw[pat.row_entry[rb + r + 2 * stride]] * v[pat.row_col[rb + r + 2 * stride]]
-                + Lw[pat.row_entry[rb + r + 3 * stride]] * v[pat.row_col[rb + r + 3 * stride]])
+        acc += (Lr[r] * v[pat.row_col[rb + r]] + Lr[r + stride] * v[pat.row_col[rb + r + stride]]
+                + Lr[r + 2 * stride] * v[pat.row_col[rb + r + 2 * stride]]
+                + Lr[r + 3 * stride] * v[pat.row_col[rb + r + 3 * stride]])
         r += 4 * stride
     while r < end:
-        acc += Lw[pat.row_entry[rb + r]] * v[pat.row_col[rb + r]]
+        acc += Lr[r] * v[pat.row_col[rb + r]]
         r += stride
     return acc
 
 
 @wp.func
-def _col_sum(Lw: Any, v: Any, pat: SparsePatterns, p: int, eb: int, j: int, first: int, stride: int):
-    """Part of column j's entries below the diagonal times the solved values."""
+def _col_sum(Lw: Any, v: Any, pat: SparsePatterns, eb: int, begin: int, end: int, first: int, stride: int):
+    """Part of a column's entries below the diagonal (begin .. end) times the solved values."""
     acc = float(0.0)
-    c = pat.col_begin[p, j] + first
-    end = pat.col_end[p, j]
+    c = begin + first
     while c + 3 * stride < end:  # four entries per pass
         acc += (Lw[c] * v[pat.entry_i[eb + c]] + Lw[c + stride] * v[pat.entry_i[eb + c + stride]]
                 + Lw[c + 2 * stride] * v[pat.entry_i[eb + c + 2 * stride]]
@@ -725,11 +739,14 @@ def sparse_factor(
     A: wp.array2d(dtype=float),
     # out
     L: wp.array2d(dtype=float),
+    L_rows: wp.array2d(dtype=float),
 ):
     """L S L^T = A + diag(shift) for worlds with mask != 0 (shift per row of this step; rows of the
     pattern that stand for no row get shift[world, 0], body nodes none), A from sparse_matrix
     (with bilateral_only: its bilateral joint block and the body nodes, the identity elsewhere).
-    S is -1 on body nodes, +1 elsewhere; a diagonal entry holds s_j L_jj. The factor stays in global memory:
+    S is -1 on body nodes, +1 elsewhere; a diagonal entry holds s_j L_jj. Then L_rows: the entries
+    left of each diagonal row by row (in row_entry's order), so that the forward substitution reads
+    them without an index load in between. The factor stays in global memory:
     keeping it in shared memory while it is computed was 2x slower on an H100 (DR Legs standing,
     4096 worlds), as fewer worlds then fit on each multiprocessor at once."""
     world, lane = wp.tid()
@@ -789,9 +806,14 @@ def sparse_factor(
         block_sync()
         e = diag_end + lane
         while e < end:  # below the diagonals: divide by the column's diagonal
-            Lw[e] = Lw[e] / Lw[pat.diag[p, pat.entry_j[eb + e]]]
+            Lw[e] = Lw[e] / Lw[pat.entry_pivot[eb + e]]
             e += lanes
         block_sync()
+    rb = pat.row_base[p]
+    r = lane
+    while r < pat.row_base[p + 1] - rb:
+        L_rows[world, r] = Lw[pat.row_entry[rb + r]]
+        r += lanes
 
 
 @functools.cache
@@ -801,32 +823,39 @@ def solve_kernel(size: int):
     vector_set = _vector_setter(size)
 
     @wp.func
-    def substitute(Lw: Any, v: Any, pat: SparsePatterns, p: int, eb: int, rb: int, level: int, phase: int, lane: int,
-                   lanes: int):
-        """One level of the forward (rows gather their entries left of the diagonal) or backward
-        (columns gather their entries below it) substitution: v_j = (v_j - sum) / L_jj."""
+    def substitute(Lw: Any, Lr: Any, v: Any, pat: SparsePatterns, eb: int, rb: int, level: int, phase: int,
+                   lane: int, lanes: int):
+        """One level of the forward (rows gather their entries left of the diagonal, from the
+        row-major copy Lr) or backward (columns gather their entries below it) substitution:
+        v_j = (v_j - sum) / L_jj."""
         first = pat.level_first[level]
         diag_end = pat.level_diag_end[level]
         if group_width(pat.level_mode[level], phase, lanes) > 1:  # the warp shares each row
             for e in range(first, diag_end):
-                j = pat.entry_j[eb + e]
                 part = float(0.0)
+                info = wp.vec3i()
                 if phase == FORWARD:
-                    part = _row_sum(Lw, v, pat, p, rb, j, lane, lanes)
+                    info = pat.diag_row[eb + e]
+                    part = _row_sum(Lr, v, pat, rb, info[1], info[2], lane, lanes)
                 else:
-                    part = _col_sum(Lw, v, pat, p, eb, j, lane, lanes)
+                    info = pat.diag_col[eb + e]
+                    part = _col_sum(Lw, v, pat, eb, info[1], info[2], lane, lanes)
                 total = group_sum(part, lanes)
                 if lane == 0:
+                    j = info[0]
                     vector_set(v, j, (v[j] - total) / wp.abs(Lw[e]))
         else:  # one row per lane
             e = first + lane
             while e < diag_end:
-                j = pat.entry_j[eb + e]
                 part = float(0.0)
+                info = wp.vec3i()
                 if phase == FORWARD:
-                    part = _row_sum(Lw, v, pat, p, rb, j, 0, 1)
+                    info = pat.diag_row[eb + e]
+                    part = _row_sum(Lr, v, pat, rb, info[1], info[2], 0, 1)
                 else:
-                    part = _col_sum(Lw, v, pat, p, eb, j, 0, 1)
+                    info = pat.diag_col[eb + e]
+                    part = _col_sum(Lw, v, pat, eb, info[1], info[2], 0, 1)
+                j = info[0]
                 vector_set(v, j, (v[j] - part) / wp.abs(Lw[e]))
                 e += lanes
 
@@ -835,6 +864,7 @@ def solve_kernel(size: int):
         pat: SparsePatterns,
         mask: wp.array(dtype=wp.int32),
         L: wp.array2d(dtype=float),
+        L_rows: wp.array2d(dtype=float),
         rhs: wp.array2d(dtype=float),
         real: wp.array2d(dtype=wp.int32),
         row_count: wp.array(dtype=wp.int32),
@@ -863,11 +893,12 @@ def solve_kernel(size: int):
             vector_set(v, k, value)
             k += lanes
         Lw = L[world]
+        Lr = L_rows[world]
         block_sync()
         lb = pat.level_base[p]
         levels = pat.level_base[p + 1] - lb
         for level in range(levels):
-            substitute(Lw, v, pat, p, eb, rb, lb + level, FORWARD, lane, lanes)
+            substitute(Lw, Lr, v, pat, eb, rb, lb + level, FORWARD, lane, lanes)
             block_sync()
         if pat.has_body_nodes[p] != 0:
             k = lane
@@ -877,7 +908,7 @@ def solve_kernel(size: int):
                 k += lanes
             block_sync()
         for back in range(levels):
-            substitute(Lw, v, pat, p, eb, rb, lb + levels - 1 - back, BACKWARD, lane, lanes)
+            substitute(Lw, Lr, v, pat, eb, rb, lb + levels - 1 - back, BACKWARD, lane, lanes)
             block_sync()
         k = lane
         while k < rows:
@@ -901,7 +932,7 @@ def factor(model, shift, mask, bilateral_only: bool = False) -> None:
                     inputs=[model.sparse, mask, shift, int(bilateral_only), work.row_count, model.row_kind,
 
                             work.sparse_real, work.sparse_A],
-                    outputs=[work.sparse_L])
+                    outputs=[work.sparse_L, work.sparse_L_rows])
 
 
 def solve(model, rhs, mask, x_out) -> None:
@@ -909,7 +940,8 @@ def solve(model, rhs, mask, x_out) -> None:
     work = model.work
     size = -(-model.sparse_nodes // VECTOR_STEP) * VECTOR_STEP
     wp.launch_tiled(solve_kernel(size), dim=[model.num_worlds], block_dim=sparse_block(model.device),
-                    device=model.device, inputs=[model.sparse, mask, work.sparse_L, rhs, work.sparse_real, work.row_count],
+                    device=model.device, inputs=[model.sparse, mask, work.sparse_L, work.sparse_L_rows, rhs, work.sparse_real,
+                            work.row_count],
                     outputs=[x_out])
 
 
