@@ -386,7 +386,6 @@ class SparsePatterns:
     diag_row: wp.array(dtype=wp.vec3i)  # per entry (diagonals only): column j and its row's range in row_entry
     diag_col: wp.array(dtype=wp.vec3i)  # per entry (diagonals only): column j and its entries below the diagonal
     entry_pivot: wp.array(dtype=wp.int32)  # per entry: the diagonal entry of its column
-    entry_row: wp.array(dtype=wp.int32)  # per entry below a diagonal: its place in row_entry (the row-major copy)
     level_base: wp.array(dtype=wp.int32)  # (P + 1,)
     level_first: wp.array(dtype=wp.int32)
     level_diag_end: wp.array(dtype=wp.int32)
@@ -401,13 +400,6 @@ def diagonal_ranges(a: Analysis, begin: np.ndarray, end: np.ndarray) -> np.ndarr
     out = np.zeros((a.entries, 3), np.int32)
     j = a.entry_j[a.diag]
     out[a.diag] = np.stack([j, begin[j], end[j]], axis=1)
-    return out
-
-
-def row_places(a: Analysis) -> np.ndarray:
-    """(E,) per entry below a diagonal its place r in row_entry (row_entry[r] = e); 0 on diagonals."""
-    out = np.zeros(a.entries, np.int32)
-    out[a.row_entry] = np.arange(len(a.row_entry), dtype=np.int32)
     return out
 
 
@@ -471,7 +463,6 @@ def build_patterns(row_body_c: np.ndarray, row_body_p: np.ndarray, device, body_
     s.diag_row = arr(np.concatenate([diagonal_ranges(a, a.row_begin, a.row_end) for a in analyses]), dtype=wp.vec3i)
     s.diag_col = arr(np.concatenate([diagonal_ranges(a, a.col_begin, a.col_end) for a in analyses]), dtype=wp.vec3i)
     s.entry_pivot = arr(np.concatenate([a.diag[a.entry_j] for a in analyses]).astype(np.int32))
-    s.entry_row = arr(np.concatenate([row_places(a) for a in analyses]))
     return s, analyses, max(a.entries for a in analyses)
 
 
@@ -753,9 +744,9 @@ def sparse_factor(
     """L S L^T = A + diag(shift) for worlds with mask != 0 (shift per row of this step; rows of the
     pattern that stand for no row get shift[world, 0], body nodes none), A from sparse_matrix
     (with bilateral_only: its bilateral joint block and the body nodes, the identity elsewhere).
-    S is -1 on body nodes, +1 elsewhere; a diagonal entry holds s_j L_jj. L_rows gets a copy of the
-    entries left of the diagonals row by row (in row_entry's order), so that the forward
-    substitution reads them without an index load in between. The factor stays in global memory:
+    S is -1 on body nodes, +1 elsewhere; a diagonal entry holds s_j L_jj. Then L_rows: the entries
+    left of each diagonal row by row (in row_entry's order), so that the forward substitution reads
+    them without an index load in between. The factor stays in global memory:
     keeping it in shared memory while it is computed was 2x slower on an H100 (DR Legs standing,
     4096 worlds), as fewer worlds then fit on each multiprocessor at once."""
     world, lane = wp.tid()
@@ -814,12 +805,15 @@ def sparse_factor(
                 e += lanes
         block_sync()
         e = diag_end + lane
-        while e < end:  # below the diagonals: divide by the column's diagonal (and copy into the rows)
-            value = Lw[e] / Lw[pat.entry_pivot[eb + e]]
-            Lw[e] = value
-            L_rows[world, pat.entry_row[eb + e]] = value
+        while e < end:  # below the diagonals: divide by the column's diagonal
+            Lw[e] = Lw[e] / Lw[pat.entry_pivot[eb + e]]
             e += lanes
         block_sync()
+    rb = pat.row_base[p]
+    r = lane
+    while r < pat.row_base[p + 1] - rb:
+        L_rows[world, r] = Lw[pat.row_entry[rb + r]]
+        r += lanes
 
 
 @functools.cache
