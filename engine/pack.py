@@ -374,7 +374,6 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     model.work.row_body_p = wp.clone(model.row_body_p)
     model.sparse = None
     model.sparse_body_nodes = False
-    model.sparse_tail_inverse = None  # invert the sparse factor's dense tail (None: engine.sparse.tail_inverse_used)
     if sparse:  # one factor schedule per distinct topology (engine.sparse)
         model.sparse_rows, rbc, rbp = factor_rows(specs, pairs, h)
         model.sparse, model.sparse_analyses, entries = build_patterns(rbc, rbp, device,
@@ -386,7 +385,5 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         model.work.sparse_L = wp.zeros((W, entries), dtype=float, device=device)
         row_entries = max(1, max(len(a.row_entry) for a in model.sparse_analyses))
         model.work.sparse_L_rows = wp.zeros((W, row_entries), dtype=float, device=device)  # L's rows (engine.sparse)
-        tail = model.sparse.tail_col.shape[1]  # the dense tail's inverse (engine.sparse.dense_tail)
-        model.work.sparse_tail_inv = wp.zeros((W, tail * tail), dtype=float, device=device)
         model.work.sparse_real = wp.zeros((W, model.sparse_rows), dtype=wp.int32, device=device)
     return model

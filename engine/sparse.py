@@ -390,38 +390,11 @@ class SparsePatterns:
     diag_row: wp.array(dtype=wp.vec3i)  # per entry (diagonals only): column j and its row's range in row_entry
     diag_col: wp.array(dtype=wp.vec3i)  # per entry (diagonals only): column j and its entries below the diagonal
     entry_pivot: wp.array(dtype=wp.int32)  # per entry: the diagonal entry of its column
-    tail_count: wp.array(dtype=wp.int32)  # (P,) columns of the dense tail (0: none; dense_tail)
-    tail_col: wp.array2d(dtype=wp.int32)  # (P, T) their positions, in level order
-    tail_of: wp.array2d(dtype=wp.int32)  # (P, N) each position's place in the tail (-1: not in it)
-    tail_entry: wp.array2d(dtype=wp.int32)  # (P, T * T) entry of L[tail a, tail b], a >= b (-1 above)
     level_base: wp.array(dtype=wp.int32)  # (P + 1,)
     level_first: wp.array(dtype=wp.int32)
     level_diag_end: wp.array(dtype=wp.int32)
     level_end: wp.array(dtype=wp.int32)
     level_mode: wp.array(dtype=wp.int32)
-
-
-TAIL_MIN = 4  # a dense tail of fewer columns is substituted level by level
-
-
-def dense_tail(a: Analysis) -> np.ndarray:
-    """Positions of the factor's dense tail, in level order: the last levels that hold one column
-    each, as long as each such column's entries below the diagonal are exactly the later tail
-    columns (a dense triangle, as the rows of a hub body end a minimum-degree order: DR Legs
-    hanging 26 of its 71 levels, standing 17 of 45). Empty when shorter than TAIL_MIN. The factor
-    inverts this block (L_TT^-1), so that each substitution crosses it in one product instead of
-    one level per column."""
-    levels = len(a.level_first)
-    cols: list[int] = []
-    for level in reversed(range(levels)):
-        if a.level_diag_end[level] - a.level_first[level] != 1:
-            break
-        j = int(a.entry_j[a.level_first[level]])
-        below = a.entry_i[a.col_begin[j]:a.col_end[j]].tolist()
-        if sorted(below) != sorted(cols):  # not dense over the later tail columns
-            break
-        cols.insert(0, j)
-    return np.asarray(cols if len(cols) >= TAIL_MIN else [], np.int32)
 
 
 def diagonal_ranges(a: Analysis, begin: np.ndarray, end: np.ndarray) -> np.ndarray:
@@ -494,20 +467,6 @@ def build_patterns(row_body_c: np.ndarray, row_body_p: np.ndarray, device, body_
     s.diag_row = arr(np.concatenate([diagonal_ranges(a, a.row_begin, a.row_end) for a in analyses]), dtype=wp.vec3i)
     s.diag_col = arr(np.concatenate([diagonal_ranges(a, a.col_begin, a.col_end) for a in analyses]), dtype=wp.vec3i)
     s.entry_pivot = arr(np.concatenate([a.diag[a.entry_j] for a in analyses]).astype(np.int32))
-    tails = [dense_tail(a) for a in analyses]
-    T = max(1, max(len(t) for t in tails))
-    s.tail_count = arr(np.array([len(t) for t in tails], np.int32))
-    tail_col = np.full((len(analyses), T), -1, np.int32)
-    tail_of = np.full((len(analyses), nodes), -1, np.int32)
-    tail_entry = np.full((len(analyses), T * T), -1, np.int32)
-    for k, (a, cols) in enumerate(zip(analyses, tails)):
-        tail_col[k, :len(cols)] = cols
-        tail_of[k, cols] = np.arange(len(cols))
-        where = {(int(i), int(j)): e for e, (i, j) in enumerate(zip(a.entry_i, a.entry_j))}
-        for r, ci in enumerate(cols):
-            for c, cj in enumerate(cols[:r + 1]):
-                tail_entry[k, r * T + c] = where[(int(ci), int(cj))]
-    s.tail_col, s.tail_of, s.tail_entry = arr(tail_col), arr(tail_of), arr(tail_entry)
     return s, analyses, max(a.entries for a in analyses)
 
 
@@ -772,31 +731,12 @@ def _pivot(pat: SparsePatterns, p: int, eb: int, e: int, value: float):
     return wp.sqrt(value)
 
 
-@wp.func
-def tail_inverse(Lw: Any, pat: SparsePatterns, p: int, world: int, lane: int, lanes: int,
-                 tail_inv: wp.array2d(dtype=float)):
-    """G = L_TT^-1 of the dense tail block (its diagonal |s_j L_jj|), column b by lane b: G_bb =
-    1 / L_bb, G_ab = -(sum_{b <= k < a} L_ak G_kb) / L_aa."""
-    T = pat.tail_count[p]
-    S = pat.tail_col.shape[1]
-    b = lane
-    while b < T:
-        tail_inv[world, b * S + b] = 1.0 / wp.abs(Lw[pat.tail_entry[p, b * S + b]])
-        for a in range(b + 1, T):
-            acc = float(0.0)
-            for k in range(b, a):
-                acc += Lw[pat.tail_entry[p, a * S + k]] * tail_inv[world, k * S + b]
-            tail_inv[world, a * S + b] = -acc / wp.abs(Lw[pat.tail_entry[p, a * S + a]])
-        b += lanes
-
-
 @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=SPARSE_REGISTERS)
 def sparse_factor(
     pat: SparsePatterns,
     mask: wp.array(dtype=wp.int32),
     shift: wp.array2d(dtype=float),
     bilateral_only: int,
-    use_tail: int,
     row_count: wp.array(dtype=wp.int32),
     row_kind: wp.array2d(dtype=wp.int32),
     real: wp.array2d(dtype=wp.int32),
@@ -804,16 +744,13 @@ def sparse_factor(
     # out
     L: wp.array2d(dtype=float),
     L_rows: wp.array2d(dtype=float),
-    tail_inv: wp.array2d(dtype=float),
 ):
     """L S L^T = A + diag(shift) for worlds with mask != 0 (shift per row of this step; rows of the
     pattern that stand for no row get shift[world, 0], body nodes none), A from sparse_matrix
     (with bilateral_only: its bilateral joint block and the body nodes, the identity elsewhere).
     S is -1 on body nodes, +1 elsewhere; a diagonal entry holds s_j L_jj. Then L_rows: the entries
     left of each diagonal row by row (in row_entry's order), so that the forward substitution reads
-    them without an index load in between. With use_tail, tail_inv gets the inverse of the factor's
-    dense tail block (dense_tail; row a, column b at a * T + b, T = tail_col.shape[1]), a column per
-    lane. The factor stays in global memory:
+    them without an index load in between. The factor stays in global memory:
     keeping it in shared memory while it is computed was 2x slower on an H100 (DR Legs standing,
     4096 worlds), as fewer worlds then fit on each multiprocessor at once."""
     world, lane = wp.tid()
@@ -881,8 +818,6 @@ def sparse_factor(
     while r < pat.row_base[p + 1] - rb:
         L_rows[world, r] = Lw[pat.row_entry[rb + r]]
         r += lanes
-    if use_tail != 0:
-        tail_inverse(Lw, pat, p, world, lane, lanes, tail_inv)
 
 
 @functools.cache
@@ -928,38 +863,12 @@ def solve_kernel(size: int):
                 vector_set(v, j, (v[j] - part) / wp.abs(Lw[e]))
                 e += lanes
 
-    @wp.func
-    def tail_product(v: Any, t: Any, pat: SparsePatterns, p: int, world: int, tail: int,
-                     tail_inv: wp.array2d(dtype=float), lane: int, lanes: int, transpose: bool):
-        """v_T = G v_T (or G^T v_T) over the dense tail (G = L_TT^-1 from the factor), each lane
-        forming whole entries into t, then written back; ends after a barrier."""
-        S = pat.tail_col.shape[1]
-        a = lane
-        while a < tail:
-            acc = float(0.0)
-            if transpose:
-                for b in range(a, tail):
-                    acc += tail_inv[world, b * S + a] * v[pat.tail_col[p, b]]
-            else:
-                for b in range(a + 1):
-                    acc += tail_inv[world, a * S + b] * v[pat.tail_col[p, b]]
-            vector_set(t, a, acc)
-            a += lanes
-        block_sync()
-        a = lane
-        while a < tail:
-            vector_set(v, pat.tail_col[p, a], t[a])
-            a += lanes
-        block_sync()
-
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=SPARSE_REGISTERS)
     def sparse_solve(
         pat: SparsePatterns,
         mask: wp.array(dtype=wp.int32),
-        use_tail: int,
         L: wp.array2d(dtype=float),
         L_rows: wp.array2d(dtype=float),
-        tail_inv: wp.array2d(dtype=float),
         rhs: wp.array2d(dtype=float),
         real: wp.array2d(dtype=wp.int32),
         row_count: wp.array(dtype=wp.int32),
@@ -973,7 +882,6 @@ def solve_kernel(size: int):
         world, lane = wp.tid()
         lanes = wp.block_dim()
         v = wp.tile_zeros(shape=size, dtype=float, storage="shared")
-        t = wp.tile_zeros(shape=size, dtype=float, storage="shared")  # the dense tail's products
         if mask[world] == 0:
             return
         p = pat.world_pattern[world]
@@ -993,26 +901,9 @@ def solve_kernel(size: int):
         block_sync()
         lb = pat.level_base[p]
         levels = pat.level_base[p + 1] - lb
-        tail = int(0)
-        if use_tail != 0:
-            tail = pat.tail_count[p]
-        for level in range(levels - tail):
+        for level in range(levels):
             substitute(Lw, Lr, v, pat, eb, rb, lb + level, FORWARD, lane, lanes)
             block_sync()
-        if tail > 0:  # the tail rows' sums over the columns before the tail, then y_T = L_TT^-1 r_T
-            a = lane
-            while a < tail:
-                c = pat.tail_col[p, a]
-                info = pat.diag_row[eb + pat.diag[p, c]]
-                acc = float(0.0)
-                for r in range(info[1], info[2]):
-                    k = pat.row_col[rb + r]
-                    if pat.tail_of[p, k] < 0:
-                        acc += Lr[r] * v[k]
-                vector_set(v, c, v[c] - acc)
-                a += lanes
-            block_sync()
-            tail_product(v, t, pat, p, world, tail, tail_inv, lane, lanes, False)
         if pat.has_body_nodes[p] != 0:
             k = lane
             while k < rows:
@@ -1020,10 +911,8 @@ def solve_kernel(size: int):
                     vector_set(v, k, -v[k])
                 k += lanes
             block_sync()
-        if tail > 0:  # x_T = L_TT^-T y_T: the tail's columns have no entries below it but its own
-            tail_product(v, t, pat, p, world, tail, tail_inv, lane, lanes, True)
-        for back in range(levels - tail):
-            substitute(Lw, Lr, v, pat, eb, rb, lb + levels - tail - 1 - back, BACKWARD, lane, lanes)
+        for back in range(levels):
+            substitute(Lw, Lr, v, pat, eb, rb, lb + levels - 1 - back, BACKWARD, lane, lanes)
             block_sync()
         k = lane
         while k < rows:
@@ -1039,23 +928,15 @@ def solve_kernel(size: int):
     return sparse_solve
 
 
-def tail_inverse_used(model) -> bool:
-    """Whether the factor inverts its dense tail and the solves multiply by it: model.sparse_tail_inverse,
-    or where it is None on GPUs (on the CPU, one thread per world, it only adds work)."""
-    chosen = model.sparse_tail_inverse
-    return model.device.is_cuda if chosen is None else bool(chosen)
-
-
 def factor(model, shift, mask, bilateral_only: bool = False) -> None:
     """Factor P D P + diag(shift) (shift (W, R) per row; or the bilateral joint block) of every
     masked world into work.sparse_L."""
     work = model.work
     wp.launch_tiled(sparse_factor, dim=[model.num_worlds], block_dim=sparse_block(model.device), device=model.device,
-                    inputs=[model.sparse, mask, shift, int(bilateral_only), int(tail_inverse_used(model)),
-                            work.row_count, model.row_kind,
+                    inputs=[model.sparse, mask, shift, int(bilateral_only), work.row_count, model.row_kind,
 
                             work.sparse_real, work.sparse_A],
-                    outputs=[work.sparse_L, work.sparse_L_rows, work.sparse_tail_inv])
+                    outputs=[work.sparse_L, work.sparse_L_rows])
 
 
 def solve(model, rhs, mask, x_out) -> None:
@@ -1063,9 +944,8 @@ def solve(model, rhs, mask, x_out) -> None:
     work = model.work
     size = -(-model.sparse_nodes // VECTOR_STEP) * VECTOR_STEP
     wp.launch_tiled(solve_kernel(size), dim=[model.num_worlds], block_dim=sparse_block(model.device),
-                    device=model.device, inputs=[model.sparse, mask, int(tail_inverse_used(model)), work.sparse_L,
-                                                 work.sparse_L_rows, work.sparse_tail_inv, rhs, work.sparse_real,
-                                                 work.row_count],
+                    device=model.device, inputs=[model.sparse, mask, work.sparse_L, work.sparse_L_rows, rhs, work.sparse_real,
+                            work.row_count],
                     outputs=[x_out])
 
 
