@@ -49,6 +49,7 @@ import warp as wp
 
 from engine.dynamics import body_term, free_velocity_of, row_operator_of
 from engine.integrate import (
+    add_row_share,
     bilateral_residual_of,
     guard_divergence_of,
     integrate_pose_of,
@@ -445,13 +446,8 @@ def body_row_sum(world: int, t: int, g: int, nb: int, n: int, row_body_c: wp.arr
     total = wp.spatial_vector()
     if b < nb:
         for i in range(t % g, n, g):
-            s = weight[world, i]
-            if scale_by_precond != 0:
-                s = s * row_precond[world, i]
-            if row_body_c[world, i] == b:
-                total += s * row_MJ_c[world, i]
-            if row_body_p[world, i] == b:
-                total += s * row_MJ_p[world, i]
+            total = add_row_share(total, world, b, i, row_body_c, row_body_p, row_MJ_c, row_MJ_p, weight, row_precond,
+                                  scale_by_precond)
     if g > 1:
         total = wp.spatial_vector(group_sum(total[0], g), group_sum(total[1], g), group_sum(total[2], g),
                                   group_sum(total[3], g), group_sum(total[4], g), group_sum(total[5], g))

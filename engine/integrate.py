@@ -20,6 +20,23 @@ wp.set_module_options({"enable_backward": False})  # no gradients are taken: com
 
 
 @wp.func
+def add_row_share(total: wp.spatial_vector, world: int, b: int, i: int, row_body_c: wp.array2d(dtype=wp.int32),
+                  row_body_p: wp.array2d(dtype=wp.int32), row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
+                  row_MJ_p: wp.array2d(dtype=wp.spatial_vector), weight: wp.array2d(dtype=float),
+                  row_precond: wp.array2d(dtype=float), scale_by_precond: int):
+    """total plus row i's share of body b's sum, (M^-1 J^T)_b,i weight_i (times P_i when asked;
+    nothing where the row does not act on b)."""
+    s = weight[world, i]
+    if scale_by_precond != 0:
+        s = s * row_precond[world, i]
+    if row_body_c[world, i] == b:
+        total += s * row_MJ_c[world, i]
+    if row_body_p[world, i] == b:
+        total += s * row_MJ_p[world, i]
+    return total
+
+
+@wp.func
 def row_sum_listed(world: int, b: int, n: int, contact_row_start: wp.array(dtype=wp.int32),
                    body_row_begin: wp.array2d(dtype=wp.int32), body_row_end: wp.array2d(dtype=wp.int32),
                    body_row: wp.array2d(dtype=wp.int32), row_body_c: wp.array2d(dtype=wp.int32),
@@ -42,13 +59,8 @@ def row_sum_listed(world: int, b: int, n: int, contact_row_start: wp.array(dtype
         else:
             total += s * row_MJ_p[world, i]
     for i in range(contact_row_start[world], n):
-        s = weight[world, i]
-        if scale_by_precond != 0:
-            s = s * row_precond[world, i]
-        if row_body_c[world, i] == b:
-            total += s * row_MJ_c[world, i]
-        if row_body_p[world, i] == b:
-            total += s * row_MJ_p[world, i]
+        total = add_row_share(total, world, b, i, row_body_c, row_body_p, row_MJ_c, row_MJ_p, weight, row_precond,
+                              scale_by_precond)
     return total
 
 
