@@ -92,10 +92,10 @@ def main(argv=None) -> int:
         print(json.dumps(row), flush=True)
     if args.out:
         device = wp.get_device(args.device)
+        command = "python -m benchmarks.kernel_times " + " ".join(argv if argv is not None else sys.argv[1:])
         with open(args.out, "w") as f:
             json.dump({"device": str(device), "device_name": device.name, "versions": {"warp": wp.config.version},
-                       "command": "python -m benchmarks.kernel_times " + " ".join(argv if argv is not None else sys.argv[1:]),
-                       "results": rows}, f, indent=1)
+                       "command": command, "results": rows}, f, indent=1)
     return 0
 
 

@@ -944,8 +944,8 @@ def solve(model, rhs, mask, x_out) -> None:
     work = model.work
     size = -(-model.sparse_nodes // VECTOR_STEP) * VECTOR_STEP
     wp.launch_tiled(solve_kernel(size), dim=[model.num_worlds], block_dim=sparse_block(model.device),
-                    device=model.device, inputs=[model.sparse, mask, work.sparse_L, work.sparse_L_rows, rhs, work.sparse_real,
-                            work.row_count],
+                    device=model.device, inputs=[model.sparse, mask, work.sparse_L, work.sparse_L_rows, rhs,
+                                                 work.sparse_real, work.row_count],
                     outputs=[x_out])
 
 
