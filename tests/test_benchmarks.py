@@ -238,3 +238,21 @@ def test_kernel_times_account_for_every_launch_of_a_staged_step(tmp_path, capsys
     assert len(capsys.readouterr().out.strip().splitlines()) == 1
     with pytest.raises(SystemExit):
         kernel_times.main(["--device", "cpu", "--scenes", "pentagon"])
+
+
+def test_heterogeneity_times_both_batches_at_each_cap(tmp_path, capsys):
+    """benchmarks.heterogeneity on the CPU: random walkers (two topologies) and copies of the
+    default walker at each iteration cap, finite times, the largest world's iterations within the
+    cap, the ratio of the two times recorded on the random batch's row."""
+    from benchmarks import heterogeneity
+
+    out = tmp_path / "hetero.json"
+    assert heterogeneity.main(["--device", "cpu", "--worlds", "4", "--caps", "20", "--warmup", "1",
+                               "--out", str(out)]) == 0
+    rows = json.loads(out.read_text())["results"]
+    assert [r["batch"] for r in rows] == ["random", "default"]
+    random_walkers, default = rows
+    assert random_walkers["patterns"] == 2 and default["patterns"] == 1
+    assert all(r["step_ms"] > 0 and max(r["iterations_largest_world"]) <= 20 for r in rows)
+    assert random_walkers["ratio_to_default"] == pytest.approx(random_walkers["step_ms"] / default["step_ms"])
+    assert len(capsys.readouterr().out.strip().splitlines()) == 2

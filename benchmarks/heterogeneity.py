@@ -1,0 +1,82 @@
+"""What a heterogeneous batch costs against a homogeneous batch of its largest member.
+
+    python -m benchmarks.heterogeneity --device cuda [--worlds 4096] [--caps 100 50] [--out FILE]
+
+Random walkers (benchmarks.scenes.walkers: Jansen and Klann legs, random geometry, the maximal
+model on the sparse solver) against copies of the default walker (the family's largest topology:
+the same 304 factor rows and schedule as the random Jansen walkers), dt 2 ms, at each PADMM
+iteration cap (SolverConfig.max_iterations): after --warmup chunks of 10 steps (the walkers
+settle), the median ms per step over 4 chunks replayed as CUDA graphs (engine.rollout.Stepper),
+the mean PADMM iterations over worlds and the largest world's at the end of each timed chunk. The
+captured PADMM loop runs until the batch's slowest world stops, so the ratio follows the largest
+world's iterations, not the mean. Prints one JSON line per run and writes them to --out.
+"""
+
+import argparse
+import json
+import os
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+import numpy as np
+import warp as wp
+
+
+def run(specs, worlds: int, cap: int, device: str, warmup: int) -> dict:
+    from engine import SolverConfig, pack_worlds
+    from engine.rollout import Stepper
+
+    model = pack_worlds([specs[w % len(specs)] for w in range(worlds)], device=device, dt=2e-3,
+                        config=SolverConfig(max_iterations=cap))
+    stepper = Stepper(model, model.state(), model.control(), chunk=10)
+    for _ in range(warmup):
+        stepper.advance()
+    times, largest, mean = [], [], []
+    for _ in range(4):
+        wp.synchronize_device(model.device)
+        t0 = time.perf_counter()
+        stepper.advance()
+        wp.synchronize_device(model.device)
+        times.append((time.perf_counter() - t0) / 10 * 1e3)
+        iterations = model.work.iterations.numpy()
+        largest.append(int(iterations.max()))
+        mean.append(float(iterations.mean()))
+    return {"step_ms": float(np.median(times)), "iterations_mean": float(np.mean(mean)),
+            "iterations_largest_world": largest, "patterns": len(model.sparse_analyses or [])}
+
+
+def main(argv=None) -> int:
+    from benchmarks.scenes import walker_default, walkers
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--worlds", type=int, default=4096)
+    parser.add_argument("--caps", type=int, nargs="+", default=[100, 50])
+    parser.add_argument("--warmup", type=int, default=20, help="chunks of 10 steps before timing")
+    parser.add_argument("--out", default=None, help="JSON file for the results")
+    args = parser.parse_args(argv)
+    if args.worlds < 1 or args.warmup < 0 or min(args.caps) < 1:
+        parser.error("--worlds and --caps must be >= 1, --warmup >= 0")
+    wp.config.log_level = wp.LOG_WARNING
+    batches = {"random": walkers().specs, "default": walker_default().specs}
+    rows = []
+    for cap in args.caps:
+        pair = [{"batch": name, "max_iterations": cap, "num_worlds": args.worlds,
+                 **run(specs, args.worlds, cap, args.device, args.warmup)} for name, specs in batches.items()]
+        pair[0]["ratio_to_default"] = pair[0]["step_ms"] / pair[1]["step_ms"]
+        rows += pair
+        for row in pair:
+            print(json.dumps(row), flush=True)
+    if args.out:
+        device = wp.get_device(args.device)
+        command = "python -m benchmarks.heterogeneity " + " ".join(argv if argv is not None else sys.argv[1:])
+        with open(args.out, "w") as f:
+            json.dump({"device": str(device), "device_name": device.name, "versions": {"warp": wp.config.version},
+                       "command": command, "results": rows}, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
