@@ -234,33 +234,25 @@ def cholesky_lanes(world: int, lane: int, lanes: int, n: int, sigma: float, sigm
                    bilateral_only: int, row_kind: wp.array2d(dtype=wp.int32), row_free: wp.array2d(dtype=wp.int32),
                    matrix: Any, factor: Any):
     """Lower Cholesky factor of the world's n x n matrix plus a diagonal shift (sigma_free on the
-    free rows of engine.padmm.row_is_free, sigma on the others) (shared tiles), right-looking: the
-    shifted lower triangle copied into the factor tile (a row per lane), then per column the lanes
-    scale its entries below the pivot and update the trailing rows, a row each, two barriers per
-    column. Each entry gets the same subtractions in the same order as the left-looking dot
-    products (bit-identical factors), but none waits on the one before it: a left-looking
-    column's entries were dot products whose every step waited on a shared load. Entered after a
-    barrier; leaves one behind."""
-    for i in range(lane, n, lanes):
-        shift = sigma
-        if row_free[world, i] != 0:
-            shift = sigma_free
-        for k in range(i):
-            tile_set(factor, i, k, matrix_entry(world, i, k, bilateral_only, row_kind, matrix))
-        tile_set(factor, i, i, matrix_entry(world, i, i, bilateral_only, row_kind, matrix) + shift)
-    block_sync()
+    free rows of engine.padmm.row_is_free, sigma on the others) (shared tiles), column by column
+    (left-looking): every lane forms the column's pivot, the lanes share the column's entries below
+    it; one barrier per column. The dot products run in the serial order. Entered after a barrier."""
     for j in range(n):
-        d = wp.sqrt(wp.max(factor[j, j], 1.0e-30))
+        shift = sigma
+        if row_free[world, j] != 0:
+            shift = sigma_free
+        s = matrix_entry(world, j, j, bilateral_only, row_kind, matrix) + shift
+        for k in range(j):
+            s -= factor[j, k] * factor[j, k]
+        d = wp.sqrt(wp.max(s, 1.0e-30))
         inv = 1.0 / d
-        for i in range(j + 1 + lane, n, lanes):
-            tile_set(factor, i, j, factor[i, j] * inv)
-        block_sync()  # every lane has read the pivot and column j is final
         if lane == 0:
             tile_set(factor, j, j, d)
         for i in range(j + 1 + lane, n, lanes):
-            lij = factor[i, j]
-            for m in range(j + 1, i + 1):
-                tile_set(factor, i, m, factor[i, m] - lij * factor[m, j])
+            t = matrix_entry(world, i, j, bilateral_only, row_kind, matrix)
+            for k in range(j):
+                t -= factor[i, k] * factor[j, k]
+            tile_set(factor, i, j, t * inv)
         block_sync()
 
 
