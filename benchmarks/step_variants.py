@@ -45,10 +45,10 @@ VARIANTS = {  # (solve through L^-1 where fused_inverse allows it, projection sk
 def timed(specs, worlds: int, dt: float, config, device: str, chunks: int = 6,
           chunk: int = 10, sharing: int | None = None, profile: bool = False) -> dict:
     """Median ms per step of ``worlds`` copies of ``specs`` (cycled), whether the fused step solved
-    through L^-1, how its lanes shared joints and bodies (engine.fused.SHARE_* flags), and
+    through L^-1, how its lanes shared joints and bodies (engine.fused.SHARE_* flags as used), and
     (``profile``, fused steps) its cycles per stage."""
     from engine import pack_worlds
-    from engine.fused import fused_inverse, fused_profile, fused_sharing
+    from engine.fused import fused_inverse, fused_profile, sharing_used
     from engine.rollout import Stepper
 
     model = pack_worlds([specs[w % len(specs)] for w in range(worlds)], device=device, dt=dt, config=config)
@@ -66,7 +66,7 @@ def timed(specs, worlds: int, dt: float, config, device: str, chunks: int = 6,
     fused = model.step_kernel == "fused"
     out = {"step_ms": float(np.median(times) * 1e3),
            "inverse": bool(fused and fused_inverse(model.device, model.max_rows)),
-           "sharing": int(fused_sharing(model.device) if sharing is None else sharing) if fused else 0}
+           "sharing": sharing_used(model) if fused else 0}
     if profile and fused:
         out["fused_stage_cycles"] = fused_profile(model, stepper.state, model.control(), steps=5)
     return out

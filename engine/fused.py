@@ -75,7 +75,7 @@ from engine.padmm import (
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
 __all__ = ["FUSED_MAX_ROWS", "FUSED_REGISTERS", "SHARE_BODY_SUMS", "SHARE_JOINT_PARTS", "STAGES", "fused_block",
-           "fused_fits", "fused_inverse", "fused_profile", "fused_sharing", "fused_step"]
+           "fused_fits", "fused_inverse", "fused_profile", "fused_sharing", "fused_step", "sharing_used"]
 
 FUSED_MAX_ROWS = 64
 FUSED_REGISTERS = 128  # register cap per thread: 158 uncapped leave 12 worlds per SM, 128 allow 16
@@ -412,6 +412,16 @@ def fused_sharing(device) -> int:
     return int(SHARE_JOINT_PARTS | SHARE_BODY_SUMS) if wp.get_device(device).is_cuda else 0
 
 
+def sharing_used(model) -> int:
+    """The sharing flags of model.fused_sharing (None: fused_sharing), less the body sums' groups
+    on the CPU and for blocks that are not whole warps (their shuffles need every lane of a warp)."""
+    sharing = fused_sharing(model.device) if model.fused_sharing is None else int(model.fused_sharing)
+    block = fused_block(model.device) if model.fused_block is None else model.fused_block
+    if not model.device.is_cuda or block % 32 != 0:
+        sharing &= ~int(SHARE_BODY_SUMS)
+    return sharing
+
+
 @wp.func
 def joint_task(t: int, nj: int, split: int):
     """Joint and part of lane task t: with ``split`` part t // nj of joint t % nj (the lanes that
@@ -677,7 +687,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         group = int(1)
         if (sharing & SHARE_BODY_SUMS) != 0:
             group = body_group(nb, lanes)
-        body_tasks = -(-nb * group // lanes) * lanes  # whole warps: the groups' shuffles take every lane
+        body_tasks = (nb * group + lanes - 1) // lanes * lanes  # whole blocks: the shuffles take every lane
         for t in range(lane, body_tasks, lanes):
             du = body_row_sum(world, t, group, nb, n, w.row_body_c, w.row_body_p, w.row_MJ_c, w.row_MJ_p,
                               row_lambda_out, w.row_precond, 0)
@@ -808,9 +818,7 @@ def fused_step(model, state_in, state_out, control, stamps=None) -> None:
     inverse = model.fused_inverse
     if inverse is None:
         inverse = fused_inverse(model.device, model.max_rows)
-    sharing = model.fused_sharing
-    if sharing is None:
-        sharing = fused_sharing(model.device)
+    sharing = sharing_used(model)
     if stamps is None:  # the untimed kernel never touches it
         stamps = model._fused_no_stamps
     kernel = fused_kernel(model.max_rows, model.fused_registers, timed, inverse)

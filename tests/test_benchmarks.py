@@ -209,7 +209,9 @@ def test_step_variants_times_every_variant_and_restores_the_inverse_choice(tmp_p
     assert by_variant["skip_off"]["projection_skip_floor"] == 0.0 < by_variant["default"]["projection_skip_floor"]
     assert not any(r["inverse"] for r in rows)
     assert {r["sharing"] for r in rows if r["variant"] in ("default", "sharing_off")} == {0}
-    assert by_variant["groups_off"]["sharing"] == 1 and by_variant["split_off"]["sharing"] == 2
+    # asked for on the CPU, the joints split (one thread runs the parts in turn); the body sums'
+    # groups need whole warps and are left out
+    assert by_variant["groups_off"]["sharing"] == 1 and by_variant["split_off"]["sharing"] == 0
     assert len(capsys.readouterr().out.strip().splitlines()) == len(rows)
     with pytest.raises(SystemExit):
         step_variants.main(["--device", "cpu", "--scenes", "pentagon"])
@@ -233,7 +235,9 @@ def test_kernel_times_account_for_every_launch_of_a_staged_step(tmp_path, capsys
     assert row["step_kernel"] == "staged"
     kernels = row["kernels"]
     assert {"joint_rows", "padmm_rhs", "apply_impulses", "apply_projection", "projection_gate"} <= set(kernels)
-    assert all(ms > 0 and count >= 1 and float(count * 2).is_integer() for ms, count in kernels.values())
+    assert all(ms > 0 and count >= 0.5 for ms, count in kernels.values())
+    assert kernels["joint_rows"][1] == 1.0 and kernels["projection_gate"][1] == 4.0  # per step: once, 2 x 2 passes
+    assert sum(count for _, count in kernels.values()) == row["launches_per_step"]
     assert sum(ms for ms, _ in kernels.values()) == pytest.approx(row["total_ms_per_step"], rel=1e-3)
     assert len(capsys.readouterr().out.strip().splitlines()) == 1
     with pytest.raises(SystemExit):
@@ -254,5 +258,6 @@ def test_heterogeneity_times_both_batches_at_each_cap(tmp_path, capsys):
     random_walkers, default = rows
     assert random_walkers["patterns"] == 2 and default["patterns"] == 1
     assert all(r["step_ms"] > 0 and max(r["iterations_largest_world"]) <= 20 for r in rows)
-    assert random_walkers["ratio_to_default"] == pytest.approx(random_walkers["step_ms"] / default["step_ms"])
+    assert "ratio_to_default" in random_walkers and "ratio_to_default" not in default
+    assert random_walkers["iterations_mean"] > 0 and default["iterations_mean"] > 0
     assert len(capsys.readouterr().out.strip().splitlines()) == 2

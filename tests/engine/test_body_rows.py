@@ -5,7 +5,7 @@ import numpy as np
 import warp as wp
 
 from engine import pack_worlds, step
-from engine.integrate import apply_impulses
+from engine.integrate import add_row_share, apply_impulses, row_sum_listed
 from engine.scenes import fourbar, pendulum, sixbar
 from engine.scenes_contact import CONTACT_SCENES
 
@@ -61,3 +61,47 @@ def test_impulse_sums_through_the_lists_match_a_dense_sum_with_contact_rows():
                 (impulses[w, rows] * (body_c[w, rows] == b))[:, None] * MJ_c[w, rows]
                 + (impulses[w, rows] * (body_p[w, rows] == b))[:, None] * MJ_p[w, rows]).sum(axis=0)
             np.testing.assert_allclose(got[w, b], expected, rtol=1e-5, atol=1e-5 * np.abs(expected).max())
+
+
+@wp.kernel
+def scanned_and_listed(n_rows: wp.array(dtype=wp.int32), contact_row_start: wp.array(dtype=wp.int32),
+                       body_row_begin: wp.array2d(dtype=wp.int32), body_row_end: wp.array2d(dtype=wp.int32),
+                       body_row: wp.array2d(dtype=wp.int32), row_body_c: wp.array2d(dtype=wp.int32),
+                       row_body_p: wp.array2d(dtype=wp.int32), row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
+                       row_MJ_p: wp.array2d(dtype=wp.spatial_vector), weight: wp.array2d(dtype=float),
+                       row_precond: wp.array2d(dtype=float), scale: int,
+                       scanned: wp.array2d(dtype=wp.spatial_vector), listed: wp.array2d(dtype=wp.spatial_vector)):
+    """Each body's sum by a scan of every row (what the lists replace) and through its list."""
+    world, b = wp.tid()
+    total = wp.spatial_vector()
+    for i in range(n_rows[world]):
+        total = add_row_share(total, world, b, i, row_body_c, row_body_p, row_MJ_c, row_MJ_p, weight, row_precond,
+                              scale)
+    scanned[world, b] = total
+    listed[world, b] = row_sum_listed(world, b, n_rows[world], contact_row_start, body_row_begin, body_row_end,
+                                      body_row, row_body_c, row_body_p, row_MJ_c, row_MJ_p, weight, row_precond, scale)
+
+
+def test_listed_sums_are_bit_identical_to_a_scan_of_every_row():
+    """The lists visit the same rows in the same order as a scan of all rows, contact rows included,
+    with and without the preconditioner scaling (apply_projection's form): equal to the last bit."""
+    specs = [CONTACT_SCENES["walker"]().spec, sixbar().spec]
+    model = pack_worlds(specs, device="cpu", dt=2e-3)
+    state, other, control = model.state(), model.state(), model.control()
+    for _ in range(40):
+        step(model, state, other, control)
+        state, other = other, state
+    work = model.work
+    assert work.row_count.numpy()[0] > model.contact_row_start.numpy()[0]  # contact rows in use
+    weight = wp.array(np.random.default_rng(4).normal(size=(len(specs), model.max_rows)).astype(np.float32),
+                      dtype=float, device="cpu")
+    for scale in (0, 1):
+        scanned = wp.zeros((len(specs), model.max_bodies), dtype=wp.spatial_vector, device="cpu")
+        listed = wp.zeros_like(scanned)
+        wp.launch(scanned_and_listed, dim=(len(specs), model.max_bodies), device="cpu",
+                  inputs=[work.row_count, model.contact_row_start, model.body_row_begin, model.body_row_end,
+                          model.body_row, work.row_body_c, work.row_body_p, work.row_MJ_c, work.row_MJ_p, weight,
+                          work.row_precond, scale],
+                  outputs=[scanned, listed])
+        assert np.abs(scanned.numpy()).max() > 0
+        np.testing.assert_array_equal(listed.numpy(), scanned.numpy())

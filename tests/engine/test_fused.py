@@ -238,3 +238,22 @@ def test_default_projection_velocity_update_keeps_the_paths_within_its_noise():
             assert np.abs(staged.body_q.numpy() - fused.body_q.numpy()).max() < 1e-4, (case, integrator)
             a, b = staged.body_qd.numpy(), fused.body_qd.numpy()
             assert np.abs(a - b).max() < 1e-2 * np.abs(a).max(), (case, integrator)
+
+
+def test_body_sum_groups_only_with_whole_warps():
+    """The body sums' lane groups shuffle within warps: engine.fused.sharing_used drops them on
+    the CPU and for blocks that are not whole warps, keeps what else was asked."""
+    from types import SimpleNamespace
+
+    from engine.fused import SHARE_BODY_SUMS, sharing_used
+
+    both = int(SHARE_JOINT_PARTS) | int(SHARE_BODY_SUMS)
+    gpu = SimpleNamespace(is_cuda=True)
+    assert sharing_used(SimpleNamespace(device=gpu, fused_sharing=both, fused_block=32)) == both
+    assert sharing_used(SimpleNamespace(device=gpu, fused_sharing=both, fused_block=64)) == both
+    assert sharing_used(SimpleNamespace(device=gpu, fused_sharing=both, fused_block=48)) == int(SHARE_JOINT_PARTS)
+    model = pack_worlds([fourbar().spec], device="cpu")
+    model.fused_sharing = both
+    assert sharing_used(model) == int(SHARE_JOINT_PARTS)
+    model.fused_sharing = None
+    assert sharing_used(model) == 0
