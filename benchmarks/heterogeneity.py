@@ -48,6 +48,7 @@ def run(specs, worlds: int, cap: int, device: str, warmup: int) -> dict:
 
 
 def main(argv=None) -> int:
+    from benchmarks.run import write_rows
     from benchmarks.scenes import walker_default, walkers
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -70,11 +71,7 @@ def main(argv=None) -> int:
         for row in pair:
             print(json.dumps(row), flush=True)
     if args.out:
-        device = wp.get_device(args.device)
-        command = "python -m benchmarks.heterogeneity " + " ".join(argv if argv is not None else sys.argv[1:])
-        with open(args.out, "w") as f:
-            json.dump({"device": str(device), "device_name": device.name, "versions": {"warp": wp.config.version},
-                       "command": command, "results": rows}, f, indent=1)
+        write_rows(args.out, args.device, "benchmarks.heterogeneity", argv, rows)
     return 0
 
 

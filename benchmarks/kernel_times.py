@@ -66,6 +66,7 @@ def kernel_times(specs, worlds: int, dt: float, device: str, steps: int = 5) -> 
 
 
 def main(argv=None) -> int:
+    from benchmarks.run import write_rows
     from benchmarks.scenes import SCENES_DECLARED
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -91,11 +92,7 @@ def main(argv=None) -> int:
         rows.append(row)
         print(json.dumps(row), flush=True)
     if args.out:
-        device = wp.get_device(args.device)
-        command = "python -m benchmarks.kernel_times " + " ".join(argv if argv is not None else sys.argv[1:])
-        with open(args.out, "w") as f:
-            json.dump({"device": str(device), "device_name": device.name, "versions": {"warp": wp.config.version},
-                       "command": command, "results": rows}, f, indent=1)
+        write_rows(args.out, args.device, "benchmarks.kernel_times", argv, rows)
     return 0
 
 

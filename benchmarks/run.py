@@ -60,6 +60,16 @@ def versions() -> dict:
     return {"warp": wp.config.version, "numpy": np.__version__, "python": platform.python_version()}
 
 
+def write_rows(path, device: str, module: str, argv, rows: list, key: str = "results") -> None:
+    """A benchmark script's rows as JSON at ``path``, with the device, the versions and the command
+    (python -m ``module`` and its arguments: ``argv``, or the process's when None)."""
+    device = wp.get_device(device)
+    command = f"python -m {module} " + " ".join(argv if argv is not None else sys.argv[1:])
+    with open(path, "w") as f:
+        json.dump({"device": str(device), "device_name": device.name, "versions": versions(), "command": command,
+                   key: rows}, f, indent=1)
+
+
 def array_megabytes(*objects) -> float:
     """Megabytes held by the Warp arrays that are attributes of ``objects`` (one level of nested
     objects and dataclasses, e.g. Model.work and the sparse patterns), each array counted once."""

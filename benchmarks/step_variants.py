@@ -125,13 +125,9 @@ def main(argv=None) -> int:
                 record(scene="drlegs_hanging", num_worlds=4096, dt=1e-2, projection_skip_floor=skip, repeat=repeat,
                        step_ms=result["step_ms"])
     if args.out:
-        device = wp.get_device(args.device)
-        result = {"device": str(device), "device_name": device.name, "versions": {"warp": wp.config.version},
-                  "command": "python -m benchmarks.step_variants "
-                             + " ".join(argv if argv is not None else sys.argv[1:]),
-                  "measurements": rows}
-        with open(args.out, "w") as f:
-            json.dump(result, f, indent=1)
+        from benchmarks.run import write_rows
+
+        write_rows(args.out, args.device, "benchmarks.step_variants", argv, rows, key="measurements")
     return 0
 
 
