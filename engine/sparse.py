@@ -53,7 +53,10 @@ their loads are in flight together (factor 10 to 25 % faster), and a step's chai
 loads is kept short: each diagonal entry carries its column and its row's or column's range in
 one load (diag_row, diag_col), and the forward substitution reads a row-major copy of the factor
 written after each factor (work.sparse_L_rows) instead of looking each entry up (DR Legs hanging
-4.2-4.4 -> 3.9 ms per step at 4096 worlds on an H100).
+4.2-4.4 -> 3.9 ms per step at 4096 worlds on an H100). With enough worlds of one topology, a
+block of 32 worlds copies the solve's schedule into shared memory once (shared_solve_kernel), so
+that a level waits on global memory only for the factor's values (DR Legs at 4096 worlds on an
+H100: hanging 3.86 -> 3.65 ms per step, standing 5.96-6.12 -> 5.51).
 """
 
 import dataclasses
@@ -395,6 +398,40 @@ class SparsePatterns:
     level_diag_end: wp.array(dtype=wp.int32)
     level_end: wp.array(dtype=wp.int32)
     level_mode: wp.array(dtype=wp.int32)
+    solve_blob: wp.array(dtype=wp.int32)  # (P * blob_size,) each analysis' solve schedule (solve_schedule)
+    blob_size: int
+    blob_diag: int  # offsets in a schedule: per-diagonal records, row_col, entry_i (levels at 0)
+    blob_row: int
+    blob_entry: int
+
+
+def solve_schedule(a: Analysis, levels: int, nodes: int, row_entries: int, entries: int) -> np.ndarray:
+    """One int array with all that a solve reads of an analysis, so that a thread block can copy
+    it into shared memory at once (shared_solve_kernel). Layout, padded with zeros to the batch's
+    largest analysis (``levels``, ``nodes``, ``row_entries``, ``entries``):
+    - per level (3 ints): its first diagonal's ordinal (diagonals counted level by level), how
+      many diagonals it has, level_mode;
+    - per diagonal in level order (6 ints): its entry, its column j, j's row range in row_entry
+      (forward) and its range of entries below the diagonal (backward);
+    - row_col (the column of each entry left of a diagonal, row by row);
+    - entry_i (the row of each entry)."""
+    blob = np.zeros(3 * levels + 6 * nodes + row_entries + entries, np.int32)
+    count = a.level_diag_end - a.level_first
+    first = np.concatenate([[0], np.cumsum(count)[:-1]]) if len(count) else count
+    blob[0:3 * len(count):3] = first
+    blob[1:3 * len(count):3] = count
+    blob[2:3 * len(count):3] = a.level_mode
+    diag_entries = np.concatenate([np.arange(f, d) for f, d in zip(a.level_first, a.level_diag_end)]
+                                  ).astype(np.int64) if len(count) else np.zeros(0, np.int64)
+    j = a.entry_j[diag_entries]
+    records = np.stack([diag_entries, j, a.row_begin[j], a.row_end[j], a.col_begin[j], a.col_end[j]], axis=1)
+    o = 3 * levels
+    blob[o:o + records.size] = records.reshape(-1)
+    o += 6 * nodes
+    blob[o:o + len(a.row_col)] = a.row_col
+    o += row_entries
+    blob[o:o + a.entries] = a.entry_i
+    return blob
 
 
 def diagonal_ranges(a: Analysis, begin: np.ndarray, end: np.ndarray) -> np.ndarray:
@@ -467,6 +504,14 @@ def build_patterns(row_body_c: np.ndarray, row_body_p: np.ndarray, device, body_
     s.diag_row = arr(np.concatenate([diagonal_ranges(a, a.row_begin, a.row_end) for a in analyses]), dtype=wp.vec3i)
     s.diag_col = arr(np.concatenate([diagonal_ranges(a, a.col_begin, a.col_end) for a in analyses]), dtype=wp.vec3i)
     s.entry_pivot = arr(np.concatenate([a.diag[a.entry_j] for a in analyses]).astype(np.int32))
+    levels = max(len(a.level_first) for a in analyses)
+    row_entries = max(len(a.row_col) for a in analyses)
+    entries = max(a.entries for a in analyses)
+    s.solve_blob = arr(np.concatenate([solve_schedule(a, levels, nodes, row_entries, entries) for a in analyses]))
+    s.blob_size = 3 * levels + 6 * nodes + row_entries + entries
+    s.blob_diag = 3 * levels
+    s.blob_row = s.blob_diag + 6 * nodes
+    s.blob_entry = s.blob_row + row_entries
     return s, analyses, max(a.entries for a in analyses)
 
 
@@ -928,6 +973,185 @@ def solve_kernel(size: int):
     return sparse_solve
 
 
+_WARP_SYNC = """
+#if defined(__CUDA_ARCH__)
+__syncwarp();
+#endif
+"""
+
+
+@wp.func_native(_WARP_SYNC)
+def warp_sync():
+    """Barrier of the warp's lanes (memory ordering among them included; a no-op on the CPU)."""
+
+
+@wp.func
+def _blob_row_sum(Lr: Any, v: Any, vb: int, blob: Any, o: int, begin: int, end: int, first: int, stride: int):
+    """_row_sum with the columns read from a solve schedule (blob, row_col at offset o) and the
+    world's vector at offset vb of v."""
+    acc = float(0.0)
+    r = begin + first
+    while r + 3 * stride < end:  # four entries per pass
+        acc += (Lr[r] * v[vb + blob[o + r]] + Lr[r + stride] * v[vb + blob[o + r + stride]]
+                + Lr[r + 2 * stride] * v[vb + blob[o + r + 2 * stride]]
+                + Lr[r + 3 * stride] * v[vb + blob[o + r + 3 * stride]])
+        r += 4 * stride
+    while r < end:
+        acc += Lr[r] * v[vb + blob[o + r]]
+        r += stride
+    return acc
+
+
+@wp.func
+def _blob_col_sum(Lw: Any, v: Any, vb: int, blob: Any, o: int, begin: int, end: int, first: int, stride: int):
+    """_col_sum with the rows read from a solve schedule (blob, entry_i at offset o)."""
+    acc = float(0.0)
+    c = begin + first
+    while c + 3 * stride < end:  # four entries per pass
+        acc += (Lw[c] * v[vb + blob[o + c]] + Lw[c + stride] * v[vb + blob[o + c + stride]]
+                + Lw[c + 2 * stride] * v[vb + blob[o + c + 2 * stride]]
+                + Lw[c + 3 * stride] * v[vb + blob[o + c + 3 * stride]])
+        c += 4 * stride
+    while c < end:
+        acc += Lw[c] * v[vb + blob[o + c]]
+        c += stride
+    return acc
+
+
+# The solve with its schedule in shared memory (shared_solve_kernel), on GPUs for batches of one
+# topology, 32 worlds (one warp each) per thread block. NVIDIA H100, 4096 worlds, ms per step,
+# schedule from global memory / shared with 4, 8, 16 worlds per block (one run): DR Legs hanging
+# 3.87 / 4.62, 3.75, 3.68; standing 5.71 / 6.34, 5.59, 5.50; random walkers (two topologies, so
+# half of the worlds still read theirs from global memory) 32.0 / 40.3, 35.7, 33.2: those keep the
+# global kernel. A second run, global / 16 / 32 worlds per block: hanging 3.84 / 3.69 / 3.64,
+# standing 5.72 / 5.55 / 5.47, the default walker (one topology) 26.6 / 24.9 / 24.5. Fewer worlds
+# leave multiprocessors idle with 32 per block (DR Legs hanging at 1024 worlds: 2.27 -> 2.58 ms),
+# so only batches that give at least half of the multiprocessors a block take it.
+SOLVE_WORLDS_PER_BLOCK = 32
+SOLVE_SHARED = True
+
+
+@functools.cache
+def shared_solve_kernel(size: int, worlds: int, blob_size: int):
+    """The solve with each block's schedule in shared memory: a block of ``worlds`` warps (one
+    world each) copies the solve schedule of its first world's analysis (solve_schedule) into
+    shared memory once, then every warp substitutes its own world level by level with warp
+    barriers only; a world of another analysis reads its schedule from global memory. The levels'
+    bounds, the diagonals' ranges and the column and row indices are then shared-memory loads,
+    and a level's chain of dependent steps keeps one global load (the factor's values)."""
+    vector_size = size * worlds
+    vector_set = _vector_setter(vector_size)
+
+    @wp.func
+    def substitute(Lw: Any, Lr: Any, v: Any, vb: int, blob: Any, base: int, pat: SparsePatterns, level: int,
+                   phase: int, lane: int, lanes: int):
+        """One level of the forward or backward substitution (as solve_kernel's) from a schedule."""
+        m = base + 3 * level
+        first = blob[m]
+        end = first + blob[m + 1]
+        if group_width(blob[m + 2], phase, lanes) > 1:  # the warp shares each row
+            for d in range(first, end):
+                q = base + pat.blob_diag + 6 * d
+                part = float(0.0)
+                if phase == FORWARD:
+                    part = _blob_row_sum(Lr, v, vb, blob, base + pat.blob_row, blob[q + 2], blob[q + 3], lane, lanes)
+                else:
+                    part = _blob_col_sum(Lw, v, vb, blob, base + pat.blob_entry, blob[q + 4], blob[q + 5], lane,
+                                         lanes)
+                total = group_sum(part, lanes)
+                if lane == 0:
+                    j = vb + blob[q + 1]
+                    vector_set(v, j, (v[j] - total) / wp.abs(Lw[blob[q]]))
+        else:  # one row per lane
+            d = first + lane
+            while d < end:
+                q = base + pat.blob_diag + 6 * d
+                part = float(0.0)
+                if phase == FORWARD:
+                    part = _blob_row_sum(Lr, v, vb, blob, base + pat.blob_row, blob[q + 2], blob[q + 3], 0, 1)
+                else:
+                    part = _blob_col_sum(Lw, v, vb, blob, base + pat.blob_entry, blob[q + 4], blob[q + 5], 0, 1)
+                j = vb + blob[q + 1]
+                vector_set(v, j, (v[j] - part) / wp.abs(Lw[blob[q]]))
+                d += lanes
+
+    @wp.func
+    def substitute_all(Lw: Any, Lr: Any, v: Any, vb: int, blob: Any, base: int, pat: SparsePatterns, p: int,
+                       lane: int, lanes: int):
+        """Forward substitution, the body nodes' signs, backward substitution of one world."""
+        levels = pat.level_base[p + 1] - pat.level_base[p]
+        for level in range(levels):
+            substitute(Lw, Lr, v, vb, blob, base, pat, level, FORWARD, lane, lanes)
+            warp_sync()
+        if pat.has_body_nodes[p] != 0:
+            k = lane
+            while k < pat.perm.shape[1]:
+                if pat.node_body[p, k] >= 0:
+                    vector_set(v, vb + k, -v[vb + k])
+                k += lanes
+            warp_sync()
+        for back in range(levels):
+            substitute(Lw, Lr, v, vb, blob, base, pat, levels - 1 - back, BACKWARD, lane, lanes)
+            warp_sync()
+
+    @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=SPARSE_REGISTERS)
+    def sparse_solve_shared(
+        pat: SparsePatterns,
+        mask: wp.array(dtype=wp.int32),
+        L: wp.array2d(dtype=float),
+        L_rows: wp.array2d(dtype=float),
+        rhs: wp.array2d(dtype=float),
+        real: wp.array2d(dtype=wp.int32),
+        row_count: wp.array(dtype=wp.int32),
+        num_worlds: int,
+        # out
+        x_out: wp.array2d(dtype=float),
+    ):
+        """x = (L S L^T)^-1 rhs for worlds with mask != 0 (as solve_kernel's sparse_solve)."""
+        block, t = wp.tid()
+        lanes = wp.block_dim() // worlds
+        slot = t // lanes
+        lane = t - slot * lanes
+        world = block * worlds + slot
+        p0 = pat.world_pattern[block * worlds]
+        schedule = wp.tile_load(pat.solve_blob, shape=(blob_size,), offset=(p0 * blob_size,), storage="shared")
+        v = wp.tile_zeros(shape=vector_size, dtype=float, storage="shared")
+        if world >= num_worlds:
+            return
+        if mask[world] == 0:
+            return
+        p = pat.world_pattern[world]
+        vb = slot * size
+        rows = pat.perm.shape[1]
+        k = lane
+        while k < rows:
+            r = _node_row(pat, p, k, world, real)
+            value = float(0.0)
+            if r >= 0:
+                value = rhs[world, r]
+            vector_set(v, vb + k, value)
+            k += lanes
+        warp_sync()
+        Lw = L[world]
+        Lr = L_rows[world]
+        if p == p0:
+            substitute_all(Lw, Lr, v, vb, schedule, 0, pat, p, lane, lanes)
+        else:
+            substitute_all(Lw, Lr, v, vb, pat.solve_blob, p * blob_size, pat, p, lane, lanes)
+        k = lane
+        while k < rows:
+            r = _node_row(pat, p, k, world, real)
+            if r >= 0:
+                x_out[world, r] = v[vb + k]
+            k += lanes
+        k = row_count[world] + lane
+        while k < x_out.shape[1]:  # rows not in use this step
+            x_out[world, k] = 0.0
+            k += lanes
+
+    return sparse_solve_shared
+
+
 def factor(model, shift, mask, bilateral_only: bool = False) -> None:
     """Factor P D P + diag(shift) (shift (W, R) per row; or the bilateral joint block) of every
     masked world into work.sparse_L."""
@@ -939,10 +1163,25 @@ def factor(model, shift, mask, bilateral_only: bool = False) -> None:
                     outputs=[work.sparse_L, work.sparse_L_rows])
 
 
-def solve(model, rhs, mask, x_out) -> None:
-    """x_out = (L L^T)^-1 rhs with the stored factors, for every masked world."""
+def solve(model, rhs, mask, x_out, shared: bool | None = None) -> None:
+    """x_out = (L L^T)^-1 rhs with the stored factors, for every masked world. shared: the
+    schedule in shared memory (shared_solve_kernel; None: SOLVE_SHARED on GPUs for batches of one
+    topology)."""
     work = model.work
     size = -(-model.sparse_nodes // VECTOR_STEP) * VECTOR_STEP
+    device = wp.get_device(model.device)
+    if shared is None:
+        shared = (SOLVE_SHARED and device.is_cuda and len(model.sparse_analyses) == 1
+                  and model.num_worlds >= SOLVE_WORLDS_PER_BLOCK * device.sm_count // 2)
+    if shared:
+        worlds = SOLVE_WORLDS_PER_BLOCK if device.is_cuda else 1
+        blocks = -(-model.num_worlds // worlds)
+        wp.launch_tiled(shared_solve_kernel(size, worlds, model.sparse.blob_size), dim=[blocks],
+                        block_dim=sparse_block(model.device) * worlds, device=model.device,
+                        inputs=[model.sparse, mask, work.sparse_L, work.sparse_L_rows, rhs, work.sparse_real,
+                                work.row_count, model.num_worlds],
+                        outputs=[x_out])
+        return
     wp.launch_tiled(solve_kernel(size), dim=[model.num_worlds], block_dim=sparse_block(model.device),
                     device=model.device, inputs=[model.sparse, mask, work.sparse_L, work.sparse_L_rows, rhs,
                                                  work.sparse_real, work.row_count],

@@ -58,9 +58,15 @@ def test_factor_and_solve_match_numpy(device, bilateral_only, body_nodes):
     sparse.factor(model, wp.array(shifts, device=device), wp.ones(W, dtype=wp.int32, device=device),
                   bilateral_only=bilateral_only)
     rhs = np.random.default_rng(0).standard_normal((W, R)).astype(np.float32)
-    x = wp.full((W, R), 7.0, dtype=float, device=device)
-    sparse.solve(model, wp.array(rhs, device=device), wp.ones(W, dtype=wp.int32, device=device), x)
-    x, matrix, n = x.numpy(), matrix.numpy().astype(np.float64), work.row_count.numpy()
+    solutions = []
+    for shared in (False, True):  # the schedule read from global memory, or from a shared copy
+        x = wp.full((W, R), 7.0, dtype=float, device=device)
+        sparse.solve(model, wp.array(rhs, device=device), wp.ones(W, dtype=wp.int32, device=device), x, shared=shared)
+        solutions.append(x.numpy())
+    # both kernels sum in the same order; on a GPU the worlds of the second topology read their
+    # schedule from global memory (a block copies its first world's)
+    np.testing.assert_array_equal(solutions[0], solutions[1])
+    x, matrix, n = solutions[1], matrix.numpy().astype(np.float64), work.row_count.numpy()
     for w in range(W):
         A = matrix[w, :n[w], :n[w]] + np.diag(shifts[w, :n[w]])
 
@@ -69,6 +75,11 @@ def test_factor_and_solve_match_numpy(device, bilateral_only, body_nodes):
         bound = 50 * np.finfo(np.float32).eps * np.linalg.cond(A)
         assert np.abs(x[w, :n[w]] - expected).max() <= bound * np.abs(expected).max()
         assert np.all(x[w, n[w]:] == 0.0)  # rows not in use this step
+    masked = wp.full((W, R), 7.0, dtype=float, device=device)
+    sparse.solve(model, wp.array(rhs, device=device), wp.array([1, 0, 1], dtype=wp.int32, device=device), masked,
+                 shared=True)
+    assert np.all(masked.numpy()[1] == 7.0)  # a world out of the mask is left alone
+    np.testing.assert_array_equal(masked.numpy()[[0, 2]], x[[0, 2]])
 
 
 def test_analysis_covers_the_numeric_factor():
