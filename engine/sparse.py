@@ -72,8 +72,8 @@ from engine.model import ROW_ANGULAR, ROW_LINEAR
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
-__all__ = ["SparsePatterns", "analyze", "build_patterns", "choose_body_nodes", "factor", "prepare", "roots", "solve",
-           "sparse_block"]
+__all__ = ["SparsePatterns", "analyze", "build_patterns", "choose_body_nodes", "factor", "prepare", "roots",
+           "shared_solve_kernel", "solve", "solve_schedule", "sparse_block"]
 
 
 # Register cap per thread of the factor and solve kernels: at most 64 lets 32 one-warp blocks (the
@@ -618,35 +618,20 @@ def _entry_sum(Lw: Any, pat: SparsePatterns, eb: int, ub: int, e: int, first: in
 
 
 @wp.func
-def _row_sum(Lr: Any, v: Any, pat: SparsePatterns, rb: int, begin: int, end: int, first: int, stride: int):
-    """Part of a row's entries left of the diagonal (Lr: the factor's row-major copy, entries
-    begin .. end) times the solved values."""
+def _gather_sum(Lx: Any, v: Any, vb: int, index: Any, o: int, begin: int, end: int, first: int, stride: int):
+    """Part of a substitution's sum: factor values Lx[k] for k = begin + first, + stride, ... < end
+    times the solved values v[vb + index[o + k]] (forward: the row-major copy with the columns,
+    row_col; backward: the factor with the rows below a diagonal, entry_i)."""
     acc = float(0.0)
-    r = begin + first
-    while r + 3 * stride < end:  # four entries per pass
-        acc += (Lr[r] * v[pat.row_col[rb + r]] + Lr[r + stride] * v[pat.row_col[rb + r + stride]]
-                + Lr[r + 2 * stride] * v[pat.row_col[rb + r + 2 * stride]]
-                + Lr[r + 3 * stride] * v[pat.row_col[rb + r + 3 * stride]])
-        r += 4 * stride
-    while r < end:
-        acc += Lr[r] * v[pat.row_col[rb + r]]
-        r += stride
-    return acc
-
-
-@wp.func
-def _col_sum(Lw: Any, v: Any, pat: SparsePatterns, eb: int, begin: int, end: int, first: int, stride: int):
-    """Part of a column's entries below the diagonal (begin .. end) times the solved values."""
-    acc = float(0.0)
-    c = begin + first
-    while c + 3 * stride < end:  # four entries per pass
-        acc += (Lw[c] * v[pat.entry_i[eb + c]] + Lw[c + stride] * v[pat.entry_i[eb + c + stride]]
-                + Lw[c + 2 * stride] * v[pat.entry_i[eb + c + 2 * stride]]
-                + Lw[c + 3 * stride] * v[pat.entry_i[eb + c + 3 * stride]])
-        c += 4 * stride
-    while c < end:
-        acc += Lw[c] * v[pat.entry_i[eb + c]]
-        c += stride
+    k = begin + first
+    while k + 3 * stride < end:  # four entries per pass: their loads are in flight together
+        acc += (Lx[k] * v[vb + index[o + k]] + Lx[k + stride] * v[vb + index[o + k + stride]]
+                + Lx[k + 2 * stride] * v[vb + index[o + k + 2 * stride]]
+                + Lx[k + 3 * stride] * v[vb + index[o + k + 3 * stride]])
+        k += 4 * stride
+    while k < end:
+        acc += Lx[k] * v[vb + index[o + k]]
+        k += stride
     return acc
 
 
@@ -885,10 +870,10 @@ def solve_kernel(size: int):
                 info = wp.vec3i()
                 if phase == FORWARD:
                     info = pat.diag_row[eb + e]
-                    part = _row_sum(Lr, v, pat, rb, info[1], info[2], lane, lanes)
+                    part = _gather_sum(Lr, v, 0, pat.row_col, rb, info[1], info[2], lane, lanes)
                 else:
                     info = pat.diag_col[eb + e]
-                    part = _col_sum(Lw, v, pat, eb, info[1], info[2], lane, lanes)
+                    part = _gather_sum(Lw, v, 0, pat.entry_i, eb, info[1], info[2], lane, lanes)
                 total = group_sum(part, lanes)
                 if lane == 0:
                     j = info[0]
@@ -900,10 +885,10 @@ def solve_kernel(size: int):
                 info = wp.vec3i()
                 if phase == FORWARD:
                     info = pat.diag_row[eb + e]
-                    part = _row_sum(Lr, v, pat, rb, info[1], info[2], 0, 1)
+                    part = _gather_sum(Lr, v, 0, pat.row_col, rb, info[1], info[2], 0, 1)
                 else:
                     info = pat.diag_col[eb + e]
-                    part = _col_sum(Lw, v, pat, eb, info[1], info[2], 0, 1)
+                    part = _gather_sum(Lw, v, 0, pat.entry_i, eb, info[1], info[2], 0, 1)
                 j = info[0]
                 vector_set(v, j, (v[j] - part) / wp.abs(Lw[e]))
                 e += lanes
@@ -985,39 +970,6 @@ def warp_sync():
     """Barrier of the warp's lanes (memory ordering among them included; a no-op on the CPU)."""
 
 
-@wp.func
-def _blob_row_sum(Lr: Any, v: Any, vb: int, blob: Any, o: int, begin: int, end: int, first: int, stride: int):
-    """_row_sum with the columns read from a solve schedule (blob, row_col at offset o) and the
-    world's vector at offset vb of v."""
-    acc = float(0.0)
-    r = begin + first
-    while r + 3 * stride < end:  # four entries per pass
-        acc += (Lr[r] * v[vb + blob[o + r]] + Lr[r + stride] * v[vb + blob[o + r + stride]]
-                + Lr[r + 2 * stride] * v[vb + blob[o + r + 2 * stride]]
-                + Lr[r + 3 * stride] * v[vb + blob[o + r + 3 * stride]])
-        r += 4 * stride
-    while r < end:
-        acc += Lr[r] * v[vb + blob[o + r]]
-        r += stride
-    return acc
-
-
-@wp.func
-def _blob_col_sum(Lw: Any, v: Any, vb: int, blob: Any, o: int, begin: int, end: int, first: int, stride: int):
-    """_col_sum with the rows read from a solve schedule (blob, entry_i at offset o)."""
-    acc = float(0.0)
-    c = begin + first
-    while c + 3 * stride < end:  # four entries per pass
-        acc += (Lw[c] * v[vb + blob[o + c]] + Lw[c + stride] * v[vb + blob[o + c + stride]]
-                + Lw[c + 2 * stride] * v[vb + blob[o + c + 2 * stride]]
-                + Lw[c + 3 * stride] * v[vb + blob[o + c + 3 * stride]])
-        c += 4 * stride
-    while c < end:
-        acc += Lw[c] * v[vb + blob[o + c]]
-        c += stride
-    return acc
-
-
 # The solve with its schedule in shared memory (shared_solve_kernel), on GPUs for batches of one
 # topology, 32 worlds (one warp each) per thread block. NVIDIA H100, 4096 worlds, ms per step,
 # schedule from global memory / shared with 4, 8, 16 worlds per block (one run): DR Legs hanging
@@ -1025,7 +977,8 @@ def _blob_col_sum(Lw: Any, v: Any, vb: int, blob: Any, o: int, begin: int, end: 
 # half of the worlds still read theirs from global memory) 32.0 / 40.3, 35.7, 33.2: those keep the
 # global kernel. A second run, global / 16 / 32 worlds per block: hanging 3.84 / 3.69 / 3.64,
 # standing 5.72 / 5.55 / 5.47, the default walker (one topology) 26.6 / 24.9 / 24.5. Fewer worlds
-# leave multiprocessors idle with 32 per block (DR Legs hanging at 1024 worlds: 2.27 -> 2.58 ms),
+# leave multiprocessors idle with 32 per block (DR Legs hanging at 1024 worlds: 2.58 ms, against
+# 2.42 with the global kernel in a later run),
 # so only batches that give at least half of the multiprocessors a block take it.
 SOLVE_WORLDS_PER_BLOCK = 32
 SOLVE_SHARED = True
@@ -1054,10 +1007,9 @@ def shared_solve_kernel(size: int, worlds: int, blob_size: int):
                 q = base + pat.blob_diag + 6 * d
                 part = float(0.0)
                 if phase == FORWARD:
-                    part = _blob_row_sum(Lr, v, vb, blob, base + pat.blob_row, blob[q + 2], blob[q + 3], lane, lanes)
+                    part = _gather_sum(Lr, v, vb, blob, base + pat.blob_row, blob[q + 2], blob[q + 3], lane, lanes)
                 else:
-                    part = _blob_col_sum(Lw, v, vb, blob, base + pat.blob_entry, blob[q + 4], blob[q + 5], lane,
-                                         lanes)
+                    part = _gather_sum(Lw, v, vb, blob, base + pat.blob_entry, blob[q + 4], blob[q + 5], lane, lanes)
                 total = group_sum(part, lanes)
                 if lane == 0:
                     j = vb + blob[q + 1]
@@ -1068,9 +1020,9 @@ def shared_solve_kernel(size: int, worlds: int, blob_size: int):
                 q = base + pat.blob_diag + 6 * d
                 part = float(0.0)
                 if phase == FORWARD:
-                    part = _blob_row_sum(Lr, v, vb, blob, base + pat.blob_row, blob[q + 2], blob[q + 3], 0, 1)
+                    part = _gather_sum(Lr, v, vb, blob, base + pat.blob_row, blob[q + 2], blob[q + 3], 0, 1)
                 else:
-                    part = _blob_col_sum(Lw, v, vb, blob, base + pat.blob_entry, blob[q + 4], blob[q + 5], 0, 1)
+                    part = _gather_sum(Lw, v, vb, blob, base + pat.blob_entry, blob[q + 4], blob[q + 5], 0, 1)
                 j = vb + blob[q + 1]
                 vector_set(v, j, (v[j] - part) / wp.abs(Lw[blob[q]]))
                 d += lanes
