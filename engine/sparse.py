@@ -982,6 +982,7 @@ def warp_sync():
 # so only batches that give at least half of the multiprocessors a block take it.
 SOLVE_WORLDS_PER_BLOCK = 32
 SOLVE_SHARED = True
+SOLVE_SHARED_BYTES = 160 * 1024  # larger schedules and vectors keep the global kernel (an H100 block holds 227 KB)
 
 
 @functools.cache
@@ -1124,7 +1125,8 @@ def solve(model, rhs, mask, x_out, shared: bool | None = None) -> None:
     device = wp.get_device(model.device)
     if shared is None:
         shared = (SOLVE_SHARED and device.is_cuda and len(model.sparse_analyses) == 1
-                  and model.num_worlds >= SOLVE_WORLDS_PER_BLOCK * device.sm_count // 2)
+                  and model.num_worlds >= SOLVE_WORLDS_PER_BLOCK * device.sm_count // 2
+                  and 4 * (model.sparse.blob_size + SOLVE_WORLDS_PER_BLOCK * size) <= SOLVE_SHARED_BYTES)
     if shared:
         worlds = SOLVE_WORLDS_PER_BLOCK if device.is_cuda else 1
         blocks = -(-model.num_worlds // worlds)
