@@ -850,6 +850,32 @@ def sparse_factor(
         r += lanes
 
 
+@wp.func
+def _rhs_of(pat: SparsePatterns, p: int, k: int, world: int, real: wp.array2d(dtype=wp.int32),
+            rhs: wp.array2d(dtype=float)):
+    """The right-hand side at the factor's position k (0 where it stands for no row this step)."""
+    r = _node_row(pat, p, k, world, real)
+    if r >= 0:
+        return rhs[world, r]
+    return 0.0
+
+
+@wp.func
+def _scatter_solution(v: Any, vb: int, pat: SparsePatterns, p: int, world: int, real: wp.array2d(dtype=wp.int32),
+                      row_count: wp.array(dtype=wp.int32), lane: int, lanes: int, x_out: wp.array2d(dtype=float)):
+    """x_out from the solved vector (at offset vb of v), zero on the rows not in use this step."""
+    k = lane
+    while k < pat.perm.shape[1]:
+        r = _node_row(pat, p, k, world, real)
+        if r >= 0:
+            x_out[world, r] = v[vb + k]
+        k += lanes
+    k = row_count[world] + lane
+    while k < x_out.shape[1]:
+        x_out[world, k] = 0.0
+        k += lanes
+
+
 @functools.cache
 def solve_kernel(size: int):
     """Solve kernel with the world's vector in a shared tile of ``size`` rows (the factor stays
@@ -920,11 +946,7 @@ def solve_kernel(size: int):
         rows = pat.perm.shape[1]
         k = lane
         while k < rows:
-            r = _node_row(pat, p, k, world, real)
-            value = float(0.0)
-            if r >= 0:
-                value = rhs[world, r]
-            vector_set(v, k, value)
+            vector_set(v, k, _rhs_of(pat, p, k, world, real, rhs))
             k += lanes
         Lw = L[world]
         Lr = L_rows[world]
@@ -944,16 +966,7 @@ def solve_kernel(size: int):
         for back in range(levels):
             substitute(Lw, Lr, v, pat, eb, rb, lb + levels - 1 - back, BACKWARD, lane, lanes)
             block_sync()
-        k = lane
-        while k < rows:
-            r = _node_row(pat, p, k, world, real)
-            if r >= 0:
-                x_out[world, r] = v[k]
-            k += lanes
-        k = row_count[world] + lane
-        while k < x_out.shape[1]:  # rows not in use this step
-            x_out[world, k] = 0.0
-            k += lanes
+        _scatter_solution(v, 0, pat, p, world, real, row_count, lane, lanes, x_out)
 
     return sparse_solve
 
@@ -1078,11 +1091,7 @@ def shared_solve_kernel(size: int, worlds: int, blob_size: int):
         rows = pat.perm.shape[1]
         k = lane
         while k < rows:
-            r = _node_row(pat, p, k, world, real)
-            value = float(0.0)
-            if r >= 0:
-                value = rhs[world, r]
-            vector_set(v, vb + k, value)
+            vector_set(v, vb + k, _rhs_of(pat, p, k, world, real, rhs))
             k += lanes
         warp_sync()
         Lw = L[world]
@@ -1091,16 +1100,7 @@ def shared_solve_kernel(size: int, worlds: int, blob_size: int):
             substitute_all(Lw, Lr, v, vb, schedule, 0, pat, p, lane, lanes)
         else:
             substitute_all(Lw, Lr, v, vb, pat.solve_blob, p * blob_size, pat, p, lane, lanes)
-        k = lane
-        while k < rows:
-            r = _node_row(pat, p, k, world, real)
-            if r >= 0:
-                x_out[world, r] = v[vb + k]
-            k += lanes
-        k = row_count[world] + lane
-        while k < x_out.shape[1]:  # rows not in use this step
-            x_out[world, k] = 0.0
-            k += lanes
+        _scatter_solution(v, vb, pat, p, world, real, row_count, lane, lanes, x_out)
 
     return sparse_solve_shared
 
