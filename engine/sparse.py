@@ -991,8 +991,8 @@ def warp_sync():
 # global kernel. A second run, global / 16 / 32 worlds per block: hanging 3.84 / 3.69 / 3.64,
 # standing 5.72 / 5.55 / 5.47, the default walker (one topology) 26.6 / 24.9 / 24.5. Fewer worlds
 # leave multiprocessors idle with 32 per block (DR Legs hanging at 1024 worlds: 2.58 ms, against
-# 2.42 with the global kernel in a later run),
-# so only batches that give at least half of the multiprocessors a block take it.
+# 2.42 with the global kernel in a later run), so only batches that give at least half of the
+# multiprocessors a block take it.
 SOLVE_WORLDS_PER_BLOCK = 32
 SOLVE_SHARED = True
 SOLVE_SHARED_BYTES = 160 * 1024  # larger schedules and vectors keep the global kernel (an H100 block holds 227 KB)
