@@ -9,7 +9,7 @@ x = P^-1 lambda with P = diag(D)^-1/2: matrix P D P (unit diagonal), vector P v_
 import warp as wp
 
 from engine.model import ROW_CONTACT_NORMAL, ROW_CONTACT_TANGENT, UNBOUNDED
-from engine.spatial import gyroscopic_implicit_midpoint, twist, world_inertia_inverse
+from engine.spatial import gyroscopic_implicit_midpoint, twist, two_sum, world_inertia_inverse
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
@@ -35,20 +35,26 @@ def free_velocity_of(
     # in
     body_q: wp.array2d(dtype=wp.transform),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
+    body_qd_low: wp.array2d(dtype=wp.spatial_vector),
     body_f: wp.array2d(dtype=wp.spatial_vector),
     # out
     body_qd_free_out: wp.array2d(dtype=wp.spatial_vector),
+    body_qd_low_out: wp.array2d(dtype=wp.spatial_vector),
 ):
-    """u_free = u + dt M^-1 (m g + f) with the gyroscopic torque integrated by the implicit midpoint rule."""
+    """u_free = u + dt M^-1 (m g + f) with the gyroscopic torque integrated by the implicit midpoint
+    rule, summed with compensation: u + body_qd_low is the twist, and the free twist's rounding
+    error goes to body_qd_low_out (engine.State)."""
     dt = world_dt[world]
     q = wp.transform_get_rotation(body_q[world, b])
     u = body_qd[world, b]
     f = body_f[world, b]
-    v = wp.spatial_top(u) + dt * (world_gravity[world] + body_inv_mass[world, b] * wp.spatial_top(f))
+    dv = dt * (world_gravity[world] + body_inv_mass[world, b] * wp.spatial_top(f))
     w = wp.spatial_bottom(u)
     change = gyroscopic_implicit_midpoint(wp.quat_rotate_inv(q, w), body_inertia[world, b], dt)
-    w = w + wp.quat_rotate(q, change) + dt * (world_inertia_inverse(q, body_inv_inertia[world, b]) * wp.spatial_bottom(f))
-    body_qd_free_out[world, b] = twist(v, w)
+    dw = wp.quat_rotate(q, change) + dt * (world_inertia_inverse(q, body_inv_inertia[world, b]) * wp.spatial_bottom(f))
+    free, low = two_sum(u, body_qd_low[world, b] + twist(dv, dw))
+    body_qd_free_out[world, b] = free
+    body_qd_low_out[world, b] = low
 
 
 @wp.kernel
@@ -63,16 +69,18 @@ def free_velocity(
     # in
     body_q: wp.array2d(dtype=wp.transform),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
+    body_qd_low: wp.array2d(dtype=wp.spatial_vector),
     body_f: wp.array2d(dtype=wp.spatial_vector),
     # out
     body_qd_free_out: wp.array2d(dtype=wp.spatial_vector),
+    body_qd_low_out: wp.array2d(dtype=wp.spatial_vector),
 ):
-    """u_free = u + dt M^-1 (m g + f) with the gyroscopic torque integrated by the implicit midpoint rule."""
+    """u_free = u + dt M^-1 (m g + f) (free_velocity_of)."""
     world, b = wp.tid()
     if b >= body_count[world]:
         return
     free_velocity_of(world, b, body_count, body_inv_mass, body_inertia, body_inv_inertia, world_gravity, world_dt,
-        body_q, body_qd, body_f, body_qd_free_out)
+                     body_q, body_qd, body_qd_low, body_f, body_qd_free_out, body_qd_low_out)
 
 
 @wp.func
@@ -272,14 +280,15 @@ def delassus(
                                                row_compliance, row_precond)
 
 
-def build_dual_problem(model, body_q, body_qd, body_f):
-    """Free velocities, row operators and (dense solver) the preconditioned Delassus matrix of every world."""
+def build_dual_problem(model, body_q, body_qd, body_qd_low, body_f, body_qd_low_out):
+    """Free velocities, row operators and (dense solver) the preconditioned Delassus matrix of every
+    world; body_qd_low: the twists' low parts, body_qd_low_out: the free twists' (engine.State)."""
     work = model.work
     W, device = model.num_worlds, model.device
     wp.launch(free_velocity, dim=(W, model.max_bodies), device=device,
               inputs=[model.body_count, model.body_inv_mass, model.body_inertia, model.body_inv_inertia,
-                      model.world_gravity, model.world_dt, body_q, body_qd, body_f],
-              outputs=[work.body_qd_free])
+                      model.world_gravity, model.world_dt, body_q, body_qd, body_qd_low, body_f],
+              outputs=[work.body_qd_free, body_qd_low_out])
     wp.launch(row_operators, dim=(W, model.max_rows), device=device,
               inputs=[model.row_kind, model.contact_row_start, model.body_inv_mass, model.body_inv_inertia,
                       work.row_count, work.row_body_p, work.row_body_c, body_q, work.body_qd_free, work.row_J_c,

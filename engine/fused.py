@@ -49,10 +49,13 @@ import warp as wp
 
 from engine.dynamics import body_term, free_velocity_of, row_operator_of
 from engine.integrate import (
+    add_impulse_of,
     add_row_share,
+    advance_pose_of,
     bilateral_residual_of,
     guard_divergence_of,
     integrate_pose_of,
+    keep_midpoint_low_of,
     midpoint_pose_of,
     move_body_of,
 )
@@ -139,6 +142,8 @@ class StepWork:
 
     body_qd_free: wp.array2d(dtype=wp.spatial_vector)
     body_q_mid: wp.array2d(dtype=wp.transform)
+    body_q_mid_low: wp.array2d(dtype=wp.transform)
+    body_q_next: wp.array2d(dtype=wp.transform)
     row_count: wp.array(dtype=wp.int32)
     row_body_c: wp.array2d(dtype=wp.int32)
     row_body_p: wp.array2d(dtype=wp.int32)
@@ -513,6 +518,8 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         body_q_in: wp.array2d(dtype=wp.transform),
         body_qd_in: wp.array2d(dtype=wp.spatial_vector),
         body_q_offset_in: wp.array2d(dtype=wp.spatial_vector),
+        body_q_low_in: wp.array2d(dtype=wp.transform),
+        body_qd_low_in: wp.array2d(dtype=wp.spatial_vector),
         row_lambda_in: wp.array2d(dtype=float),
         joint_target_position: wp.array2d(dtype=float),
         joint_target_velocity: wp.array2d(dtype=float),
@@ -522,6 +529,8 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         body_q_out: wp.array2d(dtype=wp.transform),
         body_qd_out: wp.array2d(dtype=wp.spatial_vector),
         body_q_offset_out: wp.array2d(dtype=wp.spatial_vector),
+        body_q_low_out: wp.array2d(dtype=wp.transform),
+        body_qd_low_out: wp.array2d(dtype=wp.spatial_vector),
         row_lambda_out: wp.array2d(dtype=float),
         stamps: wp.array2d(dtype=wp.int64),
     ):
@@ -543,9 +552,11 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         # 1. configuration of the dynamics: the midpoint (Moreau-Jean) or the start of the step
         for b in range(lane, nb, lanes):
             if moreau != 0:
-                midpoint_pose_of(world, b, m.world_dt, body_q_in, body_q_offset_in, body_qd_in, w.body_q_mid)
+                midpoint_pose_of(world, b, m.world_dt, body_q_in, body_q_offset_in, body_qd_in, body_q_low_in,
+                                 w.body_q_mid, w.body_q_mid_low)
             else:
                 w.body_q_mid[world, b] = body_q_in[world, b]
+                w.body_q_mid_low[world, b] = body_q_low_in[world, b]
         block_sync()
         joint_tasks = nj
         split = int(0)
@@ -568,8 +579,9 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         n = w.row_count[world]
         max_rows = row_lambda_out.shape[1]
         for b in range(lane, nb, lanes):
-            free_velocity_of(world, b, m.body_count, m.body_inv_mass, m.body_inertia, m.body_inv_inertia, m.world_gravity,
-                             m.world_dt, w.body_q_mid, body_qd_in, body_f, w.body_qd_free)
+            free_velocity_of(world, b, m.body_count, m.body_inv_mass, m.body_inertia, m.body_inv_inertia,
+                             m.world_gravity, m.world_dt, w.body_q_mid, body_qd_in, body_qd_low_in, body_f,
+                             w.body_qd_free, body_qd_low_out)
         block_sync()
         for i in range(lane, max_rows, lanes):
             row_operator_of(world, i, m.row_kind, m.contact_row_start, m.body_inv_mass, m.body_inv_inertia, w.row_count,
@@ -693,8 +705,9 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                               row_lambda_out, w.row_precond, 0)
             b = t // group
             if b < nb and t % group == 0:
-                body_qd_out[world, b] = w.body_qd_free[world, b] + du
-                integrate_pose_of(world, b, m.body_count, m.world_dt, 1.0, w.body_q_mid, body_qd_out, body_q_out)
+                add_impulse_of(world, b, du, w.body_qd_free, body_qd_out, body_qd_low_out)
+                advance_pose_of(world, b, m.world_dt, w.body_q_mid, w.body_q_mid_low, body_qd_out, body_q_out,
+                                body_q_low_out)
                 body_q_offset_out[world, b] = wp.spatial_vector()
         # 5. Gauss-Newton projection onto the joint constraints (engine.integrate.project_positions) of
         # the next step's configuration with SHAKE's velocity update; Moreau-Jean then projects the
@@ -727,6 +740,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                 if output and _it == shake:  # the end of the step, from the midpoint
                     block_sync()
                     for b in range(lane, nb, lanes):
+                        w.body_q_next[world, b] = body_q_out[world, b]
                         integrate_pose_of(world, b, m.body_count, m.world_dt, 0.5, w.body_q_mid, body_qd_out,
                                           body_q_out)
                     block_sync()
@@ -764,19 +778,26 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                     b = t // group
                     if b < nb and t % group == 0:
                         move_body_of(world, b, dx, m.world_dt, update, wp.where(output, 1, 0), body_q_out, body_qd_out,
-                                     body_q_offset_out)
+                                     body_q_offset_out, body_q_low_out, body_qd_low_out)
                 block_sync()
                 if wp.static(timed):
                     last = tick(stamps, world, wp.static(_STAGE["projection_apply"]), lane, last)
         if moreau != 0 and project == 0:  # no projection: the end of the step is half-way to the midpoint
             block_sync()
             for b in range(lane, nb, lanes):
+                w.body_q_next[world, b] = body_q_out[world, b]
                 integrate_pose_of(world, b, m.body_count, m.world_dt, 0.5, w.body_q_mid, body_qd_out, body_q_out)
+        if moreau != 0:  # the next midpoint's low part against the one the next step will find
+            block_sync()
+            for b in range(lane, nb, lanes):
+                keep_midpoint_low_of(world, b, m.world_dt, w.body_q_next, body_q_out, body_q_offset_out, body_qd_out,
+                                     body_q_low_out)
         # 6. divergence guard
         block_sync()
         if lane == 0:
-            guard_divergence_of(world, m.body_count, body_q_in, body_qd_in, body_q_offset_in, w.halted, max_speed,
-                                body_q_out, body_qd_out, body_q_offset_out, w.diverged)
+            guard_divergence_of(world, m.body_count, body_q_in, body_qd_in, body_q_offset_in, body_q_low_in,
+                                body_qd_low_in, w.halted, max_speed, body_q_out, body_qd_out, body_q_offset_out,
+                                body_q_low_out, body_qd_low_out, w.diverged)
         if wp.static(timed):
             block_sync()
             last = tick(stamps, world, wp.static(_STAGE["end_of_step"]), lane, last)
@@ -829,10 +850,11 @@ def fused_step(model, state_in, state_out, control, stamps=None) -> None:
                       int(cfg.acceleration), cfg.position_iterations if model.has_bilateral_rows else 0,
                       int(model.has_unilateral_or_drive_rows), int(cfg.projection_velocity_update),
                       float(cfg.projection_velocity_floor), float(cfg.projection_skip_floor), float(cfg.max_speed),
-                      int(sharing), state_in.body_q, state_in.body_qd, state_in.body_q_offset, state_in.row_lambda,
-                      control.joint_target_position, control.joint_target_velocity, control.joint_effort,
-                      control.body_f],
-              outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_offset, state_out.row_lambda, stamps])
+                      int(sharing), state_in.body_q, state_in.body_qd, state_in.body_q_offset, state_in.body_q_low,
+                      state_in.body_qd_low, state_in.row_lambda, control.joint_target_position,
+                      control.joint_target_velocity, control.joint_effort, control.body_f],
+              outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_offset, state_out.body_q_low,
+                       state_out.body_qd_low, state_out.row_lambda, stamps])
 
 
 def fused_profile(model, state, control, steps: int = 20) -> dict:
@@ -851,7 +873,7 @@ def fused_profile(model, state, control, steps: int = 20) -> dict:
         samples.append(stamps.numpy().astype(np.float64))
         state, other = other, state
     if steps % 2:  # the caller's state object holds the latest step
-        for name in ("body_q", "body_qd", "body_q_offset", "row_lambda"):
+        for name in ("body_q", "body_qd", "body_q_offset", "body_q_low", "body_qd_low", "row_lambda"):
             wp.copy(getattr(other, name), getattr(state, name))
     t = np.stack(samples).reshape(-1, len(STAGES))
     out = {name: float(np.median(t[:, k])) for k, name in enumerate(STAGES)}

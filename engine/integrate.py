@@ -3,6 +3,11 @@ poses back onto the constraint manifold, and the divergence guard.
 
 Semi-implicit Euler: u+ = u_free + M^-1 J^T lambda, then x+ = x + dt v+, q+ = exp(dt w+) q.
 Moreau-Jean: q_mid = q + dt/2 u; dynamics at q_mid; q+ = q_mid + dt/2 u+ (engine.step).
+Compensated summation: the twists and the chain of configurations the dynamics run on (Moreau-Jean:
+the midpoints) are sums of small increments to large values; each keeps a low part (engine.State's
+body_qd_low and body_q_low) holding what float32 rounded off, so that the state walks by the
+rounding of the increments, not by that of the state (a crank turning for 20 s at dt 1 ms: 20000
+roundings of 2e-7 m/s each would shift its energy by about 1e-5 and its phase by millimetres).
 Position projection (Gauss-Newton): with the residuals phi(q+) of the bilateral rows, solve
 (P D P + sigma I) x = -P phi with the factor the PADMM solve already holds and move every body by
 M^-1 J^T (P x): one damped Newton step on the constraint manifold per iteration, no new factor
@@ -14,7 +19,7 @@ import warp as wp
 
 from engine import linear, matrix_free, sparse
 from engine.model import ROW_ANGULAR, ROW_LINEAR
-from engine.spatial import quat_integrate, quat_rotate_vector
+from engine.spatial import advance_pose, pose_low, quat_integrate, quat_rotate_vector, two_sum
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
@@ -83,14 +88,27 @@ def apply_impulses(
     body_qd_free: wp.array2d(dtype=wp.spatial_vector),
     # out
     body_qd_out: wp.array2d(dtype=wp.spatial_vector),
+    # in/out
+    body_qd_low: wp.array2d(dtype=wp.spatial_vector),
 ):
-    """u+ = u_free + M^-1 J^T lambda."""
+    """u+ = u_free + M^-1 J^T lambda (add_impulse_of)."""
     world, b = wp.tid()
     if b >= body_count[world]:
         return
-    body_qd_out[world, b] = body_qd_free[world, b] + row_sum_listed(
-        world, b, row_count[world], contact_row_start, body_row_begin, body_row_end, body_row, row_body_c, row_body_p,
-        row_MJ_c, row_MJ_p, row_lambda, row_precond, 0)
+    add_impulse_of(world, b, row_sum_listed(world, b, row_count[world], contact_row_start, body_row_begin,
+                                            body_row_end, body_row, row_body_c, row_body_p, row_MJ_c, row_MJ_p,
+                                            row_lambda, row_precond, 0),
+                   body_qd_free, body_qd_out, body_qd_low)
+
+
+@wp.func
+def add_impulse_of(world: int, b: int, du: wp.spatial_vector, body_qd_free: wp.array2d(dtype=wp.spatial_vector),
+                   body_qd_out: wp.array2d(dtype=wp.spatial_vector), body_qd_low: wp.array2d(dtype=wp.spatial_vector)):
+    """u+ = u_free + du with compensation: body_qd_low holds the free twist's low part on entry and
+    the new twist's on return."""
+    u, low = two_sum(body_qd_free[world, b], body_qd_low[world, b] + du)
+    body_qd_out[world, b] = u
+    body_qd_low[world, b] = low
 
 
 @wp.func
@@ -113,24 +131,108 @@ def integrate_pose_of(
 
 
 @wp.func
+def midpoint_of(X: wp.transform, o: wp.spatial_vector, u: wp.spatial_vector, h: float):
+    """The pose X with the output projection o undone, then moved by h u."""
+    rotation = quat_rotate_vector(wp.transform_get_rotation(X), -wp.spatial_bottom(o))
+    return wp.transform(wp.transform_get_translation(X) - wp.spatial_top(o) + h * wp.spatial_top(u),
+                        quat_integrate(rotation, wp.spatial_bottom(u), h))
+
+
+@wp.func
 def midpoint_pose_of(
     world: int, b: int,
     world_dt: wp.array(dtype=float),
     body_q: wp.array2d(dtype=wp.transform),
     body_q_offset: wp.array2d(dtype=wp.spatial_vector),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
+    body_q_low: wp.array2d(dtype=wp.transform),
     # out
     body_q_mid: wp.array2d(dtype=wp.transform),
+    body_q_mid_low: wp.array2d(dtype=wp.transform),
 ):
     """Moreau-Jean's midpoint: undo the last step's output projection (body_q_offset: translation
-    [m] and rotation vector [rad] it moved the body by), then half a pose step with the twist."""
-    X = body_q[world, b]
-    o = body_q_offset[world, b]
-    h = 0.5 * world_dt[world]
+    [m] and rotation vector [rad] it moved the body by), then half a pose step with the twist;
+    plus body_q_low, what the last step kept of the midpoint beyond that (keep_midpoint_low_of),
+    as a compensated pair (body_q_mid, body_q_mid_low)."""
+    mid = midpoint_of(body_q[world, b], body_q_offset[world, b], body_qd[world, b], 0.5 * world_dt[world])
+    low = body_q_low[world, b]
+    t, t_low = two_sum(wp.transform_get_translation(mid), wp.transform_get_translation(low))
+    r, r_low = two_sum(wp.transform_get_rotation(mid), wp.transform_get_rotation(low))
+    body_q_mid[world, b] = wp.transform(t, r)
+    body_q_mid_low[world, b] = wp.transform(t_low, r_low)
+
+
+@wp.func
+def advance_pose_of(
+    world: int, b: int,
+    world_dt: wp.array(dtype=float),
+    body_q: wp.array2d(dtype=wp.transform),
+    body_q_low_in: wp.array2d(dtype=wp.transform),
+    body_qd: wp.array2d(dtype=wp.spatial_vector),
+    # out
+    body_q_out: wp.array2d(dtype=wp.transform),
+    body_q_low_out: wp.array2d(dtype=wp.transform),
+):
+    """The next configuration of the dynamics, compensated: body_q + body_q_low_in moved by dt
+    times the twist (advance_pose), as a (body_q_out, body_q_low_out) pair."""
     u = body_qd[world, b]
-    rotation = quat_rotate_vector(wp.transform_get_rotation(X), -wp.spatial_bottom(o))
-    body_q_mid[world, b] = wp.transform(wp.transform_get_translation(X) - wp.spatial_top(o) + h * wp.spatial_top(u),
-                                        quat_integrate(rotation, wp.spatial_bottom(u), h))
+    X, low = advance_pose(body_q[world, b], body_q_low_in[world, b], wp.spatial_top(u), wp.spatial_bottom(u),
+                          world_dt[world])
+    body_q_out[world, b] = X
+    body_q_low_out[world, b] = low
+
+
+@wp.kernel
+def advance_poses(
+    body_count: wp.array(dtype=wp.int32),
+    world_dt: wp.array(dtype=float),
+    body_q: wp.array2d(dtype=wp.transform),
+    body_q_low_in: wp.array2d(dtype=wp.transform),
+    body_qd: wp.array2d(dtype=wp.spatial_vector),
+    # out
+    body_q_out: wp.array2d(dtype=wp.transform),
+    body_q_low_out: wp.array2d(dtype=wp.transform),
+):
+    """advance_pose_of for every body."""
+    world, b = wp.tid()
+    if b >= body_count[world]:
+        return
+    advance_pose_of(world, b, world_dt, body_q, body_q_low_in, body_qd, body_q_out, body_q_low_out)
+
+
+@wp.func
+def keep_midpoint_low_of(
+    world: int, b: int,
+    world_dt: wp.array(dtype=float),
+    body_q_next: wp.array2d(dtype=wp.transform),
+    body_q: wp.array2d(dtype=wp.transform),
+    body_q_offset: wp.array2d(dtype=wp.spatial_vector),
+    body_qd: wp.array2d(dtype=wp.spatial_vector),
+    # in/out
+    body_q_low: wp.array2d(dtype=wp.transform),
+):
+    """Moreau-Jean: with the next midpoint held as body_q_next + body_q_low, rewrite body_q_low
+    against the float32 midpoint the next step will find from the state (midpoint_pose_of)."""
+    mid = midpoint_of(body_q[world, b], body_q_offset[world, b], body_qd[world, b], 0.5 * world_dt[world])
+    body_q_low[world, b] = pose_low(body_q_next[world, b], body_q_low[world, b], mid)
+
+
+@wp.kernel
+def keep_midpoint_low(
+    body_count: wp.array(dtype=wp.int32),
+    world_dt: wp.array(dtype=float),
+    body_q_next: wp.array2d(dtype=wp.transform),
+    body_q: wp.array2d(dtype=wp.transform),
+    body_q_offset: wp.array2d(dtype=wp.spatial_vector),
+    body_qd: wp.array2d(dtype=wp.spatial_vector),
+    # in/out
+    body_q_low: wp.array2d(dtype=wp.transform),
+):
+    """keep_midpoint_low_of for every body."""
+    world, b = wp.tid()
+    if b >= body_count[world]:
+        return
+    keep_midpoint_low_of(world, b, world_dt, body_q_next, body_q, body_q_offset, body_qd, body_q_low)
 
 
 @wp.kernel
@@ -140,14 +242,16 @@ def midpoint_poses(
     body_q: wp.array2d(dtype=wp.transform),
     body_q_offset: wp.array2d(dtype=wp.spatial_vector),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
+    body_q_low: wp.array2d(dtype=wp.transform),
     # out
     body_q_mid: wp.array2d(dtype=wp.transform),
+    body_q_mid_low: wp.array2d(dtype=wp.transform),
 ):
     """Moreau-Jean's midpoint configuration of every body (midpoint_pose_of)."""
     world, b = wp.tid()
     if b >= body_count[world]:
         return
-    midpoint_pose_of(world, b, world_dt, body_q, body_q_offset, body_qd, body_q_mid)
+    midpoint_pose_of(world, b, world_dt, body_q, body_q_offset, body_qd, body_q_low, body_q_mid, body_q_mid_low)
 
 
 @wp.kernel
@@ -232,15 +336,24 @@ def projection_gate(
 @wp.func
 def move_body_of(world: int, b: int, dx: wp.spatial_vector, world_dt: wp.array(dtype=float), velocity_update: int,
                  record_offset: int, body_q: wp.array2d(dtype=wp.transform),
-                 body_qd: wp.array2d(dtype=wp.spatial_vector), body_q_offset: wp.array2d(dtype=wp.spatial_vector)):
-    """Body b's share of apply_projection, given its displacement dx = (M^-1 J^T P delta)_b."""
+                 body_qd: wp.array2d(dtype=wp.spatial_vector), body_q_offset: wp.array2d(dtype=wp.spatial_vector),
+                 body_q_low: wp.array2d(dtype=wp.transform), body_qd_low: wp.array2d(dtype=wp.spatial_vector)):
+    """Body b's share of apply_projection, given its displacement dx = (M^-1 J^T P delta)_b. The
+    projection of the dynamics' next configuration (no offset recorded) moves the compensated pose
+    and twist (body_q_low, body_qd_low); the output projection moves the float32 pose only."""
     X = body_q[world, b]
-    body_q[world, b] = wp.transform(wp.transform_get_translation(X) + wp.spatial_top(dx),
-                                    quat_rotate_vector(wp.transform_get_rotation(X), wp.spatial_bottom(dx)))
-    if velocity_update != 0:
-        body_qd[world, b] = body_qd[world, b] + dx / world_dt[world]
     if record_offset != 0:
+        body_q[world, b] = wp.transform(wp.transform_get_translation(X) + wp.spatial_top(dx),
+                                        quat_rotate_vector(wp.transform_get_rotation(X), wp.spatial_bottom(dx)))
         body_q_offset[world, b] = body_q_offset[world, b] + dx
+    else:
+        X, low = advance_pose(X, body_q_low[world, b], wp.spatial_top(dx), wp.spatial_bottom(dx), 1.0)
+        body_q[world, b] = X
+        body_q_low[world, b] = low
+    if velocity_update != 0:
+        u, u_low = two_sum(body_qd[world, b], body_qd_low[world, b] + dx / world_dt[world])
+        body_qd[world, b] = u
+        body_qd_low[world, b] = u_low
 
 
 @wp.kernel
@@ -266,6 +379,8 @@ def apply_projection(
     body_q: wp.array2d(dtype=wp.transform),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
     body_q_offset: wp.array2d(dtype=wp.spatial_vector),
+    body_q_low: wp.array2d(dtype=wp.transform),
+    body_qd_low: wp.array2d(dtype=wp.spatial_vector),
 ):
     """Move each body by M^-1 J^T (P delta): translation [m] and rotation vector [rad]; with
     velocity_update, and where the world's gate is open (its joint error is above the rounding
@@ -277,7 +392,8 @@ def apply_projection(
         return
     dx = row_sum_listed(world, b, row_count[world], contact_row_start, body_row_begin, body_row_end, body_row,
                         row_body_c, row_body_p, row_MJ_c, row_MJ_p, delta, row_precond, 1)
-    move_body_of(world, b, dx, world_dt, velocity_update * gate[world], record_offset, body_q, body_qd, body_q_offset)
+    move_body_of(world, b, dx, world_dt, velocity_update * gate[world], record_offset, body_q, body_qd, body_q_offset,
+                 body_q_low, body_qd_low)
 
 
 @wp.func
@@ -307,12 +423,16 @@ def guard_divergence_of(
     body_q_in: wp.array2d(dtype=wp.transform),
     body_qd_in: wp.array2d(dtype=wp.spatial_vector),
     body_q_offset_in: wp.array2d(dtype=wp.spatial_vector),
+    body_q_low_in: wp.array2d(dtype=wp.transform),
+    body_qd_low_in: wp.array2d(dtype=wp.spatial_vector),
     halted: wp.array(dtype=wp.int32),
     max_speed: float,
     # in/out
     body_q_out: wp.array2d(dtype=wp.transform),
     body_qd_out: wp.array2d(dtype=wp.spatial_vector),
     body_q_offset_out: wp.array2d(dtype=wp.spatial_vector),
+    body_q_low_out: wp.array2d(dtype=wp.transform),
+    body_qd_low_out: wp.array2d(dtype=wp.spatial_vector),
     diverged: wp.array(dtype=wp.int32),
 ):
     """Flag a world whose new state is not finite, or in which a body's centre of mass moves
@@ -333,6 +453,8 @@ def guard_divergence_of(
             body_q_out[world, b] = body_q_in[world, b]
             body_qd_out[world, b] = body_qd_in[world, b]
             body_q_offset_out[world, b] = body_q_offset_in[world, b]
+            body_q_low_out[world, b] = body_q_low_in[world, b]
+            body_qd_low_out[world, b] = body_qd_low_in[world, b]
 
 
 @wp.kernel
@@ -341,20 +463,25 @@ def guard_divergence(
     body_q_in: wp.array2d(dtype=wp.transform),
     body_qd_in: wp.array2d(dtype=wp.spatial_vector),
     body_q_offset_in: wp.array2d(dtype=wp.spatial_vector),
+    body_q_low_in: wp.array2d(dtype=wp.transform),
+    body_qd_low_in: wp.array2d(dtype=wp.spatial_vector),
     halted: wp.array(dtype=wp.int32),
     max_speed: float,
     # in/out
     body_q_out: wp.array2d(dtype=wp.transform),
     body_qd_out: wp.array2d(dtype=wp.spatial_vector),
     body_q_offset_out: wp.array2d(dtype=wp.spatial_vector),
+    body_q_low_out: wp.array2d(dtype=wp.transform),
+    body_qd_low_out: wp.array2d(dtype=wp.spatial_vector),
     diverged: wp.array(dtype=wp.int32),
 ):
     """Flag a world whose new state is not finite, or in which a body's centre of mass moves
     faster than max_speed [m/s], and freeze it at its last state; a halted world (engine.rollout's
     halt) stays frozen as well, without the flag."""
     world = wp.tid()
-    guard_divergence_of(world, body_count, body_q_in, body_qd_in, body_q_offset_in, halted, max_speed, body_q_out,
-                        body_qd_out, body_q_offset_out, diverged)
+    guard_divergence_of(world, body_count, body_q_in, body_qd_in, body_q_offset_in, body_q_low_in, body_qd_low_in,
+                        halted, max_speed, body_q_out, body_qd_out, body_q_offset_out, body_q_low_out,
+                        body_qd_low_out, diverged)
 
 
 @wp.kernel
@@ -397,13 +524,15 @@ def projection_shift(padmm_eta: wp.array(dtype=float), padmm_rho_init: wp.array(
 
 
 def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
-                      velocity_update=None, body_q_offset=None, prepare=True):
+                      velocity_update=None, body_q_offset=None, prepare=True, body_q_low=None, body_qd_low=None):
     """Gauss-Newton projection of body_q onto the joint constraints.
 
     iterations: Gauss-Newton steps (config.position_iterations when None).
     velocity_update: add each displacement / dt to body_qd (config's
     projection_velocity_update when None). body_q_offset: accumulate the displacements there
-    (Moreau-Jean's output projection). prepare=False reuses the factor of an earlier call this step.
+    (Moreau-Jean's output projection: float32 poses only). Otherwise the poses and twists are
+    moved with compensation and body_q_low, body_qd_low (their low parts) are required.
+    prepare=False reuses the factor of an earlier call this step.
     """
     work, device = model.work, model.device
     grid_rows = (model.num_worlds, model.max_rows)
@@ -432,8 +561,12 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
         elif direct:
             sparse.factor(model, work.row_shift, work.needs_factor, bilateral_only=model.has_unilateral_or_drive_rows)
     record = body_q_offset is not None
-
-    offset = body_q_offset if record else work.body_qd_free  # any (W, B) spatial_vector array when unused
+    if not record and (body_q_low is None or body_qd_low is None):
+        raise ValueError("project_positions: the compensated projection needs body_q_low and body_qd_low")
+    # any (W, B) arrays of the right types where unused
+    offset = body_q_offset if record else work.body_qd_free
+    q_low = work.body_q_mid if body_q_low is None else body_q_low
+    qd_low = work.body_qd_free if body_qd_low is None else body_qd_low
     cfg = model.config
     mask = work.projection_mask  # the worlds whose joint error is above cfg.projection_skip_floor
     for _ in range(iterations):
@@ -456,8 +589,10 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
                   inputs=[model.body_count, work.row_count, model.contact_row_start, model.body_row_begin,
                           model.body_row_end, model.body_row, work.row_body_c, work.row_body_p, mask,
                           model.world_dt, int(velocity_update), work.projection_gate, work.row_MJ_c,
-                          work.row_MJ_p, work.row_precond, work.delta, int(record), body_q, body_qd, offset])
+                          work.row_MJ_p, work.row_precond, work.delta, int(record), body_q, body_qd, offset, q_low,
+                          qd_low])
 
 
-__all__ = ["apply_impulses", "guard_divergence", "integrate_poses", "midpoint_poses", "move_body_of",
+__all__ = ["add_impulse_of", "advance_pose_of", "advance_poses", "apply_impulses", "guard_divergence",
+           "integrate_poses", "keep_midpoint_low", "keep_midpoint_low_of", "midpoint_poses", "move_body_of",
            "project_positions"]

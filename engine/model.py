@@ -246,6 +246,8 @@ class Model:
         state.body_q = wp.clone(self.body_q_init)
         state.body_qd = wp.clone(self.body_qd_init)
         state.body_q_offset = wp.zeros((self.num_worlds, self.max_bodies), dtype=wp.spatial_vector, device=self.device)
+        state.body_q_low = wp.zeros((self.num_worlds, self.max_bodies), dtype=wp.transform, device=self.device)
+        state.body_qd_low = wp.zeros((self.num_worlds, self.max_bodies), dtype=wp.spatial_vector, device=self.device)
         state.row_lambda = wp.zeros((self.num_worlds, self.max_rows), dtype=float, device=self.device)
         capacity = max(self.contact_capacity, 1)
         state.contact_count = wp.zeros(self.num_worlds, dtype=wp.int32, device=self.device)
@@ -281,7 +283,13 @@ class State:
     frame. body_q_offset (W, B) spatial_vector: how far the last Moreau-Jean step's output
     projection moved each pose onto the joints (translation [m], rotation vector [rad]); the next
     step undoes it to find its midpoint (engine.step). Zero in a new State; when body_q is set by
-    hand, zero it too (a stale offset only costs the next step a correction of its own size). row_lambda (W, R): the last step's constraint impulses [N s] or [N m s] (warm start).
+    hand, zero it too (a stale offset only costs the next step a correction of its own size).
+    body_q_low (W, B) transform and body_qd_low (W, B) spatial_vector: the low parts of a
+    compensated sum (engine.integrate), what float32 could not hold of the configuration the next
+    step's dynamics start from (Moreau-Jean: its midpoint; translation [m] and raw quaternion
+    components) and of the twist; of the order of 1e-7 of the values, zero in a new State (setting
+    body_q or body_qd by hand leaves at most that much behind). row_lambda (W, R): the last step's
+    constraint impulses [N s] or [N m s] (warm start).
     contact_count (W,), contact_key (W, C), contact_impulse (W, C) vec3: the last step's contacts
     and their impulses in the world frame [N s], matched by key to warm-start the next step.
     """
@@ -289,6 +297,8 @@ class State:
     body_q: wp.array
     body_qd: wp.array
     body_q_offset: wp.array
+    body_q_low: wp.array
+    body_qd_low: wp.array
     row_lambda: wp.array
     contact_count: wp.array
     contact_key: wp.array
@@ -348,6 +358,8 @@ class Workspace:
 
         self.body_qd_free = zeros((w, b), wp.spatial_vector)
         self.body_q_mid = zeros((w, b), wp.transform)
+        self.body_q_mid_low = zeros((w, b), wp.transform)  # the midpoint's low part (engine.integrate)
+        self.body_q_next = zeros((w, b), wp.transform)  # Moreau-Jean: the next midpoint while the end is projected
         for name in ("row_J_c", "row_J_p", "row_MJ_c", "row_MJ_p"):
             setattr(self, name, zeros((w, r), wp.spatial_vector))
         for name in ("row_bias", "row_compliance", "row_lo", "row_hi", "row_residual", "row_precond",

@@ -6,6 +6,8 @@ velocity of the centre of mass [m/s] and ``wp.spatial_bottom`` the angular veloc
 both in the world frame.
 """
 
+from typing import Any
+
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
@@ -25,6 +27,50 @@ def quat_integrate(q: wp.quat, omega: wp.vec3, h: float):
         return q
     axis = omega / wp.length(omega)
     return wp.normalize(wp.quat_from_axis_angle(axis, angle) * q)
+
+
+@wp.func
+def two_sum(a: Any, b: Any):
+    """Knuth's TwoSum, componentwise: s = fl(a + b) and its rounding error e, with a + b = s + e
+    exactly (no ordering of |a| and |b| needed)."""
+    s = a + b
+    t = s - a
+    e = (a - (s - t)) + (b - t)
+    return s, e
+
+
+@wp.func
+def quat_increment(q: wp.quat, omega: wp.vec3, h: float):
+    """exp(h omega) q - q for the world-frame angular velocity omega: the change of q over h, with
+    cos - 1 written as -2 sin^2 so that small rotations keep their digits."""
+    speed = wp.length(omega)
+    angle = speed * h
+    if angle < 1.0e-12:
+        return wp.quat(0.0, 0.0, 0.0, 0.0)
+    s = wp.sin(0.5 * angle) / speed
+    c = wp.sin(0.25 * angle)
+    return wp.quat(s * omega[0], s * omega[1], s * omega[2], -2.0 * c * c) * q
+
+
+@wp.func
+def advance_pose(X: wp.transform, low: wp.transform, v: wp.vec3, omega: wp.vec3, h: float):
+    """Compensated pose step: the pose X + low (low: the parts float32 X could not hold, its
+    rotation a raw quaternion difference) moved by h v and turned by exp(h omega), returned as a
+    new (X, low) pair. Rotations are not renormalized: exp preserves the norm, and the rounding of
+    the small increments leaves it within about 1e-10 per step."""
+    t, t_low = two_sum(wp.transform_get_translation(X), wp.transform_get_translation(low) + h * v)
+    q = wp.transform_get_rotation(X)
+    r, r_low = two_sum(q, wp.transform_get_rotation(low) + quat_increment(q, omega, h))
+    return wp.transform(t, r), wp.transform(t_low, r_low)
+
+
+@wp.func
+def pose_low(X: wp.transform, low: wp.transform, Y: wp.transform):
+    """low of the pair that holds the pose X + low with Y as its float32 part: (X - Y) + low,
+    translation and raw quaternion components."""
+    return wp.transform(wp.transform_get_translation(X) - wp.transform_get_translation(Y)
+                        + wp.transform_get_translation(low),
+                        (wp.transform_get_rotation(X) - wp.transform_get_rotation(Y)) + wp.transform_get_rotation(low))
 
 
 @wp.func

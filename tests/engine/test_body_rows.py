@@ -46,18 +46,21 @@ def test_impulse_sums_through_the_lists_match_a_dense_sum_with_contact_rows():
     lam = wp.array(impulses, dtype=float, device="cpu")
     qd_free = wp.array(free, dtype=wp.spatial_vector, device="cpu")
     out = wp.zeros((len(specs), model.max_bodies), dtype=wp.spatial_vector, device="cpu")
+    # the free twists' low parts (engine.integrate's compensated sum): in, and the new twists' out
+    low_in = rng.normal(scale=1e-8, size=(len(specs), model.max_bodies, 6)).astype(np.float32)
+    low = wp.array(low_in, dtype=wp.spatial_vector, device="cpu")
     wp.launch(apply_impulses, dim=(len(specs), model.max_bodies), device="cpu",
               inputs=[model.body_count, work.row_count, model.contact_row_start, model.body_row_begin,
                       model.body_row_end, model.body_row, work.row_body_c, work.row_body_p, work.row_MJ_c,
                       work.row_MJ_p, lam, work.row_precond, qd_free],
-              outputs=[out])
+              outputs=[out, low])
     MJ_c, MJ_p = work.row_MJ_c.numpy().astype(np.float64), work.row_MJ_p.numpy().astype(np.float64)
     body_c, body_p = work.row_body_c.numpy(), work.row_body_p.numpy()
-    got = out.numpy()
+    got = out.numpy().astype(np.float64) + low.numpy()
     for w in range(len(specs)):
         for b in range(model.body_count.numpy()[w]):
             rows = np.arange(counts[w])
-            expected = free[w, b].astype(np.float64) + (
+            expected = free[w, b].astype(np.float64) + low_in[w, b] + (
                 (impulses[w, rows] * (body_c[w, rows] == b))[:, None] * MJ_c[w, rows]
                 + (impulses[w, rows] * (body_p[w, rows] == b))[:, None] * MJ_p[w, rows]).sum(axis=0)
             np.testing.assert_allclose(got[w, b], expected, rtol=1e-5, atol=1e-5 * np.abs(expected).max())
