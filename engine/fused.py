@@ -144,6 +144,7 @@ class StepWork:
     body_q_mid: wp.array2d(dtype=wp.transform)
     body_q_mid_low: wp.array2d(dtype=wp.transform)
     body_q_next: wp.array2d(dtype=wp.transform)
+    no_low: wp.array2d(dtype=wp.transform)
     row_count: wp.array(dtype=wp.int32)
     row_body_c: wp.array2d(dtype=wp.int32)
     row_body_p: wp.array2d(dtype=wp.int32)
@@ -572,9 +573,9 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                           m.joint_drive_row, m.joint_armature, m.joint_damping, m.joint_stiffness,
                           m.joint_drive_damping, m.joint_effort_limit, m.joint_limit_lower, m.joint_limit_upper,
                           m.joint_limit_lower_row, m.joint_limit_upper_row, m.world_dt, baumgarte, limit_margin,
-                          limit_stabilization, w.body_q_mid, body_qd_in, joint_target_position, joint_target_velocity,
-                          joint_effort, w.row_J_c, w.row_J_p, w.row_bias, w.row_compliance, w.row_lo, w.row_hi,
-                          w.row_residual)
+                          limit_stabilization, w.body_q_mid, w.body_q_mid_low, body_qd_in, joint_target_position,
+                          joint_target_velocity, joint_effort, w.row_J_c, w.row_J_p, w.row_bias, w.row_compliance,
+                          w.row_lo, w.row_hi, w.row_residual)
         # 2. the dual problem
         n = w.row_count[world]
         max_rows = row_lambda_out.shape[1]
@@ -746,9 +747,16 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                     block_sync()
                 for t in range(lane, joint_tasks, lanes):
                     j, part = joint_task(t, nj, split)
-                    joint_residuals_of(world, j, part, m.joint_count, m.joint_type, m.joint_parent, m.joint_child,
-                                       m.joint_X_p, m.joint_X_c, m.joint_axis, m.joint_axis2, m.joint_row_start,
-                                       m.joint_inertia_row, m.joint_drive_row, body_q_out, w.row_residual)
+                    if output:  # the end of the step: float32 poses only
+                        joint_residuals_of(world, j, part, m.joint_count, m.joint_type, m.joint_parent,
+                                           m.joint_child, m.joint_X_p, m.joint_X_c, m.joint_axis, m.joint_axis2,
+                                           m.joint_row_start, m.joint_inertia_row, m.joint_drive_row, body_q_out,
+                                           w.no_low, w.row_residual)
+                    else:
+                        joint_residuals_of(world, j, part, m.joint_count, m.joint_type, m.joint_parent,
+                                           m.joint_child, m.joint_X_p, m.joint_X_c, m.joint_axis, m.joint_axis2,
+                                           m.joint_row_start, m.joint_inertia_row, m.joint_drive_row, body_q_out,
+                                           body_q_low_out, w.row_residual)
                 block_sync()
                 if wp.static(timed):
                     last = tick(stamps, world, wp.static(_STAGE["projection_residuals"]), lane, last)

@@ -563,14 +563,14 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
     record = body_q_offset is not None
     if not record and (body_q_low is None or body_qd_low is None):
         raise ValueError("project_positions: the compensated projection needs body_q_low and body_qd_low")
-    # any (W, B) arrays of the right types where unused
+    # any (W, B) arrays of the right types where unused (the output projection writes no low parts)
     offset = body_q_offset if record else work.body_qd_free
-    q_low = work.body_q_mid if body_q_low is None else body_q_low
+    q_low = work.no_low if body_q_low is None else body_q_low
     qd_low = work.body_qd_free if body_qd_low is None else body_qd_low
     cfg = model.config
     mask = work.projection_mask  # the worlds whose joint error is above cfg.projection_skip_floor
     for _ in range(iterations):
-        residual_fn(model, body_q, work.row_residual)
+        residual_fn(model, body_q, work.row_residual, q_low)
         wp.launch_tiled(projection_gate, dim=[model.num_worlds], block_dim=GATE_BLOCK, device=device,
                   inputs=[work.row_count, model.row_kind, work.row_residual, work.project,
                           float(cfg.projection_velocity_floor), float(cfg.projection_skip_floor)],

@@ -76,17 +76,43 @@ def normal_basis(a: wp.vec3, k: int):
 
 
 @wp.func
-def joint_frames(body_q: wp.array2d(dtype=wp.transform), world: int, parent: int, child: int,
-                 X_p: wp.transform, X_c: wp.transform):
-    """World anchor frames of a joint and the lever arms from each COM to its anchor [m]."""
+def lever_arm_exact(X: wp.transform, low: wp.transform, r: wp.vec3):
+    """R r in float64 for the rotation of the compensated pose X + low (engine.State), its
+    quaternion normalized in float64."""
+    q = wp.transform_get_rotation(X)
+    q_low = wp.transform_get_rotation(low)
+    q64 = wp.normalize(wp.quatd(wp.float64(q[0]) + wp.float64(q_low[0]), wp.float64(q[1]) + wp.float64(q_low[1]),
+                                wp.float64(q[2]) + wp.float64(q_low[2]), wp.float64(q[3]) + wp.float64(q_low[3])))
+    return wp.quat_rotate(q64, wp.vec3d(r))
+
+
+@wp.func
+def joint_frames(body_q: wp.array2d(dtype=wp.transform), body_q_low: wp.array2d(dtype=wp.transform), world: int,
+                 parent: int, child: int, X_p: wp.transform, X_c: wp.transform):
+    """World anchor frames of a joint, the lever arms from each COM to its anchor [m], and d, the
+    child anchor minus the parent anchor [m], the joint's position error. d is summed in float64
+    from the compensated poses (body_q + body_q_low: engine.State; body_q_low zeros where there
+    are none) and rounded once: the residuals the projection corrects then stay below float32
+    rounding of the positions, which near a singular configuration the projection would amplify
+    into motion (a float32 anchor 40 m out is off by up to 1.9e-6 m; the IFToMM N = 40 four-bar
+    lost 1e-4 of its energy at each flat pass)."""
     X_wp = X_p
     r_p = wp.vec3(0.0)
+    gap = wp.vec3d(wp.transform_get_translation(body_q[world, child])) - wp.vec3d(wp.transform_get_translation(X_p))
     if parent >= 0:
-        X_wp = body_q[world, parent] * X_p
-        r_p = wp.transform_get_translation(X_wp) - wp.transform_get_translation(body_q[world, parent])
-    X_wc = body_q[world, child] * X_c
-    r_c = wp.transform_get_translation(X_wc) - wp.transform_get_translation(body_q[world, child])
-    return X_wp, X_wc, r_p, r_c
+        P = body_q[world, parent]
+        low_p = body_q_low[world, parent]
+        X_wp = P * X_p
+        r_p = wp.quat_rotate(wp.transform_get_rotation(P), wp.transform_get_translation(X_p))
+        gap = (wp.vec3d(wp.transform_get_translation(body_q[world, child])) - wp.vec3d(wp.transform_get_translation(P))
+               - wp.vec3d(wp.transform_get_translation(low_p))
+               - lever_arm_exact(P, low_p, wp.transform_get_translation(X_p)))
+    C = body_q[world, child]
+    low_c = body_q_low[world, child]
+    X_wc = C * X_c
+    r_c = wp.quat_rotate(wp.transform_get_rotation(C), wp.transform_get_translation(X_c))
+    gap = gap + wp.vec3d(wp.transform_get_translation(low_c)) + lever_arm_exact(C, low_c, wp.transform_get_translation(X_c))
+    return X_wp, X_wc, r_p, r_c, wp.vec3(gap)
 
 
 @wp.func
@@ -108,11 +134,10 @@ def alignment_row(u: wp.vec3, v: wp.vec3):
 
 @wp.func
 def bilateral_row(joint_type: int, k: int, X_wp: wp.transform, X_wc: wp.transform, r_p: wp.vec3,
-                  r_c: wp.vec3, axis: wp.vec3, axis2: wp.vec3):
-    """Jacobian (J_c, J_p) and residual phi of bilateral row k of a joint."""
+                  r_c: wp.vec3, d: wp.vec3, axis: wp.vec3, axis2: wp.vec3):
+    """Jacobian (J_c, J_p) and residual phi of bilateral row k of a joint (joint_frames' values)."""
     q_p = wp.transform_get_rotation(X_wp)
     q_c = wp.transform_get_rotation(X_wc)
-    d = wp.transform_get_translation(X_wc) - wp.transform_get_translation(X_wp)
     sliding = joint_type == JOINT_PRISMATIC or joint_type == JOINT_CYLINDRICAL or joint_type == JOINT_INLINE
     n_position = 3
     if sliding:
@@ -142,13 +167,12 @@ def bilateral_row(joint_type: int, k: int, X_wp: wp.transform, X_wc: wp.transfor
 
 @wp.func
 def joint_coordinate_row(joint_type: int, X_wp: wp.transform, X_wc: wp.transform, r_p: wp.vec3,
-                         r_c: wp.vec3, axis: wp.vec3):
+                         r_c: wp.vec3, d: wp.vec3, axis: wp.vec3):
     """Jacobian (J_c, J_p) of the joint's free coordinate and its value q [rad] or [m]."""
     q_p = wp.transform_get_rotation(X_wp)
     a_w = wp.quat_rotate(q_p, axis)
     zero = wp.vec3(0.0)
     if joint_type == JOINT_PRISMATIC:
-        d = wp.transform_get_translation(X_wc) - wp.transform_get_translation(X_wp)
         return twist(a_w, wp.cross(r_c, a_w)), twist(-a_w, -wp.cross(r_p, a_w) + wp.cross(a_w, d)), wp.dot(a_w, d)
     q_rel = relative_rotation(q_p, wp.transform_get_rotation(X_wc))
     angle = 2.0 * wp.atan2(wp.dot(wp.vec3(q_rel[0], q_rel[1], q_rel[2]), axis), q_rel[3])
@@ -230,6 +254,7 @@ def joint_rows_of(
     limit_stabilization: float,
     # in
     body_q: wp.array2d(dtype=wp.transform),
+    body_q_low: wp.array2d(dtype=wp.transform),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
     joint_target_position: wp.array2d(dtype=float),
     joint_target_velocity: wp.array2d(dtype=float),
@@ -257,11 +282,12 @@ def joint_rows_of(
         return
     parent = joint_parent[world, j]
     child = joint_child[world, j]
-    X_wp, X_wc, r_p, r_c = joint_frames(body_q, world, parent, child, joint_X_p[world, j], joint_X_c[world, j])
+    X_wp, X_wc, r_p, r_c, d = joint_frames(body_q, body_q_low, world, parent, child, joint_X_p[world, j],
+                                           joint_X_c[world, j])
     dt = world_dt[world]
     start = joint_row_start[world, j]
     for k in range(begin, end):
-        J_c, J_p, phi = bilateral_row(jtype, k, X_wp, X_wc, r_p, r_c, joint_axis[world, j], joint_axis2[world, j])
+        J_c, J_p, phi = bilateral_row(jtype, k, X_wp, X_wc, r_p, r_c, d, joint_axis[world, j], joint_axis2[world, j])
         row = start + k
         row_J_c_out[world, row] = J_c
         row_J_p_out[world, row] = J_p
@@ -272,7 +298,7 @@ def joint_rows_of(
         row_residual_out[world, row] = phi
     if not coordinate:
         return
-    J_c, J_p, q = joint_coordinate_row(jtype, X_wp, X_wc, r_p, r_c, joint_axis[world, j])
+    J_c, J_p, q = joint_coordinate_row(jtype, X_wp, X_wc, r_p, r_c, d, joint_axis[world, j])
     dq = wp.dot(J_c, body_twist(body_qd, world, child)) + wp.dot(J_p, body_twist(body_qd, world, parent))
     if lower_row >= 0:
         limit_row(world, lower_row, 1.0, q - joint_limit_lower[world, j], dq, J_c, J_p, dt, limit_margin,
@@ -353,6 +379,7 @@ def joint_rows(
     limit_stabilization: float,
     # in
     body_q: wp.array2d(dtype=wp.transform),
+    body_q_low: wp.array2d(dtype=wp.transform),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
     joint_target_position: wp.array2d(dtype=float),
     joint_target_velocity: wp.array2d(dtype=float),
@@ -376,7 +403,8 @@ def joint_rows(
         joint_axis2, joint_row_start, joint_inertia_row, joint_drive_row, joint_armature, joint_damping,
         joint_stiffness, joint_drive_damping, joint_effort_limit, joint_limit_lower, joint_limit_upper,
         joint_limit_lower_row, joint_limit_upper_row, world_dt, baumgarte, limit_margin, limit_stabilization,
-        body_q, body_qd, joint_target_position, joint_target_velocity, joint_effort, row_J_c_out, row_J_p_out,
+        body_q, body_q_low, body_qd, joint_target_position, joint_target_velocity, joint_effort, row_J_c_out,
+        row_J_p_out,
         row_bias_out, row_compliance_out, row_lo_out, row_hi_out, row_residual_out)
 
 
@@ -397,6 +425,7 @@ def joint_residuals_of(
     joint_drive_row: wp.array2d(dtype=wp.int32),
     # in
     body_q: wp.array2d(dtype=wp.transform),
+    body_q_low: wp.array2d(dtype=wp.transform),
     # out
     row_residual_out: wp.array2d(dtype=float),
 ):
@@ -405,11 +434,11 @@ def joint_residuals_of(
     jtype = joint_type[world, j]
     begin, end, coordinate = part_rows(jtype, part)
     if begin < end:
-        X_wp, X_wc, r_p, r_c = joint_frames(body_q, world, joint_parent[world, j], joint_child[world, j],
-                                            joint_X_p[world, j], joint_X_c[world, j])
+        X_wp, X_wc, r_p, r_c, d = joint_frames(body_q, body_q_low, world, joint_parent[world, j],
+                                               joint_child[world, j], joint_X_p[world, j], joint_X_c[world, j])
         start = joint_row_start[world, j]
         for k in range(begin, end):
-            J_c, J_p, phi = bilateral_row(jtype, k, X_wp, X_wc, r_p, r_c, joint_axis[world, j],
+            J_c, J_p, phi = bilateral_row(jtype, k, X_wp, X_wc, r_p, r_c, d, joint_axis[world, j],
                                           joint_axis2[world, j])
             row_residual_out[world, start + k] = phi
     if not coordinate:
@@ -436,6 +465,7 @@ def joint_residuals(
     joint_drive_row: wp.array2d(dtype=wp.int32),
     # in
     body_q: wp.array2d(dtype=wp.transform),
+    body_q_low: wp.array2d(dtype=wp.transform),
     # out
     row_residual_out: wp.array2d(dtype=float),
 ):
@@ -446,7 +476,8 @@ def joint_residuals(
     if j >= joint_count[world]:
         return
     joint_residuals_of(world, j, -1, joint_count, joint_type, joint_parent, joint_child, joint_X_p, joint_X_c,
-        joint_axis, joint_axis2, joint_row_start, joint_inertia_row, joint_drive_row, body_q, row_residual_out)
+        joint_axis, joint_axis2, joint_row_start, joint_inertia_row, joint_drive_row, body_q, body_q_low,
+        row_residual_out)
 
 
 def joint_model_inputs(model):
@@ -456,25 +487,31 @@ def joint_model_inputs(model):
             model.joint_drive_row]
 
 
-def compute_joint_rows(model, body_q, body_qd, control):
-    """Launch joint_rows for the batch into model.work."""
+def compute_joint_rows(model, body_q, body_qd, control, body_q_low=None):
+    """Launch joint_rows for the batch into model.work; body_q_low: the poses' low parts
+    (engine.State), None for none."""
     work = model.work
+    if body_q_low is None:
+        body_q_low = work.no_low
     parts = joint_parts(model.device)
     wp.launch(joint_rows, dim=(model.num_worlds, model.max_joints * parts), device=model.device,
               inputs=[parts, *joint_model_inputs(model), model.joint_armature, model.joint_damping,
                       model.joint_stiffness, model.joint_drive_damping, model.joint_effort_limit,
                       model.joint_limit_lower, model.joint_limit_upper, model.joint_limit_lower_row,
                       model.joint_limit_upper_row, model.world_dt, float(model.config.baumgarte),
-                      float(model.config.limit_margin), float(model.config.limit_stabilization), body_q, body_qd,
+                      float(model.config.limit_margin), float(model.config.limit_stabilization), body_q, body_q_low,
+                      body_qd,
                       control.joint_target_position, control.joint_target_velocity, control.joint_effort],
               outputs=[work.row_J_c, work.row_J_p, work.row_bias, work.row_compliance, work.row_lo,
                        work.row_hi, work.row_residual])
 
 
-def compute_joint_residuals(model, body_q, residual_out):
-    """Launch joint_residuals for the batch."""
+def compute_joint_residuals(model, body_q, residual_out, body_q_low=None):
+    """Launch joint_residuals for the batch; body_q_low: the poses' low parts (engine.State), None
+    for none."""
     wp.launch(joint_residuals, dim=(model.num_worlds, model.max_joints), device=model.device,
-              inputs=[*joint_model_inputs(model), body_q], outputs=[residual_out])
+              inputs=[*joint_model_inputs(model), body_q, model.work.no_low if body_q_low is None else body_q_low],
+              outputs=[residual_out])
 
 
 __all__ = ["JOINT_CYLINDRICAL", "JOINT_FIXED", "JOINT_INLINE", "JOINT_PARTS", "JOINT_PRISMATIC", "JOINT_REVOLUTE",

@@ -359,6 +359,7 @@ class Workspace:
         self.body_qd_free = zeros((w, b), wp.spatial_vector)
         self.body_q_mid = zeros((w, b), wp.transform)
         self.body_q_mid_low = zeros((w, b), wp.transform)  # the midpoint's low part (engine.integrate)
+        self.no_low = zeros((w, b), wp.transform)  # low parts of poses that have none: zeros, never written
         self.body_q_next = zeros((w, b), wp.transform)  # Moreau-Jean: the next midpoint while the end is projected
         for name in ("row_J_c", "row_J_p", "row_MJ_c", "row_MJ_p"):
             setattr(self, name, zeros((w, r), wp.spatial_vector))

@@ -195,6 +195,7 @@ def drive_speeds(
     joint_axis: wp.array2d(dtype=wp.vec3),
     joint_drive_row: wp.array2d(dtype=wp.int32),
     body_q: wp.array2d(dtype=wp.transform),
+    body_q_low: wp.array2d(dtype=wp.transform),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
     speed_out: wp.array2d(dtype=float),
 ):
@@ -204,8 +205,9 @@ def drive_speeds(
     if j < joint_count[world] and joint_drive_row[world, j] >= 0:
         parent = joint_parent[world, j]
         child = joint_child[world, j]
-        X_wp, X_wc, r_p, r_c = joint_frames(body_q, world, parent, child, joint_X_p[world, j], joint_X_c[world, j])
-        J_c, J_p, q = joint_coordinate_row(joint_type[world, j], X_wp, X_wc, r_p, r_c, joint_axis[world, j])
+        X_wp, X_wc, r_p, r_c, d = joint_frames(body_q, body_q_low, world, parent, child, joint_X_p[world, j],
+                                               joint_X_c[world, j])
+        J_c, J_p, q = joint_coordinate_row(joint_type[world, j], X_wp, X_wc, r_p, r_c, d, joint_axis[world, j])
         value = wp.dot(J_c, body_twist(body_qd, world, child)) + wp.dot(J_p, body_twist(body_qd, world, parent))
     speed_out[world, j] = value
 
@@ -245,7 +247,8 @@ def rollout(model: Model, state: State, control: Control, steps: int, *, dt: flo
         records["drive_torque"].append(torques.numpy().copy())
         wp.launch(drive_speeds, dim=(model.num_worlds, model.max_joints), device=model.device,
                   inputs=[model.joint_count, model.joint_type, model.joint_parent, model.joint_child, model.joint_X_p,
-                          model.joint_X_c, model.joint_axis, model.joint_drive_row, current.body_q, current.body_qd],
+                          model.joint_X_c, model.joint_axis, model.joint_drive_row, current.body_q, model.work.no_low,
+                          current.body_qd],
                   outputs=[speeds])
         records["drive_speed"].append(speeds.numpy().copy())
         for name in ("violation_linear", "violation_angular", "energy", "iterations"):

@@ -134,7 +134,7 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
                           state_in.body_q_low],
                   outputs=[work.body_q_mid, work.body_q_mid_low])
         body_q, body_q_low = work.body_q_mid, work.body_q_mid_low
-    compute_joint_rows(model, body_q, state_in.body_qd, control)
+    compute_joint_rows(model, body_q, state_in.body_qd, control, body_q_low)
     mark("kinematics")
     if model.has_contacts:
         detect_contacts(model, body_q, state_in.body_qd)
