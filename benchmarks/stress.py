@@ -197,6 +197,7 @@ def case_s3(device: str, full: bool) -> dict:
     ok = True
     for label, count in (("parallelogram", 1), (f"n_fourbar_{n}", n)):
         spec = n_fourbar(count, theta0, speed)
+        spec.points.extend(TrackedPoint(f"tip{k}", f"crank{k}", (1.0, 0.0, 0.0)) for k in range(1, count + 1))
         model = pack_worlds([spec], device=device, dt=dt)
         steps = round(duration / dt)
         trace, _ = rollout(model, model.state(), model.control(), steps, record_every=20)
@@ -207,15 +208,18 @@ def case_s3(device: str, full: bool) -> dict:
         expected = np.stack([np.cos(reference), np.zeros_like(reference), -np.sin(reference)], axis=1)
         error = np.linalg.norm(tip - expected, axis=1)
         flat = int(np.sum(np.diff(np.sign(np.sin(reference))) != 0))  # passes through the flat position
-        # branch: every crank parallel to the first (a flipped branch turns some crank away)
+        # branch: every crank parallel to the first (a flipped branch turns some crank away by up to pi)
+        tips = trace.points[:, 0, :count + 1] - np.arange(count + 1)[None, :, None] * np.array([1.0, 0.0, 0.0])
+        angles = np.arctan2(-tips[..., 2], tips[..., 0])
+        spread = float(np.nanmax(np.abs(np.angle(np.exp(1j * (angles - angles[:, :1]))))))
         finite = bool(np.isfinite(tip).all() and not trace.diverged[0])
         measured[label] = {"duration_s": duration, "dt": dt, "bodies": len(spec.bodies),
-                           "flat_passes": flat, "tip_error_m": float(np.nanmax(error)),
+                           "flat_passes": flat, "tip_error_m": float(np.nanmax(error)), "crank_spread_rad": spread,
                            "loop_closure_m": float(np.nanmax(trace.violation_linear)), "finite": finite}
-        ok = ok and finite and measured[label]["tip_error_m"] < 1e-3 and flat >= 1
+        ok = ok and finite and measured[label]["tip_error_m"] < 1e-3 and flat >= 1 and spread < 1e-3
     # the floor under the criterion: one crank on one pin (no loop, no singular pass) against the
-    # same kind of reference; its error is float32 rounding of the state, a random walk of about
-    # one ulp of the energy per step (not part of the pass criterion)
+    # same kind of reference: what the integrator and the float32 arithmetic of the dynamics
+    # leave with the state summed with compensation (not part of the pass criterion)
     spec = n_fourbar(0, theta0, speed)
     model = pack_worlds([spec], device=device, dt=dt)
     trace, _ = rollout(model, model.state(), model.control(), round(duration / dt), record_every=20)
@@ -653,7 +657,8 @@ CASES = [
          "finite; energy drift < 2 % at every dt and < 0.1 % at 1 ms", case_s2),
     Case("S3", "singular configurations: a parallelogram through its flat position; IFToMM A02 N four-bar "
          "(N = 40, 20 s; CI N = 2, 4 s) against its one-degree-of-freedom motion (scipy, rtol 1e-12)",
-         "first crank tip within 1e-3 m of the reference, passes the flat position, no NaN", case_s3),
+         "first crank tip within 1e-3 m of the reference, passes the flat position, every crank within 1e-3 rad of "
+         "the first (no branch flip), no NaN", case_s3),
     Case("S4", "redundant loops: a double parallelogram (3 cranks, one rigid coupler) swinging, against its "
          "one-degree-of-freedom motion (scipy); IFToMM A04's Bricard linkage (5 rods, 6 revolute joints, mobility 1 "
          "against Gruebler's 0) falling from rest; 10 s (CI 2 s)",

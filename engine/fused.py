@@ -751,12 +751,12 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                         joint_residuals_of(world, j, part, m.joint_count, m.joint_type, m.joint_parent,
                                            m.joint_child, m.joint_X_p, m.joint_X_c, m.joint_axis, m.joint_axis2,
                                            m.joint_row_start, m.joint_inertia_row, m.joint_drive_row, body_q_out,
-                                           w.no_low, w.row_residual)
+                                           w.no_low, 0, w.row_residual)
                     else:
                         joint_residuals_of(world, j, part, m.joint_count, m.joint_type, m.joint_parent,
                                            m.joint_child, m.joint_X_p, m.joint_X_c, m.joint_axis, m.joint_axis2,
                                            m.joint_row_start, m.joint_inertia_row, m.joint_drive_row, body_q_out,
-                                           body_q_low_out, w.row_residual)
+                                           body_q_low_out, 1, w.row_residual)
                 block_sync()
                 if wp.static(timed):
                     last = tick(stamps, world, wp.static(_STAGE["projection_residuals"]), lane, last)

@@ -570,7 +570,7 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
     cfg = model.config
     mask = work.projection_mask  # the worlds whose joint error is above cfg.projection_skip_floor
     for _ in range(iterations):
-        residual_fn(model, body_q, work.row_residual, q_low)
+        residual_fn(model, body_q, work.row_residual, q_low, not record)  # float64 sums where the dynamics move on
         wp.launch_tiled(projection_gate, dim=[model.num_worlds], block_dim=GATE_BLOCK, device=device,
                   inputs=[work.row_count, model.row_kind, work.row_residual, work.project,
                           float(cfg.projection_velocity_floor), float(cfg.projection_skip_floor)],

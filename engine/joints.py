@@ -88,30 +88,40 @@ def lever_arm_exact(X: wp.transform, low: wp.transform, r: wp.vec3):
 
 @wp.func
 def joint_frames(body_q: wp.array2d(dtype=wp.transform), body_q_low: wp.array2d(dtype=wp.transform), world: int,
-                 parent: int, child: int, X_p: wp.transform, X_c: wp.transform):
+                 parent: int, child: int, X_p: wp.transform, X_c: wp.transform, exact: int):
     """World anchor frames of a joint, the lever arms from each COM to its anchor [m], and d, the
-    child anchor minus the parent anchor [m], the joint's position error. d is summed in float64
-    from the compensated poses (body_q + body_q_low: engine.State; body_q_low zeros where there
-    are none) and rounded once: the residuals the projection corrects then stay below float32
-    rounding of the positions, which near a singular configuration the projection would amplify
-    into motion (a float32 anchor 40 m out is off by up to 1.9e-6 m; the IFToMM N = 40 four-bar
-    lost 1e-4 of its energy at each flat pass)."""
+    child anchor minus the parent anchor [m], the joint's position error, from the compensated
+    poses (body_q + body_q_low: engine.State; body_q_low zeros where there are none): COM
+    difference (exact for nearby COMs), low parts, lever arms. With ``exact`` d is summed in
+    float64 and rounded once, so the residuals the position projection corrects stay below
+    float32 rounding of the positions and lever arms, which near a singular configuration the
+    projection would amplify into motion (a float32 anchor 40 m out is off by up to 1.9e-6 m; the
+    IFToMM N = 40 four-bar lost 1e-4 of its energy at each flat pass). The float32 sum serves the
+    rows of the dynamics, whose residuals only feed Baumgarte's bias."""
     X_wp = X_p
     r_p = wp.vec3(0.0)
-    gap = wp.vec3d(wp.transform_get_translation(body_q[world, child])) - wp.vec3d(wp.transform_get_translation(X_p))
+    C = body_q[world, child]
+    low_c = body_q_low[world, child]
+    X_wc = C * X_c
+    r_c = wp.quat_rotate(wp.transform_get_rotation(C), wp.transform_get_translation(X_c))
+    x_p = wp.transform_get_translation(X_p)
+    low_p = wp.transform(wp.vec3(0.0), wp.quat(0.0, 0.0, 0.0, 0.0))
+    P = wp.transform_identity()
     if parent >= 0:
         P = body_q[world, parent]
         low_p = body_q_low[world, parent]
         X_wp = P * X_p
         r_p = wp.quat_rotate(wp.transform_get_rotation(P), wp.transform_get_translation(X_p))
-        gap = (wp.vec3d(wp.transform_get_translation(body_q[world, child])) - wp.vec3d(wp.transform_get_translation(P))
-               - wp.vec3d(wp.transform_get_translation(low_p))
-               - lever_arm_exact(P, low_p, wp.transform_get_translation(X_p)))
-    C = body_q[world, child]
-    low_c = body_q_low[world, child]
-    X_wc = C * X_c
-    r_c = wp.quat_rotate(wp.transform_get_rotation(C), wp.transform_get_translation(X_c))
-    gap = gap + wp.vec3d(wp.transform_get_translation(low_c)) + lever_arm_exact(C, low_c, wp.transform_get_translation(X_c))
+        x_p = wp.transform_get_translation(P)
+    x_c = wp.transform_get_translation(C)
+    if exact == 0:
+        d = ((x_c - x_p) + (wp.transform_get_translation(low_c) - wp.transform_get_translation(low_p))) + (r_c - r_p)
+        return X_wp, X_wc, r_p, r_c, d
+    gap = (wp.vec3d(x_c) - wp.vec3d(x_p) + wp.vec3d(wp.transform_get_translation(low_c))
+           + lever_arm_exact(C, low_c, wp.transform_get_translation(X_c)))
+    if parent >= 0:
+        gap = gap - wp.vec3d(wp.transform_get_translation(low_p)) - lever_arm_exact(P, low_p,
+                                                                                   wp.transform_get_translation(X_p))
     return X_wp, X_wc, r_p, r_c, wp.vec3(gap)
 
 
@@ -283,7 +293,7 @@ def joint_rows_of(
     parent = joint_parent[world, j]
     child = joint_child[world, j]
     X_wp, X_wc, r_p, r_c, d = joint_frames(body_q, body_q_low, world, parent, child, joint_X_p[world, j],
-                                           joint_X_c[world, j])
+                                           joint_X_c[world, j], 0)
     dt = world_dt[world]
     start = joint_row_start[world, j]
     for k in range(begin, end):
@@ -426,16 +436,18 @@ def joint_residuals_of(
     # in
     body_q: wp.array2d(dtype=wp.transform),
     body_q_low: wp.array2d(dtype=wp.transform),
+    exact: int,
     # out
     row_residual_out: wp.array2d(dtype=float),
 ):
     """Position-level residuals of joint j's rows at body_q (0 for dynamics rows): all of them
-    (part < 0) or one part (JOINT_PARTS)."""
+    (part < 0) or one part (JOINT_PARTS); exact: joint_frames' float64 sum."""
     jtype = joint_type[world, j]
     begin, end, coordinate = part_rows(jtype, part)
     if begin < end:
         X_wp, X_wc, r_p, r_c, d = joint_frames(body_q, body_q_low, world, joint_parent[world, j],
-                                               joint_child[world, j], joint_X_p[world, j], joint_X_c[world, j])
+                                               joint_child[world, j], joint_X_p[world, j], joint_X_c[world, j],
+                                               exact)
         start = joint_row_start[world, j]
         for k in range(begin, end):
             J_c, J_p, phi = bilateral_row(jtype, k, X_wp, X_wc, r_p, r_c, d, joint_axis[world, j],
@@ -466,6 +478,7 @@ def joint_residuals(
     # in
     body_q: wp.array2d(dtype=wp.transform),
     body_q_low: wp.array2d(dtype=wp.transform),
+    exact: int,
     # out
     row_residual_out: wp.array2d(dtype=float),
 ):
@@ -476,7 +489,7 @@ def joint_residuals(
     if j >= joint_count[world]:
         return
     joint_residuals_of(world, j, -1, joint_count, joint_type, joint_parent, joint_child, joint_X_p, joint_X_c,
-        joint_axis, joint_axis2, joint_row_start, joint_inertia_row, joint_drive_row, body_q, body_q_low,
+        joint_axis, joint_axis2, joint_row_start, joint_inertia_row, joint_drive_row, body_q, body_q_low, exact,
         row_residual_out)
 
 
@@ -506,11 +519,12 @@ def compute_joint_rows(model, body_q, body_qd, control, body_q_low=None):
                        work.row_hi, work.row_residual])
 
 
-def compute_joint_residuals(model, body_q, residual_out, body_q_low=None):
+def compute_joint_residuals(model, body_q, residual_out, body_q_low=None, exact=False):
     """Launch joint_residuals for the batch; body_q_low: the poses' low parts (engine.State), None
-    for none."""
+    for none; exact: sum the position errors in float64 (joint_frames)."""
     wp.launch(joint_residuals, dim=(model.num_worlds, model.max_joints), device=model.device,
-              inputs=[*joint_model_inputs(model), body_q, model.work.no_low if body_q_low is None else body_q_low],
+              inputs=[*joint_model_inputs(model), body_q, model.work.no_low if body_q_low is None else body_q_low,
+                      int(exact)],
               outputs=[residual_out])
 
 

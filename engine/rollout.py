@@ -206,7 +206,7 @@ def drive_speeds(
         parent = joint_parent[world, j]
         child = joint_child[world, j]
         X_wp, X_wc, r_p, r_c, d = joint_frames(body_q, body_q_low, world, parent, child, joint_X_p[world, j],
-                                               joint_X_c[world, j])
+                                               joint_X_c[world, j], 0)
         J_c, J_p, q = joint_coordinate_row(joint_type[world, j], X_wp, X_wc, r_p, r_c, d, joint_axis[world, j])
         value = wp.dot(J_c, body_twist(body_qd, world, child)) + wp.dot(J_p, body_twist(body_qd, world, parent))
     speed_out[world, j] = value
