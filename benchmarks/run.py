@@ -8,7 +8,8 @@ Scenes and settings are data (benchmarks/scenes.py). Per scene:
 - throughput: world-steps/s at each batch size of the scene (default solver settings), CUDA graphs
   of 10 steps (engine.rollout.Stepper), median time per step after the compile and capture chunks;
   memory: the engine's arrays (model, workspace, states) and, on CUDA, the growth of Warp's memory
-  pool over the run (graphs and scratch included; the peers' the same way);
+  pool over the run (graphs and scratch included; the peers' the same way); the scene's variants
+  (other settings) at its largest batch;
 - work-precision (linkage scenes): each setting of the sweep (dt, step kernel, linear solver,
   tolerance, stabilization, integrator) simulates the scene's duration on the precision batch;
   errors: largest loop-closure violation [m] over all worlds and records, energy drift
@@ -193,6 +194,13 @@ def run_scene(name: str, declared: Declared, args) -> dict:
         row.update(kind="throughput", engine="morphopt", label="default")
         result["throughput"].append(clean(row))
         print(json.dumps({"scene": name, **clean(row)}), flush=True)
+    for variant in (declared.variants if "throughput" in args.parts and worlds_list else []):
+        worlds = worlds_list[-1]
+        row = engine_run(specs, worlds, dt, steps + 2 * chunk, chunk, SolverConfig(**variant["config"]), args.device,
+                         np.arange(min(worlds, len(specs))), scene.potential_min)
+        row.update(kind="throughput", engine="morphopt", label=variant["label"], settings=variant["config"])
+        result["throughput"].append(clean(row))
+        print(json.dumps({"scene": name, **clean(row)}), flush=True)
     peer_reason = None
     if args.peers and declared.peers:
         from benchmarks.peers import available
@@ -352,8 +360,11 @@ def plot(result: dict, path: pathlib.Path) -> None:
     panels = 3 if result["precision"] else (2 if peer_rows else 1)
     fig, axes = plt.subplots(1, panels, figsize=(5.2 * panels, 4.0), squeeze=False)
     ax = axes[0, 0]
-    ours = [r for r in result["throughput"] if "error" not in r]
+    ours = [r for r in result["throughput"] if "error" not in r and r.get("label", "default") == "default"]
+    variants = [r for r in result["throughput"] if "error" not in r and r.get("label", "default") != "default"]
     ax.loglog([r["num_worlds"] for r in ours], [r["world_steps_per_s"] for r in ours], "o-", label="morphopt")
+    for k, r in enumerate(variants):
+        ax.loglog([r["num_worlds"]], [r["world_steps_per_s"]], "^", color=f"C{k + 3}", label=f"morphopt, {r['label']}")
     for label in sorted({r["label"] for r in result["peers"] if r.get("kind") == "throughput"}):
         rows = [r for r in result["peers"] if r.get("kind") == "throughput" and r.get("label") == label]
         ax.loglog([r["num_worlds"] for r in rows], [r["world_steps_per_s"] for r in rows], "s--", label=label)
@@ -364,8 +375,8 @@ def plot(result: dict, path: pathlib.Path) -> None:
     ax.legend(fontsize=7)
     if not result["precision"] and peer_rows:  # time per step against loop error, each engine's batches
         ax = axes[0, 1]
-        engines = [("morphopt", ours)] + [(label, [r for r in peer_rows if r.get("label") == label])
-                                          for label in sorted({r["label"] for r in peer_rows})]
+        engines = [("morphopt", ours)] + [(f"morphopt, {r['label']}", [r]) for r in variants] + [
+            (label, [r for r in peer_rows if r.get("label") == label]) for label in sorted({r["label"] for r in peer_rows})]
         for k, (label, rows) in enumerate(engines):
             rows = [r for r in rows if r.get("loop_error_m") is not None]
             ax.loglog([r["step_ms_median"] for r in rows], [max(r["loop_error_m"], 1e-9) for r in rows],

@@ -124,6 +124,9 @@ class Declared:
     record_dt: float = 0.05
     peers: bool = False  # MuJoCo Warp from the MJCF export, or both Newton peers where the scene has a USD file
     quick_worlds: list[int] = field(default_factory=lambda: [1, 8])
+    # throughput of other settings at the largest batch: label, SolverConfig overrides (scenes
+    # without a work-precision sweep: what a setting buys in time and costs in loop error)
+    variants: list[dict] = field(default_factory=list)
 
 
 # work-precision settings: label, dt multiplier of the scene's dt, SolverConfig overrides
@@ -141,6 +144,8 @@ LINKAGE_SWEEP = [
     dict(label="semi-implicit Euler", dt_scale=1.0, config=dict(integrator="euler")),
 ]
 TIGHT = dict(tolerance=1e-9, relative_tolerance=0.0, max_iterations=300, position_iterations=4)
+# one Gauss-Newton iteration for the dynamics' configuration and one for the output instead of two each
+DRLEGS_VARIANTS = [dict(label="1 projection iteration", config=dict(position_iterations=1))]
 
 SCENES_DECLARED = {
     "fourbar": Declared(lambda assets: _engine_scenes(["fourbar"]), dt=1e-3, duration=2.0,
@@ -155,11 +160,11 @@ SCENES_DECLARED = {
                                precision_worlds=0, throughput_steps=30, quick_worlds=[2]),
     "drlegs_hanging": Declared(lambda assets: dr_legs(False, assets), dt=1e-2, duration=0.0,
                                throughput_worlds=[1, 1024, 4096], precision_worlds=0, throughput_steps=50, peers=True,
-                               quick_worlds=[1]),
+                               quick_worlds=[1], variants=DRLEGS_VARIANTS),
     "drlegs_standing": Declared(lambda assets: dr_legs(True, assets), dt=1e-2, duration=0.0,
                                 throughput_worlds=[1, 1024, 4096], precision_worlds=0, throughput_steps=50,
-                                peers=True, quick_worlds=[1]),
+                                peers=True, quick_worlds=[1], variants=DRLEGS_VARIANTS),
     "drlegs_standing_newton": Declared(lambda assets: dr_legs(True, assets, NEWTON_EXAMPLE_JOINTS), dt=1e-2,
                                        duration=0.0, throughput_worlds=[1, 1024, 4096], precision_worlds=0,
-                                       throughput_steps=50, peers=True, quick_worlds=[1]),
+                                       throughput_steps=50, peers=True, quick_worlds=[1], variants=DRLEGS_VARIANTS),
 }

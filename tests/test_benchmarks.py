@@ -58,6 +58,28 @@ def test_benchmark_runner_quick_fourbar_writes_results_with_a_float64_reference(
     assert 0 < memory[1] < memory[8] and all(r["device_memory_mb"] is None for r in result["throughput"])
 
 
+def test_benchmark_runner_times_a_scenes_variants_at_its_largest_batch(tmp_path, monkeypatch):
+    """A declared variant (other solver settings) gets its own throughput row at the largest batch,
+    labelled, with its settings and its measured loop error: without the projection (Baumgarte
+    feedback instead) the four-bar's loops open by more than the default's."""
+    import dataclasses
+    import json
+
+    from benchmarks import run, scenes
+
+    variant = dict(label="no projection", config=dict(position_iterations=0, projection_velocity_update=False,
+                                                      baumgarte=0.01))
+    declared = dataclasses.replace(scenes.SCENES_DECLARED["fourbar"], duration=0.0, variants=[variant])
+    monkeypatch.setitem(run.SCENES_DECLARED, "fourbar", declared)
+    assert run.main(["--device", "cpu", "--quick", "--only", "fourbar", "--parts", "throughput",
+                     "--out", str(tmp_path)]) == 0
+    rows = json.loads((tmp_path / "fourbar.json").read_text())["throughput"]
+    assert [(r["label"], r["num_worlds"]) for r in rows] == [("default", 1), ("default", 8), ("no projection", 8)]
+    assert rows[2]["settings"] == variant["config"] and rows[2]["world_steps_per_s"] > 0
+    assert rows[2]["loop_error_m"] > 10 * rows[1]["loop_error_m"]
+    assert (tmp_path / "fourbar.png").stat().st_size > 0
+
+
 def test_mujoco_warp_capacities_cover_a_host_rollout():
     """The MuJoCo Warp peer's per-world contact and constraint capacities come from a MuJoCo C
     rollout of one world: a box settling on the ground needs its 4 corner contacts and their
