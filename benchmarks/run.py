@@ -365,9 +365,10 @@ def plot(result: dict, path: pathlib.Path) -> None:
     ax.loglog([r["num_worlds"] for r in ours], [r["world_steps_per_s"] for r in ours], "o-", label="morphopt")
     for k, r in enumerate(variants):
         ax.loglog([r["num_worlds"]], [r["world_steps_per_s"]], "^", color=f"C{k + 3}", label=f"morphopt, {r['label']}")
-    for label in sorted({r["label"] for r in result["peers"] if r.get("kind") == "throughput"}):
+    for j, label in enumerate(sorted({r["label"] for r in result["peers"] if r.get("kind") == "throughput"})):
         rows = [r for r in result["peers"] if r.get("kind") == "throughput" and r.get("label") == label]
-        ax.loglog([r["num_worlds"] for r in rows], [r["world_steps_per_s"] for r in rows], "s--", label=label)
+        ax.loglog([r["num_worlds"] for r in rows], [r["world_steps_per_s"] for r in rows], "s--", color=f"C{j + 1}",
+                  label=label)
     ax.set_xlabel("worlds")
     ax.set_ylabel("world-steps / s")
     ax.set_title(f"{result['scene']}: throughput")
@@ -375,12 +376,16 @@ def plot(result: dict, path: pathlib.Path) -> None:
     ax.legend(fontsize=7)
     if not result["precision"] and peer_rows:  # time per step against loop error, each engine's batches
         ax = axes[0, 1]
-        engines = [("morphopt", ours)] + [(f"morphopt, {r['label']}", [r]) for r in variants] + [
-            (label, [r for r in peer_rows if r.get("label") == label]) for label in sorted({r["label"] for r in peer_rows})]
-        for k, (label, rows) in enumerate(engines):
+        # the colours and markers of the throughput panel: peers C1, C2 ... squares, variants triangles
+        peer_labels = sorted({r["label"] for r in peer_rows})
+        engines = ([("morphopt", ours, "o", "C0")]
+                   + [(label, [r for r in peer_rows if r.get("label") == label], "s", f"C{j + 1}")
+                      for j, label in enumerate(peer_labels)]
+                   + [(f"morphopt, {r['label']}", [r], "^", f"C{k + 3}") for k, r in enumerate(variants)])
+        for label, rows, marker, color in engines:
             rows = [r for r in rows if r.get("loop_error_m") is not None]
             ax.loglog([r["step_ms_median"] for r in rows], [max(r["loop_error_m"], 1e-9) for r in rows],
-                      "o" if k == 0 else "s", color=f"C{k}", label=label)
+                      marker, color=color, label=label)
             for r in rows:
                 ax.annotate(f"{r['num_worlds']}", (r["step_ms_median"], max(r["loop_error_m"], 1e-9)), fontsize=6)
         ax.set_xlabel("ms per step (labels: worlds)")
