@@ -142,6 +142,7 @@ LINKAGE_SWEEP = [
     dict(label="no projection (Baumgarte 0.01)", dt_scale=1.0,
          config=dict(position_iterations=0, projection_velocity_update=False, baumgarte=0.01)),
     dict(label="semi-implicit Euler", dt_scale=1.0, config=dict(integrator="euler")),
+    dict(label="float32 state", dt_scale=1.0, config=dict(compensated_state=False)),
 ]
 TIGHT = dict(tolerance=1e-9, relative_tolerance=0.0, max_iterations=300, position_iterations=4)
 # one Gauss-Newton iteration for the dynamics' configuration and one for the output instead of two each

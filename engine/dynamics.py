@@ -37,13 +37,14 @@ def free_velocity_of(
     body_qd: wp.array2d(dtype=wp.spatial_vector),
     body_qd_low: wp.array2d(dtype=wp.spatial_vector),
     body_f: wp.array2d(dtype=wp.spatial_vector),
+    compensated: int,
     # out
     body_qd_free_out: wp.array2d(dtype=wp.spatial_vector),
     body_qd_low_out: wp.array2d(dtype=wp.spatial_vector),
 ):
     """u_free = u + dt M^-1 (m g + f) with the gyroscopic torque integrated by the implicit midpoint
-    rule, summed with compensation: u + body_qd_low is the twist, and the free twist's rounding
-    error goes to body_qd_low_out (engine.State)."""
+    rule; ``compensated``: summed with compensation, u + body_qd_low is the twist and the free
+    twist's rounding error goes to body_qd_low_out (engine.State); else a float32 sum."""
     dt = world_dt[world]
     q = wp.transform_get_rotation(body_q[world, b])
     u = body_qd[world, b]
@@ -52,6 +53,9 @@ def free_velocity_of(
     w = wp.spatial_bottom(u)
     change = gyroscopic_implicit_midpoint(wp.quat_rotate_inv(q, w), body_inertia[world, b], dt)
     dw = wp.quat_rotate(q, change) + dt * (world_inertia_inverse(q, body_inv_inertia[world, b]) * wp.spatial_bottom(f))
+    if compensated == 0:
+        body_qd_free_out[world, b] = u + twist(dv, dw)
+        return
     free, low = two_sum(u, body_qd_low[world, b] + twist(dv, dw))
     body_qd_free_out[world, b] = free
     body_qd_low_out[world, b] = low
@@ -71,6 +75,7 @@ def free_velocity(
     body_qd: wp.array2d(dtype=wp.spatial_vector),
     body_qd_low: wp.array2d(dtype=wp.spatial_vector),
     body_f: wp.array2d(dtype=wp.spatial_vector),
+    compensated: int,
     # out
     body_qd_free_out: wp.array2d(dtype=wp.spatial_vector),
     body_qd_low_out: wp.array2d(dtype=wp.spatial_vector),
@@ -80,7 +85,7 @@ def free_velocity(
     if b >= body_count[world]:
         return
     free_velocity_of(world, b, body_count, body_inv_mass, body_inertia, body_inv_inertia, world_gravity, world_dt,
-                     body_q, body_qd, body_qd_low, body_f, body_qd_free_out, body_qd_low_out)
+                     body_q, body_qd, body_qd_low, body_f, compensated, body_qd_free_out, body_qd_low_out)
 
 
 @wp.func
@@ -287,7 +292,8 @@ def build_dual_problem(model, body_q, body_qd, body_qd_low, body_f, body_qd_low_
     W, device = model.num_worlds, model.device
     wp.launch(free_velocity, dim=(W, model.max_bodies), device=device,
               inputs=[model.body_count, model.body_inv_mass, model.body_inertia, model.body_inv_inertia,
-                      model.world_gravity, model.world_dt, body_q, body_qd, body_qd_low, body_f],
+                      model.world_gravity, model.world_dt, body_q, body_qd, body_qd_low, body_f,
+                      int(model.config.compensated_state)],
               outputs=[work.body_qd_free, body_qd_low_out])
     wp.launch(row_operators, dim=(W, model.max_rows), device=device,
               inputs=[model.row_kind, model.contact_row_start, model.body_inv_mass, model.body_inv_inertia,

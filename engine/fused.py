@@ -470,12 +470,15 @@ def body_row_sum(world: int, t: int, g: int, nb: int, n: int, row_body_c: wp.arr
     return total
 
 
-def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_inverse: bool = False):
+def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_inverse: bool = False,
+                 compensated: bool = True):
     """The fused step for worlds of at most tile_rows rows: the world's matrix and factor live in
     shared-memory tiles of that size (the loads of a factor or substitution never leave the SM).
     With ``timed`` lane 0 adds each stage's cycles (STAGES) into stamps. With ``with_inverse`` the
-    solves multiply by G = L^-1, formed once per factor, instead of substituting."""
+    solves multiply by G = L^-1, formed once per factor, instead of substituting. ``compensated``:
+    SolverConfig.compensated_state (without it the low parts are neither read nor written)."""
     inverse_rows = tile_rows if with_inverse else 1
+    comp = 1 if compensated else 0
 
     @wp.func
     def factor_world(world: int, lane: int, lanes: int, n: int, sigma: float, sigma_free: float, bilateral_only: int,
@@ -553,11 +556,12 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         # 1. configuration of the dynamics: the midpoint (Moreau-Jean) or the start of the step
         for b in range(lane, nb, lanes):
             if moreau != 0:
-                midpoint_pose_of(world, b, m.world_dt, body_q_in, body_q_offset_in, body_qd_in, body_q_low_in,
+                midpoint_pose_of(world, b, m.world_dt, body_q_in, body_q_offset_in, body_qd_in, body_q_low_in, comp,
                                  w.body_q_mid, w.body_q_mid_low)
             else:
                 w.body_q_mid[world, b] = body_q_in[world, b]
-                w.body_q_mid_low[world, b] = body_q_low_in[world, b]
+                if wp.static(compensated):
+                    w.body_q_mid_low[world, b] = body_q_low_in[world, b]
         block_sync()
         joint_tasks = nj
         split = int(0)
@@ -581,7 +585,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         max_rows = row_lambda_out.shape[1]
         for b in range(lane, nb, lanes):
             free_velocity_of(world, b, m.body_count, m.body_inv_mass, m.body_inertia, m.body_inv_inertia,
-                             m.world_gravity, m.world_dt, w.body_q_mid, body_qd_in, body_qd_low_in, body_f,
+                             m.world_gravity, m.world_dt, w.body_q_mid, body_qd_in, body_qd_low_in, body_f, comp,
                              w.body_qd_free, body_qd_low_out)
         block_sync()
         for i in range(lane, max_rows, lanes):
@@ -706,8 +710,8 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                               row_lambda_out, w.row_precond, 0)
             b = t // group
             if b < nb and t % group == 0:
-                add_impulse_of(world, b, du, w.body_qd_free, body_qd_out, body_qd_low_out)
-                advance_pose_of(world, b, m.world_dt, w.body_q_mid, w.body_q_mid_low, body_qd_out, body_q_out,
+                add_impulse_of(world, b, du, w.body_qd_free, comp, body_qd_out, body_qd_low_out)
+                advance_pose_of(world, b, m.world_dt, w.body_q_mid, w.body_q_mid_low, body_qd_out, comp, body_q_out,
                                 body_q_low_out)
                 body_q_offset_out[world, b] = wp.spatial_vector()
         # 5. Gauss-Newton projection onto the joint constraints (engine.integrate.project_positions) of
@@ -741,7 +745,8 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                 if output and _it == shake:  # the end of the step, from the midpoint
                     block_sync()
                     for b in range(lane, nb, lanes):
-                        w.body_q_next[world, b] = body_q_out[world, b]
+                        if wp.static(compensated):
+                            w.body_q_next[world, b] = body_q_out[world, b]
                         integrate_pose_of(world, b, m.body_count, m.world_dt, 0.5, w.body_q_mid, body_qd_out,
                                           body_q_out)
                     block_sync()
@@ -756,7 +761,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                         joint_residuals_of(world, j, part, m.joint_count, m.joint_type, m.joint_parent,
                                            m.joint_child, m.joint_X_p, m.joint_X_c, m.joint_axis, m.joint_axis2,
                                            m.joint_row_start, m.joint_inertia_row, m.joint_drive_row, body_q_out,
-                                           body_q_low_out, 1, w.row_residual)
+                                           body_q_low_out, comp, w.row_residual)
                 block_sync()
                 if wp.static(timed):
                     last = tick(stamps, world, wp.static(_STAGE["projection_residuals"]), lane, last)
@@ -785,17 +790,18 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                                       w.delta, w.row_precond, 1)
                     b = t // group
                     if b < nb and t % group == 0:
-                        move_body_of(world, b, dx, m.world_dt, update, wp.where(output, 1, 0), body_q_out, body_qd_out,
-                                     body_q_offset_out, body_q_low_out, body_qd_low_out)
+                        move_body_of(world, b, dx, m.world_dt, update, wp.where(output, 1, 0), comp, body_q_out,
+                                     body_qd_out, body_q_offset_out, body_q_low_out, body_qd_low_out)
                 block_sync()
                 if wp.static(timed):
                     last = tick(stamps, world, wp.static(_STAGE["projection_apply"]), lane, last)
         if moreau != 0 and project == 0:  # no projection: the end of the step is half-way to the midpoint
             block_sync()
             for b in range(lane, nb, lanes):
-                w.body_q_next[world, b] = body_q_out[world, b]
+                if wp.static(compensated):
+                    w.body_q_next[world, b] = body_q_out[world, b]
                 integrate_pose_of(world, b, m.body_count, m.world_dt, 0.5, w.body_q_mid, body_qd_out, body_q_out)
-        if moreau != 0:  # the next midpoint's low part against the one the next step will find
+        if wp.static(compensated) and moreau != 0:  # the next midpoint's low part against the next step's
             block_sync()
             for b in range(lane, nb, lanes):
                 keep_midpoint_low_of(world, b, m.world_dt, w.body_q_next, body_q_out, body_q_offset_out, body_qd_out,
@@ -813,13 +819,14 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
     return fused_step_kernel
 
 
-def fused_kernel(max_rows: int, max_registers: int = FUSED_REGISTERS, timed: bool = False, inverse: bool = False):
-    """The fused step kernel for a padded row count (cached per tile size, register cap, timing and
-    solve form)."""
+def fused_kernel(max_rows: int, max_registers: int = FUSED_REGISTERS, timed: bool = False, inverse: bool = False,
+                 compensated: bool = True):
+    """The fused step kernel for a padded row count (cached per tile size, register cap, timing,
+    solve form and compensated state)."""
     tile_rows = max(TILE_ROWS, -(-max_rows // TILE_ROWS) * TILE_ROWS)
     if tile_rows > FUSED_MAX_ROWS:
         raise ValueError(f"the fused step takes at most {FUSED_MAX_ROWS} rows per world, not {max_rows}")
-    key = (tile_rows, max_registers, timed, inverse)
+    key = (tile_rows, max_registers, timed, inverse, compensated)
     if key not in _KERNELS:
         _KERNELS[key] = _make_kernel(*key)
     return _KERNELS[key]
@@ -850,7 +857,7 @@ def fused_step(model, state_in, state_out, control, stamps=None) -> None:
     sharing = sharing_used(model)
     if stamps is None:  # the untimed kernel never touches it
         stamps = model._fused_no_stamps
-    kernel = fused_kernel(model.max_rows, model.fused_registers, timed, inverse)
+    kernel = fused_kernel(model.max_rows, model.fused_registers, timed, inverse, cfg.compensated_state)
     wp.launch_tiled(kernel, dim=[model.num_worlds], block_dim=model.fused_block, device=model.device,
               inputs=[m, w, int(cfg.integrator.value == "moreau"), float(cfg.baumgarte), float(cfg.limit_margin),
                       float(cfg.limit_stabilization), (1.0 - cfg.warmstart_decay) if cfg.warmstart else 0.0, cfg.max_iterations,

@@ -86,6 +86,7 @@ def apply_impulses(
     row_lambda: wp.array2d(dtype=float),
     row_precond: wp.array2d(dtype=float),
     body_qd_free: wp.array2d(dtype=wp.spatial_vector),
+    compensated: int,
     # out
     body_qd_out: wp.array2d(dtype=wp.spatial_vector),
     # in/out
@@ -98,14 +99,18 @@ def apply_impulses(
     add_impulse_of(world, b, row_sum_listed(world, b, row_count[world], contact_row_start, body_row_begin,
                                             body_row_end, body_row, row_body_c, row_body_p, row_MJ_c, row_MJ_p,
                                             row_lambda, row_precond, 0),
-                   body_qd_free, body_qd_out, body_qd_low)
+                   body_qd_free, compensated, body_qd_out, body_qd_low)
 
 
 @wp.func
 def add_impulse_of(world: int, b: int, du: wp.spatial_vector, body_qd_free: wp.array2d(dtype=wp.spatial_vector),
-                   body_qd_out: wp.array2d(dtype=wp.spatial_vector), body_qd_low: wp.array2d(dtype=wp.spatial_vector)):
-    """u+ = u_free + du with compensation: body_qd_low holds the free twist's low part on entry and
-    the new twist's on return."""
+                   compensated: int, body_qd_out: wp.array2d(dtype=wp.spatial_vector),
+                   body_qd_low: wp.array2d(dtype=wp.spatial_vector)):
+    """u+ = u_free + du; ``compensated``: with compensation, body_qd_low holds the free twist's low
+    part on entry and the new twist's on return."""
+    if compensated == 0:
+        body_qd_out[world, b] = body_qd_free[world, b] + du
+        return
     u, low = two_sum(body_qd_free[world, b], body_qd_low[world, b] + du)
     body_qd_out[world, b] = u
     body_qd_low[world, b] = low
@@ -146,15 +151,19 @@ def midpoint_pose_of(
     body_q_offset: wp.array2d(dtype=wp.spatial_vector),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
     body_q_low: wp.array2d(dtype=wp.transform),
+    compensated: int,
     # out
     body_q_mid: wp.array2d(dtype=wp.transform),
     body_q_mid_low: wp.array2d(dtype=wp.transform),
 ):
     """Moreau-Jean's midpoint: undo the last step's output projection (body_q_offset: translation
     [m] and rotation vector [rad] it moved the body by), then half a pose step with the twist;
-    plus body_q_low, what the last step kept of the midpoint beyond that (keep_midpoint_low_of),
-    as a compensated pair (body_q_mid, body_q_mid_low)."""
+    ``compensated``: plus body_q_low, what the last step kept of the midpoint beyond that
+    (keep_midpoint_low_of), as a compensated pair (body_q_mid, body_q_mid_low)."""
     mid = midpoint_of(body_q[world, b], body_q_offset[world, b], body_qd[world, b], 0.5 * world_dt[world])
+    if compensated == 0:
+        body_q_mid[world, b] = mid
+        return
     low = body_q_low[world, b]
     t, t_low = two_sum(wp.transform_get_translation(mid), wp.transform_get_translation(low))
     r, r_low = two_sum(wp.transform_get_rotation(mid), wp.transform_get_rotation(low))
@@ -169,13 +178,20 @@ def advance_pose_of(
     body_q: wp.array2d(dtype=wp.transform),
     body_q_low_in: wp.array2d(dtype=wp.transform),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
+    compensated: int,
     # out
     body_q_out: wp.array2d(dtype=wp.transform),
     body_q_low_out: wp.array2d(dtype=wp.transform),
 ):
-    """The next configuration of the dynamics, compensated: body_q + body_q_low_in moved by dt
-    times the twist (advance_pose), as a (body_q_out, body_q_low_out) pair."""
+    """The next configuration of the dynamics, body_q moved by dt times the twist; ``compensated``:
+    body_q + body_q_low_in moved (advance_pose), as a (body_q_out, body_q_low_out) pair."""
     u = body_qd[world, b]
+    if compensated == 0:
+        X = body_q[world, b]
+        h = world_dt[world]
+        body_q_out[world, b] = wp.transform(wp.transform_get_translation(X) + h * wp.spatial_top(u),
+                                            quat_integrate(wp.transform_get_rotation(X), wp.spatial_bottom(u), h))
+        return
     X, low = advance_pose(body_q[world, b], body_q_low_in[world, b], wp.spatial_top(u), wp.spatial_bottom(u),
                           world_dt[world])
     body_q_out[world, b] = X
@@ -189,6 +205,7 @@ def advance_poses(
     body_q: wp.array2d(dtype=wp.transform),
     body_q_low_in: wp.array2d(dtype=wp.transform),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
+    compensated: int,
     # out
     body_q_out: wp.array2d(dtype=wp.transform),
     body_q_low_out: wp.array2d(dtype=wp.transform),
@@ -197,7 +214,7 @@ def advance_poses(
     world, b = wp.tid()
     if b >= body_count[world]:
         return
-    advance_pose_of(world, b, world_dt, body_q, body_q_low_in, body_qd, body_q_out, body_q_low_out)
+    advance_pose_of(world, b, world_dt, body_q, body_q_low_in, body_qd, compensated, body_q_out, body_q_low_out)
 
 
 @wp.func
@@ -243,6 +260,7 @@ def midpoint_poses(
     body_q_offset: wp.array2d(dtype=wp.spatial_vector),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
     body_q_low: wp.array2d(dtype=wp.transform),
+    compensated: int,
     # out
     body_q_mid: wp.array2d(dtype=wp.transform),
     body_q_mid_low: wp.array2d(dtype=wp.transform),
@@ -251,7 +269,8 @@ def midpoint_poses(
     world, b = wp.tid()
     if b >= body_count[world]:
         return
-    midpoint_pose_of(world, b, world_dt, body_q, body_q_offset, body_qd, body_q_low, body_q_mid, body_q_mid_low)
+    midpoint_pose_of(world, b, world_dt, body_q, body_q_offset, body_qd, body_q_low, compensated, body_q_mid,
+                     body_q_mid_low)
 
 
 @wp.kernel
@@ -335,25 +354,30 @@ def projection_gate(
 
 @wp.func
 def move_body_of(world: int, b: int, dx: wp.spatial_vector, world_dt: wp.array(dtype=float), velocity_update: int,
-                 record_offset: int, body_q: wp.array2d(dtype=wp.transform),
+                 record_offset: int, compensated: int, body_q: wp.array2d(dtype=wp.transform),
                  body_qd: wp.array2d(dtype=wp.spatial_vector), body_q_offset: wp.array2d(dtype=wp.spatial_vector),
                  body_q_low: wp.array2d(dtype=wp.transform), body_qd_low: wp.array2d(dtype=wp.spatial_vector)):
-    """Body b's share of apply_projection, given its displacement dx = (M^-1 J^T P delta)_b. The
-    projection of the dynamics' next configuration (no offset recorded) moves the compensated pose
-    and twist (body_q_low, body_qd_low); the output projection moves the float32 pose only."""
+    """Body b's share of apply_projection, given its displacement dx = (M^-1 J^T P delta)_b. With
+    ``compensated`` the projection of the dynamics' next configuration (no offset recorded) moves
+    the compensated pose and twist (body_q_low, body_qd_low); the output projection moves the
+    float32 pose only."""
     X = body_q[world, b]
-    if record_offset != 0:
+    if record_offset != 0 or compensated == 0:
         body_q[world, b] = wp.transform(wp.transform_get_translation(X) + wp.spatial_top(dx),
                                         quat_rotate_vector(wp.transform_get_rotation(X), wp.spatial_bottom(dx)))
-        body_q_offset[world, b] = body_q_offset[world, b] + dx
     else:
         X, low = advance_pose(X, body_q_low[world, b], wp.spatial_top(dx), wp.spatial_bottom(dx), 1.0)
         body_q[world, b] = X
         body_q_low[world, b] = low
+    if record_offset != 0:
+        body_q_offset[world, b] = body_q_offset[world, b] + dx
     if velocity_update != 0:
-        u, u_low = two_sum(body_qd[world, b], body_qd_low[world, b] + dx / world_dt[world])
-        body_qd[world, b] = u
-        body_qd_low[world, b] = u_low
+        if compensated == 0:
+            body_qd[world, b] = body_qd[world, b] + dx / world_dt[world]
+        else:
+            u, u_low = two_sum(body_qd[world, b], body_qd_low[world, b] + dx / world_dt[world])
+            body_qd[world, b] = u
+            body_qd_low[world, b] = u_low
 
 
 @wp.kernel
@@ -375,6 +399,7 @@ def apply_projection(
     row_precond: wp.array2d(dtype=float),
     delta: wp.array2d(dtype=float),
     record_offset: int,
+    compensated: int,
     # in/out
     body_q: wp.array2d(dtype=wp.transform),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
@@ -392,8 +417,8 @@ def apply_projection(
         return
     dx = row_sum_listed(world, b, row_count[world], contact_row_start, body_row_begin, body_row_end, body_row,
                         row_body_c, row_body_p, row_MJ_c, row_MJ_p, delta, row_precond, 1)
-    move_body_of(world, b, dx, world_dt, velocity_update * gate[world], record_offset, body_q, body_qd, body_q_offset,
-                 body_q_low, body_qd_low)
+    move_body_of(world, b, dx, world_dt, velocity_update * gate[world], record_offset, compensated, body_q, body_qd,
+                 body_q_offset, body_q_low, body_qd_low)
 
 
 @wp.func
@@ -530,8 +555,9 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
     iterations: Gauss-Newton steps (config.position_iterations when None).
     velocity_update: add each displacement / dt to body_qd (config's
     projection_velocity_update when None). body_q_offset: accumulate the displacements there
-    (Moreau-Jean's output projection: float32 poses only). Otherwise the poses and twists are
-    moved with compensation and body_q_low, body_qd_low (their low parts) are required.
+    (Moreau-Jean's output projection: float32 poses only). Otherwise, with
+    config.compensated_state, the poses and twists are moved with compensation and body_q_low,
+    body_qd_low (their low parts) are required.
     prepare=False reuses the factor of an earlier call this step.
     """
     work, device = model.work, model.device
@@ -561,7 +587,8 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
         elif direct:
             sparse.factor(model, work.row_shift, work.needs_factor, bilateral_only=model.has_unilateral_or_drive_rows)
     record = body_q_offset is not None
-    if not record and (body_q_low is None or body_qd_low is None):
+    compensated = model.config.compensated_state
+    if not record and compensated and (body_q_low is None or body_qd_low is None):
         raise ValueError("project_positions: the compensated projection needs body_q_low and body_qd_low")
     # any (W, B) arrays of the right types where unused (the output projection writes no low parts)
     offset = body_q_offset if record else work.body_qd_free
@@ -570,7 +597,8 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
     cfg = model.config
     mask = work.projection_mask  # the worlds whose joint error is above cfg.projection_skip_floor
     for _ in range(iterations):
-        residual_fn(model, body_q, work.row_residual, q_low, not record)  # float64 sums where the dynamics move on
+        # float64 sums where the dynamics move on
+        residual_fn(model, body_q, work.row_residual, q_low, compensated and not record)
         wp.launch_tiled(projection_gate, dim=[model.num_worlds], block_dim=GATE_BLOCK, device=device,
                   inputs=[work.row_count, model.row_kind, work.row_residual, work.project,
                           float(cfg.projection_velocity_floor), float(cfg.projection_skip_floor)],
@@ -589,8 +617,8 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
                   inputs=[model.body_count, work.row_count, model.contact_row_start, model.body_row_begin,
                           model.body_row_end, model.body_row, work.row_body_c, work.row_body_p, mask,
                           model.world_dt, int(velocity_update), work.projection_gate, work.row_MJ_c,
-                          work.row_MJ_p, work.row_precond, work.delta, int(record), body_q, body_qd, offset, q_low,
-                          qd_low])
+                          work.row_MJ_p, work.row_precond, work.delta, int(record), int(compensated), body_q, body_qd, offset,
+                          q_low, qd_low])
 
 
 __all__ = ["add_impulse_of", "advance_pose_of", "advance_poses", "apply_impulses", "guard_divergence",

@@ -128,6 +128,13 @@ class SolverConfig:
             torso) as six nodes of its factor instead of coupling all its rows with each other,
             where its analysis estimates a shorter schedule (engine.sparse.choose_body_nodes);
             off: the rows' own coupling pattern only.
+        compensated_state: sum the twists and the configurations the dynamics run on with
+            compensation (State.body_q_low, body_qd_low: engine.integrate) and the joint errors
+            the projection corrects in float64 (engine.joints.joint_frames). Off: plain float32
+            sums, about 10 % faster fused steps, a state that walks by the float32 grid of its
+            values (a crank turning over for 10 s at dt 1 ms: 2.8e-3 instead of 2.3e-4 m from its
+            exact motion; the IFToMM N = 20 four-bar through two flat passes in 3 s: 2.8e-4 instead
+            of 1.3e-5 m).
     """
 
     integrator: Integrator = Integrator.MOREAU_JEAN
@@ -160,6 +167,7 @@ class SolverConfig:
     max_speed: float = 1.0e3
     step_kernel: str = "auto"
     sparse_body_nodes: bool = True
+    compensated_state: bool = True
 
     def __post_init__(self):
         if not isinstance(self.integrator, Integrator):

@@ -127,11 +127,12 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
     work, device = model.work, model.device
     bodies = (model.num_worlds, model.max_bodies)
     moreau = model.config.integrator is Integrator.MOREAU_JEAN
+    compensated = int(model.config.compensated_state)
     body_q, body_q_low = state_in.body_q, state_in.body_q_low
     if moreau:
         wp.launch(midpoint_poses, dim=bodies, device=device,
                   inputs=[model.body_count, model.world_dt, state_in.body_q, state_in.body_q_offset, state_in.body_qd,
-                          state_in.body_q_low],
+                          state_in.body_q_low, compensated],
                   outputs=[work.body_q_mid, work.body_q_mid_low])
         body_q, body_q_low = work.body_q_mid, work.body_q_mid_low
     compute_joint_rows(model, body_q, state_in.body_qd, control, body_q_low)
@@ -155,30 +156,32 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
     wp.launch(apply_impulses, dim=bodies, device=device,
               inputs=[model.body_count, work.row_count, model.contact_row_start, model.body_row_begin,
                       model.body_row_end, model.body_row, work.row_body_c, work.row_body_p, work.row_MJ_c,
-                      work.row_MJ_p, state_out.row_lambda, work.row_precond, work.body_qd_free],
+                      work.row_MJ_p, state_out.row_lambda, work.row_precond, work.body_qd_free, compensated],
               outputs=[state_out.body_qd, state_out.body_qd_low])
-    # a whole step from the configuration of the dynamics (compensated): the next step's
+    # a whole step from the configuration of the dynamics (compensated where configured): the next step's
     # (Moreau-Jean: the next midpoint), projected onto the joints with SHAKE's velocity update
     wp.launch(advance_poses, dim=bodies, device=device,
-              inputs=[model.body_count, model.world_dt, body_q, body_q_low, state_out.body_qd],
+              inputs=[model.body_count, model.world_dt, body_q, body_q_low, state_out.body_qd, compensated],
               outputs=[state_out.body_q, state_out.body_q_low])
     mark("integrate")
     project_positions(model, state_out.body_q, state_out.body_qd, compute_joint_residuals,
                       body_q_low=state_out.body_q_low, body_qd_low=state_out.body_qd_low)
     if moreau:  # the end of the step: half-way to the next midpoint, projected for output only, as
-        # often as the midpoint (one output iteration saved 6 % of DR Legs hanging's step on the
-        # H100, 4.2 against 4.4 ms, but left the ten-second four-bar's loops at 9.5e-5 m)
-        wp.copy(work.body_q_next, state_out.body_q)
+        # often as the midpoint (one output iteration: DR Legs hanging's loops at 9.5e-7 instead of
+        # 8.2e-8 m; one iteration each for both projections is the benchmark's variant)
+        if compensated:
+            wp.copy(work.body_q_next, state_out.body_q)
         state_out.body_q_offset.zero_()
         wp.launch(integrate_poses, dim=bodies, device=device,
                   inputs=[model.body_count, model.world_dt, 0.5, body_q, state_out.body_qd],
                   outputs=[state_out.body_q])
         project_positions(model, state_out.body_q, state_out.body_qd, compute_joint_residuals, velocity_update=False,
                           body_q_offset=state_out.body_q_offset, prepare=False)
-        wp.launch(keep_midpoint_low, dim=bodies, device=device,
-                  inputs=[model.body_count, model.world_dt, work.body_q_next, state_out.body_q,
-                          state_out.body_q_offset, state_out.body_qd],
-                  outputs=[state_out.body_q_low])
+        if compensated:
+            wp.launch(keep_midpoint_low, dim=bodies, device=device,
+                      inputs=[model.body_count, model.world_dt, work.body_q_next, state_out.body_q,
+                              state_out.body_q_offset, state_out.body_qd],
+                      outputs=[state_out.body_q_low])
     wp.launch(guard_divergence, dim=model.num_worlds, device=device,
               inputs=[model.body_count, state_in.body_q, state_in.body_qd, state_in.body_q_offset,
                       state_in.body_q_low, state_in.body_qd_low, work.halted, float(model.config.max_speed)],

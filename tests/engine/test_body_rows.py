@@ -52,7 +52,7 @@ def test_impulse_sums_through_the_lists_match_a_dense_sum_with_contact_rows():
     wp.launch(apply_impulses, dim=(len(specs), model.max_bodies), device="cpu",
               inputs=[model.body_count, work.row_count, model.contact_row_start, model.body_row_begin,
                       model.body_row_end, model.body_row, work.row_body_c, work.row_body_p, work.row_MJ_c,
-                      work.row_MJ_p, lam, work.row_precond, qd_free],
+                      work.row_MJ_p, lam, work.row_precond, qd_free, 1],
               outputs=[out, low])
     MJ_c, MJ_p = work.row_MJ_c.numpy().astype(np.float64), work.row_MJ_p.numpy().astype(np.float64)
     body_c, body_p = work.row_body_c.numpy(), work.row_body_p.numpy()

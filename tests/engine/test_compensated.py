@@ -6,10 +6,11 @@ integrated by scipy."""
 import math
 
 import numpy as np
+import pytest
 import warp as wp
 
 from benchmarks.stress import crank_reference, n_fourbar, parallel_linkage_constants
-from engine import pack_worlds, rollout
+from engine import SolverConfig, pack_worlds, rollout
 from engine.joints import JOINT_REVOLUTE, compute_joint_residuals
 from engine.spatial import advance_pose, two_sum
 
@@ -126,7 +127,8 @@ def test_parallel_cranks_keep_their_energy_and_phase_through_flat_passes():
     """IFToMM A02 with 20 four-bars (pivots up to 20 m out), cranks up at 1 m/s, 3 s at dt 1 ms:
     the motion passes the flat configuration (mobility 1 -> 21) twice; the first crank's tip stays
     within 2e-4 m of scipy's one-degree-of-freedom motion and the energy within 5e-5. With float32
-    state and float32 joint errors it ended 1.1e-2 m off, having lost 2.6e-4 of its energy."""
+    state and joint errors taken between float32 anchors (COM plus lever arm, rounded to the grid of
+    positions up to 20 m out) it ended 1.1e-2 m off, having lost 2.6e-4 of its energy."""
     theta0, speed = -0.5 * math.pi, 1.0
     spec = n_fourbar(20, theta0, speed)
     model = pack_worlds([spec], device="cpu", dt=1e-3)
@@ -140,15 +142,21 @@ def test_parallel_cranks_keep_their_energy_and_phase_through_flat_passes():
     assert np.abs(energy - energy[0]).max() < 5e-5 * energy[0], np.abs(energy - energy[0]).max() / energy[0]
 
 
-def test_a_lone_crank_keeps_its_phase_for_ten_seconds():
+@pytest.mark.parametrize("compensated", [True, False])
+def test_a_lone_crank_keeps_its_phase_for_ten_seconds(compensated):
     """One 1 m, 1 kg crank on a pin turning over under gravity, 10 s at dt 1 ms: within 1e-3 m of
-    scipy's motion. Float32 sums of the twist and pose put it 2.8e-3 m off: each step's velocity
-    change was rounded to the float32 grid of the velocity itself."""
+    scipy's motion. With SolverConfig(compensated_state=False), float32 sums of the twist and pose,
+    it ends more than 1e-3 m off (2.8e-3 m: each step's velocity change is rounded to the float32
+    grid of the velocity itself) and the state's low parts stay zero."""
     theta0, speed = -0.5 * math.pi, 1.0
     spec = n_fourbar(0, theta0, speed)
-    model = pack_worlds([spec], device="cpu", dt=1e-3)
-    trace, _ = rollout(model, model.state(), model.control(), 10000, record_every=10)
+    model = pack_worlds([spec], device="cpu", dt=1e-3, config=SolverConfig(compensated_state=compensated))
+    trace, final = rollout(model, model.state(), model.control(), 10000, record_every=10)
     reference = crank_reference(theta0, speed, trace.time, *parallel_linkage_constants(spec))
     expected = np.stack([np.cos(reference), np.zeros_like(reference), -np.sin(reference)], axis=1)
     error = np.linalg.norm(trace.points[:, 0, 0] - expected, axis=1)
-    assert error.max() < 1e-3, error.max()
+    lows = np.abs(final.body_q_low.numpy()).max() + np.abs(final.body_qd_low.numpy()).max()
+    if compensated:
+        assert error.max() < 1e-3 and lows > 0.0, (error.max(), lows)
+    else:
+        assert error.max() > 1e-3 and lows == 0.0, (error.max(), lows)
