@@ -617,8 +617,8 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
                   inputs=[model.body_count, work.row_count, model.contact_row_start, model.body_row_begin,
                           model.body_row_end, model.body_row, work.row_body_c, work.row_body_p, mask,
                           model.world_dt, int(velocity_update), work.projection_gate, work.row_MJ_c,
-                          work.row_MJ_p, work.row_precond, work.delta, int(record), int(compensated), body_q, body_qd, offset,
-                          q_low, qd_low])
+                          work.row_MJ_p, work.row_precond, work.delta, int(record), int(compensated), body_q, body_qd,
+                          offset, q_low, qd_low])
 
 
 __all__ = ["add_impulse_of", "advance_pose_of", "advance_poses", "apply_impulses", "guard_divergence",
