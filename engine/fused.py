@@ -190,6 +190,7 @@ class StepWork:
     active: wp.array(dtype=wp.int32)
     needs_factor: wp.array(dtype=wp.int32)
     demote: wp.array(dtype=wp.int32)
+    stall_reference: wp.array(dtype=float)
     diverged: wp.array(dtype=wp.int32)
     halted: wp.array(dtype=wp.int32)
 
@@ -512,6 +513,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         rho_update_interval: int,
         adaptive_rho: int,
         acceleration: int,
+        stall_ratio: float,
         position_iterations: int,
         mask_projection: int,
         velocity_update: int,
@@ -673,7 +675,8 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                 padmm_decide(world, r_p, r_d, r_c, scale, change, max_iterations, relative_tolerance,
                              rho_update_interval, adaptive_rho, acceleration, m.padmm_tolerance, w.rho, w.active,
                              w.converged, w.iterations, w.momentum, w.momentum_beta, w.merit, w.needs_factor,
-                             w.residual_primal, w.residual_dual, w.residual_complementarity, w.demote)
+                             w.residual_primal, w.residual_dual, w.residual_complementarity, w.demote, stall_ratio,
+                             w.stall_reference)
             block_sync()
             if wp.static(timed):
                 last = tick(stamps, world, wp.static(_STAGE["padmm_decide"]), lane, last)
@@ -862,7 +865,8 @@ def fused_step(model, state_in, state_out, control, stamps=None) -> None:
               inputs=[m, w, int(cfg.integrator.value == "moreau"), float(cfg.baumgarte), float(cfg.limit_margin),
                       float(cfg.limit_stabilization), (1.0 - cfg.warmstart_decay) if cfg.warmstart else 0.0, cfg.max_iterations,
                       float(cfg.relative_tolerance), cfg.rho_update_interval, int(cfg.adaptive_rho),
-                      int(cfg.acceleration), cfg.position_iterations if model.has_bilateral_rows else 0,
+                      int(cfg.acceleration), float(cfg.stall_ratio),
+                      cfg.position_iterations if model.has_bilateral_rows else 0,
                       int(model.has_unilateral_or_drive_rows), int(cfg.projection_velocity_update),
                       float(cfg.projection_velocity_floor), float(cfg.projection_skip_floor), float(cfg.max_speed),
                       int(sharing), state_in.body_q, state_in.body_qd, state_in.body_q_offset, state_in.body_q_low,

@@ -67,6 +67,12 @@ class SolverConfig:
             with the large rho that contacts and saturated drives call for, their soft modes
             converged at rho / (lambda + rho) per iteration. Off: one rho for all rows.
         rho_update_interval: iterations between penalty updates.
+        stall_ratio: 0 (default) or a ratio in (0, 1): a world whose largest residual (primal or
+            dual) did not fall below stall_ratio times its value STALL_WINDOW iterations earlier
+            stops, counted as not converged (checked from 2 x STALL_WINDOW iterations on). The
+            captured PADMM loop runs until a batch's slowest world stops; in batches of random
+            walkers that world chases a near-singular direction at a fraction of a percent per
+            iteration (benchmarks/results/README.md, "The PADMM tail of heterogeneous batches").
         acceleration: Nesterov momentum with restart.
         warmstart: start each step from the last step's impulses.
         warmstart_decay: share of the last step's impulses left out of the warm start. The
@@ -147,6 +153,7 @@ class SolverConfig:
     cap_joint_penalty: bool = True
 
     rho_update_interval: int = 4
+    stall_ratio: float = 0.0
     acceleration: bool = True
     warmstart: bool = True
     warmstart_decay: float = 0.05
@@ -194,6 +201,7 @@ class SolverConfig:
             "eta": self.eta > 0.0,
             "rho": self.rho > 0.0,
             "rho_update_interval": self.rho_update_interval >= 1,
+            "stall_ratio": 0.0 <= self.stall_ratio < 1.0,
             "warmstart_decay": 0.0 <= self.warmstart_decay < 1.0,
             "baumgarte": 0.0 <= self.baumgarte <= 1.0,
             "position_iterations": self.position_iterations >= 0,
@@ -382,7 +390,7 @@ class Workspace:
         self.factor = zeros((w, r, r) if dense else (w, 1, 1))
         self.inner_iterations = zeros(w, wp.int32)
         for name in ("rho", "residual_primal", "residual_dual", "residual_complementarity", "momentum", "momentum_beta", "merit",
-                     "violation_linear", "violation_angular", "energy"):
+                     "stall_reference", "violation_linear", "violation_angular", "energy"):
             setattr(self, name, zeros(w))
         for name in ("iterations", "converged", "valid", "project", "projection_gate", "projection_mask", "active",
                      "needs_factor", "demote", "diverged", "halted"):

@@ -35,6 +35,7 @@ RHO_MAX = wp.constant(1.0e3)
 RHO_FACTOR = wp.constant(4.0)
 RHO_BALANCE = wp.constant(10.0)
 RESTART_RATIO = wp.constant(0.999)
+STALL_WINDOW = wp.constant(10)  # iterations between SolverConfig.stall_ratio's checks
 
 
 @wp.func
@@ -361,10 +362,14 @@ def padmm_decide(
     residual_dual: wp.array(dtype=float),
     residual_complementarity: wp.array(dtype=float),
     demote: wp.array(dtype=wp.int32),
+    stall_ratio: float,
+    stall_reference: wp.array(dtype=float),
 ):
     """End of a PADMM iteration of one world from its residuals: count it, stop (returns 1) when
-    converged or capped, else set the momentum for padmm_accelerate and update the penalty (and
-    at the same iterations take the capped penalty from drive rows that met their bounds)."""
+    converged, capped or stalled (stall_ratio > 0: the largest residual not below stall_ratio times
+    its value STALL_WINDOW iterations earlier, kept in stall_reference), else set the momentum for
+    padmm_accelerate and update the penalty (and at the same iterations take the capped penalty
+    from drive rows that met their bounds)."""
     r = rho[world]
     its = iterations[world] + 1
     iterations[world] = its
@@ -373,7 +378,12 @@ def padmm_decide(
     residual_complementarity[world] = r_c
     tol = padmm_tolerance[world] + relative_tolerance * scale
     done = r_p <= tol and r_d <= tol and r_c <= tol * scale
-    if done or its >= max_iterations:
+    stalled = False
+    if stall_ratio > 0.0 and its % STALL_WINDOW == 0:
+        worst = wp.max(r_p, r_d)
+        stalled = its >= 2 * STALL_WINDOW and worst > stall_ratio * stall_reference[world]
+        stall_reference[world] = worst
+    if done or stalled or its >= max_iterations:
         active[world] = 0
         if done:
             converged[world] = 1
@@ -447,6 +457,8 @@ def padmm_convergence(
     residual_dual: wp.array(dtype=float),
     residual_complementarity: wp.array(dtype=float),
     demote: wp.array(dtype=wp.int32),
+    stall_ratio: float,
+    stall_reference: wp.array(dtype=float),
     active_count: wp.array(dtype=wp.int32),
 ):
     """Per world (one thread block, rows spread over its threads): residuals, stop test, Nesterov
@@ -484,7 +496,7 @@ def padmm_convergence(
     if padmm_decide(world, r_p, r_d, r_c, scale, change, max_iterations, relative_tolerance, rho_update_interval,
                     adaptive_rho, acceleration, padmm_tolerance, rho, active, converged, iterations, momentum,
                     momentum_beta, merit, needs_factor, residual_primal, residual_dual, residual_complementarity,
-                    demote) != 0:
+                    demote, stall_ratio, stall_reference) != 0:
         wp.atomic_sub(active_count, 0, 1)
 
 
@@ -618,7 +630,7 @@ def padmm_iteration(model):
                       work.y, work.y_hat, work.z, work.z_hat, work.rho, work.active,
                       work.converged, work.iterations, work.momentum, work.momentum_beta, work.merit,
                       work.needs_factor, work.residual_primal, work.residual_dual, work.residual_complementarity,
-                      work.demote,
+                      work.demote, float(cfg.stall_ratio), work.stall_reference,
                       work.active_count])
     wp.launch(padmm_accelerate, dim=grid, device=device,
               inputs=[work.active, work.momentum_beta, work.y, work.y_prev, work.z, work.z_prev],

@@ -8,7 +8,7 @@ import warp as wp
 
 from engine import Body, Joint, JointDrive, MechanismSpec, SolverConfig, pack_worlds, rollout
 from engine.model import UNBOUNDED
-from engine.padmm import solve_padmm
+from engine.padmm import padmm_decide, solve_padmm
 
 
 def random_problem(rng, rows, bodies, redundant):
@@ -183,3 +183,65 @@ def test_capped_joint_penalty_solves_mixed_problems_in_fewer_iterations(device):
             assert np.all(np.abs(xw[box]) <= 0.3 + 1e-6)
         assert at_bound > 0  # the boxes bind: a mixed problem, not a linear one
     assert np.all(iterations[True] * 2 <= iterations[False]), iterations  # here 9, 24, 13 against 49, 50, 76
+
+
+@wp.kernel
+def _decide_until_stop(residuals: wp.array(dtype=float), stall_ratio: float, out: wp.array(dtype=wp.int32),
+                       rho: wp.array(dtype=float), active: wp.array(dtype=wp.int32),
+                       converged: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
+                       momentum: wp.array(dtype=float), momentum_beta: wp.array(dtype=float),
+                       merit: wp.array(dtype=float), needs_factor: wp.array(dtype=wp.int32),
+                       residual_primal: wp.array(dtype=float), residual_dual: wp.array(dtype=float),
+                       residual_complementarity: wp.array(dtype=float), demote: wp.array(dtype=wp.int32),
+                       tolerance: wp.array(dtype=float), stall_reference: wp.array(dtype=float)):
+    for k in range(residuals.shape[0]):
+        r = residuals[k]
+        if padmm_decide(0, r, r, 0.0, 1.0, 1.0, residuals.shape[0], 0.0, 4, 0, 0, tolerance, rho, active, converged,
+                        iterations, momentum, momentum_beta, merit, needs_factor, residual_primal, residual_dual,
+                        residual_complementarity, demote, stall_ratio, stall_reference) != 0:
+            out[0] = iterations[0]
+            out[1] = converged[0]
+            return
+
+
+@pytest.mark.parametrize("decay, stall_ratio, stops_at", [(0.95, 0.5, 20), (0.95, 0.6, 200), (0.9, 0.5, 200),
+                                                        (0.95, 0.0, 200)])
+def test_stall_ratio_stops_a_world_whose_residual_falls_too_slowly(decay, stall_ratio, stops_at):
+    """SolverConfig.stall_ratio: residuals falling by ``decay`` per iteration fall by decay^10 over
+    a window of 10 (0.95: 0.60; 0.9: 0.35). A world stops, unconverged, at the first check from
+    iteration 20 on where they did not fall below stall_ratio times the last check's value; else it
+    runs to the cap (200 here, tolerance 0: never converged); 0 turns the rule off."""
+    from engine.padmm import STALL_WINDOW
+
+    assert STALL_WINDOW == 10
+    residuals = wp.array((decay ** np.arange(200)).astype(np.float32), dtype=float, device="cpu")
+    out = wp.zeros(2, dtype=wp.int32, device="cpu")
+
+    def one(value, dtype=float):
+        return wp.array([value], dtype=dtype, device="cpu")
+
+    arrays = [one(1e-3), one(1, wp.int32), one(0, wp.int32), one(0, wp.int32), one(1.0), one(0.0), one(1e30),
+              one(0, wp.int32), one(0.0), one(0.0), one(0.0), one(0, wp.int32), one(0.0), one(0.0)]
+    wp.launch(_decide_until_stop, dim=1, device="cpu", inputs=[residuals, stall_ratio, out, *arrays])
+    assert out.numpy().tolist() == [stops_at, 0]
+
+
+def test_stall_ratio_cuts_the_tail_of_random_walkers():
+    """Eight random walkers (two topologies, contacts), 60 steps at dt 2 ms: with stall_ratio 0.5
+    the largest world's iterations per step fall (no step needs more than the rule allows it to
+    stall at), no world diverges; off, the same batch runs longer tails."""
+    from benchmarks.scenes import walkers
+
+    specs = walkers(8).specs
+    largest = {}
+    for ratio in (0.0, 0.5):
+        model = pack_worlds(specs, device="cpu", dt=2e-3, config=SolverConfig(stall_ratio=ratio))
+        trace, final = rollout(model, model.state(), model.control(), 60, record_every=1)
+        assert np.isfinite(final.body_q.numpy()).all() and model.work.diverged.numpy().sum() == 0
+        largest[ratio] = trace.iterations.max(axis=1)
+    assert largest[0.5].sum() < largest[0.0].sum(), (largest[0.5].sum(), largest[0.0].sum())
+
+
+def test_stall_ratio_is_validated():
+    with pytest.raises(ValueError, match="stall_ratio"):
+        SolverConfig(stall_ratio=1.0)
