@@ -6,8 +6,9 @@
 Random walkers (benchmarks.scenes.walkers: Jansen and Klann legs, random geometry, the maximal
 model on the sparse solver) against copies of the default walker (the family's largest topology:
 the same 304 factor rows and schedule as the random Jansen walkers), dt 2 ms, at each PADMM
-iteration cap (SolverConfig.max_iterations) and stall ratio (SolverConfig.stall_ratio, 0: off): after --warmup chunks of 10 steps (the walkers
-settle), the median ms per step over 4 chunks replayed as CUDA graphs (engine.rollout.Stepper),
+iteration cap (SolverConfig.max_iterations) and stall ratio (SolverConfig.stall_ratio, 0: off):
+after --warmup chunks of 10 steps (the walkers settle), the median ms per step over 4 chunks
+replayed as CUDA graphs (engine.rollout.Stepper),
 the mean PADMM iterations over worlds and the largest world's at the end of each timed chunk. The
 captured PADMM loop runs until the batch's slowest world stops, so the ratio follows the largest
 world's iterations, not the mean. Prints one JSON line per run and writes them to --out.
@@ -71,7 +72,8 @@ def main(argv=None) -> int:
     for stall in args.stall_ratios:
         for cap in args.caps:
             pair = [{"batch": name, "max_iterations": cap, "stall_ratio": stall, "num_worlds": args.worlds,
-                     **run(specs, args.worlds, cap, args.device, args.warmup, stall)} for name, specs in batches.items()]
+                     **run(specs, args.worlds, cap, args.device, args.warmup, stall)}
+                    for name, specs in batches.items()]
             pair[0]["ratio_to_default"] = pair[0]["step_ms"] / pair[1]["step_ms"]
             rows += pair
             for row in pair:
