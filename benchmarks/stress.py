@@ -384,7 +384,7 @@ def mass_ratio_chain(links: int, ratio: float) -> MechanismSpec:
 # PADMM solved to tolerance: the default tolerances are relative to the largest impulse, which the
 # 1000 kg links set, so a 0.1 kg link's rows count as converged after one iteration and its joints
 # drift (50 links, 1:10000, default tolerances: 6e-4 m on the H100)
-S5_CONFIG = SolverConfig(tolerance=1e-8, relative_tolerance=1e-8, max_iterations=200)
+S5_CONFIG = SolverConfig(tolerance=1e-8, relative_tolerance=1e-8, max_iterations=200, stall_ratio=0.0)
 
 
 def case_s5(device: str, full: bool) -> dict:

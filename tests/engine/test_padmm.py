@@ -119,7 +119,7 @@ def _mixed_problem_batch(device, cap_joint_penalty: bool, seed: int = 11):
     num_worlds = 3
     model = pack_worlds([spec] * num_worlds, device=device,
                         config=SolverConfig(tolerance=1e-6, relative_tolerance=0.0, max_iterations=2000,
-                                            cap_joint_penalty=cap_joint_penalty))
+                                            cap_joint_penalty=cap_joint_penalty, stall_ratio=0.0))
     R = model.max_rows
     delassus = np.tile(np.eye(R, dtype=np.float32), (num_worlds, 1, 1))
     v_f = np.zeros((num_worlds, R), np.float32)
