@@ -8,6 +8,7 @@ the midpoints) are sums of small increments to large values; each keeps a low pa
 body_qd_low and body_q_low) holding what float32 rounded off, so that the state walks by the
 rounding of the increments, not by that of the state (a crank turning for 20 s at dt 1 ms: 20000
 roundings of 2e-7 m/s each would shift its energy by about 1e-5 and its phase by millimetres).
+SolverConfig.compensated_state turns it off (plain float32 sums; the low parts stay zero).
 Position projection (Gauss-Newton): with the residuals phi(q+) of the bilateral rows, solve
 (P D P + sigma I) x = -P phi with the factor the PADMM solve already holds and move every body by
 M^-1 J^T (P x): one damped Newton step on the constraint manifold per iteration, no new factor
