@@ -20,7 +20,7 @@ import warp as wp
 
 from engine import linear, matrix_free, sparse
 from engine.model import ROW_ANGULAR, ROW_LINEAR
-from engine.spatial import advance_pose, pose_low, quat_integrate, quat_rotate_vector, two_sum
+from engine.spatial import advance_pose, pose_low, pose_step, two_sum
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
@@ -129,19 +129,13 @@ def integrate_pose_of(
     body_q_out: wp.array2d(dtype=wp.transform),
 ):
     """x+ = x + h v, q+ = exp(h w) q with h = fraction * dt."""
-    h = fraction * world_dt[world]
-    X = body_q[world, b]
-    u = body_qd[world, b]
-    body_q_out[world, b] = wp.transform(wp.transform_get_translation(X) + h * wp.spatial_top(u),
-                                        quat_integrate(wp.transform_get_rotation(X), wp.spatial_bottom(u), h))
+    body_q_out[world, b] = pose_step(body_q[world, b], body_qd[world, b], fraction * world_dt[world])
 
 
 @wp.func
 def midpoint_of(X: wp.transform, o: wp.spatial_vector, u: wp.spatial_vector, h: float):
     """The pose X with the output projection o undone, then moved by h u."""
-    rotation = quat_rotate_vector(wp.transform_get_rotation(X), -wp.spatial_bottom(o))
-    return wp.transform(wp.transform_get_translation(X) - wp.spatial_top(o) + h * wp.spatial_top(u),
-                        quat_integrate(rotation, wp.spatial_bottom(u), h))
+    return pose_step(pose_step(X, -o, 1.0), u, h)
 
 
 @wp.func
@@ -188,10 +182,7 @@ def advance_pose_of(
     body_q + body_q_low_in moved (advance_pose), as a (body_q_out, body_q_low_out) pair."""
     u = body_qd[world, b]
     if compensated == 0:
-        X = body_q[world, b]
-        h = world_dt[world]
-        body_q_out[world, b] = wp.transform(wp.transform_get_translation(X) + h * wp.spatial_top(u),
-                                            quat_integrate(wp.transform_get_rotation(X), wp.spatial_bottom(u), h))
+        body_q_out[world, b] = pose_step(body_q[world, b], u, world_dt[world])
         return
     X, low = advance_pose(body_q[world, b], body_q_low_in[world, b], wp.spatial_top(u), wp.spatial_bottom(u),
                           world_dt[world])
@@ -364,8 +355,7 @@ def move_body_of(world: int, b: int, dx: wp.spatial_vector, world_dt: wp.array(d
     float32 pose only."""
     X = body_q[world, b]
     if record_offset != 0 or compensated == 0:
-        body_q[world, b] = wp.transform(wp.transform_get_translation(X) + wp.spatial_top(dx),
-                                        quat_rotate_vector(wp.transform_get_rotation(X), wp.spatial_bottom(dx)))
+        body_q[world, b] = pose_step(X, dx, 1.0)
     else:
         X, low = advance_pose(X, body_q_low[world, b], wp.spatial_top(dx), wp.spatial_bottom(dx), 1.0)
         body_q[world, b] = X

@@ -30,6 +30,14 @@ def quat_integrate(q: wp.quat, omega: wp.vec3, h: float):
 
 
 @wp.func
+def pose_step(X: wp.transform, u: wp.spatial_vector, h: float):
+    """The pose X moved by h times the twist u: translation plus h v, rotation exp(h w) q (float32,
+    normalized)."""
+    return wp.transform(wp.transform_get_translation(X) + h * wp.spatial_top(u),
+                        quat_integrate(wp.transform_get_rotation(X), wp.spatial_bottom(u), h))
+
+
+@wp.func
 def two_sum(a: Any, b: Any):
     """Knuth's TwoSum, componentwise: s = fl(a + b) and its rounding error e, with a + b = s + e
     exactly (no ordering of |a| and |b| needed)."""
