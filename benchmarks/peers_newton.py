@@ -7,8 +7,10 @@ Each solver is configured as Newton's DR Legs examples configure it (Kamino: PAD
 for contacts; MuJoCo Warp: SolverMuJoCo's defaults, implicitfast, Newton's contacts). The mechanism
 is the same as ours: the same file, the same pose (pelvis origin at the same height, welded for the
 hanging scene), and the drive gains, effort limit, armature and joint damping of our spec of it
-(joint_parameters). Steps are timed in a captured CUDA graph (two steps, so that the
-state buffers alternate in place), after a first, compiling step.
+(joint_parameters). Steps replay captured CUDA graphs (one step each, one per direction between the
+two state buffers, so that a record can fall on any step), after a first, compiling step; with
+``record_bodies`` a run also records body centres of mass for the trajectory error of the
+work-precision sweep (benchmarks.run).
 
 Errors are measured here, in NumPy, from the peers' body poses and Newton's joint frames, never
 from the peers' own residuals: for every revolute joint, the distance [m] between its anchor as
@@ -162,12 +164,31 @@ def _solver(model, name: str, standing: bool):
     return solver, settings
 
 
+def _body_indices(model, names: list[str]) -> np.ndarray:
+    """Newton's indices of world 0's bodies named ``names`` (our spec's order), matched on the last
+    part of Newton's body labels (the USD prim paths)."""
+    world = model.body_world.numpy()
+    tails = {}
+    for index, label in enumerate(model.body_label):
+        if world[index] == 0:
+            tails.setdefault(str(label).rstrip("/").rsplit("/", 1)[-1], index)
+    missing = [name for name in names if name not in tails]
+    if missing:
+        raise ValueError(f"bodies {missing} of our spec are not among Newton's bodies of world 0 "
+                         f"({sorted(tails)[:6]} ...)")
+    return np.array([tails[name] for name in names])
+
+
 def newton_drlegs_run(path, *, standing: bool, solver: str, worlds: int, dt: float, steps: int, record_every: int,
-                      device: str, joints: dict) -> dict:
+                      device: str, joints: dict, record_bodies: list[str] | None = None) -> dict:
     """Step DR Legs (the USD file ``path``, standing on the ground or hanging from a welded pelvis,
     ``joints`` from joint_parameters of our spec of it) on Newton's ``solver`` ("kamino" or "mujoco")
-    for ``steps`` steps; time them in chunks of ``record_every`` (graph replays after the first step
-    and the capture) and measure the joints' errors after every chunk."""
+    for ``steps`` steps from t = 0 and measure the joints' errors every ``record_every`` steps. The
+    first step compiles; each later step replays one of two captured graphs (one per direction
+    between the two states), so records fall on any step. Time per step: the median over the
+    chunks between records, the first chunk (the compiling step) left out. ``record_bodies``
+    (names of our spec's bodies): also return their centres of mass in world 0 at every record,
+    ``positions`` (records, 1, bodies, 3) [m], as engine runs record them."""
     import newton
     import warp as wp
 
@@ -179,6 +200,8 @@ def newton_drlegs_run(path, *, standing: bool, solver: str, worlds: int, dt: flo
         model = _build(path, standing, worlds, joints, device)
         engine, settings = _solver(model, solver, standing)
         errors = JointErrors(model)
+        bodies = None if record_bodies is None else _body_indices(model, record_bodies)
+        body_com = model.body_com.numpy().astype(np.float64)
         states = [model.state(), model.state()]
         control = model.control()
         newton.eval_fk(model, model.joint_q, model.joint_qd, states[0])
@@ -195,41 +218,59 @@ def newton_drlegs_run(path, *, standing: bool, solver: str, worlds: int, dt: flo
                 pipeline.collide(a, contacts)
             engine.step(a, b, control, contacts, dt)
 
-        setup_s = time.perf_counter() - t0
-        t = time.perf_counter()
-        step(states[0], states[1])
-        wp.synchronize_device(device)
-        first_s = time.perf_counter() - t
-        states.reverse()
-        graph = None
-        if wp.get_device(device).is_cuda:
-            with wp.ScopedCapture() as capture:
-                step(states[0], states[1])
-                step(states[1], states[0])
-            graph = capture.graph
-        chunk = max(2, record_every + record_every % 2)
-        times, loop_m, loop_rad, joint_m, finite = [], 0.0, 0.0, 0.0, True
-        done = 1
-        while done < steps:
-            wp.synchronize_device(device)
-            t = time.perf_counter()
-            for _ in range(chunk // 2):
-                if graph is not None:
-                    wp.capture_launch(graph)
-                else:
-                    step(states[0], states[1])
-                    step(states[1], states[0])
-            wp.synchronize_device(device)
-            times.append((time.perf_counter() - t) / chunk)
-            done += chunk
-            body_q = states[0].body_q.numpy()
+        times, positions, loop_m, loop_rad, joint_m, finite = [], [], 0.0, 0.0, 0.0, True
+
+        def record(body_q) -> bool:
+            nonlocal loop_m, loop_rad, joint_m
             if not np.isfinite(body_q).all():
-                finite = False
-                break
+                return False
+            if bodies is not None:
+                q = body_q[bodies].astype(np.float64)
+                positions.append(q[:, :3] + _rotate(q[:, 3:] / np.linalg.norm(q[:, 3:], axis=1, keepdims=True),
+                                                    body_com[bodies]))
             linear, angular = errors(body_q)
             joint_m = max(joint_m, float(linear.max()))
             loop_m = max(loop_m, float(linear[errors.loop].max(initial=0.0)))
             loop_rad = max(loop_rad, float(angular[errors.loop].max(initial=0.0)))
+            return True
+
+        record(states[0].body_q.numpy())
+        setup_s = time.perf_counter() - t0
+        t = time.perf_counter()
+        step(states[0], states[1])  # step 1: compiles; the state is now states[1]
+        wp.synchronize_device(device)
+        first_s = time.perf_counter() - t
+        done = 1
+        if done % record_every == 0 and not record(states[1].body_q.numpy()):
+            finite = False
+        graphs = None
+        if wp.get_device(device).is_cuda:
+            graphs = []
+            for a, b in ((states[1], states[0]), (states[0], states[1])):
+                with wp.ScopedCapture() as capture:
+                    step(a, b)
+                graphs.append(capture.graph)
+        chunk_start = t
+        while finite and (done < steps or done % record_every):
+            if done % record_every == 0:
+                wp.synchronize_device(device)
+                chunk_start = time.perf_counter()
+            if graphs is not None:
+                wp.capture_launch(graphs[(done + 1) % 2])
+            elif done % 2:
+                step(states[1], states[0])
+            else:
+                step(states[0], states[1])
+            done += 1
+            if done % record_every == 0:
+                wp.synchronize_device(device)
+                if done > record_every:  # the first chunk holds the compiling step
+                    times.append((time.perf_counter() - chunk_start) / record_every)
+                if not record(states[done % 2].body_q.numpy()):
+                    finite = False
+                    break
+        if finite and not times:
+            raise ValueError(f"{steps} steps recorded every {record_every} leave no timed chunk")
         step_s = float(np.median(times)) if times else float("nan")
         row = {"engine": "kamino" if solver == "kamino" else "mujoco_warp", "num_worlds": worlds, "dt": dt,
                "steps": done, "step_ms_median": step_s * 1e3, "world_steps_per_s": worlds / step_s,
@@ -237,9 +278,11 @@ def newton_drlegs_run(path, *, standing: bool, solver: str, worlds: int, dt: flo
                "joint_error_m": joint_m, "finite": finite,
                "device_memory_mb": None if pool_before is None else mempool_megabytes(device) - pool_before,
                "first_step_s": first_s, "setup_s": setup_s,
-               "cuda_graph": graph is not None, "settings": settings, "joints": joints,
+               "cuda_graph": graphs is not None, "settings": settings, "joints": joints,
                "loop_joints_per_world": int(errors.loop.sum()) // worlds,
                "newton_version": getattr(newton, "__version__", "?")}
+        if bodies is not None:
+            row["positions"] = np.array(positions)[:, None]
         if solver == "kamino":
             status = engine.status.numpy()
             row["padmm_iterations_mean"] = float(status["iterations"].mean())

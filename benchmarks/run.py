@@ -10,7 +10,7 @@ Scenes and settings are data (benchmarks/scenes.py). Per scene:
   memory: the engine's arrays (model, workspace, states) and, on CUDA, the growth of Warp's memory
   pool over the run (graphs and scratch included; the peers' the same way); the scene's variants
   (other settings) at its largest batch;
-- work-precision (linkage scenes): each setting of the sweep (dt, step kernel, linear solver,
+- work-precision (linkage scenes, DR Legs hanging): each setting of the sweep (dt, step kernel, linear solver,
   tolerance, stabilization, integrator) simulates the scene's duration on the precision batch;
   errors: largest loop-closure violation [m] over all worlds and records, energy drift
   |E(t) - E(0)| / (E(0) - E_min) (passive scenes), and trajectory error: largest distance [m] of a
@@ -19,7 +19,8 @@ Scenes and settings are data (benchmarks/scenes.py). Per scene:
   tolerance 1e-9 and 4 projections; run time as wall seconds per simulated second of the batch;
 - peers (--peers): MuJoCo Warp (benchmarks/peers.py, from our MJCF export) with the same errors
   measured the same way; on scenes read from a USD file (DR Legs) Newton's SolverKamino and
-  SolverMuJoCo on Newton's own import of the same file (benchmarks/peers_newton.py).
+  SolverMuJoCo on Newton's own import of the same file (benchmarks/peers_newton.py), in the
+  work-precision sweep at the scene's peer step sizes, bodies matched to ours by name.
 Writes <out>/<scene>.json (device, versions, command, every configuration), <scene>.csv and
 <scene>.png (throughput and work-precision, ours and the peers' on the same axes); prints one JSON
 line per configuration. --quick: small batches and short runs (CPU, CI).
@@ -207,7 +208,8 @@ def run_scene(name: str, declared: Declared, args) -> dict:
         peer_reason = available()
     if declared.duration > 0 and "precision" in args.parts:
         duration = 0.2 if quick else declared.duration
-        record_dt = 0.01 if quick else declared.record_dt
+        # quick: records every 10 ms, or the scene's own interval where its sweep steps are longer
+        record_dt = max(0.01, dt * max(x["dt_scale"] for x in declared.sweep[:5])) if quick else declared.record_dt
         worlds = 8 if quick else declared.precision_worlds
         sample = np.arange(min(worlds, 2 * len(specs)))
         reference, result["reference"] = reference_run(specs, scene, duration, record_dt, dt, declared, args)
@@ -225,7 +227,9 @@ def run_scene(name: str, declared: Declared, args) -> dict:
                        trajectory_error_m=trajectory_error(row["positions"], reference, sample, specs))
             result["precision"].append(clean(row))
             print(json.dumps({"scene": name, **clean(row)}), flush=True)
-        if args.peers and declared.peers and peer_reason is None:
+        if args.peers and declared.peers and scene.usd is not None:
+            result["peers"] += newton_precision(scene, worlds, dt, duration, record_dt, reference, declared, args)
+        elif args.peers and declared.peers and peer_reason is None:
             result["peers"] += peer_precision(specs, scene, worlds, dt, duration, record_dt, reference, args)
     if args.peers and declared.peers and "throughput" in args.parts:
         if scene.usd is not None:
@@ -258,6 +262,43 @@ def newton_throughput(scene, worlds_list, dt, steps, args) -> list:
             row.update(kind="throughput", label=label)
             rows.append(row)
             print(json.dumps(row, default=str), flush=True)
+    return rows
+
+
+def newton_precision(scene, worlds, dt, duration, record_dt, reference, declared, args) -> list:
+    """Work-precision points of the Newton peers on a scene read from a USD file: each peer at the
+    step sizes of declared.peer_dt_scales, the same duration, records and batch as our sweep, the
+    trajectory error against the same reference (world 0's bodies matched to ours by name)."""
+    from benchmarks.peers_newton import available, joint_parameters, newton_drlegs_run
+
+    reason = available()
+    if reason is not None:
+        return [{"engine": engine, "kind": "precision", "error": reason} for engine in ("kamino", "mujoco_warp")]
+    spec = scene.specs[0]
+    names = [b.name for b in spec.bodies]
+    joints = joint_parameters(spec)
+    rows = []
+    for solver, scales in declared.peer_dt_scales.items():
+        label = "MuJoCo Warp" if solver == "mujoco" else "Kamino"
+        for scale in scales:
+            step_dt = dt * scale
+            try:
+                row = newton_drlegs_run(scene.usd, standing=scene.standing, solver=solver, worlds=worlds, dt=step_dt,
+                                        steps=round(duration / step_dt), record_every=round(record_dt / step_dt),
+                                        device=args.device, joints=joints, record_bodies=names)
+            except Exception as exc:  # noqa: BLE001  (a peer failing is a result, not a crash of the benchmark)
+                rows.append({"engine": "kamino" if solver == "kamino" else "mujoco_warp", "kind": "precision",
+                             "label": f"{label}, dt x{scale:g}", "dt": step_dt, "error": repr(exc)})
+                print(json.dumps(rows[-1]), flush=True)
+                continue
+            traj = None
+            if reference is not None and row.get("finite", True):
+                records = min(len(row["positions"]), len(reference))
+                traj = float(np.linalg.norm(row["positions"][:records, 0] - reference[:records, 0, :len(names)],
+                                            axis=-1).max())
+            row.update(kind="precision", label=f"{label}, dt x{scale:g}", trajectory_error_m=traj)
+            rows.append(clean(row))
+            print(json.dumps(clean(row), default=str), flush=True)
     return rows
 
 
@@ -396,17 +437,21 @@ def plot(result: dict, path: pathlib.Path) -> None:
     if result["precision"]:
         for ax, key, unit in ((axes[0, 1], "trajectory_error_m", "trajectory error [m]"),
                               (axes[0, 2], "loop_error_m", "loop-closure error [m]")):
-            for rows, marker, color in ((result["precision"], "o", "C0"),
-                                        ([r for r in result["peers"] if r.get("kind") == "precision"], "s", "C1")):
-                for r in rows:
-                    if "error" in r or r.get(key) is None:
-                        continue
-                    ax.loglog(r["wall_s_per_simulated_s"], max(r[key], 1e-9), marker, color=color)
+            peer_precision_rows = [r for r in result["peers"] if r.get("kind") == "precision"]
+            groups = [("morphopt", result["precision"], "o", "C0")] + [
+                (name, [r for r in peer_precision_rows if r.get("engine") == engine], "s", color)
+                for engine, name, color in (("mujoco_warp", "MuJoCo Warp", "C1"), ("kamino", "Kamino", "C2"))]
+            for name, rows, marker, color in groups:
+                rows = [r for r in rows if "error" not in r and r.get(key) is not None]
+                for k, r in enumerate(rows):
+                    ax.loglog(r["wall_s_per_simulated_s"], max(r[key], 1e-9), marker, color=color,
+                              label=name if k == 0 else None)
                     ax.annotate(r["label"], (r["wall_s_per_simulated_s"], max(r[key], 1e-9)), fontsize=6)
             ax.set_xlabel(f"wall s per simulated s ({result['precision'][0].get('num_worlds', '')} worlds)")
             ax.set_ylabel(unit)
-            ax.set_title(f"{result['scene']}: {unit.split(' [')[0]} (blue: morphopt, orange: MuJoCo Warp)", fontsize=8)
+            ax.set_title(f"{result['scene']}: {unit.split(' [')[0]} against run time", fontsize=8)
             ax.grid(True, which="both", alpha=0.3)
+            ax.legend(fontsize=7)
     fig.suptitle(f"{result['device_name']}", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)

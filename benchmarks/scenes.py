@@ -127,6 +127,8 @@ class Declared:
     # throughput of other settings at the largest batch: label, SolverConfig overrides (scenes
     # without a work-precision sweep: what a setting buys in time and costs in loop error)
     variants: list[dict] = field(default_factory=list)
+    # Newton peers' work-precision points on USD scenes: solver ("mujoco", "kamino") -> multipliers of dt
+    peer_dt_scales: dict = field(default_factory=dict)
 
 
 # work-precision settings: label, dt multiplier of the scene's dt, SolverConfig overrides
@@ -148,6 +150,20 @@ TIGHT = dict(tolerance=1e-9, relative_tolerance=0.0, max_iterations=300, positio
 # one Gauss-Newton iteration for the dynamics' configuration and one for the output instead of two each
 DRLEGS_VARIANTS = [dict(label="1 projection iteration", config=dict(position_iterations=1))]
 
+# DR Legs hanging: step sizes from 2.5 to 40 ms, the projection iterations, the float32 state (its dual
+# problem is linear: one PADMM iteration at any tolerance). Records every 40 ms fall on a step of each.
+DRLEGS_SWEEP = [
+    dict(label="default", dt_scale=1.0),
+    dict(label="dt x0.25", dt_scale=0.25),
+    dict(label="dt x0.5", dt_scale=0.5),
+    dict(label="dt x2", dt_scale=2.0),
+    dict(label="dt x4", dt_scale=4.0),
+    dict(label="1 projection iteration", dt_scale=1.0, config=dict(position_iterations=1)),
+    dict(label="1 projection iteration, dt x2", dt_scale=2.0, config=dict(position_iterations=1)),
+    dict(label="float32 state", dt_scale=1.0, config=dict(compensated_state=False)),
+]
+DRLEGS_PEER_DT_SCALES = {"mujoco": [0.25, 0.5, 1.0, 2.0, 4.0], "kamino": [1.0, 2.0]}
+
 SCENES_DECLARED = {
     "fourbar": Declared(lambda assets: _engine_scenes(["fourbar"]), dt=1e-3, duration=2.0,
                         throughput_worlds=[1, 64, 1024, 4096, 16384], precision_worlds=4096, sweep=LINKAGE_SWEEP,
@@ -159,9 +175,12 @@ SCENES_DECLARED = {
                        precision_worlds=0, throughput_steps=30, quick_worlds=[2]),
     "walker_default": Declared(lambda assets: walker_default(), dt=2e-3, duration=0.0, throughput_worlds=[4096],
                                precision_worlds=0, throughput_steps=30, quick_worlds=[2]),
-    "drlegs_hanging": Declared(lambda assets: dr_legs(False, assets), dt=1e-2, duration=0.0,
-                               throughput_worlds=[1, 1024, 4096], precision_worlds=0, throughput_steps=50, peers=True,
-                               quick_worlds=[1], variants=DRLEGS_VARIANTS),
+    "drlegs_hanging": Declared(lambda assets: dr_legs(False, assets), dt=1e-2, duration=2.0,
+                               throughput_worlds=[1, 1024, 4096], precision_worlds=4096, throughput_steps=50, peers=True,
+                               quick_worlds=[1], variants=DRLEGS_VARIANTS, sweep=DRLEGS_SWEEP, record_dt=0.04,
+                               # without MuJoCo C: our engine at dt / 10 with default settings (a tolerance of
+                               # 1e-9 leaves float32 PADMM at its cap here, 5e-2 m off MuJoCo C over 1 s)
+                               reference=dict(config={}), peer_dt_scales=DRLEGS_PEER_DT_SCALES),
     "drlegs_standing": Declared(lambda assets: dr_legs(True, assets), dt=1e-2, duration=0.0,
                                 throughput_worlds=[1, 1024, 4096], precision_worlds=0, throughput_steps=50,
                                 peers=True, quick_worlds=[1], variants=DRLEGS_VARIANTS),

@@ -283,3 +283,77 @@ def test_heterogeneity_times_both_batches_at_each_cap(tmp_path, capsys):
     assert "ratio_to_default" in random_walkers and "ratio_to_default" not in default
     assert random_walkers["iterations_mean"] > 0 and default["iterations_mean"] > 0
     assert len(capsys.readouterr().out.strip().splitlines()) == 2
+
+
+def test_newton_peer_matches_our_bodies_by_name_in_world_zero():
+    """The Newton peer's trajectory error compares its bodies with ours by name: the last part of
+    Newton's body labels (USD prim paths), world 0 only; a body it lacks is named in the error."""
+    import types
+
+    import warp as wp
+
+    from benchmarks.peers_newton import _body_indices
+
+    labels = ["/robot/RigidBodies/pelvis", "/robot/RigidBodies/foot_l", "/robot/RigidBodies/foot_r",
+              "/robot/RigidBodies/pelvis", "/robot/RigidBodies/foot_l", "/robot/RigidBodies/foot_r"]
+    model = types.SimpleNamespace(body_label=labels,
+                                  body_world=wp.array([0, 0, 0, 1, 1, 1], dtype=wp.int32, device="cpu"))
+    assert _body_indices(model, ["foot_r", "pelvis", "foot_l"]).tolist() == [2, 0, 1]
+    with pytest.raises(ValueError, match="knee"):
+        _body_indices(model, ["pelvis", "knee"])
+
+
+def test_newton_peers_work_precision_rows_measure_trajectory_error_against_the_reference(monkeypatch):
+    """benchmarks.run's Newton peer sweep on a USD scene: each peer at each declared step size, the
+    same records as ours, its trajectory error the largest body distance from the reference at the
+    common records; a peer that fails or diverges is a row with its reason, not a crash."""
+    import dataclasses
+    import types
+
+    from benchmarks import peers_newton, run, scenes
+
+    reference = np.zeros((6, 1, 3, 3))
+    reference[:, 0, :, 0] = np.arange(6)[:, None]  # bodies move along x
+    calls = []
+
+    def fake_run(path, *, standing, solver, worlds, dt, steps, record_every, device, joints, record_bodies):
+        calls.append((solver, dt, steps, record_every, tuple(record_bodies)))
+        if solver == "kamino" and dt > 0.015:
+            raise RuntimeError("peer failed")
+        positions = reference.copy()
+        positions[3, 0, 1, 2] += 0.25 * dt  # one body off by dt / 4 at one record
+        return {"engine": "kamino" if solver == "kamino" else "mujoco_warp", "num_worlds": worlds, "dt": dt,
+                "wall_s_per_simulated_s": 1.0, "loop_error_m": 1e-4, "finite": True, "positions": positions}
+
+    monkeypatch.setattr(peers_newton, "available", lambda: None)
+    monkeypatch.setattr(peers_newton, "newton_drlegs_run", fake_run)
+    monkeypatch.setattr(peers_newton, "joint_parameters", lambda spec: {})
+    spec = types.SimpleNamespace(bodies=[types.SimpleNamespace(name=n) for n in ("a", "b", "c")],
+                                 joints=[])
+    scene = scenes.BenchScene([spec], None, "test", usd="robot.usda")
+    declared = dataclasses.replace(scenes.SCENES_DECLARED["drlegs_hanging"],
+                                   peer_dt_scales={"mujoco": [0.5, 1.0], "kamino": [1.0, 2.0]})
+    args = types.SimpleNamespace(device="cpu")
+    rows = run.newton_precision(scene, 4, 0.01, 0.2, 0.04, reference, declared, args)
+    assert [r["label"] for r in rows] == ["MuJoCo Warp, dt x0.5", "MuJoCo Warp, dt x1", "Kamino, dt x1",
+                                          "Kamino, dt x2"]
+    assert [c[1:4] for c in calls] == [(0.005, 40, 8), (0.01, 20, 4), (0.01, 20, 4), (0.02, 10, 2)]
+    assert all(c[4] == ("a", "b", "c") for c in calls)
+    for row in rows[:3]:
+        assert row["kind"] == "precision" and "positions" not in row
+        assert row["trajectory_error_m"] == pytest.approx(0.25 * row["dt"])
+    assert "peer failed" in rows[3]["error"] and rows[3]["engine"] == "kamino"
+
+
+def test_dr_legs_sweep_steps_land_on_every_record():
+    """Every step size of the DR Legs work-precision sweep, ours and the peers', divides the record
+    interval and the duration, so that every engine is compared with the reference at the same times."""
+    from benchmarks.scenes import SCENES_DECLARED
+
+    declared = SCENES_DECLARED["drlegs_hanging"]
+    scales = [s["dt_scale"] for s in declared.sweep] + [x for v in declared.peer_dt_scales.values() for x in v]
+    assert declared.duration > 0 and declared.precision_worlds == 4096 and "mujoco" in declared.peer_dt_scales
+    for scale in scales:
+        dt = declared.dt * scale
+        for span in (declared.record_dt, declared.duration):
+            assert abs(span / dt - round(span / dt)) < 1e-9 and round(span / dt) >= 1, (scale, span)
