@@ -391,18 +391,7 @@ def write(result: dict, out: pathlib.Path) -> None:
     plot(result, out / f"{name}.png")
 
 
-def plot(result: dict, path: pathlib.Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    peer_rows = [r for r in result["peers"] if r.get("kind") == "throughput" and "error" not in r]
-    panels = 3 if result["precision"] else (2 if peer_rows else 1)
-    fig, axes = plt.subplots(1, panels, figsize=(5.2 * panels, 4.0), squeeze=False)
-    ax = axes[0, 0]
-    ours = [r for r in result["throughput"] if "error" not in r and r.get("label", "default") == "default"]
-    variants = [r for r in result["throughput"] if "error" not in r and r.get("label", "default") != "default"]
+def _throughput_panel(ax, result: dict, ours: list, variants: list) -> None:
     ax.loglog([r["num_worlds"] for r in ours], [r["world_steps_per_s"] for r in ours], "o-", label="morphopt")
     for k, r in enumerate(variants):
         ax.loglog([r["num_worlds"]], [r["world_steps_per_s"]], "^", color=f"C{k + 3}", label=f"morphopt, {r['label']}")
@@ -415,6 +404,25 @@ def plot(result: dict, path: pathlib.Path) -> None:
     ax.set_title(f"{result['scene']}: throughput")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
+
+
+def plot(result: dict, path: pathlib.Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    peer_rows = [r for r in result["peers"] if r.get("kind") == "throughput" and "error" not in r]
+    ours = [r for r in result["throughput"] if "error" not in r and r.get("label", "default") == "default"]
+    variants = [r for r in result["throughput"] if "error" not in r and r.get("label", "default") != "default"]
+    # the throughput panel only where there are throughput rows (a --parts precision run has none)
+    throughput_panel = bool(ours or peer_rows or not result["precision"])
+    panels = (3 if result["precision"] else (2 if peer_rows else 1)) - (not throughput_panel)
+    fig, axes = plt.subplots(1, panels, figsize=(5.2 * panels, 4.0), squeeze=False)
+    if not throughput_panel:
+        axes = np.concatenate([np.array([[None]]), axes], axis=1)
+    if throughput_panel:
+        _throughput_panel(axes[0, 0], result, ours, variants)
     if not result["precision"] and peer_rows:  # time per step against loop error, each engine's batches
         ax = axes[0, 1]
         # the colours and markers of the throughput panel: peers C1, C2 ... squares, variants triangles
@@ -439,7 +447,7 @@ def plot(result: dict, path: pathlib.Path) -> None:
                               (axes[0, 2], "loop_error_m", "loop-closure error [m]")):
             peer_precision_rows = [r for r in result["peers"] if r.get("kind") == "precision"]
             groups = [("morphopt", result["precision"], "o", "C0")] + [
-                (name, [r for r in peer_precision_rows if r.get("engine") == engine], "s", color)
+                (name, [r for r in peer_precision_rows if str(r.get("engine", "")).startswith(engine)], "s", color)
                 for engine, name, color in (("mujoco_warp", "MuJoCo Warp", "C1"), ("kamino", "Kamino", "C2"))]
             for name, rows, marker, color in groups:
                 rows = [r for r in rows if "error" not in r and r.get(key) is not None]
