@@ -179,9 +179,7 @@ SCENES_DECLARED = {
                                throughput_worlds=[1, 1024, 4096], precision_worlds=4096, throughput_steps=50,
                                peers=True, quick_worlds=[1], variants=DRLEGS_VARIANTS, sweep=DRLEGS_SWEEP,
                                record_dt=0.04,
-                               # without MuJoCo C: our engine at dt / 10 with default settings (a tolerance of
-                               # 1e-9 leaves float32 PADMM at its cap here, 5e-2 m off MuJoCo C over 1 s)
-                               reference=dict(config={}), peer_dt_scales=DRLEGS_PEER_DT_SCALES),
+                               reference=dict(config=TIGHT), peer_dt_scales=DRLEGS_PEER_DT_SCALES),
     "drlegs_standing": Declared(lambda assets: dr_legs(True, assets), dt=1e-2, duration=0.0,
                                 throughput_worlds=[1, 1024, 4096], precision_worlds=0, throughput_steps=50,
                                 peers=True, quick_worlds=[1], variants=DRLEGS_VARIANTS),

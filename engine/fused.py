@@ -131,7 +131,7 @@ class StepModel:
     contact_row_start: wp.array(dtype=wp.int32)
     padmm_eta: wp.array(dtype=float)
     padmm_rho_init: wp.array(dtype=float)
-    padmm_rho_cap: wp.array(dtype=float)
+    padmm_rho_free: wp.array(dtype=float)
     padmm_tolerance: wp.array(dtype=float)
     bilateral_row_count: wp.array(dtype=wp.int32)
 
@@ -608,7 +608,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
             active = 1
         valid = active
         rho = w.rho[world]
-        cap = m.padmm_rho_cap[world]
+        cap = m.padmm_rho_free[world]
         if rho <= 0.0:
             rho = m.padmm_rho_init[world]
         sigma = eta + rho
@@ -638,7 +638,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
             last = tick(stamps, world, wp.static(_STAGE["factor"]), lane, last)
         while active != 0:
             for i in range(lane, n, lanes):
-                padmm_rhs_of(world, i, m.padmm_eta, m.padmm_rho_cap, m.row_kind, w.row_free, w.rho, w.active,
+                padmm_rhs_of(world, i, m.padmm_eta, m.padmm_rho_free, m.row_kind, w.row_free, w.rho, w.active,
                              w.row_friction, w.v_f, w.x, w.y_hat, w.z_hat, w.x_prev, w.rhs)
             block_sync()
             if wp.static(timed):
@@ -650,29 +650,32 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
             r_p = float(0.0)
             r_d = float(0.0)
             r_c = float(0.0)
+            r_b = float(0.0)
             change = float(0.0)
             scale = float(0.0)
             for i in range(lane, n, lanes):
-                padmm_project_of(world, i, m.padmm_rho_cap, m.row_kind, w.row_free, w.row_count, w.row_friction, w.rho,
+                padmm_project_of(world, i, m.padmm_rho_free, m.row_kind, w.row_free, w.row_count, w.row_friction, w.rho,
                                  w.active, w.lo, w.hi, w.x, w.z_hat, w.y, w.z, w.y_prev, w.z_prev, w.row_free,
                                  w.demote)
-                s_i, p_i, d_i, c_i, m_i = row_residuals(world, i, eta, r, cap, m.row_kind, w.row_free, w.x, w.x_prev,
-                                                        w.y, w.y_hat, w.z, w.z_hat)
+                s_i, p_i, d_i, c_i, m_i, b_i = row_residuals(world, i, eta, r, cap, m.row_kind, w.row_free, w.x,
+                                                             w.x_prev, w.y, w.y_hat, w.z, w.z_hat)
                 scale = wp.max(scale, s_i)
                 r_p = wp.max(r_p, p_i)
                 r_d = wp.max(r_d, d_i)
                 r_c = wp.max(r_c, c_i)
+                r_b = wp.max(r_b, b_i)
                 change += m_i
             if lanes > 1:
                 scale = block_max(scale)
                 r_p = block_max(r_p)
                 r_d = block_max(r_d)
                 r_c = block_max(r_c)
+                r_b = block_max(r_b)
                 change = block_sum(change)
             if wp.static(timed):
                 last = tick(stamps, world, wp.static(_STAGE["padmm_project"]), lane, last)
             if lane == 0:
-                padmm_decide(world, r_p, r_d, r_c, scale, change, max_iterations, relative_tolerance,
+                padmm_decide(world, r_p, r_d, r_c, r_b, scale, change, max_iterations, relative_tolerance,
                              rho_update_interval, adaptive_rho, acceleration, m.padmm_tolerance, w.rho, w.active,
                              w.converged, w.iterations, w.momentum, w.momentum_beta, w.merit, w.needs_factor,
                              w.residual_primal, w.residual_dual, w.residual_complementarity, w.demote, stall_ratio,

@@ -60,12 +60,14 @@ class SolverConfig:
         eta: proximal weight (> 0; regularizes redundant constraints).
         rho: initial ADMM penalty.
         adaptive_rho: rescale rho (and refactor) when primal and dual residuals are unbalanced.
-        cap_joint_penalty: keep the ADMM penalty of the free rows at or below rho: the bilateral
+        cap_joint_penalty: keep the ADMM penalty of the free rows at the initial rho: the bilateral
             joint rows, and the drive rows whose warm start lies within half of their effort
             limits (a drive that meets its limit during the step takes the world's penalty again,
             with a new factor). Their projection is the identity, so the penalty only slowed them:
             with the large rho that contacts and saturated drives call for, their soft modes
-            converged at rho / (lambda + rho) per iteration. Off: one rho for all rows.
+            converged at rho / (lambda + rho) per iteration; and a penalty driven down to RHO_MIN
+            (their primal residual is zero) leaves the factor of redundant joint rows too little
+            shift for float32. Off: one rho for all rows.
         rho_update_interval: iterations between penalty updates.
         stall_ratio: 0 (default) or a ratio in (0, 1): a world whose largest residual (primal or
             dual) did not fall below stall_ratio times its value STALL_WINDOW iterations earlier
@@ -236,8 +238,8 @@ class Model:
         row_kind, row_body_p, row_body_c (W, R) int32
         world_gravity (W,) vec3 [m/s^2]; world_dt (W,) [s]
         point_body (W, P) int32; point_local (W, P) vec3 in the COM frame [m]
-        padmm_eta, padmm_rho_init, padmm_tolerance (W,) float32; padmm_rho_cap (W,): the largest
-        ADMM penalty of a bilateral joint row (engine.padmm.row_penalty)
+        padmm_eta, padmm_rho_init, padmm_tolerance (W,) float32; padmm_rho_free (W,): the ADMM
+        penalty of the free rows, 0 where they take the world's (engine.padmm.row_penalty)
         joint_limit_lower, joint_limit_upper (W, J) [rad]/[m]; joint_limit_lower_row,
         joint_limit_upper_row (W, J) int32, -1 when none
         shape_count (W,); shape_type, shape_body (W, S) int32; shape_X (W, S) transform in the

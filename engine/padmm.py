@@ -1,8 +1,8 @@
 """Proximal ADMM on every world's dual problem at once (ENGINE.md), one kernel per line.
 
 In preconditioned variables (engine.dynamics), with proximal weight eta, penalty rho_i per row
-(row_penalty: the world's rho, capped at the initial rho on the free rows of this step, those
-whose bounds are out of play) and the factor L L^T = P D P + diag(eta + rho_i), each iteration of
+(row_penalty: the world's rho, except on the free rows of this step, those whose bounds are out
+of play, which keep the initial rho) and the factor L L^T = P D P + diag(eta + rho_i), each iteration of
 an active world does (rho standing for each row's rho_i)
     padmm_rhs:        rhs = -v_f - s + eta x + rho y_hat + z_hat, with the De Saxce correction
                       s = mu |z_hat_t| on contact normal rows
@@ -13,7 +13,8 @@ an active world does (rho standing for each row's rho_i)
                       complementarity r_c = max |y . z| over limit rows and contact triplets;
                       stop when r_p, r_d <= tolerance + relative_tolerance * |y|_inf and
                       r_c <= that times |y|_inf, or at the iteration cap; Nesterov momentum with restart;
-                      penalty update (which asks for a new factor)
+                      penalty update (which asks for a new factor), balancing r_p against the dual
+                      residual of the rows whose penalty is the world's rho (not the free rows)
     padmm_accelerate: y_hat = y + beta (y - y_prev), z_hat = z + beta (z - z_prev)
     linear.factor:    only for worlds whose penalty changed, or in which a free drive row met its
                       bound (it takes the world's rho from then on)
@@ -39,16 +40,20 @@ STALL_WINDOW = wp.constant(10)  # iterations between SolverConfig.stall_ratio's 
 
 
 @wp.func
-def row_penalty(free: int, rho: float, rho_free_cap: float):
-    """The ADMM penalty of one row: rho, except on free rows (padmm_warmstart's row_free: bilateral
-    joint rows, and drive rows whose warm start lies well inside their effort limits), whose
-    projection is the identity (y = x, z = 0): they need only the proximal pull, so their penalty
-    is capped at rho_free_cap (the initial penalty). The large rho that contacts and saturated
-    drives ask for would otherwise turn them into a slow proximal-point iteration, whose soft
-    modes (eigenvalue lambda of the Delassus matrix) shrink only by rho / (lambda + rho) per
-    iteration."""
-    if free != 0:
-        return wp.min(rho, rho_free_cap)
+def row_penalty(free: int, rho: float, rho_free: float):
+    """The ADMM penalty of one row: the world's rho, except on free rows (padmm_warmstart's row_free:
+    bilateral joint rows, and drive rows whose warm start lies well inside their effort limits),
+    whose projection is the identity (y = x, z = 0): they need only the proximal pull, so they keep
+    rho_free, the initial penalty (0 with SolverConfig.cap_joint_penalty off: the world's rho).
+    Above it, the large rho that contacts and saturated drives ask for would turn them into a slow
+    proximal-point iteration, whose soft modes (eigenvalue lambda of the Delassus matrix) shrink
+    only by rho / (lambda + rho) per iteration. Below it, the factor of a mechanism with redundant
+    joint rows (A singular, shifted by eta + rho only) loses float32 digits in proportion to
+    1 / (eta + rho): the penalty update lowers rho whenever the primal residual is zero, which it
+    is on free rows, and at rho = RHO_MIN the rounding of DR Legs' over-constrained loops moved its
+    trajectory 1e-2 m within 40 ms (tolerance 1e-9, engine.padmm tests)."""
+    if free != 0 and rho_free > 0.0:
+        return rho_free
     return rho
 
 
@@ -164,7 +169,7 @@ def padmm_warmstart(
 def padmm_rhs_of(
     world: int, i: int,
     padmm_eta: wp.array(dtype=float),
-    padmm_rho_cap: wp.array(dtype=float),
+    padmm_rho_free: wp.array(dtype=float),
     row_kind: wp.array2d(dtype=wp.int32),
     row_free: wp.array2d(dtype=wp.int32),
     rho: wp.array(dtype=float),
@@ -184,14 +189,14 @@ def padmm_rhs_of(
     de_saxce = float(0.0)
     if row_kind[world, i] == ROW_CONTACT_NORMAL and i + 2 < row_friction.shape[1]:
         de_saxce = row_friction[world, i] * wp.length(wp.vec2(z_hat[world, i + 1], z_hat[world, i + 2]))
-    r = row_penalty(row_free[world, i], rho[world], padmm_rho_cap[world])
+    r = row_penalty(row_free[world, i], rho[world], padmm_rho_free[world])
     rhs_out[world, i] = -v_f[world, i] - de_saxce + padmm_eta[world] * xi + r * y_hat[world, i] + z_hat[world, i]
 
 
 @wp.kernel
 def padmm_rhs(
     padmm_eta: wp.array(dtype=float),
-    padmm_rho_cap: wp.array(dtype=float),
+    padmm_rho_free: wp.array(dtype=float),
     row_kind: wp.array2d(dtype=wp.int32),
     row_free: wp.array2d(dtype=wp.int32),
     rho: wp.array(dtype=float),
@@ -209,7 +214,7 @@ def padmm_rhs(
     world, i = wp.tid()
     if active[world] == 0:
         return
-    padmm_rhs_of(world, i, padmm_eta, padmm_rho_cap, row_kind, row_free, rho, active, row_friction, v_f, x, y_hat,
+    padmm_rhs_of(world, i, padmm_eta, padmm_rho_free, row_kind, row_free, rho, active, row_friction, v_f, x, y_hat,
                  z_hat, x_prev_out, rhs_out)
 
 
@@ -229,7 +234,7 @@ def project_cone(normal: float, t1: float, t2: float, mu: float):
 @wp.func
 def padmm_project_of(
     world: int, i: int,
-    padmm_rho_cap: wp.array(dtype=float),
+    padmm_rho_free: wp.array(dtype=float),
     row_kind: wp.array2d(dtype=wp.int32),
     row_free: wp.array2d(dtype=wp.int32),
     row_count: wp.array(dtype=wp.int32),
@@ -250,7 +255,7 @@ def padmm_project_of(
 ):
     """y = projection of x - z_hat / rho_i onto the row's set; z = z_hat - rho_i (x - y). The thread
     of a contact normal row projects its whole triplet onto the friction cone. A free drive row
-    whose bound comes into play is marked (row_free 2, demote) to lose its capped penalty at the
+    whose bound comes into play is marked (row_free 2, demote) to lose its own penalty at the
     next penalty update, which refactors (padmm_decide, row_shifts)."""
     kind = row_kind[world, i]
     if kind == ROW_CONTACT_TANGENT and i < row_count[world]:
@@ -268,11 +273,11 @@ def padmm_project_of(
             z[world, i + k] = z_hat[world, i + k] - r * (x[world, i + k] - proj[k])
         return
     free = row_free[world, i]
-    r = row_penalty(free, r, padmm_rho_cap[world])
+    r = row_penalty(free, r, padmm_rho_free[world])
     xi = x[world, i]
     zh = z_hat[world, i]
     yi = wp.clamp(xi - zh / r, lo[world, i], hi[world, i])
-    if free == 1 and r < rho[world] and yi != xi - zh / r:
+    if free == 1 and r != rho[world] and yi != xi - zh / r:
         row_free_out[world, i] = 2
         demote_out[world] = 1
     y_prev_out[world, i] = y[world, i]
@@ -283,7 +288,7 @@ def padmm_project_of(
 
 @wp.kernel
 def padmm_project(
-    padmm_rho_cap: wp.array(dtype=float),
+    padmm_rho_free: wp.array(dtype=float),
     row_kind: wp.array2d(dtype=wp.int32),
     row_free: wp.array2d(dtype=wp.int32),
     row_count: wp.array(dtype=wp.int32),
@@ -304,24 +309,26 @@ def padmm_project(
 ):
     """y = projection of x - z_hat / rho_i onto the row's set; z = z_hat - rho_i (x - y). The thread
     of a contact normal row projects its whole triplet onto the friction cone. A free drive row
-    whose bound comes into play is marked (row_free 2, demote) to lose its capped penalty at the
+    whose bound comes into play is marked (row_free 2, demote) to lose its own penalty at the
     next penalty update, which refactors (padmm_decide, row_shifts)."""
     world, i = wp.tid()
     if active[world] == 0:
         return
-    padmm_project_of(world, i, padmm_rho_cap, row_kind, row_free, row_count, row_friction, rho, active, lo, hi, x,
+    padmm_project_of(world, i, padmm_rho_free, row_kind, row_free, row_count, row_friction, rho, active, lo, hi, x,
                      z_hat, y, z, y_prev_out, z_prev_out, row_free_out, demote_out)
 
 
 @wp.func
-def row_residuals(world: int, i: int, eta: float, rho: float, rho_free_cap: float,
+def row_residuals(world: int, i: int, eta: float, rho: float, rho_free: float,
                   row_kind: wp.array2d(dtype=wp.int32), row_free: wp.array2d(dtype=wp.int32),
                   x: wp.array2d(dtype=float), x_prev: wp.array2d(dtype=float), y: wp.array2d(dtype=float),
                   y_hat: wp.array2d(dtype=float), z: wp.array2d(dtype=float), z_hat: wp.array2d(dtype=float)):
-    """Row i's share of a world's PADMM residuals: |y|, primal |x - y|, dual, complementarity and
-    the merit increment (rho_i |dy|^2 + |dz|^2 / rho_i), with the row's penalty rho_i."""
+    """Row i's share of a world's PADMM residuals: |y|, primal |x - y|, dual, complementarity, the
+    merit increment (rho_i |dy|^2 + |dz|^2 / rho_i), with the row's penalty rho_i, and the dual
+    residual again where rho_i is the world's rho, else 0 (the penalty update balances the rows it
+    rescales: a free row keeps its penalty, and its primal residual is zero)."""
     kind = row_kind[world, i]
-    r = row_penalty(row_free[world, i], rho, rho_free_cap)
+    r = row_penalty(row_free[world, i], rho, rho_free)
     dy = y[world, i] - y_hat[world, i]
     dz = z[world, i] - z_hat[world, i]
     r_p = wp.abs(x[world, i] - y[world, i])
@@ -333,7 +340,10 @@ def row_residuals(world: int, i: int, eta: float, rho: float, rho_free_cap: floa
     elif kind == ROW_CONTACT_NORMAL:
         gap = y[world, i] * z[world, i] + y[world, i + 1] * z[world, i + 1] + y[world, i + 2] * z[world, i + 2]
         r_c = wp.abs(gap)
-    return wp.abs(y[world, i]), r_p, r_d, r_c, r * dy * dy + dz * dz / r
+    r_b = r_d
+    if row_free[world, i] != 0 and rho_free > 0.0:
+        r_b = 0.0
+    return wp.abs(y[world, i]), r_p, r_d, r_c, r * dy * dy + dz * dz / r, r_b
 
 
 @wp.func
@@ -342,6 +352,7 @@ def padmm_decide(
     r_p: float,
     r_d: float,
     r_c: float,
+    r_b: float,
     scale: float,
     change: float,
     max_iterations: int,
@@ -368,8 +379,9 @@ def padmm_decide(
     """End of a PADMM iteration of one world from its residuals: count it, stop (returns 1) when
     converged, capped or stalled (stall_ratio > 0: the largest residual not below stall_ratio times
     its value STALL_WINDOW iterations earlier, kept in stall_reference), else set the momentum for
-    padmm_accelerate and update the penalty (and at the same iterations take the capped penalty
-    from drive rows that met their bounds)."""
+    padmm_accelerate and update the penalty from r_p against r_b, the dual residual of the rows
+    whose penalty it sets (row_residuals; zero where all rows are free: no update), and at the same
+    iterations give the world's penalty to drive rows that met their bounds."""
     r = rho[world]
     its = iterations[world] + 1
     iterations[world] = its
@@ -399,9 +411,9 @@ def padmm_decide(
     merit[world] = change
     if adaptive_rho != 0 and its % rho_update_interval == 0:
         new_rho = r
-        if r_p > RHO_BALANCE * r_d:
+        if r_p > RHO_BALANCE * r_b:
             new_rho = wp.min(r * RHO_FACTOR, RHO_MAX)
-        elif r_d > RHO_BALANCE * r_p:
+        elif r_b > RHO_BALANCE * r_p:
             new_rho = wp.max(r / RHO_FACTOR, RHO_MIN)
         if new_rho != r:
             rho[world] = new_rho
@@ -433,7 +445,7 @@ def padmm_convergence(
     # model
     row_kind: wp.array2d(dtype=wp.int32),
     padmm_eta: wp.array(dtype=float),
-    padmm_rho_cap: wp.array(dtype=float),
+    padmm_rho_free: wp.array(dtype=float),
     padmm_tolerance: wp.array(dtype=float),
     # in
     row_free: wp.array2d(dtype=wp.int32),
@@ -470,30 +482,33 @@ def padmm_convergence(
     n = row_count[world]
     r = rho[world]
     eta = padmm_eta[world]
-    cap = padmm_rho_cap[world]
+    cap = padmm_rho_free[world]
     r_p = float(0.0)
     r_d = float(0.0)
     r_c = float(0.0)
+    r_b = float(0.0)
     change = float(0.0)
     scale = float(0.0)
     for k in range((n + stride - 1) // stride):
         i = lane + k * stride
         if i < n:
-            s_i, p_i, d_i, c_i, m_i = row_residuals(world, i, eta, r, cap, row_kind, row_free, x, x_prev, y, y_hat, z,
-                                                    z_hat)
+            s_i, p_i, d_i, c_i, m_i, b_i = row_residuals(world, i, eta, r, cap, row_kind, row_free, x, x_prev, y, y_hat,
+                                                         z, z_hat)
             scale = wp.max(scale, s_i)
             r_p = wp.max(r_p, p_i)
             r_d = wp.max(r_d, d_i)
             r_c = wp.max(r_c, c_i)
+            r_b = wp.max(r_b, b_i)
             change += m_i
     r_p = matrix_free.block_max(r_p)
     r_d = matrix_free.block_max(r_d)
     r_c = matrix_free.block_max(r_c)
+    r_b = matrix_free.block_max(r_b)
     scale = matrix_free.block_max(scale)
     change = matrix_free.block_sum(change)
     if lane != 0:
         return
-    if padmm_decide(world, r_p, r_d, r_c, scale, change, max_iterations, relative_tolerance, rho_update_interval,
+    if padmm_decide(world, r_p, r_d, r_c, r_b, scale, change, max_iterations, relative_tolerance, rho_update_interval,
                     adaptive_rho, acceleration, padmm_tolerance, rho, active, converged, iterations, momentum,
                     momentum_beta, merit, needs_factor, residual_primal, residual_dual, residual_complementarity,
                     demote, stall_ratio, stall_reference) != 0:
@@ -539,7 +554,7 @@ def padmm_accelerate(
 
 
 @wp.kernel
-def row_shifts(padmm_eta: wp.array(dtype=float), padmm_rho_cap: wp.array(dtype=float), rho: wp.array(dtype=float),
+def row_shifts(padmm_eta: wp.array(dtype=float), padmm_rho_free: wp.array(dtype=float), rho: wp.array(dtype=float),
                needs_factor: wp.array(dtype=wp.int32), row_free: wp.array2d(dtype=wp.int32),
                row_shift_out: wp.array2d(dtype=float)):
     """Diagonal shift of the factored matrix per row: eta + the row's penalty (worlds flagged for a
@@ -549,7 +564,7 @@ def row_shifts(padmm_eta: wp.array(dtype=float), padmm_rho_cap: wp.array(dtype=f
         return
     if row_free[world, i] == 2:  # a drive that met its bound: the world's penalty from now on
         row_free[world, i] = 0
-    row_shift_out[world, i] = padmm_eta[world] + row_penalty(row_free[world, i], rho[world], padmm_rho_cap[world])
+    row_shift_out[world, i] = padmm_eta[world] + row_penalty(row_free[world, i], rho[world], padmm_rho_free[world])
 
 
 
@@ -596,7 +611,7 @@ def refactor(model):
     """Factor P D P + diag(eta + rho_i) for worlds flagged in needs_factor, then clear the flags."""
     work, W = model.work, model.num_worlds
     wp.launch(row_shifts, dim=(W, model.max_rows),
-              inputs=[model.padmm_eta, model.padmm_rho_cap, work.rho, work.needs_factor, work.row_free],
+              inputs=[model.padmm_eta, model.padmm_rho_free, work.rho, work.needs_factor, work.row_free],
               outputs=[work.row_shift], device=model.device)
     if model.linear_solver == "dense":
         linear.factor(work.delassus, work.row_shift, work.needs_factor, work.factor)
@@ -610,7 +625,7 @@ def padmm_iteration(model):
     work, cfg, device = model.work, model.config, model.device
     grid = (model.num_worlds, model.max_rows)
     wp.launch(padmm_rhs, dim=grid, device=device,
-              inputs=[model.padmm_eta, model.padmm_rho_cap, model.row_kind, work.row_free, work.rho, work.active,
+              inputs=[model.padmm_eta, model.padmm_rho_free, model.row_kind, work.row_free, work.rho, work.active,
                       work.row_friction, work.v_f, work.x, work.y_hat, work.z_hat],
               outputs=[work.x_prev, work.rhs])
     if model.linear_solver == "dense":
@@ -620,13 +635,13 @@ def padmm_iteration(model):
     else:  # inexact Conjugate Residual, warm-started from the last iterate
         matrix_free.solve(model, work.rhs, work.active, work.x)
     wp.launch(padmm_project, dim=grid, device=device,
-              inputs=[model.padmm_rho_cap, model.row_kind, work.row_free, work.row_count, work.row_friction, work.rho,
+              inputs=[model.padmm_rho_free, model.row_kind, work.row_free, work.row_count, work.row_friction, work.rho,
                       work.active, work.lo, work.hi, work.x, work.z_hat, work.y, work.z, work.y_prev, work.z_prev,
                       work.row_free, work.demote])
     wp.launch_tiled(padmm_convergence, dim=[model.num_worlds], block_dim=CONVERGENCE_BLOCK, device=device,
               inputs=[cfg.max_iterations, float(cfg.relative_tolerance), cfg.rho_update_interval,
                       int(cfg.adaptive_rho), int(cfg.acceleration), model.row_kind, model.padmm_eta,
-                      model.padmm_rho_cap, model.padmm_tolerance, work.row_free, work.row_count, work.x, work.x_prev,
+                      model.padmm_rho_free, model.padmm_tolerance, work.row_free, work.row_count, work.x, work.x_prev,
                       work.y, work.y_hat, work.z, work.z_hat, work.rho, work.active,
                       work.converged, work.iterations, work.momentum, work.momentum_beta, work.merit,
                       work.needs_factor, work.residual_primal, work.residual_dual, work.residual_complementarity,

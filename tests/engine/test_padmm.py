@@ -196,7 +196,7 @@ def _decide_until_stop(residuals: wp.array(dtype=float), stall_ratio: float, out
                        tolerance: wp.array(dtype=float), stall_reference: wp.array(dtype=float)):
     for k in range(residuals.shape[0]):
         r = residuals[k]
-        if padmm_decide(0, r, r, 0.0, 1.0, 1.0, residuals.shape[0], 0.0, 4, 0, 0, tolerance, rho, active, converged,
+        if padmm_decide(0, r, r, 0.0, r, 1.0, 1.0, residuals.shape[0], 0.0, 4, 0, 0, tolerance, rho, active, converged,
                         iterations, momentum, momentum_beta, merit, needs_factor, residual_primal, residual_dual,
                         residual_complementarity, demote, stall_ratio, stall_reference) != 0:
             out[0] = iterations[0]
@@ -245,3 +245,34 @@ def test_stall_ratio_cuts_the_tail_of_random_walkers():
 def test_stall_ratio_is_validated():
     with pytest.raises(ValueError, match="stall_ratio"):
         SolverConfig(stall_ratio=1.0)
+
+
+@pytest.mark.parametrize("kernel", ["fused", "staged"])
+@pytest.mark.parametrize("start_rho", ["initial", "minimum"])
+def test_a_redundant_linkage_at_tight_tolerance_keeps_its_joint_rows_penalty(kernel, start_rho):
+    """A double parallelogram (one redundant crank: a singular Delassus matrix) at tolerance 1e-9,
+    which float32 cannot reach, so PADMM runs to its cap. Its rows are all free joint rows, which
+    keep the initial penalty (engine.padmm.row_penalty) and do not take part in the penalty update
+    (their primal residual is zero): the world's rho stays where it is, the factor keeps its shift
+    eta + rho_init, and the crank follows scipy's motion as closely as at the default tolerance
+    (6.5e-6 m over 0.5 s). Also from a world whose rho was driven to RHO_MIN before (as contacts or
+    limits can). Before, the update drove the joint rows' penalty to RHO_MIN and the crank drifted
+    1.9e-4 m (fused) and 9e-4 m (staged) in 0.5 s."""
+    from benchmarks.stress import crank_reference, double_parallelogram, parallel_linkage_constants
+    from engine.padmm import RHO_MIN
+
+    theta0, speed = -1.2, 2.0
+    spec = double_parallelogram(theta0, speed)
+    config = SolverConfig(step_kernel=kernel, tolerance=1e-9, relative_tolerance=0.0, max_iterations=300)
+    model = pack_worlds([spec], device="cpu", dt=1e-3, config=config)
+    rho0 = config.rho if start_rho == "initial" else float(RHO_MIN)
+    model.work.rho.fill_(rho0)
+    trace, _ = rollout(model, model.state(), model.control(), 500, record_every=10)
+    reference = crank_reference(theta0, speed, trace.time, *parallel_linkage_constants(spec))
+    expected = np.stack([np.cos(reference), np.zeros_like(reference), -np.sin(reference)], axis=1)
+    error = np.linalg.norm(trace.points[:, 0, 0] - expected, axis=1).max()
+    assert model.work.rho.numpy()[0] == pytest.approx(rho0)
+    assert error < 2e-5, error
+    if kernel == "staged":  # every row of this linkage is a free joint row: shift eta + the initial rho
+        n = int(model.row_count.numpy()[0])
+        assert np.allclose(model.work.row_shift.numpy()[0, :n], config.eta + config.rho, rtol=1e-6)
