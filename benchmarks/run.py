@@ -212,7 +212,9 @@ def run_scene(name: str, declared: Declared, args) -> dict:
         record_dt = max(0.01, dt * max(x["dt_scale"] for x in declared.sweep[:5])) if quick else declared.record_dt
         worlds = 8 if quick else declared.precision_worlds
         sample = np.arange(min(worlds, 2 * len(specs)))
-        reference, result["reference"] = reference_run(specs, scene, duration, record_dt, dt, declared, args)
+        reference = None  # a scene without a trustworthy reference reports loop error and run time only
+        if declared.reference is not None:
+            reference, result["reference"] = reference_run(specs, scene, duration, record_dt, dt, declared, args)
         sweep = declared.sweep[:5] if quick else declared.sweep
         for setting in sweep:
             step_dt = dt * setting["dt_scale"]
@@ -224,7 +226,8 @@ def run_scene(name: str, declared: Declared, args) -> dict:
                 result["precision"].append({"label": setting["label"], "error": str(exc)})
                 continue
             row.update(kind="precision", engine="morphopt", label=setting["label"], settings=setting.get("config", {}),
-                       trajectory_error_m=trajectory_error(row["positions"], reference, sample, specs))
+                       trajectory_error_m=None if reference is None else trajectory_error(row["positions"], reference,
+                                                                                           sample, specs))
             result["precision"].append(clean(row))
             print(json.dumps({"scene": name, **clean(row)}), flush=True)
         if args.peers and declared.peers and scene.usd is not None:
@@ -415,16 +418,20 @@ def plot(result: dict, path: pathlib.Path) -> None:
     peer_rows = [r for r in result["peers"] if r.get("kind") == "throughput" and "error" not in r]
     ours = [r for r in result["throughput"] if "error" not in r and r.get("label", "default") == "default"]
     variants = [r for r in result["throughput"] if "error" not in r and r.get("label", "default") != "default"]
-    # the throughput panel only where there are throughput rows (a --parts precision run has none)
+    # the throughput panel only where there are throughput rows (a --parts precision run has none);
+    # a work-precision panel per error that some row has (no trajectory error without a reference)
     throughput_panel = bool(ours or peer_rows or not result["precision"])
-    panels = (3 if result["precision"] else (2 if peer_rows else 1)) - (not throughput_panel)
+    measured = result["precision"] + [r for r in result["peers"] if r.get("kind") == "precision"]
+    errors = [(key, unit) for key, unit in (("trajectory_error_m", "trajectory error [m]"),
+                                            ("loop_error_m", "loop-closure error [m]"))
+              if any(r.get(key) is not None for r in measured)]
+    panels = int(throughput_panel) + (len(errors) if result["precision"] else (1 if peer_rows else 0))
     fig, axes = plt.subplots(1, panels, figsize=(5.2 * panels, 4.0), squeeze=False)
-    if not throughput_panel:
-        axes = np.concatenate([np.array([[None]]), axes], axis=1)
+    axes = list(axes[0])
     if throughput_panel:
-        _throughput_panel(axes[0, 0], result, ours, variants)
+        _throughput_panel(axes.pop(0), result, ours, variants)
     if not result["precision"] and peer_rows:  # time per step against loop error, each engine's batches
-        ax = axes[0, 1]
+        ax = axes[0]
         # the colours and markers of the throughput panel: peers C1, C2 ... squares, variants triangles
         peer_labels = sorted({r["label"] for r in peer_rows})
         engines = ([("morphopt", ours, "o", "C0")]
@@ -443,8 +450,7 @@ def plot(result: dict, path: pathlib.Path) -> None:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
     if result["precision"]:
-        for ax, key, unit in ((axes[0, 1], "trajectory_error_m", "trajectory error [m]"),
-                              (axes[0, 2], "loop_error_m", "loop-closure error [m]")):
+        for ax, (key, unit) in zip(axes, errors):
             peer_precision_rows = [r for r in result["peers"] if r.get("kind") == "precision"]
             groups = [("morphopt", result["precision"], "o", "C0")] + [
                 (name, [r for r in peer_precision_rows if str(r.get("engine", "")).startswith(engine)], "s", color)
