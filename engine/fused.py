@@ -55,7 +55,6 @@ from engine.integrate import (
     bilateral_residual_of,
     guard_divergence_of,
     integrate_pose_of,
-    keep_midpoint_low_of,
     midpoint_pose_of,
     move_body_of,
 )
@@ -143,7 +142,6 @@ class StepWork:
     body_qd_free: wp.array2d(dtype=wp.spatial_vector)
     body_q_mid: wp.array2d(dtype=wp.transform)
     body_q_mid_low: wp.array2d(dtype=wp.transform)
-    body_q_next: wp.array2d(dtype=wp.transform)
     no_low: wp.array2d(dtype=wp.transform)
     row_count: wp.array(dtype=wp.int32)
     row_body_c: wp.array2d(dtype=wp.int32)
@@ -521,11 +519,13 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         skip_floor: float,
         max_speed: float,
         sharing: int,
+        project_output: int,
         body_q_in: wp.array2d(dtype=wp.transform),
         body_qd_in: wp.array2d(dtype=wp.spatial_vector),
         body_q_offset_in: wp.array2d(dtype=wp.spatial_vector),
         body_q_low_in: wp.array2d(dtype=wp.transform),
         body_qd_low_in: wp.array2d(dtype=wp.spatial_vector),
+        body_q_next_in: wp.array2d(dtype=wp.transform),
         row_lambda_in: wp.array2d(dtype=float),
         joint_target_position: wp.array2d(dtype=float),
         joint_target_velocity: wp.array2d(dtype=float),
@@ -537,6 +537,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         body_q_offset_out: wp.array2d(dtype=wp.spatial_vector),
         body_q_low_out: wp.array2d(dtype=wp.transform),
         body_qd_low_out: wp.array2d(dtype=wp.spatial_vector),
+        body_q_next_out: wp.array2d(dtype=wp.transform),
         row_lambda_out: wp.array2d(dtype=float),
         stamps: wp.array2d(dtype=wp.int64),
     ):
@@ -558,8 +559,8 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         # 1. configuration of the dynamics: the midpoint (Moreau-Jean) or the start of the step
         for b in range(lane, nb, lanes):
             if moreau != 0:
-                midpoint_pose_of(world, b, m.world_dt, body_q_in, body_q_offset_in, body_qd_in, body_q_low_in, comp,
-                                 w.body_q_mid, w.body_q_mid_low)
+                midpoint_pose_of(world, b, m.world_dt, body_q_in, body_q_offset_in, body_qd_in, body_q_low_in,
+                                 body_q_next_in, comp, w.body_q_mid, w.body_q_mid_low)
             else:
                 w.body_q_mid[world, b] = body_q_in[world, b]
                 if wp.static(compensated):
@@ -744,7 +745,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                 last = tick(stamps, world, wp.static(_STAGE["projection_factor"]), lane, last)
             passes = position_iterations
             shake = position_iterations
-            if moreau != 0:  # the output projection gets as many iterations (engine.step)
+            if moreau != 0 and project_output != 0:  # the output projection gets as many iterations (engine.step)
                 passes = 2 * shake
             for _it in range(passes):
                 output = _it >= shake
@@ -752,7 +753,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                     block_sync()
                     for b in range(lane, nb, lanes):
                         if wp.static(compensated):
-                            w.body_q_next[world, b] = body_q_out[world, b]
+                            body_q_next_out[world, b] = body_q_out[world, b]
                         integrate_pose_of(world, b, m.body_count, m.world_dt, 0.5, w.body_q_mid, body_qd_out,
                                           body_q_out)
                     block_sync()
@@ -801,23 +802,18 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                 block_sync()
                 if wp.static(timed):
                     last = tick(stamps, world, wp.static(_STAGE["projection_apply"]), lane, last)
-        if moreau != 0 and project == 0:  # no projection: the end of the step is half-way to the midpoint
+        if moreau != 0 and (project == 0 or project_output == 0):  # the end of the step, half-way, unprojected
             block_sync()
             for b in range(lane, nb, lanes):
                 if wp.static(compensated):
-                    w.body_q_next[world, b] = body_q_out[world, b]
+                    body_q_next_out[world, b] = body_q_out[world, b]
                 integrate_pose_of(world, b, m.body_count, m.world_dt, 0.5, w.body_q_mid, body_qd_out, body_q_out)
-        if wp.static(compensated) and moreau != 0:  # the next midpoint's low part against the next step's
-            block_sync()
-            for b in range(lane, nb, lanes):
-                keep_midpoint_low_of(world, b, m.world_dt, w.body_q_next, body_q_out, body_q_offset_out, body_qd_out,
-                                     body_q_low_out)
         # 6. divergence guard
         block_sync()
         if lane == 0:
             guard_divergence_of(world, m.body_count, body_q_in, body_qd_in, body_q_offset_in, body_q_low_in,
-                                body_qd_low_in, w.halted, max_speed, body_q_out, body_qd_out, body_q_offset_out,
-                                body_q_low_out, body_qd_low_out, w.diverged)
+                                body_qd_low_in, body_q_next_in, w.halted, max_speed, body_q_out, body_qd_out,
+                                body_q_offset_out, body_q_low_out, body_qd_low_out, body_q_next_out, w.diverged)
         if wp.static(timed):
             block_sync()
             last = tick(stamps, world, wp.static(_STAGE["end_of_step"]), lane, last)
@@ -846,10 +842,10 @@ def _filled(struct_type, source):
     return instance
 
 
-def fused_step(model, state_in, state_out, control, stamps=None) -> None:
+def fused_step(model, state_in, state_out, control, stamps=None, project_output: bool = True) -> None:
     """Advance every world of a fused batch (engine.pack chose it) by one step in one launch; with
     ``stamps`` (int64, (num_worlds, len(STAGES))) the timed kernel records the cycle counter at
-    the end of each stage (fused_profile)."""
+    the end of each stage (fused_profile); ``project_output`` as engine.step's."""
     if model._fused_structs is None:
         model._fused_structs = (_filled(StepModel, model), _filled(StepWork, model.work))
     m, w = model._fused_structs
@@ -872,11 +868,11 @@ def fused_step(model, state_in, state_out, control, stamps=None) -> None:
                       cfg.position_iterations if model.has_bilateral_rows else 0,
                       int(model.has_unilateral_or_drive_rows), int(cfg.projection_velocity_update),
                       float(cfg.projection_velocity_floor), float(cfg.projection_skip_floor), float(cfg.max_speed),
-                      int(sharing), state_in.body_q, state_in.body_qd, state_in.body_q_offset, state_in.body_q_low,
-                      state_in.body_qd_low, state_in.row_lambda, control.joint_target_position,
+                      int(sharing), int(project_output), state_in.body_q, state_in.body_qd, state_in.body_q_offset, state_in.body_q_low,
+                      state_in.body_qd_low, state_in.body_q_next, state_in.row_lambda, control.joint_target_position,
                       control.joint_target_velocity, control.joint_effort, control.body_f],
               outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_offset, state_out.body_q_low,
-                       state_out.body_qd_low, state_out.row_lambda, stamps])
+                       state_out.body_qd_low, state_out.body_q_next, state_out.row_lambda, stamps])
 
 
 def fused_profile(model, state, control, steps: int = 20) -> dict:
@@ -895,7 +891,7 @@ def fused_profile(model, state, control, steps: int = 20) -> dict:
         samples.append(stamps.numpy().astype(np.float64))
         state, other = other, state
     if steps % 2:  # the caller's state object holds the latest step
-        for name in ("body_q", "body_qd", "body_q_offset", "body_q_low", "body_qd_low", "row_lambda"):
+        for name in ("body_q", "body_qd", "body_q_offset", "body_q_low", "body_qd_low", "body_q_next", "row_lambda"):
             wp.copy(getattr(other, name), getattr(state, name))
     t = np.stack(samples).reshape(-1, len(STAGES))
     out = {name: float(np.median(t[:, k])) for k, name in enumerate(STAGES)}

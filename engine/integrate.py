@@ -138,6 +138,9 @@ def midpoint_of(X: wp.transform, o: wp.spatial_vector, u: wp.spatial_vector, h: 
     return pose_step(pose_step(X, -o, 1.0), u, h)
 
 
+MIDPOINT_MATCH = wp.constant(1.0e-5)  # relative: the float32 roundings of the pose operations (~80 ulp)
+
+
 @wp.func
 def midpoint_pose_of(
     world: int, b: int,
@@ -146,22 +149,39 @@ def midpoint_pose_of(
     body_q_offset: wp.array2d(dtype=wp.spatial_vector),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
     body_q_low: wp.array2d(dtype=wp.transform),
+    body_q_next: wp.array2d(dtype=wp.transform),
     compensated: int,
     # out
     body_q_mid: wp.array2d(dtype=wp.transform),
     body_q_mid_low: wp.array2d(dtype=wp.transform),
 ):
     """Moreau-Jean's midpoint: undo the last step's output projection (body_q_offset: translation
-    [m] and rotation vector [rad] it moved the body by), then half a pose step with the twist;
-    ``compensated``: plus body_q_low, what the last step kept of the midpoint beyond that
-    (keep_midpoint_low_of), as a compensated pair (body_q_mid, body_q_mid_low)."""
+    [m] and rotation vector [rad] it moved the body by), then half a pose step with the twist.
+    ``compensated``: the last step left the next midpoint as the pair body_q_next + body_q_low
+    (State). Where the midpoint found from the state
+    matches body_q_next to within a few roundings (MIDPOINT_MATCH), the step continues from that
+    pair exactly, so the motion does not depend on whether the output was projected; otherwise
+    (poses or twists set by hand, another state stepped in between) from the midpoint found, plus
+    body_q_low (at most that much off)."""
     mid = midpoint_of(body_q[world, b], body_q_offset[world, b], body_qd[world, b], 0.5 * world_dt[world])
     if compensated == 0:
         body_q_mid[world, b] = mid
         return
     low = body_q_low[world, b]
-    t, t_low = two_sum(wp.transform_get_translation(mid), wp.transform_get_translation(low))
-    r, r_low = two_sum(wp.transform_get_rotation(mid), wp.transform_get_rotation(low))
+    nxt = body_q_next[world, b]
+    t = wp.transform_get_translation(mid)
+    r = wp.transform_get_rotation(mid)
+    dt_ = t - wp.transform_get_translation(nxt)
+    dr = r - wp.transform_get_rotation(nxt)
+    reach = MIDPOINT_MATCH * (1.0 + wp.max(wp.abs(t[0]), wp.max(wp.abs(t[1]), wp.abs(t[2]))))
+    same = wp.max(wp.abs(dt_[0]), wp.max(wp.abs(dt_[1]), wp.abs(dt_[2]))) <= reach
+    same = same and wp.max(wp.max(wp.abs(dr[0]), wp.abs(dr[1])), wp.max(wp.abs(dr[2]), wp.abs(dr[3]))) <= MIDPOINT_MATCH
+    if same:
+        body_q_mid[world, b] = nxt
+        body_q_mid_low[world, b] = low
+        return
+    t, t_low = two_sum(t, wp.transform_get_translation(low))
+    r, r_low = two_sum(r, wp.transform_get_rotation(low))
     body_q_mid[world, b] = wp.transform(t, r)
     body_q_mid_low[world, b] = wp.transform(t_low, r_low)
 
@@ -209,41 +229,6 @@ def advance_poses(
     advance_pose_of(world, b, world_dt, body_q, body_q_low_in, body_qd, compensated, body_q_out, body_q_low_out)
 
 
-@wp.func
-def keep_midpoint_low_of(
-    world: int, b: int,
-    world_dt: wp.array(dtype=float),
-    body_q_next: wp.array2d(dtype=wp.transform),
-    body_q: wp.array2d(dtype=wp.transform),
-    body_q_offset: wp.array2d(dtype=wp.spatial_vector),
-    body_qd: wp.array2d(dtype=wp.spatial_vector),
-    # in/out
-    body_q_low: wp.array2d(dtype=wp.transform),
-):
-    """Moreau-Jean: with the next midpoint held as body_q_next + body_q_low, rewrite body_q_low
-    against the float32 midpoint the next step will find from the state (midpoint_pose_of)."""
-    mid = midpoint_of(body_q[world, b], body_q_offset[world, b], body_qd[world, b], 0.5 * world_dt[world])
-    body_q_low[world, b] = pose_low(body_q_next[world, b], body_q_low[world, b], mid)
-
-
-@wp.kernel
-def keep_midpoint_low(
-    body_count: wp.array(dtype=wp.int32),
-    world_dt: wp.array(dtype=float),
-    body_q_next: wp.array2d(dtype=wp.transform),
-    body_q: wp.array2d(dtype=wp.transform),
-    body_q_offset: wp.array2d(dtype=wp.spatial_vector),
-    body_qd: wp.array2d(dtype=wp.spatial_vector),
-    # in/out
-    body_q_low: wp.array2d(dtype=wp.transform),
-):
-    """keep_midpoint_low_of for every body."""
-    world, b = wp.tid()
-    if b >= body_count[world]:
-        return
-    keep_midpoint_low_of(world, b, world_dt, body_q_next, body_q, body_q_offset, body_qd, body_q_low)
-
-
 @wp.kernel
 def midpoint_poses(
     body_count: wp.array(dtype=wp.int32),
@@ -252,6 +237,7 @@ def midpoint_poses(
     body_q_offset: wp.array2d(dtype=wp.spatial_vector),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
     body_q_low: wp.array2d(dtype=wp.transform),
+    body_q_next: wp.array2d(dtype=wp.transform),
     compensated: int,
     # out
     body_q_mid: wp.array2d(dtype=wp.transform),
@@ -261,8 +247,8 @@ def midpoint_poses(
     world, b = wp.tid()
     if b >= body_count[world]:
         return
-    midpoint_pose_of(world, b, world_dt, body_q, body_q_offset, body_qd, body_q_low, compensated, body_q_mid,
-                     body_q_mid_low)
+    midpoint_pose_of(world, b, world_dt, body_q, body_q_offset, body_qd, body_q_low, body_q_next, compensated,
+                     body_q_mid, body_q_mid_low)
 
 
 @wp.kernel
@@ -441,6 +427,7 @@ def guard_divergence_of(
     body_q_offset_in: wp.array2d(dtype=wp.spatial_vector),
     body_q_low_in: wp.array2d(dtype=wp.transform),
     body_qd_low_in: wp.array2d(dtype=wp.spatial_vector),
+    body_q_next_in: wp.array2d(dtype=wp.transform),
     halted: wp.array(dtype=wp.int32),
     max_speed: float,
     # in/out
@@ -449,6 +436,7 @@ def guard_divergence_of(
     body_q_offset_out: wp.array2d(dtype=wp.spatial_vector),
     body_q_low_out: wp.array2d(dtype=wp.transform),
     body_qd_low_out: wp.array2d(dtype=wp.spatial_vector),
+    body_q_next_out: wp.array2d(dtype=wp.transform),
     diverged: wp.array(dtype=wp.int32),
 ):
     """Flag a world whose new state is not finite, or in which a body's centre of mass moves
@@ -471,6 +459,7 @@ def guard_divergence_of(
             body_q_offset_out[world, b] = body_q_offset_in[world, b]
             body_q_low_out[world, b] = body_q_low_in[world, b]
             body_qd_low_out[world, b] = body_qd_low_in[world, b]
+            body_q_next_out[world, b] = body_q_next_in[world, b]
 
 
 @wp.kernel
@@ -481,6 +470,7 @@ def guard_divergence(
     body_q_offset_in: wp.array2d(dtype=wp.spatial_vector),
     body_q_low_in: wp.array2d(dtype=wp.transform),
     body_qd_low_in: wp.array2d(dtype=wp.spatial_vector),
+    body_q_next_in: wp.array2d(dtype=wp.transform),
     halted: wp.array(dtype=wp.int32),
     max_speed: float,
     # in/out
@@ -489,6 +479,7 @@ def guard_divergence(
     body_q_offset_out: wp.array2d(dtype=wp.spatial_vector),
     body_q_low_out: wp.array2d(dtype=wp.transform),
     body_qd_low_out: wp.array2d(dtype=wp.spatial_vector),
+    body_q_next_out: wp.array2d(dtype=wp.transform),
     diverged: wp.array(dtype=wp.int32),
 ):
     """Flag a world whose new state is not finite, or in which a body's centre of mass moves
@@ -496,8 +487,8 @@ def guard_divergence(
     halt) stays frozen as well, without the flag."""
     world = wp.tid()
     guard_divergence_of(world, body_count, body_q_in, body_qd_in, body_q_offset_in, body_q_low_in, body_qd_low_in,
-                        halted, max_speed, body_q_out, body_qd_out, body_q_offset_out, body_q_low_out,
-                        body_qd_low_out, diverged)
+                        body_q_next_in, halted, max_speed, body_q_out, body_qd_out, body_q_offset_out, body_q_low_out,
+                        body_qd_low_out, body_q_next_out, diverged)
 
 
 @wp.kernel
@@ -613,5 +604,5 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
 
 
 __all__ = ["add_impulse_of", "advance_pose_of", "advance_poses", "apply_impulses", "guard_divergence",
-           "integrate_poses", "keep_midpoint_low", "keep_midpoint_low_of", "midpoint_poses", "move_body_of",
+           "integrate_poses", "midpoint_poses", "move_body_of",
            "project_positions"]

@@ -265,6 +265,7 @@ class Model:
         state.body_qd = wp.clone(self.body_qd_init)
         state.body_q_offset = wp.zeros((self.num_worlds, self.max_bodies), dtype=wp.spatial_vector, device=self.device)
         state.body_q_low = wp.zeros((self.num_worlds, self.max_bodies), dtype=wp.transform, device=self.device)
+        state.body_q_next = wp.zeros((self.num_worlds, self.max_bodies), dtype=wp.transform, device=self.device)
         state.body_qd_low = wp.zeros((self.num_worlds, self.max_bodies), dtype=wp.spatial_vector, device=self.device)
         state.row_lambda = wp.zeros((self.num_worlds, self.max_rows), dtype=float, device=self.device)
         capacity = max(self.contact_capacity, 1)
@@ -306,8 +307,13 @@ class State:
     compensated sum (engine.integrate), what float32 could not hold of the configuration the next
     step's dynamics start from (Moreau-Jean: its midpoint; translation [m] and raw quaternion
     components) and of the twist; of the order of 1e-7 of the values, zero in a new State (setting
-    body_q or body_qd by hand leaves at most that much behind). row_lambda (W, R): the last step's
-    constraint impulses [N s] or [N m s] (warm start).
+    body_q or body_qd by hand leaves at most that much behind). body_q_next (W, B) transform
+    (Moreau-Jean with the compensated state): the float32 part of the next step's midpoint, whose
+    low part is body_q_low; the next step continues from that pair where the midpoint it finds
+    from body_q, body_q_offset and body_qd matches it (engine.integrate.midpoint_pose_of), so
+    that the motion does not depend on whether the output was projected; zero in a new State
+    (nothing matches it). row_lambda (W, R): the last step's constraint impulses [N s] or [N m s]
+    (warm start).
     contact_count (W,), contact_key (W, C), contact_impulse (W, C) vec3: the last step's contacts
     and their impulses in the world frame [N s], matched by key to warm-start the next step.
     """
@@ -317,6 +323,7 @@ class State:
     body_q_offset: wp.array
     body_q_low: wp.array
     body_qd_low: wp.array
+    body_q_next: wp.array
     row_lambda: wp.array
     contact_count: wp.array
     contact_key: wp.array
@@ -378,7 +385,6 @@ class Workspace:
         self.body_q_mid = zeros((w, b), wp.transform)
         self.body_q_mid_low = zeros((w, b), wp.transform)  # the midpoint's low part (engine.integrate)
         self.no_low = zeros((w, b), wp.transform)  # low parts of poses that have none: zeros, never written
-        self.body_q_next = zeros((w, b), wp.transform)  # Moreau-Jean: the next midpoint while the end is projected
         for name in ("row_J_c", "row_J_p", "row_MJ_c", "row_MJ_p"):
             setattr(self, name, zeros((w, r), wp.spatial_vector))
         for name in ("row_bias", "row_compliance", "row_lo", "row_hi", "row_residual", "row_precond",

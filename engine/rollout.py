@@ -64,7 +64,9 @@ def accumulate_step_stats(
 
 
 class Stepper:
-    """Advance a batch chunk by chunk, replaying a captured graph on CUDA.
+    """Advance a batch chunk by chunk, replaying a captured graph on CUDA. Only the state after a
+    chunk is readable, so only the chunk's last step projects the end of the step for output
+    (engine.step's project_output); the motion does not depend on the chunk length.
 
     Attributes: state (the current State), steps_done, and per-world statistics (device arrays
     (W,)): iteration_sum, iteration_max, unconverged_steps, solved_steps, contact_sum,
@@ -98,7 +100,8 @@ class Stepper:
         for k in range(self.chunk):
             src = self._buffers[(start + k) % 2]
             dst = self._buffers[(start + k + 1) % 2]
-            step(model, src, dst, self.control)
+            # the end of a step is projected for output only: only the chunk's last state is read
+            step(model, src, dst, self.control, project_output=k == self.chunk - 1)
             work = model.work
             wp.launch(accumulate_step_stats, dim=model.num_worlds, device=model.device,
                       inputs=[work.iterations, work.converged, work.valid, work.residual_complementarity,

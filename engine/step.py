@@ -33,7 +33,6 @@ from engine.integrate import (
     apply_impulses,
     guard_divergence,
     integrate_poses,
-    keep_midpoint_low,
     midpoint_poses,
     project_positions,
 )
@@ -102,7 +101,7 @@ class StageTimer:
 
 
 def step(model: Model, state_in: State, state_out: State, control: Control, dt: float | None = None, *,
-         timer: StageTimer | None = None) -> None:
+         timer: StageTimer | None = None, project_output: bool = True) -> None:
     """Advance every world by one step from state_in into state_out.
 
     Args:
@@ -112,6 +111,11 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
         dt: time step [s] for all worlds; None keeps model.world_dt (per-world device array).
             Changing it writes the device array, so pass None inside a captured graph.
         timer: optional StageTimer collecting the wall time of every stage.
+        project_output: (Moreau-Jean) project the end of the step onto the joints. The projection
+            is for output only: the next step starts from the projected midpoint whether or not
+            it ran (with the compensated state to within its low parts, ~1e-14 relative), so a
+            caller that does not read state_out (engine.rollout.Stepper inside a chunk) skips it;
+            the joints of an unprojected state_out are open by the drift of half a step.
     """
     mark = timer.mark if timer is not None else (lambda stage: None)
     if timer is not None:
@@ -121,7 +125,7 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
     if dt is not None:
         model.set_dt(dt)
     if model.step_kernel == "fused":  # the whole step in one launch (engine.fused)
-        fused_step(model, state_in, state_out, control)
+        fused_step(model, state_in, state_out, control, project_output=project_output)
         mark("fused")
         return
     work, device = model.work, model.device
@@ -132,7 +136,7 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
     if moreau:
         wp.launch(midpoint_poses, dim=bodies, device=device,
                   inputs=[model.body_count, model.world_dt, state_in.body_q, state_in.body_q_offset, state_in.body_qd,
-                          state_in.body_q_low, compensated],
+                          state_in.body_q_low, state_in.body_q_next, compensated],
                   outputs=[work.body_q_mid, work.body_q_mid_low])
         body_q, body_q_low = work.body_q_mid, work.body_q_mid_low
     compute_joint_rows(model, body_q, state_in.body_qd, control, body_q_low)
@@ -170,21 +174,18 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
         # often as the midpoint (one output iteration: DR Legs hanging's loops at 9.5e-7 instead of
         # 8.2e-8 m; one iteration each for both projections is the benchmark's variant)
         if compensated:
-            wp.copy(work.body_q_next, state_out.body_q)
+            wp.copy(state_out.body_q_next, state_out.body_q)
         state_out.body_q_offset.zero_()
         wp.launch(integrate_poses, dim=bodies, device=device,
                   inputs=[model.body_count, model.world_dt, 0.5, body_q, state_out.body_qd],
                   outputs=[state_out.body_q])
-        project_positions(model, state_out.body_q, state_out.body_qd, compute_joint_residuals, velocity_update=False,
-                          body_q_offset=state_out.body_q_offset, prepare=False)
-        if compensated:
-            wp.launch(keep_midpoint_low, dim=bodies, device=device,
-                      inputs=[model.body_count, model.world_dt, work.body_q_next, state_out.body_q,
-                              state_out.body_q_offset, state_out.body_qd],
-                      outputs=[state_out.body_q_low])
+        if project_output:
+            project_positions(model, state_out.body_q, state_out.body_qd, compute_joint_residuals,
+                              velocity_update=False, body_q_offset=state_out.body_q_offset, prepare=False)
     wp.launch(guard_divergence, dim=model.num_worlds, device=device,
               inputs=[model.body_count, state_in.body_q, state_in.body_qd, state_in.body_q_offset,
-                      state_in.body_q_low, state_in.body_qd_low, work.halted, float(model.config.max_speed)],
+                      state_in.body_q_low, state_in.body_qd_low, state_in.body_q_next, work.halted,
+                      float(model.config.max_speed)],
               outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_offset, state_out.body_q_low,
-                       state_out.body_qd_low, work.diverged])
+                       state_out.body_qd_low, state_out.body_q_next, work.diverged])
     mark("projection")
