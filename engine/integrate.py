@@ -20,7 +20,7 @@ import warp as wp
 
 from engine import linear, matrix_free, sparse
 from engine.model import ROW_ANGULAR, ROW_LINEAR
-from engine.spatial import advance_pose, pose_low, pose_step, two_sum
+from engine.spatial import advance_pose, pose_step, two_sum
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 

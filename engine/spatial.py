@@ -76,15 +76,6 @@ def advance_pose(X: wp.transform, low: wp.transform, v: wp.vec3, omega: wp.vec3,
 
 
 @wp.func
-def pose_low(X: wp.transform, low: wp.transform, Y: wp.transform):
-    """low of the pair that holds the pose X + low with Y as its float32 part: (X - Y) + low,
-    translation and raw quaternion components."""
-    return wp.transform(wp.transform_get_translation(X) - wp.transform_get_translation(Y)
-                        + wp.transform_get_translation(low),
-                        (wp.transform_get_rotation(X) - wp.transform_get_rotation(Y)) + wp.transform_get_rotation(low))
-
-
-@wp.func
 def quat_rotate_vector(q: wp.quat, rotation_vector: wp.vec3):
     """Rotate q by the finite rotation vector (axis * angle) given in the world frame."""
     return quat_integrate(q, rotation_vector, 1.0)
