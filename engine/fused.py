@@ -728,8 +728,8 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         if position_iterations > 0 and valid != 0 and m.bilateral_row_count[world] > 0:
             project = 1
         target = eta + m.padmm_rho_init[world]
-        # the PADMM factor's joint rows carry at most this shift (their penalty is capped at
-        # rho_init): reused unless other rows need taking out of the matrix
+        # the PADMM factor's joint rows carry this shift (their penalty stays rho_init): reused
+        # unless other rows need taking out of the matrix
         refactor = project != 0 and mask_projection != 0
         block_sync()  # cholesky_lanes is entered after a barrier
         if wp.static(timed):
@@ -868,8 +868,9 @@ def fused_step(model, state_in, state_out, control, stamps=None, project_output:
                       cfg.position_iterations if model.has_bilateral_rows else 0,
                       int(model.has_unilateral_or_drive_rows), int(cfg.projection_velocity_update),
                       float(cfg.projection_velocity_floor), float(cfg.projection_skip_floor), float(cfg.max_speed),
-                      int(sharing), int(project_output), state_in.body_q, state_in.body_qd, state_in.body_q_offset, state_in.body_q_low,
-                      state_in.body_qd_low, state_in.body_q_next, state_in.row_lambda, control.joint_target_position,
+                      int(sharing), int(project_output), state_in.body_q, state_in.body_qd, state_in.body_q_offset,
+                      state_in.body_q_low, state_in.body_qd_low, state_in.body_q_next, state_in.row_lambda,
+                      control.joint_target_position,
                       control.joint_target_velocity, control.joint_effort, control.body_f],
               outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_offset, state_out.body_q_low,
                        state_out.body_qd_low, state_out.body_q_next, state_out.row_lambda, stamps])

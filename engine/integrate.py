@@ -158,11 +158,10 @@ def midpoint_pose_of(
     """Moreau-Jean's midpoint: undo the last step's output projection (body_q_offset: translation
     [m] and rotation vector [rad] it moved the body by), then half a pose step with the twist.
     ``compensated``: the last step left the next midpoint as the pair body_q_next + body_q_low
-    (State). Where the midpoint found from the state
-    matches body_q_next to within a few roundings (MIDPOINT_MATCH), the step continues from that
-    pair exactly, so the motion does not depend on whether the output was projected; otherwise
-    (poses or twists set by hand, another state stepped in between) from the midpoint found, plus
-    body_q_low (at most that much off)."""
+    (State). Where the midpoint found from the state matches body_q_next to within the roundings
+    of these pose steps (MIDPOINT_MATCH), the step continues from that pair exactly, so the motion
+    does not depend on whether the output was projected; otherwise (poses or twists set by hand,
+    a new State) from the midpoint found, plus body_q_low (at most that much off)."""
     mid = midpoint_of(body_q[world, b], body_q_offset[world, b], body_qd[world, b], 0.5 * world_dt[world])
     if compensated == 0:
         body_q_mid[world, b] = mid
@@ -171,10 +170,10 @@ def midpoint_pose_of(
     nxt = body_q_next[world, b]
     t = wp.transform_get_translation(mid)
     r = wp.transform_get_rotation(mid)
-    dt_ = t - wp.transform_get_translation(nxt)
+    dp = t - wp.transform_get_translation(nxt)
     dr = r - wp.transform_get_rotation(nxt)
     reach = MIDPOINT_MATCH * (1.0 + wp.max(wp.abs(t[0]), wp.max(wp.abs(t[1]), wp.abs(t[2]))))
-    same = wp.max(wp.abs(dt_[0]), wp.max(wp.abs(dt_[1]), wp.abs(dt_[2]))) <= reach
+    same = wp.max(wp.abs(dp[0]), wp.max(wp.abs(dp[1]), wp.abs(dp[2]))) <= reach
     same = same and wp.max(wp.max(wp.abs(dr[0]), wp.abs(dr[1])), wp.max(wp.abs(dr[2]), wp.abs(dr[3]))) <= MIDPOINT_MATCH
     if same:
         body_q_mid[world, b] = nxt
@@ -515,8 +514,9 @@ def projection_shift(padmm_eta: wp.array(dtype=float), padmm_rho_init: wp.array(
     """Worlds to project: valid ones with bilateral joint rows. Of those, flag for a new factor with
     the shift eta + rho_init on every row all of them when ``always`` (the batch has drive, limit
     or contact rows, or no factor to reuse); otherwise the PADMM factor serves, its joint rows
-    shifted by at most that much (engine.padmm.row_penalty caps their penalty at rho_init). One
-    thread per row; row 0 writes the world's flags."""
+    shifted by eta + rho_init too (engine.padmm.row_penalty: their penalty stays rho_init; with
+    cap_joint_penalty off, eta + the world's rho). One thread per row; row 0 writes the world's
+    flags."""
     world, i = wp.tid()
     project = int(0)
     if valid[world] != 0 and bilateral_row_count[world] > 0:

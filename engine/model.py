@@ -359,9 +359,9 @@ class Workspace:
     a step.
     PADMM vectors (W, R): v_f, lo, hi (preconditioned), x, x_prev, y, y_prev, y_hat, z, z_prev,
     z_hat, rhs, delta; row_shift (W, R): the factored matrix's diagonal shift per row (eta + the
-    row's penalty: engine.padmm.row_penalty); row_free (W, R) int32: the rows whose penalty is
-    capped this step (engine.padmm.row_is_free; 2: a drive that met its bound, to lose the cap at
-    the next penalty update, flagged in demote (W,)). Per world (W,): rho, valid,
+    row's penalty: engine.padmm.row_penalty); row_free (W, R) int32: the rows that keep
+    the initial penalty this step (engine.padmm.row_is_free; 2: a drive that met its bound, to take
+    the world's penalty at the next penalty update, flagged in demote (W,)). Per world (W,): rho, valid,
 
     iterations, residual_primal, residual_dual, converged,
 
@@ -393,7 +393,7 @@ class Workspace:
             setattr(self, name, zeros((w, r)))
         # the dense path keeps P D P and its factor; the matrix-free path needs neither
         self.row_shift = zeros((w, r))  # the factored matrix's diagonal shift per row
-        self.row_free = zeros((w, r), wp.int32)  # rows whose penalty is capped this step (engine.padmm)
+        self.row_free = zeros((w, r), wp.int32)  # rows that keep the initial penalty this step (engine.padmm)
         self.delassus = zeros((w, r, r) if dense else (w, 1, 1))
         self.factor = zeros((w, r, r) if dense else (w, 1, 1))
         self.inner_iterations = zeros(w, wp.int32)
