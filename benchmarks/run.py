@@ -10,7 +10,7 @@ Scenes and settings are data (benchmarks/scenes.py). Per scene:
   memory: the engine's arrays (model, workspace, states) and, on CUDA, the growth of Warp's memory
   pool over the run (graphs and scratch included; the peers' the same way); the scene's variants
   (other settings) at its largest batch;
-- work-precision (linkage scenes, DR Legs hanging): each setting of the sweep (dt, step kernel, linear solver,
+- work-precision (linkage scenes, DR Legs): each setting of the sweep (dt, step kernel, linear solver,
   tolerance, stabilization, integrator) simulates the scene's duration on the precision batch;
   errors: largest loop-closure violation [m] over all worlds and records, energy drift
   |E(t) - E(0)| / (E(0) - E_min) (passive scenes), and trajectory error: largest distance [m] of a
@@ -172,6 +172,13 @@ def trajectory_error(positions: np.ndarray, reference: np.ndarray, sample: np.nd
     return worst
 
 
+def peer_trajectory_error(positions: np.ndarray, reference: np.ndarray, bodies: int) -> float:
+    """Largest body-position distance [m] between a peer's recorded worlds (records, worlds, bodies,
+    3), all of the scene's first mechanism, and the reference's, over the common records."""
+    records = min(len(positions), len(reference))
+    return float(np.linalg.norm(positions[:records, :, :bodies] - reference[:records, :1, :bodies], axis=-1).max())
+
+
 def clean(row: dict) -> dict:
     return {k: v for k, v in row.items() if k not in ("positions", "energy")}
 
@@ -296,9 +303,7 @@ def newton_precision(scene, worlds, dt, duration, record_dt, reference, declared
                 continue
             traj = None
             if reference is not None and row.get("finite", True):
-                records = min(len(row["positions"]), len(reference))
-                traj = float(np.linalg.norm(row["positions"][:records, 0] - reference[:records, 0, :len(names)],
-                                            axis=-1).max())
+                traj = peer_trajectory_error(row["positions"], reference, len(names))
             row.update(kind="precision", label=f"{label}, dt x{scale:g}", trajectory_error_m=traj)
             rows.append(clean(row))
             print(json.dumps(clean(row), default=str), flush=True)
@@ -345,9 +350,7 @@ def peer_precision(specs, scene, worlds, dt, duration, record_dt, reference, arg
         if scene.potential_min is not None:
             available = np.maximum(energy[0] - scene.potential_min[0], 1e-12)
             drift = float((np.abs(energy - energy[0]) / available).max())
-        positions = row["positions"]
-        records = min(len(positions), len(reference))
-        traj = float(np.linalg.norm(positions[:records] - reference[:records, :1, : len(names)], axis=-1).max())
+        traj = peer_trajectory_error(row["positions"], reference, len(names))
         row.update(kind="precision", label=f"MuJoCo Warp {integrator}, dt x{scale:g}", energy_drift_rel=drift,
                    trajectory_error_m=traj, wall_s_per_simulated_s=row["step_ms_median"] * 1e-3 / step_dt)
         rows.append(clean(row))
@@ -450,11 +453,11 @@ def plot(result: dict, path: pathlib.Path) -> None:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
     if result["precision"]:
+        peer_precision_rows = [r for r in result["peers"] if r.get("kind") == "precision"]
+        groups = [("morphopt", result["precision"], "o", "C0")] + [
+            (name, [r for r in peer_precision_rows if str(r.get("engine", "")).startswith(engine)], "s", color)
+            for engine, name, color in (("mujoco_warp", "MuJoCo Warp", "C1"), ("kamino", "Kamino", "C2"))]
         for ax, (key, unit) in zip(axes, errors):
-            peer_precision_rows = [r for r in result["peers"] if r.get("kind") == "precision"]
-            groups = [("morphopt", result["precision"], "o", "C0")] + [
-                (name, [r for r in peer_precision_rows if str(r.get("engine", "")).startswith(engine)], "s", color)
-                for engine, name, color in (("mujoco_warp", "MuJoCo Warp", "C1"), ("kamino", "Kamino", "C2"))]
             for name, rows, marker, color in groups:
                 rows = [r for r in rows if "error" not in r and r.get(key) is not None]
                 for k, r in enumerate(rows):
