@@ -1,12 +1,13 @@
 """What a heterogeneous batch costs against a homogeneous batch of its largest member.
 
     python -m benchmarks.heterogeneity --device cuda [--worlds 4096] [--caps 100 50] [--stall-ratios 0 0.5]
-                                       [--out FILE]
+                                       [--free-rhos 2e-4 1e-3] [--out FILE]
 
 Random walkers (benchmarks.scenes.walkers: Jansen and Klann legs, random geometry, the maximal
 model on the sparse solver) against copies of the default walker (the family's largest topology:
 the same 304 factor rows and schedule as the random Jansen walkers), dt 2 ms, at each PADMM
-iteration cap (SolverConfig.max_iterations) and stall ratio (SolverConfig.stall_ratio, 0: off):
+iteration cap (SolverConfig.max_iterations), stall ratio (SolverConfig.stall_ratio, 0: off) and
+free rows' penalty (SolverConfig.free_rho):
 after --warmup chunks of 10 steps (the walkers settle), the median ms per step over 4 chunks
 replayed as CUDA graphs (engine.rollout.Stepper),
 the mean PADMM iterations over worlds and the largest world's at the end of each timed chunk. The
@@ -26,12 +27,14 @@ import numpy as np
 import warp as wp
 
 
-def run(specs, worlds: int, cap: int, device: str, warmup: int, stall_ratio: float = 0.0) -> dict:
+def run(specs, worlds: int, cap: int, device: str, warmup: int, stall_ratio: float = 0.0,
+        free_rho: float | None = None) -> dict:
     from engine import SolverConfig, pack_worlds
     from engine.rollout import Stepper
 
     model = pack_worlds([specs[w % len(specs)] for w in range(worlds)], device=device, dt=2e-3,
-                        config=SolverConfig(max_iterations=cap, stall_ratio=stall_ratio))
+                        config=SolverConfig(max_iterations=cap, stall_ratio=stall_ratio,
+                                            **({} if free_rho is None else {"free_rho": free_rho})))
     stepper = Stepper(model, model.state(), model.control(), chunk=10)
     for _ in range(warmup):
         stepper.advance()
@@ -52,6 +55,7 @@ def run(specs, worlds: int, cap: int, device: str, warmup: int, stall_ratio: flo
 def main(argv=None) -> int:
     from benchmarks.run import write_rows
     from benchmarks.scenes import walker_default, walkers
+    from engine import SolverConfig
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu")
@@ -59,6 +63,8 @@ def main(argv=None) -> int:
     parser.add_argument("--caps", type=int, nargs="+", default=[100, 50])
     parser.add_argument("--stall-ratios", type=float, nargs="+", default=[0.0],
                         help="SolverConfig.stall_ratio values (0: off), each at every cap")
+    parser.add_argument("--free-rhos", type=float, nargs="+", default=[SolverConfig.free_rho],
+                        help="SolverConfig.free_rho values, each at every cap and stall ratio")
     parser.add_argument("--warmup", type=int, default=20, help="chunks of 10 steps before timing")
     parser.add_argument("--out", default=None, help="JSON file for the results")
     args = parser.parse_args(argv)
@@ -66,18 +72,22 @@ def main(argv=None) -> int:
         parser.error("--worlds and --caps must be >= 1, --warmup >= 0")
     if not all(0.0 <= r < 1.0 for r in args.stall_ratios):
         parser.error("--stall-ratios must lie in [0, 1)")
+    if min(args.free_rhos) <= 0.0:
+        parser.error("--free-rhos must be > 0")
     wp.config.log_level = wp.LOG_WARNING
     batches = {"random": walkers().specs, "default": walker_default().specs}
     rows = []
-    for stall in args.stall_ratios:
-        for cap in args.caps:
-            pair = [{"batch": name, "max_iterations": cap, "stall_ratio": stall, "num_worlds": args.worlds,
-                     **run(specs, args.worlds, cap, args.device, args.warmup, stall)}
-                    for name, specs in batches.items()]
-            pair[0]["ratio_to_default"] = pair[0]["step_ms"] / pair[1]["step_ms"]
-            rows += pair
-            for row in pair:
-                print(json.dumps(row), flush=True)
+    for free_rho in args.free_rhos:
+        for stall in args.stall_ratios:
+            for cap in args.caps:
+                pair = [{"batch": name, "max_iterations": cap, "stall_ratio": stall, "free_rho": free_rho,
+                         "num_worlds": args.worlds, **run(specs, args.worlds, cap, args.device, args.warmup, stall,
+                                                          free_rho)}
+                        for name, specs in batches.items()]
+                pair[0]["ratio_to_default"] = pair[0]["step_ms"] / pair[1]["step_ms"]
+                rows += pair
+                for row in pair:
+                    print(json.dumps(row), flush=True)
     if args.out:
         write_rows(args.out, args.device, "benchmarks.heterogeneity", argv, rows)
     return 0

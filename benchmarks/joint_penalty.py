@@ -1,10 +1,11 @@
-"""Joint-row penalty cap on and off, same run: DR Legs standing and hanging.
+"""Free rows' own penalty on (at each --free-rhos value) and off, same run: DR Legs standing and hanging.
 
     python benchmarks/joint_penalty.py --device cuda --worlds 4096 --assets DIR --out benchmarks/results/h100
-    python benchmarks/joint_penalty.py --device cpu --worlds 4 --out benchmarks/results/cpu
+    python benchmarks/joint_penalty.py --device cpu --worlds 4 --free-rhos 2e-4 1e-3 --out benchmarks/results/cpu
 
-SolverConfig.cap_joint_penalty keeps the ADMM penalty of the bilateral joint rows at or below the
-initial rho (engine.padmm.row_penalty); off, every row takes the world's rho. For each scene and
+SolverConfig.cap_joint_penalty gives the free rows (bilateral joint rows, drive rows inside their
+limits) the fixed ADMM penalty SolverConfig.free_rho (engine.padmm.row_penalty); off, every row
+takes the world's rho. For each scene and
 setting: median time per step (steps 10 to --steps, CUDA graphs of 10 on a GPU), PADMM iterations
 per step, the share of steps that stop at the iteration cap, and the largest joint separation.
 Prints one JSON object per row and writes joint_penalty_<device>.json and .csv. Random walkers:
@@ -39,22 +40,27 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=70)
     parser.add_argument("--dt", type=float, default=1e-2)
     parser.add_argument("--assets", default=None, help="folder holding disneyresearch/dr_legs")
+    parser.add_argument("--free-rhos", type=float, nargs="+", default=[SolverConfig.free_rho],
+                        help="SolverConfig.free_rho values to run with the penalty on")
     parser.add_argument("--out", default=".")
     args = parser.parse_args(argv)
     if args.worlds < 1 or args.steps < 20:
         parser.error("--worlds must be >= 1 and --steps >= 20")
+    if min(args.free_rhos) <= 0.0:
+        parser.error("--free-rhos must be > 0")
     wp.config.quiet = True
     wp.config.log_level = wp.LOG_WARNING
     device_name = wp.get_device(args.device).name if args.device != "cpu" else "cpu"
     rows = []
     for standing in (True, False):
         scene = dr_legs(standing, args.assets)
-        for cap in (True, False):
+        for cap, free_rho in [(True, value) for value in args.free_rhos] + [(False, None)]:
+            config = SolverConfig(cap_joint_penalty=cap, **({} if free_rho is None else {"free_rho": free_rho}))
             result = clean(engine_run(scene.specs, args.worlds, args.dt, args.steps, 10,
-                                      SolverConfig(cap_joint_penalty=cap), args.device, np.arange(1), None))
+                                      config, args.device, np.arange(1), None))
             row = {"scene": "drlegs_standing" if standing else "drlegs_hanging", "cap_joint_penalty": cap,
-                   "device": device_name, "warp": wp.config.version, "worlds": args.worlds, "steps": args.steps,
-                   "dt": args.dt, **{k: result.get(k) for k in KEYS}}
+                   "free_rho": free_rho, "device": device_name, "warp": wp.config.version, "worlds": args.worlds,
+                   "steps": args.steps, "dt": args.dt, **{k: result.get(k) for k in KEYS}}
             rows.append(row)
             print(json.dumps(row), flush=True)
     out = pathlib.Path(args.out)

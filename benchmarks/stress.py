@@ -385,9 +385,9 @@ def mass_ratio_chain(links: int, ratio: float) -> MechanismSpec:
 # 1000 kg links set, so a 0.1 kg link's rows count as converged after one iteration and its joints
 # drift (50 links, 1:10000, default tolerances: 6e-4 m on the H100). The joint rows share the
 # world's penalty (cap_joint_penalty off), which falls to where the soft modes of a 1:10000 chain
-# converge: with the default, their penalty stays at rho_init (1e-3), and the 50-link chain took
-# 160 iterations per step (cap 200) and opened its joints 3.7e-4 m (CPU; benchmarks/results/
-# README.md, "Stress suite at full size, re-run")
+# converge: with their own fixed penalty the 50-link chain took 89 iterations per step (at most 189,
+# cap 200) and opened its joints 7.6e-5 m at free_rho 2e-4, 160 iterations and 3.7e-4 m at 1e-3
+# (CPU; benchmarks/results/README.md, "The free rows' penalty lowered to 2e-4")
 S5_CONFIG = SolverConfig(tolerance=1e-8, relative_tolerance=1e-8, max_iterations=200, stall_ratio=0.0,
                          cap_joint_penalty=False)
 

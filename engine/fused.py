@@ -56,6 +56,7 @@ from engine.integrate import (
     guard_divergence_of,
     integrate_pose_of,
     midpoint_pose_of,
+    projection_penalty,
     move_body_of,
 )
 from engine.joints import JOINT_PARTS, joint_residuals_of, joint_rows_of
@@ -727,8 +728,8 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         project = int(0)
         if position_iterations > 0 and valid != 0 and m.bilateral_row_count[world] > 0:
             project = 1
-        target = eta + m.padmm_rho_init[world]
-        # the PADMM factor's joint rows carry this shift (their penalty stays rho_init): reused
+        target = eta + projection_penalty(m.padmm_rho_init[world], m.padmm_rho_free[world])
+        # the PADMM factor's joint rows carry this shift (their penalty stays free_rho): reused
         # unless other rows need taking out of the matrix
         refactor = project != 0 and mask_projection != 0
         block_sync()  # cholesky_lanes is entered after a barrier

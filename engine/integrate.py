@@ -506,17 +506,27 @@ def bilateral_block(row_kind: wp.array2d(dtype=wp.int32), row_count: wp.array(dt
         delassus[world, i, j] = value
 
 
+@wp.func
+def projection_penalty(rho_init: float, rho_free: float):
+    """The penalty part of the shift of a projection factor's joint rows: the free rows' penalty
+    (engine.padmm.row_penalty), or the initial rho where they take the world's."""
+    if rho_free > 0.0:
+        return rho_free
+    return rho_init
+
+
 @wp.kernel
 def projection_shift(padmm_eta: wp.array(dtype=float), padmm_rho_init: wp.array(dtype=float),
+                     padmm_rho_free: wp.array(dtype=float),
                      bilateral_row_count: wp.array(dtype=wp.int32), valid: wp.array(dtype=wp.int32), always: int,
                      needs_factor: wp.array(dtype=wp.int32), project_out: wp.array(dtype=wp.int32),
                      row_shift_out: wp.array2d(dtype=float)):
     """Worlds to project: valid ones with bilateral joint rows. Of those, flag for a new factor with
-    the shift eta + rho_init on every row all of them when ``always`` (the batch has drive, limit
-    or contact rows, or no factor to reuse); otherwise the PADMM factor serves, its joint rows
-    shifted by eta + rho_init too (engine.padmm.row_penalty: their penalty stays rho_init; with
-    cap_joint_penalty off, eta + the world's rho). One thread per row; row 0 writes the world's
-    flags."""
+    the shift eta + rho_free (SolverConfig.free_rho; rho_init with cap_joint_penalty off) on every
+    row all of them when ``always`` (the batch has drive, limit or contact rows, or no factor to
+    reuse); otherwise the PADMM factor serves, its joint rows shifted by eta + rho_free too
+    (engine.padmm.row_penalty: their penalty stays rho_free; with cap_joint_penalty off, eta + the
+    world's rho). One thread per row; row 0 writes the world's flags."""
     world, i = wp.tid()
     project = int(0)
     if valid[world] != 0 and bilateral_row_count[world] > 0:
@@ -524,7 +534,7 @@ def projection_shift(padmm_eta: wp.array(dtype=float), padmm_rho_init: wp.array(
     flag = int(0)
     if project != 0 and always != 0:
         flag = 1
-        row_shift_out[world, i] = padmm_eta[world] + padmm_rho_init[world]
+        row_shift_out[world, i] = padmm_eta[world] + projection_penalty(padmm_rho_init[world], padmm_rho_free[world])
     if i == 0:
         needs_factor[world] = flag
         project_out[world] = project
@@ -561,7 +571,8 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
             wp.launch(bilateral_block, dim=(model.num_worlds, model.max_rows, model.max_rows), device=device,
                       inputs=[model.row_kind, work.row_count, work.delassus])
         wp.launch(projection_shift, dim=grid_rows, device=device,
-                  inputs=[model.padmm_eta, model.padmm_rho_init, model.bilateral_row_count, work.valid,
+                  inputs=[model.padmm_eta, model.padmm_rho_init, model.padmm_rho_free, model.bilateral_row_count,
+                          work.valid,
                           int(model.has_unilateral_or_drive_rows or not direct)],
                   outputs=[work.needs_factor, work.project, work.row_shift])
         if dense:

@@ -60,7 +60,7 @@ class SolverConfig:
         eta: proximal weight (> 0; regularizes redundant constraints).
         rho: initial ADMM penalty.
         adaptive_rho: rescale rho (and refactor) when primal and dual residuals are unbalanced.
-        cap_joint_penalty: keep the ADMM penalty of the free rows at the initial rho: the bilateral
+        cap_joint_penalty: give the free rows their own fixed ADMM penalty, free_rho: the bilateral
             joint rows, and the drive rows whose warm start lies within half of their effort
             limits (a drive that meets its limit during the step takes the world's penalty again,
             with a new factor). Their projection is the identity, so the penalty only slowed them:
@@ -68,6 +68,14 @@ class SolverConfig:
             converged at rho / (lambda + rho) per iteration; and a penalty driven down to RHO_MIN
             (their primal residual is zero) leaves the factor of redundant joint rows too little
             shift for float32. Off: one rho for all rows.
+        free_rho: the free rows' penalty (cap_joint_penalty on); eta + free_rho is also the shift
+            of the joint rows in the position projection's factor. Their soft modes (eigenvalue
+            lambda of the preconditioned Delassus matrix) shrink by free_rho / (lambda + free_rho)
+            per iteration, and the projection's Gauss-Newton steps are damped by as much; a
+            smaller shift costs float32 digits in the factor of redundant rows. At 2e-4 instead of
+            the initial rho (1e-3): a 10-link 1:10000 chain (benchmarks.stress S5, tolerance 1e-8)
+            needs 31 instead of 66 iterations per step and opens 7e-6 instead of 2.2e-5 m; the
+            IFToMM N = 40 four-bar (S3, 20 s) ends 4.9e-5 instead of 8.7e-4 m off its exact motion.
         rho_update_interval: iterations between penalty updates.
         stall_ratio: 0 (default) or a ratio in (0, 1): a world whose largest residual (primal or
             dual) did not fall below stall_ratio times its value STALL_WINDOW iterations earlier
@@ -140,7 +148,7 @@ class SolverConfig:
             compensation (State.body_q_low, body_qd_low: engine.integrate) and the joint errors
             the projection corrects in float64 (engine.joints.joint_frames). Off: plain float32
             sums, about 10 % faster fused steps, a state that walks by the float32 grid of its
-            values (a crank turning over for 10 s at dt 1 ms: 2.8e-3 instead of 2.3e-4 m from its
+            values (a crank turning over for 10 s at dt 1 ms: 3.7e-3 instead of 2.3e-4 m from its
             exact motion; the IFToMM N = 20 four-bar through two flat passes in 3 s: 2.8e-4 instead
             of 1.3e-5 m).
     """
@@ -153,6 +161,7 @@ class SolverConfig:
     rho: float = 1.0e-3
     adaptive_rho: bool = True
     cap_joint_penalty: bool = True
+    free_rho: float = 2.0e-4
 
     rho_update_interval: int = 4
     stall_ratio: float = 0.0
@@ -202,6 +211,7 @@ class SolverConfig:
             "relative_tolerance": self.relative_tolerance >= 0.0,
             "eta": self.eta > 0.0,
             "rho": self.rho > 0.0,
+            "free_rho": self.free_rho > 0.0,
             "rho_update_interval": self.rho_update_interval >= 1,
             "stall_ratio": 0.0 <= self.stall_ratio < 1.0,
             "warmstart_decay": 0.0 <= self.warmstart_decay < 1.0,
@@ -239,7 +249,8 @@ class Model:
         world_gravity (W,) vec3 [m/s^2]; world_dt (W,) [s]
         point_body (W, P) int32; point_local (W, P) vec3 in the COM frame [m]
         padmm_eta, padmm_rho_init, padmm_tolerance (W,) float32; padmm_rho_free (W,): the ADMM
-        penalty of the free rows, 0 where they take the world's (engine.padmm.row_penalty)
+        penalty of the free rows (SolverConfig.free_rho), 0 where they take the world's
+        (engine.padmm.row_penalty)
         joint_limit_lower, joint_limit_upper (W, J) [rad]/[m]; joint_limit_lower_row,
         joint_limit_upper_row (W, J) int32, -1 when none
         shape_count (W,); shape_type, shape_body (W, S) int32; shape_X (W, S) transform in the

@@ -226,7 +226,7 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         "world_gravity": np.zeros((W, 3), f32), "world_dt": np.full(W, dt, f32),
         "point_body": np.zeros((W, P), np.int32), "point_local": np.zeros((W, P, 3), f32),
         "padmm_eta": np.full(W, config.eta, f32), "padmm_rho_init": np.full(W, config.rho, f32),
-        "padmm_rho_free": np.full(W, config.rho if config.cap_joint_penalty else 0.0, f32),
+        "padmm_rho_free": np.full(W, config.free_rho if config.cap_joint_penalty else 0.0, f32),
         "padmm_tolerance": np.full(W, config.tolerance, f32),
         "joint_limit_lower": np.full((W, J), -1.0e30, f32), "joint_limit_upper": np.full((W, J), 1.0e30, f32),
         "joint_limit_lower_row": np.full((W, J), -1, np.int32), "joint_limit_upper_row": np.full((W, J), -1, np.int32),

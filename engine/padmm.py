@@ -2,7 +2,7 @@
 
 In preconditioned variables (engine.dynamics), with proximal weight eta, penalty rho_i per row
 (row_penalty: the world's rho, except on the free rows of this step, those whose bounds are out
-of play, which keep the initial rho) and the factor L L^T = P D P + diag(eta + rho_i), each iteration of
+of play, which keep SolverConfig.free_rho) and the factor L L^T = P D P + diag(eta + rho_i), each iteration of
 an active world does (rho standing for each row's rho_i)
     padmm_rhs:        rhs = -v_f - s + eta x + rho y_hat + z_hat, with the De Saxce correction
                       s = mu |z_hat_t| on contact normal rows
@@ -44,7 +44,7 @@ def row_penalty(free: int, rho: float, rho_free: float):
     """The ADMM penalty of one row: the world's rho, except on free rows (padmm_warmstart's row_free:
     bilateral joint rows, and drive rows whose warm start lies well inside their effort limits),
     whose projection is the identity (y = x, z = 0): they need only the proximal pull, so they keep
-    rho_free, the initial penalty (0 with SolverConfig.cap_joint_penalty off: the world's rho).
+    rho_free (SolverConfig.free_rho; 0 with cap_joint_penalty off: the world's rho).
     Above it, the large rho that contacts and saturated drives ask for would turn them into a slow
     proximal-point iteration, whose soft modes (eigenvalue lambda of the Delassus matrix) shrink
     only by rho / (lambda + rho) per iteration. Below it, the factor of a mechanism with redundant
