@@ -149,8 +149,10 @@ def mujoco_reference(specs, *, duration: float, record_dt: float, dt: float) -> 
 
     from morphopt.formats.mjcf import mjcf_string
 
+    from benchmarks.scenes import steps_per_record
+
     records = round(duration / record_dt) + 1
-    every = round(record_dt / dt)
+    every = steps_per_record(record_dt, dt)
     out = np.zeros((records, len(specs), max(len(s.bodies) for s in specs), 3))
     for k, spec in enumerate(specs):
         model = mujoco.MjModel.from_xml_string(mjcf_string(spec, timestep=dt, integrator="RK4"))

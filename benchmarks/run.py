@@ -39,7 +39,7 @@ import time
 import numpy as np
 import warp as wp
 
-from benchmarks.scenes import SCENES_DECLARED, Declared
+from benchmarks.scenes import SCENES_DECLARED, Declared, steps_per_record
 from engine import SolverConfig, compute_metrics, pack_worlds
 from engine.rollout import Stepper
 
@@ -215,8 +215,10 @@ def run_scene(name: str, declared: Declared, args) -> dict:
         peer_reason = available()
     if declared.duration > 0 and "precision" in args.parts:
         duration = 0.2 if quick else declared.duration
-        # quick: records every 10 ms, or the scene's own interval where its sweep steps are longer
-        record_dt = max(0.01, dt * max(x["dt_scale"] for x in declared.sweep[:5])) if quick else declared.record_dt
+        # quick: records about every 10 ms, on a multiple of the longest step of its sweep (the step
+        # sizes are dt times powers of two, so the others divide it too)
+        longest = dt * max(x["dt_scale"] for x in declared.sweep[:5])
+        record_dt = longest * max(1, round(0.01 / longest)) if quick else declared.record_dt
         worlds = 8 if quick else declared.precision_worlds
         sample = np.arange(min(worlds, 2 * len(specs)))
         reference = None  # a scene without a trustworthy reference reports loop error and run time only
@@ -227,8 +229,8 @@ def run_scene(name: str, declared: Declared, args) -> dict:
             step_dt = dt * setting["dt_scale"]
             try:
                 config = SolverConfig(**setting.get("config", {}))
-                row = engine_run(specs, worlds, step_dt, round(duration / step_dt), round(record_dt / step_dt), config,
-                                 args.device, sample, scene.potential_min)
+                row = engine_run(specs, worlds, step_dt, round(duration / step_dt),
+                                 steps_per_record(record_dt, step_dt), config, args.device, sample, scene.potential_min)
             except ValueError as exc:  # e.g. a setting this batch cannot take
                 result["precision"].append({"label": setting["label"], "error": str(exc)})
                 continue
@@ -294,7 +296,8 @@ def newton_precision(scene, worlds, dt, duration, record_dt, reference, declared
             step_dt = dt * scale
             try:
                 row = newton_drlegs_run(scene.usd, standing=scene.standing, solver=solver, worlds=worlds, dt=step_dt,
-                                        steps=round(duration / step_dt), record_every=round(record_dt / step_dt),
+                                        steps=round(duration / step_dt),
+                                        record_every=steps_per_record(record_dt, step_dt),
                                         device=args.device, joints=joints, record_bodies=names)
             except Exception as exc:  # noqa: BLE001  (a peer failing is a result, not a crash of the benchmark)
                 rows.append({"engine": "kamino" if solver == "kamino" else "mujoco_warp", "kind": "precision",
@@ -325,9 +328,14 @@ def reference_run(specs, scene, duration, record_dt, dt, declared, args):
     except ImportError:
         ref_dt = dt / 10
         ref = declared.reference
-        row = engine_run(specs, len(specs), ref_dt, round(duration / ref_dt), round(record_dt / ref_dt),
+        row = engine_run(specs, len(specs), ref_dt, round(duration / ref_dt), steps_per_record(record_dt, ref_dt),
                          SolverConfig(**ref["config"]), args.device, np.arange(len(specs)), scene.potential_min)
         return row["positions"], {**clean(row), "engine": "morphopt (float32)", "settings": ref["config"]}
+
+
+# MuJoCo Warp's work-precision points on scenes built from our MJCF export: integrator, multiple of dt
+MUJOCO_WARP_POINTS = (("Euler", 0.5), ("Euler", 1.0), ("Euler", 2.0), ("Euler", 4.0), ("RK4", 1.0), ("RK4", 2.0),
+                      ("RK4", 4.0))
 
 
 def peer_precision(specs, scene, worlds, dt, duration, record_dt, reference, args) -> list:
@@ -336,11 +344,12 @@ def peer_precision(specs, scene, worlds, dt, duration, record_dt, reference, arg
     rows = []
     spec = specs[0]
     names = [b.name for b in spec.bodies]
-    for integrator, scale in (("Euler", 0.5), ("Euler", 1.0), ("Euler", 2.0), ("RK4", 1.0), ("RK4", 2.0)):
+    for integrator, scale in MUJOCO_WARP_POINTS:
         step_dt = dt * scale
         try:
             row = mujoco_warp_run(spec, worlds=worlds, dt=step_dt, steps=round(duration / step_dt),
-                                  record_every=round(record_dt / step_dt), integrator=integrator, device=args.device,
+                                  record_every=steps_per_record(record_dt, step_dt), integrator=integrator,
+                                  device=args.device,
                                   body_names=names)
         except Exception as exc:  # noqa: BLE001  (a peer failing is a result, not a crash of the benchmark)
             rows.append({"engine": "mujoco_warp", "integrator": integrator, "dt": step_dt, "error": repr(exc)})

@@ -358,3 +358,31 @@ def test_dr_legs_sweep_steps_land_on_every_record():
         dt = declared.dt * scale
         for span in (declared.record_dt, declared.duration):
             assert abs(span / dt - round(span / dt)) < 1e-9 and round(span / dt) >= 1, (scale, span)
+
+
+def test_records_fall_on_steps_of_every_sweep_point_and_peer():
+    """A record interval that is not a whole number of steps is refused (rounding it took records
+    every 48 ms against a reference every 50 ms); every declared scene's records, full and quick,
+    fall on steps of each of its sweep's step sizes and of its peers'."""
+    from benchmarks.run import MUJOCO_WARP_POINTS
+    from benchmarks.scenes import SCENES_DECLARED, steps_per_record
+
+    assert steps_per_record(0.04, 0.004) == 10 and steps_per_record(0.04, 5e-5) == 800
+    with pytest.raises(ValueError, match="0.05 s do not fall on steps of 0.004 s"):
+        steps_per_record(0.05, 0.004)
+    checked = 0
+    for name, declared in SCENES_DECLARED.items():
+        if declared.duration <= 0:
+            continue
+        scales = [x["dt_scale"] for x in declared.sweep] + [0.05, 0.1]  # the references: dt / 20, dt / 10
+        scales += [scale for values in declared.peer_dt_scales.values() for scale in values]
+        if declared.peers and not declared.peer_dt_scales:
+            scales += [scale for _, scale in MUJOCO_WARP_POINTS]
+        longest = declared.dt * max(x["dt_scale"] for x in declared.sweep[:5])
+        quick = longest * max(1, round(0.01 / longest))
+        for record_dt, duration in ((declared.record_dt, declared.duration), (quick, 0.2)):
+            assert steps_per_record(duration, record_dt) >= 1, name
+            for scale in scales:
+                assert steps_per_record(record_dt, declared.dt * scale) >= 1
+                checked += 1
+    assert checked > 40
