@@ -1,6 +1,6 @@
 """DR Legs standing over a long run with and without the warm-start decay (SolverConfig.warmstart_decay).
 
-    python -m benchmarks.warmstart_decay --device cuda --worlds 4096 --assets DIR
+    python -m benchmarks.warmstart_decay --device cuda --worlds 4096 --assets DIR [--free-rho 1e-3]
 
 Over-constrained loops leave impulse components that move nothing; a full warm start lets them
 grow step after step, and the PADMM iterations grow with them. The throughput benchmark's 70 steps
@@ -27,6 +27,7 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=400, help="a multiple of 10, at least 110")
     parser.add_argument("--assets", default=None, help="folder holding disneyresearch/dr_legs")
     parser.add_argument("--decays", type=float, nargs="+", default=[0.0, 0.05])
+    parser.add_argument("--free-rho", type=float, default=None, help="SolverConfig.free_rho (default: its default)")
     args = parser.parse_args(argv)
     if args.steps < 110 or args.steps % 10:
         parser.error(f"--steps: expected a multiple of 10 of at least 110, got {args.steps}")
@@ -36,9 +37,10 @@ def main(argv=None) -> int:
     from engine.rollout import Stepper
 
     spec = dr_legs(True, args.assets).specs[0]
+    extra = {} if args.free_rho is None else {"free_rho": args.free_rho}
     for decay in args.decays:
         model = pack_worlds([spec] * args.worlds, device=args.device, dt=1e-2,
-                            config=SolverConfig(warmstart_decay=decay))
+                            config=SolverConfig(warmstart_decay=decay, **extra))
         stepper = Stepper(model, model.state(), model.control(), chunk=10)
         rows = []
         for _ in range(args.steps // 10):
@@ -51,7 +53,8 @@ def main(argv=None) -> int:
         r = np.array(rows[1:])  # the first chunk compiles and captures
         print(json.dumps({
             "scene": "drlegs_standing", "device": wp.get_device(args.device).name, "worlds": args.worlds,
-            "warmstart_decay": decay, "ms_per_step_steps_10_100": float(np.median(r[:9, 0])),
+            "warmstart_decay": decay, "free_rho": SolverConfig(**extra).free_rho,
+            "ms_per_step_steps_10_100": float(np.median(r[:9, 0])),
             "ms_per_step_steps_100_end": float(np.median(r[9:, 0])), "iterations_steps_10_100": float(r[:9, 1].mean()),
             "iterations_steps_100_end": float(r[9:, 1].mean()), "impulse_max": float(r[:, 2].max()),
             "diverged_worlds": int(model.work.diverged.numpy().sum())}), flush=True)
