@@ -1,7 +1,7 @@
 """What a heterogeneous batch costs against a homogeneous batch of its largest member.
 
     python -m benchmarks.heterogeneity --device cuda [--worlds 4096] [--caps 100 50] [--stall-ratios 0 0.5]
-                                       [--free-rhos 2e-4 1e-3] [--out FILE]
+                                       [--free-rhos 2e-4 1e-3] [--model maximal|reduced] [--out FILE]
 
 Random walkers (benchmarks.scenes.walkers: Jansen and Klann legs, random geometry, the maximal
 model on the sparse solver) against copies of the default walker (the family's largest topology:
@@ -13,6 +13,10 @@ replayed as CUDA graphs (engine.rollout.Stepper),
 the mean PADMM iterations over worlds and the largest world's at the end of each timed chunk. The
 captured PADMM loop runs until the batch's slowest world stops, so the ratio follows the largest
 world's iterations, not the mean. Prints one JSON line per run and writes them to --out.
+
+--model reduced: the same designs in reduced coordinates (engine.legged, as the walker study runs
+them: studies/walker.toml's dt and [solver] settings, the cap from --caps), where each world
+iterates inside its own warp (or thread) and a slow world holds up only its own lanes.
 """
 
 import argparse
@@ -52,6 +56,61 @@ def run(specs, worlds: int, cap: int, device: str, warmup: int, stall_ratio: flo
             "iterations_largest_world": largest, "patterns": len(model.sparse_analyses or [])}
 
 
+def run_reduced(specs, worlds: int, cap: int, device: str, warmup: int) -> dict:
+    """run() for engine.legged worlds, with the walker study's dt and solver settings."""
+    import dataclasses
+    import pathlib
+
+    from engine.legged import legged_step_batch, pack_legged
+    from morphopt.study_spec import load_study_spec
+
+    study = load_study_spec(pathlib.Path(__file__).resolve().parents[1] / "studies" / "walker.toml")
+    config = dataclasses.replace(study.solver_config(), max_iterations=cap)
+    model = pack_legged([specs[w % len(specs)] for w in range(worlds)], device=device, dt=study.dt, config=config)
+    legged_step_batch(model, 1)  # compile outside the capture
+    graph = None
+    if model.device.is_cuda:
+        with wp.ScopedCapture(device=model.device) as capture:
+            legged_step_batch(model, 10)
+        graph = capture.graph
+
+    def advance():
+        if graph is not None:
+            wp.capture_launch(graph)
+        else:
+            legged_step_batch(model, 10)
+
+    for _ in range(warmup):
+        advance()
+    times, largest, mean = [], [], []
+    for _ in range(4):
+        wp.synchronize_device(model.device)
+        t0 = time.perf_counter()
+        advance()
+        wp.synchronize_device(model.device)
+        times.append((time.perf_counter() - t0) / 10 * 1e3)
+        iterations = model.iterations.numpy()
+        largest.append(int(iterations.max()))
+        mean.append(float(iterations.mean()))
+    return {"step_ms": float(np.median(times)), "iterations_mean": float(np.mean(mean)),
+            "iterations_largest_world": largest, "dt": study.dt, "tiled": bool(model.tiled)}
+
+
+def reduced_batches() -> dict:
+    """The benchmark's random walkers and the default walker as engine.legged specs."""
+    from morphopt.families import load_family
+
+    family = load_family("walker")
+    random_specs = []
+    for params in family.space.sample(np.random.default_rng(1), 64):  # the designs of benchmarks.scenes.walkers
+        try:
+            random_specs.append(family.build_legged(family.space.validate({**params, "legs_per_side": 3})))
+        except ValueError:
+            continue
+    default = family.build_legged(family.space.validate({**family.space.default(), "legs_per_side": 3}))
+    return {"random": random_specs, "default": [default]}
+
+
 def main(argv=None) -> int:
     from benchmarks.run import write_rows
     from benchmarks.scenes import walker_default, walkers
@@ -65,6 +124,8 @@ def main(argv=None) -> int:
                         help="SolverConfig.stall_ratio values (0: off), each at every cap")
     parser.add_argument("--free-rhos", type=float, nargs="+", default=[SolverConfig.free_rho],
                         help="SolverConfig.free_rho values, each at every cap and stall ratio")
+    parser.add_argument("--model", choices=["maximal", "reduced"], default="maximal",
+                        help="maximal coordinates (the sparse solver) or engine.legged's reduced ones")
     parser.add_argument("--warmup", type=int, default=20, help="chunks of 10 steps before timing")
     parser.add_argument("--out", default=None, help="JSON file for the results")
     args = parser.parse_args(argv)
@@ -75,8 +136,20 @@ def main(argv=None) -> int:
     if min(args.free_rhos) <= 0.0:
         parser.error("--free-rhos must be > 0")
     wp.config.log_level = wp.LOG_WARNING
-    batches = {"random": walkers().specs, "default": walker_default().specs}
     rows = []
+    if args.model == "reduced":  # no joint rows: the stall ratio and the free rows' penalty do not apply
+        for cap in args.caps:
+            pair = [{"batch": name, "model": "reduced", "max_iterations": cap, "num_worlds": args.worlds,
+                     **run_reduced(specs, args.worlds, cap, args.device, args.warmup)}
+                    for name, specs in reduced_batches().items()]
+            pair[0]["ratio_to_default"] = pair[0]["step_ms"] / pair[1]["step_ms"]
+            rows += pair
+            for row in pair:
+                print(json.dumps(row), flush=True)
+        if args.out:
+            write_rows(args.out, args.device, "benchmarks.heterogeneity", argv, rows)
+        return 0
+    batches = {"random": walkers().specs, "default": walker_default().specs}
     for free_rho in args.free_rhos:
         for stall in args.stall_ratios:
             for cap in args.caps:

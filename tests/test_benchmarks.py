@@ -1,6 +1,7 @@
 """The walker benchmarks run end to end at tiny sizes and report what they promise."""
 
 import json
+import pathlib
 
 import numpy as np
 import pytest
@@ -284,6 +285,25 @@ def test_heterogeneity_times_both_batches_at_each_cap(tmp_path, capsys):
     assert "ratio_to_default" in random_walkers and "ratio_to_default" not in default
     assert random_walkers["iterations_mean"] > 0 and default["iterations_mean"] > 0
     assert len(capsys.readouterr().out.strip().splitlines()) == 2
+
+
+def test_heterogeneity_runs_the_reduced_walkers(tmp_path):
+    """benchmarks.heterogeneity --model reduced: the same random designs and the default walker in
+    engine.legged's coordinates, with the walker study's dt; the largest world's iterations within
+    the cap, finite times and the ratio on the random batch's row."""
+    from benchmarks import heterogeneity
+
+    out = tmp_path / "hetero_reduced.json"
+    assert heterogeneity.main(["--device", "cpu", "--worlds", "4", "--caps", "12", "--warmup", "1",
+                               "--model", "reduced", "--out", str(out)]) == 0
+    rows = json.loads(out.read_text())["results"]
+    assert [(r["batch"], r["model"]) for r in rows] == [("random", "reduced"), ("default", "reduced")]
+    assert all(r["step_ms"] > 0 and 0 < max(r["iterations_largest_world"]) <= 12 for r in rows)
+    assert rows[0]["ratio_to_default"] == pytest.approx(rows[0]["step_ms"] / rows[1]["step_ms"])
+    from morphopt.study_spec import load_study_spec
+
+    study = load_study_spec(pathlib.Path(heterogeneity.__file__).resolve().parents[1] / "studies" / "walker.toml")
+    assert all(r["dt"] == study.dt for r in rows)
 
 
 def test_newton_peer_matches_our_bodies_by_name_in_world_zero():
