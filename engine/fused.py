@@ -56,8 +56,8 @@ from engine.integrate import (
     guard_divergence_of,
     integrate_pose_of,
     midpoint_pose_of,
-    projection_penalty,
     move_body_of,
+    projection_penalty,
 )
 from engine.joints import JOINT_PARTS, joint_residuals_of, joint_rows_of
 from engine.linear import block_sync
