@@ -47,6 +47,7 @@ SETTINGS = {
     "dt 3 ms, rho interval 8": (0.003, {"rho_update_interval": 8}),
     "dt 3 ms, rho interval 8, cap 50": (0.003, {"rho_update_interval": 8, "max_iterations": 50}),
     "joint penalty uncapped": (0.002, {"cap_joint_penalty": False}),
+    "free rho 1e-3": (0.002, {"free_rho": 1e-3}),
 }
 
 
