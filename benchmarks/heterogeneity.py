@@ -16,7 +16,8 @@ world's iterations, not the mean. Prints one JSON line per run and writes them t
 
 --model reduced: the same designs in reduced coordinates (engine.legged, as the walker study runs
 them: studies/walker.toml's dt and [solver] settings, the cap from --caps), where each world
-iterates inside its own warp (or thread) and a slow world holds up only its own lanes.
+iterates inside its own warp (a thread above engine.legged.TILED_MAX_WORLDS worlds, where a slow
+world holds up the 32 worlds of its warp) instead of in a loop shared by the whole batch.
 """
 
 import argparse
@@ -53,7 +54,8 @@ def run(specs, worlds: int, cap: int, device: str, warmup: int, stall_ratio: flo
         largest.append(int(iterations.max()))
         mean.append(float(iterations.mean()))
     return {"step_ms": float(np.median(times)), "iterations_mean": float(np.mean(mean)),
-            "iterations_largest_world": largest, "patterns": len(model.sparse_analyses or [])}
+            "iterations_largest_world": largest, "patterns": len(model.sparse_analyses or []),
+            "free_rho_used": float(model.padmm_rho_free.numpy()[0])}
 
 
 def run_reduced(specs, worlds: int, cap: int, device: str, warmup: int) -> dict:
@@ -61,11 +63,12 @@ def run_reduced(specs, worlds: int, cap: int, device: str, warmup: int) -> dict:
     import dataclasses
     import pathlib
 
+    from engine import SolverConfig
     from engine.legged import legged_step_batch, pack_legged
     from morphopt.study_spec import load_study_spec
 
     study = load_study_spec(pathlib.Path(__file__).resolve().parents[1] / "studies" / "walker.toml")
-    config = dataclasses.replace(study.solver_config(), max_iterations=cap)
+    config = dataclasses.replace(study.solver_config() or SolverConfig(), max_iterations=cap)
     model = pack_legged([specs[w % len(specs)] for w in range(worlds)], device=device, dt=study.dt, config=config)
     legged_step_batch(model, 1)  # compile outside the capture
     graph = None
@@ -97,16 +100,20 @@ def run_reduced(specs, worlds: int, cap: int, device: str, warmup: int) -> dict:
 
 
 def reduced_batches() -> dict:
-    """The benchmark's random walkers and the default walker as engine.legged specs."""
+    """The benchmark's random walkers (benchmarks.scenes.walker_params) and the default walker as
+    engine.legged specs."""
+    from benchmarks.scenes import walker_params
     from morphopt.families import load_family
 
     family = load_family("walker")
     random_specs = []
-    for params in family.space.sample(np.random.default_rng(1), 64):  # the designs of benchmarks.scenes.walkers
+    for params in walker_params():
         try:
-            random_specs.append(family.build_legged(family.space.validate({**params, "legs_per_side": 3})))
+            random_specs.append(family.build_legged(params))
         except ValueError:
             continue
+    if not random_specs:
+        raise ValueError("heterogeneity: none of the random walker designs could be built in reduced coordinates")
     default = family.build_legged(family.space.validate({**family.space.default(), "legs_per_side": 3}))
     return {"random": random_specs, "default": [default]}
 
@@ -120,10 +127,12 @@ def main(argv=None) -> int:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--worlds", type=int, default=4096)
     parser.add_argument("--caps", type=int, nargs="+", default=[100, 50])
-    parser.add_argument("--stall-ratios", type=float, nargs="+", default=[0.0],
-                        help="SolverConfig.stall_ratio values (0: off), each at every cap")
-    parser.add_argument("--free-rhos", type=float, nargs="+", default=[SolverConfig.free_rho],
-                        help="SolverConfig.free_rho values, each at every cap and stall ratio")
+    parser.add_argument("--stall-ratios", type=float, nargs="+", default=None,
+                        help="SolverConfig.stall_ratio values (0: off, the default), each at every cap; "
+                             "maximal model only")
+    parser.add_argument("--free-rhos", type=float, nargs="+", default=None,
+                        help="SolverConfig.free_rho values, each at every cap and stall ratio (default: its "
+                             "default; maximal model only)")
     parser.add_argument("--model", choices=["maximal", "reduced"], default="maximal",
                         help="maximal coordinates (the sparse solver) or engine.legged's reduced ones")
     parser.add_argument("--warmup", type=int, default=20, help="chunks of 10 steps before timing")
@@ -131,13 +140,18 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.worlds < 1 or args.warmup < 0 or min(args.caps) < 1:
         parser.error("--worlds and --caps must be >= 1, --warmup >= 0")
+    if args.model == "reduced" and (args.stall_ratios is not None or args.free_rhos is not None):
+        parser.error("--stall-ratios and --free-rhos apply to the maximal model only (engine.legged has no "
+                     "joint rows and no stall test)")
+    args.stall_ratios = [0.0] if args.stall_ratios is None else args.stall_ratios
+    args.free_rhos = [SolverConfig.free_rho] if args.free_rhos is None else args.free_rhos
     if not all(0.0 <= r < 1.0 for r in args.stall_ratios):
         parser.error("--stall-ratios must lie in [0, 1)")
     if min(args.free_rhos) <= 0.0:
         parser.error("--free-rhos must be > 0")
     wp.config.log_level = wp.LOG_WARNING
     rows = []
-    if args.model == "reduced":  # no joint rows: the stall ratio and the free rows' penalty do not apply
+    if args.model == "reduced":  # the study's [solver] settings, its cap from --caps
         for cap in args.caps:
             pair = [{"batch": name, "model": "reduced", "max_iterations": cap, "num_worlds": args.worlds,
                      **run_reduced(specs, args.worlds, cap, args.device, args.warmup)}
@@ -153,7 +167,8 @@ def main(argv=None) -> int:
     for free_rho in args.free_rhos:
         for stall in args.stall_ratios:
             for cap in args.caps:
-                pair = [{"batch": name, "max_iterations": cap, "stall_ratio": stall, "free_rho": free_rho,
+                pair = [{"batch": name, "model": "maximal", "max_iterations": cap, "stall_ratio": stall,
+                         "free_rho": free_rho,
                          "num_worlds": args.worlds, **run(specs, args.worlds, cap, args.device, args.warmup, stall,
                                                           free_rho)}
                         for name, specs in batches.items()]

@@ -14,7 +14,8 @@ Scenes and settings are data (benchmarks/scenes.py). Per scene:
   tolerance, stabilization, integrator) simulates the scene's duration on the precision batch;
   errors: largest loop-closure violation [m] over all worlds and records, energy drift
   |E(t) - E(0)| / (E(0) - E_min) (passive scenes), and trajectory error: largest distance [m] of a
-  body's centre of mass from the reference at records every 50 ms; the reference is MuJoCo C
+  body's centre of mass from the reference at records every Declared.record_dt (40 ms; quick:
+  about 10 ms), which every step size must divide; the reference is MuJoCo C
   (float64, RK4 at dt / 20, the MJCF export) when installed, else our engine at dt / 10 with
   tolerance 1e-9 and 4 projections; run time as wall seconds per simulated second of the batch;
 - peers (--peers): MuJoCo Warp (benchmarks/peers.py, from our MJCF export) with the same errors
@@ -215,10 +216,7 @@ def run_scene(name: str, declared: Declared, args) -> dict:
         peer_reason = available()
     if declared.duration > 0 and "precision" in args.parts:
         duration = 0.2 if quick else declared.duration
-        # quick: records about every 10 ms, on a multiple of the longest step of its sweep (the step
-        # sizes are dt times powers of two, so the others divide it too)
-        longest = dt * max(x["dt_scale"] for x in declared.sweep[:5])
-        record_dt = longest * max(1, round(0.01 / longest)) if quick else declared.record_dt
+        record_dt = record_interval(declared, quick)
         worlds = 8 if quick else declared.precision_worlds
         sample = np.arange(min(worlds, 2 * len(specs)))
         reference = None  # a scene without a trustworthy reference reports loop error and run time only
@@ -227,10 +225,11 @@ def run_scene(name: str, declared: Declared, args) -> dict:
         sweep = declared.sweep[:5] if quick else declared.sweep
         for setting in sweep:
             step_dt = dt * setting["dt_scale"]
+            every = steps_per_record(record_dt, step_dt)  # a misaligned record interval is the runner's fault
             try:
                 config = SolverConfig(**setting.get("config", {}))
-                row = engine_run(specs, worlds, step_dt, round(duration / step_dt),
-                                 steps_per_record(record_dt, step_dt), config, args.device, sample, scene.potential_min)
+                row = engine_run(specs, worlds, step_dt, round(duration / step_dt), every, config, args.device,
+                                 sample, scene.potential_min)
             except ValueError as exc:  # e.g. a setting this batch cannot take
                 result["precision"].append({"label": setting["label"], "error": str(exc)})
                 continue
@@ -331,6 +330,16 @@ def reference_run(specs, scene, duration, record_dt, dt, declared, args):
         row = engine_run(specs, len(specs), ref_dt, round(duration / ref_dt), steps_per_record(record_dt, ref_dt),
                          SolverConfig(**ref["config"]), args.device, np.arange(len(specs)), scene.potential_min)
         return row["positions"], {**clean(row), "engine": "morphopt (float32)", "settings": ref["config"]}
+
+
+def record_interval(declared: Declared, quick: bool) -> float:
+    """Seconds between the records of a scene's precision runs: Declared.record_dt, or with --quick
+    about 10 ms on a multiple of the longest step of the quick sweep (its first five settings; the
+    step sizes are dt times powers of two, so the others divide it too)."""
+    if not quick:
+        return declared.record_dt
+    longest = declared.dt * max(x["dt_scale"] for x in declared.sweep[:5])
+    return longest * max(1, round(0.01 / longest))
 
 
 # MuJoCo Warp's work-precision points on scenes built from our MJCF export: integrator, multiple of dt

@@ -85,15 +85,30 @@ def dr_legs(standing: bool, assets: str | None = None, joints: dict | None = Non
                       usd=path)
 
 
+def walker_params(count: int = 64, seed: int = 1) -> list[dict]:
+    """Validated parameters of random walker designs (Jansen and Klann legs, 3 per side); samples
+    the design space refuses are left out."""
+    from morphopt.families import load_family
+
+    family = load_family("walker")
+    out = []
+    for params in family.space.sample(np.random.default_rng(seed), count):
+        try:
+            out.append(family.space.validate({**params, "legs_per_side": 3}))
+        except ValueError:
+            continue
+    return out
+
+
 def walkers(count: int = 64, seed: int = 1) -> BenchScene:
     """Random designs of the walker family (Jansen and Klann legs, 3 per side): heterogeneous."""
     from morphopt.families import load_family
 
     family = load_family("walker")
     specs = []
-    for params in family.space.sample(np.random.default_rng(seed), count):
+    for params in walker_params(count, seed):
         try:
-            specs.append(family.build_spec(family.space.validate({**params, "legs_per_side": 3})))
+            specs.append(family.build_spec(params))
         except ValueError:
             continue
     return BenchScene(specs, None, f"{len(specs)} random walker designs (Jansen/Klann legs, 3 per side) cycled")

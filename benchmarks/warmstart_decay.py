@@ -29,6 +29,8 @@ def main(argv=None) -> int:
     parser.add_argument("--decays", type=float, nargs="+", default=[0.0, 0.05])
     parser.add_argument("--free-rho", type=float, default=None, help="SolverConfig.free_rho (default: its default)")
     args = parser.parse_args(argv)
+    if args.free_rho is not None and args.free_rho <= 0.0:
+        parser.error(f"--free-rho must be > 0, got {args.free_rho}")
     if args.steps < 110 or args.steps % 10:
         parser.error(f"--steps: expected a multiple of 10 of at least 110, got {args.steps}")
     wp.config.quiet = True

@@ -729,8 +729,8 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         if position_iterations > 0 and valid != 0 and m.bilateral_row_count[world] > 0:
             project = 1
         target = eta + projection_penalty(m.padmm_rho_init[world], m.padmm_rho_free[world])
-        # the PADMM factor's joint rows carry this shift (their penalty stays free_rho): reused
-        # unless other rows need taking out of the matrix
+        # the PADMM factor's joint rows carry this shift (their penalty stays free_rho; cap off:
+        # eta + the world's rho): reused unless other rows need taking out of the matrix
         refactor = project != 0 and mask_projection != 0
         block_sync()  # cholesky_lanes is entered after a barrier
         if wp.static(timed):

@@ -73,9 +73,10 @@ class SolverConfig:
             lambda of the preconditioned Delassus matrix) shrink by free_rho / (lambda + free_rho)
             per iteration, and the projection's Gauss-Newton steps are damped by as much; a
             smaller shift costs float32 digits in the factor of redundant rows. At 2e-4 instead of
-            the initial rho (1e-3): a 10-link 1:10000 chain (benchmarks.stress S5, tolerance 1e-8)
-            needs 31 instead of 66 iterations per step and opens 7e-6 instead of 2.2e-5 m; the
-            IFToMM N = 40 four-bar (S3, 20 s) ends 4.9e-5 instead of 8.7e-4 m off its exact motion.
+            the initial rho (1e-3), on the CPU: the 10-link 1:10000 chain of benchmarks.stress S5 at
+            its tolerance 1e-8 with this cap on (S5 itself runs it off) needs 31 instead of 66
+            iterations per step and opens 7e-6 instead of 2.2e-5 m; the IFToMM N = 40 four-bar (S3,
+            20 s) ends 4.9e-5 instead of 8.7e-4 m off its exact motion.
         rho_update_interval: iterations between penalty updates.
         stall_ratio: 0 (default) or a ratio in (0, 1): a world whose largest residual (primal or
             dual) did not fall below stall_ratio times its value STALL_WINDOW iterations earlier
@@ -370,8 +371,8 @@ class Workspace:
     a step.
     PADMM vectors (W, R): v_f, lo, hi (preconditioned), x, x_prev, y, y_prev, y_hat, z, z_prev,
     z_hat, rhs, delta; row_shift (W, R): the factored matrix's diagonal shift per row (eta + the
-    row's penalty: engine.padmm.row_penalty); row_free (W, R) int32: the rows that keep
-    the initial penalty this step (engine.padmm.row_is_free; 2: a drive that met its bound, to take
+    row's penalty: engine.padmm.row_penalty); row_free (W, R) int32: the rows on
+    the free rows' penalty (SolverConfig.free_rho) this step (engine.padmm.row_is_free; 2: a drive that met its bound, to take
     the world's penalty at the next penalty update, flagged in demote (W,)). Per world (W,): rho, valid,
 
     iterations, residual_primal, residual_dual, converged,
@@ -404,7 +405,7 @@ class Workspace:
             setattr(self, name, zeros((w, r)))
         # the dense path keeps P D P and its factor; the matrix-free path needs neither
         self.row_shift = zeros((w, r))  # the factored matrix's diagonal shift per row
-        self.row_free = zeros((w, r), wp.int32)  # rows that keep the initial penalty this step (engine.padmm)
+        self.row_free = zeros((w, r), wp.int32)  # rows on the free rows' penalty this step (engine.padmm)
         self.delassus = zeros((w, r, r) if dense else (w, 1, 1))
         self.factor = zeros((w, r, r) if dense else (w, 1, 1))
         self.inner_iterations = zeros(w, wp.int32)

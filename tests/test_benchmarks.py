@@ -21,6 +21,16 @@ def test_walker_steps_reports_a_finite_batch_of_three_leg_walkers(tmp_path, caps
     assert set(result["stage_ms"]) == {"kinematics", "collision", "dual_problem", "padmm", "integrate", "projection"}
 
 
+def test_walker_precision_takes_final_poses_at_the_nominal_duration():
+    """A step size that does not divide the duration (dt 3 ms, records every 21 ms, last at 1.008 s)
+    is compared at 1.0 s: points on a straight line at 0.3 m/s land on the line's point at 1.0 s."""
+    time = np.arange(49) * 0.021
+    path = np.stack([np.stack([0.3 * time, np.zeros_like(time), 0.5 + 0 * time], axis=1)] * 2, axis=1)  # (T, 2, 3)
+    final = walker_precision.pose_at(time, path, 1.0)
+    np.testing.assert_allclose(final, [[0.3, 0.0, 0.5]] * 2, atol=1e-12)
+    np.testing.assert_allclose(walker_precision.pose_at(time, path, time[-1]), path[-1], atol=1e-12)
+
+
 def test_walker_precision_compares_settings_with_the_reference(tmp_path):
     assert walker_precision.main(["--device", "cpu", "--worlds", "2", "--duration", "0.04", "--only", "default",
                                   "--out", str(tmp_path)]) == 0
@@ -278,7 +288,7 @@ def test_heterogeneity_times_both_batches_at_each_cap(tmp_path, capsys):
                                "--free-rhos", "5e-4", "--out", str(out)]) == 0
     rows = json.loads(out.read_text())["results"]
     assert [r["batch"] for r in rows] == ["random", "default"]
-    assert all(r["free_rho"] == 5e-4 for r in rows)
+    assert all(r["free_rho"] == 5e-4 and r["free_rho_used"] == pytest.approx(5e-4) for r in rows)
     random_walkers, default = rows
     assert random_walkers["patterns"] == 2 and default["patterns"] == 1
     assert all(r["step_ms"] > 0 and max(r["iterations_largest_world"]) <= 20 for r in rows)
@@ -384,7 +394,7 @@ def test_records_fall_on_steps_of_every_sweep_point_and_peer():
     """A record interval that is not a whole number of steps is refused (rounding it took records
     every 48 ms against a reference every 50 ms); every declared scene's records, full and quick,
     fall on steps of each of its sweep's step sizes and of its peers'."""
-    from benchmarks.run import MUJOCO_WARP_POINTS
+    from benchmarks.run import MUJOCO_WARP_POINTS, record_interval
     from benchmarks.scenes import SCENES_DECLARED, steps_per_record
 
     assert steps_per_record(0.04, 0.004) == 10 and steps_per_record(0.04, 5e-5) == 800
@@ -398,9 +408,8 @@ def test_records_fall_on_steps_of_every_sweep_point_and_peer():
         scales += [scale for values in declared.peer_dt_scales.values() for scale in values]
         if declared.peers and not declared.peer_dt_scales:
             scales += [scale for _, scale in MUJOCO_WARP_POINTS]
-        longest = declared.dt * max(x["dt_scale"] for x in declared.sweep[:5])
-        quick = longest * max(1, round(0.01 / longest))
-        for record_dt, duration in ((declared.record_dt, declared.duration), (quick, 0.2)):
+        for record_dt, duration in ((record_interval(declared, False), declared.duration),
+                                    (record_interval(declared, True), 0.2)):
             assert steps_per_record(duration, record_dt) >= 1, name
             for scale in scales:
                 assert steps_per_record(record_dt, declared.dt * scale) >= 1

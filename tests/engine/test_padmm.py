@@ -252,7 +252,7 @@ def test_free_rho_is_validated():
         SolverConfig(free_rho=0.0)
 
 
-@pytest.mark.parametrize("free_rho", [2e-4, 1e-3])
+@pytest.mark.parametrize("free_rho", [2e-4, 5e-3])
 def test_projection_factor_of_a_driven_linkage_takes_the_free_rows_penalty(free_rho):
     """A batch with drive rows refactors for the position projection (its drive rows taken out):
     every row of that factor is shifted by eta + SolverConfig.free_rho, the penalty the joint rows
