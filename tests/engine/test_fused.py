@@ -95,6 +95,19 @@ def test_fused_step_matches_staged_step(case, integrator, variant):
     np.testing.assert_array_equal(staged_model.iterations_seen, fused_model.iterations_seen)
 
 
+def test_fused_projection_factor_takes_the_free_rows_penalty():
+    """With drive rows the projection refactors its bilateral block, shifted by eta + free_rho in
+    both step kernels (engine.integrate.projection_penalty). At a large free_rho (5e-2: heavily
+    damped Gauss-Newton steps) the fused and staged Jansen legs keep the same poses to 1e-6 over
+    200 steps (1.2e-7 here); a fused factor shifted by eta + rho_init instead parts them by 3e-6."""
+    specs = CASES["jansen_drive"]()
+    config = dataclasses.replace(STRICT, free_rho=5e-2)
+    staged_model, staged = trajectory(specs, "staged", 200, config)
+    fused_model, fused = trajectory(specs, "fused", 200, config)
+    assert np.abs(staged.body_q.numpy() - fused.body_q.numpy()).max() < 1e-6
+    np.testing.assert_array_equal(staged_model.iterations_seen, fused_model.iterations_seen)
+
+
 @pytest.mark.parametrize("inverse", [False, True])
 def test_fused_penalty_updates_refactor_like_the_staged_path(inverse):
     """With a penalty update every iteration and a tight tolerance (many refactorizations per
