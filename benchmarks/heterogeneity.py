@@ -32,6 +32,26 @@ import numpy as np
 import warp as wp
 
 
+def time_chunks(advance, iterations, device, warmup: int) -> dict:
+    """Run ``warmup`` chunks of 10 steps, then time four: the median ms per step, the mean
+    iterations over worlds and the largest world's at the end of each timed chunk (``iterations``:
+    the model's per-world iteration counts)."""
+    for _ in range(warmup):
+        advance()
+    times, largest, mean = [], [], []
+    for _ in range(4):
+        wp.synchronize_device(device)
+        t0 = time.perf_counter()
+        advance()
+        wp.synchronize_device(device)
+        times.append((time.perf_counter() - t0) / 10 * 1e3)
+        counts = iterations.numpy()
+        largest.append(int(counts.max()))
+        mean.append(float(counts.mean()))
+    return {"step_ms": float(np.median(times)), "iterations_mean": float(np.mean(mean)),
+            "iterations_largest_world": largest}
+
+
 def run(specs, worlds: int, cap: int, device: str, warmup: int, stall_ratio: float = 0.0,
         free_rho: float | None = None) -> dict:
     from engine import SolverConfig, pack_worlds
@@ -41,33 +61,17 @@ def run(specs, worlds: int, cap: int, device: str, warmup: int, stall_ratio: flo
                         config=SolverConfig(max_iterations=cap, stall_ratio=stall_ratio,
                                             **({} if free_rho is None else {"free_rho": free_rho})))
     stepper = Stepper(model, model.state(), model.control(), chunk=10)
-    for _ in range(warmup):
-        stepper.advance()
-    times, largest, mean = [], [], []
-    for _ in range(4):
-        wp.synchronize_device(model.device)
-        t0 = time.perf_counter()
-        stepper.advance()
-        wp.synchronize_device(model.device)
-        times.append((time.perf_counter() - t0) / 10 * 1e3)
-        iterations = model.work.iterations.numpy()
-        largest.append(int(iterations.max()))
-        mean.append(float(iterations.mean()))
-    return {"step_ms": float(np.median(times)), "iterations_mean": float(np.mean(mean)),
-            "iterations_largest_world": largest, "patterns": len(model.sparse_analyses or []),
-            "free_rho_used": float(model.padmm_rho_free.numpy()[0])}
+    return {**time_chunks(stepper.advance, model.work.iterations, model.device, warmup),
+            "patterns": len(model.sparse_analyses or []), "free_rho_used": float(model.padmm_rho_free.numpy()[0])}
 
 
-def run_reduced(specs, worlds: int, cap: int, device: str, warmup: int) -> dict:
-    """run() for engine.legged worlds, with the walker study's dt and solver settings."""
+def run_reduced(specs, worlds: int, cap: int, device: str, warmup: int, study) -> dict:
+    """run() for engine.legged worlds, with the walker study's dt and solver settings (``study``)."""
     import dataclasses
-    import pathlib
 
     from engine import SolverConfig
     from engine.legged import legged_step_batch, pack_legged
-    from morphopt.study_spec import load_study_spec
 
-    study = load_study_spec(pathlib.Path(__file__).resolve().parents[1] / "studies" / "walker.toml")
     config = dataclasses.replace(study.solver_config() or SolverConfig(), max_iterations=cap)
     model = pack_legged([specs[w % len(specs)] for w in range(worlds)], device=device, dt=study.dt, config=config)
     legged_step_batch(model, 1)  # compile outside the capture
@@ -83,26 +87,14 @@ def run_reduced(specs, worlds: int, cap: int, device: str, warmup: int) -> dict:
         else:
             legged_step_batch(model, 10)
 
-    for _ in range(warmup):
-        advance()
-    times, largest, mean = [], [], []
-    for _ in range(4):
-        wp.synchronize_device(model.device)
-        t0 = time.perf_counter()
-        advance()
-        wp.synchronize_device(model.device)
-        times.append((time.perf_counter() - t0) / 10 * 1e3)
-        iterations = model.iterations.numpy()
-        largest.append(int(iterations.max()))
-        mean.append(float(iterations.mean()))
-    return {"step_ms": float(np.median(times)), "iterations_mean": float(np.mean(mean)),
-            "iterations_largest_world": largest, "dt": study.dt, "tiled": bool(model.tiled)}
+    return {**time_chunks(advance, model.iterations, model.device, warmup), "dt": study.dt,
+            "tiled": bool(model.tiled)}
 
 
 def reduced_batches() -> dict:
     """The benchmark's random walkers (benchmarks.scenes.walker_params) and the default walker as
     engine.legged specs."""
-    from benchmarks.scenes import walker_params
+    from benchmarks.scenes import walker_default_params, walker_params
     from morphopt.families import load_family
 
     family = load_family("walker")
@@ -114,8 +106,17 @@ def reduced_batches() -> dict:
             continue
     if not random_specs:
         raise ValueError("heterogeneity: none of the random walker designs could be built in reduced coordinates")
-    default = family.build_legged(family.space.validate({**family.space.default(), "legs_per_side": 3}))
-    return {"random": random_specs, "default": [default]}
+    return {"random": random_specs, "default": [family.build_legged(walker_default_params())]}
+
+
+def pair(batches: dict, settings: dict, measure) -> list:
+    """The random batch's row and the default's, ``settings`` plus ``measure(specs)`` each; the
+    random row carries the ratio of their times. Printed as they come."""
+    rows = [{"batch": name, **settings, **measure(specs)} for name, specs in batches.items()]
+    rows[0]["ratio_to_default"] = rows[0]["step_ms"] / rows[1]["step_ms"]
+    for row in rows:
+        print(json.dumps(row), flush=True)
+    return rows
 
 
 def main(argv=None) -> int:
@@ -152,30 +153,24 @@ def main(argv=None) -> int:
     wp.config.log_level = wp.LOG_WARNING
     rows = []
     if args.model == "reduced":  # the study's [solver] settings, its cap from --caps
+        import pathlib
+
+        from morphopt.study_spec import load_study_spec
+
+        study = load_study_spec(pathlib.Path(__file__).resolve().parents[1] / "studies" / "walker.toml")
+        batches = reduced_batches()
         for cap in args.caps:
-            pair = [{"batch": name, "model": "reduced", "max_iterations": cap, "num_worlds": args.worlds,
-                     **run_reduced(specs, args.worlds, cap, args.device, args.warmup)}
-                    for name, specs in reduced_batches().items()]
-            pair[0]["ratio_to_default"] = pair[0]["step_ms"] / pair[1]["step_ms"]
-            rows += pair
-            for row in pair:
-                print(json.dumps(row), flush=True)
-        if args.out:
-            write_rows(args.out, args.device, "benchmarks.heterogeneity", argv, rows)
-        return 0
-    batches = {"random": walkers().specs, "default": walker_default().specs}
-    for free_rho in args.free_rhos:
-        for stall in args.stall_ratios:
-            for cap in args.caps:
-                pair = [{"batch": name, "model": "maximal", "max_iterations": cap, "stall_ratio": stall,
-                         "free_rho": free_rho,
-                         "num_worlds": args.worlds, **run(specs, args.worlds, cap, args.device, args.warmup, stall,
-                                                          free_rho)}
-                        for name, specs in batches.items()]
-                pair[0]["ratio_to_default"] = pair[0]["step_ms"] / pair[1]["step_ms"]
-                rows += pair
-                for row in pair:
-                    print(json.dumps(row), flush=True)
+            rows += pair(batches, {"model": "reduced", "max_iterations": cap, "num_worlds": args.worlds},
+                         lambda specs: run_reduced(specs, args.worlds, cap, args.device, args.warmup, study))
+    else:
+        batches = {"random": walkers().specs, "default": walker_default().specs}
+        for free_rho in args.free_rhos:
+            for stall in args.stall_ratios:
+                for cap in args.caps:
+                    settings = {"model": "maximal", "max_iterations": cap, "stall_ratio": stall, "free_rho": free_rho,
+                                "num_worlds": args.worlds}
+                    rows += pair(batches, settings, lambda specs: run(specs, args.worlds, cap, args.device,
+                                                                      args.warmup, stall, free_rho))
     if args.out:
         write_rows(args.out, args.device, "benchmarks.heterogeneity", argv, rows)
     return 0

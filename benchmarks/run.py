@@ -358,8 +358,7 @@ def peer_precision(specs, scene, worlds, dt, duration, record_dt, reference, arg
         try:
             row = mujoco_warp_run(spec, worlds=worlds, dt=step_dt, steps=round(duration / step_dt),
                                   record_every=steps_per_record(record_dt, step_dt), integrator=integrator,
-                                  device=args.device,
-                                  body_names=names)
+                                  device=args.device, body_names=names)
         except Exception as exc:  # noqa: BLE001  (a peer failing is a result, not a crash of the benchmark)
             rows.append({"engine": "mujoco_warp", "integrator": integrator, "dt": step_dt, "error": repr(exc)})
             continue

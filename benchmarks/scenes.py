@@ -114,13 +114,20 @@ def walkers(count: int = 64, seed: int = 1) -> BenchScene:
     return BenchScene(specs, None, f"{len(specs)} random walker designs (Jansen/Klann legs, 3 per side) cycled")
 
 
+def walker_default_params() -> dict:
+    """Validated parameters of the walker family's default design with 3 legs per side."""
+    from morphopt.families import load_family
+
+    family = load_family("walker")
+    return family.space.validate({**family.space.default(), "legs_per_side": 3})
+
+
 def walker_default() -> BenchScene:
     """The walker family's default design replicated (homogeneous batch of the largest member kind)."""
     from morphopt.families import load_family
 
-    family = load_family("walker")
-    params = family.space.validate({**family.space.default(), "legs_per_side": 3})
-    return BenchScene([family.build_spec(params)], None, "the default walker design (3 Jansen legs per side)")
+    spec = load_family("walker").build_spec(walker_default_params())
+    return BenchScene([spec], None, "the default walker design (3 Jansen legs per side)")
 
 
 @dataclass

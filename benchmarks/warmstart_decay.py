@@ -55,7 +55,7 @@ def main(argv=None) -> int:
         r = np.array(rows[1:])  # the first chunk compiles and captures
         print(json.dumps({
             "scene": "drlegs_standing", "device": wp.get_device(args.device).name, "worlds": args.worlds,
-            "warmstart_decay": decay, "free_rho": SolverConfig(**extra).free_rho,
+            "warmstart_decay": decay, "free_rho": model.config.free_rho,
             "ms_per_step_steps_10_100": float(np.median(r[:9, 0])),
             "ms_per_step_steps_100_end": float(np.median(r[9:, 0])), "iterations_steps_10_100": float(r[:9, 1].mean()),
             "iterations_steps_100_end": float(r[9:, 1].mean()), "impulse_max": float(r[:, 2].max()),
