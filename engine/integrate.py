@@ -562,6 +562,9 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
         return  # nothing to project: no joints in the batch
     dense = model.linear_solver == "dense"
     direct = model.linear_solver in ("dense", "sparse")  # a factor to reuse or refactor
+    own_pattern = model.sparse_projection if model.linear_solver == "sparse" else None
+    if own_pattern is not None:  # its solves write the bilateral rows alone: the others' corrections stay 0
+        work.delta.zero_()
     if prepare:
         # Only the bilateral joint rows are projected. Drive, limit and contact rows are decoupled
         # from the projection (their rows and columns become identity) and a large ADMM penalty
@@ -577,6 +580,9 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
                   outputs=[work.needs_factor, work.project, work.row_shift])
         if dense:
             linear.factor(work.delassus, work.row_shift, work.needs_factor, work.factor)
+        elif own_pattern is not None:  # the bilateral rows on their own pattern (SolverConfig.sparse_projection_pattern)
+            sparse.matrix(model, own_pattern)
+            sparse.factor(model, work.row_shift, work.needs_factor, system=own_pattern)
         elif direct:
             sparse.factor(model, work.row_shift, work.needs_factor, bilateral_only=model.has_unilateral_or_drive_rows)
     record = body_q_offset is not None
@@ -602,7 +608,7 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
         if dense:
             linear.solve(work.factor, work.rhs, mask, work.delta)
         elif direct:
-            sparse.solve(model, work.rhs, mask, work.delta)
+            sparse.solve(model, work.rhs, mask, work.delta, system=own_pattern)
         else:  # Conjugate Residual on the bilateral rows, from zero
             work.delta.zero_()
             matrix_free.solve(model, work.rhs, mask, work.delta, bilateral_only=True)

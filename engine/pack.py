@@ -11,7 +11,7 @@ import warp as wp
 from engine.collide import PAIR_CONTACTS, PAIR_SLOTS, PLANE_CONTACTS
 from engine.fused import FUSED_MAX_ROWS, FUSED_REGISTERS, fused_fits
 from engine.model import Model, SolverConfig, Workspace
-from engine.sparse import build_patterns
+from engine.sparse import bilateral_factor_rows, make_system
 from engine.spec import JOINT_ROW_COUNT, JointType, MechanismSpec, joint_dynamics_rows
 
 __all__ = ["MAX_DENSE_ROWS", "dense_rows_needed", "pack_worlds"]
@@ -373,17 +373,19 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     model.work.row_body_c = wp.clone(model.row_body_c)  # contact rows rewrite their bodies every step
     model.work.row_body_p = wp.clone(model.row_body_p)
     model.sparse = None
+    model.sparse_system = None
+    model.sparse_projection = None
     model.sparse_body_nodes = False
     if sparse:  # one factor schedule per distinct topology (engine.sparse)
         model.sparse_rows, rbc, rbp = factor_rows(specs, pairs, h)
-        model.sparse, model.sparse_analyses, entries = build_patterns(rbc, rbp, device,
-                                                                      body_nodes=config.sparse_body_nodes)
-        model.sparse_nodes = model.sparse_analyses[0].nodes
-        model.sparse_body_nodes = any(a.body_nodes for a in model.sparse_analyses)
+        model.sparse_system = make_system(rbc, rbp, W, device, body_nodes=config.sparse_body_nodes)
+        model.sparse, model.sparse_analyses = model.sparse_system.pat, model.sparse_system.analyses
+        model.sparse_nodes = model.sparse_system.nodes
+        if config.sparse_projection_pattern and model.has_unilateral_or_drive_rows and model.has_bilateral_rows:
+            # the projection factors the bilateral joint rows on a pattern of their own
+            real, bc, bp = bilateral_factor_rows(h["row_kind"], h["row_body_c"], h["row_body_p"],
+                                                 h["contact_row_start"])
+            model.sparse_projection = make_system(bc, bp, W, device, body_nodes=config.sparse_body_nodes, real=real)
+        model.sparse_body_nodes = any(s.body_nodes for s in (model.sparse_system, model.sparse_projection) if s)
         model.work.sparse_root = wp.zeros((W, B), dtype=wp.mat33, device=device)
-        model.work.sparse_A = wp.zeros((W, entries), dtype=float, device=device)
-        model.work.sparse_L = wp.zeros((W, entries), dtype=float, device=device)
-        row_entries = max(1, max(len(a.row_entry) for a in model.sparse_analyses))
-        model.work.sparse_L_rows = wp.zeros((W, row_entries), dtype=float, device=device)  # L's rows (engine.sparse)
-        model.work.sparse_real = wp.zeros((W, model.sparse_rows), dtype=wp.int32, device=device)
     return model

@@ -72,8 +72,9 @@ from engine.model import ROW_ANGULAR, ROW_LINEAR
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
-__all__ = ["SparsePatterns", "analyze", "build_patterns", "choose_body_nodes", "factor", "prepare", "roots",
-           "shared_solve_kernel", "solve", "solve_schedule", "sparse_block"]
+__all__ = ["SparsePatterns", "SparseSystem", "analyze", "bilateral_factor_rows", "build_patterns", "choose_body_nodes",
+           "factor", "make_system", "matrix", "prepare", "roots", "shared_solve_kernel", "solve", "solve_schedule",
+           "sparse_block"]
 
 
 # Register cap per thread of the factor and solve kernels: at most 64 lets 32 one-warp blocks (the
@@ -1105,63 +1106,130 @@ def shared_solve_kernel(size: int, worlds: int, blob_size: int):
     return sparse_solve_shared
 
 
-def factor(model, shift, mask, bilateral_only: bool = False) -> None:
+@dataclasses.dataclass
+class SparseSystem:
+    """A batch's factor schedules (one per topology) and the per-world buffers of one factor:
+    pat and analyses from build_patterns, rows (factor rows per world), nodes (positions per
+    world), A and L (W, entries) the matrix on the pattern and its factor, L_rows (W, entries left
+    of the diagonals) the factor's rows for the forward substitution, real (W, rows) the row of
+    this step each factor row stands for (-1: unused). A model has the PADMM's system (all rows,
+    contact slots included: real rewritten every step) and, where its batch has drive, limit or
+    contact rows, the projection's (the bilateral joint rows alone: real fixed at packing)."""
+
+    pat: SparsePatterns
+    analyses: list
+    rows: int
+    nodes: int
+    A: Any
+    L: Any
+    L_rows: Any
+    real: Any
+
+    @property
+    def body_nodes(self) -> bool:
+        """Whether any of its analyses keeps bodies as nodes (their roots are then needed)."""
+        return any(a.body_nodes for a in self.analyses)
+
+
+def make_system(row_body_c: np.ndarray, row_body_p: np.ndarray, num_worlds: int, device, body_nodes: bool = True,
+                real: np.ndarray | None = None) -> SparseSystem:
+    """Analyse a batch's factor rows (build_patterns) and allocate one factor's buffers; real: the
+    fixed (W, rows) row of each factor row (None: rewritten every step by prepare)."""
+    pat, analyses, entries = build_patterns(row_body_c, row_body_p, device, body_nodes=body_nodes)
+    rows = row_body_c.shape[1]
+    row_entries = max(1, max(len(a.row_entry) for a in analyses))
+    real_array = (wp.zeros((num_worlds, rows), dtype=wp.int32, device=device) if real is None
+                  else wp.array(np.ascontiguousarray(real, np.int32), dtype=wp.int32, device=device))
+    return SparseSystem(pat, analyses, rows, analyses[0].nodes,
+                        wp.zeros((num_worlds, entries), dtype=float, device=device),
+                        wp.zeros((num_worlds, entries), dtype=float, device=device),
+                        wp.zeros((num_worlds, row_entries), dtype=float, device=device), real_array)
+
+
+def bilateral_factor_rows(row_kind: np.ndarray, row_body_c: np.ndarray, row_body_p: np.ndarray,
+                          joint_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The projection's factor rows: each world's bilateral joint rows (linear and angular; its
+    first joint_rows[w] rows hold all joint rows), padded to the largest count. Returns (real,
+    body_c, body_p), each (W, V): the row of each factor row (-1: padding) and its bodies."""
+    W = len(row_kind)
+    picked = [np.flatnonzero((row_kind[w, :joint_rows[w]] == 0) | (row_kind[w, :joint_rows[w]] == 1))
+              for w in range(W)]
+    V = max(1, max(len(p) for p in picked))
+    real = np.full((W, V), -1, np.int32)
+    body_c = np.full((W, V), -1, np.int32)
+    body_p = np.full((W, V), -1, np.int32)
+    for w, rows in enumerate(picked):
+        real[w, :len(rows)] = rows
+        body_c[w, :len(rows)] = row_body_c[w, rows]
+        body_p[w, :len(rows)] = row_body_p[w, rows]
+    return real, body_c, body_p
+
+
+def factor(model, shift, mask, bilateral_only: bool = False, system: SparseSystem | None = None) -> None:
     """Factor P D P + diag(shift) (shift (W, R) per row; or the bilateral joint block) of every
-    masked world into work.sparse_L."""
+    masked world into the system's L (system: the model's PADMM system when None)."""
+    system = model.sparse_system if system is None else system
     work = model.work
     wp.launch_tiled(sparse_factor, dim=[model.num_worlds], block_dim=sparse_block(model.device), device=model.device,
-                    inputs=[model.sparse, mask, shift, int(bilateral_only), work.row_count, model.row_kind,
+                    inputs=[system.pat, mask, shift, int(bilateral_only), work.row_count, model.row_kind,
+                            system.real, system.A],
+                    outputs=[system.L, system.L_rows])
 
-                            work.sparse_real, work.sparse_A],
-                    outputs=[work.sparse_L, work.sparse_L_rows])
 
-
-def solve(model, rhs, mask, x_out, shared: bool | None = None) -> None:
-    """x_out = (L L^T)^-1 rhs with the stored factors, for every masked world. shared: the
-    schedule in shared memory (shared_solve_kernel; None: SOLVE_SHARED on GPUs for batches of one
-    topology)."""
+def solve(model, rhs, mask, x_out, shared: bool | None = None, system: SparseSystem | None = None) -> None:
+    """x_out = (L L^T)^-1 rhs with the system's stored factors, for every masked world (rows of
+    x_out below row_count that the system's factor rows do not stand for are left alone). shared:
+    the schedule in shared memory (shared_solve_kernel; None: SOLVE_SHARED on GPUs for batches
+    of one topology). system: the model's PADMM system when None."""
+    system = model.sparse_system if system is None else system
     work = model.work
-    size = -(-model.sparse_nodes // VECTOR_STEP) * VECTOR_STEP
+    size = -(-system.nodes // VECTOR_STEP) * VECTOR_STEP
     device = wp.get_device(model.device)
     if shared is None:
-        shared = (SOLVE_SHARED and device.is_cuda and len(model.sparse_analyses) == 1
+        shared = (SOLVE_SHARED and device.is_cuda and len(system.analyses) == 1
                   and model.num_worlds >= SOLVE_WORLDS_PER_BLOCK * device.sm_count // 2
-                  and 4 * (model.sparse.blob_size + SOLVE_WORLDS_PER_BLOCK * size) <= SOLVE_SHARED_BYTES)
+                  and 4 * (system.pat.blob_size + SOLVE_WORLDS_PER_BLOCK * size) <= SOLVE_SHARED_BYTES)
     if shared:
         worlds = SOLVE_WORLDS_PER_BLOCK if device.is_cuda else 1
         blocks = -(-model.num_worlds // worlds)
-        wp.launch_tiled(shared_solve_kernel(size, worlds, model.sparse.blob_size), dim=[blocks],
+        wp.launch_tiled(shared_solve_kernel(size, worlds, system.pat.blob_size), dim=[blocks],
                         block_dim=sparse_block(model.device) * worlds, device=model.device,
-                        inputs=[model.sparse, mask, work.sparse_L, work.sparse_L_rows, rhs, work.sparse_real,
+                        inputs=[system.pat, mask, system.L, system.L_rows, rhs, system.real,
                                 work.row_count, model.num_worlds],
                         outputs=[x_out])
         return
     wp.launch_tiled(solve_kernel(size), dim=[model.num_worlds], block_dim=sparse_block(model.device),
-                    device=model.device, inputs=[model.sparse, mask, work.sparse_L, work.sparse_L_rows, rhs,
-                                                 work.sparse_real, work.row_count],
+                    device=model.device, inputs=[system.pat, mask, system.L, system.L_rows, rhs,
+                                                 system.real, work.row_count],
                     outputs=[x_out])
+
+
+def matrix(model, system: SparseSystem) -> None:
+    """This step's P D P on the system's pattern (system.A), from the rows built by engine.dynamics."""
+    work = model.work
+    wp.launch(sparse_matrix, dim=system.A.shape, device=model.device,
+              inputs=[system.pat, work.row_body_p, work.row_body_c, work.row_J_c, work.row_J_p,
+                      work.row_MJ_c, work.row_MJ_p, work.row_compliance, work.row_precond, model.body_inv_mass,
+                      work.sparse_root, system.real],
+              outputs=[system.A])
 
 
 def prepare(model) -> None:
     """Once per step, after the dual problem is built: which of this step's rows each factor row
-    stands for, and the matrix's values on the factor's pattern (work.sparse_A)."""
-    work, W = model.work, model.num_worlds
-    wp.launch(map_joint_rows, dim=(W, model.sparse_rows), inputs=[model.contact_row_start],
-              outputs=[work.sparse_real], device=model.device)
+    of the PADMM system stands for, and the matrix's values on its pattern."""
+    work, W, system = model.work, model.num_worlds, model.sparse_system
+    wp.launch(map_joint_rows, dim=(W, system.rows), inputs=[model.contact_row_start],
+              outputs=[system.real], device=model.device)
     if model.has_contacts:
         wp.launch(map_contact_rows, dim=(W, model.contact_capacity),
                   inputs=[model.contact_row_start, work.contact_count, work.contact_key],
-                  outputs=[work.sparse_real], device=model.device)
-    wp.launch(sparse_matrix, dim=work.sparse_A.shape, device=model.device,
-              inputs=[model.sparse, work.row_body_p, work.row_body_c, work.row_J_c, work.row_J_p,
-                      work.row_MJ_c, work.row_MJ_p, work.row_compliance, work.row_precond, model.body_inv_mass,
-                      work.sparse_root, work.sparse_real],
-              outputs=[work.sparse_A])
+                  outputs=[system.real], device=model.device)
+    matrix(model, system)
 
 
 def roots(model, body_q) -> None:
     """Once per step, with the configuration of the dynamics: the square roots of the body nodes'
     inverse inertias (nothing to do where no topology keeps body nodes)."""
-    if model.sparse_body_nodes:
+    if model.sparse_body_nodes:  # either system's
         wp.launch(body_roots, dim=(model.num_worlds, model.max_bodies), device=model.device,
                   inputs=[model.body_count, model.body_inv_inertia, body_q], outputs=[model.work.sparse_root])
