@@ -185,6 +185,10 @@ LINKAGE_SWEEP = [
 TIGHT = dict(tolerance=1e-9, relative_tolerance=0.0, max_iterations=300, position_iterations=4)
 # one Gauss-Newton iteration for the dynamics' configuration and one for the output instead of two each
 DRLEGS_VARIANTS = [dict(label="1 projection iteration", config=dict(position_iterations=1))]
+# standing (drive, armature and contact rows beside the joints'): the projection's factor on the PADMM's
+# pattern with the other rows made identity, as before it had a pattern of its own
+DRLEGS_STANDING_VARIANTS = DRLEGS_VARIANTS + [
+    dict(label="projection on the PADMM pattern", config=dict(sparse_projection_pattern=False))]
 
 # DR Legs hanging: step sizes from 2.5 to 40 ms, the projection iterations, the float32 state (its dual
 # problem is linear: one PADMM iteration at any tolerance). Records every 40 ms fall on a step of each.
@@ -220,10 +224,10 @@ SCENES_DECLARED = {
                                reference=dict(config=TIGHT), peer_dt_scales=DRLEGS_PEER_DT_SCALES),
     "drlegs_standing": Declared(lambda assets: dr_legs(True, assets), dt=1e-2, duration=0.0,
                                 throughput_worlds=[1, 1024, 4096], precision_worlds=0, throughput_steps=50,
-                                peers=True, quick_worlds=[1], variants=DRLEGS_VARIANTS),
+                                peers=True, quick_worlds=[1], variants=DRLEGS_STANDING_VARIANTS),
     "drlegs_standing_newton": Declared(lambda assets: dr_legs(True, assets, NEWTON_EXAMPLE_JOINTS), dt=1e-2,
                                        duration=1.0, throughput_worlds=[1, 1024, 4096], precision_worlds=4096,
-                                       throughput_steps=50, peers=True, quick_worlds=[1], variants=DRLEGS_VARIANTS,
-                                       sweep=DRLEGS_STANDING_SWEEP, reference=None,
+                                       throughput_steps=50, peers=True, quick_worlds=[1],
+                                       variants=DRLEGS_STANDING_VARIANTS, sweep=DRLEGS_STANDING_SWEEP, reference=None,
                                        peer_dt_scales=DRLEGS_PEER_DT_SCALES),
 }
