@@ -266,3 +266,60 @@ def test_projection_pattern_steps_like_the_shared_pattern(device, scene):
     assert np.ptp(traces[0].points) > 0.3  # it moves
     assert np.abs(traces[0].points - traces[1].points).max() < 1e-5
     assert traces[0].violation_linear.max() < max(2e-7, 2.0 * traces[1].violation_linear.max())
+
+
+@pytest.mark.parametrize("body_nodes", [True, False])
+def test_tail_solve_matches_the_other_kernels(device, body_nodes):
+    """The PADMM tail's solve (engine.sparse.tail_solve_kernel: factor, rows and schedule copied
+    into shared memory, one world per block) gives the other kernels' results to the bit, runs
+    only while the active count is at most its limit (the other kernels only above it), and
+    leaves a world out of the mask alone."""
+    one, two = random_walkers(2)
+    model = pack_worlds([one, two, one], device=device, dt=2e-3,
+                        config=SolverConfig(linear_solver="sparse", sparse_body_nodes=body_nodes))
+    stepper = Stepper(model, model.state(), model.control(), chunk=10)
+    for _ in range(2):
+        stepper.advance()
+    W, R = model.num_worlds, model.max_rows
+    sparse.prepare(model)
+    shifts = np.random.default_rng(5).uniform(1e-3, 1e-1, (W, R)).astype(np.float32)
+    sparse.factor(model, wp.array(shifts, device=device), wp.ones(W, dtype=wp.int32, device=device))
+    rhs = wp.array(np.random.default_rng(6).standard_normal((W, R)).astype(np.float32), device=device)
+    mask = wp.array([1, 0, 1], dtype=wp.int32, device=device)
+    count = wp.array([2], dtype=wp.int32, device=device)  # two worlds still iterating
+    results = {}
+    for label, limit in (("bulk", 1), ("tail", 2), ("plain", None)):
+        x = wp.full((W, R), 7.0, dtype=float, device=device)
+        if limit is None:
+            sparse.solve(model, rhs, mask, x)
+        else:
+            sparse.solve(model, rhs, mask, x, active_count=count, tail_limit=limit)
+        results[label] = x.numpy()
+    np.testing.assert_array_equal(results["tail"], results["plain"])
+    np.testing.assert_array_equal(results["bulk"], results["plain"])
+    assert np.all(results["tail"][1] == 7.0)  # out of the mask
+    assert not np.all(results["tail"][0] == 7.0)
+    # with the count above the limit the tail kernel alone does nothing
+    size = -(-model.sparse_system.nodes // sparse.VECTOR_STEP) * sparse.VECTOR_STEP
+    system = model.sparse_system
+    kernel = sparse.tail_solve_kernel(size, system.pat.blob_size, system.L.shape[1], system.L_rows.shape[1])
+    untouched = wp.full((W, R), 7.0, dtype=float, device=device)
+    wp.launch_tiled(kernel, dim=[W], block_dim=sparse.sparse_block(device), device=device,
+                    inputs=[system.pat, mask, system.L, system.L_rows, rhs, system.real, model.work.row_count,
+                            count, 1], outputs=[untouched])
+    assert np.all(untouched.numpy() == 7.0)
+
+
+def test_padmm_tail_solves_give_the_same_steps(device, monkeypatch):
+    """Whole steps of walkers on the ground with every PADMM solve handed to the tail kernel
+    (the limit above any active count) move to the bit as with the other kernels alone."""
+    one, two = random_walkers(2)
+    points = []
+    for limit in (-1, 10**6):
+        monkeypatch.setattr(sparse, "default_tail_limit", lambda system, dev, limit=limit: limit)
+        model = pack_worlds([one, two], device=device, dt=2e-3, config=SolverConfig(linear_solver="sparse"))
+        trace, _ = rollout(model, model.state(), model.control(), 60, record_every=10)
+        assert not trace.diverged.any()
+        points.append(trace.points)
+    np.testing.assert_array_equal(points[0], points[1])
+    assert np.ptp(points[0]) > 0.01
