@@ -630,8 +630,8 @@ def padmm_iteration(model):
               outputs=[work.x_prev, work.rhs])
     if model.linear_solver == "dense":
         linear.solve(work.factor, work.rhs, work.active, work.x)
-    elif model.linear_solver == "sparse":  # the loop's tail (few worlds left) on tail_solve_kernel
-        sparse.solve(model, work.rhs, work.active, work.x, active_count=work.active_count)
+    elif model.linear_solver == "sparse":
+        sparse.solve(model, work.rhs, work.active, work.x)
     else:  # inexact Conjugate Residual, warm-started from the last iterate
         matrix_free.solve(model, work.rhs, work.active, work.x)
     wp.launch(padmm_project, dim=grid, device=device,

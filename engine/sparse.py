@@ -74,7 +74,7 @@ wp.set_module_options({"enable_backward": False})  # no gradients are taken: com
 
 __all__ = ["SparsePatterns", "SparseSystem", "analyze", "bilateral_factor_rows", "build_patterns", "choose_body_nodes",
            "factor", "make_system", "matrix", "prepare", "roots", "shared_solve_kernel", "solve", "solve_schedule",
-           "sparse_block", "default_tail_limit", "tail_solve_kernel"]
+           "sparse_block"]
 
 
 # Register cap per thread of the factor and solve kernels: at most 64 lets 32 one-warp blocks (the
@@ -929,20 +929,15 @@ def solve_kernel(size: int):
         rhs: wp.array2d(dtype=float),
         real: wp.array2d(dtype=wp.int32),
         row_count: wp.array(dtype=wp.int32),
-        active_count: wp.array(dtype=wp.int32),
-        tail_limit: int,
         # out
         x_out: wp.array2d(dtype=float),
     ):
         """x = (L S L^T)^-1 rhs for worlds with mask != 0: forward substitution level by level
         (rows gather their entries left of the diagonal), the signs S (body nodes), backward in
         reverse (columns gather their entries below it); per level the lanes take one row each
-        or share each row. Body nodes start from 0 and their values are dropped. Nothing where
-        active_count[0] <= tail_limit (tail_solve_kernel's turn)."""
+        or share each row. Body nodes start from 0 and their values are dropped."""
         world, lane = wp.tid()
         lanes = wp.block_dim()
-        if active_count[0] <= tail_limit:
-            return
         v = wp.tile_zeros(shape=size, dtype=float, storage="shared")
         if mask[world] == 0:
             return
@@ -1005,11 +1000,14 @@ SOLVE_SHARED_BYTES = 160 * 1024  # larger schedules and vectors keep the global 
 
 
 @functools.cache
-def _shared_substitution(vector_size: int):
-    """The forward and backward substitutions of a world from a solve schedule (solve_schedule)
-    held where the caller keeps it (shared or global memory), the world's vector at offset vb of a
-    shared tile of ``vector_size`` elements, the factor's values Lw and its rows Lr in global or
-    shared memory. Returns substitute_all."""
+def shared_solve_kernel(size: int, worlds: int, blob_size: int):
+    """The solve with each block's schedule in shared memory: a block of ``worlds`` warps (one
+    world each) copies the solve schedule of its first world's analysis (solve_schedule) into
+    shared memory once, then every warp substitutes its own world level by level with warp
+    barriers only; a world of another analysis reads its schedule from global memory. The levels'
+    bounds, the diagonals' ranges and the column and row indices are then shared-memory loads,
+    and a level's chain of dependent steps keeps one global load (the factor's values)."""
+    vector_size = size * worlds
     vector_set = _vector_setter(vector_size)
 
     @wp.func
@@ -1063,21 +1061,6 @@ def _shared_substitution(vector_size: int):
             substitute(Lw, Lr, v, vb, blob, base, pat, levels - 1 - back, BACKWARD, lane, lanes)
             warp_sync()
 
-    return substitute_all
-
-
-@functools.cache
-def shared_solve_kernel(size: int, worlds: int, blob_size: int):
-    """The solve with each block's schedule in shared memory: a block of ``worlds`` warps (one
-    world each) copies the solve schedule of its first world's analysis (solve_schedule) into
-    shared memory once, then every warp substitutes its own world level by level with warp
-    barriers only; a world of another analysis reads its schedule from global memory. The levels'
-    bounds, the diagonals' ranges and the column and row indices are then shared-memory loads,
-    and a level's chain of dependent steps keeps one global load (the factor's values)."""
-    vector_size = size * worlds
-    substitute_all = _shared_substitution(vector_size)
-    vector_set = _vector_setter(vector_size)
-
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=SPARSE_REGISTERS)
     def sparse_solve_shared(
         pat: SparsePatterns,
@@ -1088,15 +1071,11 @@ def shared_solve_kernel(size: int, worlds: int, blob_size: int):
         real: wp.array2d(dtype=wp.int32),
         row_count: wp.array(dtype=wp.int32),
         num_worlds: int,
-        active_count: wp.array(dtype=wp.int32),
-        tail_limit: int,
         # out
         x_out: wp.array2d(dtype=float),
     ):
         """x = (L S L^T)^-1 rhs for worlds with mask != 0 (as solve_kernel's sparse_solve)."""
         block, t = wp.tid()
-        if active_count[0] <= tail_limit:
-            return
         lanes = wp.block_dim() // worlds
         slot = t // lanes
         lane = t - slot * lanes
@@ -1125,79 +1104,6 @@ def shared_solve_kernel(size: int, worlds: int, blob_size: int):
         _scatter_solution(v, vb, pat, p, world, real, row_count, lane, lanes, x_out)
 
     return sparse_solve_shared
-
-
-# The tail of a PADMM loop: once few worlds are still iterating, each solve waits on one world's
-# chain of dependent steps, a global-memory round trip each (a walker: ~1.4 k steps, ~0.35 ms on an
-# H100), while the GPU is all but idle. tail_solve_kernel gives each such world a block that first
-# copies its factor, the factor's rows and its schedule into shared memory (one bulk load), so that
-# its chain runs on shared-memory loads. At full load the copies would cost more than they save
-# (fewer worlds fit on a multiprocessor), so the PADMM iterations hand their solves to it only
-# while at most SOLVE_TAIL_WORLDS worlds are active (sparse.solve's active_count), on a GPU.
-SOLVE_TAIL_WORLDS = 256
-SOLVE_TAIL_BYTES = 160 * 1024  # larger factors and schedules keep the other kernels in the tail too
-
-
-def tail_shared_bytes(system: "SparseSystem") -> int:
-    """Shared memory of one tail_solve_kernel block: schedule, factor, its rows and the vector."""
-    size = -(-system.nodes // VECTOR_STEP) * VECTOR_STEP
-    return 4 * (system.pat.blob_size + system.L.shape[1] + system.L_rows.shape[1] + size)
-
-
-def default_tail_limit(system: "SparseSystem", device) -> int:
-    """Active worlds at or below which a PADMM loop's solves go to tail_solve_kernel:
-    SOLVE_TAIL_WORLDS on a GPU where a block's copies fit SOLVE_TAIL_BYTES, else -1 (never; on
-    the CPU a world's data stays in cache anyway)."""
-    if wp.get_device(device).is_cuda and tail_shared_bytes(system) <= SOLVE_TAIL_BYTES:
-        return SOLVE_TAIL_WORLDS
-    return -1
-
-
-@functools.cache
-def tail_solve_kernel(size: int, blob_size: int, entries: int, row_entries: int):
-    """The solve of one world per block (one warp) with its schedule, its factor's values and
-    rows (``entries``, ``row_entries`` per world) and its vector (``size``) in shared memory, for
-    the tail of a PADMM loop: it runs only while active_count[0] <= tail_limit (the other solve
-    kernels then return at once). The same substitutions in the same order as the other kernels:
-    the same results to the bit."""
-    substitute_all = _shared_substitution(size)
-    vector_set = _vector_setter(size)
-
-    @wp.kernel(enable_backward=False, module="unique")
-    def sparse_solve_tail(
-        pat: SparsePatterns,
-        mask: wp.array(dtype=wp.int32),
-        L: wp.array2d(dtype=float),
-        L_rows: wp.array2d(dtype=float),
-        rhs: wp.array2d(dtype=float),
-        real: wp.array2d(dtype=wp.int32),
-        row_count: wp.array(dtype=wp.int32),
-        active_count: wp.array(dtype=wp.int32),
-        tail_limit: int,
-        # out
-        x_out: wp.array2d(dtype=float),
-    ):
-        """x = (L S L^T)^-1 rhs for worlds with mask != 0, while active_count[0] <= tail_limit."""
-        world, lane = wp.tid()
-        lanes = wp.block_dim()
-        if active_count[0] > tail_limit:
-            return
-        if mask[world] == 0:
-            return
-        p = pat.world_pattern[world]
-        schedule = wp.tile_load(pat.solve_blob, shape=(blob_size,), offset=(p * blob_size,), storage="shared")
-        Lw = wp.tile_load(L[world], shape=(entries,), storage="shared")
-        Lr = wp.tile_load(L_rows[world], shape=(row_entries,), storage="shared")
-        v = wp.tile_zeros(shape=size, dtype=float, storage="shared")
-        k = lane
-        while k < pat.perm.shape[1]:
-            vector_set(v, k, _rhs_of(pat, p, k, world, real, rhs))
-            k += lanes
-        block_sync()
-        substitute_all(Lw, Lr, v, 0, schedule, 0, pat, p, lane, lanes)
-        _scatter_solution(v, 0, pat, p, world, real, row_count, lane, lanes, x_out)
-
-    return sparse_solve_tail
 
 
 @dataclasses.dataclass
@@ -1270,23 +1176,15 @@ def factor(model, shift, mask, bilateral_only: bool = False, system: SparseSyste
                     outputs=[system.L, system.L_rows])
 
 
-def solve(model, rhs, mask, x_out, shared: bool | None = None, system: SparseSystem | None = None,
-          active_count=None, tail_limit: int | None = None) -> None:
+def solve(model, rhs, mask, x_out, shared: bool | None = None, system: SparseSystem | None = None) -> None:
     """x_out = (L L^T)^-1 rhs with the system's stored factors, for every masked world (rows of
     x_out below row_count that the system's factor rows do not stand for are left alone). shared:
     the schedule in shared memory (shared_solve_kernel; None: SOLVE_SHARED on GPUs for batches
-    of one topology). system: the model's PADMM system when None. active_count: a (1,) device
-    count of the worlds still iterating (a PADMM loop's); while it is at most tail_limit
-    (None: default_tail_limit)
-    tail_solve_kernel solves instead (the same results)."""
+    of one topology). system: the model's PADMM system when None."""
     system = model.sparse_system if system is None else system
     work = model.work
     size = -(-system.nodes // VECTOR_STEP) * VECTOR_STEP
     device = wp.get_device(model.device)
-    if active_count is None:
-        active_count, tail_limit = work.active_count, -1  # a count is never negative: no tail
-    elif tail_limit is None:
-        tail_limit = default_tail_limit(system, device)
     if shared is None:
         shared = (SOLVE_SHARED and device.is_cuda and len(system.analyses) == 1
                   and model.num_worlds >= SOLVE_WORLDS_PER_BLOCK * device.sm_count // 2
@@ -1297,19 +1195,13 @@ def solve(model, rhs, mask, x_out, shared: bool | None = None, system: SparseSys
         wp.launch_tiled(shared_solve_kernel(size, worlds, system.pat.blob_size), dim=[blocks],
                         block_dim=sparse_block(model.device) * worlds, device=model.device,
                         inputs=[system.pat, mask, system.L, system.L_rows, rhs, system.real,
-                                work.row_count, model.num_worlds, active_count, int(tail_limit)],
+                                work.row_count, model.num_worlds],
                         outputs=[x_out])
-    else:
-        wp.launch_tiled(solve_kernel(size), dim=[model.num_worlds], block_dim=sparse_block(model.device),
-                        device=model.device, inputs=[system.pat, mask, system.L, system.L_rows, rhs,
-                                                     system.real, work.row_count, active_count, int(tail_limit)],
-                        outputs=[x_out])
-    if tail_limit >= 0:
-        kernel = tail_solve_kernel(size, system.pat.blob_size, system.L.shape[1], system.L_rows.shape[1])
-        wp.launch_tiled(kernel, dim=[model.num_worlds], block_dim=sparse_block(model.device), device=model.device,
-                        inputs=[system.pat, mask, system.L, system.L_rows, rhs, system.real, work.row_count,
-                                active_count, int(tail_limit)],
-                        outputs=[x_out])
+        return
+    wp.launch_tiled(solve_kernel(size), dim=[model.num_worlds], block_dim=sparse_block(model.device),
+                    device=model.device, inputs=[system.pat, mask, system.L, system.L_rows, rhs,
+                                                 system.real, work.row_count],
+                    outputs=[x_out])
 
 
 def matrix(model, system: SparseSystem) -> None:
