@@ -200,6 +200,32 @@ def test_choose_body_nodes_shortens_a_hub():
     assert sparse.choose_body_nodes(chain_c, chain_p).body_nodes == ()
 
 
+def test_choose_body_nodes_stops_after_misses(monkeypatch):
+    """The greedy search goes on past bodies that do not shorten the schedule, up to
+    BODY_NODE_MISSES of them in a row: a body that helps, tried after three that do not, is kept;
+    with one miss allowed it is never tried. (The analyses are stand-ins with set costs: the
+    search's control flow is under test, not the estimate.)"""
+    rows = {0: 60, 201: 30, 202: 29, 203: 28, 100: 20, 300: 5}  # the try order: most rows first
+    body_c = np.concatenate([np.full(n, b) for b, n in rows.items()])
+    body_p = np.full(len(body_c), -1)
+    tried = []
+
+    def stand_in(row_body_c, row_body_p, body_nodes=(), nodes=None):
+        tried.append(tuple(body_nodes))
+        cost = 1000 - 500 * (0 in body_nodes) - 100 * (100 in body_nodes) + 10 * sum(b > 200 for b in body_nodes)
+        arrays = {f.name: np.zeros(0) for f in dataclasses.fields(sparse.Analysis) if f.type is np.ndarray}
+        return sparse.Analysis(**arrays, factor_steps=cost, solve_steps=0, body_nodes=tuple(body_nodes))
+
+    monkeypatch.setattr(sparse, "analyze", stand_in)
+    assert sparse.BODY_NODE_MISSES == 4
+    assert sparse.choose_body_nodes(body_c, body_p).body_nodes == (0, 100)
+    assert [t[-1] for t in tried[1:]] == [0, 201, 202, 203, 100]  # body 300 has too few rows to try
+    tried.clear()
+    monkeypatch.setattr(sparse, "BODY_NODE_MISSES", 1)
+    assert sparse.choose_body_nodes(body_c, body_p).body_nodes == (0,)
+    assert [t[-1] for t in tried[1:]] == [0, 201]  # stopped after the first miss
+
+
 @pytest.mark.parametrize("body_nodes", [True, False])
 def test_projection_pattern_solves_the_bilateral_block(device, body_nodes):
     """The projection's own system (engine.sparse.bilateral_factor_rows: each world's bilateral
