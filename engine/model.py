@@ -149,7 +149,7 @@ class SolverConfig:
             rows projects its poses with a factor of its bilateral joint rows on a pattern of their
             own (engine.sparse.bilateral_factor_rows) instead of the PADMM's pattern with the other
             rows made identity (DR Legs standing as in Newton's example: 180 of 300 factor rows,
-            estimated schedule of a factor and its four solves 9.8 k instead of 16.2 k steps).
+            estimated schedule of a factor and its four solves 9.8 k instead of 12.9 k steps).
         compensated_state: sum the twists and the configurations the dynamics run on with
             compensation (State.body_q_low, body_qd_low: engine.integrate) and the joint errors
             the projection corrects in float64 (engine.joints.joint_frames). Off: plain float32
