@@ -30,6 +30,21 @@ def random_walkers(count: int, seed: int = 3):
     raise AssertionError("not enough walkers could be built")
 
 
+def standing_delassus(model, device):
+    """Step the walkers onto the ground (30 steps: contacts active), then the dense P D P of
+    every world's rows built by the dense path's kernel, (W, R, R) on the device."""
+    stepper = Stepper(model, model.state(), model.control(), chunk=10)
+    for _ in range(3):
+        stepper.advance()
+    work, W, R = model.work, model.num_worlds, model.max_rows
+    assert work.contact_count.numpy().min() > 0
+    matrix = wp.zeros((W, R, R), dtype=float, device=device)
+    wp.launch(delassus, dim=(W, R, R), device=device,
+              inputs=[work.row_count, work.row_body_p, work.row_body_c, work.row_J_c, work.row_J_p, work.row_MJ_c,
+                      work.row_MJ_p, work.row_compliance, work.row_precond], outputs=[matrix])
+    return matrix
+
+
 @pytest.mark.parametrize("body_nodes", [True, False])
 @pytest.mark.parametrize("bilateral_only", [False, True])
 def test_factor_and_solve_match_numpy(device, bilateral_only, body_nodes):
@@ -43,15 +58,8 @@ def test_factor_and_solve_match_numpy(device, bilateral_only, body_nodes):
     torso = one.body_index[one.bodies[0].name]
     assert [a.body_nodes for a in model.sparse_analyses] == ([(torso,)] * 2 if body_nodes else [()] * 2)
     assert model.sparse.world_pattern.numpy().tolist() == [0, 1, 0]
-    stepper = Stepper(model, model.state(), model.control(), chunk=10)
-    for _ in range(3):
-        stepper.advance()
     work, W, R = model.work, model.num_worlds, model.max_rows
-    assert work.contact_count.numpy().min() > 0
-    matrix = wp.zeros((W, R, R), dtype=float, device=device)
-    wp.launch(delassus, dim=(W, R, R), device=device,
-              inputs=[work.row_count, work.row_body_p, work.row_body_c, work.row_J_c, work.row_J_p, work.row_MJ_c,
-                      work.row_MJ_p, work.row_compliance, work.row_precond], outputs=[matrix])
+    matrix = standing_delassus(model, device)
     if bilateral_only:
         wp.launch(bilateral_block, dim=(W, R, R), inputs=[model.row_kind, work.row_count, matrix], device=device)
     # a shift per row (the PADMM factor caps the joint rows' penalty): 1e-3 to 1e-1, world by world
@@ -245,15 +253,8 @@ def test_projection_pattern_solves_the_bilateral_block(device, body_nodes):
         assert real[w, :len(picked)].tolist() == picked.tolist() and np.all(real[w, len(picked):] == -1)
         assert len(picked) < start[w]  # the walkers' crank drives are joint rows left out
     assert system.nodes < model.sparse_system.nodes
-    stepper = Stepper(model, model.state(), model.control(), chunk=10)
-    for _ in range(3):
-        stepper.advance()
     work, W, R = model.work, model.num_worlds, model.max_rows
-    assert work.contact_count.numpy().min() > 0
-    matrix = wp.zeros((W, R, R), dtype=float, device=device)
-    wp.launch(delassus, dim=(W, R, R), device=device,
-              inputs=[work.row_count, work.row_body_p, work.row_body_c, work.row_J_c, work.row_J_p, work.row_MJ_c,
-                      work.row_MJ_p, work.row_compliance, work.row_precond], outputs=[matrix])
+    matrix = standing_delassus(model, device)
     shifts = (np.array([1e-3, 1e-2, 1e-1], np.float32)[:, None]
               * np.random.default_rng(2).uniform(0.3, 1.0, (W, R))).astype(np.float32)
     sparse.matrix(model, system)
