@@ -580,7 +580,7 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
                   outputs=[work.needs_factor, work.project, work.row_shift])
         if dense:
             linear.factor(work.delassus, work.row_shift, work.needs_factor, work.factor)
-        elif own_pattern is not None:  # the bilateral rows on their own pattern (SolverConfig.sparse_projection_pattern)
+        elif own_pattern is not None:  # the bilateral rows on a pattern of their own (sparse_projection_pattern)
             sparse.matrix(model, own_pattern)
             sparse.factor(model, work.row_shift, work.needs_factor, system=own_pattern)
         elif direct:

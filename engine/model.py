@@ -371,9 +371,9 @@ class Workspace:
     Matrices (W, R, R), dense solver only: delassus (P D P), factor (its Cholesky factor with
     (eta + rho) I added). Sparse solver: its matrices and factors live in Model.sparse_system (the
     PADMM's) and Model.sparse_projection (engine.sparse.SparseSystem); sparse_root (W, B) the body
-    nodes' square roots of the inverse inertias. Matrix-free: no extra arrays (Conjugate Residual vectors live in registers,
-    row Jacobians and body twists in shared memory); inner_iterations (W,) CR iterations summed over
-    a step.
+    nodes' square roots of the inverse inertias. Matrix-free: no extra arrays (Conjugate Residual
+    vectors live in registers, row Jacobians and body twists in shared memory); inner_iterations
+    (W,) CR iterations summed over a step.
     PADMM vectors (W, R): v_f, lo, hi (preconditioned), x, x_prev, y, y_prev, y_hat, z, z_prev,
     z_hat, rhs, delta; row_shift (W, R): the factored matrix's diagonal shift per row (eta + the
     row's penalty: engine.padmm.row_penalty); row_free (W, R) int32: the rows on

@@ -331,8 +331,9 @@ def schedule_cost(a: Analysis) -> int:
 def choose_body_nodes(row_body_c: np.ndarray, row_body_p: np.ndarray) -> Analysis:
     """The analysis of one topology with the bodies that shorten its schedule kept as nodes:
     the bodies acted on by the most rows are tried one by one (greedy; at most BODY_NODE_TRIES,
-    until BODY_NODE_MISSES in a row fail) and kept where schedule_cost drops, and the set is used where it saves a fifth or more (DR Legs standing
-    as in Newton's example: seven bodies; a walker: its torso; DR Legs hanging: none)."""
+    until BODY_NODE_MISSES in a row fail) and kept where schedule_cost drops, and the set is used
+    where it saves a fifth or more (DR Legs standing as in Newton's example: seven bodies; a
+    walker: its torso; DR Legs hanging: none)."""
     plain = best = analyze(row_body_c, row_body_p)
     bodies, counts = np.unique(np.concatenate([row_body_c, row_body_p]), return_counts=True)
     keep = bodies >= 0
