@@ -188,7 +188,7 @@ DRLEGS_VARIANTS = [dict(label="1 projection iteration", config=dict(position_ite
 # standing (drive, armature and contact rows beside the joints'): the projection's factor on the PADMM's
 # pattern with the other rows made identity, as before it had a pattern of its own
 DRLEGS_STANDING_VARIANTS = DRLEGS_VARIANTS + [
-    dict(label="projection on the PADMM pattern", config=dict(sparse_projection_pattern=False))]
+    dict(label="projection on the PADMM pattern", config=dict(sparse_projection_pattern="never"))]
 
 # DR Legs hanging: step sizes from 2.5 to 40 ms, the projection iterations, the float32 state (its dual
 # problem is linear: one PADMM iteration at any tolerance). Records every 40 ms fall on a step of each.

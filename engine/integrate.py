@@ -10,10 +10,12 @@ rounding of the increments, not by that of the state (a crank turning for 20 s a
 roundings of 2e-7 m/s each would shift its energy by about 1e-5 and its phase by millimetres).
 SolverConfig.compensated_state turns it off (plain float32 sums; the low parts stay zero).
 Position projection (Gauss-Newton): with the residuals phi(q+) of the bilateral rows, solve
-(P D P + sigma I) x = -P phi with the factor the PADMM solve already holds and move every body by
-M^-1 J^T (P x): one damped Newton step on the constraint manifold per iteration, no new factor
-(sparse solver: the same, with its sparse factor; matrix-free solver: the same system by
-Conjugate Residual on the bilateral rows).
+(P D P + sigma I) x = -P phi over the bilateral rows and move every body by M^-1 J^T (P x): one
+damped Newton step on the constraint manifold per iteration. A batch whose rows are all bilateral
+joint rows reuses the factor the PADMM solve already holds; any other batch factors its bilateral
+block once per step (dense: the other rows made identity; sparse: likewise on the PADMM's pattern,
+or on a pattern of the bilateral rows alone, SolverConfig.sparse_projection_pattern); the
+matrix-free solver solves the same system by Conjugate Residual on the bilateral rows.
 """
 
 import warp as wp
@@ -562,14 +564,15 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
         return  # nothing to project: no joints in the batch
     dense = model.linear_solver == "dense"
     direct = model.linear_solver in ("dense", "sparse")  # a factor to reuse or refactor
+    # the bilateral rows' own system: its solves write those rows of delta alone, and the others stay
+    # zero (delta is allocated zero and nothing else writes it)
     own_pattern = model.sparse_projection if model.linear_solver == "sparse" else None
-    if own_pattern is not None:  # its solves write the bilateral rows alone: the others' corrections stay 0
-        work.delta.zero_()
     if prepare:
         # Only the bilateral joint rows are projected. Drive, limit and contact rows are decoupled
-        # from the projection (their rows and columns become identity) and a large ADMM penalty
-        # would damp the Gauss-Newton steps: such worlds get a factor of their own (the PADMM
-        # factor and matrix are free now, the next step rebuilds both).
+        # from the projection (their rows and columns become identity, or are left out of its own
+        # pattern) and a large ADMM penalty would damp the Gauss-Newton steps: such worlds get a
+        # factor of their own (the PADMM's factor, and with the sparse solver its matrix, are free
+        # now: the next step rebuilds both, and the projection's own system may share their buffers).
         if dense and model.has_unilateral_or_drive_rows:
             wp.launch(bilateral_block, dim=(model.num_worlds, model.max_rows, model.max_rows), device=device,
                       inputs=[model.row_kind, work.row_count, work.delassus])

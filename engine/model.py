@@ -145,11 +145,15 @@ class SolverConfig:
             torso) as six nodes of its factor instead of coupling all its rows with each other,
             where its analysis estimates a shorter schedule (engine.sparse.choose_body_nodes);
             off: the rows' own coupling pattern only.
-        sparse_projection_pattern: with the sparse solver, a batch with drive, limit or contact
-            rows projects its poses with a factor of its bilateral joint rows on a pattern of their
-            own (engine.sparse.bilateral_factor_rows) instead of the PADMM's pattern with the other
-            rows made identity (DR Legs standing as in Newton's example: 180 of 300 factor rows,
-            estimated schedule of a factor and its four solves 9.8 k instead of 12.9 k steps).
+        sparse_projection_pattern: with the sparse solver, a batch with rows besides its
+            bilateral joint rows (drives, armature and damping, limits, contacts) cannot project
+            with the PADMM factor; it factors its bilateral rows once per step, either on the
+            PADMM's pattern with the other rows made identity ("never": no pattern of their own)
+            or on a pattern of the bilateral rows alone (engine.sparse.bilateral_factor_rows;
+            "always"), or the latter where its estimated schedule is the shorter one ("auto",
+            engine.sparse.batch_schedule_cost: DR Legs standing as in Newton's example, 180 of 300
+            factor rows, 9.8 k instead of 12.9 k steps; not for walkers, whose rows are mostly
+            bilateral). True and False read as "always" and "never".
         compensated_state: sum the twists and the configurations the dynamics run on with
             compensation (State.body_q_low, body_qd_low: engine.integrate) and the joint errors
             the projection corrects in float64 (engine.joints.joint_frames). Off: plain float32
@@ -191,7 +195,7 @@ class SolverConfig:
     max_speed: float = 1.0e3
     step_kernel: str = "auto"
     sparse_body_nodes: bool = True
-    sparse_projection_pattern: bool = True
+    sparse_projection_pattern: str = "auto"
     compensated_state: bool = True
 
     def __post_init__(self):
@@ -203,6 +207,12 @@ class SolverConfig:
                                  f"{[i.value for i in Integrator]}, got {self.integrator!r}") from exc
         if self.step_kernel not in ("auto", "fused", "staged"):
             raise ValueError(f"SolverConfig.step_kernel: expected 'auto', 'fused' or 'staged', got {self.step_kernel!r}")
+        if isinstance(self.sparse_projection_pattern, bool):
+            choice = "always" if self.sparse_projection_pattern else "never"
+            object.__setattr__(self, "sparse_projection_pattern", choice)
+        if self.sparse_projection_pattern not in ("auto", "always", "never"):
+            raise ValueError(f"SolverConfig.sparse_projection_pattern: expected 'auto', 'always' or 'never', "
+                             f"got {self.sparse_projection_pattern!r}")
         if self.linear_solver not in ("auto", "dense", "sparse", "matrix_free"):
             raise ValueError(f"SolverConfig.linear_solver: expected 'auto', 'dense', 'sparse' or 'matrix_free', "
                              f"got {self.linear_solver!r}")
@@ -269,7 +279,10 @@ class Model:
         contact_row_start in row order, coded 2 i + side (0: child, 1: parent; engine.pack.body_row_lists)
         bilateral_row_count (W,) int32: joint rows the position projection works on
     Host: contact_capacity (contacts per world, 0 when the batch has no shapes), max_pairs,
-    has_contacts, has_limits, has_bilateral_rows, has_unilateral_or_drive_rows.
+    has_contacts, has_limits, has_bilateral_rows, has_unilateral_or_drive_rows; linear_solver;
+    with the sparse solver sparse_system (the PADMM's factor schedules and buffers,
+    engine.sparse.SparseSystem) and sparse_projection (the projection's, on the bilateral joint
+    rows alone; None where it factors on the PADMM's pattern: SolverConfig.sparse_projection_pattern).
     """
 
     def __init__(self):

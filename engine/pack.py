@@ -11,7 +11,7 @@ import warp as wp
 from engine.collide import PAIR_CONTACTS, PAIR_SLOTS, PLANE_CONTACTS
 from engine.fused import FUSED_MAX_ROWS, FUSED_REGISTERS, fused_fits
 from engine.model import Model, SolverConfig, Workspace
-from engine.sparse import bilateral_factor_rows, make_system
+from engine.sparse import batch_schedule_cost, bilateral_factor_rows, build_patterns, make_system
 from engine.spec import JOINT_ROW_COUNT, JointType, MechanismSpec, joint_dynamics_rows
 
 __all__ = ["MAX_DENSE_ROWS", "dense_rows_needed", "pack_worlds"]
@@ -372,20 +372,22 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     model.work.row_count.assign(h["row_count"])
     model.work.row_body_c = wp.clone(model.row_body_c)  # contact rows rewrite their bodies every step
     model.work.row_body_p = wp.clone(model.row_body_p)
-    model.sparse = None
     model.sparse_system = None
     model.sparse_projection = None
     model.sparse_body_nodes = False
     if sparse:  # one factor schedule per distinct topology (engine.sparse)
-        model.sparse_rows, rbc, rbp = factor_rows(specs, pairs, h)
-        model.sparse_system = make_system(rbc, rbp, W, device, body_nodes=config.sparse_body_nodes)
-        model.sparse, model.sparse_analyses = model.sparse_system.pat, model.sparse_system.analyses
-        model.sparse_nodes = model.sparse_system.nodes
-        if config.sparse_projection_pattern and model.has_unilateral_or_drive_rows and model.has_bilateral_rows:
-            # the projection factors the bilateral joint rows on a pattern of their own
+        _, rbc, rbp = factor_rows(specs, pairs, h)
+        full = build_patterns(rbc, rbp, device, body_nodes=config.sparse_body_nodes)
+        model.sparse_system = make_system(full, W, device)
+        choice = config.sparse_projection_pattern
+        if (choice != "never" and model.has_unilateral_or_drive_rows and model.has_bilateral_rows
+                and config.position_iterations > 0):
+            # the projection may factor the bilateral joint rows on a pattern of their own
             real, bc, bp = bilateral_factor_rows(h["row_kind"], h["row_body_c"], h["row_body_p"],
                                                  h["contact_row_start"])
-            model.sparse_projection = make_system(bc, bp, W, device, body_nodes=config.sparse_body_nodes, real=real)
+            own = build_patterns(bc, bp, device, body_nodes=config.sparse_body_nodes)
+            if choice == "always" or batch_schedule_cost(own[1]) < batch_schedule_cost(full[1]):
+                model.sparse_projection = make_system(own, W, device, real=real, share=model.sparse_system)
         model.sparse_body_nodes = any(s.body_nodes for s in (model.sparse_system, model.sparse_projection) if s)
         model.work.sparse_root = wp.zeros((W, B), dtype=wp.mat33, device=device)
     return model

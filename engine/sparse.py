@@ -52,7 +52,7 @@ global-memory round trip) per step. The sums therefore load four products per pa
 their loads are in flight together (factor 10 to 25 % faster), and a step's chain of dependent
 loads is kept short: each diagonal entry carries its column and its row's or column's range in
 one load (diag_row, diag_col), and the forward substitution reads a row-major copy of the factor
-written after each factor (work.sparse_L_rows) instead of looking each entry up (DR Legs hanging
+written after each factor (SparseSystem.L_rows) instead of looking each entry up (DR Legs hanging
 4.2-4.4 -> 3.9 ms per step at 4096 worlds on an H100). With enough worlds of one topology, a
 block of 32 worlds copies the solve's schedule into shared memory once (shared_solve_kernel), so
 that a level waits on global memory only for the factor's values (DR Legs at 4096 worlds on an
@@ -72,9 +72,9 @@ from engine.model import ROW_ANGULAR, ROW_LINEAR
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
-__all__ = ["SparsePatterns", "SparseSystem", "analyze", "bilateral_factor_rows", "build_patterns", "choose_body_nodes",
-           "factor", "make_system", "matrix", "prepare", "roots", "shared_solve_kernel", "solve", "solve_schedule",
-           "sparse_block"]
+__all__ = ["SparsePatterns", "SparseSystem", "analyze", "batch_schedule_cost", "bilateral_factor_rows",
+           "build_patterns", "choose_body_nodes", "factor", "make_system", "matrix", "prepare", "roots",
+           "shared_solve_kernel", "solve", "solve_schedule", "sparse_block"]
 
 
 # Register cap per thread of the factor and solve kernels: at most 64 lets 32 one-warp blocks (the
@@ -1125,8 +1125,10 @@ class SparseSystem:
     world), A and L (W, entries) the matrix on the pattern and its factor, L_rows (W, entries left
     of the diagonals) the factor's rows for the forward substitution, real (W, rows) the row of
     this step each factor row stands for (-1: unused). A model has the PADMM's system (all rows,
-    contact slots included: real rewritten every step) and, where its batch has drive, limit or
-    contact rows, the projection's (the bilateral joint rows alone: real fixed at packing)."""
+    contact slots included: real rewritten every step) and, where its batch has rows besides its
+    bilateral joint rows and SolverConfig.sparse_projection_pattern asks for it, the projection's
+    (the bilateral joint rows alone: real fixed at packing), which uses the PADMM's buffers for its
+    matrix and factor where they are wide enough (make_system's share)."""
 
     pat: SparsePatterns
     analyses: list
@@ -1143,19 +1145,31 @@ class SparseSystem:
         return any(a.body_nodes for a in self.analyses)
 
 
-def make_system(row_body_c: np.ndarray, row_body_p: np.ndarray, num_worlds: int, device, body_nodes: bool = True,
-                real: np.ndarray | None = None) -> SparseSystem:
-    """Analyse a batch's factor rows (build_patterns) and allocate one factor's buffers; real: the
-    fixed (W, rows) row of each factor row (None: rewritten every step by prepare)."""
-    pat, analyses, entries = build_patterns(row_body_c, row_body_p, device, body_nodes=body_nodes)
-    rows = row_body_c.shape[1]
+def make_system(patterns: tuple, num_worlds: int, device, real: np.ndarray | None = None,
+                share: SparseSystem | None = None) -> SparseSystem:
+    """A system from build_patterns' result and one factor's buffers. real: the fixed (W, rows)
+    row of each factor row (None: rewritten every step by prepare). share: a system whose matrix
+    and factor are not needed while this one's are (the PADMM's, once the projection runs): its
+    buffers are used where they are wide enough."""
+    pat, analyses, entries = patterns
+    rows = max((a.rows for a in analyses), default=0)
     row_entries = max(1, max(len(a.row_entry) for a in analyses))
     real_array = (wp.zeros((num_worlds, rows), dtype=wp.int32, device=device) if real is None
                   else wp.array(np.ascontiguousarray(real, np.int32), dtype=wp.int32, device=device))
+
+    def buffer(width: int, shared):
+        if shared is not None and shared.shape[1] >= width:
+            return shared
+        return wp.zeros((num_worlds, width), dtype=float, device=device)
+
     return SparseSystem(pat, analyses, rows, analyses[0].nodes,
-                        wp.zeros((num_worlds, entries), dtype=float, device=device),
-                        wp.zeros((num_worlds, entries), dtype=float, device=device),
-                        wp.zeros((num_worlds, row_entries), dtype=float, device=device), real_array)
+                        buffer(entries, share and share.A), buffer(entries, share and share.L),
+                        buffer(row_entries, share and share.L_rows), real_array)
+
+
+def batch_schedule_cost(analyses) -> int:
+    """schedule_cost of a batch's slowest topology (every world of a batch waits on it)."""
+    return max(schedule_cost(a) for a in analyses)
 
 
 def bilateral_factor_rows(row_kind: np.ndarray, row_body_c: np.ndarray, row_body_p: np.ndarray,
@@ -1164,8 +1178,8 @@ def bilateral_factor_rows(row_kind: np.ndarray, row_body_c: np.ndarray, row_body
     first joint_rows[w] rows hold all joint rows), padded to the largest count. Returns (real,
     body_c, body_p), each (W, V): the row of each factor row (-1: padding) and its bodies."""
     W = len(row_kind)
-    picked = [np.flatnonzero((row_kind[w, :joint_rows[w]] == 0) | (row_kind[w, :joint_rows[w]] == 1))
-              for w in range(W)]
+    bilateral = (int(ROW_LINEAR), int(ROW_ANGULAR))
+    picked = [np.flatnonzero(np.isin(row_kind[w, :joint_rows[w]], bilateral)) for w in range(W)]
     V = max(1, max(len(p) for p in picked))
     real = np.full((W, V), -1, np.int32)
     body_c = np.full((W, V), -1, np.int32)

@@ -54,10 +54,10 @@ def test_factor_and_solve_match_numpy(device, bilateral_only, body_nodes):
     one, two = random_walkers(2)  # one and two legs per side
     model = pack_worlds([one, two, one], device=device, dt=2e-3,
                         config=SolverConfig(linear_solver="sparse", sparse_body_nodes=body_nodes))
-    assert len(model.sparse_analyses) == 2  # one analysis per topology
+    assert len(model.sparse_system.analyses) == 2  # one analysis per topology
     torso = one.body_index[one.bodies[0].name]
-    assert [a.body_nodes for a in model.sparse_analyses] == ([(torso,)] * 2 if body_nodes else [()] * 2)
-    assert model.sparse.world_pattern.numpy().tolist() == [0, 1, 0]
+    assert [a.body_nodes for a in model.sparse_system.analyses] == ([(torso,)] * 2 if body_nodes else [()] * 2)
+    assert model.sparse_system.pat.world_pattern.numpy().tolist() == [0, 1, 0]
     work, W, R = model.work, model.num_worlds, model.max_rows
     matrix = standing_delassus(model, device)
     if bilateral_only:
@@ -225,7 +225,7 @@ def test_choose_body_nodes_stops_after_misses(monkeypatch):
         return sparse.Analysis(**arrays, factor_steps=cost, solve_steps=0, body_nodes=tuple(body_nodes))
 
     monkeypatch.setattr(sparse, "analyze", stand_in)
-    assert sparse.BODY_NODE_MISSES == 4
+    monkeypatch.setattr(sparse, "BODY_NODE_MISSES", 4)
     assert sparse.choose_body_nodes(body_c, body_p).body_nodes == (0, 100)
     assert [t[-1] for t in tried[1:]] == [0, 201, 202, 203, 100]  # body 300 has too few rows to try
     tried.clear()
@@ -242,9 +242,11 @@ def test_projection_pattern_solves_the_bilateral_block(device, body_nodes):
     (drives, contacts) are left alone below the row count and zeroed above it."""
     one, two = random_walkers(2)
     model = pack_worlds([one, two, one], device=device, dt=2e-3,
-                        config=SolverConfig(linear_solver="sparse", sparse_body_nodes=body_nodes))
+                        config=SolverConfig(linear_solver="sparse", sparse_body_nodes=body_nodes,
+                                            sparse_projection_pattern="always"))
     system = model.sparse_projection
     assert system is not None and system is not model.sparse_system
+    assert system.L is model.sparse_system.L  # the PADMM's buffers, free while the projection runs
     kind = model.row_kind.numpy()
     start = model.contact_row_start.numpy()
     real = system.real.numpy()
@@ -260,9 +262,14 @@ def test_projection_pattern_solves_the_bilateral_block(device, body_nodes):
     sparse.matrix(model, system)
     sparse.factor(model, wp.array(shifts, device=device), wp.ones(W, dtype=wp.int32, device=device), system=system)
     rhs = np.random.default_rng(4).standard_normal((W, R)).astype(np.float32)
-    x = wp.full((W, R), 7.0, dtype=float, device=device)
-    sparse.solve(model, wp.array(rhs, device=device), wp.ones(W, dtype=wp.int32, device=device), x, system=system)
-    x, matrix, n = x.numpy(), matrix.numpy().astype(np.float64), work.row_count.numpy()
+    solutions = []
+    for shared in (False, True):  # the schedule read from global memory, or from a shared copy
+        x = wp.full((W, R), 7.0, dtype=float, device=device)
+        sparse.solve(model, wp.array(rhs, device=device), wp.ones(W, dtype=wp.int32, device=device), x,
+                     shared=shared, system=system)
+        solutions.append(x.numpy())
+    np.testing.assert_array_equal(solutions[0], solutions[1])
+    x, matrix, n = solutions[0], matrix.numpy().astype(np.float64), work.row_count.numpy()
     for w in range(W):
         b = np.flatnonzero(kind[w, :n[w]] <= 1)
         A = matrix[w][np.ix_(b, b)] + np.diag(shifts[w, b])
@@ -283,13 +290,58 @@ def test_projection_pattern_steps_like_the_shared_pattern(device, scene):
     spec = make_scene(scene).spec
     spec = dataclasses.replace(spec, joints=[dataclasses.replace(j, armature=0.01, damping=0.05) for j in spec.joints])
     traces = []
-    for own in (True, False):
+    for choice in ("always", "never"):
         model = pack_worlds([spec], device=device, dt=1e-3,
-                            config=SolverConfig(linear_solver="sparse", sparse_projection_pattern=own))
-        assert (model.sparse_projection is not None) == own
+                            config=SolverConfig(linear_solver="sparse", sparse_projection_pattern=choice))
+        assert (model.sparse_projection is not None) == (choice == "always")
         trace, _ = rollout(model, model.state(), model.control(), 400, record_every=20)
         assert not trace.diverged.any()
         traces.append(trace)
     assert np.ptp(traces[0].points) > 0.3  # it moves
     assert np.abs(traces[0].points - traces[1].points).max() < 1e-5
     assert traces[0].violation_linear.max() < max(2e-7, 2.0 * traces[1].violation_linear.max())
+
+
+def test_projection_pattern_choice(device):
+    """"auto" gives the projection a pattern of its own where its estimated schedule is the
+    shorter one (a four-bar with an armature on every joint: 20 bilateral of 24 rows), not for
+    walkers (their drives are a few of many rows, and the torso as a node serves the PADMM's
+    pattern best); never without rows besides the bilateral ones or without projection
+    iterations; "always" and "never" (True and False) force it."""
+    spec = make_scene("fourbar").spec
+    armature = dataclasses.replace(spec, joints=[dataclasses.replace(j, armature=0.01) for j in spec.joints])
+
+    def pattern(specs, **settings):
+        model = pack_worlds(specs, device=device, dt=1e-3, config=SolverConfig(linear_solver="sparse", **settings))
+        return model.sparse_projection
+
+    assert pattern([armature]) is not None
+    assert pattern([armature], position_iterations=0) is None
+    assert pattern([spec]) is None  # only bilateral rows: the PADMM factor serves
+    assert pattern(random_walkers(2)) is None
+    assert pattern(random_walkers(2), sparse_projection_pattern="always") is not None
+    assert pattern(random_walkers(2), sparse_projection_pattern=True) is not None
+    assert pattern([armature], sparse_projection_pattern=False) is None
+    with pytest.raises(ValueError, match="sparse_projection_pattern"):
+        SolverConfig(sparse_projection_pattern="sometimes")
+
+
+def test_projection_pattern_in_a_mixed_batch(device):
+    """A batch of a linkage with armatures, a plain linkage (no rows besides its joints') and a
+    walker on the ground: projecting on the bilateral rows' own pattern moves the linkages as on
+    the PADMM's pattern (worlds are independent: float32 rounding apart), and every world keeps its
+    loops as closed."""
+    sixbar = make_scene("sixbar").spec
+    sixbar = dataclasses.replace(sixbar, joints=[dataclasses.replace(j, armature=0.01) for j in sixbar.joints])
+    specs = [sixbar, make_scene("fourbar").spec, random_walkers(1)[0]]
+    traces = []
+    for choice in ("always", "never"):
+        model = pack_worlds(specs, device=device, dt=1e-3,
+                            config=SolverConfig(linear_solver="sparse", sparse_projection_pattern=choice))
+        trace, _ = rollout(model, model.state(), model.control(), 200, record_every=20)
+        assert not trace.diverged.any()
+        traces.append(trace)
+    own, padmm = traces
+    linkages = slice(0, 2)  # the six-bar's and the four-bar's worlds
+    assert np.abs(own.points[:, linkages] - padmm.points[:, linkages]).max() < 1e-5
+    assert own.violation_linear.max() < max(2e-7, 2.0 * padmm.violation_linear.max())
