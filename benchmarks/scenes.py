@@ -186,9 +186,11 @@ TIGHT = dict(tolerance=1e-9, relative_tolerance=0.0, max_iterations=300, positio
 # one Gauss-Newton iteration for the dynamics' configuration and one for the output instead of two each
 DRLEGS_VARIANTS = [dict(label="1 projection iteration", config=dict(position_iterations=1))]
 # standing (drive, armature and contact rows beside the joints'): the projection's factor on the PADMM's
-# pattern with the other rows made identity, as before it had a pattern of its own
+# pattern with the other rows made identity, or on a pattern of the bilateral rows alone, whichever
+# SolverConfig.sparse_projection_pattern="auto" did not choose
 DRLEGS_STANDING_VARIANTS = DRLEGS_VARIANTS + [
-    dict(label="projection on the PADMM pattern", config=dict(sparse_projection_pattern="never"))]
+    dict(label="projection on the PADMM pattern", config=dict(sparse_projection_pattern="never")),
+    dict(label="projection on its own pattern", config=dict(sparse_projection_pattern="always"))]
 
 # DR Legs hanging: step sizes from 2.5 to 40 ms, the projection iterations, the float32 state (its dual
 # problem is linear: one PADMM iteration at any tolerance). Records every 40 ms fall on a step of each.
