@@ -62,7 +62,8 @@ def run(specs, worlds: int, cap: int, device: str, warmup: int, stall_ratio: flo
                                             **({} if free_rho is None else {"free_rho": free_rho})))
     stepper = Stepper(model, model.state(), model.control(), chunk=10)
     return {**time_chunks(stepper.advance, model.work.iterations, model.device, warmup),
-            "patterns": len(model.sparse_system.analyses) if model.sparse_system else 0, "free_rho_used": float(model.padmm_rho_free.numpy()[0])}
+            "patterns": len(model.sparse_system.analyses) if model.sparse_system else 0,
+            "free_rho_used": float(model.padmm_rho_free.numpy()[0])}
 
 
 def run_reduced(specs, worlds: int, cap: int, device: str, warmup: int, study) -> dict:

@@ -113,11 +113,12 @@ def body_row_lists(row_body_c: np.ndarray, row_body_p: np.ndarray, contact_row_s
     return begin, end, out
 
 
-def factor_rows(specs, pairs, h) -> tuple[int, np.ndarray, np.ndarray]:
+def factor_rows(specs, pairs, h) -> tuple[np.ndarray, np.ndarray]:
     """The rows of the sparse solver's factor (engine.sparse) and their bodies, per world: the
     joint rows, then three rows for each candidate contact slot of every collision pair (pair p,
     slot m: rows start + 3 (4 p + m) ..; slots a pair never fills are padding), so that a contact
-    row always sits where its bodies are known in advance; then padding to the batch's largest."""
+    row always sits where its bodies are known in advance; then padding to the batch's largest.
+    Returns (body_c, body_p), each (W, factor rows)."""
     sizes = [int(h["contact_row_start"][w]) + 3 * PAIR_SLOTS * len(pairs[w]) for w in range(len(specs))]
     V = max(max(sizes), 1)
     body_c = np.full((len(specs), V), -1, np.int32)
@@ -130,7 +131,7 @@ def factor_rows(specs, pairs, h) -> tuple[int, np.ndarray, np.ndarray]:
             rows = slice(start + 3 * PAIR_SLOTS * p, start + 3 * (PAIR_SLOTS * p + pair_contacts(spec, a, b)))
             body_c[w, rows] = h["shape_body"][w, a]
             body_p[w, rows] = -1 if b < 0 else h["shape_body"][w, b]
-    return V, body_c, body_p
+    return body_c, body_p
 
 
 def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | None = None,
@@ -376,7 +377,7 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     model.sparse_projection = None
     model.sparse_body_nodes = False
     if sparse:  # one factor schedule per distinct topology (engine.sparse)
-        _, rbc, rbp = factor_rows(specs, pairs, h)
+        rbc, rbp = factor_rows(specs, pairs, h)
         full = build_patterns(rbc, rbp, device, body_nodes=config.sparse_body_nodes)
         model.sparse_system = make_system(full, W, device)
         choice = config.sparse_projection_pattern

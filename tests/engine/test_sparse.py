@@ -30,6 +30,12 @@ def random_walkers(count: int, seed: int = 3):
     raise AssertionError("not enough walkers could be built")
 
 
+def with_armature(spec, damping: float = 0.0):
+    """The mechanism with an armature (and a damping) on every joint: a dynamics row each."""
+    return dataclasses.replace(spec, joints=[dataclasses.replace(j, armature=0.01, damping=damping)
+                                             for j in spec.joints])
+
+
 def standing_delassus(model, device):
     """Step the walkers onto the ground (30 steps: contacts active), then the dense P D P of
     every world's rows built by the dense path's kernel, (W, R, R) on the device."""
@@ -281,27 +287,6 @@ def test_projection_pattern_solves_the_bilateral_block(device, body_nodes):
         assert np.all(x[w, n[w]:] == 0.0)
 
 
-@pytest.mark.parametrize("scene", ["fourbar", "sixbar"])
-def test_projection_pattern_steps_like_the_shared_pattern(device, scene):
-    """Whole steps of a linkage with an armature and damping on every joint (a dynamics row each,
-    so the projection has a factor of its own): projecting with the bilateral rows' own pattern or
-    with the PADMM pattern's bilateral block (the same matrix, the other rows made identity) gives
-    the same motion up to float32 rounding, and the loops stay as closed."""
-    spec = make_scene(scene).spec
-    spec = dataclasses.replace(spec, joints=[dataclasses.replace(j, armature=0.01, damping=0.05) for j in spec.joints])
-    traces = []
-    for choice in ("always", "never"):
-        model = pack_worlds([spec], device=device, dt=1e-3,
-                            config=SolverConfig(linear_solver="sparse", sparse_projection_pattern=choice))
-        assert (model.sparse_projection is not None) == (choice == "always")
-        trace, _ = rollout(model, model.state(), model.control(), 400, record_every=20)
-        assert not trace.diverged.any()
-        traces.append(trace)
-    assert np.ptp(traces[0].points) > 0.3  # it moves
-    assert np.abs(traces[0].points - traces[1].points).max() < 1e-5
-    assert traces[0].violation_linear.max() < max(2e-7, 2.0 * traces[1].violation_linear.max())
-
-
 def test_projection_pattern_choice(device):
     """"auto" gives the projection a pattern of its own where its estimated schedule is the
     shorter one (a four-bar with an armature on every joint: 20 bilateral of 24 rows), not for
@@ -309,7 +294,7 @@ def test_projection_pattern_choice(device):
     pattern best); never without rows besides the bilateral ones or without projection
     iterations; "always" and "never" (True and False) force it."""
     spec = make_scene("fourbar").spec
-    armature = dataclasses.replace(spec, joints=[dataclasses.replace(j, armature=0.01) for j in spec.joints])
+    armature = with_armature(spec)
 
     def pattern(specs, **settings):
         model = pack_worlds(specs, device=device, dt=1e-3, config=SolverConfig(linear_solver="sparse", **settings))
@@ -326,22 +311,24 @@ def test_projection_pattern_choice(device):
         SolverConfig(sparse_projection_pattern="sometimes")
 
 
-def test_projection_pattern_in_a_mixed_batch(device):
-    """A batch of a linkage with armatures, a plain linkage (no rows besides its joints') and a
-    walker on the ground: projecting on the bilateral rows' own pattern moves the linkages as on
-    the PADMM's pattern (worlds are independent: float32 rounding apart), and every world keeps its
-    loops as closed."""
-    sixbar = make_scene("sixbar").spec
-    sixbar = dataclasses.replace(sixbar, joints=[dataclasses.replace(j, armature=0.01) for j in sixbar.joints])
-    specs = [sixbar, make_scene("fourbar").spec, random_walkers(1)[0]]
+def test_projection_pattern_steps_like_the_padmm_pattern(device):
+    """Whole steps of a batch of a four-bar and a six-bar with an armature and damping on every
+    joint, a plain four-bar (no rows besides its joints') and a walker on the ground: projecting
+    on the bilateral rows' own pattern moves the linkages as on the PADMM's pattern (the same
+    matrix, the other rows made identity; worlds are independent: float32 rounding apart), and
+    every world keeps its loops as closed."""
+    specs = [with_armature(make_scene("fourbar").spec, 0.05), with_armature(make_scene("sixbar").spec, 0.05),
+             make_scene("fourbar").spec, random_walkers(1)[0]]
     traces = []
     for choice in ("always", "never"):
         model = pack_worlds(specs, device=device, dt=1e-3,
                             config=SolverConfig(linear_solver="sparse", sparse_projection_pattern=choice))
-        trace, _ = rollout(model, model.state(), model.control(), 200, record_every=20)
+        assert (model.sparse_projection is not None) == (choice == "always")
+        trace, _ = rollout(model, model.state(), model.control(), 400, record_every=20)
         assert not trace.diverged.any()
         traces.append(trace)
     own, padmm = traces
-    linkages = slice(0, 2)  # the six-bar's and the four-bar's worlds
+    linkages = slice(0, 3)  # the worlds of the two four-bars and the six-bar
+    assert np.ptp(own.points[:, linkages]) > 0.3  # they move
     assert np.abs(own.points[:, linkages] - padmm.points[:, linkages]).max() < 1e-5
     assert own.violation_linear.max() < max(2e-7, 2.0 * padmm.violation_linear.max())
