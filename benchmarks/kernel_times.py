@@ -1,22 +1,26 @@
 """Where a staged step spends its time: every kernel launch of a few eager steps, timed on its own.
 
     python -m benchmarks.kernel_times --device cuda --scenes drlegs_hanging drlegs_standing --worlds 4096 --assets DIR
-        [--steps 5] [--out FILE]
+        [--steps 10] [--clock host|device] [--out FILE]
 
 Scenes of benchmarks.scenes (their dt). After two graph chunks of 10 steps (compile, capture, the
-scene settled a little), ``--steps`` eager steps run with the device synchronized before and after
-every launch, and each launch's host wall time is added to its kernel's total: per kernel, ms per
-step and launches per step. The times include a launch's overhead (about 25 us each on an H100 with
-warp 1.19), so a kernel that does little shows that floor; what counts is the difference between
-kernels, and between versions measured the same way. Batches the fused step takes are one launch
-per step (see engine.testspeed's fused_stage_cycles instead). Prints one JSON line per scene and
-writes them to --out.
+scene settled a little), ``--steps`` eager steps run as one chunk (only the last projects its
+output). With ``--clock host`` the device is synchronized before and after every launch and each
+launch's host wall time is added to its kernel's total: per kernel, ms per step and launches per
+step. Those times include a launch's overhead (about 25 us each on an H100 with warp 1.19), so a
+kernel that does little shows that floor; what counts is the difference between kernels, and
+between versions measured the same way. With ``--clock device`` (CUDA) the launches run back to
+back and each kernel's own time comes from CUDA events (wp.timing_begin), without that floor; the
+row also lists every launch's time (launch_ms). Batches the fused step takes are one launch per
+step (see engine.testspeed's fused_stage_cycles instead). Prints one JSON line per scene and writes
+them to --out.
 """
 
 import argparse
 import collections
 import json
 import os
+import re
 import sys
 import time
 
@@ -25,8 +29,13 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import warp as wp
 
 
-def kernel_times(specs, worlds: int, dt: float, device: str, steps: int = 5) -> dict:
-    """Per kernel: [ms per step, launches per step], sorted by time, and the model's step kernel."""
+def kernel_times(specs, worlds: int, dt: float, device: str, steps: int = 5, clock: str = "host") -> dict:
+    """Per kernel: [ms per step, launches per step], sorted by time, and the model's step kernel.
+
+    clock "host": each launch synchronized and timed on the host (its overhead included); "device"
+    (CUDA only): the launches run back to back as in a chunk and each kernel's own run time is read
+    from CUDA events (wp.timing_begin). Either way the steps are one chunk's: only the last
+    projects its output."""
     from engine import pack_worlds, step
     from engine.rollout import Stepper
 
@@ -51,18 +60,32 @@ def kernel_times(specs, worlds: int, dt: float, device: str, steps: int = 5) -> 
         return run
 
     state, other, control = stepper.state, model.state(), model.control()
-    wp.launch, wp.launch_tiled = timed(launch), timed(launch_tiled)
-    try:
-        for _ in range(steps):
-            step(model, state, other, control)
+    each = collections.defaultdict(list)  # device clock: every launch's own time [ms], in launch order
+    if clock == "device":
+        wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+        for k in range(steps):
+            step(model, state, other, control, project_output=k == steps - 1)
             state, other = other, state
-    finally:
-        wp.launch, wp.launch_tiled = launch, launch_tiled
+        for result in wp.timing_end():
+            # CUDA's record: "forward kernel <key>", the key of a kernel of its own module ending in its hash
+            name = re.sub(r"_[0-9a-f]{8}$", "", result.name.removeprefix("forward kernel "))
+            seconds[name] += 1e-3 * result.elapsed
+            launches[name] += 1
+            each[name].append(round(result.elapsed, 4))
+    else:
+        wp.launch, wp.launch_tiled = timed(launch), timed(launch_tiled)
+        try:
+            for k in range(steps):
+                step(model, state, other, control, project_output=k == steps - 1)
+                state, other = other, state
+        finally:
+            wp.launch, wp.launch_tiled = launch, launch_tiled
     per_kernel = {name: [round(1e3 * t / steps, 4), launches[name] / steps]
                   for name, t in sorted(seconds.items(), key=lambda kv: -kv[1])}
-    return {"step_kernel": model.step_kernel, "linear_solver": model.linear_solver,
+    return {"clock": clock, "step_kernel": model.step_kernel, "linear_solver": model.linear_solver,
             "total_ms_per_step": round(1e3 * sum(seconds.values()) / steps, 4),
-            "launches_per_step": sum(launches.values()) / steps, "kernels": per_kernel}
+            "launches_per_step": sum(launches.values()) / steps, "kernels": per_kernel,
+            **({"launch_ms": dict(each)} if each else {})}
 
 
 def main(argv=None) -> int:
@@ -73,12 +96,17 @@ def main(argv=None) -> int:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--scenes", nargs="+", default=["drlegs_hanging"], choices=sorted(SCENES_DECLARED))
     parser.add_argument("--worlds", type=int, default=4096)
-    parser.add_argument("--steps", type=int, default=5)
+    parser.add_argument("--steps", type=int, default=10)
+    parser.add_argument("--clock", choices=("host", "device"), default="host",
+                        help="host: each launch synchronized and timed with its overhead; device (CUDA): the "
+                             "kernels' own run times from CUDA events, launched back to back")
     parser.add_argument("--assets", default=None, help="folder holding disneyresearch/dr_legs")
     parser.add_argument("--out", default=None, help="JSON file for the results")
     args = parser.parse_args(argv)
     if args.worlds < 1 or args.steps < 1:
         parser.error("--worlds and --steps must be >= 1")
+    if args.clock == "device" and not wp.get_device(args.device).is_cuda:
+        parser.error(f"--clock device needs a CUDA device, not {args.device}")
     wp.config.log_level = wp.LOG_WARNING
     rows = []
     for name in args.scenes:
@@ -88,7 +116,7 @@ def main(argv=None) -> int:
         except FileNotFoundError as error:
             parser.error(f"--scenes {name}: {error}")
         row = {"scene": name, "num_worlds": args.worlds, "dt": declared.dt,
-               **kernel_times(scene.specs, args.worlds, declared.dt, args.device, args.steps)}
+               **kernel_times(scene.specs, args.worlds, declared.dt, args.device, args.steps, args.clock)}
         rows.append(row)
         print(json.dumps(row), flush=True)
     if args.out:
