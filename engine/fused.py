@@ -518,6 +518,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         velocity_update: int,
         velocity_floor: float,
         skip_floor: float,
+        skip_floor_angular: float,
         max_speed: float,
         sharing: int,
         project_output: int,
@@ -773,13 +774,20 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                 block_sync()
                 if wp.static(timed):
                     last = tick(stamps, world, wp.static(_STAGE["projection_residuals"]), lane, last)
-                largest = float(0.0)
+                linear = float(0.0)
+                angular = float(0.0)
                 for i in range(lane, n, lanes):
                     phi = bilateral_residual_of(world, i, w.row_count, m.row_kind, w.row_residual)
                     w.rhs[world, i] = -w.row_precond[world, i] * phi
-                    largest = wp.max(largest, wp.abs(phi))
+                    if m.row_kind[world, i] == ROW_LINEAR:
+                        linear = wp.max(linear, wp.abs(phi))
+                    else:
+                        angular = wp.max(angular, wp.abs(phi))
                 if lanes > 1:
-                    largest = block_max(largest)
+                    linear = block_max(linear)
+                    angular = block_max(angular)
+                largest = wp.max(linear, angular)
+                skip = linear <= skip_floor and angular <= skip_floor_angular
                 update = int(0)
                 if largest > velocity_floor and not output:  # above float32 rounding: SHAKE's velocity update
                     update = velocity_update
@@ -787,8 +795,8 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                 if wp.static(timed):
                     last = tick(stamps, world, wp.static(_STAGE["projection_rhs"]), lane, last)
                 if lane == 0:  # as engine.integrate.projection_gate records it
-                    w.projection_mask[world] = wp.where(largest > skip_floor, 1, 0)
-                if largest <= skip_floor:  # the correction would be rounding: skip the iteration
+                    w.projection_mask[world] = wp.where(skip, 0, 1)
+                if skip:  # the correction would be rounding: skip the iteration
                     continue
                 solve_world(world, lane, lanes, n, F, G, w.rhs, w.delta, acc, sol)
                 if wp.static(timed):
@@ -868,7 +876,8 @@ def fused_step(model, state_in, state_out, control, stamps=None, project_output:
                       int(cfg.acceleration), float(cfg.stall_ratio),
                       cfg.position_iterations if model.has_bilateral_rows else 0,
                       int(model.has_unilateral_or_drive_rows), int(cfg.projection_velocity_update),
-                      float(cfg.projection_velocity_floor), float(cfg.projection_skip_floor), float(cfg.max_speed),
+                      float(cfg.projection_velocity_floor), float(cfg.projection_skip_floor),
+                      float(cfg.projection_skip_floor_angular), float(cfg.max_speed),
                       int(sharing), int(project_output), state_in.body_q, state_in.body_qd, state_in.body_q_offset,
                       state_in.body_q_low, state_in.body_qd_low, state_in.body_q_next, state_in.row_lambda,
                       control.joint_target_position,

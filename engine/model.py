@@ -108,14 +108,19 @@ class SolverConfig:
             3.3 % without it); since the dynamics run on projected midpoints, the four-bar at
             0.1 ms drifts 5e-5 with or without it. 0 turns it off.
         projection_skip_floor: a projection iteration is skipped (no solve, nothing moves) in a
-            world whose largest bilateral joint error is at or below this [m]/[rad]: its correction
-            would be float32 rounding. The second Gauss-Newton iteration usually starts there, and
-            on the four-bar at dt 1 ms the median step skips all four (NVIDIA H100, 4096 worlds:
-            0.285 -> 0.256 ms per step). It also stops rounding-level corrections from being
-            amplified near singular configurations (the parallelogram of benchmarks.stress S3,
-            20 s on the CPU: tip error 3.3e-2 -> 7.2e-3 m, energy error 2.1e-4 -> 5.2e-5). DR Legs
-            keeps about 7e-7 rad of angular joint error after projection, above the floor, and
-            skips nothing. 0 turns it off.
+            world whose largest linear bilateral joint error is at or below this [m] and whose
+            largest angular one is at or below projection_skip_floor_angular [rad]: its
+            correction would be float32 rounding. The second Gauss-Newton iteration usually
+            starts there, and on the four-bar at dt 1 ms the median step skips all four (NVIDIA
+            H100, 4096 worlds: 0.285 -> 0.256 ms per step). It also stops rounding-level
+            corrections from being amplified near singular configurations (the parallelogram of
+            benchmarks.stress S3, 20 s on the CPU: tip error 3.3e-2 -> 7.2e-3 m, energy error
+            2.1e-4 -> 5.2e-5). 0 turns it off.
+        projection_skip_floor_angular: the angular rows' share of that test [rad]. A relative
+            orientation carries more float32 rounding than a position: DR Legs keeps 4e-7 to 8e-7
+            rad of angular joint error after any number of iterations, so with the linear floor
+            for both it skipped nothing; with 1e-6 its second iteration is skipped on most steps
+            standing (CPU, 2 s: 240 of 440 iterations; loops 6.0e-8 m, 8.6e-7 rad either way).
         limit_margin: a joint limit row turns on within this distance of the limit [rad]/[m]
             (plus the distance the joint covers in one step, so fast joints do not tunnel).
         limit_stabilization: share of a limit violation pushed back per step.
@@ -183,6 +188,7 @@ class SolverConfig:
     projection_velocity_update: bool = True
     projection_velocity_floor: float = 1.0e-7
     projection_skip_floor: float = 1.0e-7
+    projection_skip_floor_angular: float = 1.0e-6
     limit_margin: float = 0.02
     limit_stabilization: float = 0.2
     contact_margin: float = 0.01
@@ -222,6 +228,7 @@ class SolverConfig:
             "projection_tolerance": 0.0 < self.projection_tolerance < 1.0,
             "projection_velocity_floor": self.projection_velocity_floor >= 0.0,
             "projection_skip_floor": self.projection_skip_floor >= 0.0,
+            "projection_skip_floor_angular": self.projection_skip_floor_angular >= 0.0,
             "max_speed": self.max_speed > 0.0,
             "max_iterations": self.max_iterations >= 1,
             "tolerance": self.tolerance > 0.0,

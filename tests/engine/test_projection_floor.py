@@ -72,3 +72,46 @@ def test_projection_skips_iterations_whose_correction_is_rounding(kernel):
 def test_skip_floor_is_validated():
     with pytest.raises(ValueError, match="projection_skip_floor"):
         SolverConfig(projection_skip_floor=-1.0)
+
+
+def test_projection_gate_weighs_linear_and_angular_errors_by_their_own_floors():
+    """engine.integrate.projection_gate: a world's iteration is skipped (mask 0) only when its
+    largest linear joint error is within projection_skip_floor and its largest angular one within
+    projection_skip_floor_angular; rows other than bilateral joint rows do not count; a world not
+    projected keeps mask 0; the velocity gate opens above its floor on either kind."""
+    import warp as wp
+
+    from engine.integrate import GATE_BLOCK, projection_gate
+    from engine.model import ROW_ANGULAR, ROW_DYNAMICS, ROW_LINEAR
+
+    residual = np.array([[5e-8, 5e-7, 1.0],  # both within their floors (the drive row's 1.0 does not count)
+                         [2e-7, 0.0, 0.0],  # linear above
+                         [0.0, 2e-6, 0.0],  # angular above
+                         [1.0, 1.0, 0.0],  # not projected
+                         [5e-8, 5e-8, 0.0]], np.float32)  # within the velocity floor too
+    W = len(residual)
+    kind = np.tile(np.array([ROW_LINEAR, ROW_ANGULAR, ROW_DYNAMICS], np.int32), (W, 1))
+    project = wp.array([1, 1, 1, 0, 1], dtype=wp.int32)
+    gate, mask = wp.zeros(W, dtype=wp.int32), wp.zeros(W, dtype=wp.int32)
+    wp.launch_tiled(projection_gate, dim=[W], block_dim=GATE_BLOCK, device="cpu",
+                    inputs=[wp.full(W, 3, dtype=wp.int32), wp.array(kind, dtype=wp.int32),
+                            wp.array(residual, dtype=float), project, 1e-7, 1e-7, 1e-6],
+                    outputs=[gate, mask])
+    assert mask.numpy().tolist() == [0, 1, 1, 0, 0]
+    assert gate.numpy().tolist() == [1, 1, 1, 1, 0]
+
+
+@pytest.mark.parametrize("kernel", ["fused", "staged"])
+def test_angular_skip_floor_alone_decides_for_angular_errors(kernel):
+    """With the linear floor out of reach (1 m), the angular floor alone keeps a Bricard linkage's
+    projection iterations running (0 rad: the angular rows of its skew joint axes always carry some
+    rounding) or skips them all (1 rad), in the fused and the staged step alike."""
+    from benchmarks.stress import bricard
+
+    for angular, expected in ((0.0, 1), (1.0, 0)):
+        config = SolverConfig(step_kernel=kernel, projection_skip_floor=1.0, projection_skip_floor_angular=angular)
+        model = pack_worlds([bricard()] * 2, device="cpu", dt=1e-3, config=config)
+        trace, _ = rollout(model, model.state(), model.control(), 20, record_every=10)
+        np.testing.assert_array_equal(model.work.projection_mask.numpy(), [expected] * 2)
+    with pytest.raises(ValueError, match="projection_skip_floor_angular"):
+        SolverConfig(projection_skip_floor_angular=-1.0)
