@@ -227,25 +227,10 @@ def delassus_entry(world: int, i: int, j: int, row_body_p: wp.array2d(dtype=wp.i
                    row_J_p: wp.array2d(dtype=wp.spatial_vector), row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
                    row_MJ_p: wp.array2d(dtype=wp.spatial_vector), row_compliance: wp.array2d(dtype=float),
                    row_precond: wp.array2d(dtype=float)):
-    """Entry (i, j) of P (J M^-1 J^T + R) P for two rows of a world."""
-    return delassus_entry_of(world, i, j, row_body_p, row_body_c, row_J_c, row_J_p, row_MJ_c, row_MJ_p,
-                             row_compliance, row_precond, 1, 1)
-
-
-@wp.func
-def delassus_entry_of(world: int, i: int, j: int, row_body_p: wp.array2d(dtype=wp.int32),
-                      row_body_c: wp.array2d(dtype=wp.int32), row_J_c: wp.array2d(dtype=wp.spatial_vector),
-                      row_J_p: wp.array2d(dtype=wp.spatial_vector), row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
-                      row_MJ_p: wp.array2d(dtype=wp.spatial_vector), row_compliance: wp.array2d(dtype=float),
-                      row_precond: wp.array2d(dtype=float), count_c: int, count_p: int):
-    """delassus_entry with only the shares of row i's child (count_c != 0) and parent (count_p != 0)
-    body: the sparse solver leaves out the bodies it keeps as nodes of its factor."""
+    """Entry (i, j) of P (J M^-1 J^T + R) P for two rows of a world (the sparse solver's matrix
+    follows engine.sparse.matrix_recipe instead)."""
     ci = row_body_c[world, i]
     pi = row_body_p[world, i]
-    if count_c == 0:
-        ci = -1
-    if count_p == 0:
-        pi = -1
     cj = row_body_c[world, j]
     pj = row_body_p[world, j]
     Jci = row_J_c[world, i]
