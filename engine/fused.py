@@ -52,7 +52,6 @@ from engine.integrate import (
     add_impulse_of,
     add_row_share,
     advance_pose_of,
-    bilateral_residual_of,
     guard_divergence_of,
     integrate_pose_of,
     midpoint_pose_of,
@@ -78,7 +77,7 @@ from engine.padmm import (
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
 __all__ = ["FUSED_MAX_ROWS", "FUSED_REGISTERS", "SHARE_BODY_SUMS", "SHARE_JOINT_PARTS", "STAGES", "fused_block",
-           "fused_fits", "fused_inverse", "fused_profile", "fused_sharing", "fused_step", "sharing_used"]
+           "fused_fits", "fused_inverse", "fused_profile", "fused_sharing", "fused_step", "sharing_used", "warp_lanes"]
 
 FUSED_MAX_ROWS = 64
 FUSED_REGISTERS = 128  # register cap per thread: 158 uncapped leave 12 worlds per SM, 128 allow 16
@@ -95,6 +94,55 @@ def fused_block(device) -> int:
 def fused_fits(has_contacts: bool, max_rows: int, dense: bool) -> bool:
     """Whether a batch can take the fused step."""
     return dense and not has_contacts and max_rows <= FUSED_MAX_ROWS
+
+
+_LANE_MAX2 = """
+#if defined(__CUDA_ARCH__)
+unsigned int mask = width >= 32 ? 0xffffffffu : ((1u << width) - 1u);
+for (int offset = width >> 1; offset > 0; offset >>= 1) {
+    a = fmaxf(a, __shfl_xor_sync(mask, a, offset));
+    b = fmaxf(b, __shfl_xor_sync(mask, b, offset));
+}
+#endif
+return wp::vec2(a, b);
+"""
+
+
+@wp.func_native(_LANE_MAX2)
+def lane_max2(a: float, b: float, width: int) -> wp.vec2:
+    """The largest a and b over a block of ``width`` threads (a power of two up to 32: one warp's
+    first lanes), both reduced in one pass of warp shuffles without a block barrier; (a, b) on
+    the CPU, where a block is one thread."""
+
+
+_LANE_REDUCE6 = """
+#if defined(__CUDA_ARCH__)
+unsigned int mask = width >= 32 ? 0xffffffffu : ((1u << width) - 1u);
+for (int offset = width >> 1; offset > 0; offset >>= 1) {
+    float v0 = __shfl_xor_sync(mask, m0, offset);
+    float v1 = __shfl_xor_sync(mask, m1, offset);
+    float v2 = __shfl_xor_sync(mask, m2, offset);
+    float v3 = __shfl_xor_sync(mask, m3, offset);
+    float v4 = __shfl_xor_sync(mask, m4, offset);
+    float v5 = __shfl_xor_sync(mask, s5, offset);
+    m0 = fmaxf(m0, v0); m1 = fmaxf(m1, v1); m2 = fmaxf(m2, v2); m3 = fmaxf(m3, v3); m4 = fmaxf(m4, v4);
+    s5 = s5 + v5;
+}
+#endif
+return wp::spatial_vector(wp::vec3(m0, m1, m2), wp::vec3(m3, m4, s5));
+"""
+
+
+@wp.func_native(_LANE_REDUCE6)
+def lane_reduce6(m0: float, m1: float, m2: float, m3: float, m4: float, s5: float, width: int) -> wp.spatial_vector:
+    """The largest m0..m4 and the sum of s5 over a block of ``width`` threads (as lane_max2: one
+    pass of warp shuffles; the butterfly leaves the same sum, to the bit, in every lane)."""
+
+
+def warp_lanes(block: int) -> bool:
+    """Whether a fused block of ``block`` threads is one warp's first lanes (a power of two up to
+    32), whose sums and maxima then take warp shuffles instead of shared-memory tile reductions."""
+    return 1 < block <= 32 and block & (block - 1) == 0
 
 
 @wp.struct
@@ -471,12 +519,14 @@ def body_row_sum(world: int, t: int, g: int, nb: int, n: int, row_body_c: wp.arr
 
 
 def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_inverse: bool = False,
-                 compensated: bool = True):
+                 compensated: bool = True, shuffled: bool = False):
     """The fused step for worlds of at most tile_rows rows: the world's matrix and factor live in
     shared-memory tiles of that size (the loads of a factor or substitution never leave the SM).
     With ``timed`` lane 0 adds each stage's cycles (STAGES) into stamps. With ``with_inverse`` the
     solves multiply by G = L^-1, formed once per factor, instead of substituting. ``compensated``:
-    SolverConfig.compensated_state (without it the low parts are neither read nor written)."""
+    SolverConfig.compensated_state (without it the low parts are neither read nor written).
+    ``shuffled``: the block is one warp's first lanes (warp_lanes), whose sums and maxima over the
+    world's rows take warp shuffles (lane_reduce6, lane_max2) instead of tile reductions."""
     inverse_rows = tile_rows if with_inverse else 1
     comp = 1 if compensated else 0
 
@@ -668,7 +718,15 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                 r_c = wp.max(r_c, c_i)
                 r_b = wp.max(r_b, b_i)
                 change += m_i
-            if lanes > 1:
+            if wp.static(shuffled):
+                reduced = lane_reduce6(scale, r_p, r_d, r_c, r_b, change, lanes)
+                scale = reduced[0]
+                r_p = reduced[1]
+                r_d = reduced[2]
+                r_c = reduced[3]
+                r_b = reduced[4]
+                change = reduced[5]
+            elif lanes > 1:
                 scale = block_max(scale)
                 r_p = block_max(r_p)
                 r_d = block_max(r_d)
@@ -777,13 +835,20 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                 linear = float(0.0)
                 angular = float(0.0)
                 for i in range(lane, n, lanes):
-                    phi = bilateral_residual_of(world, i, w.row_count, m.row_kind, w.row_residual)
+                    kind = m.row_kind[world, i]
+                    phi = float(0.0)  # engine.integrate.bilateral_residual_of, the row's kind loaded once
+                    if kind == ROW_LINEAR or kind == ROW_ANGULAR:
+                        phi = w.row_residual[world, i]
                     w.rhs[world, i] = -w.row_precond[world, i] * phi
-                    if m.row_kind[world, i] == ROW_LINEAR:
+                    if kind == ROW_LINEAR:
                         linear = wp.max(linear, wp.abs(phi))
                     else:
                         angular = wp.max(angular, wp.abs(phi))
-                if lanes > 1:
+                if wp.static(shuffled):
+                    both = lane_max2(linear, angular, lanes)
+                    linear = both[0]
+                    angular = both[1]
+                elif lanes > 1:
                     linear = block_max(linear)
                     angular = block_max(angular)
                 largest = wp.max(linear, angular)
@@ -831,13 +896,13 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
 
 
 def fused_kernel(max_rows: int, max_registers: int = FUSED_REGISTERS, timed: bool = False, inverse: bool = False,
-                 compensated: bool = True):
+                 compensated: bool = True, shuffled: bool = False):
     """The fused step kernel for a padded row count (cached per tile size, register cap, timing,
-    solve form and compensated state)."""
+    solve form, compensated state and reductions by warp shuffles)."""
     tile_rows = max(TILE_ROWS, -(-max_rows // TILE_ROWS) * TILE_ROWS)
     if tile_rows > FUSED_MAX_ROWS:
         raise ValueError(f"the fused step takes at most {FUSED_MAX_ROWS} rows per world, not {max_rows}")
-    key = (tile_rows, max_registers, timed, inverse, compensated)
+    key = (tile_rows, max_registers, timed, inverse, compensated, shuffled)
     if key not in _KERNELS:
         _KERNELS[key] = _make_kernel(*key)
     return _KERNELS[key]
@@ -868,7 +933,8 @@ def fused_step(model, state_in, state_out, control, stamps=None, project_output:
     sharing = sharing_used(model)
     if stamps is None:  # the untimed kernel never touches it
         stamps = model._fused_no_stamps
-    kernel = fused_kernel(model.max_rows, model.fused_registers, timed, inverse, cfg.compensated_state)
+    kernel = fused_kernel(model.max_rows, model.fused_registers, timed, inverse, cfg.compensated_state,
+                          warp_lanes(model.fused_block))
     wp.launch_tiled(kernel, dim=[model.num_worlds], block_dim=model.fused_block, device=model.device,
               inputs=[m, w, int(cfg.integrator.value == "moreau"), float(cfg.baumgarte), float(cfg.limit_margin),
                       float(cfg.limit_stabilization), (1.0 - cfg.warmstart_decay) if cfg.warmstart else 0.0, cfg.max_iterations,

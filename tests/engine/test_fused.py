@@ -272,3 +272,13 @@ def test_body_sum_groups_only_with_whole_warps():
     assert sharing_used(model) == int(SHARE_JOINT_PARTS)
     model.fused_sharing = None
     assert sharing_used(model) == 0
+
+
+def test_shuffled_reductions_only_for_one_warps_first_lanes():
+    """engine.fused.warp_lanes: the fused step's sums and maxima over a world's rows take warp
+    shuffles only for blocks of 2 to 32 threads that are powers of two (one warp's first lanes);
+    one thread (the CPU) needs no reduction, and other blocks keep the tile reductions."""
+    from engine.fused import warp_lanes
+
+    assert [warp_lanes(b) for b in (1, 2, 4, 8, 16, 32)] == [False, True, True, True, True, True]
+    assert not any(warp_lanes(b) for b in (3, 12, 48, 64))

@@ -81,7 +81,7 @@ def test_projection_gate_weighs_linear_and_angular_errors_by_their_own_floors():
     projected keeps mask 0; the velocity gate opens above its floor on either kind."""
     import warp as wp
 
-    from engine.integrate import GATE_BLOCK, projection_gate
+    from engine.integrate import projection_gate
     from engine.model import ROW_ANGULAR, ROW_DYNAMICS, ROW_LINEAR
 
     residual = np.array([[5e-8, 5e-7, 1.0],  # both within their floors (the drive row's 1.0 does not count)
@@ -91,11 +91,12 @@ def test_projection_gate_weighs_linear_and_angular_errors_by_their_own_floors():
                          [5e-8, 5e-8, 0.0]], np.float32)  # within the velocity floor too
     W = len(residual)
     kind = np.tile(np.array([ROW_LINEAR, ROW_ANGULAR, ROW_DYNAMICS], np.int32), (W, 1))
-    project = wp.array([1, 1, 1, 0, 1], dtype=wp.int32)
-    gate, mask = wp.zeros(W, dtype=wp.int32), wp.zeros(W, dtype=wp.int32)
-    wp.launch_tiled(projection_gate, dim=[W], block_dim=GATE_BLOCK, device="cpu",
-                    inputs=[wp.full(W, 3, dtype=wp.int32), wp.array(kind, dtype=wp.int32),
-                            wp.array(residual, dtype=float), project, 1e-7, 1e-7, 1e-6],
+    cpu = "cpu"
+    project = wp.array([1, 1, 1, 0, 1], dtype=wp.int32, device=cpu)
+    gate, mask = wp.zeros(W, dtype=wp.int32, device=cpu), wp.zeros(W, dtype=wp.int32, device=cpu)
+    wp.launch_tiled(projection_gate, dim=[W], block_dim=1, device=cpu,
+                    inputs=[wp.full(W, 3, dtype=wp.int32, device=cpu), wp.array(kind, dtype=wp.int32, device=cpu),
+                            wp.array(residual, dtype=float, device=cpu), project, 1e-7, 1e-7, 1e-6],
                     outputs=[gate, mask])
     assert mask.numpy().tolist() == [0, 1, 1, 0, 0]
     assert gate.numpy().tolist() == [1, 1, 1, 1, 0]
