@@ -36,7 +36,11 @@ rest of the warp waits (fused_sharing; on GPUs): each body's sums over rows (vel
 projection displacement) by an aligned group of lanes with warp shuffles, and a joint's rows one
 part each (engine.joints.JOINT_PARTS) where one pass of the lanes takes them all. Same H100 run:
 four-bar 0.276 -> 0.230 ms per step at 4096 worlds, 1.13 -> 0.953 at 16384; six-bar 1.14x,
-10-link chain 1.08x faster.
+10-link chain 1.08x faster. Where the block is one warp's first lanes (warp_lanes: the default
+32), the sums and maxima over the world's rows (the PADMM residuals, the projection gate's linear
+and angular errors) take one pass of warp shuffles each (lane_reduce6, lane_max2) instead of a
+shared-memory tile reduction per value: four-bar 0.245-0.255 -> 0.232-0.242 ms, six-bar 0.520 ->
+0.494 at 4096 worlds (same run).
 Tried and not kept (no change beyond noise on the H100): the substitutions in registers with warp
 shuffles instead of shared vectors and barriers; matrix tiles padded to 33 columns against bank
 conflicts; the projection reading its solution from the shared vector instead of global memory.
