@@ -11,7 +11,8 @@ step. Those times include a launch's overhead (about 25 us each on an H100 with 
 kernel that does little shows that floor; what counts is the difference between kernels, and
 between versions measured the same way. With ``--clock device`` (CUDA) the launches run back to
 back and each kernel's own time comes from CUDA events (wp.timing_begin), without that floor; the
-row also lists every launch's time (launch_ms). Batches the fused step takes are one launch per
+row also lists every launch's time (launch_ms), and counts the launches Warp makes itself (array
+copies and fills), which the host clock does not see. Batches the fused step takes are one launch per
 step (see engine.testspeed's fused_stage_cycles instead). Prints one JSON line per scene and writes
 them to --out.
 """

@@ -93,6 +93,7 @@ def main(argv=None) -> int:
     if unknown:
         parser.error(f"--scenes: unknown {unknown}; engine.scenes has {sorted(SCENES)}")
     skip_on = SolverConfig().projection_skip_floor
+    skip_on_angular = SolverConfig().projection_skip_floor_angular
     rows = []
 
     def record(**row):
@@ -107,12 +108,15 @@ def main(argv=None) -> int:
                 for variant in args.variants:
                     inverse, skip, sharing = VARIANTS[variant]
                     fused.INVERSE_MAX_ROWS = default_rows if inverse else 0  # fused_inverse reads it at each step
-                    config = SolverConfig(projection_skip_floor=skip_on if skip else 0.0)
+                    config = SolverConfig(projection_skip_floor=skip_on if skip else 0.0,
+                                          projection_skip_floor_angular=skip_on_angular if skip else 0.0)
                     for worlds in args.worlds:
                         result = timed(specs, worlds, 1e-3, config, args.device, sharing=sharing,
                                        profile=repeat == 0)
                         record(scene=name, num_worlds=worlds, dt=1e-3, variant=variant,
-                               projection_skip_floor=config.projection_skip_floor, repeat=repeat, **result)
+                               projection_skip_floor=config.projection_skip_floor,
+                               projection_skip_floor_angular=config.projection_skip_floor_angular, repeat=repeat,
+                               **result)
     finally:
         fused.INVERSE_MAX_ROWS = default_rows
     if args.assets:
@@ -121,7 +125,9 @@ def main(argv=None) -> int:
         legs = dr_legs(False, args.assets).specs
         for repeat in range(args.repeats):
             for skip in (0.0, skip_on, 1e-6):
-                result = timed(legs, 4096, 1e-2, SolverConfig(projection_skip_floor=skip), args.device, chunks=4)
+                angular = skip_on_angular if skip > 0.0 else 0.0  # 0: the skip off for both kinds of error
+                config = SolverConfig(projection_skip_floor=skip, projection_skip_floor_angular=angular)
+                result = timed(legs, 4096, 1e-2, config, args.device, chunks=4)
                 record(scene="drlegs_hanging", num_worlds=4096, dt=1e-2, projection_skip_floor=skip, repeat=repeat,
                        step_ms=result["step_ms"])
     if args.out:

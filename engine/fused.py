@@ -115,8 +115,8 @@ return wp::vec2(a, b);
 @wp.func_native(_LANE_MAX2)
 def lane_max2(a: float, b: float, width: int) -> wp.vec2:
     """The largest a and b over a block of ``width`` threads (a power of two up to 32: one warp's
-    first lanes), both reduced in one pass of warp shuffles without a block barrier; (a, b) on
-    the CPU, where a block is one thread."""
+    first lanes), both reduced in one pass of warp shuffles without a block barrier; CUDA only
+    (fused_step asks for it on GPUs alone)."""
 
 
 _LANE_REDUCE6 = """
@@ -937,8 +937,9 @@ def fused_step(model, state_in, state_out, control, stamps=None, project_output:
     sharing = sharing_used(model)
     if stamps is None:  # the untimed kernel never touches it
         stamps = model._fused_no_stamps
-    kernel = fused_kernel(model.max_rows, model.fused_registers, timed, inverse, cfg.compensated_state,
-                          warp_lanes(model.fused_block))
+    # warp shuffles on a GPU only (Warp's CPU blocks of several threads, wp.config.enable_cpu_blocks, are not warps)
+    shuffled = warp_lanes(model.fused_block) and wp.get_device(model.device).is_cuda
+    kernel = fused_kernel(model.max_rows, model.fused_registers, timed, inverse, cfg.compensated_state, shuffled)
     wp.launch_tiled(kernel, dim=[model.num_worlds], block_dim=model.fused_block, device=model.device,
               inputs=[m, w, int(cfg.integrator.value == "moreau"), float(cfg.baumgarte), float(cfg.limit_margin),
                       float(cfg.limit_stabilization), (1.0 - cfg.warmstart_decay) if cfg.warmstart else 0.0, cfg.max_iterations,

@@ -327,11 +327,11 @@ def projection_gate(
     for k in range((n + stride - 1) // stride):
         i = lane + k * stride
         if i < n:
-            phi = wp.abs(bilateral_residual_of(world, i, row_count, row_kind, row_residual))
-            if row_kind[world, i] == ROW_LINEAR:
-                linear = wp.max(linear, phi)
-            else:
-                angular = wp.max(angular, phi)
+            kind = row_kind[world, i]  # bilateral_residual_of's test, the kind loaded once
+            if kind == ROW_LINEAR:
+                linear = wp.max(linear, wp.abs(row_residual[world, i]))
+            elif kind == ROW_ANGULAR:
+                angular = wp.max(angular, wp.abs(row_residual[world, i]))
     linear = matrix_free.block_max(linear)
     angular = matrix_free.block_max(angular)
     largest = wp.max(linear, angular)
@@ -606,7 +606,8 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
     q_low = work.no_low if body_q_low is None else body_q_low
     qd_low = work.body_qd_free if body_qd_low is None else body_qd_low
     cfg = model.config
-    mask = work.projection_mask  # the worlds whose joint error is above cfg.projection_skip_floor
+    # the worlds whose joint error is above cfg.projection_skip_floor (angular: projection_skip_floor_angular)
+    mask = work.projection_mask
     for _ in range(iterations):
         # float64 sums where the dynamics move on
         residual_fn(model, body_q, work.row_residual, q_low, compensated and not record)

@@ -115,7 +115,7 @@ class SolverConfig:
             H100, 4096 worlds: 0.285 -> 0.256 ms per step). It also stops rounding-level
             corrections from being amplified near singular configurations (the parallelogram of
             benchmarks.stress S3, 20 s on the CPU: tip error 3.3e-2 -> 7.2e-3 m, energy error
-            2.1e-4 -> 5.2e-5). 0 turns it off.
+            2.1e-4 -> 5.2e-5). Both floors at 0 turn the skip off.
         projection_skip_floor_angular: the angular rows' share of that test [rad]. A relative
             orientation carries more float32 rounding than a position: DR Legs keeps 4e-7 to 8e-7
             rad of angular joint error after any number of iterations, so with the linear floor

@@ -471,7 +471,7 @@ def matrix_recipe(a: Analysis, row_body_c: np.ndarray, row_body_p: np.ndarray) -
     the matrix does not couple: 0), RECIPE_BODY_DIAGONAL (-1), RECIPE_ROWS (two rows, or a row's
     diagonal: bits 2-5 the body terms child-child, child-parent, parent-child, parent-parent, of
     row i's side and row j's, on the bodies they share that are not nodes; 1 on the diagonal of a
-    row unused this step), RECIPE_ROW_BODY (a row and a body node: bit 2 set when the row is at
+    row unused this step or of a padding node), RECIPE_ROW_BODY (a row and a body node: bit 2 set when the row is at
     entry_j's position, bit 3 when it acts on the body as its parent, bits 4-6 the node's
     component, bits 8 up the body)."""
     node_row = a.node_row()
@@ -505,6 +505,8 @@ def matrix_recipe(a: Analysis, row_body_c: np.ndarray, row_body_p: np.ndarray) -
             if row_body_c[row] != body and row_body_p[row] != body:
                 raise AssertionError(f"matrix_recipe: entry {e} couples row {row} with body {body} it does not act on")
             code[e] = RECIPE_ROW_BODY | swapped << 2 | parent << 3 | int(comp) << 4 | body << 8
+        else:
+            raise AssertionError(f"matrix_recipe: entry {e} is coupled but joins no row (positions {pi}, {pj})")
     return code
 
 

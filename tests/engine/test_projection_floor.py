@@ -54,11 +54,11 @@ def test_velocity_floor_is_validated():
 def test_projection_skips_iterations_whose_correction_is_rounding(kernel):
     """The second Gauss-Newton iteration of a projection starts from a joint error at float32
     rounding: with projection_skip_floor it is skipped (the worlds' projection mask ends at 0),
-    without it it runs (mask 1). The motion is the same to rounding: four-bar, 300 steps of 1 ms,
+    without either floor it runs (mask 1). The motion is the same to rounding: four-bar, 300 steps of 1 ms,
     poses within 1e-5 m of each other, energies within 1e-5 relative, loops closed to 2e-7 m in both."""
     results = {}
     for skip in (0.0, SolverConfig().projection_skip_floor):
-        config = SolverConfig(step_kernel=kernel, projection_skip_floor=skip)
+        config = SolverConfig(step_kernel=kernel, projection_skip_floor=skip, projection_skip_floor_angular=skip)
         model = pack_worlds([fourbar().spec] * 2, device="cpu", dt=1e-3, config=config)
         trace, final = rollout(model, model.state(), model.control(), 300, record_every=30)
         assert trace.violation_linear.max() < 2e-7, (skip, trace.violation_linear.max())

@@ -332,3 +332,69 @@ def test_projection_pattern_steps_like_the_padmm_pattern(device):
     assert np.ptp(own.points[:, linkages]) > 0.3  # they move
     assert np.abs(own.points[:, linkages] - padmm.points[:, linkages]).max() < 1e-5
     assert own.violation_linear.max() < max(2e-7, 2.0 * padmm.violation_linear.max())
+
+
+def test_matrix_recipe_builds_the_augmented_matrix_of_numpy():
+    """engine.sparse.sparse_matrix, which follows matrix_recipe, against the augmented matrix
+    [[P (J M^-1 J^T + R) P without the nodes' share, P J R_b], [., -I]] formed in NumPy from the
+    same Jacobians: a hub body 300 with 60 rows (kept as six nodes: bodies above 255 use the
+    recipe's high bits), a second hub 411, leaves in a chain, rows on the world frame, and rows
+    unused this step (the identity)."""
+    rng = np.random.default_rng(7)
+    body_c, body_p = [], []
+    for leaf in range(20):
+        body_c += [leaf] * 3
+        body_p += [300] * 3
+        if leaf:
+            body_c.append(leaf)
+            body_p.append(leaf - 1)
+    body_c += [411, 411, 411, 5, 6]
+    body_p += [300, 2, -1, 411, -1]
+    rbc, rbp = np.array([body_c], np.int32), np.array([body_p], np.int32)
+    pat, (analysis,), entries = sparse.build_patterns(rbc, rbp, "cpu")
+    assert 300 in analysis.body_nodes
+    rows, bodies = rbc.shape[1], 412
+    unused = rng.random(rows) < 0.15
+    real = np.where(unused, -1, np.arange(rows)).astype(np.int32)[None, :]
+    J_c, J_p, MJ_c, MJ_p = (rng.normal(size=(rows, 6)).astype(np.float32) for _ in range(4))
+    compliance = rng.random(rows).astype(np.float32)
+    precond = (0.5 + rng.random(rows)).astype(np.float32)
+    inv_mass = (0.5 + rng.random(bodies)).astype(np.float32)
+    root = rng.normal(size=(bodies, 3, 3)).astype(np.float32)
+
+    def arr(x, dtype=float):
+        return wp.array(x[None], dtype=dtype, device="cpu")
+
+    A = wp.zeros((1, entries), dtype=float, device="cpu")
+    wp.launch(sparse.sparse_matrix, dim=(1, entries), device="cpu",
+              inputs=[pat, arr(J_c, wp.spatial_vector), arr(J_p, wp.spatial_vector), arr(MJ_c, wp.spatial_vector),
+                      arr(MJ_p, wp.spatial_vector), arr(compliance), arr(precond), arr(inv_mass), arr(root, wp.mat33),
+                      wp.array(real, dtype=wp.int32, device="cpu")],
+              outputs=[A])
+    node_row = analysis.node_row()
+    node_body, node_comp = analysis.node_body()
+    nodes = set(analysis.body_nodes)
+    sides = {0: (body_c, J_c, MJ_c), 1: (body_p, J_p, MJ_p)}
+    expected = np.zeros(entries)
+    for e in range(analysis.entries):
+        pi, pj = analysis.entry_i[e], analysis.entry_j[e]
+        ri, rj = node_row[pi], node_row[pj]
+        if ri >= 0 and rj >= 0:
+            i, j = real[0, ri], real[0, rj]
+            if i < 0 or j < 0:
+                expected[e] = 1.0 if pi == pj else 0.0
+                continue
+            d = sum(float(sides[si][1][i] @ sides[sj][2][j]) for si in (0, 1) for sj in (0, 1)
+                    if sides[si][0][i] >= 0 and sides[si][0][i] == sides[sj][0][j] and sides[si][0][i] not in nodes)
+            expected[e] = precond[i] * precond[j] * (d + (compliance[i] if i == j else 0.0))
+        elif ri >= 0 or rj >= 0:
+            r, position = (ri, pj) if ri >= 0 else (rj, pi)
+            i, b, c = real[0, r], node_body[position], node_comp[position]
+            if i < 0 or b not in (body_c[i], body_p[i]):
+                continue
+            J = (J_c if body_c[i] == b else J_p)[i]
+            expected[e] = precond[i] * (J[c] * np.sqrt(inv_mass[b]) if c < 3 else J[3:] @ root[b][:, c - 3])
+        else:
+            expected[e] = -1.0 if pi == pj else 0.0
+    np.testing.assert_allclose(A.numpy()[0, :analysis.entries], expected[:analysis.entries], rtol=2e-5, atol=2e-6)
+    assert (np.abs(expected) > 0).sum() > analysis.entries // 4
