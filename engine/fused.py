@@ -846,7 +846,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                     w.rhs[world, i] = -w.row_precond[world, i] * phi
                     if kind == ROW_LINEAR:
                         linear = wp.max(linear, wp.abs(phi))
-                    else:
+                    elif kind == ROW_ANGULAR:
                         angular = wp.max(angular, wp.abs(phi))
                 if wp.static(shuffled):
                     both = lane_max2(linear, angular, lanes)

@@ -478,27 +478,29 @@ def matrix_recipe(a: Analysis, row_body_c: np.ndarray, row_body_p: np.ndarray) -
     node_body, node_comp = a.node_body()
     nodes = set(a.body_nodes)
     code = np.zeros(a.entries, np.int32)
+
+    def row_terms(ri: int, rj: int) -> int:
+        """RECIPE_ROWS with the body-term bits of factor rows ri and rj."""
+        bits = RECIPE_ROWS
+        for bit, (si, sj) in enumerate(((row_body_c, row_body_c), (row_body_c, row_body_p),
+                                        (row_body_p, row_body_c), (row_body_p, row_body_p)), start=2):
+            b = int(si[ri])
+            if b >= 0 and b == int(sj[rj]) and b not in nodes:
+                bits |= 1 << bit
+        return bits
+
     for e in range(a.entries):
         pi, pj = int(a.entry_i[e]), int(a.entry_j[e])
         ri, rj = int(node_row[pi]), int(node_row[pj])
         bi, bj = int(node_body[pi]), int(node_body[pj])
         if pi == pj and bi >= 0:
             code[e] = RECIPE_BODY_DIAGONAL
-        elif pi == pj:
-            code[e] = RECIPE_ROWS
-            if ri >= 0:
-                for bit, side in ((2, row_body_c), (5, row_body_p)):
-                    if side[ri] >= 0 and int(side[ri]) not in nodes:
-                        code[e] |= 1 << bit
+        elif pi == pj:  # a row's diagonal, or a padding node's (the identity)
+            code[e] = row_terms(ri, rj) if ri >= 0 else RECIPE_ROWS
         elif not a.entry_coupled[e]:
             code[e] = RECIPE_ZERO
         elif ri >= 0 and rj >= 0:
-            code[e] = RECIPE_ROWS
-            for bit, (si, sj) in enumerate(((row_body_c, row_body_c), (row_body_c, row_body_p),
-                                            (row_body_p, row_body_c), (row_body_p, row_body_p)), start=2):
-                b = int(si[ri])
-                if b >= 0 and b == int(sj[rj]) and b not in nodes:
-                    code[e] |= 1 << bit
+            code[e] = row_terms(ri, rj)
         elif (ri >= 0 and bj >= 0) or (rj >= 0 and bi >= 0):
             row, body, comp, swapped = (ri, bj, node_comp[pj], 0) if ri >= 0 else (rj, bi, node_comp[pi], 1)
             parent = int(row_body_c[row] != body)
