@@ -55,13 +55,19 @@ schedule of DR Legs standing has a critical path of 6.3 k steps per factor and 2
 and on the H100 a factor takes 1.4 ms and a solve 0.73 ms at 4096 worlds, 0.23 to 0.29 us (one
 global-memory round trip) per step. The sums therefore load four products per pass, so that
 their loads are in flight together (factor 10 to 25 % faster), and a step's chain of dependent
-loads is kept short: each diagonal entry carries its column and its row's or column's range in
-one load (diag_row, diag_col), and the forward substitution reads a row-major copy of the factor
+loads is kept short: each diagonal carries its column and its row's or column's range in one
+record of the solve's schedule, the forward substitution reads a row-major copy of the factor
 written after each factor (SparseSystem.L_rows) instead of looking each entry up (DR Legs hanging
-4.2-4.4 -> 3.9 ms per step at 4096 worlds on an H100). With enough worlds of one topology, a
+4.2-4.4 -> 3.9 ms per step at 4096 worlds on an H100), and multiplies by the reciprocal diagonal
+the factor leaves (SparseSystem.L_inv). With enough worlds of one topology, a
 block of 32 worlds copies the solve's schedule into shared memory once (shared_solve_kernel), so
 that a level waits on global memory only for the factor's values (DR Legs at 4096 worlds on an
-H100: hanging 3.86 -> 3.65 ms per step, standing 5.96-6.12 -> 5.51).
+H100: hanging 3.86 -> 3.65 ms per step, standing 5.96-6.12 -> 5.51). The factor's sums of
+products and a solve's levels are native code on raw addresses (entry_products,
+substitute_level): Warp's array indexing spends about eight integer instructions per load, and
+both kernels are bound by their issued instructions (Nsight Compute: issue slots 62 % and 74 %
+busy). NVIDIA H100, DR Legs at 4096 worlds, device clock, per step: hanging factor 0.835 -> 0.683
+ms, solves 0.855 -> 0.690; standing factor 2.22 -> 1.87, solves 0.570 -> 0.456.
 """
 
 import dataclasses
@@ -390,10 +396,6 @@ class SparsePatterns:
     node_body: wp.array2d(dtype=wp.int32)  # (P, N) body of each position's body node (-1: a row or padding)
     has_body_nodes: wp.array(dtype=wp.int32)  # (P,)
     diag: wp.array2d(dtype=wp.int32)  # (P, R)
-    col_begin: wp.array2d(dtype=wp.int32)
-    col_end: wp.array2d(dtype=wp.int32)
-    row_begin: wp.array2d(dtype=wp.int32)
-    row_end: wp.array2d(dtype=wp.int32)
     entry_base: wp.array(dtype=wp.int32)  # (P + 1,)
     entry_i: wp.array(dtype=wp.int32)
     entry_j: wp.array(dtype=wp.int32)
@@ -403,9 +405,6 @@ class SparsePatterns:
     update_ab: wp.array(dtype=wp.vec2i)  # (L_ik, L_jk) of each product, one 8-byte load
     row_base: wp.array(dtype=wp.int32)  # (P + 1,)
     row_entry: wp.array(dtype=wp.int32)
-    row_col: wp.array(dtype=wp.int32)
-    diag_row: wp.array(dtype=wp.vec3i)  # per entry (diagonals only): column j and its row's range in row_entry
-    diag_col: wp.array(dtype=wp.vec3i)  # per entry (diagonals only): column j and its entries below the diagonal
     entry_pivot: wp.array(dtype=wp.int32)  # per entry: the diagonal entry of its column
     entry_recipe: wp.array(dtype=wp.int32)  # per entry: how sparse_matrix computes it (matrix_recipe)
     level_base: wp.array(dtype=wp.int32)  # (P + 1,)
@@ -447,16 +446,6 @@ def solve_schedule(a: Analysis, levels: int, nodes: int, row_entries: int, entri
     o += row_entries
     blob[o:o + a.entries] = a.entry_i
     return blob
-
-
-def diagonal_ranges(a: Analysis, begin: np.ndarray, end: np.ndarray) -> np.ndarray:
-    """(E, 3) per factor entry: for a diagonal entry of column j, (j, begin[j], end[j]); zeros
-    elsewhere. A substitution step then finds its column and its range in one load instead of
-    two dependent ones."""
-    out = np.zeros((a.entries, 3), np.int32)
-    j = a.entry_j[a.diag]
-    out[a.diag] = np.stack([j, begin[j], end[j]], axis=1)
-    return out
 
 
 # Codes of matrix_recipe (two low bits: what an entry of the matrix is)
@@ -551,8 +540,7 @@ def build_patterns(row_body_c: np.ndarray, row_body_p: np.ndarray, device, body_
     s.perm = arr(np.stack([a.node_row() for a in analyses]))
     s.node_body = arr(np.stack([a.node_body()[0] for a in analyses]))
     s.has_body_nodes = arr(np.array([int(len(a.body_nodes) > 0) for a in analyses], np.int32))
-    for name in ("diag", "col_begin", "col_end", "row_begin", "row_end"):
-        setattr(s, name, arr(np.stack([getattr(a, name) for a in analyses]).astype(np.int32)))
+    s.diag = arr(np.stack([a.diag for a in analyses]).astype(np.int32))
     s.entry_base = arr(base([a.entries for a in analyses]))
     s.update_base = arr(base([len(a.update_a) for a in analyses]))
     s.row_base = arr(base([len(a.row_entry) for a in analyses]))
@@ -560,10 +548,8 @@ def build_patterns(row_body_c: np.ndarray, row_body_p: np.ndarray, device, body_
     s.update_ab = arr(np.concatenate([np.stack([a.update_a, a.update_b], axis=1) for a in analyses]).astype(np.int32),
                       dtype=wp.vec2i)
     for name in ("entry_i", "entry_j", "update_begin", "update_end",
-                 "row_entry", "row_col", "level_first", "level_diag_end", "level_end", "level_mode"):
+                 "row_entry", "level_first", "level_diag_end", "level_end", "level_mode"):
         setattr(s, name, flat(name))
-    s.diag_row = arr(np.concatenate([diagonal_ranges(a, a.row_begin, a.row_end) for a in analyses]), dtype=wp.vec3i)
-    s.diag_col = arr(np.concatenate([diagonal_ranges(a, a.col_begin, a.col_end) for a in analyses]), dtype=wp.vec3i)
     s.entry_pivot = arr(np.concatenate([a.diag[a.entry_j] for a in analyses]).astype(np.int32))
     s.entry_recipe = arr(np.concatenate([matrix_recipe(a, row_body_c[w], row_body_p[w])
                                          for a, w in zip(analyses, sources)]))
@@ -652,50 +638,131 @@ def _vector_setter(size: int):
     return tile_store_at
 
 
-@wp.func
-def _product(Lw: Any, ab: wp.vec2i):
-    """L_ik s_k L_jk of one update (a negative first index: column k is a body node's, s_k = -1)."""
-    a = ab[0]
-    if a < 0:
-        return -Lw[-1 - a] * Lw[ab[1]]
-    return Lw[a] * Lw[ab[1]]
+# Raw addresses and the inner sums of the factor and the solves in native code. Warp's array
+# indexing wraps negative indices and scales each index by the array's runtime stride in 64 bits
+# (about eight integer instructions per load); both kernels are bound by their issued
+# instructions (Nsight Compute: issue slots 62 % (factor) and 74 % (solve) busy), and these sums
+# are most of them. The arrays passed are contiguous (allocated by engine.sparse).
+@wp.func_native("return (wp::uint64)(reinterpret_cast<char*>(a.data) + (size_t)row * a.strides[0]);")
+def row_address(a: wp.array2d(dtype=float), row: int) -> wp.uint64:
+    """Address of row ``row`` of a 2-d float array."""
+
+
+@wp.func_native("return (wp::uint64)(a.data + offset);")
+def int_address(a: wp.array(dtype=wp.int32), offset: int) -> wp.uint64:
+    """Address of element ``offset`` of a contiguous int array."""
+
+
+@wp.func_native("return (wp::uint64)(a.data + offset);")
+def pair_address(a: wp.array(dtype=wp.vec2i), offset: int) -> wp.uint64:
+    """Address of element ``offset`` of a contiguous vec2i array."""
+
+
+@functools.cache
+def _tile_address(size: int, dtype):
+    """Address of an element of a shared tile of one size and type (its storage is contiguous)."""
+
+    @wp.func_native("return (wp::uint64)(t.data.ptr + offset);")
+    def tile_address(t: wp.tile(dtype=dtype, shape=(size,), storage="shared"), offset: int) -> wp.uint64: ...
+
+    return tile_address
+
+
+_ENTRY_PRODUCTS = """
+const float* l = reinterpret_cast<const float*>(factor);
+const int* ab = reinterpret_cast<const int*>(pairs) + 2 * (begin + first);
+const int* ab_end = reinterpret_cast<const int*>(pairs) + 2 * end;
+const int step = 2 * stride;
+auto product = [&](const int* q) -> float {
+#if defined(__CUDA_ARCH__)
+    const int2 pair = __ldg(reinterpret_cast<const int2*>(q));
+    const int a = pair.x, b = pair.y;
+#else
+    const int a = q[0], b = q[1];
+#endif
+    const float x = l[a ^ (a >> 31)];  // a < 0: column -1 - a, a body node's (s_k = -1)
+    return (a < 0 ? -x : x) * l[b];
+};
+float acc = 0.0f;
+for (; ab + 3 * step < ab_end; ab += 4 * step)  // four products per pass: their loads are in flight together
+    acc += product(ab) + product(ab + step) + product(ab + 2 * step) + product(ab + 3 * step);
+for (; ab < ab_end; ab += step)
+    acc += product(ab);
+return acc;
+"""
+
+
+@wp.func_native(_ENTRY_PRODUCTS)
+def entry_products(factor: wp.uint64, pairs: wp.uint64, begin: int, end: int, first: int, stride: int) -> float:
+    """Sum of L_ik s_k L_jk over the update pairs begin + first, + stride, ... < end (pairs: the
+    topology's update_ab, a negative first index -1 - k for a body node's column, s_k = -1; factor:
+    the world's factor values)."""
+
+
+_SUBSTITUTE_LEVEL = """
+// one level of a substitution from a solve schedule (solve_schedule's layout, at ``schedule``)
+const int* plan = reinterpret_cast<const int*>(schedule);
+const float* inverse_diagonal = reinterpret_cast<const float*>(inverse);
+float* x = reinterpret_cast<float*>(vector);
+const bool forward = phase == 1;  // FORWARD: rows gather their entries left of the diagonal from the row-major copy
+const float* values = reinterpret_cast<const float*>(forward ? rows : factor);
+const int* index = plan + (forward ? blob_row : blob_entry);
+const int range = forward ? 2 : 4;  // the diagonal record's row range (forward) or range below it (backward)
+const int first = plan[3 * level];
+const int end = first + plan[3 * level + 1];
+int width = 1 << ((plan[3 * level + 2] >> (3 * phase)) & 7);
+width = width < lanes ? width : lanes;
+auto gather = [&](int begin, int stop, int stride) -> float {
+    const float* lx = values + begin;
+    const float* lx_end = values + stop;
+    const int* at = index + begin;
+    float acc = 0.0f;
+    for (; lx + 3 * stride < lx_end; lx += 4 * stride, at += 4 * stride)  // four entries per pass: loads in flight
+        acc += (lx[0] * x[at[0]] + lx[stride] * x[at[stride]] + lx[2 * stride] * x[at[2 * stride]]
+                + lx[3 * stride] * x[at[3 * stride]]);
+    for (; lx < lx_end; lx += stride, at += stride)
+        acc += lx[0] * x[at[0]];
+    return acc;
+};
+if (width > 1) {  // the warp shares each row
+    for (int d = first; d < end; ++d) {
+        const int* record = plan + blob_diag + 6 * d;
+        float total = gather(record[range] + lane, record[range + 1], lanes);
+#if defined(__CUDA_ARCH__)
+        for (int offset = lanes >> 1; offset > 0; offset >>= 1)
+            total += __shfl_xor_sync(0xffffffffu, total, offset);
+#endif
+        if (lane == 0) {
+            const int j = record[1];
+            x[j] = (x[j] - total) * inverse_diagonal[j];
+        }
+    }
+} else {  // one row per lane
+    for (int d = first + lane; d < end; d += lanes) {
+        const int* record = plan + blob_diag + 6 * d;
+        const int j = record[1];
+        x[j] = (x[j] - gather(record[range], record[range + 1], 1)) * inverse_diagonal[j];
+    }
+}
+"""
+
+
+@wp.func_native(_SUBSTITUTE_LEVEL)
+def substitute_level(schedule: wp.uint64, level: int, phase: int, blob_diag: int, blob_row: int, blob_entry: int,
+                     factor: wp.uint64, rows: wp.uint64, inverse: wp.uint64, vector: wp.uint64, lane: int,
+                     lanes: int):
+    """One level of the forward (phase FORWARD: rows gather their entries left of the diagonal from
+    the row-major copy ``rows``) or backward (columns gather their entries below it from ``factor``)
+    substitution of one world from its solve schedule (solve_schedule's layout, at ``schedule``,
+    in shared or global memory): v_j = (v_j - sum) / |L_jj| with the factor's reciprocal diagonal
+    (``inverse``); the vector at ``vector``. Per level the lanes take one row each, or the warp
+    shares each row (a warp-shuffle sum; ``lanes`` must then be the whole warp)."""
 
 
 @wp.func
-def _entry_sum(Lw: Any, pat: SparsePatterns, eb: int, ub: int, e: int, first: int, stride: int):
+def _entry_sum(Lw: wp.uint64, pairs: wp.uint64, pat: SparsePatterns, eb: int, e: int, first: int, stride: int):
     """Part of the products subtracted from factor entry e: its pairs first, first + stride, ..."""
-    acc = float(0.0)
-    u = pat.update_begin[eb + e] + first
-    end = pat.update_end[eb + e]
-    while u + 3 * stride < end:  # four products per pass: their loads are in flight together
-        p0 = pat.update_ab[ub + u]
-        p1 = pat.update_ab[ub + u + stride]
-        p2 = pat.update_ab[ub + u + 2 * stride]
-        p3 = pat.update_ab[ub + u + 3 * stride]
-        acc += _product(Lw, p0) + _product(Lw, p1) + _product(Lw, p2) + _product(Lw, p3)
-        u += 4 * stride
-    while u < end:
-        acc += _product(Lw, pat.update_ab[ub + u])
-        u += stride
-    return acc
-
-
-@wp.func
-def _gather_sum(Lx: Any, v: Any, vb: int, index: Any, o: int, begin: int, end: int, first: int, stride: int):
-    """Part of a substitution's sum: factor values Lx[k] for k = begin + first, + stride, ... < end
-    times the solved values v[vb + index[o + k]] (forward: the row-major copy with the columns,
-    row_col; backward: the factor with the rows below a diagonal, entry_i)."""
-    acc = float(0.0)
-    k = begin + first
-    while k + 3 * stride < end:  # four entries per pass: their loads are in flight together
-        acc += (Lx[k] * v[vb + index[o + k]] + Lx[k + stride] * v[vb + index[o + k + stride]]
-                + Lx[k + 2 * stride] * v[vb + index[o + k + 2 * stride]]
-                + Lx[k + 3 * stride] * v[vb + index[o + k + 3 * stride]])
-        k += 4 * stride
-    while k < end:
-        acc += Lx[k] * v[vb + index[o + k]]
-        k += stride
-    return acc
+    return entry_products(Lw, pairs, pat.update_begin[eb + e], pat.update_end[eb + e], first, stride)
 
 
 @wp.kernel
@@ -818,13 +885,15 @@ def sparse_factor(
     # out
     L: wp.array2d(dtype=float),
     L_rows: wp.array2d(dtype=float),
+    L_inv: wp.array2d(dtype=float),
 ):
     """L S L^T = A + diag(shift) for worlds with mask != 0 (shift per row of this step; rows of the
     pattern that stand for no row get shift[world, 0], body nodes none), A from sparse_matrix
     (with bilateral_only: its bilateral joint block and the body nodes, the identity elsewhere).
     S is -1 on body nodes, +1 elsewhere; a diagonal entry holds s_j L_jj. Then L_rows: the entries
     left of each diagonal row by row (in row_entry's order), so that the forward substitution reads
-    them without an index load in between. The factor stays in global memory:
+    them without an index load in between, and L_inv: 1 / |L_jj| by position, so that a
+    substitution multiplies instead of dividing. The factor stays in global memory:
     keeping it in shared memory while it is computed was 2x slower on an H100 (DR Legs standing,
     4096 worlds), as fewer worlds then fit on each multiprocessor at once."""
     world, lane = wp.tid()
@@ -837,6 +906,8 @@ def sparse_factor(
     entries = pat.entry_base[p + 1] - eb
     n = row_count[world]
     Lw = L[world]
+    Lp = row_address(L, world)
+    pairs = pair_address(pat.update_ab, ub)
     e = lane
     while e < entries:
         pi = pat.entry_i[eb + e]
@@ -867,7 +938,7 @@ def sparse_factor(
         end = pat.level_end[lb + level]
         if group_width(pat.level_mode[lb + level], FACTOR, lanes) > 1:  # the lanes share each entry's products
             for e in range(first, end):
-                total = group_sum(_entry_sum(Lw, pat, eb, ub, e, lane, lanes), lanes)
+                total = group_sum(_entry_sum(Lp, pairs, pat, eb, e, lane, lanes), lanes)
                 if lane == 0:
                     value = Lw[e] - total
                     if e < diag_end:
@@ -876,7 +947,7 @@ def sparse_factor(
         else:  # one entry per lane
             e = first + lane
             while e < end:
-                value = Lw[e] - _entry_sum(Lw, pat, eb, ub, e, 0, 1)
+                value = Lw[e] - _entry_sum(Lp, pairs, pat, eb, e, 0, 1)
                 if e < diag_end:
                     value = _pivot(pat, p, eb, e, value)
                 Lw[e] = value
@@ -892,6 +963,10 @@ def sparse_factor(
     while r < pat.row_base[p + 1] - rb:
         L_rows[world, r] = Lw[pat.row_entry[rb + r]]
         r += lanes
+    k = lane
+    while k < pat.perm.shape[1]:
+        L_inv[world, k] = 1.0 / wp.abs(Lw[pat.diag[p, k]])
+        k += lanes
 
 
 @wp.func
@@ -922,46 +997,11 @@ def _scatter_solution(v: Any, vb: int, pat: SparsePatterns, p: int, world: int, 
 
 @functools.cache
 def solve_kernel(size: int):
-    """Solve kernel with the world's vector in a shared tile of ``size`` rows (the factor stays
-    in global memory: copying it into shared memory for each solve was 2.5x slower on an H100)."""
+    """Solve kernel with the world's vector in a shared tile of ``size`` rows and its schedule read
+    from global memory (the factor stays in global memory: copying it into shared memory for each
+    solve was 2.5x slower on an H100)."""
     vector_set = _vector_setter(size)
-
-    @wp.func
-    def substitute(Lw: Any, Lr: Any, v: Any, pat: SparsePatterns, eb: int, rb: int, level: int, phase: int,
-                   lane: int, lanes: int):
-        """One level of the forward (rows gather their entries left of the diagonal, from the
-        row-major copy Lr) or backward (columns gather their entries below it) substitution:
-        v_j = (v_j - sum) / L_jj."""
-        first = pat.level_first[level]
-        diag_end = pat.level_diag_end[level]
-        if group_width(pat.level_mode[level], phase, lanes) > 1:  # the warp shares each row
-            for e in range(first, diag_end):
-                part = float(0.0)
-                info = wp.vec3i()
-                if phase == FORWARD:
-                    info = pat.diag_row[eb + e]
-                    part = _gather_sum(Lr, v, 0, pat.row_col, rb, info[1], info[2], lane, lanes)
-                else:
-                    info = pat.diag_col[eb + e]
-                    part = _gather_sum(Lw, v, 0, pat.entry_i, eb, info[1], info[2], lane, lanes)
-                total = group_sum(part, lanes)
-                if lane == 0:
-                    j = info[0]
-                    vector_set(v, j, (v[j] - total) / wp.abs(Lw[e]))
-        else:  # one row per lane
-            e = first + lane
-            while e < diag_end:
-                part = float(0.0)
-                info = wp.vec3i()
-                if phase == FORWARD:
-                    info = pat.diag_row[eb + e]
-                    part = _gather_sum(Lr, v, 0, pat.row_col, rb, info[1], info[2], 0, 1)
-                else:
-                    info = pat.diag_col[eb + e]
-                    part = _gather_sum(Lw, v, 0, pat.entry_i, eb, info[1], info[2], 0, 1)
-                j = info[0]
-                vector_set(v, j, (v[j] - part) / wp.abs(Lw[e]))
-                e += lanes
+    vector_address = _tile_address(size, float)
 
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=SPARSE_REGISTERS)
     def sparse_solve(
@@ -969,6 +1009,7 @@ def solve_kernel(size: int):
         mask: wp.array(dtype=wp.int32),
         L: wp.array2d(dtype=float),
         L_rows: wp.array2d(dtype=float),
+        L_inv: wp.array2d(dtype=float),
         rhs: wp.array2d(dtype=float),
         real: wp.array2d(dtype=wp.int32),
         row_count: wp.array(dtype=wp.int32),
@@ -985,31 +1026,14 @@ def solve_kernel(size: int):
         if mask[world] == 0:
             return
         p = pat.world_pattern[world]
-        eb = pat.entry_base[p]
-        rb = pat.row_base[p]
         rows = pat.perm.shape[1]
         k = lane
         while k < rows:
             vector_set(v, k, _rhs_of(pat, p, k, world, real, rhs))
             k += lanes
-        Lw = L[world]
-        Lr = L_rows[world]
         block_sync()
-        lb = pat.level_base[p]
-        levels = pat.level_base[p + 1] - lb
-        for level in range(levels):
-            substitute(Lw, Lr, v, pat, eb, rb, lb + level, FORWARD, lane, lanes)
-            block_sync()
-        if pat.has_body_nodes[p] != 0:
-            k = lane
-            while k < rows:
-                if pat.node_body[p, k] >= 0:
-                    vector_set(v, k, -v[k])
-                k += lanes
-            block_sync()
-        for back in range(levels):
-            substitute(Lw, Lr, v, pat, eb, rb, lb + levels - 1 - back, BACKWARD, lane, lanes)
-            block_sync()
+        _substitute_all(pat, p, int_address(pat.solve_blob, p * pat.blob_size), row_address(L, world),
+                        row_address(L_rows, world), row_address(L_inv, world), vector_address(v, 0), lane, lanes)
         _scatter_solution(v, 0, pat, p, world, real, row_count, lane, lanes, x_out)
 
     return sparse_solve
@@ -1025,6 +1049,34 @@ __syncwarp();
 @wp.func_native(_WARP_SYNC)
 def warp_sync():
     """Barrier of the warp's lanes (memory ordering among them included; a no-op on the CPU)."""
+
+
+@wp.func_native("reinterpret_cast<float*>(vector)[k] = -reinterpret_cast<float*>(vector)[k];")
+def _negate_at(vector: wp.uint64, k: int):
+    """v_k = -v_k of a vector at an address."""
+
+
+@wp.func
+def _substitute_all(pat: SparsePatterns, p: int, schedule: wp.uint64, factor: wp.uint64, rows: wp.uint64,
+                    inverse: wp.uint64, vector: wp.uint64, lane: int, lanes: int):
+    """Forward substitution, the body nodes' signs, backward substitution of one world (one warp;
+    one thread on the CPU) from its schedule, level by level with warp barriers."""
+    levels = pat.level_base[p + 1] - pat.level_base[p]
+    for level in range(levels):
+        substitute_level(schedule, level, FORWARD, pat.blob_diag, pat.blob_row, pat.blob_entry, factor, rows, inverse,
+                         vector, lane, lanes)
+        warp_sync()
+    if pat.has_body_nodes[p] != 0:
+        k = lane
+        while k < pat.perm.shape[1]:
+            if pat.node_body[p, k] >= 0:
+                _negate_at(vector, k)
+            k += lanes
+        warp_sync()
+    for back in range(levels):
+        substitute_level(schedule, levels - 1 - back, BACKWARD, pat.blob_diag, pat.blob_row, pat.blob_entry, factor,
+                         rows, inverse, vector, lane, lanes)
+        warp_sync()
 
 
 # The solve with its schedule in shared memory (shared_solve_kernel), on GPUs for batches of one
@@ -1052,57 +1104,8 @@ def shared_solve_kernel(size: int, worlds: int, blob_size: int):
     and a level's chain of dependent steps keeps one global load (the factor's values)."""
     vector_size = size * worlds
     vector_set = _vector_setter(vector_size)
-
-    @wp.func
-    def substitute(Lw: Any, Lr: Any, v: Any, vb: int, blob: Any, base: int, pat: SparsePatterns, level: int,
-                   phase: int, lane: int, lanes: int):
-        """One level of the forward or backward substitution (as solve_kernel's) from a schedule."""
-        m = base + 3 * level
-        first = blob[m]
-        end = first + blob[m + 1]
-        if group_width(blob[m + 2], phase, lanes) > 1:  # the warp shares each row
-            for d in range(first, end):
-                q = base + pat.blob_diag + 6 * d
-                part = float(0.0)
-                if phase == FORWARD:
-                    part = _gather_sum(Lr, v, vb, blob, base + pat.blob_row, blob[q + 2], blob[q + 3], lane, lanes)
-                else:
-                    part = _gather_sum(Lw, v, vb, blob, base + pat.blob_entry, blob[q + 4], blob[q + 5], lane, lanes)
-                total = group_sum(part, lanes)
-                if lane == 0:
-                    j = vb + blob[q + 1]
-                    vector_set(v, j, (v[j] - total) / wp.abs(Lw[blob[q]]))
-        else:  # one row per lane
-            d = first + lane
-            while d < end:
-                q = base + pat.blob_diag + 6 * d
-                part = float(0.0)
-                if phase == FORWARD:
-                    part = _gather_sum(Lr, v, vb, blob, base + pat.blob_row, blob[q + 2], blob[q + 3], 0, 1)
-                else:
-                    part = _gather_sum(Lw, v, vb, blob, base + pat.blob_entry, blob[q + 4], blob[q + 5], 0, 1)
-                j = vb + blob[q + 1]
-                vector_set(v, j, (v[j] - part) / wp.abs(Lw[blob[q]]))
-                d += lanes
-
-    @wp.func
-    def substitute_all(Lw: Any, Lr: Any, v: Any, vb: int, blob: Any, base: int, pat: SparsePatterns, p: int,
-                       lane: int, lanes: int):
-        """Forward substitution, the body nodes' signs, backward substitution of one world."""
-        levels = pat.level_base[p + 1] - pat.level_base[p]
-        for level in range(levels):
-            substitute(Lw, Lr, v, vb, blob, base, pat, level, FORWARD, lane, lanes)
-            warp_sync()
-        if pat.has_body_nodes[p] != 0:
-            k = lane
-            while k < pat.perm.shape[1]:
-                if pat.node_body[p, k] >= 0:
-                    vector_set(v, vb + k, -v[vb + k])
-                k += lanes
-            warp_sync()
-        for back in range(levels):
-            substitute(Lw, Lr, v, vb, blob, base, pat, levels - 1 - back, BACKWARD, lane, lanes)
-            warp_sync()
+    vector_address = _tile_address(vector_size, float)
+    blob_address = _tile_address(blob_size, wp.int32)
 
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=SPARSE_REGISTERS)
     def sparse_solve_shared(
@@ -1110,6 +1113,7 @@ def shared_solve_kernel(size: int, worlds: int, blob_size: int):
         mask: wp.array(dtype=wp.int32),
         L: wp.array2d(dtype=float),
         L_rows: wp.array2d(dtype=float),
+        L_inv: wp.array2d(dtype=float),
         rhs: wp.array2d(dtype=float),
         real: wp.array2d(dtype=wp.int32),
         row_count: wp.array(dtype=wp.int32),
@@ -1138,12 +1142,11 @@ def shared_solve_kernel(size: int, worlds: int, blob_size: int):
             vector_set(v, vb + k, _rhs_of(pat, p, k, world, real, rhs))
             k += lanes
         warp_sync()
-        Lw = L[world]
-        Lr = L_rows[world]
+        schedule_at = int_address(pat.solve_blob, p * blob_size)
         if p == p0:
-            substitute_all(Lw, Lr, v, vb, schedule, 0, pat, p, lane, lanes)
-        else:
-            substitute_all(Lw, Lr, v, vb, pat.solve_blob, p * blob_size, pat, p, lane, lanes)
+            schedule_at = blob_address(schedule, 0)
+        _substitute_all(pat, p, schedule_at, row_address(L, world), row_address(L_rows, world),
+                        row_address(L_inv, world), vector_address(v, vb), lane, lanes)
         _scatter_solution(v, vb, pat, p, world, real, row_count, lane, lanes, x_out)
 
     return sparse_solve_shared
@@ -1154,7 +1157,8 @@ class SparseSystem:
     """A batch's factor schedules (one per topology) and the per-world buffers of one factor:
     pat and analyses from build_patterns, rows (factor rows per world), nodes (positions per
     world), A and L (W, entries) the matrix on the pattern and its factor, L_rows (W, entries left
-    of the diagonals) the factor's rows for the forward substitution, real (W, rows) the row of
+    of the diagonals) the factor's rows for the forward substitution, L_inv (W, nodes) the
+    reciprocals 1 / |L_jj| of its diagonal by position, real (W, rows) the row of
     this step each factor row stands for (-1: unused). A model has the PADMM's system (all rows,
     contact slots included: real rewritten every step) and, where its batch has rows besides its
     bilateral joint rows and SolverConfig.sparse_projection_pattern asks for it, the projection's
@@ -1168,6 +1172,7 @@ class SparseSystem:
     A: Any
     L: Any
     L_rows: Any
+    L_inv: Any
     real: Any
 
     @property
@@ -1195,7 +1200,8 @@ def make_system(patterns: tuple, num_worlds: int, device, real: np.ndarray | Non
 
     return SparseSystem(pat, analyses, rows, analyses[0].nodes,
                         buffer(entries, share and share.A), buffer(entries, share and share.L),
-                        buffer(row_entries, share and share.L_rows), real_array)
+                        buffer(row_entries, share and share.L_rows), buffer(analyses[0].nodes, share and share.L_inv),
+                        real_array)
 
 
 def batch_schedule_cost(analyses) -> int:
@@ -1230,7 +1236,7 @@ def factor(model, shift, mask, bilateral_only: bool = False, system: SparseSyste
     wp.launch_tiled(sparse_factor, dim=[model.num_worlds], block_dim=sparse_block(model.device), device=model.device,
                     inputs=[system.pat, mask, shift, int(bilateral_only), work.row_count, model.row_kind,
                             system.real, system.A],
-                    outputs=[system.L, system.L_rows])
+                    outputs=[system.L, system.L_rows, system.L_inv])
 
 
 def solve(model, rhs, mask, x_out, shared: bool | None = None, system: SparseSystem | None = None) -> None:
@@ -1251,12 +1257,12 @@ def solve(model, rhs, mask, x_out, shared: bool | None = None, system: SparseSys
         blocks = -(-model.num_worlds // worlds)
         wp.launch_tiled(shared_solve_kernel(size, worlds, system.pat.blob_size), dim=[blocks],
                         block_dim=sparse_block(model.device) * worlds, device=model.device,
-                        inputs=[system.pat, mask, system.L, system.L_rows, rhs, system.real,
+                        inputs=[system.pat, mask, system.L, system.L_rows, system.L_inv, rhs, system.real,
                                 work.row_count, model.num_worlds],
                         outputs=[x_out])
         return
     wp.launch_tiled(solve_kernel(size), dim=[model.num_worlds], block_dim=sparse_block(model.device),
-                    device=model.device, inputs=[system.pat, mask, system.L, system.L_rows, rhs,
+                    device=model.device, inputs=[system.pat, mask, system.L, system.L_rows, system.L_inv, rhs,
                                                  system.real, work.row_count],
                     outputs=[x_out])
 
