@@ -67,7 +67,12 @@ products and a solve's levels are native code on raw addresses (entry_products,
 substitute_level): Warp's array indexing spends about eight integer instructions per load, and
 both kernels are bound by their issued instructions (Nsight Compute: issue slots 62 % and 74 %
 busy). NVIDIA H100, DR Legs at 4096 worlds, device clock, per step: hanging factor 0.835 -> 0.683
-ms, solves 0.855 -> 0.690; standing factor 2.22 -> 1.87, solves 0.570 -> 0.456.
+ms, solves 0.855 -> 0.690; standing factor 2.22 -> 1.87, solves 0.570 -> 0.456. Nsight Compute
+then showed the factor waiting on loads (long scoreboard: 58 % of its stall samples): each
+entry's value is now loaded before its sum, the matrix's copy reads one index per entry
+(entry_shifted) instead of four, and the row-major copy and the reciprocal diagonal are gathered
+four at a time (gather_copy): factor 0.684 -> 0.634 ms hanging, 1.86 -> 1.67 standing (same
+call). Writing the copy and the reciprocals inside the level loop instead was 23-40 % slower.
 """
 
 import dataclasses
@@ -406,6 +411,7 @@ class SparsePatterns:
     row_base: wp.array(dtype=wp.int32)  # (P + 1,)
     row_entry: wp.array(dtype=wp.int32)
     entry_pivot: wp.array(dtype=wp.int32)  # per entry: the diagonal entry of its column
+    entry_shifted: wp.array(dtype=wp.int32)  # per entry: a shifted position's diagonal its position, else -1
     entry_recipe: wp.array(dtype=wp.int32)  # per entry: how sparse_matrix computes it (matrix_recipe)
     level_base: wp.array(dtype=wp.int32)  # (P + 1,)
     level_first: wp.array(dtype=wp.int32)
@@ -446,6 +452,16 @@ def solve_schedule(a: Analysis, levels: int, nodes: int, row_entries: int, entri
     o += row_entries
     blob[o:o + a.entries] = a.entry_i
     return blob
+
+
+def shifted_diagonals(a: Analysis) -> np.ndarray:
+    """(E,) int32: for the diagonal entry of a position the factor's shift applies to (a factor row,
+    or a padding node, which takes the world's first row's) that position; -1 elsewhere (body
+    nodes and the entries off the diagonal)."""
+    out = np.full(a.entries, -1, np.int32)
+    positions = np.flatnonzero(a.node_body()[0] < 0)
+    out[a.diag[positions]] = positions
+    return out
 
 
 # Codes of matrix_recipe (two low bits: what an entry of the matrix is)
@@ -551,6 +567,7 @@ def build_patterns(row_body_c: np.ndarray, row_body_p: np.ndarray, device, body_
                  "row_entry", "level_first", "level_diag_end", "level_end", "level_mode"):
         setattr(s, name, flat(name))
     s.entry_pivot = arr(np.concatenate([a.diag[a.entry_j] for a in analyses]).astype(np.int32))
+    s.entry_shifted = arr(np.concatenate([shifted_diagonals(a) for a in analyses]))
     s.entry_recipe = arr(np.concatenate([matrix_recipe(a, row_body_c[w], row_body_p[w])
                                          for a, w in zip(analyses, sources)]))
     levels = max(len(a.level_first) for a in analyses)
@@ -648,6 +665,11 @@ def row_address(a: wp.array2d(dtype=float), row: int) -> wp.uint64:
     """Address of row ``row`` of a 2-d float array."""
 
 
+@wp.func_native("return (wp::uint64)(reinterpret_cast<char*>(a.data) + (size_t)row * a.strides[0]);")
+def int_row_address(a: wp.array2d(dtype=wp.int32), row: int) -> wp.uint64:
+    """Address of row ``row`` of a 2-d int array."""
+
+
 @wp.func_native("return (wp::uint64)(a.data + offset);")
 def int_address(a: wp.array(dtype=wp.int32), offset: int) -> wp.uint64:
     """Address of element ``offset`` of a contiguous int array."""
@@ -683,20 +705,47 @@ auto product = [&](const int* q) -> float {
     const float x = l[a ^ (a >> 31)];  // a < 0: column -1 - a, a body node's (s_k = -1)
     return (a < 0 ? -x : x) * l[b];
 };
-float acc = 0.0f;
+float acc = value;
 for (; ab + 3 * step < ab_end; ab += 4 * step)  // four products per pass: their loads are in flight together
-    acc += product(ab) + product(ab + step) + product(ab + 2 * step) + product(ab + 3 * step);
+    acc -= product(ab) + product(ab + step) + product(ab + 2 * step) + product(ab + 3 * step);
 for (; ab < ab_end; ab += step)
-    acc += product(ab);
+    acc -= product(ab);
 return acc;
 """
 
 
 @wp.func_native(_ENTRY_PRODUCTS)
-def entry_products(factor: wp.uint64, pairs: wp.uint64, begin: int, end: int, first: int, stride: int) -> float:
-    """Sum of L_ik s_k L_jk over the update pairs begin + first, + stride, ... < end (pairs: the
-    topology's update_ab, a negative first index -1 - k for a body node's column, s_k = -1; factor:
-    the world's factor values)."""
+def entry_products(factor: wp.uint64, pairs: wp.uint64, begin: int, end: int, first: int, stride: int,
+                   value: float) -> float:
+    """value minus the sum of L_ik s_k L_jk over the update pairs begin + first, + stride, ... < end
+    (pairs: the topology's update_ab, a negative first index -1 - k for a body node's column,
+    s_k = -1; factor: the world's factor values). The value is an argument so that its load is in
+    flight with the products'."""
+
+
+_GATHER_COPY = """
+float* out = reinterpret_cast<float*>(destination);
+const float* in = reinterpret_cast<const float*>(source);
+const int* at = reinterpret_cast<const int*>(index);
+auto put = [&](int k, float v) { out[k] = reciprocal ? 1.0f / fabsf(v) : v; };
+int k = lane;
+for (; k + 3 * lanes < count; k += 4 * lanes) {  // four at a time: their loads are in flight together
+    const float v0 = in[at[k]], v1 = in[at[k + lanes]], v2 = in[at[k + 2 * lanes]], v3 = in[at[k + 3 * lanes]];
+    put(k, v0);
+    put(k + lanes, v1);
+    put(k + 2 * lanes, v2);
+    put(k + 3 * lanes, v3);
+}
+for (; k < count; k += lanes)
+    put(k, in[at[k]]);
+"""
+
+
+@wp.func_native(_GATHER_COPY)
+def gather_copy(destination: wp.uint64, source: wp.uint64, index: wp.uint64, count: int, reciprocal: int, lane: int,
+                lanes: int):
+    """destination[k] = source[index[k]] (reciprocal: 1 / |source[index[k]]|) for k = lane, lane +
+    lanes, ... < count."""
 
 
 _SUBSTITUTE_LEVEL = """
@@ -760,9 +809,11 @@ def substitute_level(schedule: wp.uint64, level: int, phase: int, blob_diag: int
 
 
 @wp.func
-def _entry_sum(Lw: wp.uint64, pairs: wp.uint64, pat: SparsePatterns, eb: int, e: int, first: int, stride: int):
-    """Part of the products subtracted from factor entry e: its pairs first, first + stride, ..."""
-    return entry_products(Lw, pairs, pat.update_begin[eb + e], pat.update_end[eb + e], first, stride)
+def _entry_sum(Lw: wp.uint64, pairs: wp.uint64, pat: SparsePatterns, eb: int, e: int, first: int, stride: int,
+               value: float):
+    """value minus part of the products subtracted from factor entry e: its pairs first, first +
+    stride, ..."""
+    return entry_products(Lw, pairs, pat.update_begin[eb + e], pat.update_end[eb + e], first, stride, value)
 
 
 @wp.kernel
@@ -910,21 +961,20 @@ def sparse_factor(
     pairs = pair_address(pat.update_ab, ub)
     e = lane
     while e < entries:
-        pi = pat.entry_i[eb + e]
-        pj = pat.entry_j[eb + e]
-        diagonal = pi == pj
         value = A[world, e]
-        i_body = pat.node_body[p, pi] >= 0
+        shifted = pat.entry_shifted[eb + e]  # a row's diagonal: its position
         if bilateral_only != 0:
+            pi = pat.entry_i[eb + e]
+            pj = pat.entry_j[eb + e]
             i = _node_row(pat, p, pi, world, real)
             j = _node_row(pat, p, pj, world, real)
-            if not ((i_body or _used(world, i, n, 1, row_kind))
+            if not ((pat.node_body[p, pi] >= 0 or _used(world, i, n, 1, row_kind))
                     and (pat.node_body[p, pj] >= 0 or _used(world, j, n, 1, row_kind))):
                 value = 0.0
-                if diagonal:
+                if pi == pj:
                     value = 1.0
-        if diagonal and not i_body:
-            row = _node_row(pat, p, pi, world, real)
+        if shifted >= 0:
+            row = _node_row(pat, p, shifted, world, real)
             if row < 0 or row >= n:
                 row = 0
             value += shift[world, row]
@@ -938,7 +988,7 @@ def sparse_factor(
         end = pat.level_end[lb + level]
         if group_width(pat.level_mode[lb + level], FACTOR, lanes) > 1:  # the lanes share each entry's products
             for e in range(first, end):
-                total = group_sum(_entry_sum(Lp, pairs, pat, eb, e, lane, lanes), lanes)
+                total = -group_sum(_entry_sum(Lp, pairs, pat, eb, e, lane, lanes, 0.0), lanes)
                 if lane == 0:
                     value = Lw[e] - total
                     if e < diag_end:
@@ -947,7 +997,7 @@ def sparse_factor(
         else:  # one entry per lane
             e = first + lane
             while e < end:
-                value = Lw[e] - _entry_sum(Lp, pairs, pat, eb, e, 0, 1)
+                value = _entry_sum(Lp, pairs, pat, eb, e, 0, 1, Lw[e])
                 if e < diag_end:
                     value = _pivot(pat, p, eb, e, value)
                 Lw[e] = value
@@ -959,14 +1009,9 @@ def sparse_factor(
             e += lanes
         block_sync()
     rb = pat.row_base[p]
-    r = lane
-    while r < pat.row_base[p + 1] - rb:
-        L_rows[world, r] = Lw[pat.row_entry[rb + r]]
-        r += lanes
-    k = lane
-    while k < pat.perm.shape[1]:
-        L_inv[world, k] = 1.0 / wp.abs(Lw[pat.diag[p, k]])
-        k += lanes
+    gather_copy(row_address(L_rows, world), Lp, int_address(pat.row_entry, rb), pat.row_base[p + 1] - rb, 0, lane,
+                lanes)
+    gather_copy(row_address(L_inv, world), Lp, int_row_address(pat.diag, p), pat.perm.shape[1], 1, lane, lanes)
 
 
 @wp.func
