@@ -74,6 +74,14 @@ def test_factor_and_solve_match_numpy(device, bilateral_only, body_nodes):
     sparse.prepare(model)
     sparse.factor(model, wp.array(shifts, device=device), wp.ones(W, dtype=wp.int32, device=device),
                   bilateral_only=bilateral_only)
+    # the factor's copies for the solves: its rows left of the diagonals in row_entry's order, and
+    # the reciprocals of its diagonal by position
+    system = model.sparse_system
+    L, L_rows, L_inv = system.L.numpy(), system.L_rows.numpy(), system.L_inv.numpy()
+    for w, p in enumerate(system.pat.world_pattern.numpy()):
+        a = system.analyses[p]
+        np.testing.assert_array_equal(L_rows[w, :len(a.row_entry)], L[w, a.row_entry])
+        np.testing.assert_allclose(L_inv[w, :a.nodes], 1.0 / np.abs(L[w, a.diag]), rtol=1e-6)
     rhs = np.random.default_rng(0).standard_normal((W, R)).astype(np.float32)
     solutions = []
     for shared in (False, True):  # the schedule read from global memory, or from a shared copy
@@ -135,6 +143,33 @@ def test_analysis_covers_the_numeric_factor():
     # padding rows stay alone: no entry off the diagonal
     padding = set(np.flatnonzero(np.isin(a.perm, np.arange(35, rows))))
     assert all(i == j for i, j in zip(a.entry_i, a.entry_j) if i in padding or j in padding)
+
+
+def test_level_slots_and_shifted_diagonals():
+    """The factor's slots: each level's entries once, diagonals first, each part in order of its
+    products (most first), with each entry's own range of products; the shifted diagonals: every
+    position but the body nodes', at its diagonal entry."""
+    rng = np.random.default_rng(4)
+    body_c = rng.integers(0, 6, 30)
+    body_p = np.where(rng.random(30) < 0.3, -1, rng.integers(0, 6, 30))
+    body_c[27:] = -1  # padding rows
+    body_p[27:] = -1
+    a = sparse.analyze(body_c, body_p, body_nodes=[int(np.bincount(body_c[:27]).argmax())], nodes=40)
+    slots = sparse.level_slots(a)
+    counts = a.update_end - a.update_begin
+    for first, diag_end, end in zip(a.level_first, a.level_diag_end, a.level_end):
+        for lo, hi in ((first, diag_end), (diag_end, end)):
+            entries = slots[lo:hi, 0]
+            assert sorted(entries) == list(range(lo, hi))
+            assert np.all(np.diff(counts[entries]) <= 0)
+    np.testing.assert_array_equal(slots[:, 1], a.update_begin[slots[:, 0]])
+    np.testing.assert_array_equal(slots[:, 2], a.update_end[slots[:, 0]])
+    shifted = sparse.shifted_diagonals(a)
+    body, _ = a.node_body()
+    assert (body >= 0).sum() == 6 and a.nodes == 40  # one body node, padding nodes up to 40
+    expected = np.full(a.entries, -1)
+    expected[a.diag[body < 0]] = np.flatnonzero(body < 0)
+    np.testing.assert_array_equal(shifted, expected)
 
 
 def test_body_nodes_factor_the_augmented_system():
