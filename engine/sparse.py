@@ -44,10 +44,11 @@ pattern, and schedules for the device:
 Worlds of one topology share one analysis (``SparsePatterns`` holds each distinct one once);
 only the factor's values are per world.
 
-Device: one warp per world (one thread on the CPU); level by level with a block barrier between
-levels, so results are deterministic (each entry is summed by one lane, or by one warp in a fixed
-order). The solve keeps its vector in shared memory; the factor stays in global memory (copying it
-into shared memory for every solve was 2.5x slower on an H100). Measured on an H100 at 4096
+Device: one warp per world (one thread on the CPU); level by level with a barrier between levels
+(the block's in the factor, the warp's in the solves), so results are deterministic (each entry
+is summed by one lane, or by one warp in a fixed order). The solve keeps its vector in shared
+memory; the factor stays in global memory (copying it into shared memory for every solve was 2.5x
+slower on an H100). Measured on an H100 at 4096
 worlds (benchmarks/results/README.md): DR Legs standing 15.4 ms per step (matrix-free 58 ms)
 with loops closed to 6e-8 m (matrix-free 8e-4 m); hanging 3.3 ms (9.9 ms); random walkers 107 ms
 (171 ms). Both kernels are bound by the latency of their chain of dependent steps: the level
@@ -323,10 +324,10 @@ def analyze(row_body_c: np.ndarray, row_body_p: np.ndarray, body_nodes=(), nodes
                     factor_steps=int(steps[0]), solve_steps=int(steps[1] + steps[2]))
 
 
-# Dependent steps a level costs besides its sums, per phase (factor: level bounds, entry, update
-# range, the division pass and two barriers; a substitution: level bounds, column, row range, one
-# barrier), and solves per factor in a step (PADMM iterations between penalty updates, plus the
-# projections): the weights of schedule_cost.
+# Dependent steps a level costs besides its sums, per phase (factor: level bounds, the slot record
+# (entry and update range), the entry's value, the division pass and two barriers; a substitution:
+# level bounds, the diagonal's record, one barrier), and solves per factor in a step (PADMM
+# iterations between penalty updates, plus the projections): the weights of schedule_cost.
 LEVEL_STEPS = (8, 5, 5)
 SOLVES_PER_FACTOR = 4
 BODY_NODE_ROWS = 12  # a body acted on by fewer rows never gains from nodes of its own (six of them)
@@ -406,7 +407,7 @@ class SparsePatterns:
     perm: wp.array2d(dtype=wp.int32)  # (P, N) factor row of each position (-1: a body or padding node)
     node_body: wp.array2d(dtype=wp.int32)  # (P, N) body of each position's body node (-1: a row or padding)
     has_body_nodes: wp.array(dtype=wp.int32)  # (P,)
-    diag: wp.array2d(dtype=wp.int32)  # (P, R)
+    diag: wp.array2d(dtype=wp.int32)  # (P, N) the diagonal entry of each position
     entry_base: wp.array(dtype=wp.int32)  # (P + 1,)
     entry_i: wp.array(dtype=wp.int32)
     entry_j: wp.array(dtype=wp.int32)
@@ -712,24 +713,24 @@ def _tile_address(size: int, dtype):
 
 _ENTRY_PRODUCTS = """
 const float* l = reinterpret_cast<const float*>(factor);
-const int* ab = reinterpret_cast<const int*>(pairs) + 2 * (begin + first);
-const int* ab_end = reinterpret_cast<const int*>(pairs) + 2 * end;
-const int step = 2 * stride;
-auto product = [&](const int* q) -> float {
+const int* ab = reinterpret_cast<const int*>(pairs);
+auto product = [&](long long u) -> float {  // update pair u: L_ik s_k L_jk
 #if defined(__CUDA_ARCH__)
-    const int2 pair = __ldg(reinterpret_cast<const int2*>(q));
+    const int2 pair = __ldg(reinterpret_cast<const int2*>(ab) + u);
     const int a = pair.x, b = pair.y;
 #else
-    const int a = q[0], b = q[1];
+    const int a = ab[2 * u], b = ab[2 * u + 1];
 #endif
     const float x = l[a ^ (a >> 31)];  // a < 0: column -1 - a, a body node's (s_k = -1)
     return (a < 0 ? -x : x) * l[b];
 };
 float acc = value;
-for (; ab + 3 * step < ab_end; ab += 4 * step)  // four products per pass: their loads are in flight together
-    acc -= product(ab) + product(ab + step) + product(ab + 2 * step) + product(ab + 3 * step);
-for (; ab < ab_end; ab += step)
-    acc -= product(ab);
+const long long last = end, step = stride;  // 64-bit indices: the compiler steps the addresses themselves
+long long u = begin + first;
+for (; u + 3 * step < last; u += 4 * step)  // four products per pass: their loads are in flight together
+    acc -= product(u) + product(u + step) + product(u + 2 * step) + product(u + 3 * step);
+for (; u < last; u += step)
+    acc -= product(u);
 return acc;
 """
 
@@ -781,16 +782,14 @@ const int first = plan[3 * level];
 const int end = first + plan[3 * level + 1];
 int width = 1 << ((plan[3 * level + 2] >> (3 * phase)) & 7);
 width = width < lanes ? width : lanes;
-auto gather = [&](int begin, int stop, int stride) -> float {
-    const float* lx = values + begin;
-    const float* lx_end = values + stop;
-    const int* at = index + begin;
+auto gather = [&](long long k, long long stop, long long stride) -> float {  // 64-bit: the addresses step
     float acc = 0.0f;
-    for (; lx + 3 * stride < lx_end; lx += 4 * stride, at += 4 * stride)  // four entries per pass: loads in flight
-        acc += (lx[0] * x[at[0]] + lx[stride] * x[at[stride]] + lx[2 * stride] * x[at[2 * stride]]
-                + lx[3 * stride] * x[at[3 * stride]]);
-    for (; lx < lx_end; lx += stride, at += stride)
-        acc += lx[0] * x[at[0]];
+    for (; k + 3 * stride < stop; k += 4 * stride)  // four entries per pass: their loads are in flight together
+        acc += (values[k] * x[index[k]] + values[k + stride] * x[index[k + stride]]
+                + values[k + 2 * stride] * x[index[k + 2 * stride]]
+                + values[k + 3 * stride] * x[index[k + 3 * stride]]);
+    for (; k < stop; k += stride)
+        acc += values[k] * x[index[k]];
     return acc;
 };
 if (width > 1) {  // the warp shares each row
@@ -1301,7 +1300,7 @@ def factor(model, shift, mask, bilateral_only: bool = False, system: SparseSyste
 
 
 def solve(model, rhs, mask, x_out, shared: bool | None = None, system: SparseSystem | None = None) -> None:
-    """x_out = (L L^T)^-1 rhs with the system's stored factors, for every masked world (rows of
+    """x_out = (L S L^T)^-1 rhs with the system's stored factors, for every masked world (rows of
     x_out below row_count that the system's factor rows do not stand for are left alone). shared:
     the schedule in shared memory (shared_solve_kernel; None: SOLVE_SHARED on GPUs for batches
     of one topology). system: the model's PADMM system when None."""
