@@ -681,24 +681,28 @@ def _vector_setter(size: int):
 # (about eight integer instructions per load); both kernels are bound by their issued
 # instructions (Nsight Compute: issue slots 62 % (factor) and 74 % (solve) busy), and these sums
 # are most of them. The arrays passed are contiguous (allocated by engine.sparse).
-@wp.func_native("return (wp::uint64)(reinterpret_cast<char*>(a.data) + (size_t)row * a.strides[0]);")
-def row_address(a: wp.array2d(dtype=float), row: int) -> wp.uint64:
-    """Address of row ``row`` of a 2-d float array."""
+@functools.cache
+def _row_address(dtype):
+    """Address of a row of a 2-d array of one type."""
+
+    @wp.func_native("return (wp::uint64)(reinterpret_cast<char*>(a.data) + (size_t)row * a.strides[0]);")
+    def row_address(a: wp.array2d(dtype=dtype), row: int) -> wp.uint64: ...
+
+    return row_address
 
 
-@wp.func_native("return (wp::uint64)(reinterpret_cast<char*>(a.data) + (size_t)row * a.strides[0]);")
-def int_row_address(a: wp.array2d(dtype=wp.int32), row: int) -> wp.uint64:
-    """Address of row ``row`` of a 2-d int array."""
+@functools.cache
+def _element_address(dtype):
+    """Address of an element of a contiguous 1-d array of one type."""
+
+    @wp.func_native("return (wp::uint64)(a.data + offset);")
+    def element_address(a: wp.array(dtype=dtype), offset: int) -> wp.uint64: ...
+
+    return element_address
 
 
-@wp.func_native("return (wp::uint64)(a.data + offset);")
-def int_address(a: wp.array(dtype=wp.int32), offset: int) -> wp.uint64:
-    """Address of element ``offset`` of a contiguous int array."""
-
-
-@wp.func_native("return (wp::uint64)(a.data + offset);")
-def pair_address(a: wp.array(dtype=wp.vec2i), offset: int) -> wp.uint64:
-    """Address of element ``offset`` of a contiguous vec2i array."""
+row_address, int_row_address = _row_address(float), _row_address(wp.int32)
+int_address, pair_address = _element_address(wp.int32), _element_address(wp.vec2i)
 
 
 @functools.cache
