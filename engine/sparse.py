@@ -686,7 +686,8 @@ def _row_address(dtype):
     """Address of a row of a 2-d array of one type."""
 
     @wp.func_native("return (wp::uint64)(reinterpret_cast<char*>(a.data) + (size_t)row * a.strides[0]);")
-    def row_address(a: wp.array2d(dtype=dtype), row: int) -> wp.uint64: ...
+    def row_address(a: wp.array2d(dtype=dtype), row: int) -> wp.uint64:
+        """Address of row ``row`` of a 2-d array."""
 
     return row_address
 
@@ -696,7 +697,8 @@ def _element_address(dtype):
     """Address of an element of a contiguous 1-d array of one type."""
 
     @wp.func_native("return (wp::uint64)(a.data + offset);")
-    def element_address(a: wp.array(dtype=dtype), offset: int) -> wp.uint64: ...
+    def element_address(a: wp.array(dtype=dtype), offset: int) -> wp.uint64:
+        """Address of element ``offset`` of a contiguous 1-d array."""
 
     return element_address
 
