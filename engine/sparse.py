@@ -92,7 +92,7 @@ wp.set_module_options({"enable_backward": False})  # no gradients are taken: com
 
 __all__ = ["SparsePatterns", "SparseSystem", "analyze", "batch_schedule_cost", "bilateral_factor_rows",
            "build_patterns", "choose_body_nodes", "factor", "make_system", "matrix", "prepare", "roots",
-           "shared_solve_kernel", "solve", "solve_schedule", "sparse_block"]
+           "matrix_block", "shared_solve_kernel", "solve", "solve_schedule", "sparse_block"]
 
 
 # Register cap per thread of the factor and solve kernels: at most 64 lets 32 one-warp blocks (the
@@ -101,6 +101,14 @@ __all__ = ["SparsePatterns", "SparseSystem", "analyze", "batch_schedule_cost", "
 # 4.52 / 4.70, walkers in their gait 48.3, 45.4 / 43.7 / 75.0 (factors 8.4, 8.1 / 7.1 / 8.5 ms).
 SPARSE_REGISTERS = 64
 VECTOR_STEP = 64  # shared tiles are sized in steps of this many elements (one kernel per size)
+
+
+MATRIX_BLOCK = 256  # threads per world of the matrix build on a GPU
+
+
+def matrix_block(device) -> int:
+    """Threads per world of the matrix build (sparse_matrix): MATRIX_BLOCK on a GPU, one on the CPU."""
+    return MATRIX_BLOCK if wp.get_device(device).is_cuda else 1
 
 
 def sparse_block(device) -> int:
@@ -862,31 +870,14 @@ def body_roots(
     root[world, b] = wp.quat_to_matrix(wp.transform_get_rotation(body_q[world, b])) * C
 
 
-@wp.kernel
-def sparse_matrix(
-    pat: SparsePatterns,
-    row_J_c: wp.array2d(dtype=wp.spatial_vector),
-    row_J_p: wp.array2d(dtype=wp.spatial_vector),
-    row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
-    row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
-    row_compliance: wp.array2d(dtype=float),
-    row_precond: wp.array2d(dtype=float),
-    body_inv_mass: wp.array2d(dtype=float),
-    root: wp.array2d(dtype=wp.mat33),
-    real: wp.array2d(dtype=wp.int32),
-    # out
-    A: wp.array2d(dtype=float),
-):
-    """This step's matrix on the factor's pattern (once per step; every factor of the step starts
-    from it): P D P between rows (without the body nodes' share), U between rows and body nodes,
-    -I on body nodes; zero off the matrix's own pattern, the identity on unused rows and padding.
-    Each entry follows its matrix_recipe: only the Jacobians of the bodies its rows share are
-    loaded."""
-    world, e = wp.tid()
-    p = pat.world_pattern[world]
-    eb = pat.entry_base[p]
-    if e >= pat.entry_base[p + 1] - eb:
-        return
+@wp.func
+def _matrix_entry(pat: SparsePatterns, p: int, eb: int, e: int, world: int,
+                  row_J_c: wp.array2d(dtype=wp.spatial_vector), row_J_p: wp.array2d(dtype=wp.spatial_vector),
+                  row_MJ_c: wp.array2d(dtype=wp.spatial_vector), row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
+                  row_compliance: wp.array2d(dtype=float), row_precond: wp.array2d(dtype=float),
+                  body_inv_mass: wp.array2d(dtype=float), root: wp.array2d(dtype=wp.mat33),
+                  real: wp.array2d(dtype=wp.int32)):
+    """Entry e of a world's matrix on the factor's pattern, following its matrix_recipe."""
     code = pat.entry_recipe[eb + e]
     kind = code & 3
     value = float(0.0)
@@ -929,7 +920,41 @@ def sparse_matrix(
                 R = root[world, b]
                 value = wp.dot(wp.spatial_bottom(J), wp.vec3(R[0, c - 3], R[1, c - 3], R[2, c - 3]))
             value = row_precond[world, i] * value
-    A[world, e] = value
+    return value
+
+
+@wp.kernel
+def sparse_matrix(
+    pat: SparsePatterns,
+    row_J_c: wp.array2d(dtype=wp.spatial_vector),
+    row_J_p: wp.array2d(dtype=wp.spatial_vector),
+    row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
+    row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
+    row_compliance: wp.array2d(dtype=float),
+    row_precond: wp.array2d(dtype=float),
+    body_inv_mass: wp.array2d(dtype=float),
+    root: wp.array2d(dtype=wp.mat33),
+    real: wp.array2d(dtype=wp.int32),
+    # out
+    A: wp.array2d(dtype=float),
+):
+    """This step's matrix on the factor's pattern (once per step; every factor of the step starts
+    from it): P D P between rows (without the body nodes' share), U between rows and body nodes,
+    -I on body nodes; zero off the matrix's own pattern, the identity on unused rows and padding.
+    Each entry follows its matrix_recipe: only the Jacobians of the bodies its rows share are
+    loaded. One thread block per world (matrix_block threads), so that a world's Jacobians are
+    loaded into one multiprocessor's cache: with a thread per entry, a world's entries went to
+    blocks on many multiprocessors, each of which loaded all its rows."""
+    world, lane = wp.tid()
+    lanes = wp.block_dim()
+    p = pat.world_pattern[world]
+    eb = pat.entry_base[p]
+    entries = pat.entry_base[p + 1] - eb
+    e = lane
+    while e < entries:
+        A[world, e] = _matrix_entry(pat, p, eb, e, world, row_J_c, row_J_p, row_MJ_c, row_MJ_p, row_compliance,
+                                    row_precond, body_inv_mass, root, real)
+        e += lanes
 
 
 @wp.func
@@ -1336,10 +1361,10 @@ def solve(model, rhs, mask, x_out, shared: bool | None = None, system: SparseSys
 def matrix(model, system: SparseSystem) -> None:
     """This step's P D P on the system's pattern (system.A), from the rows built by engine.dynamics."""
     work = model.work
-    wp.launch(sparse_matrix, dim=system.A.shape, device=model.device,
-              inputs=[system.pat, work.row_J_c, work.row_J_p, work.row_MJ_c, work.row_MJ_p, work.row_compliance,
-                      work.row_precond, model.body_inv_mass, work.sparse_root, system.real],
-              outputs=[system.A])
+    wp.launch_tiled(sparse_matrix, dim=[model.num_worlds], block_dim=matrix_block(model.device), device=model.device,
+                    inputs=[system.pat, work.row_J_c, work.row_J_p, work.row_MJ_c, work.row_MJ_p,
+                            work.row_compliance, work.row_precond, model.body_inv_mass, work.sparse_root, system.real],
+                    outputs=[system.A])
 
 
 def prepare(model) -> None:
