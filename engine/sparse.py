@@ -162,6 +162,9 @@ class Analysis:
     level_diag_end: np.ndarray  # (levels,) end of the level's diagonal entries
     level_end: np.ndarray  # (levels,)
     level_mode: np.ndarray  # (levels,) per phase (factor, forward, backward) log2 of the lanes sharing an item
+    block_records: np.ndarray = None  # (nodes, BLOCK_RECORD) the solves' supernode schedule (solve_blocks)
+    block_levels: np.ndarray = None  # (block levels, 5) first record, records, mode, first block, blocks
+    block_first: np.ndarray = None  # (blocks,) record of each supernode block's first member, in level order
     rows: int = 0  # factor rows (node ids below this are rows)
     body_nodes: tuple = ()  # bodies kept as nodes, in node order
     factor_steps: int = 0  # estimated chain of dependent steps of a factor (schedule_steps)
@@ -320,16 +323,96 @@ def analyze(row_body_c: np.ndarray, row_body_p: np.ndarray, body_nodes=(), nodes
         diagonals = level_diag_end[level] - first  # the factor's lanes take each part in order of its products
         by_products = np.concatenate([np.sort(counts[first:first + diagonals])[::-1],
                                       np.sort(counts[first + diagonals:end])[::-1]])
+        # the substitutions' steps are estimated row by row, as before supernode blocks (solve_blocks):
+        # the body nodes and projection patterns chosen with this estimate are the measured ones
         phases = (by_products, row_counts[members], (col_end - col_begin)[members])
         for phase, lengths in enumerate(phases):
             shift, cost = group_shift(lengths, with_cost=True)
             level_mode[level] |= shift << (PHASE_BITS * phase)
             steps[phase] += cost + LEVEL_STEPS[phase]
-    return Analysis(perm, entry_i, entry_j, np.asarray(entry_coupled, np.int32), diag, col_begin, col_end,
-                    update_begin, update_end, update_a, update_b, row_begin, row_end, row_entry, row_col,
-                    np.asarray(level_first, np.int32), np.asarray(level_diag_end, np.int32),
-                    np.asarray(level_end, np.int32), level_mode, rows=rows, body_nodes=body_nodes,
-                    factor_steps=int(steps[0]), solve_steps=int(steps[1] + steps[2]))
+    a = Analysis(perm, entry_i, entry_j, np.asarray(entry_coupled, np.int32), diag, col_begin, col_end,
+                 update_begin, update_end, update_a, update_b, row_begin, row_end, row_entry, row_col,
+                 np.asarray(level_first, np.int32), np.asarray(level_diag_end, np.int32),
+                 np.asarray(level_end, np.int32), level_mode, rows=rows, body_nodes=body_nodes,
+                 factor_steps=int(steps[0]), solve_steps=int(steps[1] + steps[2]))
+    a.block_records, a.block_levels, a.block_first = solve_blocks(a)
+    return a
+
+
+def supernodes(a: Analysis, cap: int | None = None) -> tuple[list[list[int]], np.ndarray]:
+    """Fundamental supernodes of the factor's pattern: chains of positions m_0 < m_1 < ... of the
+    elimination tree in which each member after the first has the one before as its only child,
+    whose column pattern is the member itself and the member's own. Their block of the factor is
+    dense, and the other columns of its rows lie left of m_0 (they descend from m_0). A joint's
+    five rows are one such chain, and so is the dense tail of the last columns. At most ``cap``
+    members each (BLOCK_ROWS). Returns the blocks (positions in chain order) and their levels
+    (one more than the highest of the blocks below them)."""
+    cap = BLOCK_ROWS if cap is None else cap
+    n = a.nodes
+    parent = np.where(a.col_end > a.col_begin, a.entry_i[np.minimum(a.col_begin, max(a.entries - 1, 0))], -1)
+    children = np.bincount(parent[parent >= 0], minlength=n)
+    only_child = np.full(n, -1, np.int64)
+    for j in range(n):
+        if parent[j] >= 0 and children[parent[j]] == 1:
+            only_child[parent[j]] = j
+    block = np.full(n, -1, np.int64)
+    blocks: list[list[int]] = []
+    for j in range(n):  # a chain's members come in increasing positions
+        c = only_child[j]
+        if c >= 0 and len(blocks[block[c]]) < cap and blocks[block[c]][-1] == c:
+            below_c = a.entry_i[a.col_begin[c]:a.col_end[c]]
+            below_j = a.entry_i[a.col_begin[j]:a.col_end[j]]
+            if len(below_c) == len(below_j) + 1 and np.array_equal(below_c[1:], below_j):
+                block[j] = block[c]
+                blocks[block[c]].append(j)
+                continue
+        block[j] = len(blocks)
+        blocks.append([j])
+    level = np.zeros(len(blocks), np.int64)
+    for b, members in enumerate(blocks):  # a block's children come before it
+        top = parent[members[-1]]
+        if top >= 0:
+            level[block[top]] = max(level[block[top]], level[b] + 1)
+    return blocks, level
+
+
+def solve_blocks(a: Analysis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The solves' schedule by supernodes (supernodes): a level of the substitutions takes whole
+    blocks. Forward, each row of a level's blocks first subtracts its entries left of its block
+    (from L_rows, a lane per row or the warp per row), then a lane per block substitutes the
+    block's triangle row by row (its rows' last entries); backward, each row subtracts its
+    column's entries below the block, then a lane per block substitutes the block's triangle
+    column by column (its columns' first entries). DR Legs hanging: 71 levels of single rows
+    become 9 of blocks. Returns the records (one per position, in level order, BLOCK_RECORD
+    ints: position, block size T, member index t, the forward gather's range in row_entry (the
+    block's own entries follow it), the backward's in the column's entries (they precede it)),
+    the levels (first record, records, mode: log2 of the lanes sharing a gather, forward and
+    backward; first block, blocks) and each block's first record."""
+    blocks, level = supernodes(a)
+    levels = int(level.max()) + 1 if len(blocks) else 0
+    records, block_first = [], []
+    block_levels = np.zeros((levels, 5), np.int32)
+    row_len = a.row_end - a.row_begin
+    for lv in range(levels):
+        block_levels[lv, 0], block_levels[lv, 3] = len(records), len(block_first)
+        for b in np.flatnonzero(level == lv):
+            members, T = blocks[b], len(blocks[b])
+            block_first.append(len(records))
+            for t, j in enumerate(members):
+                fwd = (int(a.row_begin[j]), int(a.row_end[j]) - t)
+                bwd = (int(a.col_begin[j]) + T - 1 - t, int(a.col_end[j]))
+                if not (row_len[j] >= t and np.array_equal(a.row_col[fwd[1]:a.row_end[j]], members[:t])
+                        and np.array_equal(a.entry_i[a.col_begin[j]:bwd[0]], members[t + 1:])):
+                    raise AssertionError(f"solve_blocks: position {j} is not in a dense block of its chain")
+                records.append((j, T, t, fwd[0], fwd[1], bwd[0], bwd[1]))
+        block_levels[lv, 1] = len(records) - block_levels[lv, 0]
+        block_levels[lv, 4] = len(block_first) - block_levels[lv, 3]
+    records = np.asarray(records, np.int32).reshape(-1, BLOCK_RECORD)
+    for lv in range(levels):
+        part = records[block_levels[lv, 0]:block_levels[lv, 0] + block_levels[lv, 1]]
+        for phase, (lo, hi) in ((FORWARD, (3, 4)), (BACKWARD, (5, 6))):
+            block_levels[lv, 2] |= group_shift(part[:, hi] - part[:, lo]) << (PHASE_BITS * phase)
+    return records, block_levels, np.asarray(block_first, np.int32)
 
 
 # Dependent steps a level costs besides its sums, per phase (factor: level bounds, the slot record
@@ -337,6 +420,9 @@ def analyze(row_body_c: np.ndarray, row_body_p: np.ndarray, body_nodes=(), nodes
 # level bounds, the diagonal's record, one barrier), and solves per factor in a step (PADMM
 # iterations between penalty updates, plus the projections): the weights of schedule_cost.
 LEVEL_STEPS = (8, 5, 5)
+BLOCK_ROWS = 32  # most members of a supernode (supernodes): its rows' products take a lane each
+BLOCK_RECORD = 7  # ints per position in the solves' supernode schedule (solve_blocks)
+BLOCK_LEVEL = 5  # ints per level of it
 SOLVES_PER_FACTOR = 4
 BODY_NODE_ROWS = 12  # a body acted on by fewer rows never gains from nodes of its own (six of them)
 # Candidate bodies (most rows first) tried per topology, and the share of the plain schedule's
@@ -433,8 +519,10 @@ class SparsePatterns:
     level_end: wp.array(dtype=wp.int32)
     level_mode: wp.array(dtype=wp.int32)
     solve_blob: wp.array(dtype=wp.int32)  # (P * blob_size,) each analysis' solve schedule (solve_schedule)
+    solve_levels: wp.array(dtype=wp.int32)  # (P,) levels of supernode blocks of each analysis' solves
     blob_size: int
-    blob_diag: int  # offsets in a schedule: per-diagonal records, row_col, entry_i (levels at 0)
+    blob_diag: int  # offsets in a schedule: per-position records, blocks, row_col, entry_i (levels at 0)
+    blob_block: int
     blob_row: int
     blob_entry: int
 
@@ -442,26 +530,20 @@ class SparsePatterns:
 def solve_schedule(a: Analysis, levels: int, nodes: int, row_entries: int, entries: int) -> np.ndarray:
     """One int array with all that a solve reads of an analysis, so that a thread block can copy
     it into shared memory at once (shared_solve_kernel). Layout, padded with zeros to the batch's
-    largest analysis (``levels``, ``nodes``, ``row_entries``, ``entries``):
-    - per level (3 ints): its first diagonal's ordinal (diagonals counted level by level), how
-      many diagonals it has, level_mode;
-    - per diagonal in level order (6 ints): its entry, its column j, j's row range in row_entry
-      (forward) and its range of entries below the diagonal (backward);
+    largest analysis (``levels`` block levels, ``nodes``, ``row_entries``, ``entries``):
+    - per level of supernode blocks (BLOCK_LEVEL ints, solve_blocks): its first record, its
+      records, its mode, its first block, its blocks;
+    - per position in level order (BLOCK_RECORD ints): its record (solve_blocks);
+    - per block in level order: its first record (at most ``nodes`` blocks);
     - row_col (the column of each entry left of a diagonal, row by row);
     - entry_i (the row of each entry)."""
-    blob = np.zeros(3 * levels + 6 * nodes + row_entries + entries, np.int32)
-    count = a.level_diag_end - a.level_first
-    first = np.concatenate([[0], np.cumsum(count)[:-1]]) if len(count) else count
-    blob[0:3 * len(count):3] = first
-    blob[1:3 * len(count):3] = count
-    blob[2:3 * len(count):3] = a.level_mode
-    diag_entries = np.concatenate([np.arange(f, d) for f, d in zip(a.level_first, a.level_diag_end)]
-                                  ).astype(np.int64) if len(count) else np.zeros(0, np.int64)
-    j = a.entry_j[diag_entries]
-    records = np.stack([diag_entries, j, a.row_begin[j], a.row_end[j], a.col_begin[j], a.col_end[j]], axis=1)
-    o = 3 * levels
-    blob[o:o + records.size] = records.reshape(-1)
-    o += 6 * nodes
+    blob = np.zeros(BLOCK_LEVEL * levels + (BLOCK_RECORD + 1) * nodes + row_entries + entries, np.int32)
+    blob[:a.block_levels.size] = a.block_levels.reshape(-1)
+    o = BLOCK_LEVEL * levels
+    blob[o:o + a.block_records.size] = a.block_records.reshape(-1)
+    o += BLOCK_RECORD * nodes
+    blob[o:o + len(a.block_first)] = a.block_first
+    o += nodes
     blob[o:o + len(a.row_col)] = a.row_col
     o += row_entries
     blob[o:o + a.entries] = a.entry_i
@@ -599,13 +681,15 @@ def build_patterns(row_body_c: np.ndarray, row_body_p: np.ndarray, device, body_
     s.entry_shifted = arr(np.concatenate([shifted_diagonals(a) for a in analyses]))
     s.entry_recipe = arr(np.concatenate([matrix_recipe(a, row_body_c[w], row_body_p[w])
                                          for a, w in zip(analyses, sources)]))
-    levels = max(len(a.level_first) for a in analyses)
+    levels = max(len(a.block_levels) for a in analyses)
     row_entries = max(len(a.row_col) for a in analyses)
     entries = max(a.entries for a in analyses)
     s.solve_blob = arr(np.concatenate([solve_schedule(a, levels, nodes, row_entries, entries) for a in analyses]))
-    s.blob_size = 3 * levels + 6 * nodes + row_entries + entries
-    s.blob_diag = 3 * levels
-    s.blob_row = s.blob_diag + 6 * nodes
+    s.solve_levels = arr(np.array([len(a.block_levels) for a in analyses], np.int32))
+    s.blob_size = BLOCK_LEVEL * levels + (BLOCK_RECORD + 1) * nodes + row_entries + entries
+    s.blob_diag = BLOCK_LEVEL * levels
+    s.blob_block = s.blob_diag + BLOCK_RECORD * nodes
+    s.blob_row = s.blob_block + nodes
     s.blob_entry = s.blob_row + row_entries
     return s, analyses, max(a.entries for a in analyses)
 
@@ -784,17 +868,21 @@ def gather_copy(destination: wp.uint64, source: wp.uint64, index: wp.uint64, cou
 
 
 _SUBSTITUTE_LEVEL = """
-// one level of a substitution from a solve schedule (solve_schedule's layout, at ``schedule``)
+// one level of supernode blocks of a substitution from a solve schedule (solve_schedule's layout,
+// at ``schedule``): each row subtracts its entries outside its block, then a lane per block
+// substitutes the block's own triangle
 const int* plan = reinterpret_cast<const int*>(schedule);
 const float* inverse_diagonal = reinterpret_cast<const float*>(inverse);
 float* x = reinterpret_cast<float*>(vector);
-const bool forward = phase == 1;  // FORWARD: rows gather their entries left of the diagonal from the row-major copy
+const bool forward = phase == 1;  // FORWARD: rows gather their entries left of the block from the row-major copy
 const float* values = reinterpret_cast<const float*>(forward ? rows : factor);
 const int* index = plan + (forward ? blob_row : blob_entry);
-const int range = forward ? 2 : 4;  // the diagonal record's row range (forward) or range below it (backward)
-const int first = plan[3 * level];
-const int end = first + plan[3 * level + 1];
-int width = 1 << ((plan[3 * level + 2] >> (3 * phase)) & 7);
+const int* level_plan = plan + 5 * level;
+const int range = forward ? 3 : 5;  // the record's forward or backward gather range
+const int* records = plan + blob_diag;
+const int first = level_plan[0];
+const int end = first + level_plan[1];
+int width = 1 << ((level_plan[2] >> (3 * phase)) & 7);
 width = width < lanes ? width : lanes;
 auto gather = [&](long long k, long long stop, long long stride) -> float {  // 64-bit: the addresses step
     float acc = 0.0f;
@@ -806,39 +894,67 @@ auto gather = [&](long long k, long long stop, long long stride) -> float {  // 
         acc += values[k] * x[index[k]];
     return acc;
 };
-if (width > 1) {  // the warp shares each row
+if (width > 1) {  // the warp shares each row's gather
     for (int d = first; d < end; ++d) {
-        const int* record = plan + blob_diag + 6 * d;
+        const int* record = records + 7 * d;
         float total = gather(record[range] + lane, record[range + 1], lanes);
 #if defined(__CUDA_ARCH__)
         for (int offset = lanes >> 1; offset > 0; offset >>= 1)
             total += __shfl_xor_sync(0xffffffffu, total, offset);
 #endif
-        if (lane == 0) {
-            const int j = record[1];
-            x[j] = (x[j] - total) * inverse_diagonal[j];
-        }
+        if (lane == 0)
+            x[record[0]] -= total;
     }
 } else {  // one row per lane
     for (int d = first + lane; d < end; d += lanes) {
-        const int* record = plan + blob_diag + 6 * d;
-        const int j = record[1];
-        x[j] = (x[j] - gather(record[range], record[range + 1], 1)) * inverse_diagonal[j];
+        const int* record = records + 7 * d;
+        x[record[0]] -= gather(record[range], record[range + 1], 1);
+    }
+}
+#if defined(__CUDA_ARCH__)
+__syncwarp();
+#endif
+const int* blocks = plan + blob_block;
+for (int b = level_plan[3] + lane; b < level_plan[3] + level_plan[4]; b += lanes) {
+    const int* member = records + 7 * blocks[b];  // the block's first record
+    const int size = member[1];
+    if (forward) {  // row t: its last t entries are the block's columns 0 .. t - 1
+        for (int t = 0; t < size; ++t) {
+            const int* record = member + 7 * t;
+            const float* own = values + record[4];
+            const int j = record[0];
+            float acc = x[j];
+            for (int k = 0; k < t; ++k)
+                acc -= own[k] * x[member[7 * k]];
+            x[j] = acc * inverse_diagonal[j];
+        }
+    } else {  // column t: its first size - 1 - t entries below the diagonal are the block's rows t + 1 ..
+        for (int t = size - 1; t >= 0; --t) {
+            const int* record = member + 7 * t;
+            const float* own = values + (record[5] - (size - 1 - t)) - (t + 1);  // own[c]: row c of the block
+            const int j = record[0];
+            float acc = x[j];
+            for (int c = t + 1; c < size; ++c)
+                acc -= own[c] * x[member[7 * c]];
+            x[j] = acc * inverse_diagonal[j];
+        }
     }
 }
 """
 
 
 @wp.func_native(_SUBSTITUTE_LEVEL)
-def substitute_level(schedule: wp.uint64, level: int, phase: int, blob_diag: int, blob_row: int, blob_entry: int,
-                     factor: wp.uint64, rows: wp.uint64, inverse: wp.uint64, vector: wp.uint64, lane: int,
-                     lanes: int):
-    """One level of the forward (phase FORWARD: rows gather their entries left of the diagonal from
-    the row-major copy ``rows``) or backward (columns gather their entries below it from ``factor``)
-    substitution of one world from its solve schedule (solve_schedule's layout, at ``schedule``,
-    in shared or global memory): v_j = (v_j - sum) / |L_jj| with the factor's reciprocal diagonal
-    (``inverse``); the vector at ``vector``. Per level the lanes take one row each, or the warp
-    shares each row (a warp-shuffle sum; ``lanes`` must then be the whole warp)."""
+def substitute_level(schedule: wp.uint64, level: int, phase: int, blob_diag: int, blob_block: int, blob_row: int,
+                     blob_entry: int, factor: wp.uint64, rows: wp.uint64, inverse: wp.uint64, vector: wp.uint64,
+                     lane: int, lanes: int):
+    """One level of supernode blocks (solve_blocks) of the forward (phase FORWARD: rows gather
+    their entries left of their block from the row-major copy ``rows``) or backward (columns
+    gather their entries below the block from ``factor``) substitution of one world from its
+    solve schedule (solve_schedule's layout, at ``schedule``, in shared or global memory): each
+    row subtracts its gather, then a lane per block substitutes the block's triangle,
+    v_j = (v_j - sum) / |L_jj| with the factor's reciprocal diagonal (``inverse``). The vector at
+    ``vector``. Gathers: a row per lane, or the warp shares each row (a warp-shuffle sum;
+    ``lanes`` must then be the whole warp)."""
 
 
 @wp.kernel
@@ -1151,11 +1267,12 @@ def _negate_at(vector: wp.uint64, k: int):
 def _substitute_all(pat: SparsePatterns, p: int, schedule: wp.uint64, factor: wp.uint64, rows: wp.uint64,
                     inverse: wp.uint64, vector: wp.uint64, lane: int, lanes: int):
     """Forward substitution, the body nodes' signs, backward substitution of one world (one warp;
-    one thread on the CPU) from its schedule, level by level with warp barriers."""
-    levels = pat.level_base[p + 1] - pat.level_base[p]
+    one thread on the CPU) from its schedule, level of supernode blocks by level with warp
+    barriers."""
+    levels = pat.solve_levels[p]
     for level in range(levels):
-        substitute_level(schedule, level, FORWARD, pat.blob_diag, pat.blob_row, pat.blob_entry, factor, rows, inverse,
-                         vector, lane, lanes)
+        substitute_level(schedule, level, FORWARD, pat.blob_diag, pat.blob_block, pat.blob_row, pat.blob_entry, factor,
+                         rows, inverse, vector, lane, lanes)
         warp_sync()
     if pat.has_body_nodes[p] != 0:
         k = lane
@@ -1165,8 +1282,8 @@ def _substitute_all(pat: SparsePatterns, p: int, schedule: wp.uint64, factor: wp
             k += lanes
         warp_sync()
     for back in range(levels):
-        substitute_level(schedule, levels - 1 - back, BACKWARD, pat.blob_diag, pat.blob_row, pat.blob_entry, factor,
-                         rows, inverse, vector, lane, lanes)
+        substitute_level(schedule, levels - 1 - back, BACKWARD, pat.blob_diag, pat.blob_block, pat.blob_row,
+                         pat.blob_entry, factor, rows, inverse, vector, lane, lanes)
         warp_sync()
 
 
@@ -1291,8 +1408,8 @@ def make_system(patterns: tuple, num_worlds: int, device, real: np.ndarray | Non
 
     return SparseSystem(pat, analyses, rows, analyses[0].nodes,
                         buffer(entries, share and share.A), buffer(entries, share and share.L),
-                        buffer(row_entries, share and share.L_rows), buffer(analyses[0].nodes, share and share.L_inv),
-                        real_array)
+                        buffer(row_entries, share and share.L_rows),
+                        buffer(analyses[0].nodes, share and share.L_inv), real_array)
 
 
 def batch_schedule_cost(analyses) -> int:

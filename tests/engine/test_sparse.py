@@ -145,6 +145,56 @@ def test_analysis_covers_the_numeric_factor():
     assert all(i == j for i, j in zip(a.entry_i, a.entry_j) if i in padding or j in padding)
 
 
+def test_supernode_blocks_of_the_solves():
+    """The solves' supernode blocks against their definition, from a dense elimination tree of the
+    factor's pattern: each block a chain of the tree (every member after the first the parent of
+    the one before and its only child, with the one before's column pattern = the member and its
+    own), at most BLOCK_ROWS members, every position in one block; a block's level one more than
+    its child blocks' highest. With one member per block the levels are the factor's own; and the
+    schedule's records hold each row's and column's entries outside its block."""
+    one, two = random_walkers(2)
+    model = pack_worlds([one, two], device="cpu", dt=2e-3, config=SolverConfig(linear_solver="sparse"))
+    for a in model.sparse_system.analyses:
+        n = a.nodes
+        pattern = np.zeros((n, n), bool)
+        pattern[a.entry_i, a.entry_j] = True
+        below = [np.flatnonzero(pattern[j + 1:, j]) + j + 1 for j in range(n)]
+        parent = np.array([b[0] if len(b) else -1 for b in below])
+        children = [np.flatnonzero(parent == j) for j in range(n)]
+        blocks, level = sparse.supernodes(a)
+        assert sorted(j for b in blocks for j in b) == list(range(n))
+        assert max(len(b) for b in blocks) >= 5  # a joint's rows at least
+        assert max(len(b) for b in blocks) <= sparse.BLOCK_ROWS
+        block_of = {j: k for k, b in enumerate(blocks) for j in b}
+        for k, members in enumerate(blocks):
+            for prev, j in zip(members, members[1:]):
+                assert parent[prev] == j and list(children[j]) == [prev]
+                assert list(below[prev]) == [j] + list(below[j])
+            first = members[0]  # not mergeable into a child's block
+            fits = [c for c in children[first] if list(below[c]) == [first] + list(below[first])]
+            assert not (len(children[first]) == 1 and fits and len(blocks[block_of[fits[0]]]) < sparse.BLOCK_ROWS)
+            child_levels = [level[block_of[c]] for j in members for c in children[j] if block_of[c] != k]
+            assert level[k] == (max(child_levels) + 1 if child_levels else 0)
+        single, single_level = sparse.supernodes(a, cap=1)
+        factor_level = np.zeros(n, int)
+        for lv, (first, diag_end) in enumerate(zip(a.level_first, a.level_diag_end)):
+            factor_level[a.entry_j[first:diag_end]] = lv
+        assert [len(b) for b in single] == [1] * n
+        np.testing.assert_array_equal(single_level, factor_level[[b[0] for b in single]])
+        records, levels, block_first = sparse.solve_blocks(a)
+        assert sorted(records[:, 0]) == list(range(n)) and len(block_first) == len(blocks)
+        for j, T, t, fwd_lo, fwd_hi, bwd_lo, bwd_hi in records:
+            members = blocks[block_of[j]]
+            assert len(members) == T and members[t] == j
+            outside_left = [c for c in np.flatnonzero(pattern[j, :j]) if c not in members]
+            assert sorted(a.row_col[fwd_lo:fwd_hi]) == outside_left
+            assert list(a.entry_i[bwd_lo:bwd_hi]) == [i for i in below[j] if i not in members]
+        for first, count, _, first_block, level_blocks in levels:  # a level's blocks hold its records
+            starts = block_first[first_block:first_block + level_blocks]
+            assert np.all(records[starts, 2] == 0) and records[starts, 1].sum() == count
+            assert starts.min() == first
+
+
 def test_level_slots_and_shifted_diagonals():
     """The factor's slots: each level's entries once, diagonals first, each part in order of its
     products (most first), with each entry's own range of products; the shifted diagonals: every
