@@ -165,6 +165,9 @@ class Analysis:
     block_records: np.ndarray = None  # (nodes, BLOCK_RECORD) the solves' supernode schedule (solve_blocks)
     block_levels: np.ndarray = None  # (block levels, 5) first record, records, mode, first block, blocks
     block_first: np.ndarray = None  # (blocks,) record of each supernode block's first member, in level order
+    factor_plan: np.ndarray = None  # (block levels, FACTOR_LEVEL) the factor's schedule by blocks (factor_blocks)
+    factor_slots: np.ndarray = None  # (entries, 3) entry, its products with earlier blocks' columns
+    factor_rows: np.ndarray = None  # (rows below blocks, 2) the block's first record, the row's index below it
     rows: int = 0  # factor rows (node ids below this are rows)
     body_nodes: tuple = ()  # bodies kept as nodes, in node order
     factor_steps: int = 0  # estimated chain of dependent steps of a factor (schedule_steps)
@@ -336,6 +339,7 @@ def analyze(row_body_c: np.ndarray, row_body_p: np.ndarray, body_nodes=(), nodes
                  np.asarray(level_end, np.int32), level_mode, rows=rows, body_nodes=body_nodes,
                  factor_steps=int(steps[0]), solve_steps=int(steps[1] + steps[2]))
     a.block_records, a.block_levels, a.block_first = solve_blocks(a)
+    a.factor_plan, a.factor_slots, a.factor_rows = factor_blocks(a)
     return a
 
 
@@ -415,6 +419,62 @@ def solve_blocks(a: Analysis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return records, block_levels, np.asarray(block_first, np.int32)
 
 
+def factor_blocks(a: Analysis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The factor's schedule by the solves' supernode blocks (solve_blocks), level of blocks by
+    level: (1) every entry of the level's block columns less its products with the columns of
+    earlier blocks (its update range without its last t pairs, t its column's member index: those
+    are the block's own columns, the last of its list), the lanes taking the entries in order of
+    their products (most first); (2) a lane per block factors the block's triangle (its own
+    products, the pivots); (3) a lane per row below a block divides that row's entries by the
+    triangle. Three barriers per level of blocks instead of two per level of single columns.
+    Returns the plan (per level, FACTOR_LEVEL ints: first slot, slot end, mode (log2 of the lanes
+    sharing an entry's products, the FACTOR phase), first block, blocks (in the solve schedule's
+    block list), first row below, row end), the slots (entry, its range of products in update_ab)
+    and the rows below the blocks (the block's first record, the row's index below the block)."""
+    records = a.block_records
+    plan, slots, below = [], [], []
+    for first, count, _, first_block, blocks in a.block_levels:
+        level_slots = []
+        for d in range(first, first + count):
+            j, T, t = (int(v) for v in records[d, :3])
+            members = records[d - t:d - t + T, 0]
+            for e in [int(a.diag[j])] + list(range(int(records[d, 5]) - (T - 1 - t), int(a.col_end[j]))):
+                end = int(a.update_end[e]) - t
+                if not np.array_equal(a.entry_j[a.update_b[end:a.update_end[e]]], members[:t]):
+                    raise AssertionError(f"factor_blocks: entry {e}'s last products are not its block's columns")
+                level_slots.append((e, int(a.update_begin[e]), end))
+        level_slots.sort(key=lambda slot: slot[1] - slot[2])  # most products first (stable)
+        slot_first, row_first = len(slots), len(below)
+        slots += level_slots
+        for b in a.block_first[first_block:first_block + blocks]:
+            last = records[b + records[b, 1] - 1]  # its last member: the block's rows below are its column's
+            below += [(int(b), r) for r in range(int(last[6] - last[5]))]
+        mode = group_shift([hi - lo for _, lo, hi in level_slots]) << (PHASE_BITS * FACTOR)
+        if blocks_together(records, a.block_first[first_block:first_block + blocks]):
+            mode |= 1 << TOGETHER_BIT
+        plan.append((slot_first, len(slots), mode, first_block, blocks, row_first, len(below)))
+    return (np.asarray(plan, np.int32).reshape(-1, FACTOR_LEVEL), np.asarray(slots, np.int32).reshape(-1, 3),
+            np.asarray(below, np.int32).reshape(-1, 2))
+
+
+def blocks_together(records: np.ndarray, firsts) -> bool:
+    """Whether a level's blocks (their first records) are factored by the warp together, block
+    after block and column by column (two barriers per column), rather than a lane per block and
+    a lane per row below (factor_blocks): whichever has the shorter chain of dependent steps. A
+    lane's triangle of T costs T (T + 1) (T + 2) / 6 steps and a row below it T (T - 1) / 2;
+    together, column t costs t for its pivot and (t + 1) per round of the warp over its rows."""
+    sizes = np.array([records[b, 1] for b in firsts], np.int64)
+    below = np.array([records[b + T - 1, 6] - records[b + T - 1, 5] for b, T in zip(firsts, sizes)], np.int64)
+    triangles = sizes * (sizes + 1) * (sizes + 2) // 6
+    rows = np.repeat(sizes * (sizes - 1) // 2, below)
+    apart = (max(int(triangles[k::WARP_LANES].sum()) for k in range(min(WARP_LANES, len(sizes))))
+             + (max(int(rows[k::WARP_LANES].sum()) for k in range(min(WARP_LANES, len(rows)))) if len(rows) else 0)
+             + BARRIER_STEPS)
+    together = sum(t + -(-(T - 1 - t + R) // WARP_LANES) * (t + 1) + 2 * BARRIER_STEPS
+                   for T, R in zip(sizes, below) for t in range(T))
+    return together < apart
+
+
 # Dependent steps a level costs besides its sums, per phase (factor: level bounds, the slot record
 # (entry and update range), the entry's value, the division pass and two barriers; a substitution:
 # level bounds, the diagonal's record, one barrier), and solves per factor in a step (PADMM
@@ -423,6 +483,9 @@ LEVEL_STEPS = (8, 5, 5)
 BLOCK_ROWS = 32  # most members of a supernode (supernodes): its rows' products take a lane each
 BLOCK_RECORD = 7  # ints per position in the solves' supernode schedule (solve_blocks)
 BLOCK_LEVEL = 5  # ints per level of it
+FACTOR_LEVEL = 7  # ints per level of the factor's schedule by blocks (factor_blocks)
+TOGETHER_BIT = wp.constant(9)  # of a level's mode in factor_blocks' plan: the warp factors its blocks together
+BARRIER_STEPS = 5  # dependent steps a warp barrier costs in blocks_together's estimate
 SOLVES_PER_FACTOR = 4
 BODY_NODE_ROWS = 12  # a body acted on by fewer rows never gains from nodes of its own (six of them)
 # Candidate bodies (most rows first) tried per topology, and the share of the plain schedule's
@@ -505,7 +568,11 @@ class SparsePatterns:
     entry_base: wp.array(dtype=wp.int32)  # (P + 1,)
     entry_i: wp.array(dtype=wp.int32)
     entry_j: wp.array(dtype=wp.int32)
-    entry_slot: wp.array(dtype=wp.vec3i)  # per slot of a level: its entry and the entry's range in update_ab
+    factor_base: wp.array(dtype=wp.int32)  # (P + 1,) first level of each analysis' factor plan
+    factor_plan: wp.array(dtype=wp.int32)  # FACTOR_LEVEL ints per level of blocks (factor_blocks)
+    factor_slot: wp.array(dtype=wp.vec3i)  # per slot (entry_base): its entry and its range of products in update_ab
+    below_base: wp.array(dtype=wp.int32)  # (P + 1,)
+    below_row: wp.array(dtype=wp.vec2i)  # rows below the blocks: the block's first record, the row's index
     update_base: wp.array(dtype=wp.int32)  # (P + 1,)
     update_ab: wp.array(dtype=wp.vec2i)  # (L_ik, L_jk) of each product, one 8-byte load
     row_base: wp.array(dtype=wp.int32)  # (P + 1,)
@@ -673,7 +740,11 @@ def build_patterns(row_body_c: np.ndarray, row_body_p: np.ndarray, device, body_
     s.level_base = arr(base([len(a.level_first) for a in analyses]))
     s.update_ab = arr(np.concatenate([np.stack([a.update_a, a.update_b], axis=1) for a in analyses]).astype(np.int32),
                       dtype=wp.vec2i)
-    s.entry_slot = arr(np.concatenate([level_slots(a) for a in analyses]), dtype=wp.vec3i)
+    s.factor_base = arr(base([len(a.factor_plan) for a in analyses]))
+    s.factor_plan = arr(np.concatenate([a.factor_plan.reshape(-1) for a in analyses]))
+    s.factor_slot = arr(np.concatenate([a.factor_slots for a in analyses]), dtype=wp.vec3i)
+    s.below_base = arr(base([len(a.factor_rows) for a in analyses]))
+    s.below_row = arr(np.concatenate([a.factor_rows for a in analyses]).reshape(-1, 2), dtype=wp.vec2i)
     for name in ("entry_i", "entry_j",
                  "row_entry", "level_first", "level_diag_end", "level_end", "level_mode"):
         setattr(s, name, flat(name))
@@ -957,6 +1028,113 @@ def substitute_level(schedule: wp.uint64, level: int, phase: int, blob_diag: int
     ``lanes`` must then be the whole warp)."""
 
 
+_FACTOR_LEVEL_BLOCKS = """
+// the triangles of a level's supernode blocks (a lane per block) and the rows below them (a lane per
+// row), once their products with earlier blocks' columns are subtracted (sparse_factor)
+const int* records = reinterpret_cast<const int*>(schedule) + blob_diag;
+const int* block_list = reinterpret_cast<const int*>(schedule) + blob_block;
+const int* below = reinterpret_cast<const int*>(rows);
+const int* diagonal = reinterpret_cast<const int*>(diagonals);
+const int* body = reinterpret_cast<const int*>(bodies);
+float* l = reinterpret_cast<float*>(factor);
+// column k of a block: its first entry below the diagonal (the block's rows after k come first)
+auto column = [&](const int* member, int size, int k) -> long long { return member[7 * k + 5] - (size - 1 - k); };
+auto sign = [&](const int* member, int k) -> float { return body[member[7 * k]] >= 0 ? -1.0f : 1.0f; };
+if (together) {  // the warp takes the blocks one after the other, column by column with its rows below
+    for (int b = block_first; b < block_first + blocks; ++b) {
+        const int* member = records + 7 * block_list[b];
+        const int size = member[1];
+        const int below_block = member[7 * (size - 1) + 6] - member[7 * (size - 1) + 5];
+        for (int t = 0; t < size; ++t) {
+            const int j = member[7 * t];
+            if (lane == 0) {
+                float pivot = l[diagonal[j]];
+                for (int k = 0; k < t; ++k) {
+                    const float x = l[column(member, size, k) + (t - k - 1)];
+                    pivot -= sign(member, k) * x * x;
+                }
+                l[diagonal[j]] = body[j] >= 0 ? -sqrtf(-pivot) : sqrtf(pivot);
+            }
+#if defined(__CUDA_ARCH__)
+            __syncwarp();
+#endif
+            const float pivot = l[diagonal[j]];
+            const long long own = column(member, size, t);
+            // column t's entries: the block's rows t + 1 .., then the rows below it; row rho of the
+            // block's (its members, then the rows below) is entry rho - k - 1 of column k
+            for (int q = lane; q < size - 1 - t + below_block; q += lanes) {
+                const int rho = t + 1 + q;
+                float value = l[own + q];
+                for (int k = 0; k < t; ++k) {
+                    const long long ck = column(member, size, k);
+                    value -= l[ck + (rho - k - 1)] * sign(member, k) * l[ck + (t - k - 1)];
+                }
+                l[own + q] = value / pivot;
+            }
+#if defined(__CUDA_ARCH__)
+            __syncwarp();
+#endif
+        }
+    }
+    return;
+}
+for (int b = block_first + lane; b < block_first + blocks; b += lanes) {  // a lane per block
+    const int* member = records + 7 * block_list[b];  // the block's first record
+    const int size = member[1];
+    for (int t = 0; t < size; ++t) {  // column t: s_t L_tt, then its rows t + 1 .. of the block
+        const int j = member[7 * t];
+        const long long own = column(member, size, t);
+        float pivot = l[diagonal[j]];
+        for (int k = 0; k < t; ++k) {
+            const float x = l[column(member, size, k) + (t - k - 1)];
+            pivot -= sign(member, k) * x * x;
+        }
+        pivot = body[j] >= 0 ? -sqrtf(-pivot) : sqrtf(pivot);
+        l[diagonal[j]] = pivot;
+        for (int c = t + 1; c < size; ++c) {
+            float value = l[own + (c - t - 1)];
+            for (int k = 0; k < t; ++k) {
+                const long long ck = column(member, size, k);
+                value -= l[ck + (c - k - 1)] * sign(member, k) * l[ck + (t - k - 1)];
+            }
+            l[own + (c - t - 1)] = value / pivot;
+        }
+    }
+}
+#if defined(__CUDA_ARCH__)
+__syncwarp();
+#endif
+for (int q = row_first + lane; q < row_end; q += lanes) {  // a row below a block: its entries left to right
+    const int* member = records + 7 * below[2 * q];
+    const int r = below[2 * q + 1];
+    const int size = member[1];
+    for (int t = 0; t < size; ++t) {
+        const long long at = member[7 * t + 5] + r;  // the row's entry in column t
+        float value = l[at];
+        for (int k = 0; k < t; ++k)
+            value -= l[member[7 * k + 5] + r] * sign(member, k) * l[column(member, size, k) + (t - k - 1)];
+        l[at] = value / l[diagonal[member[7 * t]]];
+    }
+}
+"""
+
+
+@wp.func_native(_FACTOR_LEVEL_BLOCKS)
+def factor_level_blocks(schedule: wp.uint64, blob_diag: int, blob_block: int, block_first: int, blocks: int,
+                        rows: wp.uint64, row_first: int, row_end: int, diagonals: wp.uint64, bodies: wp.uint64,
+                        factor: wp.uint64, together: int, lane: int, lanes: int):
+    """Steps (2) and (3) of a level of factor_blocks on one world's factor (``factor``), once its
+    block columns' products with earlier blocks are subtracted: a lane per block (blocks
+    ``block_first`` .. of the solve schedule's block list, at ``schedule``) computes the pivots
+    s_t L_tt and the entries of the block's triangle, then (after a warp barrier) a lane per row
+    below a block (``rows``: factor_blocks' rows below, ``row_first`` .. ``row_end``) divides that
+    row's entries by the triangle. With ``together`` the warp takes the blocks one after the
+    other instead, column by column: a lane computes the pivot, then the lanes share the column's
+    rows, in the block and below it, with a warp barrier after each (factor_blocks chooses).
+    ``diagonals``: the diagonal entry of each position; ``bodies``: each position's body (>= 0: a
+    body node, s = -1)."""
+
+
 @wp.kernel
 def body_roots(
     body_count: wp.array(dtype=wp.int32),
@@ -1139,36 +1317,34 @@ def sparse_factor(
         Lw[e] = value
         e += lanes
     block_sync()
-    lb = pat.level_base[p]
-    for level in range(pat.level_base[p + 1] - lb):
-        first = pat.level_first[lb + level]
-        diag_end = pat.level_diag_end[lb + level]
-        end = pat.level_end[lb + level]
-        if group_width(pat.level_mode[lb + level], FACTOR, lanes) > 1:  # the lanes share each entry's products
+    fb = pat.factor_base[p]
+    schedule = int_address(pat.solve_blob, p * pat.blob_size)
+    below = pair_address(pat.below_row, pat.below_base[p])
+    diagonals = int_row_address(pat.diag, p)
+    bodies = int_row_address(pat.node_body, p)
+    for level in range(pat.factor_base[p + 1] - fb):
+        q = FACTOR_LEVEL * (fb + level)
+        first = pat.factor_plan[q]
+        end = pat.factor_plan[q + 1]
+        if group_width(pat.factor_plan[q + 2], FACTOR, lanes) > 1:  # the lanes share each entry's products
             for k in range(first, end):
-                slot = pat.entry_slot[eb + k]  # (entry, its products' range)
+                slot = pat.factor_slot[eb + k]  # (entry, its products with earlier blocks' columns)
                 e = slot[0]
                 total = -group_sum(entry_products(Lp, pairs, slot[1], slot[2], lane, lanes, 0.0), lanes)
                 if lane == 0:
-                    value = Lw[e] - total
-                    if k < diag_end:
-                        value = _pivot(pat, p, eb, e, value)
-                    Lw[e] = value
-        else:  # one entry per lane, the level's entries in order of their products, most first
+                    Lw[e] = Lw[e] - total
+        else:  # one entry per lane, in order of their products, most first
             k = first + lane
             while k < end:
-                slot = pat.entry_slot[eb + k]
+                slot = pat.factor_slot[eb + k]
                 e = slot[0]
-                value = entry_products(Lp, pairs, slot[1], slot[2], 0, 1, Lw[e])
-                if k < diag_end:
-                    value = _pivot(pat, p, eb, e, value)
-                Lw[e] = value
+                Lw[e] = entry_products(Lp, pairs, slot[1], slot[2], 0, 1, Lw[e])
                 k += lanes
         block_sync()
-        e = diag_end + lane
-        while e < end:  # below the diagonals: divide by the column's diagonal
-            Lw[e] = Lw[e] / Lw[pat.entry_pivot[eb + e]]
-            e += lanes
+        together = (pat.factor_plan[q + 2] >> TOGETHER_BIT) & 1
+        factor_level_blocks(schedule, pat.blob_diag, pat.blob_block, pat.factor_plan[q + 3], pat.factor_plan[q + 4],
+                            below, pat.factor_plan[q + 5], pat.factor_plan[q + 6], diagonals, bodies, Lp, together,
+                            lane, lanes)
         block_sync()
     rb = pat.row_base[p]
     gather_copy(row_address(L_rows, world), Lp, int_address(pat.row_entry, rb), pat.row_base[p + 1] - rb, 0, lane,
