@@ -34,6 +34,10 @@ pattern, and schedules for the device:
   (left-looking Cholesky);
 - for every row of L its entries left of the diagonal (forward substitution), for every column
   its entries below the diagonal (backward substitution);
+- supernode blocks (``supernodes``): chains of the elimination tree whose block of the factor is
+  dense (a joint's five rows, the dense tail of the last columns), and levels of blocks; the
+  factor and the solves go level of blocks by level (``factor_blocks``, ``solve_blocks``):
+  DR Legs hanging has 71 levels of columns and 9 of blocks;
 - per level and phase whether each lane takes its own items or the warp shares each item (a
   warp-shuffle sum), whichever has the shorter chain of dependent steps;
 - per entry of the matrix, which of its rows' Jacobians it takes (``matrix_recipe``, from the
@@ -46,11 +50,17 @@ only the factor's values are per world.
 
 Device: one warp per world (one thread on the CPU); level by level with a barrier between levels
 (the block's in the factor, the warp's in the solves), so results are deterministic (each entry
-is summed by one lane, or by one warp in a fixed order). The solve keeps its vector in shared
-memory; the factor stays in global memory (copying it into shared memory for every solve was 2.5x
-slower on an H100). Measured on an H100 at 4096
-worlds (benchmarks/results/README.md): DR Legs standing 15.4 ms per step (matrix-free 58 ms)
-with loops closed to 6e-8 m (matrix-free 8e-4 m); hanging 3.3 ms (9.9 ms); random walkers 107 ms
+is summed by one lane, or by one warp in a fixed order). A level of blocks: in the factor, every
+entry of its block columns less its products with earlier blocks' columns, in parallel; then a
+lane per block for the block's own triangle and a lane per row below it (or, for a large block,
+the warp column by column); in a substitution, every row less its entries outside its block, in
+parallel, then a lane per block substitutes the block's triangle. NVIDIA H100, DR Legs at 4096
+worlds, per step: solves hanging 0.69 -> 0.40 ms, standing 0.46 -> 0.33; factor hanging 0.62 ->
+0.54, standing 1.52 -> 1.38 (the measurements below were made level of columns by level). The
+solve keeps its vector in shared memory; the factor stays in global memory (copying it into
+shared memory for every solve was 2.5x slower on an H100). Measured on an H100 at 4096 worlds
+(benchmarks/results/README.md): DR Legs standing 15.4 ms per step (matrix-free 58 ms) with
+loops closed to 6e-8 m (matrix-free 8e-4 m); hanging 3.3 ms (9.9 ms); random walkers 107 ms
 (171 ms). Both kernels are bound by the latency of their chain of dependent steps: the level
 schedule of DR Legs standing has a critical path of 6.3 k steps per factor and 2.5 k per solve,
 and on the H100 a factor takes 1.4 ms and a solve 0.73 ms at 4096 worlds, 0.23 to 0.29 us (one
@@ -326,8 +336,9 @@ def analyze(row_body_c: np.ndarray, row_body_p: np.ndarray, body_nodes=(), nodes
         diagonals = level_diag_end[level] - first  # the factor's lanes take each part in order of its products
         by_products = np.concatenate([np.sort(counts[first:first + diagonals])[::-1],
                                       np.sort(counts[first + diagonals:end])[::-1]])
-        # the substitutions' steps are estimated row by row, as before supernode blocks (solve_blocks):
-        # the body nodes and projection patterns chosen with this estimate are the measured ones
+        # the factor's and the substitutions' steps are estimated column by column, as before the
+        # supernode blocks (factor_blocks, solve_blocks): the body nodes and projection patterns
+        # chosen with this estimate are the measured ones
         phases = (by_products, row_counts[members], (col_end - col_begin)[members])
         for phase, lengths in enumerate(phases):
             shift, cost = group_shift(lengths, with_cost=True)
@@ -475,7 +486,7 @@ def blocks_together(records: np.ndarray, firsts) -> bool:
     return together < apart
 
 
-# Dependent steps a level costs besides its sums, per phase (factor: level bounds, the slot record
+# Dependent steps a level of columns costs besides its sums, per phase (factor: level bounds, the slot record
 # (entry and update range), the entry's value, the division pass and two barriers; a substitution:
 # level bounds, the diagonal's record, one barrier), and solves per factor in a step (PADMM
 # iterations between penalty updates, plus the projections): the weights of schedule_cost.
@@ -577,14 +588,8 @@ class SparsePatterns:
     update_ab: wp.array(dtype=wp.vec2i)  # (L_ik, L_jk) of each product, one 8-byte load
     row_base: wp.array(dtype=wp.int32)  # (P + 1,)
     row_entry: wp.array(dtype=wp.int32)
-    entry_pivot: wp.array(dtype=wp.int32)  # per entry: the diagonal entry of its column
     entry_shifted: wp.array(dtype=wp.int32)  # per entry: a shifted position's diagonal its position, else -1
     entry_recipe: wp.array(dtype=wp.int32)  # per entry: how sparse_matrix computes it (matrix_recipe)
-    level_base: wp.array(dtype=wp.int32)  # (P + 1,)
-    level_first: wp.array(dtype=wp.int32)
-    level_diag_end: wp.array(dtype=wp.int32)
-    level_end: wp.array(dtype=wp.int32)
-    level_mode: wp.array(dtype=wp.int32)
     solve_blob: wp.array(dtype=wp.int32)  # (P * blob_size,) each analysis' solve schedule (solve_schedule)
     solve_levels: wp.array(dtype=wp.int32)  # (P,) levels of supernode blocks of each analysis' solves
     blob_size: int
@@ -615,20 +620,6 @@ def solve_schedule(a: Analysis, levels: int, nodes: int, row_entries: int, entri
     o += row_entries
     blob[o:o + a.entries] = a.entry_i
     return blob
-
-
-def level_slots(a: Analysis) -> np.ndarray:
-    """(E, 3) int32: the factor's lanes take a level's entries in slots, diagonals first, each part
-    ordered by its number of products, most first, so that the lanes of a round have sums of about
-    the same length (the warp waits for its longest); per slot: the entry and its range of
-    products (update_begin, update_end)."""
-    order = np.arange(a.entries)
-    counts = a.update_end - a.update_begin
-    for first, diag_end, end in zip(a.level_first, a.level_diag_end, a.level_end):
-        for lo, hi in ((first, diag_end), (diag_end, end)):
-            part = order[lo:hi]
-            order[lo:hi] = part[np.argsort(-counts[part], kind="stable")]
-    return np.stack([order, a.update_begin[order], a.update_end[order]], axis=1).astype(np.int32)
 
 
 def shifted_diagonals(a: Analysis) -> np.ndarray:
@@ -737,7 +728,6 @@ def build_patterns(row_body_c: np.ndarray, row_body_p: np.ndarray, device, body_
     s.entry_base = arr(base([a.entries for a in analyses]))
     s.update_base = arr(base([len(a.update_a) for a in analyses]))
     s.row_base = arr(base([len(a.row_entry) for a in analyses]))
-    s.level_base = arr(base([len(a.level_first) for a in analyses]))
     s.update_ab = arr(np.concatenate([np.stack([a.update_a, a.update_b], axis=1) for a in analyses]).astype(np.int32),
                       dtype=wp.vec2i)
     s.factor_base = arr(base([len(a.factor_plan) for a in analyses]))
@@ -745,10 +735,8 @@ def build_patterns(row_body_c: np.ndarray, row_body_p: np.ndarray, device, body_
     s.factor_slot = arr(np.concatenate([a.factor_slots for a in analyses]), dtype=wp.vec3i)
     s.below_base = arr(base([len(a.factor_rows) for a in analyses]))
     s.below_row = arr(np.concatenate([a.factor_rows for a in analyses]).reshape(-1, 2), dtype=wp.vec2i)
-    for name in ("entry_i", "entry_j",
-                 "row_entry", "level_first", "level_diag_end", "level_end", "level_mode"):
+    for name in ("entry_i", "entry_j", "row_entry"):
         setattr(s, name, flat(name))
-    s.entry_pivot = arr(np.concatenate([a.diag[a.entry_j] for a in analyses]).astype(np.int32))
     s.entry_shifted = arr(np.concatenate([shifted_diagonals(a) for a in analyses]))
     s.entry_recipe = arr(np.concatenate([matrix_recipe(a, row_body_c[w], row_body_p[w])
                                          for a, w in zip(analyses, sources)]))
@@ -1251,14 +1239,6 @@ def sparse_matrix(
         e += lanes
 
 
-@wp.func
-def _pivot(pat: SparsePatterns, p: int, eb: int, e: int, value: float):
-    """s_j L_jj from a_jj - sum_k s_k L_jk^2 = s_j L_jj^2 (negative on body nodes)."""
-    if pat.node_body[p, pat.entry_j[eb + e]] >= 0:
-        return -wp.sqrt(-value)
-    return wp.sqrt(value)
-
-
 @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=SPARSE_REGISTERS)
 def sparse_factor(
     pat: SparsePatterns,
@@ -1277,7 +1257,9 @@ def sparse_factor(
     """L S L^T = A + diag(shift) for worlds with mask != 0 (shift per row of this step; rows of the
     pattern that stand for no row get shift[world, 0], body nodes none), A from sparse_matrix
     (with bilateral_only: its bilateral joint block and the body nodes, the identity elsewhere).
-    S is -1 on body nodes, +1 elsewhere; a diagonal entry holds s_j L_jj. Then L_rows: the entries
+    S is -1 on body nodes, +1 elsewhere; a diagonal entry holds s_j L_jj. Level of supernode
+    blocks by level (factor_blocks): the products with earlier blocks, then the blocks' triangles
+    and the rows below them (factor_level_blocks). Then L_rows: the entries
     left of each diagonal row by row (in row_entry's order), so that the forward substitution reads
     them without an index load in between, and L_inv: 1 / |L_jj| by position, so that a
     substitution multiplies instead of dividing. The factor stays in global memory:

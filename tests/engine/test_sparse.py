@@ -195,25 +195,38 @@ def test_supernode_blocks_of_the_solves():
             assert starts.min() == first
 
 
-def test_level_slots_and_shifted_diagonals():
-    """The factor's slots: each level's entries once, diagonals first, each part in order of its
-    products (most first), with each entry's own range of products; the shifted diagonals: every
-    position but the body nodes', at its diagonal entry."""
+def test_factor_blocks_and_shifted_diagonals():
+    """The factor's schedule by blocks: each level's slots are the entries of its blocks' columns
+    (diagonal and below), every entry once over all levels, most products first, each with its
+    products less those with its own block's earlier columns (the last ones of its list); the
+    rows below each block once; the shifted diagonals: every position but the body nodes', at its
+    diagonal entry."""
     rng = np.random.default_rng(4)
     body_c = rng.integers(0, 6, 30)
     body_p = np.where(rng.random(30) < 0.3, -1, rng.integers(0, 6, 30))
     body_c[27:] = -1  # padding rows
     body_p[27:] = -1
     a = sparse.analyze(body_c, body_p, body_nodes=[int(np.bincount(body_c[:27]).argmax())], nodes=40)
-    slots = sparse.level_slots(a)
-    counts = a.update_end - a.update_begin
-    for first, diag_end, end in zip(a.level_first, a.level_diag_end, a.level_end):
-        for lo, hi in ((first, diag_end), (diag_end, end)):
-            entries = slots[lo:hi, 0]
-            assert sorted(entries) == list(range(lo, hi))
-            assert np.all(np.diff(counts[entries]) <= 0)
-    np.testing.assert_array_equal(slots[:, 1], a.update_begin[slots[:, 0]])
-    np.testing.assert_array_equal(slots[:, 2], a.update_end[slots[:, 0]])
+    blocks, level = sparse.supernodes(a)
+    assert len(a.factor_plan) == level.max() + 1 and max(len(b) for b in blocks) > 1
+    block_of = {j: k for k, b in enumerate(blocks) for j in b}
+    seen = []
+    for lv, (first, end, _, _, _, row_first, row_end) in enumerate(a.factor_plan):
+        slots = a.factor_slots[first:end]
+        columns = [j for k in np.flatnonzero(level == lv) for j in blocks[k]]
+        assert sorted(slots[:, 0]) == sorted(e for e in range(a.entries) if a.entry_j[e] in columns)
+        assert np.all(np.diff(slots[:, 2] - slots[:, 1]) <= 0)
+        for e, begin, stop in slots:
+            members = blocks[block_of[a.entry_j[e]]]
+            own = members[:members.index(a.entry_j[e])]
+            assert begin == a.update_begin[e] and stop == a.update_end[e] - len(own)
+            assert list(a.entry_j[a.update_b[stop:a.update_end[e]]]) == own
+        below = a.factor_rows[row_first:row_end]
+        expected = [(a.block_records[:, 0].tolist().index(b[0]), r) for k in np.flatnonzero(level == lv)
+                    for b in [blocks[k]] for r in range(a.col_end[b[-1]] - a.col_begin[b[-1]])]
+        assert sorted(map(tuple, below)) == sorted(expected)
+        seen += list(slots[:, 0])
+    assert sorted(seen) == list(range(a.entries))
     shifted = sparse.shifted_diagonals(a)
     # body nodes are the node ids rows .. rows + 5 (one body); rows and padding nodes (up to 40) get the shift
     is_body = (a.perm >= a.rows) & (a.perm < a.rows + 6)
@@ -284,6 +297,59 @@ def test_body_nodes_factor_the_augmented_system():
     solution = np.empty(n)
     solution[a.perm] = x
     assert np.allclose(solution[:rows], np.linalg.solve(A_R + U @ U.T, b), atol=1e-9)
+
+
+@pytest.mark.parametrize("together", [False, True])
+def test_factor_kernel_with_body_node_blocks(device, monkeypatch, together):
+    """The device factor (sparse_factor) on a quasi-definite matrix with two hubs kept as body
+    nodes, whose six nodes make supernode blocks with rows below them, against NumPy's signed
+    factor of the same matrix: blocks factored a lane per block and a lane per row below, or by
+    the warp column by column (blocks_together forced either way)."""
+    rng = np.random.default_rng(4)
+    bodies, rows = 7, 36
+    body_c = rng.integers(0, bodies, rows)
+    body_p = np.where(rng.random(rows) < 0.3, -1, rng.integers(0, bodies, rows))
+    body_c[:14] = 0  # two hubs
+    body_p[14:24] = 3
+    hubs = (0, 3)
+    monkeypatch.setattr(sparse, "blocks_together", lambda records, firsts: together)
+    monkeypatch.setattr(sparse, "choose_body_nodes", lambda c, p: sparse.analyze(c, p, hubs))
+    pat, (a,), entries = sparse.build_patterns(body_c[None], body_p[None], device)
+    n = a.nodes
+    blocks, _ = sparse.supernodes(a)
+    body = a.node_body()[0]
+    below = {tuple(b): len(a.entry_i[a.col_begin[b[-1]]:a.col_end[b[-1]]]) for b in blocks}
+    assert any(len(b) > 1 and body[b[0]] >= 0 and below[tuple(b)] > 0 for b in blocks)  # a body block with rows below
+    # the augmented matrix on the pattern: rows coupled through the other bodies, U on the body nodes, -I
+    on = [set(np.flatnonzero((body_c == b) | (body_p == b))) for b in range(bodies)]
+    share = np.array([[i == j or any(i in on[b] and j in on[b] for b in range(bodies) if b not in hubs)
+                       for j in range(rows)] for i in range(rows)])
+    B = rng.standard_normal((rows, rows)) * share
+    K = np.eye(n)
+    K[:rows, :rows] = B @ B.T * share + rows * np.eye(rows)
+    for k, b in enumerate(hubs):
+        U = rng.standard_normal((len(on[b]), 6))
+        K[np.ix_(sorted(on[b]), range(rows + 6 * k, rows + 6 * k + 6))] = U
+        K[np.ix_(range(rows + 6 * k, rows + 6 * k + 6), sorted(on[b]))] = U.T
+        K[range(rows + 6 * k, rows + 6 * k + 6), range(rows + 6 * k, rows + 6 * k + 6)] = -1.0
+    Kp = K[np.ix_(a.perm, a.perm)]
+    negative = body >= 0
+    # NumPy's signed factor: L S L^T = Kp, L_jj > 0, S = -1 on the body nodes
+    L = np.zeros((n, n))
+    for j in range(n):
+        s = np.where(negative[:j], -1.0, 1.0)
+        pivot = Kp[j, j] - np.sum(L[j, :j] ** 2 * s)
+        L[j, j] = np.sqrt(-pivot if negative[j] else pivot)
+        L[j + 1:, j] = (Kp[j + 1:, j] - L[j + 1:, :j] @ (s * L[j, :j])) / (-L[j, j] if negative[j] else L[j, j])
+    expected = np.where(a.entry_i == a.entry_j, np.where(negative[a.entry_j], -1.0, 1.0), 1.0) * L[a.entry_i, a.entry_j]
+    A = wp.array(Kp[a.entry_i, a.entry_j][None].astype(np.float32), device=device)
+    out = [wp.zeros((1, width), dtype=float, device=device) for width in (entries, max(1, len(a.row_entry)), n)]
+    wp.launch_tiled(sparse.sparse_factor, dim=[1], block_dim=sparse.sparse_block(device), device=device,
+                    inputs=[pat, wp.ones(1, dtype=wp.int32, device=device), wp.zeros((1, rows), dtype=float,
+                            device=device), 0, wp.array([rows], dtype=wp.int32, device=device),
+                            wp.zeros((1, rows), dtype=wp.int32, device=device),
+                            wp.array(np.arange(rows, dtype=np.int32)[None], device=device), A], outputs=out)
+    np.testing.assert_allclose(out[0].numpy()[0, :a.entries], expected, rtol=1e-4, atol=1e-4)
 
 
 def test_choose_body_nodes_shortens_a_hub():
