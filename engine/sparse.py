@@ -496,7 +496,7 @@ BLOCK_RECORD = 7  # ints per position in the solves' supernode schedule (solve_b
 BLOCK_LEVEL = 5  # ints per level of it
 FACTOR_LEVEL = 7  # ints per level of the factor's schedule by blocks (factor_blocks)
 TOGETHER_BIT = wp.constant(9)  # of a level's mode in factor_blocks' plan: the warp factors its blocks together
-BARRIER_STEPS = 5  # dependent steps a warp barrier costs in blocks_together's estimate
+BARRIER_STEPS = 1  # dependent steps a warp barrier costs in blocks_together's estimate
 SOLVES_PER_FACTOR = 4
 BODY_NODE_ROWS = 12  # a body acted on by fewer rows never gains from nodes of its own (six of them)
 # Candidate bodies (most rows first) tried per topology, and the share of the plain schedule's
