@@ -488,8 +488,10 @@ def test_projection_pattern_steps_like_the_padmm_pattern(device):
     assert own.violation_linear.max() < max(2e-7, 2.0 * padmm.violation_linear.max())
 
 
-def test_matrix_recipe_builds_the_augmented_matrix_of_numpy():
-    """engine.sparse.sparse_matrix, which follows matrix_recipe, against the augmented matrix
+@pytest.mark.parametrize("staged", [False, True])
+def test_matrix_recipe_builds_the_augmented_matrix_of_numpy(staged):
+    """engine.sparse.sparse_matrix, which follows matrix_recipe, and its variant with the rows
+    staged in shared memory (staged_matrix_kernel), against the augmented matrix
     [[P (J M^-1 J^T + R) P without the nodes' share, P J R_b], [., -I]] formed in NumPy from the
     same Jacobians: a hub body 300 with 60 rows (kept as six nodes: bodies above 255 use the
     recipe's high bits), a second hub 411, leaves in a chain, rows on the world frame, and rows
@@ -520,11 +522,13 @@ def test_matrix_recipe_builds_the_augmented_matrix_of_numpy():
         return wp.array(x[None], dtype=dtype, device="cpu")
 
     A = wp.zeros((1, entries), dtype=float, device="cpu")
-    wp.launch(sparse.sparse_matrix, dim=(1, entries), device="cpu",
-              inputs=[pat, arr(J_c, wp.spatial_vector), arr(J_p, wp.spatial_vector), arr(MJ_c, wp.spatial_vector),
-                      arr(MJ_p, wp.spatial_vector), arr(compliance), arr(precond), arr(inv_mass), arr(root, wp.mat33),
-                      wp.array(real, dtype=wp.int32, device="cpu")],
-              outputs=[A])
+    size = -(-analysis.nodes // sparse.VECTOR_STEP) * sparse.VECTOR_STEP
+    kernel = sparse.staged_matrix_kernel(size) if staged else sparse.sparse_matrix
+    wp.launch_tiled(kernel, dim=[1], block_dim=1, device="cpu",
+                    inputs=[pat, arr(J_c, wp.spatial_vector), arr(J_p, wp.spatial_vector),
+                            arr(MJ_c, wp.spatial_vector), arr(MJ_p, wp.spatial_vector), arr(compliance), arr(precond),
+                            arr(inv_mass), arr(root, wp.mat33), wp.array(real, dtype=wp.int32, device="cpu")],
+                    outputs=[A])
     node_row = analysis.node_row()
     node_body, node_comp = analysis.node_body()
     nodes = set(analysis.body_nodes)
