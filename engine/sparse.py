@@ -68,8 +68,8 @@ schedule of DR Legs standing has a critical path of 6.3 k steps per factor and 2
 and on the H100 a factor takes 1.4 ms and a solve 0.73 ms at 4096 worlds, 0.23 to 0.29 us (one
 global-memory round trip) per step. The sums therefore load four products per pass, so that
 their loads are in flight together (factor 10 to 25 % faster), and a step's chain of dependent
-loads is kept short: each diagonal carries its column and its row's or column's range in one
-record of the solve's schedule, the forward substitution reads a row-major copy of the factor
+loads is kept short: each position carries its row's and column's ranges in one record of the
+solve's schedule (now per supernode block: solve_blocks), the forward substitution reads a row-major copy of the factor
 written after each factor (SparseSystem.L_rows) instead of looking each entry up (DR Legs hanging
 4.2-4.4 -> 3.9 ms per step at 4096 worlds on an H100), and multiplies by the reciprocal diagonal
 the factor leaves (SparseSystem.L_inv). With enough worlds of one topology, a
@@ -86,8 +86,8 @@ entry's value is now loaded before its sum, the matrix's copy reads one index pe
 (entry_shifted) instead of four, and the row-major copy and the reciprocal diagonal are gathered
 four at a time (gather_copy): factor 0.684 -> 0.634 ms hanging, 1.86 -> 1.67 standing (same
 call). Writing the copy and the reciprocals inside the level loop instead was 23-40 % slower.
-The lanes take a level's entries in order of their number of products (level_slots), so that a
-round's sums end together: factor 0.634-0.638 -> 0.584-0.587 ms hanging, 1.67 -> 1.57 standing.
+The lanes take a level's entries in order of their number of products (now factor_blocks' slots),
+so that a round's sums end together: factor 0.634-0.638 -> 0.584-0.587 ms hanging, 1.67 -> 1.57 standing.
 """
 
 import dataclasses
@@ -211,7 +211,8 @@ class Analysis:
         return body, np.where(inside, k % 6, 0).astype(np.int32)
 
 
-def analyze(row_body_c: np.ndarray, row_body_p: np.ndarray, body_nodes=(), nodes: int | None = None) -> Analysis:
+def analyze(row_body_c: np.ndarray, row_body_p: np.ndarray, body_nodes=(), nodes: int | None = None,
+            blocks: bool = True) -> Analysis:
     """The factor schedule of one topology: rows i and j couple when they act on a common body
     (row_body_c, row_body_p: the bodies of every row, -1 for the world frame; a row with no body
     at all is a padding row, the identity).
@@ -221,7 +222,9 @@ def analyze(row_body_c: np.ndarray, row_body_p: np.ndarray, body_nodes=(), nodes
     bodies, whose Schur complement is A + U U^T = P D P: quasi-definite, so its LDL^T factor exists
     in any order, with negative pivots on the body nodes). A body acted on by many rows (a walker's
     torso: 72) makes all of them one dense block of the factor; as six nodes it costs a star.
-    nodes: pad with identity nodes up to this many (every analysis of a batch has as many)."""
+    nodes: pad with identity nodes up to this many (every analysis of a batch has as many).
+    blocks: add the supernode schedules of the device (with_blocks; off for trial analyses whose
+    estimated cost alone is wanted)."""
     rows = len(row_body_c)
     body_nodes = tuple(int(b) for b in body_nodes)
     own = rows + 6 * len(body_nodes)
@@ -354,8 +357,15 @@ def analyze(row_body_c: np.ndarray, row_body_p: np.ndarray, body_nodes=(), nodes
                  np.asarray(level_first, np.int32), np.asarray(level_diag_end, np.int32),
                  np.asarray(level_end, np.int32), level_mode, rows=rows, body_nodes=body_nodes,
                  factor_steps=int(steps[0]), solve_steps=int(steps[1] + steps[2]))
-    a.block_records, a.block_levels, a.block_first = solve_blocks(a)
-    a.factor_plan, a.factor_slots, a.factor_rows = factor_blocks(a)
+    return with_blocks(a) if blocks else a
+
+
+def with_blocks(a: Analysis) -> Analysis:
+    """The analysis with its supernode schedules for the device (solve_blocks, factor_blocks),
+    computed once."""
+    if a.block_records is None:
+        a.block_records, a.block_levels, a.block_first = solve_blocks(a)
+        a.factor_plan, a.factor_slots, a.factor_rows = factor_blocks(a)
     return a
 
 
@@ -531,7 +541,7 @@ def choose_body_nodes(row_body_c: np.ndarray, row_body_p: np.ndarray) -> Analysi
     until BODY_NODE_MISSES in a row fail) and kept where schedule_cost drops, and the set is used
     where it saves a fifth or more (DR Legs standing as in Newton's example: seven bodies; a
     walker: its torso; DR Legs hanging: none)."""
-    plain = best = analyze(row_body_c, row_body_p)
+    plain = best = analyze(row_body_c, row_body_p, blocks=False)
     bodies, counts = np.unique(np.concatenate([row_body_c, row_body_p]), return_counts=True)
     keep = bodies >= 0
     bodies, counts = bodies[keep], counts[keep]
@@ -541,12 +551,12 @@ def choose_body_nodes(row_body_c: np.ndarray, row_body_p: np.ndarray) -> Analysi
     for b in bodies[order][:BODY_NODE_TRIES]:
         if counts[bodies == b][0] < BODY_NODE_ROWS or misses == BODY_NODE_MISSES:
             break
-        trial = analyze(row_body_c, row_body_p, chosen + [int(b)])
+        trial = analyze(row_body_c, row_body_p, chosen + [int(b)], blocks=False)
         if schedule_cost(trial) < schedule_cost(best):
             best, chosen, misses = trial, chosen + [int(b)], 0
         else:
             misses += 1
-    return best if schedule_cost(best) < BODY_NODE_GAIN * schedule_cost(plain) else plain
+    return with_blocks(best if schedule_cost(best) < BODY_NODE_GAIN * schedule_cost(plain) else plain)
 
 
 WARP_LANES = 32
@@ -998,11 +1008,11 @@ for (int b = level_plan[3] + lane; b < level_plan[3] + level_plan[4]; b += lanes
     } else {  // column t: its first size - 1 - t entries below the diagonal are the block's rows t + 1 ..
         for (int t = size - 1; t >= 0; --t) {
             const int* record = member + 7 * t;
-            const float* own = values + (record[5] - (size - 1 - t)) - (t + 1);  // own[c]: row c of the block
+            const float* own = values + (record[5] - (size - 1 - t));  // own[c - t - 1]: row c of the block
             const int j = record[0];
             float acc = x[j];
             for (int c = t + 1; c < size; ++c)
-                acc -= own[c] * x[member[7 * c]];
+                acc -= own[c - t - 1] * x[member[7 * c]];
             x[j] = acc * inverse_diagonal[j];
         }
     }
@@ -1496,10 +1506,11 @@ def solve_kernel(size: int):
         # out
         x_out: wp.array2d(dtype=float),
     ):
-        """x = (L S L^T)^-1 rhs for worlds with mask != 0: forward substitution level by level
-        (rows gather their entries left of the diagonal), the signs S (body nodes), backward in
-        reverse (columns gather their entries below it); per level the lanes take one row each
-        or share each row. Body nodes start from 0 and their values are dropped."""
+        """x = (L S L^T)^-1 rhs for worlds with mask != 0: forward substitution level of supernode
+        blocks by level (rows gather their entries left of their block, then a lane per block
+        substitutes its triangle), the signs S (body nodes), backward in reverse (columns gather
+        their entries below their block, then the blocks); the lanes take one row each or share
+        each row's gather. Body nodes start from 0 and their values are dropped."""
         world, lane = wp.tid()
         lanes = wp.block_dim()
         v = wp.tile_zeros(shape=size, dtype=float, storage="shared")
@@ -1581,7 +1592,7 @@ def shared_solve_kernel(size: int, worlds: int, blob_size: int):
     world each) copies the solve schedule of its first world's analysis (solve_schedule) into
     shared memory once, then every warp substitutes its own world level by level with warp
     barriers only; a world of another analysis reads its schedule from global memory. The levels'
-    bounds, the diagonals' ranges and the column and row indices are then shared-memory loads,
+    bounds, the positions' records and the column and row indices are then shared-memory loads,
     and a level's chain of dependent steps keeps one global load (the factor's values)."""
     vector_size = size * worlds
     vector_set = _vector_setter(vector_size)

@@ -164,7 +164,9 @@ def test_supernode_blocks_of_the_solves():
         blocks, level = sparse.supernodes(a)
         assert sorted(j for b in blocks for j in b) == list(range(n))
         assert max(len(b) for b in blocks) >= 5  # a joint's rows at least
-        assert max(len(b) for b in blocks) <= sparse.BLOCK_ROWS
+        capped, _ = sparse.supernodes(a, cap=3)  # chains longer than the cap are split
+        assert max(len(b) for b in capped) == 3 and len(capped) > len(blocks)
+        assert [j for b in capped for j in b] == sorted(j for b in capped for j in b)
         block_of = {j: k for k, b in enumerate(blocks) for j in b}
         for k, members in enumerate(blocks):
             for prev, j in zip(members, members[1:]):
@@ -299,12 +301,14 @@ def test_body_nodes_factor_the_augmented_system():
     assert np.allclose(solution[:rows], np.linalg.solve(A_R + U @ U.T, b), atol=1e-9)
 
 
+@pytest.mark.parametrize("cap", [None, 2])
 @pytest.mark.parametrize("together", [False, True])
-def test_factor_kernel_with_body_node_blocks(device, monkeypatch, together):
+def test_factor_kernel_with_body_node_blocks(device, monkeypatch, together, cap):
     """The device factor (sparse_factor) on a quasi-definite matrix with two hubs kept as body
     nodes, whose six nodes make supernode blocks with rows below them, against NumPy's signed
     factor of the same matrix: blocks factored a lane per block and a lane per row below, or by
-    the warp column by column (blocks_together forced either way)."""
+    the warp column by column (blocks_together forced either way), and with the blocks capped at
+    two members (BLOCK_ROWS: chains split into several blocks); its copies for the solves too."""
     rng = np.random.default_rng(4)
     bodies, rows = 7, 36
     body_c = rng.integers(0, bodies, rows)
@@ -314,9 +318,12 @@ def test_factor_kernel_with_body_node_blocks(device, monkeypatch, together):
     hubs = (0, 3)
     monkeypatch.setattr(sparse, "blocks_together", lambda records, firsts: together)
     monkeypatch.setattr(sparse, "choose_body_nodes", lambda c, p: sparse.analyze(c, p, hubs))
+    if cap is not None:
+        monkeypatch.setattr(sparse, "BLOCK_ROWS", cap)
     pat, (a,), entries = sparse.build_patterns(body_c[None], body_p[None], device)
     n = a.nodes
     blocks, _ = sparse.supernodes(a)
+    assert max(len(b) for b in blocks) == (cap or 6)
     body = a.node_body()[0]
     below = {tuple(b): len(a.entry_i[a.col_begin[b[-1]]:a.col_end[b[-1]]]) for b in blocks}
     assert any(len(b) > 1 and body[b[0]] >= 0 and below[tuple(b)] > 0 for b in blocks)  # a body block with rows below
@@ -349,7 +356,10 @@ def test_factor_kernel_with_body_node_blocks(device, monkeypatch, together):
                             device=device), 0, wp.array([rows], dtype=wp.int32, device=device),
                             wp.zeros((1, rows), dtype=wp.int32, device=device),
                             wp.array(np.arange(rows, dtype=np.int32)[None], device=device), A], outputs=out)
-    np.testing.assert_allclose(out[0].numpy()[0, :a.entries], expected, rtol=1e-4, atol=1e-4)
+    L_out = out[0].numpy()[0, :a.entries]
+    np.testing.assert_allclose(L_out, expected, rtol=1e-4, atol=1e-4)
+    np.testing.assert_array_equal(out[1].numpy()[0, :len(a.row_entry)], L_out[a.row_entry])
+    np.testing.assert_allclose(out[2].numpy()[0], 1.0 / np.abs(L_out[a.diag]), rtol=1e-6)
 
 
 def test_choose_body_nodes_shortens_a_hub():
@@ -378,7 +388,7 @@ def test_choose_body_nodes_stops_after_misses(monkeypatch):
     body_p = np.full(len(body_c), -1)
     tried = []
 
-    def stand_in(row_body_c, row_body_p, body_nodes=(), nodes=None):
+    def stand_in(row_body_c, row_body_p, body_nodes=(), nodes=None, blocks=True):
         tried.append(tuple(body_nodes))
         cost = 1000 - 500 * (0 in body_nodes) - 100 * (100 in body_nodes) + 10 * sum(b > 200 for b in body_nodes)
         arrays = {f.name: np.zeros(0) for f in dataclasses.fields(sparse.Analysis) if f.type is np.ndarray}
