@@ -389,7 +389,7 @@ def supernodes(a: Analysis, cap: int | None = None) -> tuple[list[list[int]], np
     blocks: list[list[int]] = []
     for j in range(n):  # a chain's members come in increasing positions
         c = only_child[j]
-        if c >= 0 and len(blocks[block[c]]) < cap and blocks[block[c]][-1] == c:
+        if c >= 0 and len(blocks[block[c]]) < cap:  # c, j's only child, is the last of its block
             below_c = a.entry_i[a.col_begin[c]:a.col_end[c]]
             below_j = a.entry_i[a.col_begin[j]:a.col_end[j]]
             if len(below_c) == len(below_j) + 1 and np.array_equal(below_c[1:], below_j):
@@ -954,7 +954,7 @@ float* x = reinterpret_cast<float*>(vector);
 const bool forward = phase == 1;  // FORWARD: rows gather their entries left of the block from the row-major copy
 const float* values = reinterpret_cast<const float*>(forward ? rows : factor);
 const int* index = plan + (forward ? blob_row : blob_entry);
-const int* level_plan = plan + 5 * level;
+const int* level_plan = plan + LEVEL_INTS * level;
 const int range = forward ? 3 : 5;  // the record's forward or backward gather range
 const int* records = plan + blob_diag;
 const int first = level_plan[0];
@@ -973,7 +973,7 @@ auto gather = [&](long long k, long long stop, long long stride) -> float {  // 
 };
 if (width > 1) {  // the warp shares each row's gather
     for (int d = first; d < end; ++d) {
-        const int* record = records + 7 * d;
+        const int* record = records + RECORD * d;
         float total = gather(record[range] + lane, record[range + 1], lanes);
 #if defined(__CUDA_ARCH__)
         for (int offset = lanes >> 1; offset > 0; offset >>= 1)
@@ -984,7 +984,7 @@ if (width > 1) {  // the warp shares each row's gather
     }
 } else {  // one row per lane
     for (int d = first + lane; d < end; d += lanes) {
-        const int* record = records + 7 * d;
+        const int* record = records + RECORD * d;
         x[record[0]] -= gather(record[range], record[range + 1], 1);
     }
 }
@@ -993,31 +993,31 @@ __syncwarp();
 #endif
 const int* blocks = plan + blob_block;
 for (int b = level_plan[3] + lane; b < level_plan[3] + level_plan[4]; b += lanes) {
-    const int* member = records + 7 * blocks[b];  // the block's first record
+    const int* member = records + RECORD * blocks[b];  // the block's first record
     const int size = member[1];
     if (forward) {  // row t: its last t entries are the block's columns 0 .. t - 1
         for (int t = 0; t < size; ++t) {
-            const int* record = member + 7 * t;
+            const int* record = member + RECORD * t;
             const float* own = values + record[4];
             const int j = record[0];
             float acc = x[j];
             for (int k = 0; k < t; ++k)
-                acc -= own[k] * x[member[7 * k]];
+                acc -= own[k] * x[member[RECORD * k]];
             x[j] = acc * inverse_diagonal[j];
         }
     } else {  // column t: its first size - 1 - t entries below the diagonal are the block's rows t + 1 ..
         for (int t = size - 1; t >= 0; --t) {
-            const int* record = member + 7 * t;
+            const int* record = member + RECORD * t;
             const float* own = values + (record[5] - (size - 1 - t));  // own[c - t - 1]: row c of the block
             const int j = record[0];
             float acc = x[j];
             for (int c = t + 1; c < size; ++c)
-                acc -= own[c - t - 1] * x[member[7 * c]];
+                acc -= own[c - t - 1] * x[member[RECORD * c]];
             x[j] = acc * inverse_diagonal[j];
         }
     }
 }
-"""
+""".replace("RECORD", str(BLOCK_RECORD)).replace("LEVEL_INTS", str(BLOCK_LEVEL))
 
 
 @wp.func_native(_SUBSTITUTE_LEVEL)
@@ -1043,40 +1043,44 @@ const int* below = reinterpret_cast<const int*>(rows);
 const int* diagonal = reinterpret_cast<const int*>(diagonals);
 const int* body = reinterpret_cast<const int*>(bodies);
 float* l = reinterpret_cast<float*>(factor);
-// column k of a block: its first entry below the diagonal (the block's rows after k come first)
-auto column = [&](const int* member, int size, int k) -> long long { return member[7 * k + 5] - (size - 1 - k); };
-auto sign = [&](const int* member, int k) -> float { return body[member[7 * k]] >= 0 ? -1.0f : 1.0f; };
+// a block's rows rho: its members (rho < size), then the rows below it (rho = size + r). Column k's
+// entries below its diagonal are rows k + 1, k + 2, ..: row rho is entry rho - k - 1 from ``column``
+auto column = [&](const int* member, int size, int k) -> long long {
+    return member[RECORD * k + 5] - (size - 1 - k);
+};
+auto sign = [&](const int* member, int k) -> float { return body[member[RECORD * k]] >= 0 ? -1.0f : 1.0f; };
+auto pivot_of = [&](const int* member, int size, int t) {  // s_t L_tt from the block's columns before t
+    const int j = member[RECORD * t];
+    float pivot = l[diagonal[j]];
+    for (int k = 0; k < t; ++k) {
+        const float x = l[column(member, size, k) + (t - k - 1)];
+        pivot -= sign(member, k) * x * x;
+    }
+    l[diagonal[j]] = body[j] >= 0 ? -sqrtf(-pivot) : sqrtf(pivot);
+};
+auto entry_of = [&](const int* member, int size, int t, int rho) {  // row rho's entry in column t
+    const long long at = column(member, size, t) + (rho - t - 1);
+    float value = l[at];
+    for (int k = 0; k < t; ++k) {
+        const long long ck = column(member, size, k);
+        value -= l[ck + (rho - k - 1)] * sign(member, k) * l[ck + (t - k - 1)];
+    }
+    l[at] = value / l[diagonal[member[RECORD * t]]];
+};
 if (together) {  // the warp takes the blocks one after the other, column by column with its rows below
     for (int b = block_first; b < block_first + blocks; ++b) {
-        const int* member = records + 7 * block_list[b];
+        const int* member = records + RECORD * block_list[b];
         const int size = member[1];
-        const int below_block = member[7 * (size - 1) + 6] - member[7 * (size - 1) + 5];
+        const int last = RECORD * (size - 1);
+        const int height = size + member[last + 6] - member[last + 5];  // its members and the rows below
         for (int t = 0; t < size; ++t) {
-            const int j = member[7 * t];
-            if (lane == 0) {
-                float pivot = l[diagonal[j]];
-                for (int k = 0; k < t; ++k) {
-                    const float x = l[column(member, size, k) + (t - k - 1)];
-                    pivot -= sign(member, k) * x * x;
-                }
-                l[diagonal[j]] = body[j] >= 0 ? -sqrtf(-pivot) : sqrtf(pivot);
-            }
+            if (lane == 0)
+                pivot_of(member, size, t);
 #if defined(__CUDA_ARCH__)
             __syncwarp();
 #endif
-            const float pivot = l[diagonal[j]];
-            const long long own = column(member, size, t);
-            // column t's entries: the block's rows t + 1 .., then the rows below it; row rho of the
-            // block's (its members, then the rows below) is entry rho - k - 1 of column k
-            for (int q = lane; q < size - 1 - t + below_block; q += lanes) {
-                const int rho = t + 1 + q;
-                float value = l[own + q];
-                for (int k = 0; k < t; ++k) {
-                    const long long ck = column(member, size, k);
-                    value -= l[ck + (rho - k - 1)] * sign(member, k) * l[ck + (t - k - 1)];
-                }
-                l[own + q] = value / pivot;
-            }
+            for (int rho = t + 1 + lane; rho < height; rho += lanes)
+                entry_of(member, size, t, rho);
 #if defined(__CUDA_ARCH__)
             __syncwarp();
 #endif
@@ -1085,44 +1089,24 @@ if (together) {  // the warp takes the blocks one after the other, column by col
     return;
 }
 for (int b = block_first + lane; b < block_first + blocks; b += lanes) {  // a lane per block
-    const int* member = records + 7 * block_list[b];  // the block's first record
+    const int* member = records + RECORD * block_list[b];  // the block's first record
     const int size = member[1];
-    for (int t = 0; t < size; ++t) {  // column t: s_t L_tt, then its rows t + 1 .. of the block
-        const int j = member[7 * t];
-        const long long own = column(member, size, t);
-        float pivot = l[diagonal[j]];
-        for (int k = 0; k < t; ++k) {
-            const float x = l[column(member, size, k) + (t - k - 1)];
-            pivot -= sign(member, k) * x * x;
-        }
-        pivot = body[j] >= 0 ? -sqrtf(-pivot) : sqrtf(pivot);
-        l[diagonal[j]] = pivot;
-        for (int c = t + 1; c < size; ++c) {
-            float value = l[own + (c - t - 1)];
-            for (int k = 0; k < t; ++k) {
-                const long long ck = column(member, size, k);
-                value -= l[ck + (c - k - 1)] * sign(member, k) * l[ck + (t - k - 1)];
-            }
-            l[own + (c - t - 1)] = value / pivot;
-        }
+    for (int t = 0; t < size; ++t) {
+        pivot_of(member, size, t);
+        for (int rho = t + 1; rho < size; ++rho)
+            entry_of(member, size, t, rho);
     }
 }
 #if defined(__CUDA_ARCH__)
 __syncwarp();
 #endif
 for (int q = row_first + lane; q < row_end; q += lanes) {  // a row below a block: its entries left to right
-    const int* member = records + 7 * below[2 * q];
-    const int r = below[2 * q + 1];
+    const int* member = records + RECORD * below[2 * q];
     const int size = member[1];
-    for (int t = 0; t < size; ++t) {
-        const long long at = member[7 * t + 5] + r;  // the row's entry in column t
-        float value = l[at];
-        for (int k = 0; k < t; ++k)
-            value -= l[member[7 * k + 5] + r] * sign(member, k) * l[column(member, size, k) + (t - k - 1)];
-        l[at] = value / l[diagonal[member[7 * t]]];
-    }
+    for (int t = 0; t < size; ++t)
+        entry_of(member, size, t, size + below[2 * q + 1]);
 }
-"""
+""".replace("RECORD", str(BLOCK_RECORD))
 
 
 @wp.func_native(_FACTOR_LEVEL_BLOCKS)
