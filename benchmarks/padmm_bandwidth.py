@@ -7,7 +7,8 @@ time it would take just to move its data once.
 For each scene a batch of --worlds worlds runs the staged step (the fused step runs the whole
 loop inside one kernel): --warmup eager steps, then --steps more with every kernel timed
 (wp.timing on a GPU, synchronized wall time per launch on the CPU). The launches of the PADMM loop
-are those from a step's first padmm_rhs to its padmm_output. The bytes of an iteration are the
+are those after a step's padmm_start and the first factor (the solves, padmm_update and the new
+factors it asks for) up to its apply_impulses or store_contacts. The bytes of an iteration are the
 sizes of every array the kernels of one iteration take (recorded by wrapping wp.launch for one
 call of engine.padmm.padmm_iteration), each counted once per kernel: a floor, as an array read
 twice counts once; the schedule arrays shared by all worlds count too. The bandwidth is measured
@@ -113,16 +114,25 @@ def timed_launches(device: str, model, state_a, state_b, steps: int) -> list[tup
     return records
 
 
+# launched between padmm_start and the loop's first solve: sparse.prepare's row map and matrix, the first factor
+_BEFORE_LOOP = ("map_joint_rows", "map_contact_rows", "sparse_matrix", "staged_matrix", "sparse_factor",
+                "cholesky_factor")
+
+
 def loop_launches(records: list[tuple[str, float]]) -> list[tuple[str, float]]:
-    """The launches inside the PADMM loops: from each step's first padmm_rhs up to its
-    padmm_output (the factor and solve kernels also run before the loop and in the projection)."""
-    inside, loop = False, []
+    """The launches inside the PADMM loops: after each step's padmm_start and the launches before
+    its first solve (_BEFORE_LOOP), up to its apply_impulses or store_contacts (the factor and
+    solve kernels also run before the loop and in the projection)."""
+    state, loop = "outside", []
     for name, seconds in records:
-        if name.startswith("padmm_rhs"):
-            inside = True
-        elif name.startswith("padmm_output"):
-            inside = False
-        if inside:
+        if name.startswith("padmm_start"):
+            state = "before"
+            continue
+        if state == "before" and not name.startswith(_BEFORE_LOOP):
+            state = "inside"
+        if state == "inside" and name.startswith(("apply_impulses", "store_contacts")):
+            state = "outside"
+        if state == "inside":
             loop.append((name, seconds))
     return loop
 
@@ -142,11 +152,12 @@ def run_scene(name: str, device: str, worlds: int, warmup: int, steps: int, band
     wp.synchronize_device(device)
     records: list = []
     with observed_launches(lambda kernel, args, kwargs, _: records.append(launch_bytes(kernel, args, kwargs))):
-        padmm_module.padmm_iteration(model)  # one iteration of every world (after a step: its data in place)
+        # one iteration of every world (after a step: its data in place)
+        padmm_module.padmm_iteration(model, state_a.row_lambda)
     wp.synchronize_device(device)
     iteration_bytes = sum(records)
     loop = loop_launches(timed_launches(device, model, state_a, state_b, steps))
-    trips = sum(1 for name, _ in loop if name.startswith("padmm_rhs"))
+    trips = sum(1 for name, _ in loop if name.startswith("padmm_update"))
     if trips == 0:
         raise RuntimeError(f"{name}: no PADMM iteration was launched in {steps} steps")
     per_kernel = collections.defaultdict(float)

@@ -263,6 +263,8 @@ def newton_throughput(scene, worlds_list, dt, steps, args) -> list:
     joints = joint_parameters(scene.specs[0])
     rows = []
     for solver, label in (("mujoco", "MuJoCo Warp (Newton)"), ("kamino", "Kamino (Newton)")):
+        if solver not in args.peer_solvers:
+            continue
         for worlds in worlds_list:
             try:
                 row = newton_drlegs_run(scene.usd, standing=scene.standing, solver=solver, worlds=worlds, dt=dt,
@@ -290,6 +292,8 @@ def newton_precision(scene, worlds, dt, duration, record_dt, reference, declared
     joints = joint_parameters(spec)
     rows = []
     for solver, scales in declared.peer_dt_scales.items():
+        if solver not in args.peer_solvers:
+            continue
         label = "MuJoCo Warp" if solver == "mujoco" else "Kamino"
         for scale in scales:
             step_dt = dt * scale
@@ -499,6 +503,9 @@ def main(argv=None) -> int:
     parser.add_argument("--quick", action="store_true", help="small batches and short runs (CPU, CI)")
     parser.add_argument("--peers", action="store_true",
                         help="also run the peers (MuJoCo Warp; Kamino on USD scenes) on the same mechanisms")
+    parser.add_argument("--peer-solvers", nargs="+", choices=["mujoco", "kamino"], default=["mujoco", "kamino"],
+                        help="which Newton peers run on USD scenes with --peers (default both; Kamino takes "
+                             "minutes per DR Legs scene)")
     parser.add_argument("--parts", nargs="+", choices=["throughput", "precision"], default=["throughput", "precision"],
                         help="what to measure (default both)")
     parser.add_argument("--only", nargs="+", choices=sorted(SCENES_DECLARED), default=None, help="scenes to run")

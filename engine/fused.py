@@ -800,7 +800,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
             last = tick(stamps, world, wp.static(_STAGE["velocity"]), lane, last)
         if lane == 0:
             w.project[world] = project
-            if project == 0:  # as engine.integrate.projection_gate leaves it for such a world
+            if project == 0:  # as engine.integrate.projection_pass leaves it for such a world
                 w.projection_mask[world] = 0
         if project != 0:
             if refactor:
@@ -863,7 +863,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                 block_sync()
                 if wp.static(timed):
                     last = tick(stamps, world, wp.static(_STAGE["projection_rhs"]), lane, last)
-                if lane == 0:  # as engine.integrate.projection_gate records it
+                if lane == 0:  # as engine.integrate.projection_pass records it
                     w.projection_mask[world] = wp.where(skip, 0, 1)
                 if skip:  # the correction would be rounding: skip the iteration
                     continue

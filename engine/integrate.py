@@ -21,6 +21,7 @@ matrix-free solver solves the same system by Conjugate Residual on the bilateral
 import warp as wp
 
 from engine import linear, matrix_free, sparse
+from engine.joints import joint_residuals_of
 from engine.model import ROW_ANGULAR, ROW_LINEAR
 from engine.spatial import advance_pose, pose_step, two_sum
 
@@ -83,6 +84,7 @@ def apply_impulses(
     body_row: wp.array2d(dtype=wp.int32),
     row_body_c: wp.array2d(dtype=wp.int32),
     row_body_p: wp.array2d(dtype=wp.int32),
+    world_dt: wp.array(dtype=float),
     # in
     row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
     row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
@@ -90,12 +92,17 @@ def apply_impulses(
     row_precond: wp.array2d(dtype=float),
     body_qd_free: wp.array2d(dtype=wp.spatial_vector),
     compensated: int,
+    body_q: wp.array2d(dtype=wp.transform),
+    body_q_low_in: wp.array2d(dtype=wp.transform),
     # out
     body_qd_out: wp.array2d(dtype=wp.spatial_vector),
+    body_q_out: wp.array2d(dtype=wp.transform),
+    body_q_low_out: wp.array2d(dtype=wp.transform),
     # in/out
     body_qd_low: wp.array2d(dtype=wp.spatial_vector),
 ):
-    """u+ = u_free + M^-1 J^T lambda (add_impulse_of)."""
+    """u+ = u_free + M^-1 J^T lambda (add_impulse_of), then a whole pose step from body_q with u+
+    (advance_pose_of): one pass over the bodies instead of two."""
     world, b = wp.tid()
     if b >= body_count[world]:
         return
@@ -103,6 +110,7 @@ def apply_impulses(
                                             body_row_end, body_row, row_body_c, row_body_p, row_MJ_c, row_MJ_p,
                                             row_lambda, row_precond, 0),
                    body_qd_free, compensated, body_qd_out, body_qd_low)
+    advance_pose_of(world, b, world_dt, body_q, body_q_low_in, body_qd_out, compensated, body_q_out, body_q_low_out)
 
 
 @wp.func
@@ -212,25 +220,6 @@ def advance_pose_of(
 
 
 @wp.kernel
-def advance_poses(
-    body_count: wp.array(dtype=wp.int32),
-    world_dt: wp.array(dtype=float),
-    body_q: wp.array2d(dtype=wp.transform),
-    body_q_low_in: wp.array2d(dtype=wp.transform),
-    body_qd: wp.array2d(dtype=wp.spatial_vector),
-    compensated: int,
-    # out
-    body_q_out: wp.array2d(dtype=wp.transform),
-    body_q_low_out: wp.array2d(dtype=wp.transform),
-):
-    """advance_pose_of for every body."""
-    world, b = wp.tid()
-    if b >= body_count[world]:
-        return
-    advance_pose_of(world, b, world_dt, body_q, body_q_low_in, body_qd, compensated, body_q_out, body_q_low_out)
-
-
-@wp.kernel
 def midpoint_poses(
     body_count: wp.array(dtype=wp.int32),
     world_dt: wp.array(dtype=float),
@@ -280,64 +269,7 @@ def bilateral_residual_of(world: int, i: int, row_count: wp.array(dtype=wp.int32
     return 0.0
 
 
-@wp.kernel
-def projection_rhs(
-    row_count: wp.array(dtype=wp.int32),
-    row_kind: wp.array2d(dtype=wp.int32),
-    valid: wp.array(dtype=wp.int32),
-    row_precond: wp.array2d(dtype=float),
-    row_residual: wp.array2d(dtype=float),
-    # out
-    rhs_out: wp.array2d(dtype=float),
-):
-    """rhs = -P phi on bilateral joint rows; 0 on drive, limit, contact and padded rows."""
-    world, i = wp.tid()
-    if valid[world] == 0:
-        return
-    rhs_out[world, i] = -row_precond[world, i] * bilateral_residual_of(world, i, row_count, row_kind, row_residual)
-
-
-GATE_BLOCK = 64  # threads per world of projection_gate on a GPU (one on the CPU)
-
-
-@wp.kernel
-def projection_gate(
-    row_count: wp.array(dtype=wp.int32),
-    row_kind: wp.array2d(dtype=wp.int32),
-    row_residual: wp.array2d(dtype=float),
-    project: wp.array(dtype=wp.int32),
-    floor: float,
-    skip_floor: float,
-    skip_floor_angular: float,
-    # out
-    gate: wp.array(dtype=wp.int32),
-    mask: wp.array(dtype=wp.int32),
-):
-    """From the world's largest bilateral joint error: gate = 1 where it exceeds floor (the
-    projection iteration may update the velocities), else 0 (the correction is mostly rounding);
-    mask = project where the largest linear error exceeds skip_floor or the largest angular one
-    skip_floor_angular, else 0 (the iteration is skipped). One thread
-    block per world, its rows spread over the threads (GATE_BLOCK; one thread walking DR Legs'
-    186 rows took 89 us per call, launch included, at 4096 worlds on an H100; 48 us now)."""
-    world, lane = wp.tid()
-    stride = wp.block_dim()
-    n = row_count[world]
-    linear = float(0.0)
-    angular = float(0.0)
-    for k in range((n + stride - 1) // stride):
-        i = lane + k * stride
-        if i < n:
-            kind = row_kind[world, i]  # bilateral_residual_of's test, the kind loaded once
-            if kind == ROW_LINEAR:
-                linear = wp.max(linear, wp.abs(row_residual[world, i]))
-            elif kind == ROW_ANGULAR:
-                angular = wp.max(angular, wp.abs(row_residual[world, i]))
-    linear = matrix_free.block_max(linear)
-    angular = matrix_free.block_max(angular)
-    largest = wp.max(linear, angular)
-    if lane == 0:
-        gate[world] = wp.where(largest > floor, 1, 0)
-        mask[world] = wp.where(linear > skip_floor or angular > skip_floor_angular, project[world], 0)
+GATE_BLOCK = 64  # threads per world of projection_pass on a GPU (one on the CPU)
 
 
 @wp.func
@@ -406,6 +338,96 @@ def apply_projection(
                         row_body_c, row_body_p, row_MJ_c, row_MJ_p, delta, row_precond, 1)
     move_body_of(world, b, dx, world_dt, velocity_update * gate[world], record_offset, compensated, body_q, body_qd,
                  body_q_offset, body_q_low, body_qd_low)
+
+
+@wp.func
+def projection_gates(world: int, lane: int, stride: int, row_count: wp.array(dtype=wp.int32),
+                     row_kind: wp.array2d(dtype=wp.int32), row_residual: wp.array2d(dtype=float),
+                     project: wp.array(dtype=wp.int32), floor: float, skip_floor: float, skip_floor_angular: float):
+    """A world's gate and mask from its largest bilateral joint errors (the thread block's rows
+    spread over its threads; every thread must call it, and every thread gets both): gate 1 where
+    the largest error exceeds floor (the projection iteration may update the velocities), else 0
+    (the correction is mostly rounding); mask ``project[world]`` where the largest linear error
+    exceeds skip_floor or the largest angular one skip_floor_angular, else 0 (the iteration is
+    skipped). Drive, limit, contact and padded rows do not count."""
+    n = row_count[world]
+    error_linear = float(0.0)
+    error_angular = float(0.0)
+    for k in range((n + stride - 1) // stride):
+        i = lane + k * stride
+        if i < n:
+            kind = row_kind[world, i]
+            if kind == ROW_LINEAR:
+                error_linear = wp.max(error_linear, wp.abs(row_residual[world, i]))
+            elif kind == ROW_ANGULAR:
+                error_angular = wp.max(error_angular, wp.abs(row_residual[world, i]))
+    error_linear = matrix_free.block_max(error_linear)
+    error_angular = matrix_free.block_max(error_angular)
+    opened = wp.where(wp.max(error_linear, error_angular) > floor, 1, 0)
+    move = wp.where(error_linear > skip_floor or error_angular > skip_floor_angular, project[world], 0)
+    return opened, move
+
+
+@wp.kernel
+def projection_pass(
+    # model
+    row_count: wp.array(dtype=wp.int32),
+    row_kind: wp.array2d(dtype=wp.int32),
+    # model: joints (engine.joints.joint_model_inputs)
+    joint_count: wp.array(dtype=wp.int32),
+    joint_type: wp.array2d(dtype=wp.int32),
+    joint_parent: wp.array2d(dtype=wp.int32),
+    joint_child: wp.array2d(dtype=wp.int32),
+    joint_X_p: wp.array2d(dtype=wp.transform),
+    joint_X_c: wp.array2d(dtype=wp.transform),
+    joint_axis: wp.array2d(dtype=wp.vec3),
+    joint_axis2: wp.array2d(dtype=wp.vec3),
+    joint_row_start: wp.array2d(dtype=wp.int32),
+    joint_inertia_row: wp.array2d(dtype=wp.int32),
+    joint_drive_row: wp.array2d(dtype=wp.int32),
+    # in
+    body_q: wp.array2d(dtype=wp.transform),
+    body_q_low: wp.array2d(dtype=wp.transform),
+    exact: int,
+    row_precond: wp.array2d(dtype=float),
+    project: wp.array(dtype=wp.int32),
+    floor: float,
+    skip_floor: float,
+    skip_floor_angular: float,
+    # out
+    row_residual: wp.array2d(dtype=float),
+    gate: wp.array(dtype=wp.int32),
+    mask: wp.array(dtype=wp.int32),
+    rhs_out: wp.array2d(dtype=float),
+):
+    """The start of a Gauss-Newton iteration of project_positions for one world (a thread block per
+    world, its joints and rows spread over the threads): the joint residuals at body_q
+    (engine.joints.joint_residuals_of; exact: the float64 sums), the world's gate and mask
+    (projection_gates) and, where the mask is set, the solve's right-hand side -P phi on the
+    bilateral joint rows (0 on drive, limit, contact and padded rows). One launch instead of three."""
+    world, lane = wp.tid()
+    stride = wp.block_dim()
+    nj = joint_count[world]
+    for k in range((nj + stride - 1) // stride):
+        j = lane + k * stride
+        if j < nj:
+            joint_residuals_of(world, j, -1, joint_count, joint_type, joint_parent, joint_child, joint_X_p, joint_X_c,
+                               joint_axis, joint_axis2, joint_row_start, joint_inertia_row, joint_drive_row, body_q,
+                               body_q_low, exact, row_residual)
+    linear.block_sync()
+    opened, move = projection_gates(world, lane, stride, row_count, row_kind, row_residual, project, floor, skip_floor,
+                                    skip_floor_angular)
+    if lane == 0:
+        gate[world] = opened
+        mask[world] = move
+    if move == 0:
+        return
+    rows = rhs_out.shape[1]
+    for k in range((rows + stride - 1) // stride):
+        i = lane + k * stride
+        if i < rows:
+            rhs_out[world, i] = -row_precond[world, i] * bilateral_residual_of(world, i, row_count, row_kind,
+                                                                               row_residual)
 
 
 @wp.func
@@ -551,7 +573,7 @@ def projection_shift(padmm_eta: wp.array(dtype=float), padmm_rho_init: wp.array(
         project_out[world] = project
 
 
-def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
+def project_positions(model, body_q, body_qd, *, iterations=None,
                       velocity_update=None, body_q_offset=None, prepare=True, body_q_low=None, body_qd_low=None):
     """Gauss-Newton projection of body_q onto the joint constraints.
 
@@ -565,7 +587,6 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
     """
     work, device = model.work, model.device
     grid_rows = (model.num_worlds, model.max_rows)
-    grid_bodies = (model.num_worlds, model.max_bodies)
     iterations = model.config.position_iterations if iterations is None else iterations
     if velocity_update is None:
         velocity_update = model.config.projection_velocity_update
@@ -591,12 +612,13 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
                           int(model.has_unilateral_or_drive_rows or not direct)],
                   outputs=[work.needs_factor, work.project, work.row_shift])
         if dense:
-            linear.factor(work.delassus, work.row_shift, work.needs_factor, work.factor)
+            if model.has_unilateral_or_drive_rows:  # else no world is flagged: the PADMM's factor serves
+                linear.factor(work.delassus, work.row_shift, work.needs_factor, work.factor)
         elif own_pattern is not None:  # the bilateral rows on a pattern of their own (sparse_projection_pattern)
             sparse.matrix(model, own_pattern)
             sparse.factor(model, work.row_shift, work.needs_factor, system=own_pattern)
-        elif direct:
-            sparse.factor(model, work.row_shift, work.needs_factor, bilateral_only=model.has_unilateral_or_drive_rows)
+        elif direct and model.has_unilateral_or_drive_rows:  # else no world is flagged: the PADMM's factor serves
+            sparse.factor(model, work.row_shift, work.needs_factor, bilateral_only=True)
     record = body_q_offset is not None
     compensated = model.config.compensated_state
     if not record and compensated and (body_q_low is None or body_qd_low is None):
@@ -608,17 +630,16 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
     cfg = model.config
     # the worlds whose joint error is above cfg.projection_skip_floor (angular: projection_skip_floor_angular)
     mask = work.projection_mask
-    for _ in range(iterations):
-        # float64 sums where the dynamics move on
-        residual_fn(model, body_q, work.row_residual, q_low, compensated and not record)
-        wp.launch_tiled(projection_gate, dim=[model.num_worlds], block_dim=GATE_BLOCK, device=device,
-                  inputs=[work.row_count, model.row_kind, work.row_residual, work.project,
-                          float(cfg.projection_velocity_floor), float(cfg.projection_skip_floor),
-                          float(cfg.projection_skip_floor_angular)],
-                  outputs=[work.projection_gate, mask])
-        wp.launch(projection_rhs, dim=grid_rows, device=device,
-                  inputs=[work.row_count, model.row_kind, mask, work.row_precond, work.row_residual],
-                  outputs=[work.rhs])
+    joints = [model.joint_count, model.joint_type, model.joint_parent, model.joint_child, model.joint_X_p,
+              model.joint_X_c, model.joint_axis, model.joint_axis2, model.joint_row_start, model.joint_inertia_row,
+              model.joint_drive_row]
+    for k in range(iterations):
+        # the residuals (float64 sums where the dynamics move on), the gate and mask, the rhs
+        wp.launch_tiled(projection_pass, dim=[model.num_worlds], block_dim=GATE_BLOCK, device=device,
+                        inputs=[work.row_count, model.row_kind, *joints, body_q, q_low, int(compensated and not record),
+                                work.row_precond, work.project, float(cfg.projection_velocity_floor),
+                                float(cfg.projection_skip_floor), float(cfg.projection_skip_floor_angular)],
+                        outputs=[work.row_residual, work.projection_gate, mask, work.rhs])
         if dense:
             linear.solve(work.factor, work.rhs, mask, work.delta)
         elif direct:
@@ -626,7 +647,7 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
         else:  # Conjugate Residual on the bilateral rows, from zero
             work.delta.zero_()
             matrix_free.solve(model, work.rhs, mask, work.delta, bilateral_only=True)
-        wp.launch(apply_projection, dim=grid_bodies, device=device,
+        wp.launch(apply_projection, dim=(model.num_worlds, model.max_bodies), device=device,
                   inputs=[model.body_count, work.row_count, model.contact_row_start, model.body_row_begin,
                           model.body_row_end, model.body_row, work.row_body_c, work.row_body_p, mask,
                           model.world_dt, int(velocity_update), work.projection_gate, work.row_MJ_c,
@@ -634,6 +655,6 @@ def project_positions(model, body_q, body_qd, residual_fn, *, iterations=None,
                           offset, q_low, qd_low])
 
 
-__all__ = ["add_impulse_of", "advance_pose_of", "advance_poses", "apply_impulses", "guard_divergence",
+__all__ = ["add_impulse_of", "advance_pose_of", "apply_impulses", "guard_divergence",
            "integrate_poses", "midpoint_poses", "move_body_of",
            "project_positions"]

@@ -346,9 +346,12 @@ def joint_rows_of(
 
 @wp.func
 def joint_thread(t: int, joints: int, parts: int):
-    """Joint and part (-1: all of it) of thread t of the joint kernels."""
+    """Joint and part (-1: all of it) of thread t of the joint kernels: a joint's parts on
+    consecutive threads, so that a warp's stores of their rows (consecutive in a world) are
+    contiguous (DR Legs hanging, 4096 worlds, H100: with the joints of one part on consecutive
+    threads, their rows five apart, joint_rows took 0.20 ms)."""
     if parts > 1:
-        return t % joints, t // joints
+        return t // parts, t % parts
     return t, -1
 
 

@@ -379,7 +379,11 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     if sparse:  # one factor schedule per distinct topology (engine.sparse)
         rbc, rbp = factor_rows(specs, pairs, h)
         full = build_patterns(rbc, rbp, device, body_nodes=config.sparse_body_nodes)
-        model.sparse_system = make_system(full, W, device)
+        real = None  # with contact slots: rewritten every step (engine.sparse.prepare)
+        if not model.has_contacts:  # each factor row stands for the joint row of its index, for good
+            rows = np.arange(max(a.rows for a in full[1]))
+            real = np.where(rows[None, :] < h["contact_row_start"][:, None], rows[None, :], -1)
+        model.sparse_system = make_system(full, W, device, real=real)
         choice = config.sparse_projection_pattern
         if (choice != "never" and model.has_unilateral_or_drive_rows and model.has_bilateral_rows
                 and config.position_iterations > 0):

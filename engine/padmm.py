@@ -1,23 +1,30 @@
-"""Proximal ADMM on every world's dual problem at once (ENGINE.md), one kernel per line.
+"""Proximal ADMM on every world's dual problem at once (ENGINE.md).
 
 In preconditioned variables (engine.dynamics), with proximal weight eta, penalty rho_i per row
 (row_penalty: the world's rho, except on the free rows of this step, those whose bounds are out
 of play, which keep SolverConfig.free_rho) and the factor L L^T = P D P + diag(eta + rho_i), each iteration of
-an active world does (rho standing for each row's rho_i)
-    padmm_rhs:        rhs = -v_f - s + eta x + rho y_hat + z_hat, with the De Saxce correction
+an active world does (rho standing for each row's rho_i; the functions of each line)
+    padmm_rhs_of:     rhs = -v_f - s + eta x + rho y_hat + z_hat, with the De Saxce correction
                       s = mu |z_hat_t| on contact normal rows
     linear.solve:     x = (L L^T)^-1 rhs
-    padmm_project:    y = Pi(x - z_hat / rho): clamp to [lo, hi] (bilateral, drive, limit rows),
+    padmm_project_of: y = Pi(x - z_hat / rho): clamp to [lo, hi] (bilateral, drive, limit rows),
                       Coulomb cone per contact triplet;  z = z_hat - rho (x - y)
-    padmm_convergence: residuals r_p = |x - y|_inf, r_d = |eta (x - x_prev) + rho (y - y_hat)|_inf,
+    row_residuals, padmm_decide: residuals r_p = |x - y|_inf, r_d = |eta (x - x_prev) + rho (y - y_hat)|_inf,
                       complementarity r_c = max |y . z| over limit rows and contact triplets;
                       stop when r_p, r_d <= tolerance + relative_tolerance * |y|_inf and
                       r_c <= that times |y|_inf, or at the iteration cap; Nesterov momentum with restart;
                       penalty update (which asks for a new factor), balancing r_p against the dual
                       residual of the rows whose penalty is the world's rho (not the free rows)
-    padmm_accelerate: y_hat = y + beta (y - y_prev), z_hat = z + beta (z - z_prev)
+    padmm_accelerate_of: y_hat = y + beta (y - y_prev), z_hat = z + beta (z - z_prev)
     linear.factor:    only for worlds whose penalty changed, or in which a free drive row met its
                       bound (it takes the world's rho from then on)
+Kernels: padmm_start (the world's state, the warm start, the shifts of the first factor and the
+first right-hand side), then per iteration the solve and padmm_update (everything after the
+solve up to the next iteration's right-hand side, a thread block per world; a world that stops
+writes its impulses lambda = P y there), then the factors it asked for: two or three launches an
+iteration instead of five to eight (DR Legs hanging, 4096 worlds, NVIDIA H100: the PADMM's
+kernels 0.19 -> 0.12 ms per step; random walkers, whose slowest worlds iterate 40-80 times a step,
+43-45 -> 28-29 ms per step).
 With the matrix-free linear solver (engine.matrix_free) the solve is an inexact, warm-started
 Conjugate Residual solve with the Delassus operator and there is no factor.
 The loop runs under wp.capture_while on a device counter of active worlds, so it can be
@@ -69,14 +76,23 @@ def row_is_free(kind: int, x: float, lo: float, hi: float):
 
 
 @wp.kernel
-def padmm_setup(
+def padmm_start(
+    warmstart_scale: float,
     # model
     row_count: wp.array(dtype=wp.int32),
+    row_kind: wp.array2d(dtype=wp.int32),
     padmm_rho_init: wp.array(dtype=float),
+    padmm_eta: wp.array(dtype=float),
+    padmm_rho_free: wp.array(dtype=float),
     # in
     diverged: wp.array(dtype=wp.int32),
     halted: wp.array(dtype=wp.int32),
-    # out
+    row_lambda: wp.array2d(dtype=float),
+    row_precond: wp.array2d(dtype=float),
+    lo: wp.array2d(dtype=float),
+    hi: wp.array2d(dtype=float),
+    v_f: wp.array2d(dtype=float),
+    # out: per world
     rho_out: wp.array(dtype=float),
     valid_out: wp.array(dtype=wp.int32),
     active_out: wp.array(dtype=wp.int32),
@@ -88,25 +104,60 @@ def padmm_setup(
     needs_factor_out: wp.array(dtype=wp.int32),
     demote_out: wp.array(dtype=wp.int32),
     active_count_out: wp.array(dtype=wp.int32),
+    # out: per row
+    x_out: wp.array2d(dtype=float),
+    x_prev_out: wp.array2d(dtype=float),
+    y_out: wp.array2d(dtype=float),
+    y_hat_out: wp.array2d(dtype=float),
+    z_out: wp.array2d(dtype=float),
+    z_hat_out: wp.array2d(dtype=float),
+    row_free_out: wp.array2d(dtype=wp.int32),
+    row_shift_out: wp.array2d(dtype=float),
+    rhs_out: wp.array2d(dtype=float),
+    row_lambda_out: wp.array2d(dtype=float),
 ):
-    """Per world: activate worlds with rows that have neither diverged nor been halted; keep the
-    last penalty."""
-    world = wp.tid()
-    active = 0
+    """Start every world's PADMM (a thread per row; row 0 writes the world's state): activate
+    worlds with rows that have neither diverged nor been halted, keeping the last penalty; warm
+    start from the last step's impulses (padmm_warmstart_of), mark the free rows, set each row's
+    shift eta + rho_i for the factor (all active worlds are flagged for one) and the first
+    iteration's right-hand side (padmm_rhs_of, with z_hat = 0). A world that does not iterate
+    outputs zero impulses here (the others in padmm_update, when they stop)."""
+    world, i = wp.tid()
+    active = int(0)
     if row_count[world] > 0 and diverged[world] == 0 and halted[world] == 0:
         active = 1
-        wp.atomic_add(active_count_out, 0, 1)
-    active_out[world] = active
-    valid_out[world] = active
-    needs_factor_out[world] = active
-    demote_out[world] = 0
-    converged_out[world] = 0
-    iterations_out[world] = 0
-    if rho_out[world] <= 0.0:
-        rho_out[world] = padmm_rho_init[world]
-    momentum_out[world] = 1.0
-    momentum_beta_out[world] = 0.0
-    merit_out[world] = 1.0e30
+    r = rho_out[world]
+    if r <= 0.0:
+        r = padmm_rho_init[world]
+    if i == 0:
+        if active != 0:
+            wp.atomic_add(active_count_out, 0, 1)
+        active_out[world] = active
+        valid_out[world] = active
+        needs_factor_out[world] = active
+        demote_out[world] = 0
+        converged_out[world] = 0
+        iterations_out[world] = 0
+        rho_out[world] = r
+        momentum_out[world] = 1.0
+        momentum_beta_out[world] = 0.0
+        merit_out[world] = 1.0e30
+    if active == 0:
+        row_lambda_out[world, i] = 0.0
+        return
+    x = wp.clamp(warmstart_scale * row_lambda[world, i] / row_precond[world, i], lo[world, i], hi[world, i])
+    free = row_is_free(row_kind[world, i], x, lo[world, i], hi[world, i])
+    row_free_out[world, i] = free
+    x_out[world, i] = x
+    x_prev_out[world, i] = x
+    y_out[world, i] = x
+    y_hat_out[world, i] = x
+    z_out[world, i] = 0.0
+    z_hat_out[world, i] = 0.0
+    eta = padmm_eta[world]
+    r_i = row_penalty(free, r, padmm_rho_free[world])
+    row_shift_out[world, i] = eta + r_i
+    rhs_out[world, i] = -v_f[world, i] + eta * x + r_i * x  # padmm_rhs_of's sum with y_hat = x, z_hat = 0
 
 
 @wp.func
@@ -139,32 +190,6 @@ def padmm_warmstart_of(
     z_hat_out[world, i] = 0.0
 
 
-@wp.kernel
-def padmm_warmstart(
-    warmstart_scale: float,
-    # in
-    row_lambda: wp.array2d(dtype=float),
-    row_precond: wp.array2d(dtype=float),
-    active: wp.array(dtype=wp.int32),
-    lo: wp.array2d(dtype=float),
-    hi: wp.array2d(dtype=float),
-    row_kind: wp.array2d(dtype=wp.int32),
-    # out
-    x_out: wp.array2d(dtype=float),
-    y_out: wp.array2d(dtype=float),
-    y_hat_out: wp.array2d(dtype=float),
-    z_out: wp.array2d(dtype=float),
-    z_hat_out: wp.array2d(dtype=float),
-    row_free_out: wp.array2d(dtype=wp.int32),
-):
-    """Start from the last step's impulses, in this step's preconditioned variables."""
-    world, i = wp.tid()
-    if active[world] == 0:
-        return
-    padmm_warmstart_of(world, i, warmstart_scale, row_lambda, row_precond, active, lo, hi, row_kind, x_out, y_out,
-                       y_hat_out, z_out, z_hat_out, row_free_out)
-
-
 @wp.func
 def padmm_rhs_of(
     world: int, i: int,
@@ -191,31 +216,6 @@ def padmm_rhs_of(
         de_saxce = row_friction[world, i] * wp.length(wp.vec2(z_hat[world, i + 1], z_hat[world, i + 2]))
     r = row_penalty(row_free[world, i], rho[world], padmm_rho_free[world])
     rhs_out[world, i] = -v_f[world, i] - de_saxce + padmm_eta[world] * xi + r * y_hat[world, i] + z_hat[world, i]
-
-
-@wp.kernel
-def padmm_rhs(
-    padmm_eta: wp.array(dtype=float),
-    padmm_rho_free: wp.array(dtype=float),
-    row_kind: wp.array2d(dtype=wp.int32),
-    row_free: wp.array2d(dtype=wp.int32),
-    rho: wp.array(dtype=float),
-    active: wp.array(dtype=wp.int32),
-    row_friction: wp.array2d(dtype=float),
-    v_f: wp.array2d(dtype=float),
-    x: wp.array2d(dtype=float),
-    y_hat: wp.array2d(dtype=float),
-    z_hat: wp.array2d(dtype=float),
-    # out
-    x_prev_out: wp.array2d(dtype=float),
-    rhs_out: wp.array2d(dtype=float),
-):
-    """rhs = -v_f + eta x + rho_i y_hat + z_hat with the row's penalty rho_i (and remember x)."""
-    world, i = wp.tid()
-    if active[world] == 0:
-        return
-    padmm_rhs_of(world, i, padmm_eta, padmm_rho_free, row_kind, row_free, rho, active, row_friction, v_f, x, y_hat,
-                 z_hat, x_prev_out, rhs_out)
 
 
 @wp.func
@@ -284,38 +284,6 @@ def padmm_project_of(
     z_prev_out[world, i] = z[world, i]
     y[world, i] = yi
     z[world, i] = zh - r * (xi - yi)
-
-
-@wp.kernel
-def padmm_project(
-    padmm_rho_free: wp.array(dtype=float),
-    row_kind: wp.array2d(dtype=wp.int32),
-    row_free: wp.array2d(dtype=wp.int32),
-    row_count: wp.array(dtype=wp.int32),
-    row_friction: wp.array2d(dtype=float),
-    rho: wp.array(dtype=float),
-    active: wp.array(dtype=wp.int32),
-    lo: wp.array2d(dtype=float),
-    hi: wp.array2d(dtype=float),
-    x: wp.array2d(dtype=float),
-    z_hat: wp.array2d(dtype=float),
-    # in/out
-    y: wp.array2d(dtype=float),
-    z: wp.array2d(dtype=float),
-    y_prev_out: wp.array2d(dtype=float),
-    z_prev_out: wp.array2d(dtype=float),
-    row_free_out: wp.array2d(dtype=wp.int32),
-    demote_out: wp.array(dtype=wp.int32),
-):
-    """y = projection of x - z_hat / rho_i onto the row's set; z = z_hat - rho_i (x - y). The thread
-    of a contact normal row projects its whole triplet onto the friction cone. A free drive row
-    whose bound comes into play is marked (row_free 2, demote) to lose its own penalty at the
-    next penalty update, which refactors (padmm_decide, row_shifts)."""
-    world, i = wp.tid()
-    if active[world] == 0:
-        return
-    padmm_project_of(world, i, padmm_rho_free, row_kind, row_free, row_count, row_friction, rho, active, lo, hi, x,
-                     z_hat, y, z, y_prev_out, z_prev_out, row_free_out, demote_out)
 
 
 @wp.func
@@ -432,31 +400,39 @@ def padmm_decide(
     return 0
 
 
-CONVERGENCE_BLOCK = 64  # threads per world on a GPU (rows spread over them); one on the CPU
-
-
 @wp.kernel
-def padmm_convergence(
+def padmm_update(
     max_iterations: int,
     relative_tolerance: float,
     rho_update_interval: int,
     adaptive_rho: int,
     acceleration: int,
+    refactors: int,
+    stall_ratio: float,
     # model
     row_kind: wp.array2d(dtype=wp.int32),
     padmm_eta: wp.array(dtype=float),
     padmm_rho_free: wp.array(dtype=float),
     padmm_tolerance: wp.array(dtype=float),
     # in
-    row_free: wp.array2d(dtype=wp.int32),
     row_count: wp.array(dtype=wp.int32),
+    row_friction: wp.array2d(dtype=float),
+    row_precond: wp.array2d(dtype=float),
+    lo: wp.array2d(dtype=float),
+    hi: wp.array2d(dtype=float),
+    v_f: wp.array2d(dtype=float),
+    diverged: wp.array(dtype=wp.int32),
+    halted: wp.array(dtype=wp.int32),
     x: wp.array2d(dtype=float),
+    # in/out
     x_prev: wp.array2d(dtype=float),
     y: wp.array2d(dtype=float),
     y_hat: wp.array2d(dtype=float),
+    y_prev: wp.array2d(dtype=float),
     z: wp.array2d(dtype=float),
     z_hat: wp.array2d(dtype=float),
-    # in/out
+    z_prev: wp.array2d(dtype=float),
+    row_free: wp.array2d(dtype=wp.int32),
     rho: wp.array(dtype=float),
     active: wp.array(dtype=wp.int32),
     converged: wp.array(dtype=wp.int32),
@@ -469,20 +445,38 @@ def padmm_convergence(
     residual_dual: wp.array(dtype=float),
     residual_complementarity: wp.array(dtype=float),
     demote: wp.array(dtype=wp.int32),
-    stall_ratio: float,
     stall_reference: wp.array(dtype=float),
     active_count: wp.array(dtype=wp.int32),
+    row_shift: wp.array2d(dtype=float),
+    rhs: wp.array2d(dtype=float),
+    # out
+    row_lambda_out: wp.array2d(dtype=float),
 ):
-    """Per world (one thread block, rows spread over its threads): residuals, stop test, Nesterov
-    momentum with restart, penalty update."""
+    """The rest of a PADMM iteration of one world once its solve has given x (one thread block per
+    world, its rows spread over the threads), in the order of the module's docstring: the
+    projection (padmm_project_of); the residuals, the stop test, the momentum and the penalty
+    update (padmm_decide); then for a world that stops its impulses (padmm_output_of), else the
+    extrapolation (padmm_accelerate_of), the shifts of a new factor where one is asked for
+    (refactors: with the penalty update or the free rows' penalty; the caller factors those worlds
+    next) and the next iteration's right-hand side (padmm_rhs_of). One launch instead of five."""
     world, lane = wp.tid()
     if active[world] == 0:
         return
     stride = wp.block_dim()
+    rows = y.shape[1]
+    sweeps = (rows + stride - 1) // stride
     n = row_count[world]
     r = rho[world]
     eta = padmm_eta[world]
     cap = padmm_rho_free[world]
+    if lane == 0:
+        needs_factor[world] = 0  # the last iteration's factor is done
+    for k in range(sweeps):
+        i = lane + k * stride
+        if i < rows:
+            padmm_project_of(world, i, padmm_rho_free, row_kind, row_free, row_count, row_friction, rho, active, lo,
+                             hi, x, z_hat, y, z, y_prev, z_prev, row_free, demote)
+    linear.block_sync()  # a contact triplet's rows are projected by its normal row's thread
     r_p = float(0.0)
     r_d = float(0.0)
     r_c = float(0.0)
@@ -506,13 +500,38 @@ def padmm_convergence(
     r_b = matrix_free.block_max(r_b)
     scale = matrix_free.block_max(scale)
     change = matrix_free.block_sum(change)
-    if lane != 0:
+    if lane == 0:
+        if padmm_decide(world, r_p, r_d, r_c, r_b, scale, change, max_iterations, relative_tolerance,
+                        rho_update_interval, adaptive_rho, acceleration, padmm_tolerance, rho, active, converged,
+                        iterations, momentum, momentum_beta, merit, needs_factor, residual_primal, residual_dual,
+                        residual_complementarity, demote, stall_ratio, stall_reference) != 0:
+            wp.atomic_sub(active_count, 0, 1)
+    linear.block_sync()  # the decision, the momentum and the penalty reach every thread
+    if active[world] == 0:
+        for k in range(sweeps):
+            i = lane + k * stride
+            if i < rows:
+                padmm_output_of(world, i, row_count, row_precond, y, diverged, halted, row_lambda_out)
         return
-    if padmm_decide(world, r_p, r_d, r_c, r_b, scale, change, max_iterations, relative_tolerance, rho_update_interval,
-                    adaptive_rho, acceleration, padmm_tolerance, rho, active, converged, iterations, momentum,
-                    momentum_beta, merit, needs_factor, residual_primal, residual_dual, residual_complementarity,
-                    demote, stall_ratio, stall_reference) != 0:
-        wp.atomic_sub(active_count, 0, 1)
+    reshift = refactors != 0 and needs_factor[world] != 0
+    r = rho[world]
+    for k in range(sweeps):
+        i = lane + k * stride
+        if i < rows:
+            padmm_accelerate_of(world, i, active, momentum_beta, y, y_prev, z, z_prev, y_hat, z_hat)
+            if reshift:
+                if row_free[world, i] == 2:  # a drive that met its bound: the world's penalty from now on
+                    row_free[world, i] = 0
+                row_shift[world, i] = eta + row_penalty(row_free[world, i], r, cap)
+    linear.block_sync()  # the De Saxce term reads the triplet's other rows
+    for k in range(sweeps):
+        i = lane + k * stride
+        if i < rows:
+            padmm_rhs_of(world, i, padmm_eta, padmm_rho_free, row_kind, row_free, rho, active, row_friction, v_f, x,
+                         y_hat, z_hat, x_prev, rhs)
+
+
+UPDATE_BLOCK = 64  # padmm_update's threads per world on a GPU (rows spread over them); one on the CPU
 
 
 @wp.func
@@ -534,46 +553,6 @@ def padmm_accelerate_of(
     z_hat_out[world, i] = z[world, i] + beta * (z[world, i] - z_prev[world, i])
 
 
-@wp.kernel
-def padmm_accelerate(
-    active: wp.array(dtype=wp.int32),
-    momentum_beta: wp.array(dtype=float),
-    y: wp.array2d(dtype=float),
-    y_prev: wp.array2d(dtype=float),
-    z: wp.array2d(dtype=float),
-    z_prev: wp.array2d(dtype=float),
-    # out
-    y_hat_out: wp.array2d(dtype=float),
-    z_hat_out: wp.array2d(dtype=float),
-):
-    """y_hat = y + beta (y - y_prev), z_hat = z + beta (z - z_prev)."""
-    world, i = wp.tid()
-    if active[world] == 0:
-        return
-    padmm_accelerate_of(world, i, active, momentum_beta, y, y_prev, z, z_prev, y_hat_out, z_hat_out)
-
-
-@wp.kernel
-def row_shifts(padmm_eta: wp.array(dtype=float), padmm_rho_free: wp.array(dtype=float), rho: wp.array(dtype=float),
-               needs_factor: wp.array(dtype=wp.int32), row_free: wp.array2d(dtype=wp.int32),
-               row_shift_out: wp.array2d(dtype=float)):
-    """Diagonal shift of the factored matrix per row: eta + the row's penalty (worlds flagged for a
-    new factor)."""
-    world, i = wp.tid()
-    if needs_factor[world] == 0:
-        return
-    if row_free[world, i] == 2:  # a drive that met its bound: the world's penalty from now on
-        row_free[world, i] = 0
-    row_shift_out[world, i] = padmm_eta[world] + row_penalty(row_free[world, i], rho[world], padmm_rho_free[world])
-
-
-
-@wp.kernel
-def clear_flags(flags: wp.array(dtype=wp.int32)):
-    """flags[w] = 0."""
-    flags[wp.tid()] = 0
-
-
 @wp.func
 def padmm_output_of(
     world: int, i: int,
@@ -592,92 +571,75 @@ def padmm_output_of(
     row_lambda_out[world, i] = value
 
 
-@wp.kernel
-def padmm_output(
-    row_count: wp.array(dtype=wp.int32),
-    row_precond: wp.array2d(dtype=float),
-    y: wp.array2d(dtype=float),
-    diverged: wp.array(dtype=wp.int32),
-    halted: wp.array(dtype=wp.int32),
-    # out
-    row_lambda_out: wp.array2d(dtype=float),
-):
-    """Impulses lambda = P y [N s]/[N m s]; zero on padded rows and in frozen worlds."""
-    world, i = wp.tid()
-    padmm_output_of(world, i, row_count, row_precond, y, diverged, halted, row_lambda_out)
-
-
-def refactor(model):
-    """Factor P D P + diag(eta + rho_i) for worlds flagged in needs_factor, then clear the flags."""
-    work, W = model.work, model.num_worlds
-    wp.launch(row_shifts, dim=(W, model.max_rows),
-              inputs=[model.padmm_eta, model.padmm_rho_free, work.rho, work.needs_factor, work.row_free],
-              outputs=[work.row_shift], device=model.device)
+def factor_flagged(model):
+    """Factor P D P + diag(row_shift) for the worlds flagged in needs_factor (padmm_start, or
+    padmm_update where a penalty changed; the next padmm_update clears the flags). The
+    matrix-free solver has no factor."""
+    work = model.work
     if model.linear_solver == "dense":
         linear.factor(work.delassus, work.row_shift, work.needs_factor, work.factor)
     elif model.linear_solver == "sparse":
         sparse.factor(model, work.row_shift, work.needs_factor)
-    wp.launch(clear_flags, dim=W, inputs=[work.needs_factor], device=model.device)
 
 
-def padmm_iteration(model):
-    """One PADMM iteration of every active world (the body of the captured loop)."""
+def refactors(model) -> bool:
+    """Whether an iteration can ask for a new factor: with the penalty update, or with the free
+    rows' own penalty (a drive row that meets its bound takes the world's). Not in a batch of
+    bilateral joint rows alone when they keep their own penalty: their projection is the identity,
+    so the primal residual and the balanced dual residual are both zero and no row is demoted."""
+    cfg = model.config
+    if not (cfg.adaptive_rho or cfg.cap_joint_penalty):
+        return False
+    return bool(model.has_unilateral_or_drive_rows or not cfg.cap_joint_penalty or cfg.free_rho <= 0.0)
+
+
+def padmm_iteration(model, row_lambda_out):
+    """One PADMM iteration of every active world (the body of the captured loop): the solve with
+    the right-hand side the last launch left, padmm_update (which writes a stopping world's
+    impulses into row_lambda_out (W, R)), and the new factors it asks for."""
     work, cfg, device = model.work, model.config, model.device
-    grid = (model.num_worlds, model.max_rows)
-    wp.launch(padmm_rhs, dim=grid, device=device,
-              inputs=[model.padmm_eta, model.padmm_rho_free, model.row_kind, work.row_free, work.rho, work.active,
-                      work.row_friction, work.v_f, work.x, work.y_hat, work.z_hat],
-              outputs=[work.x_prev, work.rhs])
     if model.linear_solver == "dense":
         linear.solve(work.factor, work.rhs, work.active, work.x)
     elif model.linear_solver == "sparse":
         sparse.solve(model, work.rhs, work.active, work.x)
     else:  # inexact Conjugate Residual, warm-started from the last iterate
         matrix_free.solve(model, work.rhs, work.active, work.x)
-    wp.launch(padmm_project, dim=grid, device=device,
-              inputs=[model.padmm_rho_free, model.row_kind, work.row_free, work.row_count, work.row_friction, work.rho,
-                      work.active, work.lo, work.hi, work.x, work.z_hat, work.y, work.z, work.y_prev, work.z_prev,
-                      work.row_free, work.demote])
-    wp.launch_tiled(padmm_convergence, dim=[model.num_worlds], block_dim=CONVERGENCE_BLOCK, device=device,
-              inputs=[cfg.max_iterations, float(cfg.relative_tolerance), cfg.rho_update_interval,
-                      int(cfg.adaptive_rho), int(cfg.acceleration), model.row_kind, model.padmm_eta,
-                      model.padmm_rho_free, model.padmm_tolerance, work.row_free, work.row_count, work.x, work.x_prev,
-                      work.y, work.y_hat, work.z, work.z_hat, work.rho, work.active,
-                      work.converged, work.iterations, work.momentum, work.momentum_beta, work.merit,
-                      work.needs_factor, work.residual_primal, work.residual_dual, work.residual_complementarity,
-                      work.demote, float(cfg.stall_ratio), work.stall_reference,
-                      work.active_count])
-    wp.launch(padmm_accelerate, dim=grid, device=device,
-              inputs=[work.active, work.momentum_beta, work.y, work.y_prev, work.z, work.z_prev],
-              outputs=[work.y_hat, work.z_hat])
-    if cfg.adaptive_rho or cfg.cap_joint_penalty:  # new penalties, or drive rows that met their bounds
-        refactor(model)
-
+    again = refactors(model)
+    wp.launch_tiled(padmm_update, dim=[model.num_worlds], block_dim=UPDATE_BLOCK, device=device,
+                    inputs=[cfg.max_iterations, float(cfg.relative_tolerance), cfg.rho_update_interval,
+                            int(cfg.adaptive_rho), int(cfg.acceleration),
+                            int(bool(cfg.adaptive_rho or cfg.cap_joint_penalty)), float(cfg.stall_ratio),
+                            model.row_kind, model.padmm_eta, model.padmm_rho_free, model.padmm_tolerance,
+                            work.row_count, work.row_friction, work.row_precond, work.lo, work.hi, work.v_f,
+                            work.diverged, work.halted, work.x, work.x_prev, work.y, work.y_hat, work.y_prev, work.z,
+                            work.z_hat, work.z_prev, work.row_free, work.rho, work.active, work.converged,
+                            work.iterations, work.momentum, work.momentum_beta, work.merit, work.needs_factor,
+                            work.residual_primal, work.residual_dual, work.residual_complementarity, work.demote,
+                            work.stall_reference, work.active_count, work.row_shift, work.rhs],
+                    outputs=[row_lambda_out])
+    if again and model.linear_solver != "matrix_free":
+        factor_flagged(model)
 
 
 def solve_padmm(model, row_lambda_warm, row_lambda_out):
     """Solve every world's dual problem (built by engine.dynamics) into row_lambda_out, starting
-    from the impulses row_lambda_warm (W, R)."""
+    from the impulses row_lambda_warm (W, R): padmm_start, the factor of every active world, then
+    padmm_iteration until every world has stopped (captured as a conditional loop)."""
     work, cfg, device = model.work, model.config, model.device
-    grid = (model.num_worlds, model.max_rows)
     work.active_count.zero_()
     work.inner_iterations.zero_()
-    wp.launch(padmm_setup, dim=model.num_worlds, device=device,
-              inputs=[work.row_count, model.padmm_rho_init, work.diverged, work.halted],
+    wp.launch(padmm_start, dim=(model.num_worlds, model.max_rows), device=device,
+              inputs=[(1.0 - cfg.warmstart_decay) if cfg.warmstart else 0.0, work.row_count, model.row_kind,
+                      model.padmm_rho_init, model.padmm_eta, model.padmm_rho_free, work.diverged, work.halted,
+                      row_lambda_warm, work.row_precond, work.lo, work.hi, work.v_f],
               outputs=[work.rho, work.valid, work.active, work.converged, work.iterations, work.momentum,
-                       work.momentum_beta, work.merit, work.needs_factor, work.demote, work.active_count])
-
-    wp.launch(padmm_warmstart, dim=grid, device=device,
-              inputs=[(1.0 - cfg.warmstart_decay) if cfg.warmstart else 0.0, row_lambda_warm, work.row_precond,
-                      work.active, work.lo, work.hi, model.row_kind],
-              outputs=[work.x, work.y, work.y_hat, work.z, work.z_hat, work.row_free])
+                       work.momentum_beta, work.merit, work.needs_factor, work.demote, work.active_count, work.x,
+                       work.x_prev, work.y, work.y_hat, work.z, work.z_hat, work.row_free, work.row_shift, work.rhs,
+                       row_lambda_out])
     if model.linear_solver == "sparse":
         sparse.prepare(model)
-    refactor(model)
-    wp.capture_while(work.active_count, padmm_iteration, model=model)
-    wp.launch(padmm_output, dim=grid, device=device,
-              inputs=[work.row_count, work.row_precond, work.y, work.diverged, work.halted],
-              outputs=[row_lambda_out])
+    factor_flagged(model)
+    wp.capture_while(work.active_count, padmm_iteration, model=model, row_lambda_out=row_lambda_out)
 
 
-__all__ = ["padmm_iteration", "refactor", "solve_padmm"]
+__all__ = ["factor_flagged", "padmm_iteration", "refactors", "solve_padmm"]

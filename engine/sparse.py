@@ -1636,7 +1636,8 @@ class SparseSystem:
     of the diagonals) the factor's rows for the forward substitution, L_inv (W, nodes) the
     reciprocals 1 / |L_jj| of its diagonal by position, real (W, rows) the row of
     this step each factor row stands for (-1: unused). A model has the PADMM's system (all rows,
-    contact slots included: real rewritten every step) and, where its batch has rows besides its
+    contact slots included: real rewritten every step where the batch has contacts, else fixed at
+    packing) and, where its batch has rows besides its
     bilateral joint rows and SolverConfig.sparse_projection_pattern asks for it, the projection's
     (the bilateral joint rows alone: real fixed at packing), which uses the PADMM's buffers for its
     matrix and factor where they are wide enough (make_system's share)."""
@@ -1760,9 +1761,9 @@ def prepare(model) -> None:
     """Once per step, after the dual problem is built: which of this step's rows each factor row
     of the PADMM system stands for, and the matrix's values on its pattern."""
     work, W, system = model.work, model.num_worlds, model.sparse_system
-    wp.launch(map_joint_rows, dim=(W, system.rows), inputs=[model.contact_row_start],
-              outputs=[system.real], device=model.device)
-    if model.has_contacts:
+    if model.has_contacts:  # else the map is fixed at packing (engine.pack)
+        wp.launch(map_joint_rows, dim=(W, system.rows), inputs=[model.contact_row_start],
+                  outputs=[system.real], device=model.device)
         wp.launch(map_contact_rows, dim=(W, model.contact_capacity),
                   inputs=[model.contact_row_start, work.contact_count, work.contact_key],
                   outputs=[system.real], device=model.device)

@@ -29,14 +29,13 @@ from engine.contacts import contact_rows, gather_warmstart, store_contacts
 from engine.dynamics import build_dual_problem
 from engine.fused import fused_step
 from engine.integrate import (
-    advance_poses,
     apply_impulses,
     guard_divergence,
     integrate_poses,
     midpoint_poses,
     project_positions,
 )
-from engine.joints import compute_joint_residuals, compute_joint_rows
+from engine.joints import compute_joint_rows
 from engine.model import Control, Integrator, Model, State
 from engine.padmm import solve_padmm
 
@@ -157,18 +156,16 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
                           state_out.row_lambda],
                   outputs=[state_out.contact_count, state_out.contact_key, state_out.contact_impulse])
     mark("padmm")
+    # u+, then a whole step from the configuration of the dynamics (compensated where configured): the next
+    # step's (Moreau-Jean: the next midpoint), projected onto the joints with SHAKE's velocity update
     wp.launch(apply_impulses, dim=bodies, device=device,
               inputs=[model.body_count, work.row_count, model.contact_row_start, model.body_row_begin,
-                      model.body_row_end, model.body_row, work.row_body_c, work.row_body_p, work.row_MJ_c,
-                      work.row_MJ_p, state_out.row_lambda, work.row_precond, work.body_qd_free, compensated],
-              outputs=[state_out.body_qd, state_out.body_qd_low])
-    # a whole step from the configuration of the dynamics (compensated where configured): the next step's
-    # (Moreau-Jean: the next midpoint), projected onto the joints with SHAKE's velocity update
-    wp.launch(advance_poses, dim=bodies, device=device,
-              inputs=[model.body_count, model.world_dt, body_q, body_q_low, state_out.body_qd, compensated],
-              outputs=[state_out.body_q, state_out.body_q_low])
+                      model.body_row_end, model.body_row, work.row_body_c, work.row_body_p, model.world_dt,
+                      work.row_MJ_c, work.row_MJ_p, state_out.row_lambda, work.row_precond, work.body_qd_free,
+                      compensated, body_q, body_q_low],
+              outputs=[state_out.body_qd, state_out.body_q, state_out.body_q_low, state_out.body_qd_low])
     mark("integrate")
-    project_positions(model, state_out.body_q, state_out.body_qd, compute_joint_residuals,
+    project_positions(model, state_out.body_q, state_out.body_qd,
                       body_q_low=state_out.body_q_low, body_qd_low=state_out.body_qd_low)
     if moreau:  # the end of the step: half-way to the next midpoint, projected for output only, as
         # often as the midpoint (one output iteration: DR Legs hanging's loops at 9.5e-7 instead of
@@ -180,7 +177,7 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
                   inputs=[model.body_count, model.world_dt, 0.5, body_q, state_out.body_qd],
                   outputs=[state_out.body_q])
         if project_output:
-            project_positions(model, state_out.body_q, state_out.body_qd, compute_joint_residuals,
+            project_positions(model, state_out.body_q, state_out.body_qd,
                               velocity_update=False, body_q_offset=state_out.body_q_offset, prepare=False)
     wp.launch(guard_divergence, dim=model.num_worlds, device=device,
               inputs=[model.body_count, state_in.body_q, state_in.body_qd, state_in.body_q_offset,

@@ -267,10 +267,11 @@ def test_kernel_times_account_for_every_launch_of_a_staged_step(tmp_path, capsys
     (row,) = json.loads(out.read_text())["results"]
     assert row["step_kernel"] == "staged"
     kernels = row["kernels"]
-    assert {"joint_rows", "padmm_rhs", "apply_impulses", "apply_projection", "projection_gate"} <= set(kernels)
+    assert {"joint_rows", "padmm_start", "padmm_update", "apply_impulses", "projection_pass",
+            "apply_projection"} <= set(kernels)
     assert all(ms > 0 and count >= 0.5 for ms, count in kernels.values())
     # per step: once; two passes each step and two output passes on the chunk's last step (of 2)
-    assert kernels["joint_rows"][1] == 1.0 and kernels["projection_gate"][1] == 3.0
+    assert kernels["joint_rows"][1] == 1.0 and kernels["projection_pass"][1] == 3.0
     assert sum(count for _, count in kernels.values()) == row["launches_per_step"]
     assert sum(ms for ms, _ in kernels.values()) == pytest.approx(row["total_ms_per_step"], rel=1e-3)
     assert len(capsys.readouterr().out.strip().splitlines()) == 1
@@ -367,7 +368,7 @@ def test_newton_peers_work_precision_rows_measure_trajectory_error_against_the_r
     scene = scenes.BenchScene([spec], None, "test", usd="robot.usda")
     declared = dataclasses.replace(scenes.SCENES_DECLARED["drlegs_hanging"],
                                    peer_dt_scales={"mujoco": [0.5, 1.0], "kamino": [1.0, 2.0]})
-    args = types.SimpleNamespace(device="cpu")
+    args = types.SimpleNamespace(device="cpu", peer_solvers=["mujoco", "kamino"])
     rows = run.newton_precision(scene, 4, 0.01, 0.2, 0.04, reference, declared, args)
     assert [r["label"] for r in rows] == ["MuJoCo Warp, dt x0.5", "MuJoCo Warp, dt x1", "Kamino, dt x1",
                                           "Kamino, dt x2"]
@@ -377,6 +378,11 @@ def test_newton_peers_work_precision_rows_measure_trajectory_error_against_the_r
         assert row["kind"] == "precision" and "positions" not in row
         assert row["trajectory_error_m"] == pytest.approx(0.25 * row["dt"])
     assert "peer failed" in rows[3]["error"] and rows[3]["engine"] == "kamino"
+    calls.clear()  # --peer-solvers mujoco: Kamino is not run
+    rows = run.newton_precision(scene, 4, 0.01, 0.2, 0.04, reference, declared,
+                                types.SimpleNamespace(device="cpu", peer_solvers=["mujoco"]))
+    assert [r["label"] for r in rows] == ["MuJoCo Warp, dt x0.5", "MuJoCo Warp, dt x1"]
+    assert [c[0] for c in calls] == ["mujoco", "mujoco"]
 
 
 def test_records_fall_on_steps_of_every_sweep_point_and_peer():

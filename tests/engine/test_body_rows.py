@@ -49,11 +49,14 @@ def test_impulse_sums_through_the_lists_match_a_dense_sum_with_contact_rows():
     # the free twists' low parts (engine.integrate's compensated sum): in, and the new twists' out
     low_in = rng.normal(scale=1e-8, size=(len(specs), model.max_bodies, 6)).astype(np.float32)
     low = wp.array(low_in, dtype=wp.spatial_vector, device="cpu")
+    poses = wp.zeros((len(specs), model.max_bodies), dtype=wp.transform, device="cpu")  # its pose step's outputs
+    poses_low = wp.zeros_like(poses)
     wp.launch(apply_impulses, dim=(len(specs), model.max_bodies), device="cpu",
               inputs=[model.body_count, work.row_count, model.contact_row_start, model.body_row_begin,
-                      model.body_row_end, model.body_row, work.row_body_c, work.row_body_p, work.row_MJ_c,
-                      work.row_MJ_p, lam, work.row_precond, qd_free, 1],
-              outputs=[out, low])
+                      model.body_row_end, model.body_row, work.row_body_c, work.row_body_p, model.world_dt,
+                      work.row_MJ_c, work.row_MJ_p, lam, work.row_precond, qd_free, 1, state.body_q,
+                      state.body_q_low],
+              outputs=[out, poses, poses_low, low])
     MJ_c, MJ_p = work.row_MJ_c.numpy().astype(np.float64), work.row_MJ_p.numpy().astype(np.float64)
     body_c, body_p = work.row_body_c.numpy(), work.row_body_p.numpy()
     got = out.numpy().astype(np.float64) + low.numpy()

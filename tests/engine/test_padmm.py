@@ -148,6 +148,7 @@ def _mixed_problem_batch(device, cap_joint_penalty: bool, seed: int = 11):
     work = model.work
     model.row_count.assign(counts)
     model.row_kind.assign(kinds)
+    model.has_unilateral_or_drive_rows = True  # the batch's flag, as pack_worlds sets it for drive rows
     work.delassus.assign(delassus)
     work.row_precond.assign(np.ones((num_worlds, R), np.float32))
     work.v_f.assign(v_f)

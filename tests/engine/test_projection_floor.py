@@ -75,14 +75,27 @@ def test_skip_floor_is_validated():
 
 
 def test_projection_gate_weighs_linear_and_angular_errors_by_their_own_floors():
-    """engine.integrate.projection_gate: a world's iteration is skipped (mask 0) only when its
-    largest linear joint error is within projection_skip_floor and its largest angular one within
-    projection_skip_floor_angular; rows other than bilateral joint rows do not count; a world not
-    projected keeps mask 0; the velocity gate opens above its floor on either kind."""
+    """engine.integrate.projection_gates (projection_pass's test): a world's iteration is skipped
+    (mask 0) only when its largest linear joint error is within projection_skip_floor and its
+    largest angular one within projection_skip_floor_angular; rows other than bilateral joint rows
+    do not count; a world not projected keeps mask 0; the velocity gate opens above its floor on
+    either kind."""
     import warp as wp
 
-    from engine.integrate import projection_gate
+    from engine.integrate import projection_gates
     from engine.model import ROW_ANGULAR, ROW_DYNAMICS, ROW_LINEAR
+
+    @wp.kernel
+    def gates(row_count: wp.array(dtype=wp.int32), row_kind: wp.array2d(dtype=wp.int32),
+              row_residual: wp.array2d(dtype=float), project: wp.array(dtype=wp.int32), floor: float,
+              skip_floor: float, skip_floor_angular: float, gate: wp.array(dtype=wp.int32),
+              mask: wp.array(dtype=wp.int32)):
+        world, lane = wp.tid()
+        opened, move = projection_gates(world, lane, wp.block_dim(), row_count, row_kind, row_residual, project, floor,
+                                        skip_floor, skip_floor_angular)
+        if lane == 0:
+            gate[world] = opened
+            mask[world] = move
 
     residual = np.array([[5e-8, 5e-7, 1.0],  # both within their floors (the drive row's 1.0 does not count)
                          [2e-7, 0.0, 0.0],  # linear above
@@ -94,7 +107,7 @@ def test_projection_gate_weighs_linear_and_angular_errors_by_their_own_floors():
     cpu = "cpu"
     project = wp.array([1, 1, 1, 0, 1], dtype=wp.int32, device=cpu)
     gate, mask = wp.zeros(W, dtype=wp.int32, device=cpu), wp.zeros(W, dtype=wp.int32, device=cpu)
-    wp.launch_tiled(projection_gate, dim=[W], block_dim=1, device=cpu,
+    wp.launch_tiled(gates, dim=[W], block_dim=1, device=cpu,
                     inputs=[wp.full(W, 3, dtype=wp.int32, device=cpu), wp.array(kind, dtype=wp.int32, device=cpu),
                             wp.array(residual, dtype=float, device=cpu), project, 1e-7, 1e-7, 1e-6],
                     outputs=[gate, mask])
