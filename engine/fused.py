@@ -658,7 +658,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         for i in range(lane, n, lanes):
             delassus_lower_of(world, i, w.row_body_p, w.row_body_c, w.row_J_c, w.row_J_p, w.row_MJ_c, w.row_MJ_p,
                               w.row_compliance, w.row_precond, D)
-        # 3. PADMM (padmm_setup, padmm_warmstart, then iterations until this world stops)
+        # 3. PADMM (as engine.padmm's padmm_start, then iterations until this world stops)
         eta = m.padmm_eta[world]
         active = int(0)
         if n > 0 and w.diverged[world] == 0 and w.halted[world] == 0:

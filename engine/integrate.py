@@ -21,7 +21,7 @@ matrix-free solver solves the same system by Conjugate Residual on the bilateral
 import warp as wp
 
 from engine import linear, matrix_free, sparse
-from engine.joints import joint_residuals_of
+from engine.joints import joint_model_inputs, joint_residuals_of
 from engine.model import ROW_ANGULAR, ROW_LINEAR
 from engine.spatial import advance_pose, pose_step, two_sum
 
@@ -630,9 +630,7 @@ def project_positions(model, body_q, body_qd, *, iterations=None,
     cfg = model.config
     # the worlds whose joint error is above cfg.projection_skip_floor (angular: projection_skip_floor_angular)
     mask = work.projection_mask
-    joints = [model.joint_count, model.joint_type, model.joint_parent, model.joint_child, model.joint_X_p,
-              model.joint_X_c, model.joint_axis, model.joint_axis2, model.joint_row_start, model.joint_inertia_row,
-              model.joint_drive_row]
+    joints = joint_model_inputs(model)
     for k in range(iterations):
         # the residuals (float64 sums where the dynamics move on), the gate and mask, the rhs
         wp.launch_tiled(projection_pass, dim=[model.num_worlds], block_dim=GATE_BLOCK, device=device,

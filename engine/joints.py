@@ -345,7 +345,7 @@ def joint_rows_of(
 
 
 @wp.func
-def joint_thread(t: int, joints: int, parts: int):
+def joint_thread(t: int, parts: int):
     """Joint and part (-1: all of it) of thread t of the joint kernels: a joint's parts on
     consecutive threads, so that a warp's stores of their rows (consecutive in a world) are
     contiguous (DR Legs hanging, 4096 worlds, H100: with the joints of one part on consecutive
@@ -407,9 +407,9 @@ def joint_rows(
     row_residual_out: wp.array2d(dtype=float),
 ):
     """Rows of every joint: J, bias c, compliance R and bounds, so that J u+ + R lambda = c; a
-    thread per joint, or with parts > 1 per part of a joint (thread t: part t // J of joint t % J)."""
+    thread per joint, or with parts > 1 per part of a joint (thread t: part t % parts of joint t // parts)."""
     world, t = wp.tid()
-    j, part = joint_thread(t, joint_type.shape[1], parts)
+    j, part = joint_thread(t, parts)
     if j >= joint_count[world]:
         return
     joint_rows_of(world, j, part, joint_count, joint_type, joint_parent, joint_child, joint_X_p, joint_X_c, joint_axis,

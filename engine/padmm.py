@@ -48,7 +48,7 @@ STALL_WINDOW = wp.constant(10)  # iterations between SolverConfig.stall_ratio's 
 
 @wp.func
 def row_penalty(free: int, rho: float, rho_free: float):
-    """The ADMM penalty of one row: the world's rho, except on free rows (padmm_warmstart's row_free:
+    """The ADMM penalty of one row: the world's rho, except on free rows (padmm_warmstart_of's row_free:
     bilateral joint rows, and drive rows whose warm start lies well inside their effort limits),
     whose projection is the identity (y = x, z = 0): they need only the proximal pull, so they keep
     rho_free (SolverConfig.free_rho; 0 with cap_joint_penalty off: the world's rho).
@@ -256,7 +256,7 @@ def padmm_project_of(
     """y = projection of x - z_hat / rho_i onto the row's set; z = z_hat - rho_i (x - y). The thread
     of a contact normal row projects its whole triplet onto the friction cone. A free drive row
     whose bound comes into play is marked (row_free 2, demote) to lose its own penalty at the
-    next penalty update, which refactors (padmm_decide, row_shifts)."""
+    next penalty update, which refactors (padmm_decide; padmm_update's new shifts)."""
     kind = row_kind[world, i]
     if kind == ROW_CONTACT_TANGENT and i < row_count[world]:
         return
@@ -347,7 +347,7 @@ def padmm_decide(
     """End of a PADMM iteration of one world from its residuals: count it, stop (returns 1) when
     converged, capped or stalled (stall_ratio > 0: the largest residual not below stall_ratio times
     its value STALL_WINDOW iterations earlier, kept in stall_reference), else set the momentum for
-    padmm_accelerate and update the penalty from r_p against r_b, the dual residual of the rows
+    padmm_accelerate_of and update the penalty from r_p against r_b, the dual residual of the rows
     whose penalty it sets (row_residuals; zero where all rows are free: no update), and at the same
     iterations give the world's penalty to drive rows that met their bounds."""
     r = rho[world]
@@ -407,7 +407,7 @@ def padmm_update(
     rho_update_interval: int,
     adaptive_rho: int,
     acceleration: int,
-    refactors: int,
+    reshift: int,
     stall_ratio: float,
     # model
     row_kind: wp.array2d(dtype=wp.int32),
@@ -457,8 +457,8 @@ def padmm_update(
     projection (padmm_project_of); the residuals, the stop test, the momentum and the penalty
     update (padmm_decide); then for a world that stops its impulses (padmm_output_of), else the
     extrapolation (padmm_accelerate_of), the shifts of a new factor where one is asked for
-    (refactors: with the penalty update or the free rows' penalty; the caller factors those worlds
-    next) and the next iteration's right-hand side (padmm_rhs_of). One launch instead of five."""
+    (``reshift``: refactors; the caller factors those worlds next) and the next iteration's
+    right-hand side (padmm_rhs_of). One launch instead of five."""
     world, lane = wp.tid()
     if active[world] == 0:
         return
@@ -513,13 +513,13 @@ def padmm_update(
             if i < rows:
                 padmm_output_of(world, i, row_count, row_precond, y, diverged, halted, row_lambda_out)
         return
-    reshift = refactors != 0 and needs_factor[world] != 0
+    new_shifts = reshift != 0 and needs_factor[world] != 0
     r = rho[world]
     for k in range(sweeps):
         i = lane + k * stride
         if i < rows:
             padmm_accelerate_of(world, i, active, momentum_beta, y, y_prev, z, z_prev, y_hat, z_hat)
-            if reshift:
+            if new_shifts:
                 if row_free[world, i] == 2:  # a drive that met its bound: the world's penalty from now on
                     row_free[world, i] = 0
                 row_shift[world, i] = eta + row_penalty(row_free[world, i], r, cap)
@@ -583,14 +583,15 @@ def factor_flagged(model):
 
 
 def refactors(model) -> bool:
-    """Whether an iteration can ask for a new factor: with the penalty update, or with the free
-    rows' own penalty (a drive row that meets its bound takes the world's). Not in a batch of
-    bilateral joint rows alone when they keep their own penalty: their projection is the identity,
-    so the primal residual and the balanced dual residual are both zero and no row is demoted."""
+    """Whether an iteration can ask for new shifts, and so a new factor: with the penalty update,
+    or with the free rows' own penalty (a drive row that meets its bound takes the world's). Not in
+    a batch of bilateral joint rows alone when they keep their own penalty: their projection is the
+    identity, so the primal residual and the balanced dual residual are both zero and no row is
+    demoted (the batch's rows as packed, Model.has_unilateral_or_drive_rows)."""
     cfg = model.config
     if not (cfg.adaptive_rho or cfg.cap_joint_penalty):
         return False
-    return bool(model.has_unilateral_or_drive_rows or not cfg.cap_joint_penalty or cfg.free_rho <= 0.0)
+    return bool(model.has_unilateral_or_drive_rows or not cfg.cap_joint_penalty)
 
 
 def padmm_iteration(model, row_lambda_out):
@@ -604,11 +605,11 @@ def padmm_iteration(model, row_lambda_out):
         sparse.solve(model, work.rhs, work.active, work.x)
     else:  # inexact Conjugate Residual, warm-started from the last iterate
         matrix_free.solve(model, work.rhs, work.active, work.x)
-    again = refactors(model)
+    again = refactors(model)  # the new shifts and the factors that follow them
     wp.launch_tiled(padmm_update, dim=[model.num_worlds], block_dim=UPDATE_BLOCK, device=device,
                     inputs=[cfg.max_iterations, float(cfg.relative_tolerance), cfg.rho_update_interval,
                             int(cfg.adaptive_rho), int(cfg.acceleration),
-                            int(bool(cfg.adaptive_rho or cfg.cap_joint_penalty)), float(cfg.stall_ratio),
+                            int(again), float(cfg.stall_ratio),
                             model.row_kind, model.padmm_eta, model.padmm_rho_free, model.padmm_tolerance,
                             work.row_count, work.row_friction, work.row_precond, work.lo, work.hi, work.v_f,
                             work.diverged, work.halted, work.x, work.x_prev, work.y, work.y_hat, work.y_prev, work.z,
@@ -617,7 +618,7 @@ def padmm_iteration(model, row_lambda_out):
                             work.residual_primal, work.residual_dual, work.residual_complementarity, work.demote,
                             work.stall_reference, work.active_count, work.row_shift, work.rhs],
                     outputs=[row_lambda_out])
-    if again and model.linear_solver != "matrix_free":
+    if again:
         factor_flagged(model)
 
 
