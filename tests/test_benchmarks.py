@@ -412,3 +412,31 @@ def test_records_fall_on_steps_of_every_sweep_point_and_peer():
                 assert steps_per_record(record_dt, declared.dt * scale) >= 1
                 checked += 1
     assert checked > 40
+
+
+def test_graph_overhead_times_steps_and_every_synthetic_graph(tmp_path, capsys):
+    """benchmarks.graph_overhead on the CPU (no graphs: the script's path, not the costs): a row per
+    scene and batch size with its windows, kernels and launches, the gap per launch derived from
+    them, and a row per synthetic variant with its launches counted (the loops' flag launches
+    included) and positive times; bad arguments are refused."""
+    from benchmarks import graph_overhead
+
+    out = tmp_path / "overhead.json"
+    assert graph_overhead.main(["--device", "cpu", "--scenes", "fourbar", "--worlds", "2", "--launches", "4",
+                                "--windows", "2", "--out", str(out)]) == 0
+    rows = json.loads(out.read_text())["results"]
+    assert len(capsys.readouterr().out.strip().splitlines()) == len(rows) == 1 + len(graph_overhead.VARIANTS)
+    (step_row,) = [r for r in rows if r["kind"] == "step"]
+    assert step_row["scene"] == "fourbar" and step_row["num_worlds"] == 2 and len(step_row["graph_ms_windows"]) == 2
+    assert step_row["graph_ms_per_step_least"] <= step_row["graph_ms_per_step"]
+    assert step_row["kernels_ms_per_step"] > 0 and step_row["launches_per_step"] >= 1
+    gap = 1e3 * (step_row["graph_ms_per_step"] - step_row["kernels_ms_per_step"]) / step_row["launches_per_step"]
+    assert step_row["between_kernels_us_per_launch"] == pytest.approx(gap, abs=0.01)
+    synthetic = {r["variant"]: r for r in rows if r["kind"] == "synthetic"}
+    assert set(synthetic) == set(graph_overhead.VARIANTS)
+    assert synthetic["plain"]["launches"] == 4 and synthetic["conditional"]["launches"] == 6
+    assert synthetic["empty_loop"]["launches"] == 5
+    assert all(0 < r["us_per_launch_least"] <= r["us_per_launch"] for r in synthetic.values())
+    for bad in (["--launches", "1"], ["--worlds", "0"], ["--scenes", "pentagon"]):
+        with pytest.raises(SystemExit):
+            graph_overhead.main(["--device", "cpu", *bad])
