@@ -248,11 +248,20 @@ def integrate_poses(
     fraction: float,
     body_q: wp.array2d(dtype=wp.transform),
     body_qd: wp.array2d(dtype=wp.spatial_vector),
+    keep: int,
     # out
     body_q_out: wp.array2d(dtype=wp.transform),
+    body_q_kept: wp.array2d(dtype=wp.transform),
+    body_q_offset: wp.array2d(dtype=wp.spatial_vector),
 ):
-    """x+ = x + h v, q+ = exp(h w) q with h = fraction * dt."""
+    """x+ = x + h v, q+ = exp(h w) q with h = fraction * dt into body_q_out; first, for every body
+    slot (padding included), body_q_kept = body_q_out's pose before it (where ``keep``) and
+    body_q_offset = 0: Moreau-Jean's end of a step (engine.step), one launch instead of a copy, a
+    fill and a launch."""
     world, b = wp.tid()
+    if keep != 0:
+        body_q_kept[world, b] = body_q_out[world, b]
+    body_q_offset[world, b] = wp.spatial_vector()
     if b >= body_count[world]:
         return
     integrate_pose_of(world, b, body_count, world_dt, fraction, body_q, body_qd, body_q_out)
@@ -551,25 +560,22 @@ def projection_penalty(rho_init: float, rho_free: float):
 @wp.kernel
 def projection_shift(padmm_eta: wp.array(dtype=float), padmm_rho_init: wp.array(dtype=float),
                      padmm_rho_free: wp.array(dtype=float),
-                     bilateral_row_count: wp.array(dtype=wp.int32), valid: wp.array(dtype=wp.int32), always: int,
+                     bilateral_row_count: wp.array(dtype=wp.int32), valid: wp.array(dtype=wp.int32),
                      needs_factor: wp.array(dtype=wp.int32), project_out: wp.array(dtype=wp.int32),
                      row_shift_out: wp.array2d(dtype=float)):
-    """Worlds to project: valid ones with bilateral joint rows. Of those, flag for a new factor with
-    the shift eta + rho_free (SolverConfig.free_rho; rho_init with cap_joint_penalty off) on every
-    row all of them when ``always`` (the batch has drive, limit or contact rows, or no factor to
-    reuse); otherwise the PADMM factor serves, its joint rows shifted by eta + rho_free too
-    (engine.padmm.row_penalty: their penalty stays rho_free; with cap_joint_penalty off, eta + the
-    world's rho). One thread per row; row 0 writes the world's flags."""
+    """Worlds to project: valid ones with bilateral joint rows; flag them for a factor of the
+    projection's own, with the shift eta + rho_free (SolverConfig.free_rho; rho_init with
+    cap_joint_penalty off) on every row: for batches with drive, limit or contact rows, or no factor
+    to reuse (project_positions; otherwise the PADMM's factor serves, its joint rows shifted by
+    eta + rho_free too: engine.padmm.row_penalty, with cap_joint_penalty off eta + the world's rho).
+    One thread per row; row 0 writes the world's flags."""
     world, i = wp.tid()
     project = int(0)
     if valid[world] != 0 and bilateral_row_count[world] > 0:
         project = 1
-    flag = int(0)
-    if project != 0 and always != 0:
-        flag = 1
         row_shift_out[world, i] = padmm_eta[world] + projection_penalty(padmm_rho_init[world], padmm_rho_free[world])
     if i == 0:
-        needs_factor[world] = flag
+        needs_factor[world] = project
         project_out[world] = project
 
 
@@ -606,11 +612,13 @@ def project_positions(model, body_q, body_qd, *, iterations=None,
         if dense and model.has_unilateral_or_drive_rows:
             wp.launch(bilateral_block, dim=(model.num_worlds, model.max_rows, model.max_rows), device=device,
                       inputs=[model.row_kind, work.row_count, work.delassus])
-        wp.launch(projection_shift, dim=grid_rows, device=device,
-                  inputs=[model.padmm_eta, model.padmm_rho_init, model.padmm_rho_free, model.bilateral_row_count,
-                          work.valid,
-                          int(model.has_unilateral_or_drive_rows or not direct)],
-                  outputs=[work.needs_factor, work.project, work.row_shift])
+        if model.has_unilateral_or_drive_rows or not direct:  # a factor (or shifts) of the projection's own
+            wp.launch(projection_shift, dim=grid_rows, device=device,
+                      inputs=[model.padmm_eta, model.padmm_rho_init, model.padmm_rho_free,
+                              model.bilateral_row_count, work.valid],
+                      outputs=[work.needs_factor, work.project, work.row_shift])
+        # else the PADMM's factor serves: engine.padmm.padmm_start set the worlds to project, and every
+        # flag for a new factor is clear once the PADMM's loop has ended
         if dense:
             if model.has_unilateral_or_drive_rows:  # else no world is flagged: the PADMM's factor serves
                 linear.factor(work.delassus, work.row_shift, work.needs_factor, work.factor)

@@ -84,6 +84,7 @@ def padmm_start(
     padmm_rho_init: wp.array(dtype=float),
     padmm_eta: wp.array(dtype=float),
     padmm_rho_free: wp.array(dtype=float),
+    bilateral_row_count: wp.array(dtype=wp.int32),
     # in
     diverged: wp.array(dtype=wp.int32),
     halted: wp.array(dtype=wp.int32),
@@ -104,6 +105,7 @@ def padmm_start(
     needs_factor_out: wp.array(dtype=wp.int32),
     demote_out: wp.array(dtype=wp.int32),
     active_count_out: wp.array(dtype=wp.int32),
+    project_out: wp.array(dtype=wp.int32),
     # out: per row
     x_out: wp.array2d(dtype=float),
     x_prev_out: wp.array2d(dtype=float),
@@ -121,7 +123,8 @@ def padmm_start(
     start from the last step's impulses (padmm_warmstart_of), mark the free rows, set each row's
     shift eta + rho_i for the factor (all active worlds are flagged for one) and the first
     iteration's right-hand side (padmm_rhs_of, with z_hat = 0). A world that does not iterate
-    outputs zero impulses here (the others in padmm_update, when they stop)."""
+    outputs zero impulses here (the others in padmm_update, when they stop). Also the worlds the
+    step's projection moves: the active ones with bilateral joint rows (project_out)."""
     world, i = wp.tid()
     active = int(0)
     if row_count[world] > 0 and diverged[world] == 0 and halted[world] == 0:
@@ -142,6 +145,7 @@ def padmm_start(
         momentum_out[world] = 1.0
         momentum_beta_out[world] = 0.0
         merit_out[world] = 1.0e30
+        project_out[world] = wp.where(active != 0 and bilateral_row_count[world] > 0, 1, 0)
     if active == 0:
         row_lambda_out[world, i] = 0.0
         return
@@ -628,13 +632,15 @@ def solve_padmm(model, row_lambda_warm, row_lambda_out):
     padmm_iteration until every world has stopped (captured as a conditional loop)."""
     work, cfg, device = model.work, model.config, model.device
     work.active_count.zero_()
-    work.inner_iterations.zero_()
+    if model.linear_solver == "matrix_free":  # the only solves that count inner iterations
+        work.inner_iterations.zero_()
     wp.launch(padmm_start, dim=(model.num_worlds, model.max_rows), device=device,
               inputs=[(1.0 - cfg.warmstart_decay) if cfg.warmstart else 0.0, work.row_count, model.row_kind,
-                      model.padmm_rho_init, model.padmm_eta, model.padmm_rho_free, work.diverged, work.halted,
-                      row_lambda_warm, work.row_precond, work.lo, work.hi, work.v_f],
+                      model.padmm_rho_init, model.padmm_eta, model.padmm_rho_free, model.bilateral_row_count,
+                      work.diverged, work.halted, row_lambda_warm, work.row_precond, work.lo, work.hi, work.v_f],
               outputs=[work.rho, work.valid, work.active, work.converged, work.iterations, work.momentum,
-                       work.momentum_beta, work.merit, work.needs_factor, work.demote, work.active_count, work.x,
+                       work.momentum_beta, work.merit, work.needs_factor, work.demote, work.active_count,
+                       work.project, work.x,
                        work.x_prev, work.y, work.y_hat, work.z, work.z_hat, work.row_free, work.row_shift, work.rhs,
                        row_lambda_out])
     if model.linear_solver == "sparse":

@@ -143,13 +143,16 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
     if model.has_contacts:
         detect_contacts(model, body_q, state_in.body_qd)
     mark("collision")
-    wp.launch(gather_warmstart, dim=(model.num_worlds, model.max_rows), device=device,
-              inputs=[model.contact_row_start, work.row_count, state_in.row_lambda, work.contact_key,
-                      work.contact_normal, state_in.contact_count, state_in.contact_key, state_in.contact_impulse],
-              outputs=[work.warm])
+    warm = state_in.row_lambda  # without contacts every row's warm start is its last impulse (zero on padding)
+    if model.has_contacts:
+        wp.launch(gather_warmstart, dim=(model.num_worlds, model.max_rows), device=device,
+                  inputs=[model.contact_row_start, work.row_count, state_in.row_lambda, work.contact_key,
+                          work.contact_normal, state_in.contact_count, state_in.contact_key, state_in.contact_impulse],
+                  outputs=[work.warm])
+        warm = work.warm
     build_dual_problem(model, body_q, state_in.body_qd, state_in.body_qd_low, control.body_f, state_out.body_qd_low)
     mark("dual_problem")
-    solve_padmm(model, work.warm, state_out.row_lambda)
+    solve_padmm(model, warm, state_out.row_lambda)
     if model.has_contacts:
         wp.launch(store_contacts, dim=(model.num_worlds, model.contact_capacity), device=device,
                   inputs=[model.contact_row_start, work.contact_count, work.contact_key, work.contact_normal,
@@ -170,12 +173,10 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
     if moreau:  # the end of the step: half-way to the next midpoint, projected for output only, as
         # often as the midpoint (one output iteration: DR Legs hanging's loops at 9.5e-7 instead of
         # 8.2e-8 m; one iteration each for both projections is the benchmark's variant)
-        if compensated:
-            wp.copy(state_out.body_q_next, state_out.body_q)
-        state_out.body_q_offset.zero_()
+        # (body_q_next: the compensated end of the dynamics' step, which the next midpoint starts from)
         wp.launch(integrate_poses, dim=bodies, device=device,
-                  inputs=[model.body_count, model.world_dt, 0.5, body_q, state_out.body_qd],
-                  outputs=[state_out.body_q])
+                  inputs=[model.body_count, model.world_dt, 0.5, body_q, state_out.body_qd, compensated],
+                  outputs=[state_out.body_q, state_out.body_q_next, state_out.body_q_offset])
         if project_output:
             project_positions(model, state_out.body_q, state_out.body_qd,
                               velocity_update=False, body_q_offset=state_out.body_q_offset, prepare=False)
