@@ -270,16 +270,20 @@ def delassus(
                                                row_compliance, row_precond)
 
 
-def build_dual_problem(model, body_q, body_qd, body_qd_low, body_f, body_qd_low_out):
+def build_dual_problem(model, body_q, body_qd, body_qd_low, body_f, body_qd_low_out,
+                       free_velocities: bool = True):
     """Free velocities, row operators and (dense solver) the preconditioned Delassus matrix of every
-    world; body_qd_low: the twists' low parts, body_qd_low_out: the free twists' (engine.State)."""
+    world; body_qd_low: the twists' low parts, body_qd_low_out: the free twists' (engine.State).
+    free_velocities=False: work.body_qd_free (and body_qd_low_out) are already this step's
+    (engine.integrate.midpoint_free_velocity)."""
     work = model.work
     W, device = model.num_worlds, model.device
-    wp.launch(free_velocity, dim=(W, model.max_bodies), device=device,
-              inputs=[model.body_count, model.body_inv_mass, model.body_inertia, model.body_inv_inertia,
-                      model.world_gravity, model.world_dt, body_q, body_qd, body_qd_low, body_f,
-                      int(model.config.compensated_state)],
-              outputs=[work.body_qd_free, body_qd_low_out])
+    if free_velocities:
+        wp.launch(free_velocity, dim=(W, model.max_bodies), device=device,
+                  inputs=[model.body_count, model.body_inv_mass, model.body_inertia, model.body_inv_inertia,
+                          model.world_gravity, model.world_dt, body_q, body_qd, body_qd_low, body_f,
+                          int(model.config.compensated_state)],
+                  outputs=[work.body_qd_free, body_qd_low_out])
     wp.launch(row_operators, dim=(W, model.max_rows), device=device,
               inputs=[model.row_kind, model.contact_row_start, model.body_inv_mass, model.body_inv_inertia,
                       work.row_count, work.row_body_p, work.row_body_c, body_q, work.body_qd_free, work.row_J_c,

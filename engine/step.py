@@ -32,7 +32,7 @@ from engine.integrate import (
     apply_impulses,
     guard_divergence,
     integrate_poses,
-    midpoint_poses,
+    midpoint_free_velocity,
     project_positions,
 )
 from engine.joints import compute_joint_rows
@@ -132,11 +132,13 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
     moreau = model.config.integrator is Integrator.MOREAU_JEAN
     compensated = int(model.config.compensated_state)
     body_q, body_q_low = state_in.body_q, state_in.body_q_low
-    if moreau:
-        wp.launch(midpoint_poses, dim=bodies, device=device,
-                  inputs=[model.body_count, model.world_dt, state_in.body_q, state_in.body_q_offset, state_in.body_qd,
-                          state_in.body_q_low, state_in.body_q_next, compensated],
-                  outputs=[work.body_q_mid, work.body_q_mid_low])
+    if moreau:  # the midpoint, and the free velocities there (stage 3's first part)
+        wp.launch(midpoint_free_velocity, dim=bodies, device=device,
+                  inputs=[model.body_count, model.world_dt, model.body_inv_mass, model.body_inertia,
+                          model.body_inv_inertia, model.world_gravity, state_in.body_q, state_in.body_q_offset,
+                          state_in.body_qd, state_in.body_q_low, state_in.body_q_next, state_in.body_qd_low,
+                          control.body_f, compensated],
+                  outputs=[work.body_q_mid, work.body_q_mid_low, work.body_qd_free, state_out.body_qd_low])
         body_q, body_q_low = work.body_q_mid, work.body_q_mid_low
     compute_joint_rows(model, body_q, state_in.body_qd, control, body_q_low)
     mark("kinematics")
@@ -150,7 +152,8 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
                           work.contact_normal, state_in.contact_count, state_in.contact_key, state_in.contact_impulse],
                   outputs=[work.warm])
         warm = work.warm
-    build_dual_problem(model, body_q, state_in.body_qd, state_in.body_qd_low, control.body_f, state_out.body_qd_low)
+    build_dual_problem(model, body_q, state_in.body_qd, state_in.body_qd_low, control.body_f, state_out.body_qd_low,
+                       free_velocities=not moreau)
     mark("dual_problem")
     solve_padmm(model, warm, state_out.row_lambda)
     if model.has_contacts:
