@@ -1,7 +1,8 @@
 """step(model, state_in, state_out, control, dt): one time step of every world of a batch.
 
 The stages, in order (each a module of the engine):
-1. (Moreau-Jean only) half pose step to the midpoint configuration (engine.integrate)
+1. (Moreau-Jean only) half pose step to the midpoint configuration, and the free velocities there
+   (engine.integrate.midpoint_free_velocity; semi-implicit Euler computes them in stage 3)
 2. joint rows: Jacobians, biases, compliance and bounds, joint limits (engine.joints)
    collision detection and contact rows, only when the batch has shapes (engine.collide,
    engine.contacts); warm-start impulses gathered (contacts matched by key)
