@@ -208,6 +208,7 @@ VARIANTS = ("plain", "wide", "shared", "conditional", "empty_loop")
 
 
 def main(argv=None) -> int:
+    from benchmarks.kernel_times import declared_scene
     from benchmarks.run import write_rows
     from benchmarks.scenes import SCENES_DECLARED
 
@@ -226,11 +227,7 @@ def main(argv=None) -> int:
     wp.config.log_level = wp.LOG_WARNING
     rows = []
     for name in args.scenes:
-        declared = SCENES_DECLARED[name]
-        try:
-            scene = declared.build(args.assets)
-        except FileNotFoundError as error:
-            parser.error(f"--scenes {name}: {error}")
+        declared, scene = declared_scene(parser, name, args.assets)
         for worlds in args.worlds:
             rows.append(step_overhead(name, scene.specs, worlds, declared.dt, args.device, args.windows))
             print(json.dumps(rows[-1]), flush=True)

@@ -89,6 +89,18 @@ def kernel_times(specs, worlds: int, dt: float, device: str, steps: int = 5, clo
             **({"launch_ms": dict(each)} if each else {})}
 
 
+def declared_scene(parser, name: str, assets):
+    """A scene of benchmarks.scenes and what it builds; a missing asset is the command line's error
+    (parser.error names the scene)."""
+    from benchmarks.scenes import SCENES_DECLARED
+
+    declared = SCENES_DECLARED[name]
+    try:
+        return declared, declared.build(assets)
+    except FileNotFoundError as error:
+        parser.error(f"--scenes {name}: {error}")
+
+
 def main(argv=None) -> int:
     from benchmarks.run import write_rows
     from benchmarks.scenes import SCENES_DECLARED
@@ -111,11 +123,7 @@ def main(argv=None) -> int:
     wp.config.log_level = wp.LOG_WARNING
     rows = []
     for name in args.scenes:
-        declared = SCENES_DECLARED[name]
-        try:
-            scene = declared.build(args.assets)
-        except FileNotFoundError as error:
-            parser.error(f"--scenes {name}: {error}")
+        declared, scene = declared_scene(parser, name, args.assets)
         row = {"scene": name, "num_worlds": args.worlds, "dt": declared.dt,
                **kernel_times(scene.specs, args.worlds, declared.dt, args.device, args.steps, args.clock)}
         rows.append(row)
