@@ -183,8 +183,14 @@ LINKAGE_SWEEP = [
     dict(label="dt x8", dt_scale=8.0),
 ]
 TIGHT = dict(tolerance=1e-9, relative_tolerance=0.0, max_iterations=300, position_iterations=4)
-# one Gauss-Newton iteration for the dynamics' configuration and one for the output instead of two each
-DRLEGS_VARIANTS = [dict(label="1 projection iteration", config=dict(position_iterations=1))]
+# one Gauss-Newton iteration for the dynamics' configuration and one for the output instead of two each;
+# no projection at all, the loops held by the velocity-level Baumgarte term alone: on the CPU (one world,
+# 2 s, dt 10 ms) its largest loop opening is 1.2e-4 m hanging and 2.9e-6 m standing at 0.5 (0.1: 4.3e-4 and
+# 1.9e-5 m; 1.0: 5.7e-5 and 8.3e-5 m), below MuJoCo Warp's 4e-4 to 6e-4 m, and the step skips the
+# projection's solves (standing: also the projection's own matrix and factor)
+NO_PROJECTION = dict(position_iterations=0, projection_velocity_update=False, baumgarte=0.5)
+DRLEGS_VARIANTS = [dict(label="1 projection iteration", config=dict(position_iterations=1)),
+                   dict(label="no projection (Baumgarte 0.5)", config=NO_PROJECTION)]
 # standing (drive, armature and contact rows beside the joints'): the projection's factor on the PADMM's
 # pattern with the other rows made identity, or on a pattern of the bilateral rows alone, whichever
 # SolverConfig.sparse_projection_pattern="auto" did not choose
@@ -203,6 +209,8 @@ DRLEGS_SWEEP = [
     dict(label="1 projection iteration", dt_scale=1.0, config=dict(position_iterations=1)),
     dict(label="1 projection iteration, dt x2", dt_scale=2.0, config=dict(position_iterations=1)),
     dict(label="float32 state", dt_scale=1.0, config=dict(compensated_state=False)),
+    dict(label="no projection (Baumgarte 0.5)", dt_scale=1.0, config=NO_PROJECTION),
+    dict(label="no projection (Baumgarte 0.5), dt x2", dt_scale=2.0, config=NO_PROJECTION),
 ]
 DRLEGS_PEER_DT_SCALES = {"mujoco": [0.25, 0.5, 1.0, 2.0, 4.0], "kamino": [1.0, 2.0]}
 # DR Legs standing: the same steps and settings; no trajectory reference (MuJoCo C on our MJCF export
