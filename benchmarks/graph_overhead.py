@@ -1,14 +1,15 @@
 """Where a graph-replayed step spends its time besides its kernels, and what a launch costs in a graph.
 
     python -m benchmarks.graph_overhead --device cuda [--scenes drlegs_hanging drlegs_standing_newton]
-        [--worlds 1 4096] [--launches 40] [--windows 7] [--assets DIR] [--out FILE]
+        [--worlds 1 4096] [--launches 40] [--windows 7] [--variant LABEL] [--assets DIR] [--out FILE]
 
-Steps: for each scene of benchmarks.scenes and batch size, the kernels of one chunk of 10 steps timed
-one by one (benchmarks.kernel_times: CUDA events per kernel, launched back to back) against the
-same chunk replayed as a CUDA graph (engine.rollout.Stepper), timed by CUDA events around each of
---windows windows of five chunks: the graph's ms per step (median and least of the windows), the
-kernels' ms per step, launches per step and the time between kernels per launch,
-(graph - kernels) / launches.
+Steps: for each scene of benchmarks.scenes (its default settings, or with --variant those of its
+variant or sweep point of that label) and batch size, one batch is packed; the kernels of one
+chunk of 10 steps are timed one by one (benchmarks.kernel_times: CUDA events per kernel, launched
+back to back) against the same chunk replayed as a CUDA graph (engine.rollout.Stepper, from the
+initial state again), timed by CUDA events around each of --windows windows of five chunks: the
+graph's ms per step (median and least of the windows), the kernels' ms per step, launches per step
+and the time between kernels per launch, (graph - kernels) / launches.
 
 Synthetic graphs, each of --launches launches of a small kernel with a thread per world (the
 largest --worlds), replayed and timed the same way (us per launch: a window's time over its
@@ -126,23 +127,26 @@ def _window_ms(run, device: str, windows: int, per_window: int) -> list[float]:
     return times
 
 
-def step_overhead(name: str, specs, worlds: int, dt: float, device: str, windows: int) -> dict:
-    """A scene's graph-replayed ms per step against its kernels' (benchmarks.kernel_times)."""
+def step_overhead(name: str, specs, worlds: int, dt: float, device: str, windows: int, config=None,
+                  variant: str = "default") -> dict:
+    """A scene's graph-replayed ms per step against its kernels' (benchmarks.kernel_times), one
+    batch packed for both (config: its SolverConfig; variant: the label its row carries)."""
     from benchmarks.kernel_times import kernel_times
     from engine import pack_worlds
     from engine.rollout import Stepper
 
     cuda = wp.get_device(device).is_cuda
-    kernels = kernel_times(specs, worlds, dt, device, steps=CHUNK, clock="device" if cuda else "host")
-    model = pack_worlds([specs[w % len(specs)] for w in range(worlds)], device=device, dt=dt)
-    stepper = Stepper(model, model.state(), model.control(), chunk=CHUNK)
+    model = pack_worlds([specs[w % len(specs)] for w in range(worlds)], device=device, dt=dt, config=config)
+    kernels = kernel_times(specs, worlds, dt, device, steps=CHUNK, clock="device" if cuda else "host", model=model)
+    stepper = Stepper(model, model.state(), model.control(), chunk=CHUNK)  # from the initial state again
     for _ in range(3):  # compile, capture both graphs, settle
         stepper.advance()
     wp.synchronize_device(device)
     per_step = [t / (WINDOW_CHUNKS * CHUNK) for t in _window_ms(stepper.advance, device, windows, WINDOW_CHUNKS)]
     graph = round(float(np.median(per_step)), 4)
     launches = kernels["launches_per_step"]
-    return {"kind": "step", "scene": name, "num_worlds": worlds, "step_kernel": kernels["step_kernel"],
+    return {"kind": "step", "scene": name, "variant": variant, "num_worlds": worlds, "dt": dt,
+            "step_kernel": kernels["step_kernel"],
             "graph_ms_per_step": graph, "graph_ms_per_step_least": round(min(per_step), 4),
             "graph_ms_windows": [round(t, 4) for t in per_step],
             "kernels_ms_per_step": kernels["total_ms_per_step"], "launches_per_step": launches,
@@ -208,9 +212,10 @@ VARIANTS = ("plain", "wide", "shared", "conditional", "empty_loop")
 
 
 def main(argv=None) -> int:
-    from benchmarks.kernel_times import declared_scene
+    from benchmarks.kernel_times import declared_scene, variant_setting
     from benchmarks.run import write_rows
     from benchmarks.scenes import SCENES_DECLARED
+    from engine import SolverConfig
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu")
@@ -219,6 +224,9 @@ def main(argv=None) -> int:
     parser.add_argument("--worlds", type=int, nargs="+", default=[1, 4096])
     parser.add_argument("--launches", type=int, default=40, help="launches of each synthetic graph")
     parser.add_argument("--windows", type=int, default=7, help="timed windows per measurement")
+    parser.add_argument("--variant", default=None,
+                        help="the scenes' steps with the settings of their variant or sweep point of this label "
+                             "(benchmarks.scenes), e.g. 'no projection (Baumgarte 0.5)'; default: the defaults")
     parser.add_argument("--assets", default=None, help="folder holding disneyresearch/dr_legs")
     parser.add_argument("--out", default=None, help="JSON file for the results")
     args = parser.parse_args(argv)
@@ -228,8 +236,10 @@ def main(argv=None) -> int:
     rows = []
     for name in args.scenes:
         declared, scene = declared_scene(parser, name, args.assets)
+        settings, dt_scale = variant_setting(parser, name, declared, args.variant)
         for worlds in args.worlds:
-            rows.append(step_overhead(name, scene.specs, worlds, declared.dt, args.device, args.windows))
+            rows.append(step_overhead(name, scene.specs, worlds, declared.dt * dt_scale, args.device, args.windows,
+                                      SolverConfig(**settings), args.variant or "default"))
             print(json.dumps(rows[-1]), flush=True)
     for variant in VARIANTS:
         rows.append(synthetic(variant, max(args.worlds), args.launches, args.device, args.windows))

@@ -440,3 +440,43 @@ def test_graph_overhead_times_steps_and_every_synthetic_graph(tmp_path, capsys):
     for bad in (["--launches", "1"], ["--worlds", "0"], ["--scenes", "pentagon"]):
         with pytest.raises(SystemExit):
             graph_overhead.main(["--device", "cpu", *bad])
+
+
+def test_variant_flag_times_a_declared_variant_with_its_settings(tmp_path, capsys):
+    """--variant of benchmarks.kernel_times and benchmarks.graph_overhead on the CPU: the row names
+    the variant and carries its declared settings, which reach the packed batch (the four-bar's
+    'staged kernels' point runs the staged step, whose projection kernels are timed, where the
+    default four-bar runs the fused one), a sweep point's dt factor sets the step, and a label the
+    scene does not declare is refused with the scene's labels."""
+    from benchmarks import graph_overhead, kernel_times
+    from benchmarks.scenes import SCENES_DECLARED
+
+    fourbar = SCENES_DECLARED["fourbar"]
+    declared = {s["label"]: s for s in [*fourbar.variants, *fourbar.sweep]}
+    without = next(label for label, s in declared.items() if s.get("config", {}).get("position_iterations") == 0)
+    rows = {}
+    for variant in ("default", "staged kernels", without):
+        out = tmp_path / f"kernels{len(rows)}.json"
+        assert kernel_times.main(["--device", "cpu", "--scenes", "fourbar", "--worlds", "2", "--steps", "2",
+                                  "--variant", variant, "--out", str(out)]) == 0
+        rows[variant] = json.loads(out.read_text())["results"][0]
+    assert all(row["variant"] == variant for variant, row in rows.items())
+    assert rows["default"]["settings"] == {} and rows[without]["settings"] == declared[without]["config"]
+    assert rows["default"]["step_kernel"] == "fused" and rows["staged kernels"]["step_kernel"] == "staged"
+    assert {"projection_pass", "apply_projection"} <= set(rows["staged kernels"]["kernels"])
+    dt_point = next(s for s in fourbar.sweep if s.get("dt_scale", 1.0) != 1.0 and not s.get("config"))
+    out = tmp_path / "dt.json"
+    assert kernel_times.main(["--device", "cpu", "--scenes", "fourbar", "--worlds", "1", "--steps", "1",
+                              "--variant", dt_point["label"], "--out", str(out)]) == 0
+    assert json.loads(out.read_text())["results"][0]["dt"] == pytest.approx(fourbar.dt * dt_point["dt_scale"])
+    overhead = tmp_path / "overhead.json"
+    assert graph_overhead.main(["--device", "cpu", "--scenes", "fourbar", "--worlds", "2", "--launches", "2",
+                                "--windows", "1", "--variant", "staged kernels", "--out", str(overhead)]) == 0
+    (step_row,) = [r for r in json.loads(overhead.read_text())["results"] if r["kind"] == "step"]
+    assert step_row["variant"] == "staged kernels" and step_row["step_kernel"] == "staged"
+    assert step_row["dt"] == pytest.approx(fourbar.dt)
+    capsys.readouterr()
+    for module in (kernel_times, graph_overhead):
+        with pytest.raises(SystemExit):
+            module.main(["--device", "cpu", "--scenes", "fourbar", "--variant", "no such setting"])
+        assert "staged kernels" in capsys.readouterr().err  # the error lists the scene's labels
