@@ -189,8 +189,10 @@ TIGHT = dict(tolerance=1e-9, relative_tolerance=0.0, max_iterations=300, positio
 # 1.9e-5 m; 1.0: 5.7e-5 and 8.3e-5 m), below MuJoCo Warp's 4e-4 to 6e-4 m, and the step skips the
 # projection's solves (standing: also the projection's own matrix and factor)
 NO_PROJECTION = dict(position_iterations=0, projection_velocity_update=False, baumgarte=0.5)
+# and the sparse factor in the elimination order of the shortest estimated schedule (engine.sparse.shallowest)
 DRLEGS_VARIANTS = [dict(label="1 projection iteration", config=dict(position_iterations=1)),
-                   dict(label="no projection (Baumgarte 0.5)", config=NO_PROJECTION)]
+                   dict(label="no projection (Baumgarte 0.5)", config=NO_PROJECTION),
+                   dict(label="shallow elimination order", config=dict(sparse_ordering="shallow"))]
 # standing (drive, armature and contact rows beside the joints'): the projection's factor on the PADMM's
 # pattern with the other rows made identity, or on a pattern of the bilateral rows alone, whichever
 # SolverConfig.sparse_projection_pattern="auto" did not choose

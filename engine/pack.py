@@ -378,7 +378,7 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     model.sparse_body_nodes = False
     if sparse:  # one factor schedule per distinct topology (engine.sparse)
         rbc, rbp = factor_rows(specs, pairs, h)
-        full = build_patterns(rbc, rbp, device, body_nodes=config.sparse_body_nodes)
+        full = build_patterns(rbc, rbp, device, body_nodes=config.sparse_body_nodes, ordering=config.sparse_ordering)
         real = None  # with contact slots: rewritten every step (engine.sparse.prepare)
         if not model.has_contacts:  # each factor row stands for the joint row of its index, for good
             rows = np.arange(max(a.rows for a in full[1]))
@@ -390,7 +390,7 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
             # the projection may factor the bilateral joint rows on a pattern of their own
             real, bc, bp = bilateral_factor_rows(h["row_kind"], h["row_body_c"], h["row_body_p"],
                                                  h["contact_row_start"])
-            own = build_patterns(bc, bp, device, body_nodes=config.sparse_body_nodes)
+            own = build_patterns(bc, bp, device, body_nodes=config.sparse_body_nodes, ordering=config.sparse_ordering)
             if choice == "always" or batch_schedule_cost(own[1]) < batch_schedule_cost(full[1]):
                 model.sparse_projection = make_system(own, W, device, real=real, share=model.sparse_system)
         model.sparse_body_nodes = any(s.body_nodes for s in (model.sparse_system, model.sparse_projection) if s)

@@ -114,6 +114,8 @@ def test_solver_config_rejects_bad_values():
         SolverConfig(max_iterations=0)
     with pytest.raises(ValueError, match="integrator"):
         SolverConfig(integrator="rk4")
+    with pytest.raises(ValueError, match="sparse_ordering"):
+        SolverConfig(sparse_ordering="nested_dissection")
 
 
 def test_row_layout_of_fourbar():
