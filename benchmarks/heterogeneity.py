@@ -1,13 +1,15 @@
 """What a heterogeneous batch costs against a homogeneous batch of its largest member.
 
     python -m benchmarks.heterogeneity --device cuda [--worlds 4096] [--caps 100 50] [--stall-ratios 0 0.5]
-                                       [--free-rhos 2e-4 1e-3] [--model maximal|reduced] [--out FILE]
+                                       [--free-rhos 2e-4 1e-3] [--orderings minimum_degree shallow]
+                                       [--model maximal|reduced] [--out FILE]
 
 Random walkers (benchmarks.scenes.walkers: Jansen and Klann legs, random geometry, the maximal
 model on the sparse solver) against copies of the default walker (the family's largest topology:
 the same 304 factor rows and schedule as the random Jansen walkers), dt 2 ms, at each PADMM
-iteration cap (SolverConfig.max_iterations), stall ratio (SolverConfig.stall_ratio, 0: off) and
-free rows' penalty (SolverConfig.free_rho):
+iteration cap (SolverConfig.max_iterations), stall ratio (SolverConfig.stall_ratio, 0: off),
+free rows' penalty (SolverConfig.free_rho) and the sparse factor's elimination order
+(SolverConfig.sparse_ordering):
 after --warmup chunks of 10 steps (the walkers settle), the median ms per step over 4 chunks
 replayed as CUDA graphs (engine.rollout.Stepper),
 the mean PADMM iterations over worlds and the largest world's at the end of each timed chunk. The
@@ -53,12 +55,12 @@ def time_chunks(advance, iterations, device, warmup: int) -> dict:
 
 
 def run(specs, worlds: int, cap: int, device: str, warmup: int, stall_ratio: float = 0.0,
-        free_rho: float | None = None) -> dict:
+        free_rho: float | None = None, ordering: str = "minimum_degree") -> dict:
     from engine import SolverConfig, pack_worlds
     from engine.rollout import Stepper
 
     model = pack_worlds([specs[w % len(specs)] for w in range(worlds)], device=device, dt=2e-3,
-                        config=SolverConfig(max_iterations=cap, stall_ratio=stall_ratio,
+                        config=SolverConfig(max_iterations=cap, stall_ratio=stall_ratio, sparse_ordering=ordering,
                                             **({} if free_rho is None else {"free_rho": free_rho})))
     stepper = Stepper(model, model.state(), model.control(), chunk=10)
     return {**time_chunks(stepper.advance, model.work.iterations, model.device, warmup),
@@ -137,14 +139,19 @@ def main(argv=None) -> int:
                              "default; maximal model only)")
     parser.add_argument("--model", choices=["maximal", "reduced"], default="maximal",
                         help="maximal coordinates (the sparse solver) or engine.legged's reduced ones")
+    parser.add_argument("--orderings", nargs="+", choices=["minimum_degree", "shallow"], default=None,
+                        help="SolverConfig.sparse_ordering values, each at every other setting (default: its "
+                             "default; maximal model only)")
     parser.add_argument("--warmup", type=int, default=20, help="chunks of 10 steps before timing")
     parser.add_argument("--out", default=None, help="JSON file for the results")
     args = parser.parse_args(argv)
     if args.worlds < 1 or args.warmup < 0 or min(args.caps) < 1:
         parser.error("--worlds and --caps must be >= 1, --warmup >= 0")
-    if args.model == "reduced" and (args.stall_ratios is not None or args.free_rhos is not None):
-        parser.error("--stall-ratios and --free-rhos apply to the maximal model only (engine.legged has no "
-                     "joint rows and no stall test)")
+    if args.model == "reduced" and (args.stall_ratios is not None or args.free_rhos is not None
+                                    or args.orderings is not None):
+        parser.error("--stall-ratios, --free-rhos and --orderings apply to the maximal model only (engine.legged "
+                     "has no joint rows, no stall test and no sparse factor)")
+    args.orderings = [SolverConfig.sparse_ordering] if args.orderings is None else args.orderings
     args.stall_ratios = [0.0] if args.stall_ratios is None else args.stall_ratios
     args.free_rhos = [SolverConfig.free_rho] if args.free_rhos is None else args.free_rhos
     if not all(0.0 <= r < 1.0 for r in args.stall_ratios):
@@ -165,13 +172,14 @@ def main(argv=None) -> int:
                          lambda specs: run_reduced(specs, args.worlds, cap, args.device, args.warmup, study))
     else:
         batches = {"random": walkers().specs, "default": walker_default().specs}
-        for free_rho in args.free_rhos:
-            for stall in args.stall_ratios:
-                for cap in args.caps:
-                    settings = {"model": "maximal", "max_iterations": cap, "stall_ratio": stall, "free_rho": free_rho,
-                                "num_worlds": args.worlds}
-                    rows += pair(batches, settings, lambda specs: run(specs, args.worlds, cap, args.device,
-                                                                      args.warmup, stall, free_rho))
+        for ordering in args.orderings:
+            for free_rho in args.free_rhos:
+                for stall in args.stall_ratios:
+                    for cap in args.caps:
+                        settings = {"model": "maximal", "max_iterations": cap, "stall_ratio": stall,
+                                    "free_rho": free_rho, "sparse_ordering": ordering, "num_worlds": args.worlds}
+                        rows += pair(batches, settings, lambda specs: run(specs, args.worlds, cap, args.device,
+                                                                          args.warmup, stall, free_rho, ordering))
     if args.out:
         write_rows(args.out, args.device, "benchmarks.heterogeneity", argv, rows)
     return 0

@@ -166,7 +166,7 @@ class SolverConfig:
             engine.sparse.HEIGHT_WEIGHTS: the factor's and the solves' levels run one after the
             other, so a shallower tree is a shorter chain; on paper DR Legs hanging 11.6 k -> 8.6 k
             steps, standing as in Newton's example 12.6 k -> 10.3 k, the default walker 7.5 k ->
-            6.4 k; not yet timed on a GPU, hence not the default).
+            6.3 k; not yet timed on a GPU, hence not the default).
         compensated_state: sum the twists and the configurations the dynamics run on with
             compensation (State.body_q_low, body_qd_low: engine.integrate) and the joint errors
             the projection corrects in float64 (engine.joints.joint_frames). Off: plain float32

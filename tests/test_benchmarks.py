@@ -289,10 +289,11 @@ def test_heterogeneity_times_both_batches_at_each_cap(tmp_path, capsys):
 
     out = tmp_path / "hetero.json"
     assert heterogeneity.main(["--device", "cpu", "--worlds", "4", "--caps", "20", "--warmup", "1",
-                               "--free-rhos", "5e-4", "--out", str(out)]) == 0
+                               "--free-rhos", "5e-4", "--orderings", "shallow", "--out", str(out)]) == 0
     rows = json.loads(out.read_text())["results"]
     assert [r["batch"] for r in rows] == ["random", "default"]
     assert all(r["free_rho"] == 5e-4 and r["free_rho_used"] == pytest.approx(5e-4) for r in rows)
+    assert all(r["sparse_ordering"] == "shallow" for r in rows)
     random_walkers, default = rows
     assert random_walkers["patterns"] == 2 and default["patterns"] == 1
     assert all(r["step_ms"] > 0 and max(r["iterations_largest_world"]) <= 20 for r in rows)
