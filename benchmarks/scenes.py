@@ -186,8 +186,9 @@ TIGHT = dict(tolerance=1e-9, relative_tolerance=0.0, max_iterations=300, positio
 # one Gauss-Newton iteration for the dynamics' configuration and one for the output instead of two each;
 # no projection at all, the loops held by the velocity-level Baumgarte term alone: on the CPU (one world,
 # 2 s, dt 10 ms) its largest loop opening is 1.2e-4 m hanging and 2.9e-6 m standing at 0.5 (0.1: 4.3e-4 and
-# 1.9e-5 m; 1.0: 5.7e-5 and 8.3e-5 m), below MuJoCo Warp's 4e-4 to 6e-4 m, and the step skips the
-# projection's solves (standing: also the projection's own matrix and factor)
+# 1.9e-5 m; 1.0: 5.7e-5 and 8.3e-5 m), below MuJoCo Warp's 4e-4 to 6e-4 m, but 1.0e-4 and 1.4e-3 rad in
+# angle (its: 8e-5 to 1.2e-4 rad); the step skips the projection's solves (standing: also the projection's
+# own matrix and factor)
 NO_PROJECTION = dict(position_iterations=0, projection_velocity_update=False, baumgarte=0.5)
 # and the sparse factor in the elimination order of the shortest estimated schedule (engine.sparse.shallowest)
 DRLEGS_VARIANTS = [dict(label="1 projection iteration", config=dict(position_iterations=1)),

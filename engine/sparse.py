@@ -26,8 +26,9 @@ estimated schedule. NVIDIA H100, 4096 worlds, same run: DR Legs standing 13.1 ->
 (factor entries 6.7 k -> 4.2 k, levels 95 -> 45), walkers in their gait 78 -> 53 ms per step
 (levels 100 -> 36), same iterations and loop errors; DR Legs hanging keeps its plain schedule.
 
-Host (``analyze``): a minimum-degree order of the factor rows, the elimination tree, the factor's
-pattern, and schedules for the device:
+Host (``analyze``): a minimum-degree order of the factor rows (optionally weighted by the
+elimination tree's height, for a shallower tree: ``shallowest``, SolverConfig.sparse_ordering), the
+elimination tree, the factor's pattern, and schedules for the device:
 - entries grouped by levels of the elimination tree (a column's level is one more than its
   children's highest), so that all columns of a level are computed at once;
 - for every factor entry L_ij the pairs (L_ik, L_jk), k < j, whose products it subtracts
@@ -137,6 +138,8 @@ def minimum_degree(neighbours: list[set[int]], height_weight: float = 0.0) -> li
     plus that weight times its level in the elimination tree so far (one more than the highest
     eliminated node it was a neighbour of, which the tree makes its descendant), so that among
     nodes of about the same degree the shallower go first and the tree stays short."""
+    if height_weight < 0.0:
+        raise ValueError(f"minimum_degree: height_weight must be >= 0, got {height_weight}")
     graph = [set(n) for n in neighbours]
     alive = set(range(len(graph)))
     height = [0] * len(graph)
@@ -539,12 +542,13 @@ BODY_NODE_MISSES = 4  # ... ending early after this many in a row that did not s
 BODY_NODE_GAIN = 0.8
 # Height weights of the elimination orders that SolverConfig.sparse_ordering="shallow" tries besides
 # plain minimum degree (minimum_degree, shallowest). Estimated schedules (schedule_cost) of plain
-# minimum degree / weight 0.5 / 1 / 2, with each topology's body nodes: DR Legs hanging 11.6 / 8.6 /
+# minimum degree / weight 0.5 / 1 / 2, with each topology's body nodes (0.25 estimates as 0.5 on
+# all but the default walker, and is kept on ties, being tried first): DR Legs hanging 11.6 / 8.6 /
 # 8.9 / 8.6 k steps (71 -> 45-50 levels of columns, 9 -> 6-7 of blocks), standing as in Newton's
 # example 12.6 / 10.3 / 14.7 / 14.7 k, its projection's own pattern 9.7 / 8.0 / 8.6 / 8.6 k, the
-# default walker 7.5 / 6.4 / 6.4 / 6.3 k, a random Jansen walker 4.8 / 4.2 / 4.2 / 4.2 k. A nested
-# dissection (recursive separators of breadth-first levels) estimated longer than minimum degree on
-# all but one of them.
+# default walker 7.5 / 6.4 / 6.4 / 6.3 k, a random Jansen walker 4.8 / 4.2 / 4.2 / 4.2 k (4.3 k in a
+# batch padded to the larger walkers' nodes). A nested dissection (recursive separators of
+# breadth-first levels) estimated longer than minimum degree on all but one of them.
 HEIGHT_WEIGHTS = (0.25, 0.5, 1.0, 2.0)
 
 

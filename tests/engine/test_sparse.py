@@ -158,6 +158,7 @@ def test_height_weight_shortens_the_elimination_tree():
     half the levels for a little fill, and a shorter estimated schedule."""
 
     def reference(neighbours):
+        """Greedy minimum degree on a dict of neighbour sets, eliminated node by node."""
         graph, order = {v: set(n) for v, n in enumerate(neighbours)}, []
         while graph:
             v = min(graph, key=lambda x: (len(graph[x]), x))
@@ -180,13 +181,26 @@ def test_height_weight_shortens_the_elimination_tree():
     body_c = np.arange(rows)
     body_p = np.arange(1, rows + 1)
     plain = sparse.analyze(body_c, body_p)
-    assert len(plain.level_first) == rows  # from one end to the other
+    assert len(plain.level_first) == rows and plain.entries == 2 * rows - 1  # one end to the other, no fill
     for weight in sparse.HEIGHT_WEIGHTS:
         shallow = sparse.analyze(body_c, body_p, height_weight=weight)
         assert sorted(shallow.perm) == list(range(rows)) and shallow.height_weight == weight
-        assert len(shallow.level_first) <= rows // 2 and plain.entries == 2 * rows - 1  # a path: no fill
+        assert list(shallow.perm[:2]) == [0, rows - 1]  # both ends first
+        assert len(shallow.level_first) <= 10  # from 40 levels
         assert shallow.entries <= 3 * rows  # some fill, bought for the shorter tree
         assert sparse.schedule_cost(shallow) < sparse.schedule_cost(plain)
+        # the height the order keeps is the elimination tree's level of each node (analyze's levels)
+        level = np.zeros(rows, np.int64)
+        for first, end in zip(shallow.level_first, shallow.level_diag_end):
+            level[shallow.entry_j[first:end]] = np.searchsorted(shallow.level_first, first)
+        pos = np.empty(rows, np.int64)
+        pos[shallow.perm] = np.arange(rows)
+        for j in range(rows):  # a column's parent is the first row below its diagonal
+            below = shallow.entry_i[shallow.col_begin[j]:shallow.col_end[j]]
+            if len(below):
+                assert level[below.min()] > level[j]
+    with pytest.raises(ValueError, match="height_weight"):
+        sparse.minimum_degree([set()], height_weight=-1.0)
 
 
 def test_shallow_ordering_keeps_the_shortest_schedule(device):
@@ -203,8 +217,21 @@ def test_shallow_ordering_keeps_the_shortest_schedule(device):
         assert a.height_weight == 0.0 and a.body_nodes == b.body_nodes
         assert b.height_weight in (0.0, *sparse.HEIGHT_WEIGHTS)
         assert sparse.schedule_cost(b) <= sparse.schedule_cost(a)
-    assert any(sparse.schedule_cost(b) < sparse.schedule_cost(a)
+    assert all(sparse.schedule_cost(b) < sparse.schedule_cost(a)  # every walker topology gains
                for a, b in zip(plain.sparse_system.analyses, shallow.sparse_system.analyses))
+    # a topology padded to a batch's larger node count keeps the order chosen for it alone: a chain
+    # of 24 rows beside a hub (five rows from each of 12 spokes to body 0) that becomes six nodes
+    rows = 60
+    hub_c = np.repeat(np.arange(1, 13), 5)
+    hub_p = np.zeros_like(hub_c)
+    chain_c = np.concatenate([np.arange(1, 25), np.full(36, -1)])
+    chain_p = np.concatenate([np.arange(2, 26), np.full(36, -1)])
+    _, (hub, chain), _ = sparse.build_patterns(np.stack([hub_c, chain_c]), np.stack([hub_p, chain_p]), device,
+                                               ordering="shallow")
+    assert hub.body_nodes == (0,) and chain.body_nodes == () and chain.nodes == rows + 6
+    alone = sparse.shallowest(chain_c, chain_p, sparse.choose_body_nodes(chain_c, chain_p), sparse.HEIGHT_WEIGHTS)
+    assert alone.nodes == rows and chain.height_weight == alone.height_weight > 0.0
+    np.testing.assert_array_equal(chain.perm[chain.perm < rows], alone.perm)
     spec = make_scene("sixbar").spec
     ends = []
     for ordering in ("minimum_degree", "shallow"):
