@@ -212,7 +212,7 @@ VARIANTS = ("plain", "wide", "shared", "conditional", "empty_loop")
 
 
 def main(argv=None) -> int:
-    from benchmarks.kernel_times import declared_scene, variant_setting
+    from benchmarks.kernel_times import declared_scene, scene_arguments, variant_setting
     from benchmarks.run import write_rows
     from benchmarks.scenes import SCENES_DECLARED
     from engine import SolverConfig
@@ -224,11 +224,7 @@ def main(argv=None) -> int:
     parser.add_argument("--worlds", type=int, nargs="+", default=[1, 4096])
     parser.add_argument("--launches", type=int, default=40, help="launches of each synthetic graph")
     parser.add_argument("--windows", type=int, default=7, help="timed windows per measurement")
-    parser.add_argument("--variant", default=None,
-                        help="the scenes' steps with the settings of their variant or sweep point of this label "
-                             "(benchmarks.scenes), e.g. 'no projection (Baumgarte 0.5)'; default: the defaults")
-    parser.add_argument("--assets", default=None, help="folder holding disneyresearch/dr_legs")
-    parser.add_argument("--out", default=None, help="JSON file for the results")
+    scene_arguments(parser)
     args = parser.parse_args(argv)
     if min(args.worlds) < 1 or args.launches < 2 or args.windows < 1:
         parser.error("--worlds must be >= 1, --launches >= 2 and --windows >= 1")

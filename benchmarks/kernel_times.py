@@ -105,6 +105,16 @@ def declared_scene(parser, name: str, assets):
         parser.error(f"--scenes {name}: {error}")
 
 
+def scene_arguments(parser) -> None:
+    """The options of a script that steps scenes of benchmarks.scenes: --variant (read with
+    variant_setting), --assets (declared_scene) and --out."""
+    parser.add_argument("--variant", default=None,
+                        help="each scene's variant or sweep point of this label (benchmarks.scenes), with its "
+                             "settings and dt, e.g. 'no projection (Baumgarte 0.5)'; default: the default settings")
+    parser.add_argument("--assets", default=None, help="folder holding disneyresearch/dr_legs")
+    parser.add_argument("--out", default=None, help="JSON file for the results")
+
+
 def variant_setting(parser, name: str, declared, label: str | None) -> tuple[dict, float]:
     """The settings (SolverConfig keywords) and dt factor of a scene's variant or sweep point named
     ``label`` (benchmarks.scenes: Declared.variants, Declared.sweep); None: the defaults. A label the
@@ -130,11 +140,7 @@ def main(argv=None) -> int:
     parser.add_argument("--clock", choices=("host", "device"), default="host",
                         help="host: each launch synchronized and timed with its overhead; device (CUDA): the "
                              "kernels' own run times from CUDA events, launched back to back")
-    parser.add_argument("--variant", default=None,
-                        help="a variant or sweep point of each scene by its label (benchmarks.scenes), "
-                             "e.g. 'no projection (Baumgarte 0.5)'; default: the default settings")
-    parser.add_argument("--assets", default=None, help="folder holding disneyresearch/dr_legs")
-    parser.add_argument("--out", default=None, help="JSON file for the results")
+    scene_arguments(parser)
     args = parser.parse_args(argv)
     if args.worlds < 1 or args.steps < 1:
         parser.error("--worlds and --steps must be >= 1")
