@@ -104,10 +104,14 @@ def mempool_megabytes(device: str) -> float | None:
 
 
 def engine_run(specs, worlds: int, dt: float, steps: int, record_every: int, config: SolverConfig, device: str,
-               sample: np.ndarray, potential_min=None) -> dict:
+               sample: np.ndarray, potential_min=None, model_kind: str = "maximal") -> dict:
     """Simulate ``worlds`` worlds (cycling through ``specs``); time every chunk of ``record_every``
-    steps after the first two (compile, capture); record errors and sample positions per chunk."""
+    steps after the first two (compile, capture); record errors and sample positions per chunk.
+    model_kind "chains": the same worlds in reduced coordinates (engine.chains), their errors
+    measured by a maximal model of the same worlds (engine.metrics on their body poses)."""
     batch = [specs[w % len(specs)] for w in range(worlds)]
+    if model_kind == "chains":
+        return chains_run(batch, dt, steps, record_every, config, device, sample, potential_min)
     pool_before = mempool_megabytes(device)
     t0 = time.perf_counter()
     model = pack_worlds(batch, device=device, config=config, dt=dt)
@@ -160,6 +164,66 @@ def engine_run(specs, worlds: int, dt: float, steps: int, record_every: int, con
     }
 
 
+def chains_run(batch, dt: float, steps: int, record_every: int, config: SolverConfig, device: str, sample: np.ndarray,
+               potential_min=None) -> dict:
+    """engine_run's measurement of a batch in reduced coordinates (engine.chains: one fused launch per
+    step, no PADMM iterations), its loop errors and energy from a maximal model of the same worlds."""
+    from engine.chains import ChainStepper, pack_chains
+
+    pool_before = mempool_megabytes(device)
+    t0 = time.perf_counter()
+    model = pack_chains(batch, device=device, config=config, dt=dt)
+    pack_s = time.perf_counter() - t0
+    stepper = ChainStepper(model, model.state(), chunk=record_every)
+    pool_after = mempool_megabytes(device)
+    gauge = pack_worlds(batch, device=device, dt=dt)  # measures only: its joint residuals and energy
+
+    def measure():
+        compute_metrics(gauge, stepper.state)
+        return (gauge.work.violation_linear.numpy(), gauge.work.violation_angular.numpy(),
+                gauge.work.energy.numpy())
+
+    energy0 = measure()[2].copy()
+    available = None
+    if potential_min is not None:
+        pmin = np.array([potential_min[w % len(potential_min)] for w in range(len(batch))])
+        available = np.maximum(energy0 - pmin, 1e-12)
+    positions = [stepper.state.body_q.numpy()[sample, :, :3].copy()]
+    times, loop_m, loop_rad, drift, done = [], 0.0, 0.0, 0.0, 0
+    t_first = time.perf_counter()
+    while done < steps:
+        wp.synchronize_device(device)
+        t = time.perf_counter()
+        stepper.advance()
+        wp.synchronize_device(device)
+        times.append((time.perf_counter() - t) / record_every)
+        done += record_every
+        lin, ang, energy = measure()
+        ok = ~model.diverged
+        if ok.any():
+            loop_m = max(loop_m, float(lin[ok].max()))
+            loop_rad = max(loop_rad, float(ang[ok].max()))
+            if available is not None:
+                drift = max(drift, float((np.abs(energy - energy0) / available)[ok].max()))
+        positions.append(stepper.state.body_q.numpy()[sample, :, :3].copy())
+    timed = times[2:] if len(times) > 2 else times
+    step_s = float(np.median(timed))
+    return {
+        "num_worlds": len(batch), "dt": dt, "steps": done, "step_ms_median": step_s * 1e3,
+        "world_steps_per_s": len(batch) / step_s, "wall_s_per_simulated_s": step_s / dt,
+        "first_chunks_s": [round(x * record_every, 4) for x in times[:2]], "pack_s": pack_s,
+        "loop_error_m": loop_m, "loop_error_rad": loop_rad,
+        "energy_drift_rel": drift if available is not None else None,
+        "padmm_iterations_mean": 0.0, "padmm_iterations_max": 0, "unconverged_step_fraction": 0.0,
+        "diverged_worlds": int(model.diverged.sum()),
+        "step_kernel": "chains", "linear_solver": "dense (reduced coordinates)", "max_rows": model.max_rows,
+        "fused_block": None, "cuda_graph": bool(stepper.capture),
+        "positions": np.array(positions), "run_s": time.perf_counter() - t_first,
+        "engine_arrays_mb": array_megabytes(model.arrays, model.work, stepper.state),
+        "device_memory_mb": None if pool_before is None else pool_after - pool_before,
+    }
+
+
 def trajectory_error(positions: np.ndarray, reference: np.ndarray, sample: np.ndarray, specs) -> float:
     """Largest body-position distance [m] between a run's sample worlds and the reference worlds
     of the same mechanisms, over the common records."""
@@ -206,7 +270,7 @@ def run_scene(name: str, declared: Declared, args) -> dict:
     for variant in (declared.variants if "throughput" in args.parts and worlds_list else []):
         worlds = worlds_list[-1]
         row = engine_run(specs, worlds, dt, steps + 2 * chunk, chunk, SolverConfig(**variant["config"]), args.device,
-                         np.arange(min(worlds, len(specs))), scene.potential_min)
+                         np.arange(min(worlds, len(specs))), scene.potential_min, variant.get("model", "maximal"))
         row.update(kind="throughput", engine="morphopt", label=variant["label"], settings=variant["config"])
         result["throughput"].append(clean(row))
         print(json.dumps({"scene": name, **clean(row)}), flush=True)
@@ -229,7 +293,7 @@ def run_scene(name: str, declared: Declared, args) -> dict:
             try:
                 config = SolverConfig(**setting.get("config", {}))
                 row = engine_run(specs, worlds, step_dt, round(duration / step_dt), every, config, args.device,
-                                 sample, scene.potential_min)
+                                 sample, scene.potential_min, setting.get("model", "maximal"))
             except ValueError as exc:  # e.g. a setting this batch cannot take
                 result["precision"].append({"label": setting["label"], "error": str(exc)})
                 continue

@@ -218,6 +218,23 @@ DRLEGS_SWEEP = [
     dict(label="no projection (Baumgarte 0.5), dt x4", dt_scale=4.0, config=NO_PROJECTION),
 ]
 DRLEGS_PEER_DT_SCALES = {"mujoco": [0.25, 0.5, 1.0, 2.0, 4.0], "kamino": [1.0, 2.0]}
+# DR Legs hanging in reduced coordinates (engine.chains: 30 joint angles, 18 independent loop rows, one
+# fused launch per step): the loops' velocity constraint solved exactly, then 2 (or 1, or no) Gauss-Newton
+# projections of the angles onto the loops; no projection: the velocity-level Baumgarte term alone
+REDUCED = dict(position_iterations=2)
+REDUCED_ONE = dict(position_iterations=1)
+REDUCED_NO_PROJECTION = dict(position_iterations=0, baumgarte=0.5)
+DRLEGS_REDUCED_VARIANTS = [
+    dict(label="reduced coordinates", model="chains", config=REDUCED),
+    dict(label="reduced coordinates, 1 projection", model="chains", config=REDUCED_ONE),
+    dict(label="reduced coordinates, no projection (Baumgarte 0.5)", model="chains", config=REDUCED_NO_PROJECTION)]
+DRLEGS_REDUCED_SWEEP = [
+    dict(label="reduced coordinates", dt_scale=1.0, model="chains", config=REDUCED),
+    dict(label="reduced coordinates, dt x0.5", dt_scale=0.5, model="chains", config=REDUCED),
+    dict(label="reduced coordinates, dt x2", dt_scale=2.0, model="chains", config=REDUCED),
+    dict(label="reduced coordinates, dt x4", dt_scale=4.0, model="chains", config=REDUCED),
+    dict(label="reduced coordinates, 1 projection, dt x2", dt_scale=2.0, model="chains", config=REDUCED_ONE),
+    dict(label="reduced coordinates, 1 projection, dt x4", dt_scale=4.0, model="chains", config=REDUCED_ONE)]
 # DR Legs standing: the same steps and settings; no trajectory reference (MuJoCo C on our MJCF export
 # of the standing robot is not a reference: its contacts and soft loops differ from the hard model)
 DRLEGS_STANDING_SWEEP = [s for s in DRLEGS_SWEEP if s["label"] != "float32 state"]
@@ -235,7 +252,8 @@ SCENES_DECLARED = {
                                precision_worlds=0, throughput_steps=30, quick_worlds=[2]),
     "drlegs_hanging": Declared(lambda assets: dr_legs(False, assets), dt=1e-2, duration=2.0,
                                throughput_worlds=[1, 1024, 4096], precision_worlds=4096, throughput_steps=50,
-                               peers=True, quick_worlds=[1], variants=DRLEGS_VARIANTS, sweep=DRLEGS_SWEEP,
+                               peers=True, quick_worlds=[1], variants=DRLEGS_VARIANTS + DRLEGS_REDUCED_VARIANTS,
+                               sweep=DRLEGS_SWEEP + DRLEGS_REDUCED_SWEEP,
                                reference=dict(config=TIGHT), peer_dt_scales=DRLEGS_PEER_DT_SCALES),
     "drlegs_standing": Declared(lambda assets: dr_legs(True, assets), dt=1e-2, duration=0.0,
                                 throughput_worlds=[1, 1024, 4096], precision_worlds=0, throughput_steps=50,
