@@ -34,6 +34,7 @@ import csv
 import json
 import pathlib
 import platform
+import shlex
 import sys
 import time
 
@@ -67,7 +68,7 @@ def write_rows(path, device: str, module: str, argv, rows: list, key: str = "res
     """A benchmark script's rows as JSON at ``path``, with the device, the versions and the command
     (python -m ``module`` and its arguments: ``argv``, or the process's when None)."""
     device = wp.get_device(device)
-    command = f"python -m {module} " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = f"python -m {module} " + shlex.join(argv if argv is not None else sys.argv[1:])
     with open(path, "w") as f:
         json.dump({"device": str(device), "device_name": device.name, "versions": versions(), "command": command,
                    key: rows}, f, indent=1)
@@ -253,7 +254,7 @@ def run_scene(name: str, declared: Declared, args) -> dict:
     specs = scene.specs
     quick = args.quick
     result = {"scene": name, "note": scene.note, "device": args.device, "device_name": wp.get_device(args.device).name,
-              "versions": versions(), "command": "python -m benchmarks.run " + " ".join(sys.argv[1:]),
+              "versions": versions(), "command": "python -m benchmarks.run " + shlex.join(sys.argv[1:]),
               "bodies": [len(s.bodies) for s in specs], "joints": [len(s.joints) for s in specs],
               "throughput": [], "precision": [], "peers": [], "reference": None}
     dt = declared.dt
@@ -267,7 +268,12 @@ def run_scene(name: str, declared: Declared, args) -> dict:
         row.update(kind="throughput", engine="morphopt", label="default")
         result["throughput"].append(clean(row))
         print(json.dumps({"scene": name, **clean(row)}), flush=True)
-    for variant in (declared.variants if "throughput" in args.parts and worlds_list else []):
+    chosen = getattr(args, "settings", None)
+
+    def picked(settings: list) -> list:
+        return [s for s in settings if not chosen or s["label"] in chosen]
+
+    for variant in (picked(declared.variants) if "throughput" in args.parts and worlds_list else []):
         worlds = worlds_list[-1]
         row = engine_run(specs, worlds, dt, steps + 2 * chunk, chunk, SolverConfig(**variant["config"]), args.device,
                          np.arange(min(worlds, len(specs))), scene.potential_min, variant.get("model", "maximal"))
@@ -286,7 +292,7 @@ def run_scene(name: str, declared: Declared, args) -> dict:
         reference = None  # a scene without a trustworthy reference reports loop error and run time only
         if declared.reference is not None:
             reference, result["reference"] = reference_run(specs, scene, duration, record_dt, dt, declared, args)
-        sweep = declared.sweep[:5] if quick else declared.sweep
+        sweep = picked(declared.sweep[:5] if quick else declared.sweep)
         for setting in sweep:
             step_dt = dt * setting["dt_scale"]
             every = steps_per_record(record_dt, step_dt)  # a misaligned record interval is the runner's fault
@@ -573,9 +579,19 @@ def main(argv=None) -> int:
     parser.add_argument("--parts", nargs="+", choices=["throughput", "precision"], default=["throughput", "precision"],
                         help="what to measure (default both)")
     parser.add_argument("--only", nargs="+", choices=sorted(SCENES_DECLARED), default=None, help="scenes to run")
+    parser.add_argument("--settings", nargs="+", default=None, metavar="LABEL",
+                        help="only the variants and sweep points of these labels (benchmarks.scenes; the default "
+                             "settings' throughput still runs), e.g. 'reduced coordinates'")
     parser.add_argument("--assets", default=None, help="folder holding disneyresearch/dr_legs (DR Legs scenes)")
     parser.add_argument("--out", default=None, help="results folder (default benchmarks/results/<device>)")
     args = parser.parse_args(argv)
+    if args.settings:
+        known = {s["label"] for name in (args.only or SCENES_DECLARED) for s in
+                 SCENES_DECLARED[name].variants + SCENES_DECLARED[name].sweep}
+        unknown = [label for label in args.settings if label not in known]
+        if unknown:
+            parser.error(f"--settings: no variant or sweep point is labelled {unknown} in these scenes; "
+                         f"labels: {sorted(known)}")
     wp.config.log_level = wp.LOG_WARNING
     wp.init()
     try:

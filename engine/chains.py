@@ -44,6 +44,7 @@ The loops' error of the result is measured by the maximal-coordinate engine's ow
 (engine.metrics on a maximal model of the same specs), from body_q.
 """
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any, Sequence
@@ -51,7 +52,6 @@ from typing import Any, Sequence
 import numpy as np
 import warp as wp
 
-from engine.fused import tile_set
 from engine.linear import block_sync
 from engine.model import SolverConfig
 from engine.spec import JointType, MechanismSpec
@@ -66,6 +66,30 @@ MAX_LOOPS = 32
 ROW_TOLERANCE = 1.0e-4  # a loop row is redundant when the kept rows leave less than this of its norm
 REGULARIZATION = wp.constant(1.0e-6)  # relative diagonal shift of the loops' matrix (rounding guard)
 CHAIN_BLOCK = 32  # threads per world on a GPU
+TILE_STEP = 8  # the shared tiles are sized to the batch's padded coordinates and rows in steps of this
+TILE_SIZES = tuple(range(TILE_STEP, MAX_COORDS + 1, TILE_STEP))
+
+
+def _define_setters():
+    """Element writes into the shared tiles of every size (overloads of cset), without the block
+    barrier Warp's tile element assignment ends in: the lanes write different entries in divergent
+    code and the callers place the barriers."""
+    setter = None
+    for rows in TILE_SIZES:
+        for cols in TILE_SIZES:
+            @wp.func_native("t.data(wp::tile_coord(i, j)) = value;")
+            def cset(t: wp.tile(dtype=float, shape=(rows, cols), storage="shared"), i: int, j: int, value: float):
+                """t[i, j] = value, without a barrier."""
+            setter = cset
+
+        @wp.func_native("t.data(wp::tile_coord(i)) = value;")
+        def cset(t: wp.tile(dtype=float, shape=(rows,), storage="shared"), i: int, value: float):  # noqa: F811
+            """t[i] = value, without a barrier."""
+        setter = cset
+    return setter
+
+
+cset = _define_setters()
 
 
 def _quat_matrix(q: np.ndarray) -> np.ndarray:
@@ -351,6 +375,8 @@ class ChainArrays:
     parent: wp.array2d(dtype=wp.int32)
     depth: wp.array2d(dtype=wp.int32)
     ancestors: wp.array2d(dtype=wp.int32)  # bit i: tree joint i moves body k
+    first_child: wp.array2d(dtype=wp.int32)  # tree index of body k's first child, -1: none
+    child_count: wp.array2d(dtype=wp.int32)
     joint_parent: wp.array2d(dtype=wp.transform)
     joint_child: wp.array2d(dtype=wp.transform)
     axis: wp.array2d(dtype=wp.vec3)
@@ -385,7 +411,10 @@ class ChainWork:
     acc: wp.array2d(dtype=wp.vec3)  # velocity-product linear acceleration of the centre of mass
     inertia: wp.array2d(dtype=wp.mat33)  # world-frame inertia about the centre of mass
     wrench_t: wp.array2d(dtype=wp.vec3)  # per body, then per subtree: torque about the origin
-    wrench_f: wp.array2d(dtype=wp.vec3)
+    wrench_f: wp.array2d(dtype=wp.vec3)  # and force
+    sub_mass: wp.array2d(dtype=float)  # per body, then per subtree: mass,
+    sub_moment: wp.array2d(dtype=wp.vec3)  # first moment about the origin
+    sub_inertia: wp.array2d(dtype=wp.mat33)  # and inertia about the origin
     force_n: wp.array2d(dtype=wp.vec3)  # subtree's inertia applied to the joint's motion: torque
     force_f: wp.array2d(dtype=wp.vec3)  # and force
     phi: wp.array2d(dtype=float)  # every loop's five errors (W, 5 L)
@@ -525,9 +554,11 @@ def row_entry(m: ChainArrays, w: ChainWork, world: int, r: int, j: int):
 
 
 @wp.func
-def factor_lanes(lane: int, lanes: int, n: int, A: Any, relative: float):
-    """In-place lower Cholesky factor of the n x n shared tile A (its lower triangle read), plus
-    relative * A_jj on the diagonal; the lanes share each column, one barrier per column."""
+def factor_lanes(lane: int, lanes: int, n: int, A: Any, diag: Any, relative: float):
+    """Lower Cholesky factor of the n x n shared tile A (its lower triangle, plus relative * A_jj on
+    the diagonal): the factor's entries below the diagonal overwrite A's, its diagonal goes to the
+    shared vector diag (A's own diagonal is kept). Left-looking, the lanes share each column's entries,
+    every lane forms the pivot; one barrier per column. Entered after a barrier."""
     for j in range(n):
         s = A[j, j] * (1.0 + relative)
         for k in range(j):
@@ -538,197 +569,242 @@ def factor_lanes(lane: int, lanes: int, n: int, A: Any, relative: float):
             t = A[i, j]
             for k in range(j):
                 t -= A[i, k] * A[j, k]
-            tile_set(A, i, j, t * inv)
-        block_sync()
+            cset(A, i, j, t * inv)
         if lane == 0:
-            tile_set(A, j, j, d)
+            cset(diag, j, d)
         block_sync()
 
 
 @wp.func
-def substitute(n: int, L: Any, x: Any, col: int):
-    """Column col of the shared tile x := (L L^T)^-1 x[:, col], by one lane."""
+def solve_column(n: int, L: Any, diag: Any, x: Any, col: int):
+    """Column col of the shared tile x := (L L^T)^-1 x[:, col] (factor_lanes' L and diag), by one lane."""
     for i in range(n):
         s = x[i, col]
         for k in range(i):
             s -= L[i, k] * x[k, col]
-        tile_set(x, i, col, s / L[i, i])
+        cset(x, i, col, s / diag[i])
     for step in range(n):
         i = n - 1 - step
         s = x[i, col]
         for k in range(i + 1, n):
             s -= L[k, i] * x[k, col]
-        tile_set(x, i, col, s / L[i, i])
+        cset(x, i, col, s / diag[i])
 
 
 @wp.func
-def substitute_vec(n: int, L: Any, x: Any):
-    """The shared vector x := (L L^T)^-1 x, by one lane."""
+def solve_row(n: int, L: Any, diag: Any, x: Any, row: int):
+    """Row ``row`` of the shared tile x := (L L^T)^-1 x[row, :] (factor_lanes' L and diag), by one lane."""
+    for i in range(n):
+        s = x[row, i]
+        for k in range(i):
+            s -= L[i, k] * x[row, k]
+        cset(x, row, i, s / diag[i])
+    for step in range(n):
+        i = n - 1 - step
+        s = x[row, i]
+        for k in range(i + 1, n):
+            s -= L[k, i] * x[row, k]
+        cset(x, row, i, s / diag[i])
+
+
+@wp.func
+def solve_vector(n: int, L: Any, diag: Any, x: Any):
+    """The shared vector x := (L L^T)^-1 x (factor_lanes' L and diag), by one lane."""
     for i in range(n):
         s = x[i]
         for k in range(i):
             s -= L[i, k] * x[k]
-        tile_set(x, i, s / L[i, i])
+        cset(x, i, s / diag[i])
     for step in range(n):
         i = n - 1 - step
         s = x[i]
         for k in range(i + 1, n):
             s -= L[k, i] * x[k]
-        tile_set(x, i, s / L[i, i])
+        cset(x, i, s / diag[i])
 
 
+@wp.func
+def own_terms(m: ChainArrays, w: ChainWork, world: int, k: int, g: wp.vec3):
+    """Body k's own mass, first moment and inertia about the origin, and its gravity, inertial and
+    gyroscopic wrench (torque about the origin, force), into the subtree accumulators."""
+    mk = m.mass[world, k]
+    c = w.centre[world, k]
+    I = w.inertia[world, k]
+    om = w.omega[world, k]
+    f = mk * (g - w.acc[world, k])
+    w.wrench_t[world, k] = -(I * w.alpha[world, k]) - wp.cross(om, I * om) + wp.cross(c, f)
+    w.wrench_f[world, k] = f
+    w.sub_mass[world, k] = mk
+    w.sub_moment[world, k] = mk * c
+    w.sub_inertia[world, k] = I + mk * (wp.dot(c, c) * wp.identity(n=3, dtype=float) - wp.outer(c, c))
 
-@wp.kernel(enable_backward=False)
-def chain_step_kernel(m: ChainArrays, w: ChainWork, dt: float, baumgarte: float, iterations: int, max_speed: float,
-                      record: int, q: wp.array2d(dtype=float), u: wp.array2d(dtype=float),
-                      body_q: wp.array2d(dtype=wp.transform), body_qd: wp.array2d(dtype=wp.spatial_vector)):
-    world, lane = wp.tid()
-    lanes = wp.block_dim()
-    Mt = wp.tile_zeros(shape=(MAX_COORDS, MAX_COORDS), dtype=float, storage="shared")  # M~, then its factor
-    Gt = wp.tile_zeros(shape=(MAX_ROWS, MAX_COORDS), dtype=float, storage="shared")  # G
-    Xt = wp.tile_zeros(shape=(MAX_COORDS, MAX_ROWS), dtype=float, storage="shared")  # M~^-1 G^T
-    At = wp.tile_zeros(shape=(MAX_ROWS, MAX_ROWS), dtype=float, storage="shared")  # G X, then its factor
-    vec = wp.tile_zeros(shape=MAX_COORDS, dtype=float, storage="shared")
-    lam = wp.tile_zeros(shape=MAX_ROWS, dtype=float, storage="shared")
-    n = m.tree_count[world]
-    R = m.row_count[world]
-    frozen = w.diverged[world]
-    block_sync()
-    if frozen == 0:
-        kinematics(m, w, world, lane, lanes, q, u)
-        g = m.gravity[world]
-        for k in range(lane, n, lanes):  # each body's wrench about the origin: gravity, inertial, gyroscopic
-            mk = m.mass[world, k]
-            c = w.centre[world, k]
-            I = w.inertia[world, k]
-            om = w.omega[world, k]
-            f = mk * (g - w.acc[world, k])
-            t = -(I * w.alpha[world, k]) - wp.cross(om, I * om) + wp.cross(c, f)
-            w.wrench_t[world, k] = t
-            w.wrench_f[world, k] = f
+
+@wp.func
+def add_children(m: ChainArrays, w: ChainWork, world: int, k: int):
+    """Body k's subtree sums: its own terms plus its children's subtree sums (the children are
+    contiguous in the breadth-first order)."""
+    first = m.first_child[world, k]
+    if first >= 0:
+        sm = w.sub_mass[world, k]
+        sh = w.sub_moment[world, k]
+        sI = w.sub_inertia[world, k]
+        st = w.wrench_t[world, k]
+        sf = w.wrench_f[world, k]
+        for c in range(first, first + m.child_count[world, k]):
+            sm += w.sub_mass[world, c]
+            sh += w.sub_moment[world, c]
+            sI += w.sub_inertia[world, c]
+            st += w.wrench_t[world, c]
+            sf += w.wrench_f[world, c]
+        w.sub_mass[world, k] = sm
+        w.sub_moment[world, k] = sh
+        w.sub_inertia[world, k] = sI
+        w.wrench_t[world, k] = st
+        w.wrench_f[world, k] = sf
+
+
+@functools.cache
+def chain_step_kernel(coords: int, rows: int):
+    """The step kernel with shared tiles of coords x coords (tree coordinates) and rows x rows (kept
+    loop rows), each a multiple of TILE_STEP (module docstring: the step)."""
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def chain_step_body(m: ChainArrays, w: ChainWork, dt: float, baumgarte: float, iterations: int, max_speed: float,
+                          record: int, q: wp.array2d(dtype=float), u: wp.array2d(dtype=float),
+                          body_q: wp.array2d(dtype=wp.transform), body_qd: wp.array2d(dtype=wp.spatial_vector)):
+        world, lane = wp.tid()
+        lanes = wp.block_dim()
+        Mt = wp.tile_zeros(shape=(coords, coords), dtype=float, storage="shared")  # M~, then its factor
+        Gt = wp.tile_zeros(shape=(rows, coords), dtype=float, storage="shared")  # G
+        Xt = wp.tile_zeros(shape=(coords, rows), dtype=float, storage="shared")  # M~^-1 G^T, then K = X A^-1
+        At = wp.tile_zeros(shape=(rows, rows), dtype=float, storage="shared")  # A = G X, then its factor
+        diag_m = wp.tile_zeros(shape=coords, dtype=float, storage="shared")
+        diag_a = wp.tile_zeros(shape=rows, dtype=float, storage="shared")
+        vec = wp.tile_zeros(shape=coords, dtype=float, storage="shared")  # dt tau, then du
+        rhs = wp.tile_zeros(shape=rows, dtype=float, storage="shared")
+        n = m.tree_count[world]
+        R = m.row_count[world]
+        depths = m.depth_count[world]
+        frozen = w.diverged[world]
         block_sync()
-        for i in range(lane, n, lanes):  # a lane per joint: its subtree's sums
-            cm = float(0.0)
-            ch = wp.vec3()
-            cI = wp.mat33()
-            st = wp.vec3()
-            sf = wp.vec3()
-            for d in range(n):
-                if bit(m.ancestors[world, d], i) != 0:
-                    mk = m.mass[world, d]
-                    c = w.centre[world, d]
-                    cm += mk
-                    ch += mk * c
-                    cI += w.inertia[world, d] + mk * (wp.dot(c, c) * wp.identity(n=3, dtype=float) - wp.outer(c, c))
-                    st += w.wrench_t[world, d]
-                    sf += w.wrench_f[world, d]
-            a = w.axis[world, i]
-            s_lin = wp.cross(w.point[world, i], a)
-            w.force_n[world, i] = cI * a + wp.cross(ch, s_lin)
-            w.force_f[world, i] = cm * s_lin - wp.cross(ch, a)
-            ui = u[world, i]
-            tau = wp.dot(a, st) + wp.dot(s_lin, sf) - m.damping[world, i] * ui
-            tau += m.kp[world, i] * (m.q_target[world, i] - q[world, i]) + m.kd[world, i] * (m.v_target[world, i] - ui)
-            tile_set(vec, i, dt * tau)
-        block_sync()
-        for e in range(lane, n * n, lanes):  # M~ (lower triangle and diagonal)
-            i = e // n
-            j = e % n
-            if j <= i:
-                value = float(0.0)
-                lo = j
-                hi = i
-                if bit(m.ancestors[world, i], j) == 0:
-                    lo = i
-                    hi = j
-                if bit(m.ancestors[world, hi], lo) != 0:  # lo's joint moves hi's body
-                    a = w.axis[world, lo]
-                    value = wp.dot(a, w.force_n[world, hi]) + wp.dot(wp.cross(w.point[world, lo], a),
-                                                                     w.force_f[world, hi])
-                if i == j:
-                    value += m.armature[world, i] + dt * (m.damping[world, i] + m.kd[world, i] + dt * m.kp[world, i])
-                tile_set(Mt, i, j, value)
-        loop_errors(m, w, world, lane, lanes)
-        block_sync()
-        if record != 0:
-            for e in range(lane, n * n, lanes):
+        if frozen == 0:
+            kinematics(m, w, world, lane, lanes, q, u)
+            g = m.gravity[world]
+            for k in range(lane, n, lanes):
+                own_terms(m, w, world, k, g)
+            block_sync()
+            for step in range(depths - 1):  # subtree sums, deepest parents first
+                level = depths - 2 - step
+                for k in range(lane, n, lanes):
+                    if m.depth[world, k] == level:
+                        add_children(m, w, world, k)
+                block_sync()
+            for i in range(lane, n, lanes):  # per joint: its subtree's inertia applied to its motion, its force
+                a = w.axis[world, i]
+                s_lin = wp.cross(w.point[world, i], a)
+                cm = w.sub_mass[world, i]
+                ch = w.sub_moment[world, i]
+                w.force_n[world, i] = w.sub_inertia[world, i] * a + wp.cross(ch, s_lin)
+                w.force_f[world, i] = cm * s_lin - wp.cross(ch, a)
+                ui = u[world, i]
+                tau = wp.dot(a, w.wrench_t[world, i]) + wp.dot(s_lin, w.wrench_f[world, i]) - m.damping[world, i] * ui
+                tau += m.kp[world, i] * (m.q_target[world, i] - q[world, i]) + m.kd[world, i] * (m.v_target[world, i] - ui)
+                cset(vec, i, dt * tau)
+            loop_errors(m, w, world, lane, lanes)
+            block_sync()
+            for e in range(lane, n * n, lanes):  # M~ (lower triangle and diagonal)
                 i = e // n
                 j = e % n
                 if j <= i:
-                    w.matrix[world, i, j] = Mt[i, j]
-                    w.matrix[world, j, i] = Mt[i, j]
-        factor_lanes(lane, lanes, n, Mt, 0.0)
-        if lane == 0:
-            substitute_vec(n, Mt, vec)
-        for e in range(lane, R * n, lanes):  # G
-            r = e // n
-            j = e % n
-            value = row_entry(m, w, world, r, j)
-            tile_set(Gt, r, j, value)
-            tile_set(Xt, j, r, value)
-            if record != 0:
-                w.rows[world, r, j] = value
-        block_sync()
-        for i in range(lane, n, lanes):
-            w.u_free[world, i] = u[world, i] + vec[i]
-        for r in range(lane, R, lanes):  # X = M~^-1 G^T, a column per lane
-            substitute(n, Mt, Xt, r)
-        block_sync()
-        for e in range(lane, R * R, lanes):  # A = G X (lower triangle)
-            r = e // R
-            s = e % R
-            if s <= r:
-                acc = float(0.0)
-                for j in range(n):
-                    acc += Gt[r, j] * Xt[j, s]
-                tile_set(At, r, s, acc)
-        for r in range(lane, R, lanes):  # the right-hand side: -(G u_f) - baumgarte phi / dt
-            acc = float(0.0)
-            for j in range(n):
-                acc += Gt[r, j] * w.u_free[world, j]
-            tile_set(lam, r, -acc - baumgarte / dt * w.phi[world, 5 * m.row_loop[world, r] + m.row_part[world, r]])
-        block_sync()
-        factor_lanes(lane, lanes, R, At, REGULARIZATION)
-        if lane == 0:
-            substitute_vec(R, At, lam)
-        block_sync()
-        for i in range(lane, n, lanes):  # u = u_f + X lambda, q += dt u
-            acc = w.u_free[world, i]
-            for r in range(R):
-                acc += Xt[i, r] * lam[r]
-            u[world, i] = acc
-            q[world, i] = q[world, i] + dt * acc
-        block_sync()
-        for it in range(iterations):  # Gauss-Newton projections onto the loops with the step's factors
-            kinematics(m, w, world, lane, lanes, q, u)
-            loop_errors(m, w, world, lane, lanes)
+                    value = float(0.0)
+                    lo = j
+                    hi = i
+                    if bit(m.ancestors[world, i], j) == 0:
+                        lo = i
+                        hi = j
+                    if bit(m.ancestors[world, hi], lo) != 0:  # lo's joint moves hi's body
+                        a = w.axis[world, lo]
+                        value = wp.dot(a, w.force_n[world, hi]) + wp.dot(wp.cross(w.point[world, lo], a),
+                                                                         w.force_f[world, hi])
+                    if i == j:
+                        value += m.armature[world, i] + dt * (m.damping[world, i] + m.kd[world, i] + dt * m.kp[world, i])
+                    cset(Mt, i, j, value)
+                    if record != 0:
+                        w.matrix[world, i, j] = value
+                        w.matrix[world, j, i] = value
+            for e in range(lane, R * n, lanes):  # G, and G^T into X
+                r = e // n
+                j = e % n
+                value = row_entry(m, w, world, r, j)
+                cset(Gt, r, j, value)
+                cset(Xt, j, r, value)
+                if record != 0:
+                    w.rows[world, r, j] = value
             block_sync()
-            for r in range(lane, R, lanes):
-                tile_set(lam, r, w.phi[world, 5 * m.row_loop[world, r] + m.row_part[world, r]])
-            block_sync()
-            if lane == 0:
-                substitute_vec(R, At, lam)
+            factor_lanes(lane, lanes, n, Mt, diag_m, 0.0)
+            for col in range(lane, R + 1, lanes):  # X = M~^-1 G^T a column per lane, and du = M~^-1 (dt tau)
+                if col < R:
+                    solve_column(n, Mt, diag_m, Xt, col)
+                else:
+                    solve_vector(n, Mt, diag_m, vec)
             block_sync()
             for i in range(lane, n, lanes):
-                acc = float(0.0)
-                for r in range(R):
-                    acc += Xt[i, r] * lam[r]
-                q[world, i] = q[world, i] - acc
+                w.u_free[world, i] = u[world, i] + vec[i]
+            for e in range(lane, R * R, lanes):  # A = G X (lower triangle)
+                r = e // R
+                s = e % R
+                if s <= r:
+                    acc = float(0.0)
+                    for j in range(n):
+                        acc += Gt[r, j] * Xt[j, s]
+                    cset(At, r, s, acc)
             block_sync()
-        kinematics(m, w, world, lane, lanes, q, u)
-        bad = int(0)
-        for k in range(lane, n, lanes):
-            b = m.body_out[world, k]
-            X = w.pose[world, k]
-            c = w.centre[world, k]
-            v = w.vel[world, k]
-            om = w.omega[world, k]
-            body_q[world, b] = wp.transform(c, wp.transform_get_rotation(X))
-            body_qd[world, b] = wp.spatial_vector(v, om)
-            if not (wp.isfinite(c) and wp.isfinite(v) and wp.isfinite(om)) or wp.length(v) > max_speed:
-                bad = 1
-        if bad != 0:
-            w.diverged[world] = 1
+            for r in range(lane, R, lanes):  # the right-hand side: -(G u_f) - baumgarte phi / dt
+                acc = float(0.0)
+                for j in range(n):
+                    acc += Gt[r, j] * w.u_free[world, j]
+                cset(rhs, r, -acc - baumgarte / dt * w.phi[world, 5 * m.row_loop[world, r] + m.row_part[world, r]])
+            factor_lanes(lane, lanes, R, At, diag_a, REGULARIZATION)
+            for i in range(lane, n, lanes):  # K = X A^-1, a row per lane
+                solve_row(R, At, diag_a, Xt, i)
+            block_sync()
+            for i in range(lane, n, lanes):  # u = u_f + K rhs, q += dt u
+                acc = w.u_free[world, i]
+                for r in range(R):
+                    acc += Xt[i, r] * rhs[r]
+                u[world, i] = acc
+                q[world, i] = q[world, i] + dt * acc
+            block_sync()
+            for it in range(iterations):  # Gauss-Newton projections onto the loops with the step's factors
+                kinematics(m, w, world, lane, lanes, q, u)
+                loop_errors(m, w, world, lane, lanes)
+                block_sync()
+                for i in range(lane, n, lanes):
+                    acc = float(0.0)
+                    for r in range(R):
+                        acc += Xt[i, r] * w.phi[world, 5 * m.row_loop[world, r] + m.row_part[world, r]]
+                    q[world, i] = q[world, i] - acc
+                block_sync()
+            kinematics(m, w, world, lane, lanes, q, u)
+            bad = int(0)
+            for k in range(lane, n, lanes):
+                b = m.body_out[world, k]
+                X = w.pose[world, k]
+                c = w.centre[world, k]
+                v = w.vel[world, k]
+                om = w.omega[world, k]
+                body_q[world, b] = wp.transform(c, wp.transform_get_rotation(X))
+                body_qd[world, b] = wp.spatial_vector(v, om)
+                if not (wp.isfinite(c) and wp.isfinite(v) and wp.isfinite(om)) or wp.length(v) > max_speed:
+                    bad = 1
+            if bad != 0:
+                w.diverged[world] = 1
+
+    return chain_step_body
+
+
+def _tile_size(count: int) -> int:
+    return max(TILE_STEP, -(-count // TILE_STEP) * TILE_STEP)
 
 
 def _transform(R: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -765,6 +841,8 @@ class ChainModel:
         self.config, self.dt, self.device = config, dt, device
         self.num_worlds = len(layouts)
         self.max_rows = max(len(lay.rows) for lay in layouts)
+        self.coords = _tile_size(max(lay.n for lay in layouts))
+        self.tile_rows = _tile_size(self.max_rows)
 
     def state(self) -> ChainState:
         """A new state at the initial pose."""
@@ -775,7 +853,8 @@ class ChainModel:
         """Advance state by one step of self.dt (in place)."""
         c = self.config
         block = CHAIN_BLOCK if wp.get_device(self.device).is_cuda else 1
-        wp.launch_tiled(chain_step_kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
+        kernel = chain_step_kernel(self.coords, self.tile_rows)
+        wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
                         inputs=[self.arrays, self.work, float(self.dt), float(c.baumgarte), int(c.position_iterations),
                                 float(c.max_speed), int(record), state.q, state.u, state.body_q, state.body_qd])
 
@@ -795,17 +874,22 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     specs = list(specs)
     if not specs:
         raise ValueError("pack_chains: needs at least one MechanismSpec")
-    layouts = []
+    distinct, kind_of, layouts = {}, [], []  # one layout per distinct spec object
     for index, spec in enumerate(specs):
-        try:
-            layouts.append(chain_layout(spec))
-        except ValueError as exc:
-            raise ValueError(f"world {index} ({spec.name}): {exc}") from exc
-    W, N = len(specs), MAX_COORDS
+        if id(spec) not in distinct:
+            try:
+                layouts.append(chain_layout(spec))
+            except ValueError as exc:
+                raise ValueError(f"world {index} ({spec.name}): {exc}") from exc
+            distinct[id(spec)] = len(layouts) - 1
+        kind_of.append(distinct[id(spec)])
+    kind_of = np.array(kind_of)
+    W, N = len(layouts), MAX_COORDS
     L = max(1, max(len(lay.loops) for lay in layouts))
     B = max(len(lay.spec.bodies) for lay in layouts)
     f = {k: np.zeros((W, N)) for k in ("mass", "armature", "damping", "kp", "kd", "q_target", "v_target", "q", "u")}
-    i32 = {k: np.zeros((W, N), dtype=np.int32) for k in ("parent", "depth", "ancestors", "body_out")}
+    i32 = {k: np.zeros((W, N), dtype=np.int32) for k in ("parent", "depth", "ancestors", "body_out", "first_child",
+                                                         "child_count")}
     v3 = {k: np.zeros((W, N, 3)) for k in ("axis", "com")}
     inertia = np.tile(np.eye(3), (W, N, 1, 1))
     jp = np.zeros((W, N, 7))
@@ -835,6 +919,11 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
             i32["depth"][w_, k] = lay.depth[k]
             i32["ancestors"][w_, k] = np.int32(np.uint32(sum(1 << a for a in lay.ancestors(k))).view(np.int32))
             i32["body_out"][w_, k] = lay.tree_body[k]
+            children = np.flatnonzero(lay.parent == k)
+            i32["first_child"][w_, k] = children[0] if len(children) else -1
+            i32["child_count"][w_, k] = len(children)
+            if len(children) and not np.array_equal(children, np.arange(children[0], children[0] + len(children))):
+                raise AssertionError("breadth-first order keeps siblings contiguous")
             jp[w_, k] = _transform(lay.parent_R[k], lay.parent_p[k])
             jc[w_, k] = _transform(lay.child_R[k], lay.child_p[k])
             v3["axis"][w_, k] = lay.axis[k]
@@ -862,13 +951,23 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         for i, body in enumerate(spec.bodies):
             R = _frame(body.orientation)
             body_q[w_, i] = np.r_[np.asarray(body.position) + R @ np.asarray(body.com), body.orientation]
+    # every world from its distinct spec's rows
+    f = {k: v[kind_of] for k, v in f.items()}
+    i32 = {k: v[kind_of] for k, v in i32.items()}
+    v3 = {k: v[kind_of] for k, v in v3.items()}
+    inertia, jp, jc, loop_body, loop_anchor, loop_axis = (x[kind_of] for x in (inertia, jp, jc, loop_body, loop_anchor,
+                                                                               loop_axis))
+    loop_t, counts = loop_t[:, kind_of], counts[:, kind_of]
+    row_loop, row_part, body_q, body_qd, gravity = (x[kind_of] for x in (row_loop, row_part, body_q, body_qd, gravity))
+    layouts = [layouts[k] for k in kind_of]
+    W = len(specs)
     # the initial body poses and velocities from the tree (fixed bodies keep the spec's)
     dev = device
     a = ChainArrays()
     a.tree_count, a.depth_count, a.loop_count, a.row_count, a.body_count = (
         wp.array(c, dtype=wp.int32, device=dev) for c in counts)
     a.gravity = wp.array(gravity, dtype=wp.vec3, device=dev)
-    for k in ("parent", "depth", "ancestors", "body_out"):
+    for k in ("parent", "depth", "ancestors", "body_out", "first_child", "child_count"):
         setattr(a, k, wp.array(i32[k], dtype=wp.int32, device=dev))
     a.joint_parent = wp.array(jp, dtype=wp.transform, device=dev)
     a.joint_child = wp.array(jc, dtype=wp.transform, device=dev)
@@ -888,7 +987,7 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     for name, dtype in (("pose", wp.transform), ("centre", wp.vec3), ("point", wp.vec3), ("axis", wp.vec3),
                         ("omega", wp.vec3), ("vel", wp.vec3), ("alpha", wp.vec3), ("acc", wp.vec3),
                         ("inertia", wp.mat33), ("wrench_t", wp.vec3), ("wrench_f", wp.vec3), ("force_n", wp.vec3),
-                        ("force_f", wp.vec3)):
+                        ("force_f", wp.vec3), ("sub_mass", float), ("sub_moment", wp.vec3), ("sub_inertia", wp.mat33)):
         setattr(k, name, wp.zeros((W, N), dtype=dtype, device=dev))
     k.phi = wp.zeros((W, 5 * L), dtype=float, device=dev)
     k.dirs = wp.zeros((W, 5 * L), dtype=wp.vec3, device=dev)
