@@ -53,7 +53,7 @@ import numpy as np
 import warp as wp
 
 from engine.linear import block_sync
-from engine.model import SolverConfig
+from engine.model import Integrator, SolverConfig
 from engine.spec import JointType, MechanismSpec
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
@@ -670,7 +670,7 @@ def chain_step_kernel(coords: int, rows: int):
 
     @wp.kernel(enable_backward=False, module="unique")
     def chain_step_body(m: ChainArrays, w: ChainWork, dt: float, baumgarte: float, iterations: int, max_speed: float,
-                          record: int, q: wp.array2d(dtype=float), u: wp.array2d(dtype=float),
+                        midpoint: int, record: int, q: wp.array2d(dtype=float), u: wp.array2d(dtype=float),
                           body_q: wp.array2d(dtype=wp.transform), body_qd: wp.array2d(dtype=wp.spatial_vector)):
         world, lane = wp.tid()
         lanes = wp.block_dim()
@@ -687,7 +687,14 @@ def chain_step_kernel(coords: int, rows: int):
         depths = m.depth_count[world]
         frozen = w.diverged[world]
         block_sync()
+        lead = dt  # q+ = q_eval + lead u+
+        if midpoint != 0:
+            lead = 0.5 * dt
         if frozen == 0:
+            if midpoint != 0:  # Moreau-Jean: the dynamics at the midpoint q + dt/2 u
+                for i in range(lane, n, lanes):
+                    q[world, i] = q[world, i] + lead * u[world, i]
+                block_sync()
             kinematics(m, w, world, lane, lanes, q, u)
             g = m.gravity[world]
             for k in range(lane, n, lanes):
@@ -708,7 +715,8 @@ def chain_step_kernel(coords: int, rows: int):
                 w.force_f[world, i] = cm * s_lin - wp.cross(ch, a)
                 ui = u[world, i]
                 tau = wp.dot(a, w.wrench_t[world, i]) + wp.dot(s_lin, w.wrench_f[world, i]) - m.damping[world, i] * ui
-                tau += m.kp[world, i] * (m.q_target[world, i] - q[world, i]) + m.kd[world, i] * (m.v_target[world, i] - ui)
+                tau += m.kp[world, i] * (m.q_target[world, i] - q[world, i] - lead * ui)
+                tau += m.kd[world, i] * (m.v_target[world, i] - ui)
                 cset(vec, i, dt * tau)
             loop_errors(m, w, world, lane, lanes)
             block_sync()
@@ -727,7 +735,7 @@ def chain_step_kernel(coords: int, rows: int):
                         value = wp.dot(a, w.force_n[world, hi]) + wp.dot(wp.cross(w.point[world, lo], a),
                                                                          w.force_f[world, hi])
                     if i == j:
-                        value += m.armature[world, i] + dt * (m.damping[world, i] + m.kd[world, i] + dt * m.kp[world, i])
+                        value += m.armature[world, i] + dt * (m.damping[world, i] + m.kd[world, i] + lead * m.kp[world, i])
                     cset(Mt, i, j, value)
                     if record != 0:
                         w.matrix[world, i, j] = value
@@ -768,12 +776,12 @@ def chain_step_kernel(coords: int, rows: int):
             for i in range(lane, n, lanes):  # K = X A^-1, a row per lane
                 solve_row(R, At, diag_a, Xt, i)
             block_sync()
-            for i in range(lane, n, lanes):  # u = u_f + K rhs, q += dt u
+            for i in range(lane, n, lanes):  # u = u_f + K rhs, q += lead u
                 acc = w.u_free[world, i]
                 for r in range(R):
                     acc += Xt[i, r] * rhs[r]
                 u[world, i] = acc
-                q[world, i] = q[world, i] + dt * acc
+                q[world, i] = q[world, i] + lead * acc
             block_sync()
             for it in range(iterations):  # Gauss-Newton projections onto the loops with the step's factors
                 kinematics(m, w, world, lane, lanes, q, u)
@@ -856,7 +864,8 @@ class ChainModel:
         kernel = chain_step_kernel(self.coords, self.tile_rows)
         wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
                         inputs=[self.arrays, self.work, float(self.dt), float(c.baumgarte), int(c.position_iterations),
-                                float(c.max_speed), int(record), state.q, state.u, state.body_q, state.body_qd])
+                                float(c.max_speed), int(c.integrator == Integrator.MOREAU_JEAN), int(record), state.q,
+                                state.u, state.body_q, state.body_qd])
 
     @property
     def diverged(self) -> np.ndarray:

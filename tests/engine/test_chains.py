@@ -1,0 +1,336 @@
+"""engine.chains (closed chains in reduced coordinates) against independent oracles: finite
+differences of the kinematics for the mass matrix and the loop rows, the compound pendulum's ODE,
+MuJoCo C (float64, RK4) and the maximal-coordinate engine for trajectories, the maximal engine's
+joint residuals for the loops, energy conservation and static equilibrium."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from engine import SolverConfig, compute_metrics, pack_worlds
+from engine.chains import MAX_COORDS, ChainStepper, chain_layout, pack_chains
+from engine.rollout import Stepper
+from engine.scenes import chain, fourbar, pendulum, sixbar
+from engine.spec import Body, Joint, JointDrive, MechanismSpec, Shape
+
+
+def _rotation(axis, angle):
+    axis = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+
+
+def _quat(R):
+    w = math.sqrt(max(0.0, 1.0 + np.trace(R))) / 2.0
+    return (R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w), w
+
+
+def spatial_loop() -> MechanismSpec:
+    """A spatial 7R loop: six bodies hinged one to the next from the world about axes in different
+    directions, the last hinged back to the world; one degree of freedom, started assembled."""
+    rng = np.random.default_rng(7)
+    bodies, joints = [], []
+    R, p = np.eye(3), np.zeros(3)
+    parent = None
+    for k in range(6):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        R = R @ _rotation(rng.normal(size=3), 0.6)
+        offset = np.array([0.12, 0.02 * (k % 2), -0.03])
+        pivot = p
+        p = p + R @ offset
+        name = f"link{k}"
+        bodies.append(Body(name, 0.2 + 0.05 * k, [2e-4 + 1e-5 * k, 3e-4, 1e-4 + 2e-5 * k], com=(0.03, 0.01, 0.0),
+                           position=p, orientation=_quat(R)))
+        # the hinge at pivot (world frame): parent anchor in the parent frame, child anchor in the child's
+        parent_R = np.eye(3) if parent is None else parent[0]
+        parent_p = np.zeros(3) if parent is None else parent[1]
+        joints.append(Joint(f"j{k}", "revolute", None if parent is None else f"link{k - 1}", name,
+                            parent_position=parent_R.T @ (pivot - parent_p), child_position=R.T @ (pivot - p),
+                            parent_orientation=_quat(parent_R.T @ R), axis=R.T @ axis))
+        parent = (R, p)
+    end = p + R @ np.array([0.1, 0.0, 0.02])
+    axis = R @ np.array([0.3, 0.8, 0.5])
+    joints.append(Joint("close", "revolute", None, "link5", parent_position=end, parent_orientation=_quat(R),
+                        child_position=R.T @ (end - p), axis=R.T @ axis))
+    return MechanismSpec(bodies, joints, name="spatial_loop")
+
+
+def gimbal() -> MechanismSpec:
+    """A frame turning about the vertical carrying a rotor that spins fast about a horizontal hinge,
+    its centre of mass off the hinge and its inertia unequal: the gyroscopic torques matter."""
+    pivot = np.array([0.1, 0.0, 0.05])
+    com = pivot + np.array([0.0, 0.02, 0.01])
+    yaw, spin = np.array([0.0, 0.0, 2.0]), np.array([20.0, 0.0, 0.0])
+    frame = Body("frame", 0.5, [0.004, 0.003, 0.002], com=(0.05, 0.0, 0.02), angular_velocity=yaw,
+                 velocity=np.cross(yaw, [0.05, 0.0, 0.02]))
+    rotor = Body("rotor", 0.3, [0.001, 0.003, 0.0045], com=com, angular_velocity=yaw + spin,
+                 velocity=np.cross(yaw, pivot) + np.cross(yaw + spin, com - pivot))
+    joints = [Joint("yaw", "revolute", None, "frame", axis=(0, 0, 1)),
+              Joint("spin", "revolute", "frame", "rotor", parent_position=pivot, child_position=pivot, axis=(1, 0, 0))]
+    return MechanismSpec([frame, rotor], joints, name="gimbal")
+
+
+def _reference_matrices(layout, q, h=1e-6):
+    """M = sum_b J_b^T diag(m, I) J_b and the loop rows' Jacobian d phi / d q, from central
+    differences of the layout's NumPy kinematics (float64)."""
+    n = layout.n
+
+    def poses(qq):
+        R, p, _, _ = layout.kinematics(qq)
+        com = np.array([p[k] + R[k] @ layout.spec.bodies[layout.tree_body[k]].com for k in range(n)])
+        return R, com
+
+    R0, _ = poses(q)
+    Jv = np.zeros((n, 3, n))
+    Jw = np.zeros((n, 3, n))
+    dphi = np.zeros((5 * len(layout.loops), n))
+    for j in range(n):
+        dq = np.zeros(n)
+        dq[j] = h
+        Rp, cp = poses(q + dq)
+        Rm, cm = poses(q - dq)
+        Jv[:, :, j] = (cp - cm) / (2 * h)
+        for k in range(n):
+            W = (Rp[k] - Rm[k]) / (2 * h) @ R0[k].T
+            Jw[k, :, j] = (W[2, 1], W[0, 2], W[1, 0])
+        dphi[:, j] = (layout.loop_rows(q + dq)[1] - layout.loop_rows(q - dq)[1]) / (2 * h)
+    M = np.zeros((n, n))
+    for k in range(n):
+        body = layout.spec.bodies[layout.tree_body[k]]
+        Iw = R0[k] @ body.inertia @ R0[k].T
+        M += body.mass * Jv[k].T @ Jv[k] + Jw[k].T @ Iw @ Jw[k]
+    return M, dphi
+
+
+@pytest.mark.parametrize("make", [lambda: sixbar().spec, spatial_loop, lambda: chain(links=5).spec])
+def test_mass_matrix_and_loop_rows_match_finite_differences(make, device):
+    """The step's mass matrix (composite rigid bodies about the origin) equals sum J^T diag(m, I) J
+    with the Jacobians from differences of the kinematics, and its kept loop rows equal the loop
+    errors' derivatives (the loops start closed), to float32 rounding."""
+    spec = make()
+    model = pack_chains([spec], device=device, dt=1e-3, config=SolverConfig(integrator="euler"))  # at q0
+    layout = model.layouts[0]
+    state = model.state()
+    model.step(state, record=True)
+    M_ref, dphi = _reference_matrices(layout, layout.q0)
+    n, R = layout.n, len(layout.rows)
+    M = model.work.matrix.numpy()[0, :n, :n]
+    assert np.abs(M - M_ref).max() < 2e-5 * np.abs(M_ref).max()
+    if R:
+        G = model.work.rows.numpy()[0, :R, :n]
+        G_ref = dphi[5 * layout.rows[:, 0] + layout.rows[:, 1]]
+        assert np.abs(G - G_ref).max() < 1e-4 * np.abs(G_ref).max()
+        # the kept rows span every loop row (nothing left unenforced), the dropped ones add nothing
+        assert np.linalg.matrix_rank(G_ref, 1e-6) == R == np.linalg.matrix_rank(dphi, 1e-6 * np.abs(dphi).max())
+
+
+def test_spatial_loop_keeps_five_rows_and_the_planar_loops_two_each():
+    """Row selection: a generic spatial loop keeps all five rows; a planar loop (parallel axes) only
+    its two in-plane position rows, its other three being implied by the hinges."""
+    assert len(chain_layout(spatial_loop()).rows) == 5
+    for spec, loops in ((fourbar().spec, 1), (sixbar().spec, 2)):
+        layout = chain_layout(spec)
+        assert len(layout.loops) == loops and len(layout.rows) == 2 * loops
+        assert set(layout.rows[:, 1].tolist()) <= {0, 1, 2}
+
+
+def test_pendulum_follows_the_compound_pendulum_ode(device):
+    """A bar released at 30 degrees: its angle follows theta'' = -(m g d / I_pivot) sin theta
+    (integrated with RK4 at 1e-5 s) over 1 s: the default Moreau-Jean midpoint step within 2e-5 rad
+    at dt 1 ms (float32 rounding is its floor), semi-implicit Euler within 2e-3 rad and first order
+    (4x less at dt 0.25 ms)."""
+    scene = pendulum()
+    body = scene.spec.bodies[0]
+    d = float(np.linalg.norm(body.com))
+    inertia = body.inertia[1, 1] + body.mass * d * d
+    k = body.mass * 9.81 * d / inertia
+
+    def f(x, v):
+        return v, -k * math.sin(x)
+
+    th, om, h = math.radians(30.0), 0.0, 1e-5
+    for _ in range(round(1.0 / h)):
+        k1 = f(th, om)
+        k2 = f(th + h / 2 * k1[0], om + h / 2 * k1[1])
+        k3 = f(th + h / 2 * k2[0], om + h / 2 * k2[1])
+        k4 = f(th + h * k3[0], om + h * k3[1])
+        th += h / 6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
+        om += h / 6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
+
+    def error(dt, integrator):
+        model = pack_chains([scene.spec], device=device, dt=dt, config=SolverConfig(integrator=integrator))
+        state = model.state()
+        for _ in range(round(1.0 / dt)):
+            model.step(state)
+        com = state.body_q.numpy()[0, 0, :3]
+        return abs(math.atan2(com[0], -com[2]) - th)  # from the downward vertical
+
+    assert error(1e-3, "moreau") < 2e-5
+    euler = [error(dt, "euler") for dt in (1e-3, 2.5e-4)]
+    assert 2e-4 < euler[0] < 2e-3 and 3.5 < euler[0] / euler[1] < 4.5
+
+
+def _maximal_reference(spec, duration, dt=1e-4):
+    model = pack_worlds([spec], device="cpu", dt=dt)
+    stepper = Stepper(model, model.state(), model.control(), chunk=round(duration / dt))
+    stepper.advance()
+    return stepper.state.body_q.numpy()[0, :, :3]
+
+
+def _chains_positions(spec, duration, dt, device, config=None):
+    model = pack_chains([spec], device=device, dt=dt, config=config)
+    state = model.state()
+    for _ in range(round(duration / dt)):
+        model.step(state)
+    return state.body_q.numpy()[0, :, :3], model, state
+
+
+def test_fourbar_matches_mujoco_and_converges_at_first_order(device):
+    """The four-bar's bodies follow MuJoCo C's float64 RK4 trajectory (an independent simulator;
+    MJCF export) within 3e-4 m after 0.5 s at dt 1 ms, and 2.5x closer at dt 0.25 ms."""
+    pytest.importorskip("mujoco")
+    from benchmarks.peers import mujoco_reference
+
+    spec = fourbar().spec
+    reference = mujoco_reference([spec], duration=0.5, record_dt=0.5, dt=5e-5)[-1, 0]
+    errors = [np.linalg.norm(_chains_positions(spec, 0.5, dt, device)[0] - reference, axis=1).max()
+              for dt in (1e-3, 2.5e-4)]
+    assert errors[0] < 3e-4 and errors[1] < errors[0] / 2.5
+
+
+@pytest.mark.parametrize("make", [lambda: sixbar().spec, spatial_loop, gimbal])
+def test_closed_chains_match_the_maximal_engine_and_stay_closed(make, device):
+    """The six-bar, the spatial loop and the gimbal: within 1e-3 m of the maximal-coordinate engine
+    at dt 0.1 ms after 0.3 s at dt 0.5 ms (a different formulation: every body's pose, PADMM), and 2x
+    closer at dt 0.125 ms (the gimbal without its gyroscopic torques: 2.5e-3 m at both); the maximal
+    engine's own joint residuals of our poses stay below 1e-6 m and 1e-5 rad with two projections."""
+    spec = make()
+    reference = _maximal_reference(spec, 0.3)
+    errors = []
+    for dt in (5e-4, 1.25e-4):
+        positions, model, state = _chains_positions(spec, 0.3, dt, device)
+        errors.append(np.linalg.norm(positions - reference, axis=1).max())
+    moved = np.linalg.norm(reference - np.array([b.position for b in spec.bodies]), axis=1).max()
+    assert moved > 1e-2  # the mechanism moves
+    assert errors[0] < 1e-3 and errors[1] < errors[0] / 2
+    gauge = pack_worlds([spec], device=device)
+    compute_metrics(gauge, state)
+    assert gauge.work.violation_linear.numpy()[0] < 1e-6 and gauge.work.violation_angular.numpy()[0] < 1e-5
+
+
+def test_projection_closes_what_the_velocity_constraint_lets_drift(device):
+    """Without projection or Baumgarte feedback the six-bar's loops drift open (the velocity
+    constraint holds, the positions' error accumulates); the projections close them 100x tighter."""
+    spec = sixbar().spec
+    gaps = []
+    for config in (SolverConfig(position_iterations=0, baumgarte=0.0), SolverConfig(position_iterations=2)):
+        _, _, state = _chains_positions(spec, 0.5, 2e-3, device, config)
+        gauge = pack_worlds([spec], device=device)
+        compute_metrics(gauge, state)
+        gaps.append(gauge.work.violation_linear.numpy()[0])
+    assert gaps[0] > 100 * gaps[1] and gaps[1] < 1e-6
+
+
+def test_passive_fourbar_conserves_energy(device):
+    """No damping, no drives: kinetic plus potential energy (engine.metrics on our poses) stays
+    within 0.5 % of what the four-bar can lose (E0 - E_min) over 1 s at dt 0.25 ms."""
+    scene = fourbar()
+    model = pack_chains([scene.spec], device=device, dt=2.5e-4)
+    gauge = pack_worlds([scene.spec], device=device)
+    state = model.state()
+    compute_metrics(gauge, state)
+    e0 = gauge.work.energy.numpy()[0]
+    worst = 0.0
+    for _ in range(20):
+        for _ in range(200):
+            model.step(state)
+        compute_metrics(gauge, state)
+        worst = max(worst, abs(gauge.work.energy.numpy()[0] - e0))
+    assert worst < 5e-3 * (e0 - scene.potential_min)
+
+
+def test_pd_drive_settles_at_the_static_equilibrium(device):
+    """A pendulum on an implicit PD drive comes to rest where the drive's torque about the pin's
+    axis balances gravity's: kp (target - q) (a . y) + m g r_x = 0 (pin at the origin, axis a along
+    +y, r the centre of mass)."""
+    spec = pendulum().spec
+    kp, kd, target = 2.0, 0.2, 0.5
+    spec = dataclasses.replace(spec, joints=[dataclasses.replace(
+        spec.joints[0], drive=JointDrive(stiffness=kp, damping=kd, target_position=target))])
+    model = pack_chains([spec], device=device, dt=2e-3)
+    state = model.state()
+    for _ in range(3000):
+        model.step(state)
+    layout = model.layouts[0]
+    q = float(state.q.numpy()[0, 0])
+    axis = layout.parent_R[0] @ layout.axis[0]
+    com = state.body_q.numpy()[0, 0, :3]
+    drive = kp * (target - q) * float(axis @ np.array([0.0, 1.0, 0.0]))
+    gravity = spec.bodies[0].mass * 9.81 * float(com[0])
+    assert abs(float(state.u.numpy()[0, 0])) < 1e-4
+    assert abs(drive) > 0.05 and abs(drive + gravity) < 1e-4 * abs(drive)
+
+
+def test_a_batch_of_different_mechanisms_steps_each_as_alone(device):
+    """Heterogeneous batch (padded): each world's angles after 100 steps equal those of the same
+    mechanism stepped alone."""
+    specs = [fourbar().spec, sixbar().spec, pendulum().spec, chain(links=4).spec, spatial_loop()]
+    model = pack_chains(specs, device=device, dt=1e-3)
+    state = model.state()
+    for _ in range(100):
+        model.step(state)
+    for w, spec in enumerate(specs):
+        alone = pack_chains([spec], device=device, dt=1e-3)
+        s = alone.state()
+        for _ in range(100):
+            alone.step(s)
+        n = alone.layouts[0].n
+        assert np.allclose(state.q.numpy()[w, :n], s.q.numpy()[0, :n], atol=1e-6, rtol=0)
+
+
+def test_a_diverging_world_is_frozen_and_flagged_while_the_others_go_on(device):
+    """A world whose bodies move faster than max_speed is flagged diverged and keeps its last pose;
+    the other world of the batch steps exactly as alone. The stepper replays chunks."""
+    spec = fourbar().spec
+    model = pack_chains([spec, spec], device=device, dt=1e-3, config=SolverConfig(max_speed=50.0))
+    state = model.state()
+    u = state.u.numpy()
+    u[1, :3] = 1e4
+    state.u.assign(u)
+    stepper = ChainStepper(model, state, chunk=10)
+    stepper.advance()
+    frozen = state.body_q.numpy()[1].copy()
+    stepper.advance()
+    stepper.advance()
+    assert model.diverged.tolist() == [False, True]
+    assert np.array_equal(state.body_q.numpy()[1], frozen)
+    alone = pack_chains([spec], device=device, dt=1e-3)
+    s = alone.state()
+    for _ in range(30):
+        alone.step(s)
+    assert np.allclose(state.q.numpy()[0], s.q.numpy()[0], atol=1e-6, rtol=0)
+
+
+def test_what_the_path_cannot_model_is_named():
+    """Limits, contact shapes, floating bodies, non-revolute joints, drives on a loop's joint and
+    too many coordinates: a ValueError naming the joint, shape or body (and the world in a batch)."""
+    spec = fourbar().spec
+    cases = [
+        (dataclasses.replace(spec, joints=[dataclasses.replace(spec.joints[0], limit_lower=-1.0)] + spec.joints[1:]),
+         "joint 'ground_crank' has limits"),
+        (dataclasses.replace(spec, shapes=[Shape("pad", "sphere", "crank", size=(0.01,))]), "shape 'pad'"),
+        (dataclasses.replace(spec, joints=spec.joints[:1]), "body 'coupler' is not connected"),
+        (dataclasses.replace(spec, joints=spec.joints[:2] + [dataclasses.replace(
+            spec.joints[2], drive=JointDrive(stiffness=1.0))] + spec.joints[3:]), "joint 'coupler_rocker' closes a loop"),
+        (dataclasses.replace(spec, joints=[dataclasses.replace(spec.joints[0], type="spherical")] + spec.joints[1:]),
+         "joint 'ground_crank' is spherical"),
+        (chain(links=MAX_COORDS + 1).spec, f"{MAX_COORDS + 1} tree coordinates"),
+    ]
+    for bad, words in cases:
+        with pytest.raises(ValueError, match=words):
+            chain_layout(bad)
+    with pytest.raises(ValueError, match=r"world 1 \(fourbar\).*has limits"):
+        pack_chains([spec, cases[0][0]], device="cpu")
