@@ -292,7 +292,7 @@ def run_scene(name: str, declared: Declared, args) -> dict:
         reference = None  # a scene without a trustworthy reference reports loop error and run time only
         if declared.reference is not None:
             reference, result["reference"] = reference_run(specs, scene, duration, record_dt, dt, declared, args)
-        sweep = picked(declared.sweep[:5] if quick else declared.sweep)
+        sweep = picked(declared.sweep)[:5] if quick else picked(declared.sweep)
         for setting in sweep:
             step_dt = dt * setting["dt_scale"]
             every = steps_per_record(record_dt, step_dt)  # a misaligned record interval is the runner's fault

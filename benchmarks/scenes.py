@@ -181,7 +181,11 @@ LINKAGE_SWEEP = [
     dict(label="semi-implicit Euler", dt_scale=1.0, config=dict(integrator="euler")),
     dict(label="float32 state", dt_scale=1.0, config=dict(compensated_state=False)),
     dict(label="dt x8", dt_scale=8.0),
+    # the same linkages in reduced coordinates (engine.chains)
+    dict(label="reduced coordinates", dt_scale=1.0, model="chains"),
+    dict(label="reduced coordinates, dt x4", dt_scale=4.0, model="chains"),
 ]
+LINKAGE_VARIANTS = [dict(label="reduced coordinates", model="chains", config={})]
 TIGHT = dict(tolerance=1e-9, relative_tolerance=0.0, max_iterations=300, position_iterations=4)
 # one Gauss-Newton iteration for the dynamics' configuration and one for the output instead of two each;
 # no projection at all, the loops held by the velocity-level Baumgarte term alone: on the CPU (one world,
@@ -242,10 +246,10 @@ DRLEGS_STANDING_SWEEP = [s for s in DRLEGS_SWEEP if s["label"] != "float32 state
 SCENES_DECLARED = {
     "fourbar": Declared(lambda assets: _engine_scenes(["fourbar"]), dt=1e-3, duration=2.0,
                         throughput_worlds=[1, 64, 1024, 4096, 16384], precision_worlds=4096, sweep=LINKAGE_SWEEP,
-                        reference=dict(dt=1e-4, config=TIGHT), peers=True),
+                        reference=dict(dt=1e-4, config=TIGHT), peers=True, variants=LINKAGE_VARIANTS),
     "mixed": Declared(lambda assets: _engine_scenes(list(SCENES)), dt=1e-3, duration=1.0,
                       throughput_worlds=[4, 1024, 4096, 16384], precision_worlds=4096, sweep=LINKAGE_SWEEP,
-                      reference=dict(dt=1e-4, config=TIGHT), quick_worlds=[4, 8]),
+                      reference=dict(dt=1e-4, config=TIGHT), quick_worlds=[4, 8], variants=LINKAGE_VARIANTS),
     "walker": Declared(lambda assets: walkers(), dt=2e-3, duration=0.0, throughput_worlds=[64, 1024, 4096],
                        precision_worlds=0, throughput_steps=30, quick_worlds=[2]),
     "walker_default": Declared(lambda assets: walker_default(), dt=2e-3, duration=0.0, throughput_worlds=[4096],

@@ -481,3 +481,28 @@ def test_variant_flag_times_a_declared_variant_with_its_settings(tmp_path, capsy
         with pytest.raises(SystemExit):
             module.main(["--device", "cpu", "--scenes", "fourbar", "--variant", "no such setting"])
         assert "staged kernels" in capsys.readouterr().err  # the error lists the scene's labels
+
+
+def test_runner_measures_reduced_coordinates_settings_against_the_reference(tmp_path):
+    """--settings picks declared points by label: the four-bar in reduced coordinates (engine.chains)
+    runs as its own rows, its loops measured by the maximal engine's joint residuals (below 1e-6 m),
+    its trajectory within 5e-5 m of MuJoCo C's float64 reference at dt 1 ms and measurably further at
+    dt 4 ms; a label no scene declares is refused, naming it."""
+    import json
+
+    from benchmarks.run import main
+
+    assert main(["--device", "cpu", "--quick", "--only", "fourbar", "--settings", "reduced coordinates",
+                 "reduced coordinates, dt x4", "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "fourbar.json").read_text())
+    variants = [r for r in result["throughput"] if r["label"] != "default"]
+    assert [(r["label"], r["step_kernel"]) for r in variants] == [("reduced coordinates", "chains")]
+    rows = {r["label"]: r for r in result["precision"]}
+    assert sorted(rows) == ["reduced coordinates", "reduced coordinates, dt x4"]
+    for row in list(rows.values()) + variants:
+        assert row["step_kernel"] == "chains" and row["diverged_worlds"] == 0 and row["world_steps_per_s"] > 0
+        assert 0 < row["loop_error_m"] < 1e-6
+    assert rows["reduced coordinates"]["trajectory_error_m"] < 5e-5
+    assert rows["reduced coordinates, dt x4"]["trajectory_error_m"] > 2 * rows["reduced coordinates"]["trajectory_error_m"]
+    with pytest.raises(SystemExit):
+        main(["--device", "cpu", "--quick", "--only", "fourbar", "--settings", "no such setting"])
