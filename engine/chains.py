@@ -170,19 +170,19 @@ class ChainLayout:
         n, L = self.n, len(self.loops)
         G = np.zeros((5 * L, n))
         phi = np.zeros(5 * L)
-        for l in range(L):
+        for li in range(L):
             frames = []
             for side in range(2):
-                b = int(self.loop_body[l, side])
+                b = int(self.loop_body[li, side])
                 Rb, pb = (np.eye(3), np.zeros(3)) if b < 0 else (R[b], p[b])
-                frames.append((Rb @ self.loop_R[l, side], pb + Rb @ self.loop_p[l, side], b))
+                frames.append((Rb @ self.loop_R[li, side], pb + Rb @ self.loop_p[li, side], b))
             (Ra, xa, a), (Rb_, xb, b) = frames
-            ax_a = Ra @ self.axis_of_loop(l)
-            ax_b = Rb_ @ self.axis_of_loop(l)
-            dirs = Ra @ self.loop_dirs[l].T  # (3, 5)
+            ax_a = Ra @ self.axis_of_loop(li)
+            ax_b = Rb_ @ self.axis_of_loop(li)
+            dirs = Ra @ self.loop_dirs[li].T  # (3, 5)
             for part in range(5):
                 d = dirs[:, part]
-                r = 5 * l + part
+                r = 5 * li + part
                 if part < 3:
                     phi[r] = d @ (xb - xa)
                 else:
@@ -193,8 +193,8 @@ class ChainLayout:
                         G[r, j] += sign * (d @ col)
         return G, phi
 
-    def axis_of_loop(self, l: int) -> np.ndarray:
-        return np.asarray(self.spec.joints[self.loops[l]].axis)
+    def axis_of_loop(self, li: int) -> np.ndarray:
+        return np.asarray(self.spec.joints[self.loops[li]].axis)
 
 
 def _frame(q) -> np.ndarray:
@@ -321,20 +321,20 @@ def chain_layout(spec: MechanismSpec) -> ChainLayout:
     loop_R = np.zeros((len(loops), 2, 3, 3))
     loop_p = np.zeros((len(loops), 2, 3))
     loop_dirs = np.zeros((len(loops), 5, 3))
-    for l, ji in enumerate(loops):
+    for li, ji in enumerate(loops):
         j = spec.joints[ji]
         for side, (name, Rq, p) in enumerate(((j.parent, j.parent_orientation, j.parent_position),
                                               (j.child, j.child_orientation, j.child_position))):
             b = None if name is None else bodies[name]
             if b is None or b in fixed:
                 Rf, pf = fixed_frame(b)
-                loop_body[l, side] = -1
-                loop_R[l, side], loop_p[l, side] = Rf @ _frame(Rq), pf + Rf @ np.asarray(p)
+                loop_body[li, side] = -1
+                loop_R[li, side], loop_p[li, side] = Rf @ _frame(Rq), pf + Rf @ np.asarray(p)
             else:
-                loop_body[l, side] = tree_index[b]
-                loop_R[l, side], loop_p[l, side] = _frame(Rq), np.asarray(p)
+                loop_body[li, side] = tree_index[b]
+                loop_R[li, side], loop_p[li, side] = _frame(Rq), np.asarray(p)
         t1, t2 = _perpendiculars(np.asarray(j.axis))
-        loop_dirs[l] = np.stack([np.eye(3)[0], np.eye(3)[1], np.eye(3)[2], t1, t2])
+        loop_dirs[li] = np.stack([np.eye(3)[0], np.eye(3)[1], np.eye(3)[2], t1, t2])
     layout = ChainLayout(spec, tree_body, np.array(parent, dtype=np.int64), np.array(depth, dtype=np.int64),
                          joint_of, parent_R, parent_p, child_R, child_p, axis, q0, u0, loops, loop_body, loop_R,
                          loop_p, loop_dirs, np.zeros((0, 2), dtype=np.int64),
@@ -431,23 +431,21 @@ def bit(mask: wp.int32, i: int):
     return (mask >> i) & 1
 
 
+POSES = wp.constant(0)  # kinematics' detail: body poses, joint points and axes
+VELOCITIES = wp.constant(1)  # and the bodies' velocities
+DYNAMICS = wp.constant(2)  # and the velocity-product accelerations and the world-frame inertias
+
+
 @wp.func
-def kinematics_body(m: ChainArrays, w: ChainWork, world: int, k: int, q: float, u: float):
-    """Pose, joint point and axis, velocities and velocity-product accelerations of tree body k
-    from its parent's (already done) and its joint's angle q and rate u."""
+def kinematics_body(m: ChainArrays, w: ChainWork, world: int, k: int, q: float, u: float, detail: int):
+    """Pose, joint point and axis of tree body k from its parent's (already done) and its joint's
+    angle q; with detail VELOCITIES its velocities (rate u), with DYNAMICS also its velocity-product
+    accelerations and world-frame inertia."""
     par = m.parent[world, k]
     Xp = wp.transform_identity()
-    wpar = wp.vec3()
-    vpar = wp.vec3()
-    apar = wp.vec3()
-    lpar = wp.vec3()
     cpar = wp.vec3()
     if par >= 0:
         Xp = w.pose[world, par]
-        wpar = w.omega[world, par]
-        vpar = w.vel[world, par]
-        apar = w.alpha[world, par]
-        lpar = w.acc[world, par]
         cpar = w.centre[world, par]
     Xj = wp.transform_multiply(Xp, m.joint_parent[world, k])
     a_local = m.axis[world, k]
@@ -456,48 +454,59 @@ def kinematics_body(m: ChainArrays, w: ChainWork, world: int, k: int, q: float, 
     Xq = wp.transform_multiply(Xj, wp.transform(wp.vec3(), wp.quat_from_axis_angle(a_local, q)))
     Xb = wp.transform_multiply(Xq, m.joint_child[world, k])
     c = wp.transform_point(Xb, m.com[world, k])
-    Rb = wp.quat_to_matrix(wp.transform_get_rotation(Xb))
-    omega = wpar + aw * u
-    r_pj = pj - cpar
-    r_b = c - pj
-    vel = vpar + wp.cross(wpar, r_pj) + wp.cross(omega, r_b)
-    alpha = apar + wp.cross(wpar, aw * u)
-    acc_pj = lpar + wp.cross(apar, r_pj) + wp.cross(wpar, wp.cross(wpar, r_pj))
-    acc = acc_pj + wp.cross(alpha, r_b) + wp.cross(omega, wp.cross(omega, r_b))
     w.pose[world, k] = Xb
     w.centre[world, k] = c
     w.point[world, k] = pj
     w.axis[world, k] = aw
-    w.omega[world, k] = omega
-    w.vel[world, k] = vel
-    w.alpha[world, k] = alpha
-    w.acc[world, k] = acc
-    w.inertia[world, k] = Rb * m.inertia[world, k] * wp.transpose(Rb)
+    if detail >= VELOCITIES:
+        wpar = wp.vec3()
+        vpar = wp.vec3()
+        if par >= 0:
+            wpar = w.omega[world, par]
+            vpar = w.vel[world, par]
+        omega = wpar + aw * u
+        r_pj = pj - cpar
+        r_b = c - pj
+        w.omega[world, k] = omega
+        w.vel[world, k] = vpar + wp.cross(wpar, r_pj) + wp.cross(omega, r_b)
+        if detail >= DYNAMICS:
+            apar = wp.vec3()
+            lpar = wp.vec3()
+            if par >= 0:
+                apar = w.alpha[world, par]
+                lpar = w.acc[world, par]
+            alpha = apar + wp.cross(wpar, aw * u)
+            acc_pj = lpar + wp.cross(apar, r_pj) + wp.cross(wpar, wp.cross(wpar, r_pj))
+            w.alpha[world, k] = alpha
+            w.acc[world, k] = acc_pj + wp.cross(alpha, r_b) + wp.cross(omega, wp.cross(omega, r_b))
+            Rb = wp.quat_to_matrix(wp.transform_get_rotation(Xb))
+            w.inertia[world, k] = Rb * m.inertia[world, k] * wp.transpose(Rb)
 
 
 @wp.func
 def kinematics(m: ChainArrays, w: ChainWork, world: int, lane: int, lanes: int, q: wp.array2d(dtype=float),
-               u: wp.array2d(dtype=float)):
-    """The tree's kinematics level by level (a lane per body). Entered after a barrier; leaves one."""
+               u: wp.array2d(dtype=float), detail: int):
+    """The tree's kinematics level by level (a lane per body) to ``detail``. Entered after a barrier;
+    leaves one."""
     n = m.tree_count[world]
     for level in range(m.depth_count[world]):
         for k in range(lane, n, lanes):
             if m.depth[world, k] == level:
-                kinematics_body(m, w, world, k, q[world, k], u[world, k])
+                kinematics_body(m, w, world, k, q[world, k], u[world, k], detail)
         block_sync()
 
 
 @wp.func
 def loop_errors(m: ChainArrays, w: ChainWork, world: int, lane: int, lanes: int):
     """Every loop's anchor points, row directions and five errors (a lane per loop)."""
-    for l in range(lane, m.loop_count[world], lanes):
+    for li in range(lane, m.loop_count[world], lanes):
         xa = wp.vec3()
         xb = wp.vec3()
         qa = wp.quat_identity()
         qb = wp.quat_identity()
         for side in range(2):
-            b = m.loop_body[world, l, side]
-            X = m.loop_anchor[world, l, side]
+            b = m.loop_body[world, li, side]
+            X = m.loop_anchor[world, li, side]
             if b >= 0:
                 X = wp.transform_multiply(w.pose[world, b], X)
             if side == 0:
@@ -506,7 +515,7 @@ def loop_errors(m: ChainArrays, w: ChainWork, world: int, lane: int, lanes: int)
             else:
                 xb = wp.transform_get_translation(X)
                 qb = wp.transform_get_rotation(X)
-        axis = m.loop_axis[world, l]
+        axis = m.loop_axis[world, li]
         cross = wp.cross(wp.quat_rotate(qa, axis), wp.quat_rotate(qb, axis))
         gap = xb - xa
         for part in range(5):
@@ -518,36 +527,36 @@ def loop_errors(m: ChainArrays, w: ChainWork, world: int, lane: int, lanes: int)
             elif part == 2:
                 d = wp.quat_rotate(qa, wp.vec3(0.0, 0.0, 1.0))
             elif part == 3:
-                d = wp.quat_rotate(qa, m.loop_t1[world, l])
+                d = wp.quat_rotate(qa, m.loop_t1[world, li])
             else:
-                d = wp.quat_rotate(qa, m.loop_t2[world, l])
+                d = wp.quat_rotate(qa, m.loop_t2[world, li])
             e = wp.dot(d, gap)
             if part >= 3:
                 e = wp.dot(d, cross)
-            w.phi[world, 5 * l + part] = e
-            w.dirs[world, 5 * l + part] = d
-        w.ends[world, 2 * l] = xa
-        w.ends[world, 2 * l + 1] = xb
+            w.phi[world, 5 * li + part] = e
+            w.dirs[world, 5 * li + part] = d
+        w.ends[world, 2 * li] = xa
+        w.ends[world, 2 * li + 1] = xb
 
 
 @wp.func
 def row_entry(m: ChainArrays, w: ChainWork, world: int, r: int, j: int):
     """G[r, j]: the kept row r's rate from tree joint j's unit rate."""
-    l = m.row_loop[world, r]
+    li = m.row_loop[world, r]
     part = m.row_part[world, r]
-    d = w.dirs[world, 5 * l + part]
+    d = w.dirs[world, 5 * li + part]
     aj = w.axis[world, j]
     pj = w.point[world, j]
     value = float(0.0)
     for side in range(2):
-        b = m.loop_body[world, l, side]
+        b = m.loop_body[world, li, side]
         if b >= 0:
             if bit(m.ancestors[world, b], j) != 0:
                 sign = float(1.0)
                 if side == 0:
                     sign = -1.0
                 if part < 3:
-                    value += sign * wp.dot(d, wp.cross(aj, w.ends[world, 2 * l + side] - pj))
+                    value += sign * wp.dot(d, wp.cross(aj, w.ends[world, 2 * li + side] - pj))
                 else:
                     value += sign * wp.dot(d, aj)
     return value
@@ -576,22 +585,6 @@ def factor_lanes(lane: int, lanes: int, n: int, A: Any, diag: Any, relative: flo
 
 
 @wp.func
-def solve_column(n: int, L: Any, diag: Any, x: Any, col: int):
-    """Column col of the shared tile x := (L L^T)^-1 x[:, col] (factor_lanes' L and diag), by one lane."""
-    for i in range(n):
-        s = x[i, col]
-        for k in range(i):
-            s -= L[i, k] * x[k, col]
-        cset(x, i, col, s / diag[i])
-    for step in range(n):
-        i = n - 1 - step
-        s = x[i, col]
-        for k in range(i + 1, n):
-            s -= L[k, i] * x[k, col]
-        cset(x, i, col, s / diag[i])
-
-
-@wp.func
 def solve_row(n: int, L: Any, diag: Any, x: Any, row: int):
     """Row ``row`` of the shared tile x := (L L^T)^-1 x[row, :] (factor_lanes' L and diag), by one lane."""
     for i in range(n):
@@ -608,19 +601,62 @@ def solve_row(n: int, L: Any, diag: Any, x: Any, row: int):
 
 
 @wp.func
-def solve_vector(n: int, L: Any, diag: Any, x: Any):
-    """The shared vector x := (L L^T)^-1 x (factor_lanes' L and diag), by one lane."""
-    for i in range(n):
-        s = x[i]
-        for k in range(i):
-            s -= L[i, k] * x[k]
-        cset(x, i, s / diag[i])
+def tree_factor(m: ChainArrays, world: int, n: int, H: Any):
+    """In place, by one lane: the mass matrix H (its lower triangle; breadth-first order, parents
+    first) as L^T D L, L unit lower triangular with entries only where the column is an ancestor of
+    the row (no fill: the subtrees stay apart), D on the diagonal. Work: the sum over bodies of their
+    depth squared, instead of n^3 / 6."""
+    for step in range(n):
+        k = n - 1 - step
+        hkk = H[k, k]
+        i = m.parent[world, k]
+        while i >= 0:
+            a = H[k, i] / hkk
+            j = i
+            while j >= 0:
+                cset(H, i, j, H[i, j] - a * H[k, j])
+                j = m.parent[world, j]
+            cset(H, k, i, a)
+            i = m.parent[world, i]
+
+
+@wp.func
+def tree_solve_column(m: ChainArrays, world: int, n: int, H: Any, x: Any, col: int):
+    """Column col of the shared tile x := M^-1 x[:, col] with tree_factor's L^T D L, by one lane:
+    L^T leaves first, D, then L roots first, each along the ancestors only."""
     for step in range(n):
         i = n - 1 - step
-        s = x[i]
-        for k in range(i + 1, n):
-            s -= L[k, i] * x[k]
-        cset(x, i, s / diag[i])
+        xi = x[i, col]
+        j = m.parent[world, i]
+        while j >= 0:
+            cset(x, j, col, x[j, col] - H[i, j] * xi)
+            j = m.parent[world, j]
+    for i in range(n):
+        s = x[i, col] / H[i, i]
+        j = m.parent[world, i]
+        while j >= 0:
+            s -= H[i, j] * x[j, col]
+            j = m.parent[world, j]
+        cset(x, i, col, s)
+
+
+@wp.func
+def tree_solve_vector(m: ChainArrays, world: int, n: int, H: Any, x: Any):
+    """The shared vector x := M^-1 x with tree_factor's L^T D L, by one lane."""
+    for step in range(n):
+        i = n - 1 - step
+        xi = x[i]
+        j = m.parent[world, i]
+        while j >= 0:
+            cset(x, j, x[j] - H[i, j] * xi)
+            j = m.parent[world, j]
+    for i in range(n):
+        s = x[i] / H[i, i]
+        j = m.parent[world, i]
+        while j >= 0:
+            s -= H[i, j] * x[j]
+            j = m.parent[world, j]
+        cset(x, i, s)
 
 
 @wp.func
@@ -629,14 +665,14 @@ def own_terms(m: ChainArrays, w: ChainWork, world: int, k: int, g: wp.vec3):
     gyroscopic wrench (torque about the origin, force), into the subtree accumulators."""
     mk = m.mass[world, k]
     c = w.centre[world, k]
-    I = w.inertia[world, k]
+    inertia = w.inertia[world, k]
     om = w.omega[world, k]
     f = mk * (g - w.acc[world, k])
-    w.wrench_t[world, k] = -(I * w.alpha[world, k]) - wp.cross(om, I * om) + wp.cross(c, f)
+    w.wrench_t[world, k] = -(inertia * w.alpha[world, k]) - wp.cross(om, inertia * om) + wp.cross(c, f)
     w.wrench_f[world, k] = f
     w.sub_mass[world, k] = mk
     w.sub_moment[world, k] = mk * c
-    w.sub_inertia[world, k] = I + mk * (wp.dot(c, c) * wp.identity(n=3, dtype=float) - wp.outer(c, c))
+    w.sub_inertia[world, k] = inertia + mk * (wp.dot(c, c) * wp.identity(n=3, dtype=float) - wp.outer(c, c))
 
 
 @wp.func
@@ -678,7 +714,6 @@ def chain_step_kernel(coords: int, rows: int):
         Gt = wp.tile_zeros(shape=(rows, coords), dtype=float, storage="shared")  # G
         Xt = wp.tile_zeros(shape=(coords, rows), dtype=float, storage="shared")  # M~^-1 G^T, then K = X A^-1
         At = wp.tile_zeros(shape=(rows, rows), dtype=float, storage="shared")  # A = G X, then its factor
-        diag_m = wp.tile_zeros(shape=coords, dtype=float, storage="shared")
         diag_a = wp.tile_zeros(shape=rows, dtype=float, storage="shared")
         vec = wp.tile_zeros(shape=coords, dtype=float, storage="shared")  # dt tau, then du
         rhs = wp.tile_zeros(shape=rows, dtype=float, storage="shared")
@@ -695,7 +730,7 @@ def chain_step_kernel(coords: int, rows: int):
                 for i in range(lane, n, lanes):
                     q[world, i] = q[world, i] + lead * u[world, i]
                 block_sync()
-            kinematics(m, w, world, lane, lanes, q, u)
+            kinematics(m, w, world, lane, lanes, q, u, DYNAMICS)
             g = m.gravity[world]
             for k in range(lane, n, lanes):
                 own_terms(m, w, world, k, g)
@@ -735,7 +770,8 @@ def chain_step_kernel(coords: int, rows: int):
                         value = wp.dot(a, w.force_n[world, hi]) + wp.dot(wp.cross(w.point[world, lo], a),
                                                                          w.force_f[world, hi])
                     if i == j:
-                        value += m.armature[world, i] + dt * (m.damping[world, i] + m.kd[world, i] + lead * m.kp[world, i])
+                        value += m.armature[world, i] + dt * (m.damping[world, i] + m.kd[world, i]
+                                                              + lead * m.kp[world, i])
                     cset(Mt, i, j, value)
                     if record != 0:
                         w.matrix[world, i, j] = value
@@ -749,12 +785,14 @@ def chain_step_kernel(coords: int, rows: int):
                 if record != 0:
                     w.rows[world, r, j] = value
             block_sync()
-            factor_lanes(lane, lanes, n, Mt, diag_m, 0.0)
+            if lane == 0:
+                tree_factor(m, world, n, Mt)
+            block_sync()
             for col in range(lane, R + 1, lanes):  # X = M~^-1 G^T a column per lane, and du = M~^-1 (dt tau)
                 if col < R:
-                    solve_column(n, Mt, diag_m, Xt, col)
+                    tree_solve_column(m, world, n, Mt, Xt, col)
                 else:
-                    solve_vector(n, Mt, diag_m, vec)
+                    tree_solve_vector(m, world, n, Mt, vec)
             block_sync()
             for i in range(lane, n, lanes):
                 w.u_free[world, i] = u[world, i] + vec[i]
@@ -784,7 +822,7 @@ def chain_step_kernel(coords: int, rows: int):
                 q[world, i] = q[world, i] + lead * acc
             block_sync()
             for it in range(iterations):  # Gauss-Newton projections onto the loops with the step's factors
-                kinematics(m, w, world, lane, lanes, q, u)
+                kinematics(m, w, world, lane, lanes, q, u, POSES)
                 loop_errors(m, w, world, lane, lanes)
                 block_sync()
                 for i in range(lane, n, lanes):
@@ -793,7 +831,7 @@ def chain_step_kernel(coords: int, rows: int):
                         acc += Xt[i, r] * w.phi[world, 5 * m.row_loop[world, r] + m.row_part[world, r]]
                     q[world, i] = q[world, i] - acc
                 block_sync()
-            kinematics(m, w, world, lane, lanes, q, u)
+            kinematics(m, w, world, lane, lanes, q, u, VELOCITIES)
             bad = int(0)
             for k in range(lane, n, lanes):
                 b = m.body_out[world, k]
@@ -948,13 +986,13 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
                 f["v_target"][w_, k] = joint.drive.target_velocity
             f["q"][w_, k] = lay.q0[k]
             f["u"][w_, k] = lay.u0[k]
-        for l in range(len(lay.loops)):
-            joint = spec.joints[lay.loops[l]]
+        for li in range(len(lay.loops)):
+            joint = spec.joints[lay.loops[li]]
             for side in range(2):
-                loop_body[w_, l, side] = lay.loop_body[l, side]
-                loop_anchor[w_, l, side] = _transform(lay.loop_R[l, side], lay.loop_p[l, side])
-            loop_axis[w_, l] = joint.axis
-            loop_t[0, w_, l], loop_t[1, w_, l] = lay.loop_dirs[l, 3], lay.loop_dirs[l, 4]
+                loop_body[w_, li, side] = lay.loop_body[li, side]
+                loop_anchor[w_, li, side] = _transform(lay.loop_R[li, side], lay.loop_p[li, side])
+            loop_axis[w_, li] = joint.axis
+            loop_t[0, w_, li], loop_t[1, w_, li] = lay.loop_dirs[li, 3], lay.loop_dirs[li, 4]
         row_loop[w_, :len(lay.rows)] = lay.rows[:, 0]
         row_part[w_, :len(lay.rows)] = lay.rows[:, 1]
         for i, body in enumerate(spec.bodies):
@@ -1020,7 +1058,7 @@ def initial_bodies_kernel(m: ChainArrays, w: ChainWork, q: wp.array2d(dtype=floa
                           body_q: wp.array2d(dtype=wp.transform), body_qd: wp.array2d(dtype=wp.spatial_vector)):
     """Tree bodies' COM poses and velocities from q and u (a thread per world)."""
     world = wp.tid()
-    kinematics(m, w, world, 0, 1, q, u)
+    kinematics(m, w, world, 0, 1, q, u, VELOCITIES)
     for k in range(m.tree_count[world]):
         b = m.body_out[world, k]
         body_q[world, b] = wp.transform(w.centre[world, k], wp.transform_get_rotation(w.pose[world, k]))

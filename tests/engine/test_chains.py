@@ -324,7 +324,8 @@ def test_what_the_path_cannot_model_is_named():
         (dataclasses.replace(spec, shapes=[Shape("pad", "sphere", "crank", size=(0.01,))]), "shape 'pad'"),
         (dataclasses.replace(spec, joints=spec.joints[:1]), "body 'coupler' is not connected"),
         (dataclasses.replace(spec, joints=spec.joints[:2] + [dataclasses.replace(
-            spec.joints[2], drive=JointDrive(stiffness=1.0))] + spec.joints[3:]), "joint 'coupler_rocker' closes a loop"),
+            spec.joints[2], drive=JointDrive(stiffness=1.0))] + spec.joints[3:]),
+         "joint 'coupler_rocker' closes a loop"),
         (dataclasses.replace(spec, joints=[dataclasses.replace(spec.joints[0], type="spherical")] + spec.joints[1:]),
          "joint 'ground_crank' is spherical"),
         (chain(links=MAX_COORDS + 1).spec, f"{MAX_COORDS + 1} tree coordinates"),
