@@ -540,26 +540,29 @@ def loop_errors(m: ChainArrays, w: ChainWork, world: int, lane: int, lanes: int)
 
 
 @wp.func
-def row_entry(m: ChainArrays, w: ChainWork, world: int, r: int, j: int):
-    """G[r, j]: the kept row r's rate from tree joint j's unit rate."""
+def loop_rows_of(m: ChainArrays, w: ChainWork, world: int, r: int, G: Any, X: Any):
+    """Kept row r of G (and of G^T in X), by one lane: the row's rate from each tree joint that moves
+    either of its loop's bodies (walking up from each; the second body's joints count +, the first's
+    -; a common ancestor's cancel in the angular rows and nearly so in the position rows). The
+    tiles' other entries stay 0."""
     li = m.row_loop[world, r]
     part = m.row_part[world, r]
     d = w.dirs[world, 5 * li + part]
-    aj = w.axis[world, j]
-    pj = w.point[world, j]
-    value = float(0.0)
     for side in range(2):
-        b = m.loop_body[world, li, side]
-        if b >= 0:
-            if bit(m.ancestors[world, b], j) != 0:
-                sign = float(1.0)
-                if side == 0:
-                    sign = -1.0
-                if part < 3:
-                    value += sign * wp.dot(d, wp.cross(aj, w.ends[world, 2 * li + side] - pj))
-                else:
-                    value += sign * wp.dot(d, aj)
-    return value
+        sign = float(1.0)
+        if side == 0:
+            sign = -1.0
+        x = w.ends[world, 2 * li + side]
+        j = m.loop_body[world, li, side]
+        while j >= 0:
+            aj = w.axis[world, j]
+            value = sign * wp.dot(d, aj)
+            if part < 3:
+                value = sign * wp.dot(d, wp.cross(aj, x - w.point[world, j]))
+            total = G[r, j] + value
+            cset(G, r, j, total)
+            cset(X, j, r, total)
+            j = m.parent[world, j]
 
 
 @wp.func
@@ -755,35 +758,25 @@ def chain_step_kernel(coords: int, rows: int):
                 cset(vec, i, dt * tau)
             loop_errors(m, w, world, lane, lanes)
             block_sync()
-            for e in range(lane, n * n, lanes):  # M~ (lower triangle and diagonal)
-                i = e // n
-                j = e % n
-                if j <= i:
-                    value = float(0.0)
-                    lo = j
-                    hi = i
-                    if bit(m.ancestors[world, i], j) == 0:
-                        lo = i
-                        hi = j
-                    if bit(m.ancestors[world, hi], lo) != 0:  # lo's joint moves hi's body
-                        a = w.axis[world, lo]
-                        value = wp.dot(a, w.force_n[world, hi]) + wp.dot(wp.cross(w.point[world, lo], a),
-                                                                         w.force_f[world, hi])
-                    if i == j:
+            for i in range(lane, n, lanes):  # M~: row i against its ancestors j (the tile's other entries stay 0)
+                j = i
+                while j >= 0:
+                    a = w.axis[world, j]
+                    value = wp.dot(a, w.force_n[world, i]) + wp.dot(wp.cross(w.point[world, j], a), w.force_f[world, i])
+                    if j == i:
                         value += m.armature[world, i] + dt * (m.damping[world, i] + m.kd[world, i]
                                                               + lead * m.kp[world, i])
                     cset(Mt, i, j, value)
                     if record != 0:
                         w.matrix[world, i, j] = value
                         w.matrix[world, j, i] = value
-            for e in range(lane, R * n, lanes):  # G, and G^T into X
-                r = e // n
-                j = e % n
-                value = row_entry(m, w, world, r, j)
-                cset(Gt, r, j, value)
-                cset(Xt, j, r, value)
-                if record != 0:
-                    w.rows[world, r, j] = value
+                    j = m.parent[world, j]
+            for r in range(lane, R, lanes):  # G along the two bodies' ancestors, and G^T into X
+                loop_rows_of(m, w, world, r, Gt, Xt)
+            block_sync()
+            if record != 0:
+                for e in range(lane, R * n, lanes):
+                    w.rows[world, e // n, e % n] = Gt[e // n, e % n]
             block_sync()
             if lane == 0:
                 tree_factor(m, world, n, Mt)
