@@ -171,13 +171,12 @@ def chains_run(batch, dt: float, steps: int, record_every: int, config: SolverCo
     step, no PADMM iterations), its loop errors and energy from a maximal model of the same worlds."""
     from engine.chains import ChainStepper, pack_chains
 
+    gauge = pack_worlds(batch, device=device, dt=dt)  # measures only: its joint residuals and energy
     pool_before = mempool_megabytes(device)
     t0 = time.perf_counter()
     model = pack_chains(batch, device=device, config=config, dt=dt)
     pack_s = time.perf_counter() - t0
     stepper = ChainStepper(model, model.state(), chunk=record_every)
-    pool_after = mempool_megabytes(device)
-    gauge = pack_worlds(batch, device=device, dt=dt)  # measures only: its joint residuals and energy
 
     def measure():
         compute_metrics(gauge, stepper.state)
@@ -209,6 +208,7 @@ def chains_run(batch, dt: float, steps: int, record_every: int, config: SolverCo
         positions.append(stepper.state.body_q.numpy()[sample, :, :3].copy())
     timed = times[2:] if len(times) > 2 else times
     step_s = float(np.median(timed))
+    pool_after = mempool_megabytes(device)  # the model, its graph and scratch (the gauge came before)
     return {
         "num_worlds": len(batch), "dt": dt, "steps": done, "step_ms_median": step_s * 1e3,
         "world_steps_per_s": len(batch) / step_s, "wall_s_per_simulated_s": step_s / dt,
@@ -275,8 +275,13 @@ def run_scene(name: str, declared: Declared, args) -> dict:
 
     for variant in (picked(declared.variants) if "throughput" in args.parts and worlds_list else []):
         worlds = worlds_list[-1]
-        row = engine_run(specs, worlds, dt, steps + 2 * chunk, chunk, SolverConfig(**variant["config"]), args.device,
-                         np.arange(min(worlds, len(specs))), scene.potential_min, variant.get("model", "maximal"))
+        try:
+            row = engine_run(specs, worlds, dt, steps + 2 * chunk, chunk, SolverConfig(**variant["config"]),
+                             args.device, np.arange(min(worlds, len(specs))), scene.potential_min,
+                             variant.get("model", "maximal"))
+        except ValueError as exc:  # e.g. a model this scene's mechanisms do not fit
+            result["throughput"].append({"label": variant["label"], "error": str(exc)})
+            continue
         row.update(kind="throughput", engine="morphopt", label=variant["label"], settings=variant["config"])
         result["throughput"].append(clean(row))
         print(json.dumps({"scene": name, **clean(row)}), flush=True)
@@ -592,6 +597,8 @@ def main(argv=None) -> int:
         if unknown:
             parser.error(f"--settings: no variant or sweep point is labelled {unknown} in these scenes; "
                          f"labels: {sorted(known)}")
+        if not args.out:
+            parser.error("--settings writes a partial result: give it its own --out folder")
     wp.config.log_level = wp.LOG_WARNING
     wp.init()
     try:

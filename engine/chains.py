@@ -360,18 +360,21 @@ def chain_layout(spec: MechanismSpec) -> ChainLayout:
 
 def _independent_rows(layout: ChainLayout) -> np.ndarray:
     """The loop rows kept: in order, each row whose part outside the span of the rows kept before
-    it is at least ROW_TOLERANCE of the largest row's norm (at the initial angles; a planar loop's
+    it is at least ROW_TOLERANCE of the largest norm among the rows of its kind (position rows in
+    metres per radian, angular rows in radians per radian; at the initial angles: a planar loop's
     out-of-plane rows are zero there up to the model's rounding)."""
     if not layout.loops:
         return np.zeros((0, 2), dtype=np.int64)
     G, _ = layout.loop_rows(layout.q0)
     basis, kept = [], []
-    scale = np.linalg.norm(G, axis=1).max()
+    norms = np.linalg.norm(G, axis=1)
+    angular = np.arange(len(G)) % 5 >= 3
+    scale = {kind: max(norms[angular == kind].max(), 1e-300) for kind in (False, True)}  # [m] and [rad] rows apart
     for r, row in enumerate(G):
         rest = row.copy()
         for b in basis:
             rest -= (rest @ b) * b
-        if np.linalg.norm(rest) > ROW_TOLERANCE * scale:
+        if np.linalg.norm(rest) > ROW_TOLERANCE * scale[bool(angular[r])]:
             basis.append(rest / np.linalg.norm(rest))
             kept.append((r // 5, r % 5))
     return np.array(kept, dtype=np.int64).reshape(-1, 2)
@@ -434,6 +437,8 @@ class ChainWork:
     dirs: wp.array2d(dtype=wp.vec3)  # and directions
     ends: wp.array2d(dtype=wp.vec3)  # anchor points, 2 per loop
     u_free: wp.array2d(dtype=float)
+    q_start: wp.array2d(dtype=float)  # the step's initial angles and rates
+    u_start: wp.array2d(dtype=float)
     diverged: wp.array(dtype=wp.int32)
     matrix: wp.array3d(dtype=float)  # record: M~ (W, N, N)
     rows: wp.array3d(dtype=float)  # record: G (W, R, N)
@@ -743,10 +748,12 @@ def chain_step_kernel(coords: int, rows: int):
         if midpoint != 0:
             lead = 0.5 * dt
         if frozen == 0:
-            if midpoint != 0:  # Moreau-Jean: the dynamics at the midpoint q + dt/2 u
-                for i in range(lane, n, lanes):
+            for i in range(lane, n, lanes):  # kept for a step that diverges; Moreau-Jean: to the midpoint
+                w.q_start[world, i] = q[world, i]
+                w.u_start[world, i] = u[world, i]
+                if midpoint != 0:
                     q[world, i] = q[world, i] + lead * u[world, i]
-                block_sync()
+            block_sync()
             kinematics(m, w, world, lane, lanes, q, u, DYNAMICS)
             g = m.gravity[world]
             for k in range(lane, n, lanes):
@@ -839,19 +846,22 @@ def chain_step_kernel(coords: int, rows: int):
                     q[world, i] = q[world, i] - acc
                 block_sync()
             kinematics(m, w, world, lane, lanes, q, u, VELOCITIES)
-            bad = int(0)
-            for k in range(lane, n, lanes):
-                b = m.body_out[world, k]
-                X = w.pose[world, k]
+            for k in range(lane, n, lanes):  # the divergence guard
                 c = w.centre[world, k]
                 v = w.vel[world, k]
                 om = w.omega[world, k]
-                body_q[world, b] = wp.transform(c, wp.transform_get_rotation(X))
-                body_qd[world, b] = wp.spatial_vector(v, om)
                 if not (wp.isfinite(c) and wp.isfinite(v) and wp.isfinite(om)) or wp.length(v) > max_speed:
-                    bad = 1
-            if bad != 0:
-                w.diverged[world] = 1
+                    w.diverged[world] = 1
+            block_sync()
+            if w.diverged[world] == 0:
+                for k in range(lane, n, lanes):
+                    b = m.body_out[world, k]
+                    body_q[world, b] = wp.transform(w.centre[world, k], wp.transform_get_rotation(w.pose[world, k]))
+                    body_qd[world, b] = wp.spatial_vector(w.vel[world, k], w.omega[world, k])
+            else:  # frozen at the last good step: its angles, rates and bodies
+                for i in range(lane, n, lanes):
+                    q[world, i] = w.q_start[world, i]
+                    u[world, i] = w.u_start[world, i]
 
     return chain_step_body
 
@@ -903,8 +913,12 @@ class ChainModel:
                             (("q", float), ("u", float), ("body_q", wp.transform), ("body_qd", wp.spatial_vector))))
 
     def step(self, state: ChainState, record: bool = False) -> None:
-        """Advance state by one step of self.dt (in place)."""
+        """Advance state by one step of self.dt (in place). record: also write the step's mass matrix
+        M~ into work.matrix (W, coords, coords) and its kept loop rows G into work.rows (W, rows, coords)."""
         c = self.config
+        if record and self.work.matrix.shape != (self.num_worlds, self.coords, self.coords):  # on first use
+            self.work.matrix = wp.zeros((self.num_worlds, self.coords, self.coords), dtype=float, device=self.device)
+            self.work.rows = wp.zeros((self.num_worlds, self.tile_rows, self.coords), dtype=float, device=self.device)
         block = CHAIN_BLOCK if wp.get_device(self.device).is_cuda else 1
         kernel = chain_step_kernel(self.coords, self.tile_rows)
         wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
@@ -939,7 +953,7 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
             distinct[id(spec)] = len(layouts) - 1
         kind_of.append(distinct[id(spec)])
     kind_of = np.array(kind_of)
-    W, N = len(layouts), MAX_COORDS
+    W, N = len(layouts), _tile_size(max(lay.n for lay in layouts))  # per-coordinate arrays: the padded size
     L = max(1, max(len(lay.loops) for lay in layouts))
     B = max(len(lay.spec.bodies) for lay in layouts)
     f = {k: np.zeros((W, N)) for k in ("mass", "armature", "damping", "kp", "kd", "q_target", "v_target", "q", "u")}
@@ -1048,14 +1062,18 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     k.dirs = wp.zeros((W, 5 * L), dtype=wp.vec3, device=dev)
     k.ends = wp.zeros((W, 2 * L), dtype=wp.vec3, device=dev)
     k.u_free = wp.zeros((W, N), dtype=float, device=dev)
+    k.q_start = wp.zeros((W, N), dtype=float, device=dev)
+    k.u_start = wp.zeros((W, N), dtype=float, device=dev)
     k.diverged = wp.zeros(W, dtype=wp.int32, device=dev)
-    k.matrix = wp.zeros((W, N, N), dtype=float, device=dev)
-    k.rows = wp.zeros((W, MAX_ROWS, N), dtype=float, device=dev)
+    k.matrix = wp.zeros((1, 1, 1), dtype=float, device=dev)  # ChainModel.step(record=True) sizes them
+    k.rows = wp.zeros((1, 1, 1), dtype=float, device=dev)
     init = {"q": f["q"], "u": f["u"], "body_q": body_q, "body_qd": body_qd}
     model = ChainModel(layouts, a, k, init, config, float(dt), device)
     # body poses and velocities at the initial angles: one step's kinematics, no integration
     state = model.state()
-    wp.launch(initial_bodies_kernel, dim=W, device=dev, inputs=[a, k, state.q, state.u, state.body_q, state.body_qd])
+    # blocks of one thread: kinematics' barriers must be reached by every thread of a block, and worlds differ in depth
+    wp.launch_tiled(initial_bodies_kernel, dim=[W], block_dim=1, device=dev,
+                    inputs=[a, k, state.q, state.u, state.body_q, state.body_qd])
     model._init["body_q"] = state.body_q.numpy()
     model._init["body_qd"] = state.body_qd.numpy()
     return model
@@ -1064,8 +1082,8 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
 @wp.kernel(enable_backward=False)
 def initial_bodies_kernel(m: ChainArrays, w: ChainWork, q: wp.array2d(dtype=float), u: wp.array2d(dtype=float),
                           body_q: wp.array2d(dtype=wp.transform), body_qd: wp.array2d(dtype=wp.spatial_vector)):
-    """Tree bodies' COM poses and velocities from q and u (a thread per world)."""
-    world = wp.tid()
+    """Tree bodies' COM poses and velocities from q and u (a block of one thread per world)."""
+    world, lane = wp.tid()
     kinematics(m, w, world, 0, 1, q, u, VELOCITIES)
     for k in range(m.tree_count[world]):
         b = m.body_out[world, k]
