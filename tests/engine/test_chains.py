@@ -27,12 +27,12 @@ def _quat(R):
     return (R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w), w
 
 
-def spatial_loop() -> MechanismSpec:
+def spatial_loop(seed: int = 7, origin=(0.0, 0.0, 0.0), prefix: str = "") -> MechanismSpec:
     """A spatial 7R loop: six bodies hinged one to the next from the world about axes in different
     directions, the last hinged back to the world; one degree of freedom, started assembled."""
-    rng = np.random.default_rng(7)
+    rng = np.random.default_rng(seed)
     bodies, joints = [], []
-    R, p = np.eye(3), np.zeros(3)
+    R, p = np.eye(3), np.asarray(origin, dtype=float)
     parent = None
     for k in range(6):
         axis = rng.normal(size=3)
@@ -41,21 +41,21 @@ def spatial_loop() -> MechanismSpec:
         offset = np.array([0.12, 0.02 * (k % 2), -0.03])
         pivot = p
         p = p + R @ offset
-        name = f"link{k}"
+        name = f"{prefix}link{k}"
         bodies.append(Body(name, 0.2 + 0.05 * k, [2e-4 + 1e-5 * k, 3e-4, 1e-4 + 2e-5 * k], com=(0.03, 0.01, 0.0),
                            position=p, orientation=_quat(R)))
         # the hinge at pivot (world frame): parent anchor in the parent frame, child anchor in the child's
         parent_R = np.eye(3) if parent is None else parent[0]
         parent_p = np.zeros(3) if parent is None else parent[1]
-        joints.append(Joint(f"j{k}", "revolute", None if parent is None else f"link{k - 1}", name,
+        joints.append(Joint(f"{prefix}j{k}", "revolute", None if parent is None else f"{prefix}link{k - 1}", name,
                             parent_position=parent_R.T @ (pivot - parent_p), child_position=R.T @ (pivot - p),
                             parent_orientation=_quat(parent_R.T @ R), axis=R.T @ axis))
         parent = (R, p)
     end = p + R @ np.array([0.1, 0.0, 0.02])
     axis = R @ np.array([0.3, 0.8, 0.5])
-    joints.append(Joint("close", "revolute", None, "link5", parent_position=end, parent_orientation=_quat(R),
-                        child_position=R.T @ (end - p), axis=R.T @ axis))
-    return MechanismSpec(bodies, joints, name="spatial_loop")
+    joints.append(Joint(f"{prefix}close", "revolute", None, f"{prefix}link5", parent_position=end,
+                        parent_orientation=_quat(R), child_position=R.T @ (end - p), axis=R.T @ axis))
+    return MechanismSpec(bodies, joints, name=f"{prefix}spatial_loop")
 
 
 def gimbal() -> MechanismSpec:
@@ -355,6 +355,30 @@ def test_a_batch_of_different_mechanisms_steps_each_as_alone(device):
             alone.step(s)
         n = alone.layouts[0].n
         assert np.allclose(state.q.numpy()[w, :n], s.q.numpy()[0, :n], atol=1e-6, rtol=0)
+
+
+def test_cuda_steps_a_large_tree_as_the_cpu_does():
+    """Five spatial 7R loops on the world in one mechanism (30 coordinates, 25 kept rows: the lanes
+    of a warp share every stage, and some stages take more items than lanes): CUDA's 32 lanes per
+    world give the CPU's single-thread result to float32 rounding after 50 steps (a race between
+    lanes would not)."""
+    import warp as wp
+
+    if not wp.is_cuda_available():
+        pytest.skip("no CUDA device on this machine")
+    parts = [spatial_loop(seed, origin=(0.5 * seed, 0.0, 0.0), prefix=f"m{seed}_") for seed in range(5)]
+    spec = MechanismSpec([b for m in parts for b in m.bodies], [j for m in parts for j in m.joints], name="five_loops")
+    layout = chain_layout(spec)
+    assert layout.n == 30 and len(layout.rows) == 25
+    results = []
+    for device in ("cpu", "cuda"):
+        model = pack_chains([spec, spec], device=device, dt=1e-3)
+        state = model.state()
+        for _ in range(50):
+            model.step(state)
+        results.append(state.q.numpy()[:, :30])
+    moved = np.abs(results[0] - layout.q0).max()
+    assert moved > 1e-3 and np.abs(results[1] - results[0]).max() < 1e-4 * max(1.0, moved)
 
 
 @pytest.mark.parametrize("kick", [1e4, float("nan")])
