@@ -156,6 +156,19 @@ def test_spatial_loop_keeps_five_rows_and_the_planar_loops_two_each():
         assert set(layout.rows[:, 1].tolist()) <= {0, 1, 2}
 
 
+def _rk4(f, x: float, duration: float, h: float = 1e-5) -> float:
+    """x(duration) of x'' = f(x, x')[1], from rest at x, by classical RK4 with step h (float64)."""
+    v = 0.0
+    for _ in range(round(duration / h)):
+        k1 = f(x, v)
+        k2 = f(x + h / 2 * k1[0], v + h / 2 * k1[1])
+        k3 = f(x + h / 2 * k2[0], v + h / 2 * k2[1])
+        k4 = f(x + h * k3[0], v + h * k3[1])
+        x += h / 6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
+        v += h / 6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
+    return x
+
+
 def test_pendulum_follows_the_compound_pendulum_ode(device):
     """A bar released at 30 degrees: its angle follows theta'' = -(m g d / I_pivot) sin theta
     (integrated with RK4 at 1e-5 s) over 1 s: the default Moreau-Jean midpoint step within 2e-5 rad
@@ -170,14 +183,7 @@ def test_pendulum_follows_the_compound_pendulum_ode(device):
     def f(x, v):
         return v, -k * math.sin(x)
 
-    th, om, h = math.radians(30.0), 0.0, 1e-5
-    for _ in range(round(1.0 / h)):
-        k1 = f(th, om)
-        k2 = f(th + h / 2 * k1[0], om + h / 2 * k1[1])
-        k3 = f(th + h / 2 * k2[0], om + h / 2 * k2[1])
-        k4 = f(th + h * k3[0], om + h * k3[1])
-        th += h / 6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
-        om += h / 6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
+    th = _rk4(f, math.radians(30.0), 1.0)
 
     def error(dt, integrator):
         model = pack_chains([scene.spec], device=device, dt=dt, config=SolverConfig(integrator=integrator))
@@ -313,18 +319,11 @@ def test_damped_pd_drive_with_armature_follows_its_linear_ode(device):
     body = spec.bodies[0]
     inertia = body.inertia[1, 1] + body.mass * float(body.com @ body.com) + armature
     q0 = chain_layout(spec).q0[0]
-    th, om, h = q0, 0.0, 1e-5
 
     def f(x, v):
         return v, (kp * (target - x) - (kd + damping) * v) / inertia
 
-    for _ in range(round(1.0 / h)):
-        k1 = f(th, om)
-        k2 = f(th + h / 2 * k1[0], om + h / 2 * k1[1])
-        k3 = f(th + h / 2 * k2[0], om + h / 2 * k2[1])
-        k4 = f(th + h * k3[0], om + h * k3[1])
-        th += h / 6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
-        om += h / 6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
+    th = _rk4(f, q0, 1.0)
     assert abs(th - q0) > 0.1  # the drive moves it
 
     def error(integrator, dt):
