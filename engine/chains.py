@@ -13,7 +13,7 @@ joint with no parent); a breadth-first search from it over the revolute joints g
 coincide, as engine.spec defines it); every other revolute joint closes a loop. Each loop has five
 rows in the anchor frame of its first body: three position rows along the frame's axes and two
 angular rows about two directions normal to the joint axis. The host evaluates the rows at the
-initial pose in float64 and keeps a largest independent subset (Gram-Schmidt in row order): a
+initial pose in float64 and keeps a largest independent subset (Gram-Schmidt with pivoting): a
 planar loop's out-of-plane rows are implied by its joints' parallel axes, and a redundant row
 would make the loops' matrix singular. Only what this path models is accepted, with an error that
 names the joint or body otherwise: revolute joints (and welds to the world), drives and armature
@@ -368,25 +368,31 @@ def chain_layout(spec: MechanismSpec) -> ChainLayout:
 
 
 def _independent_rows(layout: ChainLayout) -> np.ndarray:
-    """The loop rows kept: in order, each row whose part outside the span of the rows kept before
-    it is at least ROW_TOLERANCE of the largest norm among the rows of its kind (position rows in
-    metres per radian, angular rows in radians per radian; at the initial angles: a planar loop's
-    out-of-plane rows are zero there up to the model's rounding)."""
+    """The loop rows kept (at the initial angles), by Gram-Schmidt with pivoting: each time the row
+    whose part outside the span of the rows kept so far is largest, measured against the largest
+    norm among the rows of its kind (position rows in metres per radian, angular rows in radians per
+    radian), until none is above ROW_TOLERANCE. A planar loop's out-of-plane rows are zero there up
+    to the model's rounding; the pivoting keeps, of rows that say the same, the best conditioned (a
+    row that only grazes the constraint would lose it as the mechanism moves). Returned in row
+    order."""
     if not layout.loops:
         return np.zeros((0, 2), dtype=np.int64)
     G, _ = layout.loop_rows(layout.q0)
-    basis, kept = [], []
     norms = np.linalg.norm(G, axis=1)
     angular = np.arange(len(G)) % 5 >= 3
-    scale = {kind: max(norms[angular == kind].max(), 1e-300) for kind in (False, True)}  # [m] and [rad] rows apart
-    for r, row in enumerate(G):
-        rest = row.copy()
-        for b in basis:
-            rest -= (rest @ b) * b
-        if np.linalg.norm(rest) > ROW_TOLERANCE * scale[bool(angular[r])]:
-            basis.append(rest / np.linalg.norm(rest))
-            kept.append((r // 5, r % 5))
-    return np.array(kept, dtype=np.int64).reshape(-1, 2)
+    scale = np.where(angular, max(norms[angular].max(), 1e-300), max(norms[~angular].max(), 1e-300))
+    rest = G.copy()
+    kept = []
+    while len(kept) < len(G):
+        size = np.linalg.norm(rest, axis=1) / scale
+        size[kept] = 0.0
+        r = int(np.argmax(size))
+        if size[r] <= ROW_TOLERANCE:
+            break
+        kept.append(r)
+        unit = rest[r] / np.linalg.norm(rest[r])
+        rest -= np.outer(rest @ unit, unit)
+    return np.array([(r // 5, r % 5) for r in sorted(kept)], dtype=np.int64).reshape(-1, 2)
 
 
 @wp.struct

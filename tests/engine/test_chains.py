@@ -92,6 +92,49 @@ def welded() -> MechanismSpec:
     return MechanismSpec(bodies, joints, name="welded")
 
 
+def random_mechanism(seed: int) -> MechanismSpec:
+    """4 to 7 bodies at random poses, each hinged at a random point about a random axis to the world,
+    to an earlier body or to a base welded to the world (half the time), half the hinges between
+    bodies written child to parent, anchor frames turned at random; and one more hinge between two
+    random bodies, assembled at the start (a loop, which may lock a joint or leave a chain mobile)."""
+    rng = np.random.default_rng(seed)
+    count = int(rng.integers(4, 8))
+    bodies, joints, poses = [], [], []
+    if rng.random() < 0.5:
+        R, p = _rotation(rng.normal(size=3), rng.uniform(0, 3)), rng.normal(size=3) * 0.1
+        bodies.append(Body("base", 1.0, [0.01, 0.01, 0.01], position=p, orientation=_quat(R)))
+        joints.append(Joint("weld", "fixed", None, "base", parent_position=p, parent_orientation=_quat(R)))
+        poses.append((R, p))
+    first = len(bodies)
+    for k in range(count):
+        R = _rotation(rng.normal(size=3), rng.uniform(0, 3))
+        parent = int(rng.integers(-1, len(bodies)))
+        Rp, pp = (np.eye(3), np.zeros(3)) if parent < 0 else poses[parent]
+        pivot = pp + rng.normal(size=3) * 0.08
+        p = pivot + rng.normal(size=3) * 0.08
+        bodies.append(Body(f"b{k}", float(rng.uniform(0.1, 1.0)), rng.uniform(1e-4, 1e-3, size=3),
+                           com=rng.normal(size=3) * 0.02, position=p, orientation=_quat(R)))
+        poses.append((R, p))
+        A = _rotation(rng.normal(size=3), rng.uniform(0, 3))
+        axis = rng.normal(size=3)
+        near = (None if parent < 0 else bodies[parent].name, pivot if parent < 0 else Rp.T @ (pivot - pp),
+                _quat(A if parent < 0 else Rp.T @ A))
+        far = (f"b{k}", R.T @ (pivot - p), _quat(R.T @ A))
+        if near[0] is not None and rng.random() < 0.5:
+            near, far = far, near
+        joints.append(Joint(f"j{k}", "revolute", near[0], far[0], parent_position=near[1], parent_orientation=near[2],
+                            child_position=far[1], child_orientation=far[2], axis=A.T @ axis))
+    a, b = rng.choice(np.arange(first, len(bodies)), size=2, replace=False)
+    (Ra, pa), (Rb, pb) = poses[a], poses[b]
+    pivot = 0.5 * (pa + pb)
+    A = _rotation(rng.normal(size=3), rng.uniform(0, 3))
+    axis = rng.normal(size=3)
+    joints.append(Joint("loop", "revolute", bodies[a].name, bodies[b].name, parent_position=Ra.T @ (pivot - pa),
+                        parent_orientation=_quat(Ra.T @ A), child_position=Rb.T @ (pivot - pb),
+                        child_orientation=_quat(Rb.T @ A), axis=A.T @ axis))
+    return MechanismSpec(bodies, joints, name=f"random{seed}")
+
+
 def _reference_matrices(layout, q, h=1e-6):
     """M = sum_b J_b^T diag(m, I) J_b and the loop rows' Jacobian d phi / d q, from central
     differences of the layout's NumPy kinematics (float64)."""
@@ -250,6 +293,25 @@ def test_closed_chains_match_the_maximal_engine_and_stay_closed(make, device):
     gauge = pack_worlds([spec], device=device)
     compute_metrics(gauge, state)
     assert gauge.work.violation_linear.numpy()[0] < 1e-6 and gauge.work.violation_angular.numpy()[0] < 1e-5
+
+
+def test_random_mechanisms_converge_to_the_maximal_engine():
+    """Ten random mechanisms (random_mechanism: welds, reversed hinges, turned anchor frames, a loop
+    that may lock a joint; seed 1 locks a hinge with a second one whose first position row only
+    grazes the constraint): after 0.2 s, at dt 1 ms, our bodies are within 5e-3 m of the
+    maximal-coordinate engine at dt 0.1 ms, and 2.5x closer at dt 0.25 ms (first order) unless
+    already within 3e-5 m (the reference's own error); nearly all of them move. Rows chosen in row
+    order without pivoting kept seed 1's grazing row and let its locked hinge drift: 9.5e-2 m."""
+    moved = 0
+    for seed in range(10):
+        spec = random_mechanism(seed)
+        reference = _maximal_reference(spec, 0.2)
+        errors = [np.linalg.norm(_chains_positions(spec, 0.2, dt, "cpu")[0] - reference, axis=1).max()
+                  for dt in (1e-3, 2.5e-4)]
+        assert errors[0] < 5e-3, (seed, errors)
+        assert errors[1] < max(errors[0] / 2.5, 3e-5), (seed, errors)
+        moved += np.linalg.norm(reference - np.array([b.position for b in spec.bodies]), axis=1).max() > 0.05
+    assert moved >= 8
 
 
 def test_projection_closes_what_the_velocity_constraint_lets_drift(device):
