@@ -152,7 +152,6 @@ class ChainLayout:
     loop_p: np.ndarray  # (L, 2, 3)
     loop_dirs: np.ndarray  # (L, 5, 3) the rows' directions in the first anchor frame
     rows: np.ndarray  # (R, 2) kept rows: loop, part (0-2 position, 3-4 angular)
-    fixed_poses: dict  # spec body index -> (R, p) of a fixed body frame
 
     @property
     def n(self) -> int:
@@ -359,8 +358,7 @@ def chain_layout(spec: MechanismSpec) -> ChainLayout:
         loop_dirs[li] = np.stack([np.eye(3)[0], np.eye(3)[1], np.eye(3)[2], t1, t2])
     layout = ChainLayout(spec, tree_body, np.array(parent, dtype=np.int64), np.array(depth, dtype=np.int64),
                          joint_of, parent_R, parent_p, child_R, child_p, axis, q0, u0, loops, loop_body, loop_R,
-                         loop_p, loop_dirs, np.zeros((0, 2), dtype=np.int64),
-                         {b: fixed[b] for b in fixed})
+                         loop_p, loop_dirs, np.zeros((0, 2), dtype=np.int64))
     layout.rows = _independent_rows(layout)
     if len(layout.rows) > MAX_ROWS:
         raise ValueError(f"{where}: {len(layout.rows)} independent loop rows, at most {MAX_ROWS} are modelled")
@@ -401,11 +399,9 @@ class ChainArrays:
     depth_count: wp.array(dtype=wp.int32)
     loop_count: wp.array(dtype=wp.int32)
     row_count: wp.array(dtype=wp.int32)
-    body_count: wp.array(dtype=wp.int32)
     gravity: wp.array(dtype=wp.vec3)
     parent: wp.array2d(dtype=wp.int32)
     depth: wp.array2d(dtype=wp.int32)
-    ancestors: wp.array2d(dtype=wp.int32)  # bit i: tree joint i moves body k
     first_child: wp.array2d(dtype=wp.int32)  # tree index of body k's first child, -1: none
     child_count: wp.array2d(dtype=wp.int32)
     joint_parent: wp.array2d(dtype=wp.transform)
@@ -457,12 +453,6 @@ class ChainWork:
     diverged: wp.array(dtype=wp.int32)
     matrix: wp.array3d(dtype=float)  # record: M~ (W, N, N)
     rows: wp.array3d(dtype=float)  # record: G (W, R, N)
-
-
-@wp.func
-def bit(mask: wp.int32, i: int):
-    """Bit i of mask (0 or 1)."""
-    return (mask >> i) & 1
 
 
 POSES = wp.constant(0)  # kinematics' detail: body poses, joint points and axes
@@ -972,8 +962,7 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     L = max(1, max(len(lay.loops) for lay in layouts))
     B = max(len(lay.spec.bodies) for lay in layouts)
     f = {k: np.zeros((W, N)) for k in ("mass", "armature", "damping", "kp", "kd", "q_target", "v_target", "q", "u")}
-    i32 = {k: np.zeros((W, N), dtype=np.int32) for k in ("parent", "depth", "ancestors", "body_out", "first_child",
-                                                         "child_count")}
+    i32 = {k: np.zeros((W, N), dtype=np.int32) for k in ("parent", "depth", "body_out", "first_child", "child_count")}
     v3 = {k: np.zeros((W, N, 3)) for k in ("axis", "com")}
     inertia = np.tile(np.eye(3), (W, N, 1, 1))
     jp = np.zeros((W, N, 7))
@@ -989,19 +978,18 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     body_q = np.zeros((W, B, 7))
     body_q[..., 6] = 1.0
     body_qd = np.zeros((W, B, 6))
-    counts = np.zeros((5, W), dtype=np.int32)
+    counts = np.zeros((4, W), dtype=np.int32)
     gravity = np.zeros((W, 3))
     for w_, lay in enumerate(layouts):
         spec = lay.spec
         n = lay.n
-        counts[:, w_] = (n, (lay.depth.max() + 1) if n else 0, len(lay.loops), len(lay.rows), len(spec.bodies))
+        counts[:, w_] = (n, (lay.depth.max() + 1) if n else 0, len(lay.loops), len(lay.rows))
         gravity[w_] = spec.gravity
         for k in range(n):
             body = spec.bodies[lay.tree_body[k]]
             joint = spec.joints[lay.joint[k]]
             i32["parent"][w_, k] = lay.parent[k]
             i32["depth"][w_, k] = lay.depth[k]
-            i32["ancestors"][w_, k] = np.int32(np.uint32(sum(1 << a for a in lay.ancestors(k))).view(np.int32))
             i32["body_out"][w_, k] = lay.tree_body[k]
             children = np.flatnonzero(lay.parent == k)
             i32["first_child"][w_, k] = children[0] if len(children) else -1
@@ -1048,10 +1036,10 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     # the initial body poses and velocities from the tree (fixed bodies keep the spec's)
     dev = device
     a = ChainArrays()
-    a.tree_count, a.depth_count, a.loop_count, a.row_count, a.body_count = (
+    a.tree_count, a.depth_count, a.loop_count, a.row_count = (
         wp.array(c, dtype=wp.int32, device=dev) for c in counts)
     a.gravity = wp.array(gravity, dtype=wp.vec3, device=dev)
-    for k in ("parent", "depth", "ancestors", "body_out", "first_child", "child_count"):
+    for k in ("parent", "depth", "body_out", "first_child", "child_count"):
         setattr(a, k, wp.array(i32[k], dtype=wp.int32, device=dev))
     a.joint_parent = wp.array(jp, dtype=wp.transform, device=dev)
     a.joint_child = wp.array(jc, dtype=wp.transform, device=dev)
