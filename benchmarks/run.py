@@ -118,48 +118,23 @@ def engine_run(specs, worlds: int, dt: float, steps: int, record_every: int, con
     model = pack_worlds(batch, device=device, config=config, dt=dt)
     pack_s = time.perf_counter() - t0
     stepper = Stepper(model, model.state(), model.control(), chunk=record_every)
-    compute_metrics(model, stepper.state)
-    energy0 = model.work.energy.numpy().copy()
-    available = None
-    if potential_min is not None:
-        pmin = np.array([potential_min[w % len(specs)] for w in range(worlds)])
-        available = np.maximum(energy0 - pmin, 1e-12)
-    positions = [stepper.state.body_q.numpy()[sample, :, :3].copy()]
-    times, loop_m, loop_rad, drift, done = [], 0.0, 0.0, 0.0, 0
-    t_first = time.perf_counter()
-    while done < steps:
-        wp.synchronize_device(model.device)
-        t = time.perf_counter()
-        stepper.advance()
-        wp.synchronize_device(model.device)
-        times.append((time.perf_counter() - t) / record_every)
-        done += record_every
+
+    def measure():
         compute_metrics(model, stepper.state)
-        ok = ~model.work.diverged.numpy().astype(bool)
-        if ok.any():
-            loop_m = max(loop_m, float(model.work.violation_linear.numpy()[ok].max()))
-            loop_rad = max(loop_rad, float(model.work.violation_angular.numpy()[ok].max()))
-            if available is not None:
-                energy = model.work.energy.numpy()
-                drift = max(drift, float((np.abs(energy - energy0) / available)[ok].max()))
-        positions.append(stepper.state.body_q.numpy()[sample, :, :3].copy())
-    timed = times[2:] if len(times) > 2 else times
-    step_s = float(np.median(timed))
+        work = model.work
+        return (work.violation_linear.numpy(), work.violation_angular.numpy(), work.energy.numpy(),
+                work.diverged.numpy().astype(bool))
+
+    row = timed_chunks(stepper, measure, dt, steps, record_every, device, sample, potential_min)
     solved = np.maximum(stepper.solved_steps.numpy(), 1)
     pool_after = mempool_megabytes(device)
     return {
-        "num_worlds": worlds, "dt": dt, "steps": done, "step_ms_median": step_s * 1e3,
-        "world_steps_per_s": worlds / step_s, "wall_s_per_simulated_s": step_s / dt,
-        "first_chunks_s": [round(x * record_every, 4) for x in times[:2]], "pack_s": pack_s,
-        "loop_error_m": loop_m, "loop_error_rad": loop_rad,
-        "energy_drift_rel": drift if available is not None else None,
+        **row, "pack_s": pack_s,
         "padmm_iterations_mean": float((stepper.iteration_sum.numpy() / solved).mean()),
         "padmm_iterations_max": int(stepper.iteration_max.numpy().max()),
         "unconverged_step_fraction": float((stepper.unconverged_steps.numpy() / solved).mean()),
-        "diverged_worlds": int(model.work.diverged.numpy().sum()),
         "step_kernel": model.step_kernel, "linear_solver": model.linear_solver, "max_rows": model.max_rows,
         "fused_block": model.fused_block, "cuda_graph": bool(stepper.capture),
-        "positions": np.array(positions), "run_s": time.perf_counter() - t_first,
         "engine_arrays_mb": array_megabytes(model, model.work, stepper, *stepper._buffers),
         "device_memory_mb": None if pool_before is None else pool_after - pool_before,
     }
@@ -180,13 +155,34 @@ def chains_run(batch, dt: float, steps: int, record_every: int, config: SolverCo
 
     def measure():
         compute_metrics(gauge, stepper.state)
-        return (gauge.work.violation_linear.numpy(), gauge.work.violation_angular.numpy(),
-                gauge.work.energy.numpy())
+        work = gauge.work
+        return work.violation_linear.numpy(), work.violation_angular.numpy(), work.energy.numpy(), model.diverged
 
-    energy0 = measure()[2].copy()
+    row = timed_chunks(stepper, measure, dt, steps, record_every, device, sample, potential_min)
+    pool_after = mempool_megabytes(device)  # the model, its graph and scratch (the gauge came before)
+    return {
+        **row, "pack_s": pack_s,
+        "padmm_iterations_mean": 0.0, "padmm_iterations_max": 0, "unconverged_step_fraction": 0.0,
+        "step_kernel": "chains", "linear_solver": "dense (reduced coordinates)", "max_rows": model.max_rows,
+        "fused_block": None, "cuda_graph": bool(stepper.capture),
+        "engine_arrays_mb": array_megabytes(model.arrays, model.work, stepper.state),
+        "device_memory_mb": None if pool_before is None else pool_after - pool_before,
+    }
+
+
+def timed_chunks(stepper, measure, dt: float, steps: int, record_every: int, device: str, sample: np.ndarray,
+                 potential_min=None) -> dict:
+    """The runs' common loop: ``stepper.advance()`` (a chunk of ``record_every`` steps) timed between
+    device synchronizations until ``steps``, the median over the chunks after the first two (compile,
+    capture); after each chunk ``measure()`` -> per world (loop error [m], [rad], energy [J],
+    diverged) gives the largest loop errors and energy drift over the worlds that did not diverge,
+    and the sample worlds' body positions are recorded."""
+    _, _, energy0, diverged = measure()
+    energy0 = energy0.copy()
+    worlds = len(energy0)
     available = None
     if potential_min is not None:
-        pmin = np.array([potential_min[w % len(potential_min)] for w in range(len(batch))])
+        pmin = np.array([potential_min[w % len(potential_min)] for w in range(worlds)])
         available = np.maximum(energy0 - pmin, 1e-12)
     positions = [stepper.state.body_q.numpy()[sample, :, :3].copy()]
     times, loop_m, loop_rad, drift, done = [], 0.0, 0.0, 0.0, 0
@@ -198,8 +194,8 @@ def chains_run(batch, dt: float, steps: int, record_every: int, config: SolverCo
         wp.synchronize_device(device)
         times.append((time.perf_counter() - t) / record_every)
         done += record_every
-        lin, ang, energy = measure()
-        ok = ~model.diverged
+        lin, ang, energy, diverged = measure()
+        ok = ~diverged
         if ok.any():
             loop_m = max(loop_m, float(lin[ok].max()))
             loop_rad = max(loop_rad, float(ang[ok].max()))
@@ -208,20 +204,14 @@ def chains_run(batch, dt: float, steps: int, record_every: int, config: SolverCo
         positions.append(stepper.state.body_q.numpy()[sample, :, :3].copy())
     timed = times[2:] if len(times) > 2 else times
     step_s = float(np.median(timed))
-    pool_after = mempool_megabytes(device)  # the model, its graph and scratch (the gauge came before)
     return {
-        "num_worlds": len(batch), "dt": dt, "steps": done, "step_ms_median": step_s * 1e3,
-        "world_steps_per_s": len(batch) / step_s, "wall_s_per_simulated_s": step_s / dt,
-        "first_chunks_s": [round(x * record_every, 4) for x in times[:2]], "pack_s": pack_s,
+        "num_worlds": worlds, "dt": dt, "steps": done, "step_ms_median": step_s * 1e3,
+        "world_steps_per_s": worlds / step_s, "wall_s_per_simulated_s": step_s / dt,
+        "first_chunks_s": [round(x * record_every, 4) for x in times[:2]],
         "loop_error_m": loop_m, "loop_error_rad": loop_rad,
         "energy_drift_rel": drift if available is not None else None,
-        "padmm_iterations_mean": 0.0, "padmm_iterations_max": 0, "unconverged_step_fraction": 0.0,
-        "diverged_worlds": int(model.diverged.sum()),
-        "step_kernel": "chains", "linear_solver": "dense (reduced coordinates)", "max_rows": model.max_rows,
-        "fused_block": None, "cuda_graph": bool(stepper.capture),
+        "diverged_worlds": int(diverged.sum()),
         "positions": np.array(positions), "run_s": time.perf_counter() - t_first,
-        "engine_arrays_mb": array_megabytes(model.arrays, model.work, stepper.state),
-        "device_memory_mb": None if pool_before is None else pool_after - pool_before,
     }
 
 
