@@ -71,7 +71,7 @@ from typing import Any, Sequence
 import numpy as np
 import warp as wp
 
-from engine.linear import block_sync
+from engine.linear import block_sync, tile_set
 from engine.model import Integrator, SolverConfig
 from engine.spec import JointType, MechanismSpec
 
@@ -86,29 +86,8 @@ ROW_TOLERANCE = 1.0e-4  # a loop row is redundant when the kept rows leave less 
 REGULARIZATION = wp.constant(1.0e-6)  # relative diagonal shift of the loops' matrix (rounding guard)
 CHAIN_BLOCK = 32  # threads per world on a GPU
 TILE_STEP = 8  # the shared tiles are sized to the batch's padded coordinates and rows in steps of this
-TILE_SIZES = tuple(range(TILE_STEP, MAX_COORDS + 1, TILE_STEP))
 
 
-def _define_setters():
-    """Element writes into the shared tiles of every size (overloads of cset), without the block
-    barrier Warp's tile element assignment ends in: the lanes write different entries in divergent
-    code and the callers place the barriers."""
-    setter = None
-    for rows in TILE_SIZES:
-        for cols in TILE_SIZES:
-            @wp.func_native("t.data(wp::tile_coord(i, j)) = value;")
-            def cset(t: wp.tile(dtype=float, shape=(rows, cols), storage="shared"), i: int, j: int, value: float):
-                """t[i, j] = value, without a barrier."""
-            setter = cset
-
-        @wp.func_native("t.data(wp::tile_coord(i)) = value;")
-        def cset(t: wp.tile(dtype=float, shape=(rows,), storage="shared"), i: int, value: float):  # noqa: F811
-            """t[i] = value, without a barrier."""
-        setter = cset
-    return setter
-
-
-cset = _define_setters()
 
 
 def _quat_matrix(q: np.ndarray) -> np.ndarray:
@@ -584,8 +563,8 @@ def loop_rows_of(m: ChainArrays, w: ChainWork, world: int, r: int, G: Any, X: An
             if part < 3:
                 value = sign * wp.dot(d, wp.cross(aj, x - w.point[world, j]))
             total = G[r, j] + value
-            cset(G, r, j, total)
-            cset(X, j, r, total)
+            tile_set(G, r, j, total)
+            tile_set(X, j, r, total)
             j = m.parent[world, j]
 
 
@@ -605,9 +584,9 @@ def factor_lanes(lane: int, lanes: int, n: int, A: Any, diag: Any, relative: flo
             t = A[i, j]
             for k in range(j):
                 t -= A[i, k] * A[j, k]
-            cset(A, i, j, t * inv)
+            tile_set(A, i, j, t * inv)
         if lane == 0:
-            cset(diag, j, d)
+            tile_set(diag, j, d)
         block_sync()
 
 
@@ -618,13 +597,13 @@ def solve_row(n: int, L: Any, diag: Any, x: Any, row: int):
         s = x[row, i]
         for k in range(i):
             s -= L[i, k] * x[row, k]
-        cset(x, row, i, s / diag[i])
+        tile_set(x, row, i, s / diag[i])
     for step in range(n):
         i = n - 1 - step
         s = x[row, i]
         for k in range(i + 1, n):
             s -= L[k, i] * x[row, k]
-        cset(x, row, i, s / diag[i])
+        tile_set(x, row, i, s / diag[i])
 
 
 @wp.func
@@ -641,9 +620,9 @@ def tree_factor(m: ChainArrays, world: int, n: int, H: Any):
             a = H[k, i] / hkk
             j = i
             while j >= 0:
-                cset(H, i, j, H[i, j] - a * H[k, j])
+                tile_set(H, i, j, H[i, j] - a * H[k, j])
                 j = m.parent[world, j]
-            cset(H, k, i, a)
+            tile_set(H, k, i, a)
             i = m.parent[world, i]
 
 
@@ -656,7 +635,7 @@ def tree_solve_column(m: ChainArrays, world: int, n: int, H: Any, x: Any, col: i
         xi = x[i, col]
         j = m.parent[world, i]
         while j >= 0:
-            cset(x, j, col, x[j, col] - H[i, j] * xi)
+            tile_set(x, j, col, x[j, col] - H[i, j] * xi)
             j = m.parent[world, j]
     for i in range(n):
         s = x[i, col] / H[i, i]
@@ -664,7 +643,7 @@ def tree_solve_column(m: ChainArrays, world: int, n: int, H: Any, x: Any, col: i
         while j >= 0:
             s -= H[i, j] * x[j, col]
             j = m.parent[world, j]
-        cset(x, i, col, s)
+        tile_set(x, i, col, s)
 
 
 @wp.func
@@ -675,7 +654,7 @@ def tree_solve_vector(m: ChainArrays, world: int, n: int, H: Any, x: Any):
         xi = x[i]
         j = m.parent[world, i]
         while j >= 0:
-            cset(x, j, x[j] - H[i, j] * xi)
+            tile_set(x, j, x[j] - H[i, j] * xi)
             j = m.parent[world, j]
     for i in range(n):
         s = x[i] / H[i, i]
@@ -683,7 +662,7 @@ def tree_solve_vector(m: ChainArrays, world: int, n: int, H: Any, x: Any):
         while j >= 0:
             s -= H[i, j] * x[j]
             j = m.parent[world, j]
-        cset(x, i, s)
+        tile_set(x, i, s)
 
 
 @wp.func
@@ -781,7 +760,7 @@ def chain_step_kernel(coords: int, rows: int):
                 tau = wp.dot(a, w.wrench_t[world, i]) + wp.dot(s_lin, w.wrench_f[world, i]) - m.damping[world, i] * ui
                 tau += m.kp[world, i] * (m.q_target[world, i] - q[world, i] - lead * ui)
                 tau += m.kd[world, i] * (m.v_target[world, i] - ui)
-                cset(vec, i, dt * tau)
+                tile_set(vec, i, dt * tau)
             loop_errors(m, w, world, lane, lanes)
             block_sync()
             for i in range(lane, n, lanes):  # M~: row i against its ancestors j (the tile's other entries stay 0)
@@ -792,7 +771,7 @@ def chain_step_kernel(coords: int, rows: int):
                     if j == i:
                         value += m.armature[world, i] + dt * (m.damping[world, i] + m.kd[world, i]
                                                               + lead * m.kp[world, i])
-                    cset(Mt, i, j, value)
+                    tile_set(Mt, i, j, value)
                     if record != 0:
                         w.matrix[world, i, j] = value
                         w.matrix[world, j, i] = value
@@ -822,13 +801,13 @@ def chain_step_kernel(coords: int, rows: int):
                     acc = float(0.0)
                     for j in range(n):
                         acc += Gt[r, j] * Xt[j, s]
-                    cset(At, r, s, acc)
+                    tile_set(At, r, s, acc)
             block_sync()
             for r in range(lane, R, lanes):  # the right-hand side: -(G u_f) - baumgarte phi / dt
                 acc = float(0.0)
                 for j in range(n):
                     acc += Gt[r, j] * w.u_free[world, j]
-                cset(rhs, r, -acc - baumgarte / dt * w.phi[world, 5 * m.row_loop[world, r] + m.row_part[world, r]])
+                tile_set(rhs, r, -acc - baumgarte / dt * w.phi[world, 5 * m.row_loop[world, r] + m.row_part[world, r]])
             factor_lanes(lane, lanes, R, At, diag_a, REGULARIZATION)
             for i in range(lane, n, lanes):  # K = X A^-1, a row per lane
                 solve_row(R, At, diag_a, Xt, i)

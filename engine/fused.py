@@ -63,7 +63,7 @@ from engine.integrate import (
     projection_penalty,
 )
 from engine.joints import JOINT_PARTS, joint_residuals_of, joint_rows_of
-from engine.linear import block_sync
+from engine.linear import block_sync, tile_set
 from engine.matrix_free import block_max, block_sum
 from engine.model import ROW_ANGULAR, ROW_LINEAR
 from engine.sparse import group_sum
@@ -264,27 +264,8 @@ def matrix_entry(world: int, i: int, j: int, bilateral_only: int, row_kind: wp.a
     return matrix[i, j]
 
 
-TILE_ROWS = 16  # the shared matrices are sized in steps of this many rows (one kernel per size)
-
-
-def _define_tile_setters(size: int):
-    """Element writes into shared tiles of one size that, unlike Warp's tile element assignment,
-    do not end in a block barrier: the lanes write different entries in divergent code and the
-    callers place the barriers (overloads of tile_set, one per size)."""
-
-    @wp.func_native("t.data(wp::tile_coord(i, j)) = value;")
-    def tile_set(t: wp.tile(dtype=float, shape=(size, size), storage="shared"), i: int, j: int, value: float):
-        """t[i, j] = value, without a barrier."""
-
-    @wp.func_native("t.data(wp::tile_coord(i)) = value;")
-    def tile_set(t: wp.tile(dtype=float, shape=(size,), storage="shared"), i: int, value: float):  # noqa: F811
-        """t[i] = value, without a barrier."""
-
-    return tile_set
-
-
-for _size in range(TILE_ROWS, FUSED_MAX_ROWS + 1, TILE_ROWS):
-    tile_set = _define_tile_setters(_size)
+TILE_ROWS = 16  # the shared matrices are sized in steps of this many rows (one kernel per size; the sizes of
+# engine.linear.tile_set)
 
 
 @wp.func

@@ -9,7 +9,7 @@ import functools
 
 import warp as wp
 
-__all__ = ["block_sync", "cholesky_factor_kernel", "cholesky_solve_kernel", "factor", "solve"]
+__all__ = ["block_sync", "cholesky_factor_kernel", "cholesky_solve_kernel", "factor", "solve", "tile_set"]
 
 BLOCK_DIM = 64
 
@@ -25,6 +25,31 @@ def block_sync():
     """Barrier of the thread block (a no-op on the CPU, where a block is one thread). Unlike the
     tile operations it may sit in code that only some blocks reach, but every thread of a block
     must reach it."""
+
+
+SHARED_TILE_SIZES = (8, 16, 24, 32, 48, 64)  # sides of the shared tiles tile_set writes
+
+
+def _define_tile_set():
+    """Element writes into shared float tiles of every shape built from SHARED_TILE_SIZES (overloads
+    of one tile_set), which, unlike Warp's tile element assignment, do not end in a block barrier:
+    the lanes write different entries in divergent code and the callers place the barriers."""
+    setter = None
+    for rows in SHARED_TILE_SIZES:
+        for cols in SHARED_TILE_SIZES:
+            @wp.func_native("t.data(wp::tile_coord(i, j)) = value;")
+            def tile_set(t: wp.tile(dtype=float, shape=(rows, cols), storage="shared"), i: int, j: int, value: float):
+                """t[i, j] = value, without a barrier."""
+            setter = tile_set
+
+        @wp.func_native("t.data(wp::tile_coord(i)) = value;")
+        def tile_set(t: wp.tile(dtype=float, shape=(rows,), storage="shared"), i: int, value: float):  # noqa: F811
+            """t[i] = value, without a barrier."""
+        setter = tile_set
+    return setter
+
+
+tile_set = _define_tile_set()
 
 
 @functools.cache
