@@ -241,7 +241,8 @@ DRLEGS_REDUCED_SWEEP = [
     dict(label="reduced coordinates, 1 projection, dt x4", dt_scale=4.0, model="chains", config=REDUCED_ONE)]
 # DR Legs standing: the same steps and settings; no trajectory reference (MuJoCo C on our MJCF export
 # of the standing robot is not a reference: its contacts and soft loops differ from the hard model)
-DRLEGS_STANDING_SWEEP = [s for s in DRLEGS_SWEEP if s["label"] != "float32 state"]
+DRLEGS_STANDING_SWEEP = [s for s in DRLEGS_SWEEP if s["label"] != "float32 state"] + [
+    s for s in DRLEGS_REDUCED_SWEEP if "1 projection" not in s["label"]]
 
 SCENES_DECLARED = {
     "fourbar": Declared(lambda assets: _engine_scenes(["fourbar"]), dt=1e-3, duration=2.0,
@@ -265,6 +266,7 @@ SCENES_DECLARED = {
     "drlegs_standing_newton": Declared(lambda assets: dr_legs(True, assets, NEWTON_EXAMPLE_JOINTS), dt=1e-2,
                                        duration=1.0, throughput_worlds=[1, 1024, 4096], precision_worlds=4096,
                                        throughput_steps=50, peers=True, quick_worlds=[1],
-                                       variants=DRLEGS_STANDING_VARIANTS, sweep=DRLEGS_STANDING_SWEEP, reference=None,
+                                       variants=DRLEGS_STANDING_VARIANTS + DRLEGS_REDUCED_VARIANTS,
+                                       sweep=DRLEGS_STANDING_SWEEP, reference=None,
                                        peer_dt_scales=DRLEGS_PEER_DT_SCALES),
 }

@@ -71,6 +71,9 @@ from typing import Any, Sequence
 import numpy as np
 import warp as wp
 
+from engine.collide import PLANE_CONTACTS, Candidates, shape_against_plane
+from engine.joints import normal_basis
+from engine.padmm import project_cone
 from engine.linear import block_sync, tile_set
 from engine.model import Integrator, SolverConfig
 from engine.spec import JointType, MechanismSpec
@@ -79,8 +82,13 @@ wp.set_module_options({"enable_backward": False})  # no gradients are taken: com
 
 __all__ = ["ChainModel", "ChainState", "ChainStepper", "MAX_COORDS", "MAX_ROWS", "chain_layout", "pack_chains"]
 
-MAX_COORDS = 32  # tree coordinates per world (a shared 32 x 32 tile)
+MAX_COORDS = 48  # tree coordinates per world (a floating root counts six)
 MAX_ROWS = 32  # kept loop rows per world
+MAX_CONTACTS = 16  # contacts per world (three rows each)
+KIND_REVOLUTE = wp.constant(0)  # a tree entry's coordinate: a revolute joint's angle,
+KIND_LINEAR = wp.constant(1)  # a floating root's centre-of-mass velocity along a world axis (first three),
+KIND_ANGULAR = wp.constant(2)  # its angular velocity about a world axis (next two)
+KIND_ROOT = wp.constant(3)  # and about the z axis: the entry that is the root body
 MAX_LOOPS = 32
 ROW_TOLERANCE = 1.0e-4  # a loop row is redundant when the kept rows leave less than this of its norm
 REGULARIZATION = wp.constant(1.0e-6)  # relative diagonal shift of the loops' matrix (rounding guard)
@@ -131,6 +139,10 @@ class ChainLayout:
     loop_p: np.ndarray  # (L, 2, 3)
     loop_dirs: np.ndarray  # (L, 5, 3) the rows' directions in the first anchor frame
     rows: np.ndarray  # (R, 2) kept rows: loop, part (0-2 position, 3-4 angular)
+    kind: np.ndarray  # (n,) KIND_REVOLUTE, or a floating root's KIND_LINEAR x3, KIND_ANGULAR x2, KIND_ROOT
+    sub_of: np.ndarray  # (n,) the entry whose subtree coordinate k moves: itself, or its floating root's entry
+    shapes: list  # spec shape index of each shape on a moving body (they collide with the ground plane)
+    soft: list  # loops whose joint has armature or damping: a soft row on its rate each (after the kept rows)
 
     @property
     def n(self) -> int:
@@ -146,26 +158,47 @@ class ChainLayout:
         return out
 
     def kinematics(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Body frames (R (n,3,3), p (n,3)), joint points (n,3) and world axes (n,3) at angles q."""
+        """Body frames (R (n,3,3), p (n,3)), each coordinate's linear part (n,3: the velocity its
+        unit rate gives the point at the world origin) and angular part (n,3: the world axis) at
+        coordinates q. A floating root's six coordinates are a chart about its initial pose: its
+        centre of mass moved by q[0:3] and its frame turned by the rotation vector q[3:6]."""
         n = self.n
         R = np.zeros((n, 3, 3))
         p = np.zeros((n, 3))
-        point = np.zeros((n, 3))
+        lin = np.zeros((n, 3))
         axis = np.zeros((n, 3))
         for k in range(n):
+            if self.kind[k] != KIND_REVOLUTE:
+                root = int(self.sub_of[k])
+                com = np.asarray(self.spec.bodies[self.tree_body[root]].com)
+                r0 = root - 5
+                rvec = q[r0 + 3:r0 + 6]
+                angle = float(np.linalg.norm(rvec))
+                turn = np.eye(3) if angle == 0.0 else _axis_angle(rvec / angle, angle)
+                R[k] = turn @ self.parent_R[root]
+                c = self.parent_p[root] + self.parent_R[root] @ com + q[r0:r0 + 3]
+                p[k] = c - R[k] @ com
+                e = self.axis[k]
+                if self.kind[k] == KIND_LINEAR:
+                    lin[k] = e
+                else:
+                    axis[k] = e
+                    lin[k] = np.cross(c, e)
+                continue
             par = int(self.parent[k])
             Rp, pp = (np.eye(3), np.zeros(3)) if par < 0 else (R[par], p[par])
             Rj = Rp @ self.parent_R[k]
-            point[k] = pp + Rp @ self.parent_p[k]
+            point = pp + Rp @ self.parent_p[k]
             axis[k] = Rj @ self.axis[k]
+            lin[k] = np.cross(point, axis[k])
             Rq = Rj @ _axis_angle(self.axis[k], q[k])
             R[k] = Rq @ self.child_R[k]
-            p[k] = point[k] + Rq @ self.child_p[k]
-        return R, p, point, axis
+            p[k] = point + Rq @ self.child_p[k]
+        return R, p, lin, axis
 
     def loop_rows(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """All five rows of every loop at angles q: Jacobian (5 L, n) and error (5 L,)."""
-        R, p, point, axis = self.kinematics(q)
+        R, p, lin, axis = self.kinematics(q)
         n, L = self.n, len(self.loops)
         G = np.zeros((5 * L, n))
         phi = np.zeros(5 * L)
@@ -188,7 +221,7 @@ class ChainLayout:
                     phi[r] = d @ np.cross(ax_a, ax_b)
                 for sign, body, x in ((1.0, b, xb), (-1.0, a, xa)):
                     for j in (self.ancestors(body) if body >= 0 else []):
-                        col = np.cross(axis[j], x - point[j]) if part < 3 else axis[j]
+                        col = np.cross(axis[j], x) + lin[j] if part < 3 else axis[j]
                         G[r, j] += sign * (d @ col)
         return G, phi
 
@@ -206,8 +239,6 @@ def chain_layout(spec: MechanismSpec) -> ChainLayout:
     path cannot model."""
     where = "engine.chains"
     bodies = spec.body_index
-    if spec.shapes:
-        raise ValueError(f"{where}: contact shapes are not modelled (shape '{spec.shapes[0].name}')")
     fixed = {}
     for joint in spec.joints:
         if joint.type == JointType.FIXED:
@@ -222,57 +253,124 @@ def chain_layout(spec: MechanismSpec) -> ChainLayout:
                              f"and welds to the world are modelled")
         elif joint.has_limits:
             raise ValueError(f"{where}: joint '{joint.name}' has limits; limits are not modelled")
-        elif joint.drive is not None and math.isfinite(joint.drive.effort_limit):
-            raise ValueError(f"{where}: joint '{joint.name}': drive effort limits are not modelled")
+    for shape in spec.shapes:
+        if spec.ground is None:
+            raise ValueError(f"{where}: shape '{shape.name}': shapes collide with the ground plane only, and the "
+                             f"mechanism has none")
+        if shape.restitution > 0.0 or spec.ground.restitution > 0.0:
+            raise ValueError(f"{where}: shape '{shape.name}': restitution is not modelled")
     pose = {}
     for i, body in enumerate(spec.bodies):
         pose[i] = (_frame(body.orientation), np.asarray(body.position, dtype=np.float64))
-    tree_index = {}  # spec body -> tree index
-    tree_body, parent, depth, joint_of, forward = [], [], [], [], []
-    frontier = [None] + sorted(fixed)  # None: the world
-    seen = set(fixed)
-    used = set()
-    level = {b: 0 for b in fixed}
-    level[None] = 0
-    queue = list(frontier)
-    while queue:
-        here = queue.pop(0)
-        here_name = None if here is None else spec.bodies[here].name
-        for ji, joint in enumerate(spec.joints):
-            if ji in used or joint.type != JointType.REVOLUTE:
-                continue
-            if joint.parent == here_name:
-                other, fwd = bodies[joint.child], True
-            elif joint.child == here_name and here is not None:
-                if joint.parent is None:
-                    continue
-                other, fwd = bodies[joint.parent], False
-            else:
-                continue
-            if other in seen:
-                continue
-            used.add(ji)
-            seen.add(other)
-            tree_index[other] = len(tree_body)
-            tree_body.append(other)
-            parent.append(-1 if here is None or here in fixed else tree_index[here])
-            depth.append(0 if here is None or here in fixed else level[here] + 1)
-            level[other] = depth[-1]
-            joint_of.append(ji)
-            forward.append(fwd)
-            queue.append(other)
+    # the spanning tree: every body's distance (in joints) from the fixed set, or from its floating
+    # component's root (the component's heaviest body); joints with drives, armature or damping
+    # first (they must be tree joints), then the others nearest the roots first (a shallow tree)
+    revolute = [ji for ji, j in enumerate(spec.joints) if j.type == JointType.REVOLUTE]
+    def end_of(name):
+        return None if name is None else bodies[name]
+
+    neighbours = {i: [] for i in range(len(spec.bodies))}
+    neighbours[None] = []
+    for ji in revolute:
+        a, b = end_of(spec.joints[ji].parent), end_of(spec.joints[ji].child)
+        a, b = (None if a in fixed else a), (None if b in fixed else b)
+        neighbours[a].append(b)
+        neighbours[b].append(a)
+
+    def distances(start):
+        dist, queue = {start: 0}, [start]
+        while queue:
+            here = queue.pop(0)
+            for other in neighbours[here]:
+                if other not in dist:
+                    dist[other] = dist[here] + 1
+                    queue.append(other)
+        return dist
+
+    dist = distances(None)
+    roots = []
     for i, body in enumerate(spec.bodies):
-        if i not in seen:
-            raise ValueError(f"{where}: body '{body.name}' is not connected to the world through revolute joints "
-                             f"(floating bodies are not modelled)")
+        if i in dist or i in fixed:
+            continue
+        component = distances(i)
+        root = max(sorted(b for b in component if b is not None), key=lambda b: spec.bodies[b].mass)
+        roots.append(root)
+        dist.update(distances(root))
+    group = {}
+
+    def find(x):
+        while group.get(x, x) != x:
+            x = group[x]
+        return x
+
+    def key(b):
+        return None if b is None or b in fixed else b
+
+    def reach(ji):
+        ends = sorted((dist[key(end_of(spec.joints[ji].parent))], dist[key(end_of(spec.joints[ji].child))]))
+        return (spec.joints[ji].drive is None, *ends, ji)
+
+    order = sorted(revolute, key=reach)
+    used = set()
+    for ji in order:
+        a, b = find(key(end_of(spec.joints[ji].parent))), find(key(end_of(spec.joints[ji].child)))
+        if a != b:
+            group[a] = b
+            used.add(ji)
+    tree_index = {}  # spec body -> tree index
+    tree_body, parent, depth, joint_of, forward, kind, sub_of = [], [], [], [], [], [], []
+    level = {}
+
+    def grow(queue):  # breadth-first over the tree joints from the bodies in queue (None: the fixed set)
+        while queue:
+            here = queue.pop(0)
+            for ji in sorted(used):
+                joint = spec.joints[ji]
+                a, b = key(end_of(joint.parent)), key(end_of(joint.child))
+                if a == here:
+                    other, fwd = b, True
+                elif b == here:
+                    other, fwd = a, False
+                else:
+                    continue
+                if other is None or other in tree_index:
+                    continue
+                tree_index[other] = len(tree_body)
+                tree_body.append(other)
+                parent.append(-1 if here is None else tree_index[here])
+                depth.append(0 if here is None else level[here] + 1)
+                level[other] = depth[-1]
+                joint_of.append(ji)
+                forward.append(fwd)
+                kind.append(KIND_REVOLUTE)
+                sub_of.append(len(tree_body) - 1)
+                queue.append(other)
+
+    grow([None])
+    for root in roots:  # a floating root: five massless entries and the root body's, a chain of six
+        first = len(tree_body)
+        for f in range(6):
+            tree_body.append(root)
+            parent.append(first + f - 1)
+            depth.append(0)
+            joint_of.append(-1)
+            forward.append(True)
+            kind.append(KIND_LINEAR if f < 3 else (KIND_ANGULAR if f < 5 else KIND_ROOT))
+            sub_of.append(first + 5)
+        tree_index[root] = first + 5
+        level[root] = 0
+        grow([root])
+    for i, body in enumerate(spec.bodies):
+        if i not in tree_index and i not in fixed:
+            raise AssertionError(f"body '{body.name}' left out of the tree")
     n = len(tree_body)
     if n > MAX_COORDS:
         raise ValueError(f"{where}: {n} tree coordinates, at most {MAX_COORDS} are modelled")
-    loops = [ji for ji, j in enumerate(spec.joints) if j.type == JointType.REVOLUTE and ji not in used]
+    loops = [ji for ji in revolute if ji not in used]
     for ji in loops:
         j = spec.joints[ji]
-        if j.drive is not None or j.armature > 0.0 or j.damping > 0.0:
-            raise ValueError(f"{where}: joint '{j.name}' closes a loop; drives, armature and damping are modelled on "
+        if j.drive is not None:
+            raise ValueError(f"{where}: joint '{j.name}' closes a loop of driven joints; drives are modelled on "
                              f"tree joints only")
         ends = [None if j.parent is None else bodies[j.parent], bodies[j.child]]
         if all(e is None or e in fixed for e in ends):
@@ -285,12 +383,19 @@ def chain_layout(spec: MechanismSpec) -> ChainLayout:
 
     parent_R = np.zeros((n, 3, 3))
     parent_p = np.zeros((n, 3))
-    child_R = np.zeros((n, 3, 3))
+    child_R = np.tile(np.eye(3), (n, 1, 1))
     child_p = np.zeros((n, 3))
     axis = np.zeros((n, 3))
     q0 = np.zeros(n)
     u0 = np.zeros(n)
     for k in range(n):
+        if kind[k] != KIND_REVOLUTE:  # a floating root: its initial frame; rates: centre of mass and angular
+            body = spec.bodies[tree_body[k]]
+            f = k - (sub_of[k] - 5)
+            parent_R[k], parent_p[k] = pose[tree_body[k]]
+            axis[k] = np.eye(3)[f % 3]
+            u0[k] = (np.asarray(body.velocity) if f < 3 else np.asarray(body.angular_velocity))[f % 3]
+            continue
         j = spec.joints[joint_of[k]]
         near_name, far_name = (j.parent, j.child) if forward[k] else (j.child, j.parent)
         near_R, near_p = ((_frame(j.parent_orientation), np.asarray(j.parent_position)) if forward[k]
@@ -335,12 +440,17 @@ def chain_layout(spec: MechanismSpec) -> ChainLayout:
                 loop_R[li, side], loop_p[li, side] = _frame(Rq), np.asarray(p)
         t1, t2 = _perpendiculars(np.asarray(j.axis))
         loop_dirs[li] = np.stack([np.eye(3)[0], np.eye(3)[1], np.eye(3)[2], t1, t2])
+    shapes = [si for si, shape in enumerate(spec.shapes) if bodies[shape.body] not in fixed]
     layout = ChainLayout(spec, tree_body, np.array(parent, dtype=np.int64), np.array(depth, dtype=np.int64),
                          joint_of, parent_R, parent_p, child_R, child_p, axis, q0, u0, loops, loop_body, loop_R,
-                         loop_p, loop_dirs, np.zeros((0, 2), dtype=np.int64))
+                         loop_p, loop_dirs, np.zeros((0, 2), dtype=np.int64), np.array(kind, dtype=np.int64),
+                         np.array(sub_of, dtype=np.int64), shapes,
+                         [li for li, ji in enumerate(loops) if spec.joints[ji].armature > 0.0
+                          or spec.joints[ji].damping > 0.0])
     layout.rows = _independent_rows(layout)
-    if len(layout.rows) > MAX_ROWS:
-        raise ValueError(f"{where}: {len(layout.rows)} independent loop rows, at most {MAX_ROWS} are modelled")
+    if len(layout.rows) + len(layout.soft) > MAX_ROWS:
+        raise ValueError(f"{where}: {len(layout.rows)} independent loop rows and {len(layout.soft)} loop joints with "
+                         f"armature or damping, at most {MAX_ROWS} rows are modelled")
     return layout
 
 
@@ -402,15 +512,29 @@ class ChainArrays:
     loop_t1: wp.array2d(dtype=wp.vec3)
     loop_t2: wp.array2d(dtype=wp.vec3)
     row_loop: wp.array2d(dtype=wp.int32)
-    row_part: wp.array2d(dtype=wp.int32)
+    row_part: wp.array2d(dtype=wp.int32)  # 0-2 position, 3-4 angular, 5 a loop joint's rate (soft)
+    row_compliance: wp.array2d(dtype=float)  # soft rows: 1 / (armature + dt damping), else 0
+    row_keep: wp.array2d(dtype=float)  # soft rows: armature / (armature + dt damping), else 0
+    kind: wp.array2d(dtype=wp.int32)  # KIND_* of entry k
+    sub_of: wp.array2d(dtype=wp.int32)  # the entry whose subtree coordinate k moves (a floating root's: the root)
+    effort: wp.array2d(dtype=float)  # drive effort limit (checked, not enforced; inf: none)
+    shape_count: wp.array(dtype=wp.int32)
+    shape_entry: wp.array2d(dtype=wp.int32)  # tree entry of the shape's body
+    shape_type: wp.array2d(dtype=wp.int32)
+    shape_X: wp.array2d(dtype=wp.transform)  # in the body frame
+    shape_size: wp.array2d(dtype=wp.vec3)
+    shape_mu: wp.array2d(dtype=float)  # friction with the ground (geometric mean)
+    ground_normal: wp.array(dtype=wp.vec3)
+    ground_offset: wp.array(dtype=float)
+    contact_capacity: wp.array(dtype=wp.int32)
 
 
 @wp.struct
 class ChainWork:
     pose: wp.array2d(dtype=wp.transform)  # body frames
     centre: wp.array2d(dtype=wp.vec3)  # centres of mass
-    point: wp.array2d(dtype=wp.vec3)  # joint points
-    axis: wp.array2d(dtype=wp.vec3)  # joint axes, world
+    lin: wp.array2d(dtype=wp.vec3)  # coordinates' linear parts (the origin's velocity at a unit rate)
+    axis: wp.array2d(dtype=wp.vec3)  # and angular parts (joint axes, world)
     omega: wp.array2d(dtype=wp.vec3)
     vel: wp.array2d(dtype=wp.vec3)
     alpha: wp.array2d(dtype=wp.vec3)  # velocity-product angular acceleration
@@ -423,13 +547,20 @@ class ChainWork:
     sub_inertia: wp.array2d(dtype=wp.mat33)  # and inertia about the origin
     force_n: wp.array2d(dtype=wp.vec3)  # subtree's inertia applied to the joint's motion: torque
     force_f: wp.array2d(dtype=wp.vec3)  # and force
-    phi: wp.array2d(dtype=float)  # every loop's five errors (W, 5 L)
+    phi: wp.array2d(dtype=float)  # every loop's six errors (W, 6 L; the sixth, its rate row's, is 0)
     dirs: wp.array2d(dtype=wp.vec3)  # and directions
     ends: wp.array2d(dtype=wp.vec3)  # anchor points, 2 per loop
     u_free: wp.array2d(dtype=float)
     q_start: wp.array2d(dtype=float)  # the step's initial angles and rates
     u_start: wp.array2d(dtype=float)
-    diverged: wp.array(dtype=wp.int32)
+    root_start: wp.array2d(dtype=wp.transform)  # floating roots' centre-of-mass frames at the step's start
+    diverged: wp.array(dtype=wp.int32)  # 0 running, DIVERGED or EFFORT_LIMIT (frozen)
+    candidates: Candidates  # (W, 4 per shape) against the ground plane
+    contact_count: wp.array(dtype=wp.int32)
+    contact_slot: wp.array2d(dtype=wp.int32)  # candidate slot of each active contact
+    contact_impulse: wp.array2d(dtype=wp.vec3)  # per candidate slot: the last impulse (normal, t1, t2), warm start
+    contact_dropped: wp.array(dtype=wp.int32)  # contacts within the margin beyond the capacity (last step)
+    iterations: wp.array(dtype=wp.int32)  # PADMM iterations of the last step
     matrix: wp.array3d(dtype=float)  # record: M~ (W, N, N)
     rows: wp.array3d(dtype=float)  # record: G (W, R, N)
 
@@ -437,13 +568,51 @@ class ChainWork:
 POSES = wp.constant(0)  # kinematics' detail: body poses, joint points and axes
 VELOCITIES = wp.constant(1)  # and the bodies' velocities
 DYNAMICS = wp.constant(2)  # and the velocity-product accelerations and the world-frame inertias
+DIVERGED = wp.constant(1)  # ChainWork.diverged: non-finite or faster than max_speed
+EFFORT_LIMIT = wp.constant(2)  # a drive's torque past its effort limit
 
 
 @wp.func
-def kinematics_body(m: ChainArrays, w: ChainWork, world: int, k: int, q: float, u: float, detail: int):
-    """Pose, joint point and axis of tree body k from its parent's (already done) and its joint's
-    angle q; with detail VELOCITIES its velocities (rate u), with DYNAMICS also its velocity-product
-    accelerations and world-frame inertia."""
+def free_body(m: ChainArrays, w: ChainWork, world: int, k: int, kind: int, u: wp.array2d(dtype=float),
+              root: wp.array2d(dtype=wp.transform), detail: int):
+    """Entry k of a floating root: the root body's pose from its centre-of-mass frame root[world, r]
+    (r = sub_of[k], the root's entry), the coordinate's parts (a unit world axis e, linear: (0, e),
+    angular about the centre of mass c: (e, c x e)), and with detail VELOCITIES the root's rates
+    u[r - 5 .. r] (centre-of-mass velocity, angular velocity); its velocity-product accelerations are 0."""
+    r = m.sub_of[world, k]
+    Xc = root[world, r]
+    c = wp.transform_get_translation(Xc)
+    rot = wp.transform_get_rotation(Xc)
+    w.pose[world, k] = wp.transform(c - wp.quat_rotate(rot, m.com[world, r]), rot)
+    w.centre[world, k] = c
+    e = m.axis[world, k]
+    if kind == KIND_LINEAR:
+        w.axis[world, k] = wp.vec3()
+        w.lin[world, k] = e
+    else:
+        w.axis[world, k] = e
+        w.lin[world, k] = wp.cross(c, e)
+    if detail >= VELOCITIES:
+        w.omega[world, k] = wp.vec3(u[world, r - 2], u[world, r - 1], u[world, r])
+        w.vel[world, k] = wp.vec3(u[world, r - 5], u[world, r - 4], u[world, r - 3])
+        if detail >= DYNAMICS:
+            w.alpha[world, k] = wp.vec3()
+            w.acc[world, k] = wp.vec3()
+            Rb = wp.quat_to_matrix(rot)
+            w.inertia[world, k] = Rb * m.inertia[world, k] * wp.transpose(Rb)
+
+
+@wp.func
+def kinematics_body(m: ChainArrays, w: ChainWork, world: int, k: int, q: wp.array2d(dtype=float),
+                    u: wp.array2d(dtype=float), root: wp.array2d(dtype=wp.transform), detail: int):
+    """Pose, coordinate parts (joint axis a and a's moment p x a about the origin, p the joint point)
+    of tree entry k from its parent's (already done) and its joint's angle; with detail VELOCITIES
+    its velocities, with DYNAMICS also its velocity-product accelerations and world-frame inertia.
+    A floating root's entries: free_body."""
+    kind = m.kind[world, k]
+    if kind != KIND_REVOLUTE:
+        free_body(m, w, world, k, kind, u, root, detail)
+        return
     par = m.parent[world, k]
     Xp = wp.transform_identity()
     cpar = wp.vec3()
@@ -454,20 +623,21 @@ def kinematics_body(m: ChainArrays, w: ChainWork, world: int, k: int, q: float, 
     a_local = m.axis[world, k]
     aw = wp.quat_rotate(wp.transform_get_rotation(Xj), a_local)
     pj = wp.transform_get_translation(Xj)
-    Xq = wp.transform_multiply(Xj, wp.transform(wp.vec3(), wp.quat_from_axis_angle(a_local, q)))
+    Xq = wp.transform_multiply(Xj, wp.transform(wp.vec3(), wp.quat_from_axis_angle(a_local, q[world, k])))
     Xb = wp.transform_multiply(Xq, m.joint_child[world, k])
     c = wp.transform_point(Xb, m.com[world, k])
     w.pose[world, k] = Xb
     w.centre[world, k] = c
-    w.point[world, k] = pj
+    w.lin[world, k] = wp.cross(pj, aw)
     w.axis[world, k] = aw
     if detail >= VELOCITIES:
+        uk = u[world, k]
         wpar = wp.vec3()
         vpar = wp.vec3()
         if par >= 0:
             wpar = w.omega[world, par]
             vpar = w.vel[world, par]
-        omega = wpar + aw * u
+        omega = wpar + aw * uk
         r_pj = pj - cpar
         r_b = c - pj
         w.omega[world, k] = omega
@@ -478,7 +648,7 @@ def kinematics_body(m: ChainArrays, w: ChainWork, world: int, k: int, q: float, 
             if par >= 0:
                 apar = w.alpha[world, par]
                 lpar = w.acc[world, par]
-            alpha = apar + wp.cross(wpar, aw * u)
+            alpha = apar + wp.cross(wpar, aw * uk)
             acc_pj = lpar + wp.cross(apar, r_pj) + wp.cross(wpar, wp.cross(wpar, r_pj))
             w.alpha[world, k] = alpha
             w.acc[world, k] = acc_pj + wp.cross(alpha, r_b) + wp.cross(omega, wp.cross(omega, r_b))
@@ -488,15 +658,38 @@ def kinematics_body(m: ChainArrays, w: ChainWork, world: int, k: int, q: float, 
 
 @wp.func
 def kinematics(m: ChainArrays, w: ChainWork, world: int, lane: int, lanes: int, q: wp.array2d(dtype=float),
-               u: wp.array2d(dtype=float), detail: int):
-    """The tree's kinematics level by level (a lane per body) to ``detail``. Entered after a barrier;
+               u: wp.array2d(dtype=float), root: wp.array2d(dtype=wp.transform), detail: int):
+    """The tree's kinematics level by level (a lane per entry) to ``detail``. Entered after a barrier;
     leaves one."""
     n = m.tree_count[world]
     for level in range(m.depth_count[world]):
         for k in range(lane, n, lanes):
             if m.depth[world, k] == level:
-                kinematics_body(m, w, world, k, q[world, k], u[world, k], detail)
+                kinematics_body(m, w, world, k, q, u, root, detail)
         block_sync()
+
+
+@wp.func
+def turned(X: wp.transform, dc: wp.vec3, r: wp.vec3):
+    """The frame X moved by dc and turned by the rotation vector r (world frame)."""
+    rot = wp.transform_get_rotation(X)
+    angle = wp.length(r)
+    if angle > 0.0:
+        rot = wp.normalize(wp.quat_from_axis_angle(r / angle, angle) * rot)
+    return wp.transform(wp.transform_get_translation(X) + dc, rot)
+
+
+@wp.func
+def move(m: ChainArrays, world: int, k: int, q: wp.array2d(dtype=float), root: wp.array2d(dtype=wp.transform),
+         d: Any, scale: float):
+    """Entry k's coordinate moved by scale d[k] (d a shared vector over the entries): an angle
+    directly, a floating root's frame by its six entries at once (on its root entry)."""
+    kind = m.kind[world, k]
+    if kind == KIND_REVOLUTE:
+        q[world, k] = q[world, k] + scale * d[k]
+    elif kind == KIND_ROOT:
+        root[world, k] = turned(root[world, k], scale * wp.vec3(d[k - 5], d[k - 4], d[k - 3]),
+                                scale * wp.vec3(d[k - 2], d[k - 1], d[k]))
 
 
 @wp.func
@@ -521,7 +714,7 @@ def loop_errors(m: ChainArrays, w: ChainWork, world: int, lane: int, lanes: int)
         axis = m.loop_axis[world, li]
         cross = wp.cross(wp.quat_rotate(qa, axis), wp.quat_rotate(qb, axis))
         gap = xb - xa
-        for part in range(5):
+        for part in range(6):
             d = wp.vec3()
             if part == 0:
                 d = wp.quat_rotate(qa, wp.vec3(1.0, 0.0, 0.0))
@@ -531,13 +724,17 @@ def loop_errors(m: ChainArrays, w: ChainWork, world: int, lane: int, lanes: int)
                 d = wp.quat_rotate(qa, wp.vec3(0.0, 0.0, 1.0))
             elif part == 3:
                 d = wp.quat_rotate(qa, m.loop_t1[world, li])
-            else:
+            elif part == 4:
                 d = wp.quat_rotate(qa, m.loop_t2[world, li])
+            else:  # the joint's rate about its axis (armature and damping rows): no error
+                d = wp.quat_rotate(qa, axis)
             e = wp.dot(d, gap)
-            if part >= 3:
+            if part == 5:
+                e = 0.0
+            elif part >= 3:
                 e = wp.dot(d, cross)
-            w.phi[world, 5 * li + part] = e
-            w.dirs[world, 5 * li + part] = d
+            w.phi[world, 6 * li + part] = e
+            w.dirs[world, 6 * li + part] = d
         w.ends[world, 2 * li] = xa
         w.ends[world, 2 * li + 1] = xb
 
@@ -550,7 +747,7 @@ def loop_rows_of(m: ChainArrays, w: ChainWork, world: int, r: int, G: Any, X: An
     tiles' other entries stay 0."""
     li = m.row_loop[world, r]
     part = m.row_part[world, r]
-    d = w.dirs[world, 5 * li + part]
+    d = w.dirs[world, 6 * li + part]
     for side in range(2):
         sign = float(1.0)
         if side == 0:
@@ -561,7 +758,7 @@ def loop_rows_of(m: ChainArrays, w: ChainWork, world: int, r: int, G: Any, X: An
             aj = w.axis[world, j]
             value = sign * wp.dot(d, aj)
             if part < 3:
-                value = sign * wp.dot(d, wp.cross(aj, x - w.point[world, j]))
+                value = sign * wp.dot(d, wp.cross(aj, x) + w.lin[world, j])
             total = G[r, j] + value
             tile_set(G, r, j, total)
             tile_set(X, j, r, total)
@@ -705,15 +902,60 @@ def add_children(m: ChainArrays, w: ChainWork, world: int, k: int):
         w.wrench_f[world, k] = sf
 
 
+@wp.func
+def contact_direction(normal: wp.vec3, part: int):
+    """A contact row's direction: the ground's normal (part 0) or a tangent (1, 2)."""
+    if part == 0:
+        return normal
+    return normal_basis(normal, part - 1)
+
+
+@wp.func
+def contact_factor(lane: int, lanes: int, m3: int, D: Any, ddiag: Any, fdiag: Any, Finv: Any, shift: float):
+    """Finv = (D + shift I)^-1 for the m3 x m3 contact matrix whose upper triangle (and ddiag, its
+    diagonal) hold D: the lower triangle is refilled from the upper and factored in place
+    (factor_lanes), then Finv a row per lane. Entered after a barrier; leaves one."""
+    for e in range(lane, m3 * m3, lanes):
+        a = e // m3
+        b = e % m3
+        if b < a:
+            tile_set(D, a, b, D[b, a])
+        elif a == b:
+            tile_set(D, a, a, ddiag[a] + shift)
+    block_sync()
+    factor_lanes(lane, lanes, m3, D, fdiag, 0.0)
+    for r in range(lane, m3, lanes):
+        for j in range(m3):
+            value = float(0.0)
+            if j == r:
+                value = 1.0
+            tile_set(Finv, r, j, value)
+        solve_row(m3, D, fdiag, Finv, r)
+    block_sync()
+
+
+@wp.func
+def contact_residuals(nc: int, res_p: Any, res_d: Any, res_y: Any):
+    """The largest primal and dual residuals and impulse over the nc contacts (every lane alike)."""
+    out = wp.vec3()
+    for c in range(nc):
+        out = wp.vec3(wp.max(out[0], res_p[c]), wp.max(out[1], res_d[c]), wp.max(out[2], res_y[c]))
+    return out
+
+
 @functools.cache
-def chain_step_kernel(coords: int, rows: int):
-    """The step kernel with shared tiles of coords x coords (tree coordinates) and rows x rows (kept
-    loop rows), each a multiple of TILE_STEP (module docstring: the step)."""
+def chain_step_kernel(coords: int, rows: int, contacts: int = 0):
+    """The step kernel with shared tiles of coords x coords (tree coordinates), rows x rows (kept
+    loop rows) and, when contacts > 0, contacts x contacts (contact rows), each a multiple of
+    TILE_STEP (module docstring: the step)."""
 
     @wp.kernel(enable_backward=False, module="unique")
     def chain_step_body(m: ChainArrays, w: ChainWork, dt: float, baumgarte: float, iterations: int, max_speed: float,
-                        midpoint: int, record: int, q: wp.array2d(dtype=float), u: wp.array2d(dtype=float),
-                          body_q: wp.array2d(dtype=wp.transform), body_qd: wp.array2d(dtype=wp.spatial_vector)):
+                        midpoint: int, record: int, margin: float, stabilization: float, eta: float, rho0: float,
+                        adaptive: int, rho_interval: int, tolerance: float, relative_tolerance: float,
+                        max_iterations: int, q: wp.array2d(dtype=float), u: wp.array2d(dtype=float),
+                        root: wp.array2d(dtype=wp.transform), body_q: wp.array2d(dtype=wp.transform),
+                        body_qd: wp.array2d(dtype=wp.spatial_vector)):
         world, lane = wp.tid()
         lanes = wp.block_dim()
         Mt = wp.tile_zeros(shape=(coords, coords), dtype=float, storage="shared")  # M~, then its factor
@@ -721,7 +963,7 @@ def chain_step_kernel(coords: int, rows: int):
         Xt = wp.tile_zeros(shape=(coords, rows), dtype=float, storage="shared")  # M~^-1 G^T, then K = X A^-1
         At = wp.tile_zeros(shape=(rows, rows), dtype=float, storage="shared")  # A = G X, then its factor
         diag_a = wp.tile_zeros(shape=rows, dtype=float, storage="shared")
-        vec = wp.tile_zeros(shape=coords, dtype=float, storage="shared")  # dt tau, then du
+        vec = wp.tile_zeros(shape=coords, dtype=float, storage="shared")  # dt tau, then du, then steps
         rhs = wp.tile_zeros(shape=rows, dtype=float, storage="shared")
         n = m.tree_count[world]
         R = m.row_count[world]
@@ -735,10 +977,14 @@ def chain_step_kernel(coords: int, rows: int):
             for i in range(lane, n, lanes):  # kept for a step that diverges; Moreau-Jean: to the midpoint
                 w.q_start[world, i] = q[world, i]
                 w.u_start[world, i] = u[world, i]
-                if midpoint != 0:
-                    q[world, i] = q[world, i] + lead * u[world, i]
+                w.root_start[world, i] = root[world, i]
+                tile_set(vec, i, u[world, i])
             block_sync()
-            kinematics(m, w, world, lane, lanes, q, u, DYNAMICS)
+            if midpoint != 0:
+                for i in range(lane, n, lanes):
+                    move(m, world, i, q, root, vec, lead)
+                block_sync()
+            kinematics(m, w, world, lane, lanes, q, u, root, DYNAMICS)
             g = m.gravity[world]
             for k in range(lane, n, lanes):
                 own_terms(m, w, world, k, g)
@@ -749,15 +995,16 @@ def chain_step_kernel(coords: int, rows: int):
                     if m.depth[world, k] == level:
                         add_children(m, w, world, k)
                 block_sync()
-            for i in range(lane, n, lanes):  # per joint: its subtree's inertia applied to its motion, its force
+            for i in range(lane, n, lanes):  # per coordinate: its subtree's inertia applied to its motion, its force
                 a = w.axis[world, i]
-                s_lin = wp.cross(w.point[world, i], a)
-                cm = w.sub_mass[world, i]
-                ch = w.sub_moment[world, i]
-                w.force_n[world, i] = w.sub_inertia[world, i] * a + wp.cross(ch, s_lin)
+                s_lin = w.lin[world, i]
+                b = m.sub_of[world, i]
+                cm = w.sub_mass[world, b]
+                ch = w.sub_moment[world, b]
+                w.force_n[world, i] = w.sub_inertia[world, b] * a + wp.cross(ch, s_lin)
                 w.force_f[world, i] = cm * s_lin - wp.cross(ch, a)
                 ui = u[world, i]
-                tau = wp.dot(a, w.wrench_t[world, i]) + wp.dot(s_lin, w.wrench_f[world, i]) - m.damping[world, i] * ui
+                tau = wp.dot(a, w.wrench_t[world, b]) + wp.dot(s_lin, w.wrench_f[world, b]) - m.damping[world, i] * ui
                 tau += m.kp[world, i] * (m.q_target[world, i] - q[world, i] - lead * ui)
                 tau += m.kd[world, i] * (m.v_target[world, i] - ui)
                 tile_set(vec, i, dt * tau)
@@ -766,8 +1013,7 @@ def chain_step_kernel(coords: int, rows: int):
             for i in range(lane, n, lanes):  # M~: row i against its ancestors j (the tile's other entries stay 0)
                 j = i
                 while j >= 0:
-                    a = w.axis[world, j]
-                    value = wp.dot(a, w.force_n[world, i]) + wp.dot(wp.cross(w.point[world, j], a), w.force_f[world, i])
+                    value = wp.dot(w.axis[world, j], w.force_n[world, i]) + wp.dot(w.lin[world, j], w.force_f[world, i])
                     if j == i:
                         value += m.armature[world, i] + dt * (m.damping[world, i] + m.kd[world, i]
                                                               + lead * m.kp[world, i])
@@ -801,53 +1047,275 @@ def chain_step_kernel(coords: int, rows: int):
                     acc = float(0.0)
                     for j in range(n):
                         acc += Gt[r, j] * Xt[j, s]
+                    if s == r:
+                        acc += m.row_compliance[world, r]
                     tile_set(At, r, s, acc)
             block_sync()
-            for r in range(lane, R, lanes):  # the right-hand side: -(G u_f) - baumgarte phi / dt
+            for r in range(lane, R, lanes):  # the right-hand side: -(G u_f) - baumgarte phi / dt (+ keep G u)
                 acc = float(0.0)
+                start = float(0.0)
                 for j in range(n):
                     acc += Gt[r, j] * w.u_free[world, j]
-                tile_set(rhs, r, -acc - baumgarte / dt * w.phi[world, 5 * m.row_loop[world, r] + m.row_part[world, r]])
+                    start += Gt[r, j] * w.u_start[world, j]
+                tile_set(rhs, r, -acc + m.row_keep[world, r] * start
+                         - baumgarte / dt * w.phi[world, 6 * m.row_loop[world, r] + m.row_part[world, r]])
             factor_lanes(lane, lanes, R, At, diag_a, REGULARIZATION)
             for i in range(lane, n, lanes):  # K = X A^-1, a row per lane
                 solve_row(R, At, diag_a, Xt, i)
             block_sync()
-            for i in range(lane, n, lanes):  # u = u_f + K rhs, q += lead u
+            for i in range(lane, n, lanes):  # u = u_f + K rhs
                 acc = w.u_free[world, i]
                 for r in range(R):
                     acc += Xt[i, r] * rhs[r]
                 u[world, i] = acc
-                q[world, i] = q[world, i] + lead * acc
+            block_sync()
+            if wp.static(contacts > 0):
+                Yt = wp.tile_zeros(shape=(coords, contacts), dtype=float, storage="shared")  # M~^-1 J^T, then P J^T
+                GYt = wp.tile_zeros(shape=(rows, contacts), dtype=float, storage="shared")  # G M~^-1 J^T
+                Dt = wp.tile_zeros(shape=(contacts, contacts), dtype=float, storage="shared")  # D, then its factor
+                Fi = wp.tile_zeros(shape=(contacts, contacts), dtype=float, storage="shared")  # (D + (eta + rho) I)^-1
+                vf = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
+                pre = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
+                ddiag = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
+                fdiag = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
+                xs = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
+                xn = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
+                ys = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
+                zs = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
+                bs = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
+                res_p = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
+                res_d = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
+                res_y = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
+                shapes = m.shape_count[world]
+                nrm = m.ground_normal[world]
+                off = m.ground_offset[world]
+                for s in range(lane, shapes, lanes):  # candidates: a lane per shape, at the evaluation poses
+                    for k in range(4):
+                        w.candidates.valid[world, 4 * s + k] = 0
+                    X = wp.transform_multiply(w.pose[world, m.shape_entry[world, s]], m.shape_X[world, s])
+                    shape_against_plane(w.candidates, world, 4 * s, m.shape_type[world, s], X, m.shape_size[world, s],
+                                        nrm, off, margin)
+                block_sync()
+                if lane == 0:  # the contacts within the margin, in slot order, up to the capacity
+                    count = int(0)
+                    dropped = int(0)
+                    for slot in range(4 * shapes):
+                        if w.candidates.valid[world, slot] != 0 and w.candidates.distance[world, slot] < margin:
+                            if count < m.contact_capacity[world]:
+                                w.contact_slot[world, count] = slot
+                                count += 1
+                            else:
+                                dropped += 1
+                                w.contact_impulse[world, slot] = wp.vec3()
+                        else:
+                            w.contact_impulse[world, slot] = wp.vec3()
+                    w.contact_count[world] = count
+                    w.contact_dropped[world] = dropped
+                    w.iterations[world] = 0
+                block_sync()
+                nc = w.contact_count[world]
+                m3 = 3 * nc
+                if nc > 0:
+                    for ct in range(lane, nc, lanes):  # J^T into Y: a lane per contact, along its body's ancestors
+                        slot = w.contact_slot[world, ct]
+                        x = w.candidates.point_a[world, slot]
+                        for part in range(3):
+                            d = contact_direction(nrm, part)
+                            j = m.shape_entry[world, slot // 4]
+                            while j >= 0:
+                                tile_set(Yt, j, 3 * ct + part, wp.dot(d, wp.cross(w.axis[world, j], x) + w.lin[world, j]))
+                                j = m.parent[world, j]
+                    block_sync()
+                    for col in range(lane, m3, lanes):  # Y = M~^-1 J^T
+                        tree_solve_column(m, world, n, Mt, Yt, col)
+                    block_sync()
+                    for e in range(lane, R * m3, lanes):  # G Y
+                        r = e // m3
+                        col = e % m3
+                        acc = float(0.0)
+                        for j in range(n):
+                            acc += Gt[r, j] * Yt[j, col]
+                        tile_set(GYt, r, col, acc)
+                    block_sync()
+                    for e in range(lane, n * m3, lanes):  # Y := Y - K G Y = P J^T, P = M~^-1 - X A^-1 X^T
+                        i = e // m3
+                        col = e % m3
+                        acc = Yt[i, col]
+                        for r in range(R):
+                            acc -= Xt[i, r] * GYt[r, col]
+                        tile_set(Yt, i, col, acc)
+                    block_sync()
+                    for e in range(lane, m3 * m3, lanes):  # D = J P J^T (upper triangle), v_f = J u + bias
+                        ra = e // m3
+                        rb = e % m3
+                        if rb >= ra:
+                            slot = w.contact_slot[world, ra / 3]
+                            d = contact_direction(nrm, ra % 3)
+                            x = w.candidates.point_a[world, slot]
+                            acc = float(0.0)
+                            j = m.shape_entry[world, slot // 4]
+                            while j >= 0:
+                                acc += wp.dot(d, wp.cross(w.axis[world, j], x) + w.lin[world, j]) * Yt[j, rb]
+                                j = m.parent[world, j]
+                            tile_set(Dt, ra, rb, acc)
+                    for r in range(lane, m3, lanes):
+                        slot = w.contact_slot[world, r / 3]
+                        d = contact_direction(nrm, r % 3)
+                        x = w.candidates.point_a[world, slot]
+                        acc = float(0.0)
+                        j = m.shape_entry[world, slot // 4]
+                        while j >= 0:
+                            acc += wp.dot(d, wp.cross(w.axis[world, j], x) + w.lin[world, j]) * u[world, j]
+                            j = m.parent[world, j]
+                        if r % 3 == 0:  # closing a gap d > 0 at most, a penetration pushed out by a share per step
+                            dist = w.candidates.distance[world, w.contact_slot[world, r / 3]]
+                            if dist > 0.0:
+                                acc += dist / lead
+                            else:
+                                acc += stabilization * dist / lead
+                        tile_set(vf, r, acc)
+                    block_sync()
+                    for ct in range(lane, nc, lanes):  # Jacobi preconditioner, one scale per contact (cones keep)
+                        mean = (Dt[3 * ct, 3 * ct] + Dt[3 * ct + 1, 3 * ct + 1] + Dt[3 * ct + 2, 3 * ct + 2]) / 3.0
+                        scale = 1.0 / wp.sqrt(wp.max(mean, 1.0e-20))
+                        for part in range(3):
+                            tile_set(pre, 3 * ct + part, scale)
+                    block_sync()
+                    for e in range(lane, m3 * m3, lanes):
+                        ra = e // m3
+                        rb = e % m3
+                        if rb >= ra:
+                            tile_set(Dt, ra, rb, Dt[ra, rb] * pre[ra] * pre[rb])
+                    for ct in range(lane, nc, lanes):  # warm start: the slot's last impulse
+                        impulse = w.contact_impulse[world, w.contact_slot[world, ct]]
+                        for part in range(3):
+                            r = 3 * ct + part
+                            tile_set(vf, r, vf[r] * pre[r])
+                            tile_set(xs, r, impulse[part] / pre[r])
+                            tile_set(ys, r, impulse[part] / pre[r])
+                    block_sync()
+                    for r in range(lane, m3, lanes):  # z = D x + v_f (the rows' velocity at the warm start)
+                        tile_set(ddiag, r, Dt[r, r])
+                        acc = vf[r]
+                        for j in range(m3):
+                            acc += Dt[wp.min(r, j), wp.max(r, j)] * xs[j]
+                        tile_set(zs, r, acc)
+                    block_sync()
+                    rho = rho0
+                    contact_factor(lane, lanes, m3, Dt, ddiag, fdiag, Fi, eta + rho)
+                    its = int(0)
+                    done = int(0)
+                    while its < max_iterations and done == 0:  # PADMM (ENGINE.md), every lane alike
+                        for r in range(lane, m3, lanes):
+                            shift = float(0.0)  # De Saxce
+                            if r % 3 == 0:
+                                shift = m.shape_mu[world, w.contact_slot[world, r / 3] // 4] * wp.sqrt(
+                                    zs[r + 1] * zs[r + 1] + zs[r + 2] * zs[r + 2])
+                            tile_set(bs, r, -(vf[r] + shift) + eta * xs[r] + rho * ys[r] + zs[r])
+                        block_sync()
+                        for r in range(lane, m3, lanes):
+                            acc = float(0.0)
+                            for j in range(m3):
+                                acc += Fi[r, j] * bs[j]
+                            tile_set(xn, r, acc)
+                        block_sync()
+                        for ct in range(lane, nc, lanes):
+                            r = 3 * ct
+                            mu = m.shape_mu[world, w.contact_slot[world, ct] // 4]
+                            y = project_cone(xn[r] - zs[r] / rho, xn[r + 1] - zs[r + 1] / rho,
+                                             xn[r + 2] - zs[r + 2] / rho, mu)
+                            rp = float(0.0)
+                            rd = float(0.0)
+                            ym = float(0.0)
+                            for part in range(3):
+                                rp = wp.max(rp, wp.abs(xn[r + part] - y[part]))
+                                rd = wp.max(rd, wp.abs(eta * (xn[r + part] - xs[r + part]) + rho * (y[part] - ys[r + part])))
+                                ym = wp.max(ym, wp.abs(y[part]))
+                                tile_set(zs, r + part, zs[r + part] - rho * (xn[r + part] - y[part]))
+                                tile_set(xs, r + part, xn[r + part])
+                                tile_set(ys, r + part, y[part])
+                            tile_set(res_p, ct, rp)
+                            tile_set(res_d, ct, rd)
+                            tile_set(res_y, ct, ym)
+                        block_sync()
+                        largest = contact_residuals(nc, res_p, res_d, res_y)
+                        its += 1
+                        tol = tolerance + relative_tolerance * largest[2]
+                        if largest[0] <= tol and largest[1] <= tol:
+                            done = 1
+                        elif adaptive != 0 and its % rho_interval == 0:
+                            new_rho = rho
+                            if largest[0] > 10.0 * largest[1]:
+                                new_rho = wp.min(rho * 4.0, 1.0e3)
+                            elif largest[1] > 10.0 * largest[0]:
+                                new_rho = wp.max(rho / 4.0, 1.0e-5)
+                            if new_rho != rho:
+                                rho = new_rho
+                                contact_factor(lane, lanes, m3, Dt, ddiag, fdiag, Fi, eta + rho)
+                    for ct in range(lane, nc, lanes):  # the impulses (unscaled), kept per slot for the next step
+                        r = 3 * ct
+                        w.contact_impulse[world, w.contact_slot[world, ct]] = wp.vec3(
+                            pre[r] * ys[r], pre[r + 1] * ys[r + 1], pre[r + 2] * ys[r + 2])
+                    if lane == 0:
+                        w.iterations[world] = its
+                    for i in range(lane, n, lanes):  # u += P J^T lambda
+                        acc = float(0.0)
+                        for r in range(m3):
+                            acc += Yt[i, r] * pre[r] * ys[r]
+                        u[world, i] = u[world, i] + acc
+                    block_sync()
+            for i in range(lane, n, lanes):  # q += lead u; a drive past its effort limit stops the world
+                ui = u[world, i]
+                tile_set(vec, i, ui)
+                effort = m.kp[world, i] * (m.q_target[world, i] - q[world, i] - lead * ui)
+                effort += m.kd[world, i] * (m.v_target[world, i] - ui)
+                if wp.abs(effort) > m.effort[world, i]:
+                    w.diverged[world] = EFFORT_LIMIT
+            block_sync()
+            for i in range(lane, n, lanes):
+                move(m, world, i, q, root, vec, lead)
             block_sync()
             for it in range(iterations):  # Gauss-Newton projections onto the loops with the step's factors
-                kinematics(m, w, world, lane, lanes, q, u, POSES)
+                kinematics(m, w, world, lane, lanes, q, u, root, POSES)
                 loop_errors(m, w, world, lane, lanes)
                 block_sync()
                 for i in range(lane, n, lanes):
                     acc = float(0.0)
                     for r in range(R):
-                        acc += Xt[i, r] * w.phi[world, 5 * m.row_loop[world, r] + m.row_part[world, r]]
-                    q[world, i] = q[world, i] - acc
+                        acc += Xt[i, r] * w.phi[world, 6 * m.row_loop[world, r] + m.row_part[world, r]]
+                    tile_set(vec, i, acc)
                 block_sync()
-            kinematics(m, w, world, lane, lanes, q, u, VELOCITIES)
+                for i in range(lane, n, lanes):
+                    move(m, world, i, q, root, vec, -1.0)
+                block_sync()
+            kinematics(m, w, world, lane, lanes, q, u, root, VELOCITIES)
             for k in range(lane, n, lanes):  # the divergence guard
                 c = w.centre[world, k]
                 v = w.vel[world, k]
                 om = w.omega[world, k]
                 if not (wp.isfinite(c) and wp.isfinite(v) and wp.isfinite(om)) or wp.length(v) > max_speed:
-                    w.diverged[world] = 1
+                    w.diverged[world] = DIVERGED
             block_sync()
             if w.diverged[world] == 0:
                 for k in range(lane, n, lanes):
                     b = m.body_out[world, k]
-                    body_q[world, b] = wp.transform(w.centre[world, k], wp.transform_get_rotation(w.pose[world, k]))
-                    body_qd[world, b] = wp.spatial_vector(w.vel[world, k], w.omega[world, k])
-            else:  # frozen at the last good step: its angles, rates and bodies
+                    if b >= 0:
+                        body_q[world, b] = wp.transform(w.centre[world, k], wp.transform_get_rotation(w.pose[world, k]))
+                        body_qd[world, b] = wp.spatial_vector(w.vel[world, k], w.omega[world, k])
+            else:  # frozen at the last good step: its coordinates, rates and bodies
                 for i in range(lane, n, lanes):
                     q[world, i] = w.q_start[world, i]
                     u[world, i] = w.u_start[world, i]
+                    root[world, i] = w.root_start[world, i]
 
     return chain_step_body
+
+
+def _capacity(layout: ChainLayout, cap: int | None) -> int:
+    """A world's contact capacity: its shapes' candidate contacts against the ground plane (a
+    sphere 1, a capsule 2, a box or a cylinder 4), at most MAX_CONTACTS and cap."""
+    count = sum(PLANE_CONTACTS[layout.spec.shapes[s].type] for s in layout.shapes)
+    return min(count, MAX_CONTACTS, MAX_CONTACTS if cap is None else cap)
 
 
 def _tile_size(count: int) -> int:
@@ -872,29 +1340,34 @@ def _transform(R: np.ndarray, p: np.ndarray) -> np.ndarray:
 
 
 class ChainState:
-    """Angles q and rates u (W, MAX_COORDS), and every body's COM pose and velocity as engine.model's
+    """Coordinates q and rates u (W, N: angles; a floating root's six rates are its centre of mass's
+    velocity and its angular velocity, world frame), floating roots' centre-of-mass frames root
+    (W, N transform, on their root entries), and every body's COM pose and velocity as engine.model's
     State holds them (body_q (W, B) transform, body_qd (W, B) spatial_vector: v, w)."""
 
-    def __init__(self, q, u, body_q, body_qd):
-        self.q, self.u, self.body_q, self.body_qd = q, u, body_q, body_qd
+    def __init__(self, q, u, root, body_q, body_qd):
+        self.q, self.u, self.root, self.body_q, self.body_qd = q, u, root, body_q, body_qd
 
 
 class ChainModel:
     """A padded batch of closed chains in reduced coordinates (pack_chains)."""
 
     def __init__(self, layouts: list, arrays: ChainArrays, work: ChainWork, init: dict, config: SolverConfig,
-                 dt: float, device):
+                 dt: float, device, capacity: int = 0):
         self.layouts, self.arrays, self.work, self._init = layouts, arrays, work, init
         self.config, self.dt, self.device = config, dt, device
         self.num_worlds = len(layouts)
-        self.max_rows = max(len(lay.rows) for lay in layouts)
+        self.max_rows = max(len(lay.rows) + len(lay.soft) for lay in layouts)
         self.coords = _tile_size(max(lay.n for lay in layouts))
         self.tile_rows = _tile_size(self.max_rows)
+        self.contact_capacity = capacity  # the largest world's
+        self.tile_contacts = _tile_size(3 * capacity) if capacity else 0
 
     def state(self) -> ChainState:
         """A new state at the initial pose."""
         return ChainState(*(wp.array(self._init[k], device=self.device, dtype=t) for k, t in
-                            (("q", float), ("u", float), ("body_q", wp.transform), ("body_qd", wp.spatial_vector))))
+                            (("q", float), ("u", float), ("root", wp.transform), ("body_q", wp.transform),
+                             ("body_qd", wp.spatial_vector))))
 
     def step(self, state: ChainState, record: bool = False) -> None:
         """Advance state by one step of self.dt (in place). record: also write the step's mass matrix
@@ -904,26 +1377,44 @@ class ChainModel:
             self.work.matrix = wp.zeros((self.num_worlds, self.coords, self.coords), dtype=float, device=self.device)
             self.work.rows = wp.zeros((self.num_worlds, self.tile_rows, self.coords), dtype=float, device=self.device)
         block = CHAIN_BLOCK if wp.get_device(self.device).is_cuda else 1
-        kernel = chain_step_kernel(self.coords, self.tile_rows)
+        kernel = chain_step_kernel(self.coords, self.tile_rows, self.tile_contacts)
         wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
                         inputs=[self.arrays, self.work, float(self.dt), float(c.baumgarte), int(c.position_iterations),
-                                float(c.max_speed), int(c.integrator == Integrator.MOREAU_JEAN), int(record), state.q,
-                                state.u, state.body_q, state.body_qd])
+                                float(c.max_speed), int(c.integrator == Integrator.MOREAU_JEAN), int(record),
+                                float(c.contact_margin), float(c.contact_stabilization), float(c.eta), float(c.rho),
+                                int(c.adaptive_rho), max(1, int(c.rho_update_interval)), float(c.tolerance),
+                                float(c.relative_tolerance), int(c.max_iterations), state.q, state.u, state.root,
+                                state.body_q, state.body_qd])
 
     @property
     def diverged(self) -> np.ndarray:
-        """Worlds flagged diverged (frozen), as a NumPy bool array (W,)."""
+        """Worlds stopped (frozen at their last good step), as a NumPy bool array (W,): diverged, or a
+        drive past its effort limit (failure_reasons says which)."""
         return self.work.diverged.numpy().astype(bool)
+
+    def failure_reasons(self) -> list:
+        """Per world: None while it runs, else why it stopped ("diverged": non-finite or faster than
+        SolverConfig.max_speed; "effort limit": a drive's torque past its effort limit, which this
+        path checks but does not enforce)."""
+        names = {0: None, 1: "diverged", 2: "effort limit"}
+        return [names[int(v)] for v in self.work.diverged.numpy()]
 
 
 def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | None = None,
-                dt: float = 1.0e-3) -> ChainModel:
+                dt: float = 1.0e-3, contact_capacity: int | None = None) -> ChainModel:
     """Pack one world per spec (they may differ) into a ChainModel on ``device``. SolverConfig's
-    baumgarte, position_iterations and max_speed apply; ValueError naming the world and the joint
-    or body this path cannot model."""
+    integrator, baumgarte, position_iterations and max_speed apply, and for contacts contact_margin,
+    contact_stabilization, eta, rho, adaptive_rho, rho_update_interval, tolerance,
+    relative_tolerance and max_iterations. contact_capacity: contacts kept per world and step
+    (None: every candidate of its shapes, at most MAX_CONTACTS; those beyond are counted in
+    work.contact_dropped). ValueError naming the world and the joint, shape or body this path
+    cannot model."""
     config = config or SolverConfig()
     if not (isinstance(dt, (int, float)) and not isinstance(dt, bool) and math.isfinite(dt) and dt > 0):
         raise ValueError(f"pack_chains: dt must be a positive number of seconds, got {dt!r}")
+    if contact_capacity is not None and not (isinstance(contact_capacity, (int, np.integer))
+                                             and not isinstance(contact_capacity, bool) and contact_capacity >= 0):
+        raise ValueError(f"pack_chains: contact_capacity must be a non-negative integer, got {contact_capacity!r}")
     specs = list(specs)
     if not specs:
         raise ValueError("pack_chains: needs at least one MechanismSpec")
@@ -940,8 +1431,21 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     W, N = len(layouts), _tile_size(max(lay.n for lay in layouts))  # per-coordinate arrays: the padded size
     L = max(1, max(len(lay.loops) for lay in layouts))
     B = max(len(lay.spec.bodies) for lay in layouts)
-    f = {k: np.zeros((W, N)) for k in ("mass", "armature", "damping", "kp", "kd", "q_target", "v_target", "q", "u")}
-    i32 = {k: np.zeros((W, N), dtype=np.int32) for k in ("parent", "depth", "body_out", "first_child", "child_count")}
+    f = {k: np.zeros((W, N)) for k in ("mass", "armature", "damping", "kp", "kd", "q_target", "v_target", "q", "u",
+                                       "effort")}
+    i32 = {k: np.zeros((W, N), dtype=np.int32) for k in ("parent", "depth", "body_out", "first_child", "child_count",
+                                                         "kind", "sub_of")}
+    S = max(1, max(len(lay.shapes) for lay in layouts))
+    shape_i32 = {k: np.zeros((W, S), dtype=np.int32) for k in ("entry", "type")}
+    shape_X = np.zeros((W, S, 7))
+    shape_X[..., 6] = 1.0
+    shape_size = np.zeros((W, S, 3))
+    shape_mu = np.zeros((W, S))
+    ground = np.zeros((W, 4))  # normal, offset
+    ground[:, 2] = 1.0
+    per_world = np.zeros((2, W), dtype=np.int32)  # shapes, contact capacity
+    root = np.zeros((W, N, 7))
+    root[..., 6] = 1.0
     v3 = {k: np.zeros((W, N, 3)) for k in ("axis", "com")}
     inertia = np.tile(np.eye(3), (W, N, 1, 1))
     jp = np.zeros((W, N, 7))
@@ -954,6 +1458,7 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     loop_t = np.zeros((2, W, L, 3))
     row_loop = np.zeros((W, MAX_ROWS), dtype=np.int32)
     row_part = np.zeros((W, MAX_ROWS), dtype=np.int32)
+    row_soft = np.zeros((2, W, MAX_ROWS))  # compliance, keep
     body_q = np.zeros((W, B, 7))
     body_q[..., 6] = 1.0
     body_qd = np.zeros((W, B, 6))
@@ -962,15 +1467,18 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     for w_, lay in enumerate(layouts):
         spec = lay.spec
         n = lay.n
-        counts[:, w_] = (n, (lay.depth.max() + 1) if n else 0, len(lay.loops), len(lay.rows))
+        counts[:, w_] = (n, (lay.depth.max() + 1) if n else 0, len(lay.loops), len(lay.rows) + len(lay.soft))
         gravity[w_] = spec.gravity
         for k in range(n):
             body = spec.bodies[lay.tree_body[k]]
-            joint = spec.joints[lay.joint[k]]
+            kind = int(lay.kind[k])
             i32["parent"][w_, k] = lay.parent[k]
             i32["depth"][w_, k] = lay.depth[k]
-            i32["body_out"][w_, k] = lay.tree_body[k]
+            i32["kind"][w_, k] = kind
+            i32["sub_of"][w_, k] = lay.sub_of[k]
             children = np.flatnonzero(lay.parent == k)
+            if kind in (KIND_LINEAR, KIND_ANGULAR):  # a floating root's massless entries: no subtree sums
+                children = children[:0]
             i32["first_child"][w_, k] = children[0] if len(children) else -1
             i32["child_count"][w_, k] = len(children)
             if len(children) and not np.array_equal(children, np.arange(children[0], children[0] + len(children))):
@@ -979,8 +1487,20 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
             jc[w_, k] = _transform(lay.child_R[k], lay.child_p[k])
             v3["axis"][w_, k] = lay.axis[k]
             v3["com"][w_, k] = body.com
+            f["effort"][w_, k] = np.inf
+            f["q"][w_, k] = lay.q0[k]
+            f["u"][w_, k] = lay.u0[k]
+            if kind in (KIND_LINEAR, KIND_ANGULAR):
+                i32["body_out"][w_, k] = -1
+                inertia[w_, k] = 0.0
+                continue
+            i32["body_out"][w_, k] = lay.tree_body[k]
             f["mass"][w_, k] = body.mass
             inertia[w_, k] = body.inertia
+            if kind == KIND_ROOT:
+                root[w_, k] = np.r_[lay.parent_p[k] + lay.parent_R[k] @ np.asarray(body.com), body.orientation]
+                continue
+            joint = spec.joints[lay.joint[k]]
             f["armature"][w_, k] = joint.armature
             f["damping"][w_, k] = joint.damping
             if joint.drive is not None:
@@ -988,8 +1508,18 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
                 f["kd"][w_, k] = joint.drive.damping
                 f["q_target"][w_, k] = joint.drive.target_position
                 f["v_target"][w_, k] = joint.drive.target_velocity
-            f["q"][w_, k] = lay.q0[k]
-            f["u"][w_, k] = lay.u0[k]
+                f["effort"][w_, k] = joint.drive.effort_limit
+        tree_index = {b: k for k, b in enumerate(lay.tree_body) if lay.kind[k] in (KIND_REVOLUTE, KIND_ROOT)}
+        per_world[:, w_] = (len(lay.shapes), _capacity(lay, contact_capacity))
+        if spec.ground is not None:
+            ground[w_] = np.r_[spec.ground.normal, spec.ground.offset]
+        for s, si in enumerate(lay.shapes):
+            shape = spec.shapes[si]
+            shape_i32["entry"][w_, s] = tree_index[spec.body_index[shape.body]]
+            shape_i32["type"][w_, s] = int(shape.type)
+            shape_X[w_, s] = np.r_[shape.position, shape.orientation]
+            shape_size[w_, s] = shape.size
+            shape_mu[w_, s] = math.sqrt(shape.friction * spec.ground.friction)
         for li in range(len(lay.loops)):
             joint = spec.joints[lay.loops[li]]
             for side in range(2):
@@ -999,6 +1529,12 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
             loop_t[0, w_, li], loop_t[1, w_, li] = lay.loop_dirs[li, 3], lay.loop_dirs[li, 4]
         row_loop[w_, :len(lay.rows)] = lay.rows[:, 0]
         row_part[w_, :len(lay.rows)] = lay.rows[:, 1]
+        for s, li in enumerate(lay.soft):  # armature and damping of a loop joint: a soft row on its rate
+            joint = spec.joints[lay.loops[li]]
+            r = len(lay.rows) + s
+            row_loop[w_, r], row_part[w_, r] = li, 5
+            gain = joint.armature + dt * joint.damping
+            row_soft[:, w_, r] = (1.0 / gain, joint.armature / gain)
         for i, body in enumerate(spec.bodies):
             R = _frame(body.orientation)
             body_q[w_, i] = np.r_[np.asarray(body.position) + R @ np.asarray(body.com), body.orientation]
@@ -1008,8 +1544,11 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     v3 = {k: v[kind_of] for k, v in v3.items()}
     inertia, jp, jc, loop_body, loop_anchor, loop_axis = (x[kind_of] for x in (inertia, jp, jc, loop_body, loop_anchor,
                                                                                loop_axis))
-    loop_t, counts = loop_t[:, kind_of], counts[:, kind_of]
+    loop_t, counts, row_soft = loop_t[:, kind_of], counts[:, kind_of], row_soft[:, kind_of]
     row_loop, row_part, body_q, body_qd, gravity = (x[kind_of] for x in (row_loop, row_part, body_q, body_qd, gravity))
+    shape_i32 = {k: v[kind_of] for k, v in shape_i32.items()}
+    shape_X, shape_size, shape_mu, ground, root = (x[kind_of] for x in (shape_X, shape_size, shape_mu, ground, root))
+    per_world = per_world[:, kind_of]
     layouts = [layouts[k] for k in kind_of]
     W = len(specs)
     # the initial body poses and velocities from the tree (fixed bodies keep the spec's)
@@ -1018,14 +1557,23 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     a.tree_count, a.depth_count, a.loop_count, a.row_count = (
         wp.array(c, dtype=wp.int32, device=dev) for c in counts)
     a.gravity = wp.array(gravity, dtype=wp.vec3, device=dev)
-    for k in ("parent", "depth", "body_out", "first_child", "child_count"):
+    for k in ("parent", "depth", "body_out", "first_child", "child_count", "kind", "sub_of"):
         setattr(a, k, wp.array(i32[k], dtype=wp.int32, device=dev))
+    a.shape_count = wp.array(per_world[0], dtype=wp.int32, device=dev)
+    a.contact_capacity = wp.array(per_world[1], dtype=wp.int32, device=dev)
+    a.shape_entry = wp.array(shape_i32["entry"], dtype=wp.int32, device=dev)
+    a.shape_type = wp.array(shape_i32["type"], dtype=wp.int32, device=dev)
+    a.shape_X = wp.array(shape_X, dtype=wp.transform, device=dev)
+    a.shape_size = wp.array(shape_size, dtype=wp.vec3, device=dev)
+    a.shape_mu = wp.array(shape_mu, dtype=float, device=dev)
+    a.ground_normal = wp.array(ground[:, :3], dtype=wp.vec3, device=dev)
+    a.ground_offset = wp.array(ground[:, 3], dtype=float, device=dev)
     a.joint_parent = wp.array(jp, dtype=wp.transform, device=dev)
     a.joint_child = wp.array(jc, dtype=wp.transform, device=dev)
     a.axis = wp.array(v3["axis"], dtype=wp.vec3, device=dev)
     a.com = wp.array(v3["com"], dtype=wp.vec3, device=dev)
     a.inertia = wp.array(inertia, dtype=wp.mat33, device=dev)
-    for k in ("mass", "armature", "damping", "kp", "kd", "q_target", "v_target"):
+    for k in ("mass", "armature", "damping", "kp", "kd", "q_target", "v_target", "effort"):
         setattr(a, k, wp.array(f[k], dtype=float, device=dev))
     a.loop_body = wp.array(loop_body, dtype=wp.int32, device=dev)
     a.loop_anchor = wp.array(loop_anchor, dtype=wp.transform, device=dev)
@@ -1034,28 +1582,42 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     a.loop_t2 = wp.array(loop_t[1], dtype=wp.vec3, device=dev)
     a.row_loop = wp.array(row_loop, dtype=wp.int32, device=dev)
     a.row_part = wp.array(row_part, dtype=wp.int32, device=dev)
+    a.row_compliance = wp.array(row_soft[0], dtype=float, device=dev)
+    a.row_keep = wp.array(row_soft[1], dtype=float, device=dev)
     k = ChainWork()
-    for name, dtype in (("pose", wp.transform), ("centre", wp.vec3), ("point", wp.vec3), ("axis", wp.vec3),
+    for name, dtype in (("pose", wp.transform), ("centre", wp.vec3), ("lin", wp.vec3), ("axis", wp.vec3),
                         ("omega", wp.vec3), ("vel", wp.vec3), ("alpha", wp.vec3), ("acc", wp.vec3),
                         ("inertia", wp.mat33), ("wrench_t", wp.vec3), ("wrench_f", wp.vec3), ("force_n", wp.vec3),
                         ("force_f", wp.vec3), ("sub_mass", float), ("sub_moment", wp.vec3), ("sub_inertia", wp.mat33)):
         setattr(k, name, wp.zeros((W, N), dtype=dtype, device=dev))
-    k.phi = wp.zeros((W, 5 * L), dtype=float, device=dev)
-    k.dirs = wp.zeros((W, 5 * L), dtype=wp.vec3, device=dev)
+    k.phi = wp.zeros((W, 6 * L), dtype=float, device=dev)
+    k.dirs = wp.zeros((W, 6 * L), dtype=wp.vec3, device=dev)
     k.ends = wp.zeros((W, 2 * L), dtype=wp.vec3, device=dev)
     k.u_free = wp.zeros((W, N), dtype=float, device=dev)
     k.q_start = wp.zeros((W, N), dtype=float, device=dev)
     k.u_start = wp.zeros((W, N), dtype=float, device=dev)
+    k.root_start = wp.zeros((W, N), dtype=wp.transform, device=dev)
     k.diverged = wp.zeros(W, dtype=wp.int32, device=dev)
+    slots = 4 * S
+    k.candidates = Candidates()
+    k.candidates.valid = wp.zeros((W, slots), dtype=wp.int32, device=dev)
+    for name in ("point_a", "point_b", "normal"):
+        setattr(k.candidates, name, wp.zeros((W, slots), dtype=wp.vec3, device=dev))
+    k.candidates.distance = wp.zeros((W, slots), dtype=float, device=dev)
+    k.contact_count = wp.zeros(W, dtype=wp.int32, device=dev)
+    k.contact_slot = wp.zeros((W, MAX_CONTACTS), dtype=wp.int32, device=dev)
+    k.contact_impulse = wp.zeros((W, slots), dtype=wp.vec3, device=dev)
+    k.contact_dropped = wp.zeros(W, dtype=wp.int32, device=dev)
+    k.iterations = wp.zeros(W, dtype=wp.int32, device=dev)
     k.matrix = wp.zeros((1, 1, 1), dtype=float, device=dev)  # ChainModel.step(record=True) sizes them
     k.rows = wp.zeros((1, 1, 1), dtype=float, device=dev)
-    init = {"q": f["q"], "u": f["u"], "body_q": body_q, "body_qd": body_qd}
-    model = ChainModel(layouts, a, k, init, config, float(dt), device)
+    init = {"q": f["q"], "u": f["u"], "root": root, "body_q": body_q, "body_qd": body_qd}
+    model = ChainModel(layouts, a, k, init, config, float(dt), device, int(per_world[1].max()))
     # body poses and velocities at the initial angles: one step's kinematics, no integration
     state = model.state()
     # blocks of one thread: kinematics' barriers must be reached by every thread of a block, and worlds differ in depth
     wp.launch_tiled(initial_bodies_kernel, dim=[W], block_dim=1, device=dev,
-                    inputs=[a, k, state.q, state.u, state.body_q, state.body_qd])
+                    inputs=[a, k, state.q, state.u, state.root, state.body_q, state.body_qd])
     model._init["body_q"] = state.body_q.numpy()
     model._init["body_qd"] = state.body_qd.numpy()
     return model
@@ -1063,14 +1625,16 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
 
 @wp.kernel(enable_backward=False)
 def initial_bodies_kernel(m: ChainArrays, w: ChainWork, q: wp.array2d(dtype=float), u: wp.array2d(dtype=float),
-                          body_q: wp.array2d(dtype=wp.transform), body_qd: wp.array2d(dtype=wp.spatial_vector)):
-    """Tree bodies' COM poses and velocities from q and u (a block of one thread per world)."""
+                          root: wp.array2d(dtype=wp.transform), body_q: wp.array2d(dtype=wp.transform),
+                          body_qd: wp.array2d(dtype=wp.spatial_vector)):
+    """Tree bodies' COM poses and velocities from q, u and root (a block of one thread per world)."""
     world, lane = wp.tid()
-    kinematics(m, w, world, 0, 1, q, u, VELOCITIES)
+    kinematics(m, w, world, 0, 1, q, u, root, VELOCITIES)
     for k in range(m.tree_count[world]):
         b = m.body_out[world, k]
-        body_q[world, b] = wp.transform(w.centre[world, k], wp.transform_get_rotation(w.pose[world, k]))
-        body_qd[world, b] = wp.spatial_vector(w.vel[world, k], w.omega[world, k])
+        if b >= 0:
+            body_q[world, b] = wp.transform(w.centre[world, k], wp.transform_get_rotation(w.pose[world, k]))
+            body_qd[world, b] = wp.spatial_vector(w.vel[world, k], w.omega[world, k])
 
 
 class ChainStepper:

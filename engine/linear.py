@@ -27,7 +27,7 @@ def block_sync():
     must reach it."""
 
 
-SHARED_TILE_SIZES = (8, 16, 24, 32, 48, 64)  # sides of the shared tiles tile_set writes
+SHARED_TILE_SIZES = (8, 16, 24, 32, 40, 48, 56, 64)  # sides of the shared tiles tile_set writes
 
 
 def _define_tile_set():

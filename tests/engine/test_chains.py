@@ -13,7 +13,7 @@ from engine import SolverConfig, compute_metrics, pack_worlds
 from engine.chains import MAX_COORDS, ChainStepper, chain_layout, pack_chains
 from engine.rollout import Stepper
 from engine.scenes import chain, fourbar, pendulum, sixbar
-from engine.spec import Body, Joint, JointDrive, MechanismSpec, Shape
+from engine.spec import Body, GroundPlane, Joint, JointDrive, MechanismSpec, Shape
 
 
 def _rotation(axis, angle):
@@ -470,22 +470,22 @@ def test_a_diverging_world_is_frozen_and_flagged_while_the_others_go_on(kick, de
 
 
 def test_what_the_path_cannot_model_is_named():
-    """Limits, contact shapes, floating bodies, non-revolute joints, drives on a loop's joint and
-    too many coordinates: a ValueError naming the joint, shape or body (and the world in a batch)."""
+    """Limits, shapes without a ground plane or with restitution, non-revolute joints, a loop whose
+    every joint is driven, and too many coordinates: a ValueError naming the
+    joint, shape or body (and the world in a batch)."""
     spec = fourbar().spec
     cases = [
         (dataclasses.replace(spec, joints=[dataclasses.replace(spec.joints[0], limit_lower=-1.0)] + spec.joints[1:]),
          "joint 'ground_crank' has limits"),
-        (dataclasses.replace(spec, shapes=[Shape("pad", "sphere", "crank", size=(0.01,))]), "shape 'pad'"),
-        (dataclasses.replace(spec, joints=spec.joints[:1]), "body 'coupler' is not connected"),
-        (dataclasses.replace(spec, joints=spec.joints[:2] + [dataclasses.replace(
-            spec.joints[2], drive=JointDrive(stiffness=1.0))] + spec.joints[3:]),
-         "joint 'coupler_rocker' closes a loop"),
+        (dataclasses.replace(spec, shapes=[Shape("pad", "sphere", "crank", size=(0.01,))]),
+         "shape 'pad': shapes collide with the ground plane only"),
+        (dataclasses.replace(spec, shapes=[Shape("pad", "sphere", "crank", size=(0.01,), restitution=0.5)],
+                             ground=GroundPlane()), "shape 'pad': restitution"),
+        (dataclasses.replace(spec, joints=[dataclasses.replace(j, drive=JointDrive(stiffness=1.0))
+                                           for j in spec.joints]), "joint '.*' closes a loop of driven joints"),
         (dataclasses.replace(spec, joints=[dataclasses.replace(spec.joints[0], type="spherical")] + spec.joints[1:]),
          "joint 'ground_crank' is spherical"),
         (chain(links=MAX_COORDS + 1).spec, f"{MAX_COORDS + 1} tree coordinates"),
-        (dataclasses.replace(spec, joints=[dataclasses.replace(spec.joints[0], drive=JointDrive(
-            stiffness=1.0, effort_limit=2.0))] + spec.joints[1:]), "joint 'ground_crank': drive effort limits"),
         (dataclasses.replace(spec, joints=spec.joints + [Joint("glue", "fixed", "crank", "coupler")]),
          "joint 'glue': only welds to the world"),
         (dataclasses.replace(welded(), joints=welded().joints + [Joint("pin", "revolute", None, "base")]),
