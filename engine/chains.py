@@ -961,7 +961,9 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0):
         Mt = wp.tile_zeros(shape=(coords, coords), dtype=float, storage="shared")  # M~, then its factor
         Gt = wp.tile_zeros(shape=(rows, coords), dtype=float, storage="shared")  # G
         Xt = wp.tile_zeros(shape=(coords, rows), dtype=float, storage="shared")  # M~^-1 G^T, then K = X A^-1
-        At = wp.tile_zeros(shape=(rows, rows), dtype=float, storage="shared")  # A = G X, then its factor
+        # A = G X, then its factor; with contacts, then (D + (eta + rho) I)^-1
+        At = wp.tile_zeros(shape=(wp.static(max(rows, contacts)), wp.static(max(rows, contacts))), dtype=float,
+                           storage="shared")
         diag_a = wp.tile_zeros(shape=rows, dtype=float, storage="shared")
         vec = wp.tile_zeros(shape=coords, dtype=float, storage="shared")  # dt tau, then du, then steps
         rhs = wp.tile_zeros(shape=rows, dtype=float, storage="shared")
@@ -1071,9 +1073,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0):
             block_sync()
             if wp.static(contacts > 0):
                 Yt = wp.tile_zeros(shape=(coords, contacts), dtype=float, storage="shared")  # M~^-1 J^T, then P J^T
-                GYt = wp.tile_zeros(shape=(rows, contacts), dtype=float, storage="shared")  # G M~^-1 J^T
-                Dt = wp.tile_zeros(shape=(contacts, contacts), dtype=float, storage="shared")  # D, then its factor
-                Fi = wp.tile_zeros(shape=(contacts, contacts), dtype=float, storage="shared")  # (D + (eta + rho) I)^-1
+                # G M~^-1 J^T, then D (upper triangle) and its factor
+                Dt = wp.tile_zeros(shape=(wp.static(max(rows, contacts)), contacts), dtype=float, storage="shared")
                 vf = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
                 pre = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
                 ddiag = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
@@ -1135,14 +1136,14 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0):
                         acc = float(0.0)
                         for j in range(n):
                             acc += Gt[r, j] * Yt[j, col]
-                        tile_set(GYt, r, col, acc)
+                        tile_set(Dt, r, col, acc)
                     block_sync()
                     for e in range(lane, n * m3, lanes):  # Y := Y - K G Y = P J^T, P = M~^-1 - X A^-1 X^T
                         i = e // m3
                         col = e % m3
                         acc = Yt[i, col]
                         for r in range(R):
-                            acc -= Xt[i, r] * GYt[r, col]
+                            acc -= Xt[i, r] * Dt[r, col]
                         tile_set(Yt, i, col, acc)
                     block_sync()
                     for e in range(lane, m3 * m3, lanes):  # D = J P J^T (upper triangle), v_f = J u + bias
@@ -1202,7 +1203,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0):
                         tile_set(zs, r, acc)
                     block_sync()
                     rho = rho0
-                    contact_factor(lane, lanes, m3, Dt, ddiag, fdiag, Fi, eta + rho)
+                    contact_factor(lane, lanes, m3, Dt, ddiag, fdiag, At, eta + rho)
                     its = int(0)
                     done = int(0)
                     while its < max_iterations and done == 0:  # PADMM (ENGINE.md), every lane alike
@@ -1216,7 +1217,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0):
                         for r in range(lane, m3, lanes):
                             acc = float(0.0)
                             for j in range(m3):
-                                acc += Fi[r, j] * bs[j]
+                                acc += At[r, j] * bs[j]
                             tile_set(xn, r, acc)
                         block_sync()
                         for ct in range(lane, nc, lanes):
@@ -1251,7 +1252,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0):
                                 new_rho = wp.max(rho / 4.0, 1.0e-5)
                             if new_rho != rho:
                                 rho = new_rho
-                                contact_factor(lane, lanes, m3, Dt, ddiag, fdiag, Fi, eta + rho)
+                                contact_factor(lane, lanes, m3, Dt, ddiag, fdiag, At, eta + rho)
                     for ct in range(lane, nc, lanes):  # the impulses (unscaled), kept per slot for the next step
                         r = 3 * ct
                         w.contact_impulse[world, w.contact_slot[world, ct]] = wp.vec3(
