@@ -71,7 +71,7 @@ from typing import Any, Sequence
 import numpy as np
 import warp as wp
 
-from engine.collide import PLANE_CONTACTS, Candidates, shape_against_plane
+from engine.collide import PLANE_CONTACTS, plane_point, plane_point_count
 from engine.joints import normal_basis
 from engine.padmm import project_cone
 from engine.linear import block_sync, tile_set
@@ -558,7 +558,6 @@ class ChainWork:
     u_start: wp.array2d(dtype=float)
     root_start: wp.array2d(dtype=wp.transform)  # floating roots' centre-of-mass frames at the step's start
     diverged: wp.array(dtype=wp.int32)  # 0 running, DIVERGED or EFFORT_LIMIT (frozen)
-    candidates: Candidates  # (W, 4 per shape) against the ground plane
     contact_count: wp.array(dtype=wp.int32)
     contact_slot: wp.array2d(dtype=wp.int32)  # candidate slot of each active contact
     contact_impulse: wp.array2d(dtype=wp.vec3)  # per candidate slot: the last impulse (normal, t1, t2), warm start
@@ -683,16 +682,41 @@ def turned(X: wp.transform, dc: wp.vec3, r: wp.vec3):
 
 
 @wp.func
-def move(m: ChainArrays, world: int, k: int, q: wp.array2d(dtype=float), root: wp.array2d(dtype=wp.transform),
-         d: Any, scale: float):
-    """Entry k's coordinate moved by scale d[k] (d a shared vector over the entries): an angle
-    directly, a floating root's frame by its six entries at once (on its root entry)."""
+def advance(m: ChainArrays, world: int, k: int, q: wp.array2d(dtype=float), root: wp.array2d(dtype=wp.transform),
+            u: wp.array2d(dtype=float), scale: float):
+    """Entry k's coordinate moved by scale times its rate: an angle directly, a floating root's frame
+    by its six rates at once (on its root entry; its other entries do nothing)."""
     kind = m.kind[world, k]
     if kind == KIND_REVOLUTE:
-        q[world, k] = q[world, k] + scale * d[k]
+        q[world, k] = q[world, k] + scale * u[world, k]
     elif kind == KIND_ROOT:
-        root[world, k] = turned(root[world, k], scale * wp.vec3(d[k - 5], d[k - 4], d[k - 3]),
-                                scale * wp.vec3(d[k - 2], d[k - 1], d[k]))
+        root[world, k] = turned(root[world, k], scale * wp.vec3(u[world, k - 5], u[world, k - 4], u[world, k - 3]),
+                                scale * wp.vec3(u[world, k - 2], u[world, k - 1], u[world, k]))
+
+
+@wp.func
+def correction(m: ChainArrays, w: ChainWork, world: int, K: Any, i: int, R: int):
+    """Row i of K applied to the kept rows' errors: coordinate i's Gauss-Newton correction."""
+    acc = float(0.0)
+    for r in range(R):
+        acc += K[i, r] * w.phi[world, 6 * m.row_loop[world, r] + m.row_part[world, r]]
+    return acc
+
+
+@wp.func
+def project(m: ChainArrays, w: ChainWork, world: int, k: int, q: wp.array2d(dtype=float),
+            root: wp.array2d(dtype=wp.transform), K: Any, R: int):
+    """Entry k's coordinate moved by its Gauss-Newton correction -K phi (a floating root's six at
+    once, on its root entry)."""
+    kind = m.kind[world, k]
+    if kind == KIND_REVOLUTE:
+        q[world, k] = q[world, k] - correction(m, w, world, K, k, R)
+    elif kind == KIND_ROOT:
+        dc = wp.vec3(correction(m, w, world, K, k - 5, R), correction(m, w, world, K, k - 4, R),
+                     correction(m, w, world, K, k - 3, R))
+        dr = wp.vec3(correction(m, w, world, K, k - 2, R), correction(m, w, world, K, k - 1, R),
+                     correction(m, w, world, K, k, R))
+        root[world, k] = turned(root[world, k], -dc, -dr)
 
 
 @wp.func
@@ -906,6 +930,47 @@ def add_children(m: ChainArrays, w: ChainWork, world: int, k: int):
 
 
 @wp.func
+def plane_candidates(m: ChainArrays, w: ChainWork, world: int, s: int, n: wp.vec3, off: float, margin: float,
+                     cand: Any):
+    """Shape s's candidate contacts against the ground plane into rows 4 s .. 4 s + 3 of the shared
+    tile cand (point, distance; 1e30: none): a sphere's lowest point, a capsule's ends', and of a box's
+    corners or a cylinder's rim points (engine.collide.plane_point) the 4 deepest within the margin,
+    in their own order (a slot keeps its point from step to step: the warm start's key)."""
+    entry = m.shape_entry[world, s]
+    X = wp.transform_multiply(w.pose[world, entry], m.shape_X[world, s])
+    kind = m.shape_type[world, s]
+    size = m.shape_size[world, s]
+    count = plane_point_count(kind)
+    chosen = int(0)  # bit k: point k is kept
+    if count <= 4:
+        chosen = (1 << count) - 1
+    else:
+        for pick in range(4):  # the deepest unchosen point within the margin, four times
+            best = int(-1)
+            deepest = margin
+            for k in range(count):
+                if (chosen & (1 << k)) == 0:
+                    d = wp.dot(n, plane_point(kind, X, size, n, k)) - off
+                    if d < deepest:
+                        deepest = d
+                        best = k
+            if best >= 0:
+                chosen = chosen | (1 << best)
+    slot = 4 * s
+    for k in range(count):
+        if (chosen & (1 << k)) != 0:
+            p = plane_point(kind, X, size, n, k)
+            tile_set(cand, slot, 0, p[0])
+            tile_set(cand, slot, 1, p[1])
+            tile_set(cand, slot, 2, p[2])
+            tile_set(cand, slot, 3, wp.dot(n, p) - off)
+            slot += 1
+    while slot < 4 * s + 4:
+        tile_set(cand, slot, 3, 1.0e30)
+        slot += 1
+
+
+@wp.func
 def contact_direction(normal: wp.vec3, part: int):
     """A contact row's direction: the ground's normal (part 0) or a tangent (1, 2)."""
     if part == 0:
@@ -947,7 +1012,8 @@ def contact_residuals(nc: int, res_p: Any, res_d: Any, res_y: Any):
 
 
 @functools.cache
-def chain_step_kernel(coords: int, rows: int, contacts: int = 0, registers: int | None = MAX_REGISTERS):
+def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TILE_STEP,
+                      registers: int | None = MAX_REGISTERS):
     """The step kernel with shared tiles of coords x coords (tree coordinates), rows x rows (kept
     loop rows) and, when contacts > 0, contacts x contacts (contact rows), each a multiple of
     TILE_STEP, and at most ``registers`` registers per thread on CUDA (module docstring: the step)."""
@@ -962,7 +1028,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, registers: int 
         world, lane = wp.tid()
         lanes = wp.block_dim()
         Mt = wp.tile_zeros(shape=(coords, coords), dtype=float, storage="shared")  # M~, then its factor
-        Gt = wp.tile_zeros(shape=(rows, coords), dtype=float, storage="shared")  # G
+        Gt = wp.tile_zeros(shape=(wp.static(max(rows, contacts)), coords), dtype=float, storage="shared")  # G, then J
         Xt = wp.tile_zeros(shape=(coords, rows), dtype=float, storage="shared")  # M~^-1 G^T, then K = X A^-1
         # A = G X, then its factor; with contacts, then (D + (eta + rho) I)^-1
         At = wp.tile_zeros(shape=(wp.static(max(rows, contacts)), wp.static(max(rows, contacts))), dtype=float,
@@ -983,12 +1049,9 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, registers: int 
                 w.q_start[world, i] = q[world, i]
                 w.u_start[world, i] = u[world, i]
                 w.root_start[world, i] = root[world, i]
-                tile_set(vec, i, u[world, i])
+                if midpoint != 0:
+                    advance(m, world, i, q, root, u, lead)
             block_sync()
-            if midpoint != 0:
-                for i in range(lane, n, lanes):
-                    move(m, world, i, q, root, vec, lead)
-                block_sync()
             kinematics(m, w, world, lane, lanes, q, u, root, DYNAMICS)
             g = m.gravity[world]
             for k in range(lane, n, lanes):
@@ -1059,10 +1122,13 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, registers: int 
             for r in range(lane, R, lanes):  # the right-hand side: -(G u_f) - baumgarte phi / dt (+ keep G u)
                 acc = float(0.0)
                 start = float(0.0)
+                keep = m.row_keep[world, r]
                 for j in range(n):
                     acc += Gt[r, j] * w.u_free[world, j]
-                    start += Gt[r, j] * w.u_start[world, j]
-                tile_set(rhs, r, -acc + m.row_keep[world, r] * start
+                if keep != 0.0:  # a soft row's armature keeps a share of the rate it had
+                    for j in range(n):
+                        start += Gt[r, j] * w.u_start[world, j]
+                tile_set(rhs, r, -acc + keep * start
                          - baumgarte / dt * w.phi[world, 6 * m.row_loop[world, r] + m.row_part[world, r]])
             factor_lanes(lane, lanes, R, At, diag_a, REGULARIZATION)
             for i in range(lane, n, lanes):  # K = X A^-1, a row per lane
@@ -1078,6 +1144,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, registers: int 
                 Yt = wp.tile_zeros(shape=(coords, contacts), dtype=float, storage="shared")  # M~^-1 J^T, then P J^T
                 # G M~^-1 J^T, then D (upper triangle) and its factor
                 Dt = wp.tile_zeros(shape=(wp.static(max(rows, contacts)), contacts), dtype=float, storage="shared")
+                # per candidate slot: point (3), distance; then per contact: point, distance, friction, slot, entry
+                cand = wp.tile_zeros(shape=(slots, 8), dtype=float, storage="shared")
                 vf = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
                 pre = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
                 ddiag = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
@@ -1090,22 +1158,21 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, registers: int 
                 res_p = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
                 res_d = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
                 res_y = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
+                mus = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")  # friction per contact
                 shapes = m.shape_count[world]
                 nrm = m.ground_normal[world]
                 off = m.ground_offset[world]
                 for s in range(lane, shapes, lanes):  # candidates: a lane per shape, at the evaluation poses
-                    for k in range(4):
-                        w.candidates.valid[world, 4 * s + k] = 0
-                    X = wp.transform_multiply(w.pose[world, m.shape_entry[world, s]], m.shape_X[world, s])
-                    shape_against_plane(w.candidates, world, 4 * s, m.shape_type[world, s], X, m.shape_size[world, s],
-                                        nrm, off, margin)
+                    plane_candidates(m, w, world, s, nrm, off, margin, cand)
                 block_sync()
-                if lane == 0:  # the contacts within the margin, in slot order, up to the capacity
+                if lane == 0:  # the contacts within the margin, in slot order, up to the capacity (rows of cand)
                     count = int(0)
                     dropped = int(0)
-                    for slot in range(4 * shapes):
-                        if w.candidates.valid[world, slot] != 0 and w.candidates.distance[world, slot] < margin:
+                    for slot in range(4 * shapes):  # (row count <= slot: its columns 4-7 are free)
+                        if cand[slot, 3] < margin:
                             if count < m.contact_capacity[world]:
+                                for f in range(4):
+                                    tile_set(cand, count, 4 + f, cand[slot, f])
                                 w.contact_slot[world, count] = slot
                                 count += 1
                             else:
@@ -1122,7 +1189,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, registers: int 
                 if nc > 0:
                     for ct in range(lane, nc, lanes):  # J^T into Y: a lane per contact, along its body's ancestors
                         slot = w.contact_slot[world, ct]
-                        x = w.candidates.point_a[world, slot]
+                        x = wp.vec3(cand[ct, 4], cand[ct, 5], cand[ct, 6])
+                        tile_set(mus, ct, m.shape_mu[world, slot // 4])
                         for part in range(3):
                             d = contact_direction(nrm, part)
                             j = m.shape_entry[world, slot // 4]
@@ -1148,36 +1216,37 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, registers: int 
                         for r in range(R):
                             acc -= Xt[i, r] * Dt[r, col]
                         tile_set(Yt, i, col, acc)
+                    for e in range(lane, R * n, lanes):  # G is done with: its tile takes J (rows 0 .. m3)
+                        tile_set(Gt, e // n, e % n, float(0.0))
                     block_sync()
-                    for e in range(lane, m3 * m3, lanes):  # D = J P J^T (upper triangle), v_f = J u + bias
-                        ra = e // m3
-                        rb = e % m3
-                        if rb >= ra:
-                            slot = w.contact_slot[world, ra / 3]
-                            d = contact_direction(nrm, ra % 3)
-                            x = w.candidates.point_a[world, slot]
+                    for ct in range(lane, nc, lanes):  # J, and v_f = J u + bias: a lane per contact
+                        slot = w.contact_slot[world, ct]
+                        x = wp.vec3(cand[ct, 4], cand[ct, 5], cand[ct, 6])
+                        for part in range(3):
+                            d = contact_direction(nrm, part)
                             acc = float(0.0)
                             j = m.shape_entry[world, slot // 4]
                             while j >= 0:
-                                acc += wp.dot(d, wp.cross(w.axis[world, j], x) + w.lin[world, j]) * Yt[j, rb]
+                                value = wp.dot(d, wp.cross(w.axis[world, j], x) + w.lin[world, j])
+                                tile_set(Gt, 3 * ct + part, j, value)
+                                acc += value * u[world, j]
                                 j = m.parent[world, j]
+                            if part == 0:  # closing a gap d > 0 at most, a penetration pushed out by a share per step
+                                dist = cand[ct, 7]
+                                if dist > 0.0:
+                                    acc += dist / lead
+                                else:
+                                    acc += stabilization * dist / lead
+                            tile_set(vf, 3 * ct + part, acc)
+                    block_sync()
+                    for e in range(lane, m3 * m3, lanes):  # D = J P J^T (upper triangle)
+                        ra = e // m3
+                        rb = e % m3
+                        if rb >= ra:
+                            acc = float(0.0)
+                            for j in range(n):
+                                acc += Gt[ra, j] * Yt[j, rb]
                             tile_set(Dt, ra, rb, acc)
-                    for r in range(lane, m3, lanes):
-                        slot = w.contact_slot[world, r / 3]
-                        d = contact_direction(nrm, r % 3)
-                        x = w.candidates.point_a[world, slot]
-                        acc = float(0.0)
-                        j = m.shape_entry[world, slot // 4]
-                        while j >= 0:
-                            acc += wp.dot(d, wp.cross(w.axis[world, j], x) + w.lin[world, j]) * u[world, j]
-                            j = m.parent[world, j]
-                        if r % 3 == 0:  # closing a gap d > 0 at most, a penetration pushed out by a share per step
-                            dist = w.candidates.distance[world, w.contact_slot[world, r / 3]]
-                            if dist > 0.0:
-                                acc += dist / lead
-                            else:
-                                acc += stabilization * dist / lead
-                        tile_set(vf, r, acc)
                     block_sync()
                     for ct in range(lane, nc, lanes):  # Jacobi preconditioner, one scale per contact (cones keep)
                         mean = (Dt[3 * ct, 3 * ct] + Dt[3 * ct + 1, 3 * ct + 1] + Dt[3 * ct + 2, 3 * ct + 2]) / 3.0
@@ -1213,7 +1282,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, registers: int 
                         for r in range(lane, m3, lanes):
                             shift = float(0.0)  # De Saxce
                             if r % 3 == 0:
-                                shift = m.shape_mu[world, w.contact_slot[world, r / 3] // 4] * wp.sqrt(
+                                shift = mus[r / 3] * wp.sqrt(
                                     zs[r + 1] * zs[r + 1] + zs[r + 2] * zs[r + 2])
                             tile_set(bs, r, -(vf[r] + shift) + eta * xs[r] + rho * ys[r] + zs[r])
                         block_sync()
@@ -1225,7 +1294,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, registers: int 
                         block_sync()
                         for ct in range(lane, nc, lanes):
                             r = 3 * ct
-                            mu = m.shape_mu[world, w.contact_slot[world, ct] // 4]
+                            mu = mus[ct]
                             y = project_cone(xn[r] - zs[r] / rho, xn[r + 1] - zs[r + 1] / rho,
                                              xn[r + 2] - zs[r + 2] / rho, mu)
                             rp = float(0.0)
@@ -1270,27 +1339,18 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, registers: int 
                     block_sync()
             for i in range(lane, n, lanes):  # q += lead u; a drive past its effort limit stops the world
                 ui = u[world, i]
-                tile_set(vec, i, ui)
                 effort = m.kp[world, i] * (m.q_target[world, i] - q[world, i] - lead * ui)
                 effort += m.kd[world, i] * (m.v_target[world, i] - ui)
                 if wp.abs(effort) > m.effort[world, i]:
                     w.diverged[world] = EFFORT_LIMIT
-            block_sync()
-            for i in range(lane, n, lanes):
-                move(m, world, i, q, root, vec, lead)
+                advance(m, world, i, q, root, u, lead)
             block_sync()
             for it in range(iterations):  # Gauss-Newton projections onto the loops with the step's factors
                 kinematics(m, w, world, lane, lanes, q, u, root, POSES)
                 loop_errors(m, w, world, lane, lanes)
                 block_sync()
                 for i in range(lane, n, lanes):
-                    acc = float(0.0)
-                    for r in range(R):
-                        acc += Xt[i, r] * w.phi[world, 6 * m.row_loop[world, r] + m.row_part[world, r]]
-                    tile_set(vec, i, acc)
-                block_sync()
-                for i in range(lane, n, lanes):
-                    move(m, world, i, q, root, vec, -1.0)
+                    project(m, w, world, i, q, root, Xt, R)
                 block_sync()
             kinematics(m, w, world, lane, lanes, q, u, root, VELOCITIES)
             for k in range(lane, n, lanes):  # the divergence guard
@@ -1366,6 +1426,7 @@ class ChainModel:
         self.tile_rows = _tile_size(self.max_rows)
         self.contact_capacity = capacity  # the largest world's
         self.max_registers = MAX_REGISTERS
+        self.tile_slots = _tile_size(4 * max(len(lay.shapes) for lay in layouts))  # candidate slots (4 per shape)
         self.tile_contacts = _tile_size(3 * capacity) if capacity else 0
 
     def state(self) -> ChainState:
@@ -1382,7 +1443,7 @@ class ChainModel:
             self.work.matrix = wp.zeros((self.num_worlds, self.coords, self.coords), dtype=float, device=self.device)
             self.work.rows = wp.zeros((self.num_worlds, self.tile_rows, self.coords), dtype=float, device=self.device)
         block = CHAIN_BLOCK if wp.get_device(self.device).is_cuda else 1
-        kernel = chain_step_kernel(self.coords, self.tile_rows, self.tile_contacts, self.max_registers)
+        kernel = chain_step_kernel(self.coords, self.tile_rows, self.tile_contacts, self.tile_slots, self.max_registers)
         wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
                         inputs=[self.arrays, self.work, float(self.dt), float(c.baumgarte), int(c.position_iterations),
                                 float(c.max_speed), int(c.integrator == Integrator.MOREAU_JEAN), int(record),
@@ -1604,11 +1665,6 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     k.root_start = wp.zeros((W, N), dtype=wp.transform, device=dev)
     k.diverged = wp.zeros(W, dtype=wp.int32, device=dev)
     slots = 4 * S
-    k.candidates = Candidates()
-    k.candidates.valid = wp.zeros((W, slots), dtype=wp.int32, device=dev)
-    for name in ("point_a", "point_b", "normal"):
-        setattr(k.candidates, name, wp.zeros((W, slots), dtype=wp.vec3, device=dev))
-    k.candidates.distance = wp.zeros((W, slots), dtype=float, device=dev)
     k.contact_count = wp.zeros(W, dtype=wp.int32, device=dev)
     k.contact_slot = wp.zeros((W, MAX_CONTACTS), dtype=wp.int32, device=dev)
     k.contact_impulse = wp.zeros((W, slots), dtype=wp.vec3, device=dev)

@@ -234,43 +234,53 @@ def box_box(c: Candidates, world: int, base: int, Xa: wp.transform, ha: wp.vec3,
 
 
 @wp.func
+def plane_point(ta: int, Xa: wp.transform, size_a: wp.vec3, n: wp.vec3, k: int):
+    """Candidate k of a shape (type ta, pose Xa) against a plane of normal n: a sphere's lowest point
+    (k 0), a capsule's end k's lowest point (k 0, 1), a box's corner k (0-7), a cylinder's rim point
+    k % 4 (a quarter turn apart, starting at the one lowest along n) of cap k // 4 (0-7)."""
+    pa = wp.transform_get_translation(Xa)
+    axis_a = wp.quat_rotate(wp.transform_get_rotation(Xa), wp.vec3(0.0, 0.0, 1.0))
+    if ta == SPHERE:
+        return pa - size_a[0] * n
+    if ta == CAPSULE:
+        return pa + (2.0 * float(k) - 1.0) * size_a[1] * axis_a - size_a[0] * n
+    if ta == BOX:
+        return box_corner(Xa, size_a, k)
+    radial = -n - wp.dot(-n, axis_a) * axis_a
+    if wp.length(radial) < 1.0e-6:
+        radial = wp.cross(axis_a, wp.vec3(1.0, 0.0, 0.0))
+        if wp.length(radial) < 1.0e-6:
+            radial = wp.cross(axis_a, wp.vec3(0.0, 1.0, 0.0))
+    u = wp.normalize(radial)
+    v = wp.cross(axis_a, u)
+    center = pa + (2.0 * float(k / 4) - 1.0) * size_a[1] * axis_a
+    angle = 0.5 * wp.pi * float(k % 4)
+    return center + size_a[0] * (wp.cos(angle) * u + wp.sin(angle) * v)
+
+
+@wp.func
+def plane_point_count(ta: int):
+    """How many candidates plane_point has for a shape of type ta."""
+    if ta == SPHERE:
+        return 1
+    if ta == CAPSULE:
+        return 2
+    return 8
+
+
+@wp.func
 def shape_against_plane(c: Candidates, world: int, base: int, ta: int, Xa: wp.transform, size_a: wp.vec3,
                         n: wp.vec3, off: float, margin: float):
     """Candidate contacts of one shape (type ta, pose Xa) against the plane n . x = off, into the
     pair's slots base .. base + 3 (cleared by the caller): a sphere's lowest point, a capsule's two
-    ends, a box's or a cylinder's rim's 4 deepest corners within the margin."""
-    pa = wp.transform_get_translation(Xa)
-    axis_a = wp.quat_rotate(wp.transform_get_rotation(Xa), wp.vec3(0.0, 0.0, 1.0))
-    if ta == SPHERE:
-        d = plane_distance(pa, n, off) - size_a[0]
-        emit(c, world, base, pa - size_a[0] * n, pa - (size_a[0] + d) * n, n, d)
-    elif ta == CAPSULE:
-        for k in range(2):
-            end = pa + (2.0 * float(k) - 1.0) * size_a[1] * axis_a
-            d = plane_distance(end, n, off) - size_a[0]
-            emit(c, world, base + k, end - size_a[0] * n, end - (size_a[0] + d) * n, n, d)
-    elif ta == BOX:
-        for k in range(8):
-            corner = box_corner(Xa, size_a, k)
-            d = plane_distance(corner, n, off)
-            if d < margin:
-                keep_deepest(c, world, base, corner, corner - d * n, n, d)
-    else:  # cylinder: rim points of both caps towards the plane
-        radial = -n - wp.dot(-n, axis_a) * axis_a
-        if wp.length(radial) < 1.0e-6:
-            radial = wp.cross(axis_a, wp.vec3(1.0, 0.0, 0.0))
-            if wp.length(radial) < 1.0e-6:
-                radial = wp.cross(axis_a, wp.vec3(0.0, 1.0, 0.0))
-        u = wp.normalize(radial)
-        v = wp.cross(axis_a, u)
-        for cap in range(2):
-            center = pa + (2.0 * float(cap) - 1.0) * size_a[1] * axis_a
-            for k in range(4):
-                angle = 0.5 * wp.pi * float(k)
-                rim = center + size_a[0] * (wp.cos(angle) * u + wp.sin(angle) * v)
-                d = plane_distance(rim, n, off)
-                if d < margin:
-                    keep_deepest(c, world, base, rim, rim - d * n, n, d)
+    ends', a box's or a cylinder's rim's 4 deepest points within the margin (plane_point)."""
+    for k in range(plane_point_count(ta)):
+        point = plane_point(ta, Xa, size_a, n, k)
+        d = plane_distance(point, n, off)
+        if ta == SPHERE or ta == CAPSULE:
+            emit(c, world, base + k, point, point - d * n, n, d)
+        elif d < margin:
+            keep_deepest(c, world, base, point, point - d * n, n, d)
 
 
 @wp.kernel
