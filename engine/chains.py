@@ -831,41 +831,23 @@ def solve_row(n: int, L: Any, diag: Any, x: Any, row: int):
 
 
 @wp.func
-def tree_factor(m: ChainArrays, world: int, lane: int, lanes: int, n: int, H: Any):
-    """In place, the lanes together: the mass matrix H (its lower triangle; breadth-first order,
-    parents first) as L^T D L, L unit lower triangular with entries only where the column is an
-    ancestor of the row (no fill: the subtrees stay apart), D on the diagonal. Entries are eliminated
-    leaves first, one barrier each: eliminating k updates the rows of its ancestors (a lane per
-    ancestor, along that ancestor's own ancestors), then, with the next entry's updates (which touch
-    neither row k nor what row k reads), row k is divided by its pivot. Work on the longest lane: the
-    sum of the entries' depths, instead of the sum of their squares on one lane. Entered after a
-    barrier; leaves one."""
-    for step in range(n + 1):
-        if step > 0:  # scale the row eliminated last step (lanes by ancestor, as its updates were spread)
-            k = n - step
-            hkk = H[k, k]
-            i = m.parent[world, k]
-            t = int(0)
-            while i >= 0:
-                if t % lanes == lane:
-                    tile_set(H, k, i, H[k, i] / hkk)
-                i = m.parent[world, i]
-                t += 1
-        if step < n:
-            k = n - 1 - step
-            hkk = H[k, k]
-            i = m.parent[world, k]
-            t = int(0)
-            while i >= 0:
-                if t % lanes == lane:
-                    a = H[k, i] / hkk
-                    j = i
-                    while j >= 0:
-                        tile_set(H, i, j, H[i, j] - a * H[k, j])
-                        j = m.parent[world, j]
-                i = m.parent[world, i]
-                t += 1
-        block_sync()
+def tree_factor(m: ChainArrays, world: int, n: int, H: Any):
+    """In place, by one lane: the mass matrix H (its lower triangle; breadth-first order, parents
+    first) as L^T D L, L unit lower triangular with entries only where the column is an ancestor of
+    the row (no fill: the subtrees stay apart), D on the diagonal. Work: the sum over bodies of their
+    depth squared, instead of n^3 / 6."""
+    for step in range(n):
+        k = n - 1 - step
+        hkk = H[k, k]
+        i = m.parent[world, k]
+        while i >= 0:
+            a = H[k, i] / hkk
+            j = i
+            while j >= 0:
+                tile_set(H, i, j, H[i, j] - a * H[k, j])
+                j = m.parent[world, j]
+            tile_set(H, k, i, a)
+            i = m.parent[world, i]
 
 
 @wp.func
@@ -1115,7 +1097,9 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                 for e in range(lane, R * n, lanes):
                     w.rows[world, e // n, e % n] = Gt[e // n, e % n]
             block_sync()
-            tree_factor(m, world, lane, lanes, n, Mt)
+            if lane == 0:
+                tree_factor(m, world, n, Mt)
+            block_sync()
             for col in range(lane, R + 1, lanes):  # X = M~^-1 G^T a column per lane, and du = M~^-1 (dt tau)
                 if col < R:
                     tree_solve_column(m, world, n, Mt, Xt, col)
