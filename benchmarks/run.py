@@ -105,14 +105,15 @@ def mempool_megabytes(device: str) -> float | None:
 
 
 def engine_run(specs, worlds: int, dt: float, steps: int, record_every: int, config: SolverConfig, device: str,
-               sample: np.ndarray, potential_min=None, model_kind: str = "maximal") -> dict:
+               sample: np.ndarray, potential_min=None, model_kind: str = "maximal", pack: dict | None = None) -> dict:
     """Simulate ``worlds`` worlds (cycling through ``specs``); time every chunk of ``record_every``
     steps after the first two (compile, capture); record errors and sample positions per chunk.
-    model_kind "chains": the same worlds in reduced coordinates (engine.chains), their errors
-    measured by a maximal model of the same worlds (engine.metrics on their body poses)."""
+    model_kind "chains": the same worlds in reduced coordinates (engine.chains, ``pack``: its
+    pack_chains options), their errors measured by a maximal model of the same worlds
+    (engine.metrics on their body poses)."""
     batch = [specs[w % len(specs)] for w in range(worlds)]
     if model_kind == "chains":
-        return chains_run(batch, dt, steps, record_every, config, device, sample, potential_min)
+        return chains_run(batch, dt, steps, record_every, config, device, sample, potential_min, pack or {})
     pool_before = mempool_megabytes(device)
     t0 = time.perf_counter()
     model = pack_worlds(batch, device=device, config=config, dt=dt)
@@ -141,7 +142,7 @@ def engine_run(specs, worlds: int, dt: float, steps: int, record_every: int, con
 
 
 def chains_run(batch, dt: float, steps: int, record_every: int, config: SolverConfig, device: str, sample: np.ndarray,
-               potential_min=None) -> dict:
+               potential_min=None, pack: dict | None = None) -> dict:
     """engine_run's measurement of a batch in reduced coordinates (engine.chains: one fused launch per
     step; PADMM iterations only on contact rows), its loop errors and energy from a maximal model of
     the same worlds. Its PADMM iteration counts are those of the last step of each record chunk."""
@@ -150,7 +151,7 @@ def chains_run(batch, dt: float, steps: int, record_every: int, config: SolverCo
     gauge = pack_worlds(batch, device=device, dt=dt)  # measures only: its joint residuals and energy
     pool_before = mempool_megabytes(device)
     t0 = time.perf_counter()
-    model = pack_chains(batch, device=device, config=config, dt=dt)
+    model = pack_chains(batch, device=device, config=config, dt=dt, **(pack or {}))
     pack_s = time.perf_counter() - t0
     stepper = ChainStepper(model, model.state(), chunk=record_every)
 
@@ -171,6 +172,7 @@ def chains_run(batch, dt: float, steps: int, record_every: int, config: SolverCo
         **row, "pack_s": pack_s,
         "padmm_iterations_mean": float(counts.mean()), "padmm_iterations_max": int(counts.max()),
         "unconverged_step_fraction": capped, "contacts_dropped_max": max(dropped),
+        "contact_capacity": model.contact_capacity,
         "step_kernel": "chains", "linear_solver": "dense (reduced coordinates)", "max_rows": model.max_rows,
         "fused_block": None, "cuda_graph": bool(stepper.capture),
         "engine_arrays_mb": array_megabytes(model.arrays, model.work, stepper.state),
@@ -276,7 +278,7 @@ def run_scene(name: str, declared: Declared, args) -> dict:
         try:
             row = engine_run(specs, worlds, dt, steps + 2 * chunk, chunk, SolverConfig(**variant["config"]),
                              args.device, np.arange(min(worlds, len(specs))), scene.potential_min,
-                             variant.get("model", "maximal"))
+                             variant.get("model", "maximal"), variant.get("pack"))
         except ValueError as exc:  # e.g. a model this scene's mechanisms do not fit
             result["throughput"].append({"label": variant["label"], "error": str(exc)})
             continue
@@ -302,7 +304,7 @@ def run_scene(name: str, declared: Declared, args) -> dict:
             try:
                 config = SolverConfig(**setting.get("config", {}))
                 row = engine_run(specs, worlds, step_dt, round(duration / step_dt), every, config, args.device,
-                                 sample, scene.potential_min, setting.get("model", "maximal"))
+                                 sample, scene.potential_min, setting.get("model", "maximal"), setting.get("pack"))
             except ValueError as exc:  # e.g. a setting this batch cannot take
                 result["precision"].append({"label": setting["label"], "error": str(exc)})
                 continue

@@ -1232,11 +1232,11 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                                 acc += value * u[world, j]
                                 j = m.parent[world, j]
                             if part == 0:  # closing a gap d > 0 at most, a penetration pushed out by a share per step
-                                dist = cand[ct, 7]
+                                dist = cand[ct, 7]  # (at the evaluation pose: the next one is a step of u+ away)
                                 if dist > 0.0:
-                                    acc += dist / lead
+                                    acc += dist / dt
                                 else:
-                                    acc += stabilization * dist / lead
+                                    acc += stabilization * dist / dt
                             tile_set(vf, 3 * ct + part, acc)
                     block_sync()
                     for e in range(lane, m3 * m3, lanes):  # D = J P J^T (upper triangle)
