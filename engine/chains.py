@@ -1195,7 +1195,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                             d = contact_direction(nrm, part)
                             j = m.shape_entry[world, slot // 4]
                             while j >= 0:
-                                tile_set(Yt, j, 3 * ct + part, wp.dot(d, wp.cross(w.axis[world, j], x) + w.lin[world, j]))
+                                value = wp.dot(d, wp.cross(w.axis[world, j], x) + w.lin[world, j])
+                                tile_set(Yt, j, 3 * ct + part, value)
                                 j = m.parent[world, j]
                     block_sync()
                     for col in range(lane, m3, lanes):  # Y = M~^-1 J^T
@@ -1302,7 +1303,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                             ym = float(0.0)
                             for part in range(3):
                                 rp = wp.max(rp, wp.abs(xn[r + part] - y[part]))
-                                rd = wp.max(rd, wp.abs(eta * (xn[r + part] - xs[r + part]) + rho * (y[part] - ys[r + part])))
+                                dual = eta * (xn[r + part] - xs[r + part]) + rho * (y[part] - ys[r + part])
+                                rd = wp.max(rd, wp.abs(dual))
                                 ym = wp.max(ym, wp.abs(y[part]))
                                 tile_set(zs, r + part, zs[r + part] - rho * (xn[r + part] - y[part]))
                                 tile_set(xs, r + part, xn[r + part])
