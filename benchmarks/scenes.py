@@ -246,8 +246,12 @@ DRLEGS_STANDING_SWEEP = [s for s in DRLEGS_SWEEP if s["label"] != "float32 state
 # DR Legs standing in reduced coordinates: 36 coordinates (the pelvis floating: 6), 18 loop rows and 6
 # soft rows (the loop joints' armature and damping), up to 12 contacts (3 boxes' 4 deepest corners each);
 # the feet alone have 8: the "8 contacts" variant keeps no more (contacts_dropped_max counts any loss)
+FEET = dict(contact_capacity=8)
 DRLEGS_STANDING_REDUCED_VARIANTS = DRLEGS_REDUCED_VARIANTS + [
-    dict(label="reduced coordinates, 8 contacts", model="chains", config=REDUCED, pack=dict(contact_capacity=8))]
+    dict(label="reduced coordinates, 8 contacts", model="chains", config=REDUCED, pack=FEET)]
+DRLEGS_STANDING_SWEEP += [
+    dict(label="reduced coordinates, 8 contacts, dt x2", dt_scale=2.0, model="chains", config=REDUCED, pack=FEET),
+    dict(label="reduced coordinates, 8 contacts, dt x4", dt_scale=4.0, model="chains", config=REDUCED, pack=FEET)]
 
 SCENES_DECLARED = {
     "fourbar": Declared(lambda assets: _engine_scenes(["fourbar"]), dt=1e-3, duration=2.0,
