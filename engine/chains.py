@@ -1,5 +1,6 @@
-"""Closed chains in reduced coordinates: a spanning tree of revolute joints on fixed bodies, its
-loops closed by constraint rows, one fused kernel launch per step.
+"""Closed chains in reduced coordinates: a spanning tree of revolute joints, on fixed bodies or
+floating, its loops closed by constraint rows, contacts with the ground plane, one fused kernel
+launch per step.
 
 In maximal coordinates DR Legs hanging has 186 constraint rows (36 revolute joints and a weld),
 and a step factors their sparse Delassus matrix. Here the same mechanism has 30 coordinates (one
@@ -8,56 +9,87 @@ the host keeps the 18 that are independent; a step factors the 30-square mass ma
 tree and the 18-square loop matrix densely, in shared memory, one thread block per world.
 
 Model (``pack_chains``, host): the fixed set is the world and every body welded to it (a fixed
-joint with no parent); a breadth-first search from it over the revolute joints gives the tree
-(parents before children, one coordinate per tree joint: its angle, 0 where its two anchor frames
-coincide, as engine.spec defines it); every other revolute joint closes a loop. Each loop has five
-rows in the anchor frame of its first body: three position rows along the frame's axes and two
-angular rows about two directions normal to the joint axis. The host evaluates the rows at the
-initial pose in float64 and keeps a largest independent subset (Gram-Schmidt with pivoting): a
-planar loop's out-of-plane rows are implied by its joints' parallel axes, and a redundant row
-would make the loops' matrix singular. Only what this path models is accepted, with an error that
-names the joint or body otherwise: revolute joints (and welds to the world), drives and armature
-and damping on tree joints, no limits, no contact shapes, at most MAX_COORDS coordinates and
-MAX_ROWS kept rows per world. Worlds of a batch may differ in everything (padded).
+joint with no parent). Bodies not connected to it through revolute joints form floating parts;
+each has a root, its heaviest body, with six coordinates: the rates of its centre of mass's
+velocity and of its angular velocity (world frame), its pose kept in ChainState.root (a
+centre-of-mass frame, advanced by the exponential map). In the tree they are a chain of six
+entries (five massless, then the root body's), ancestors of the whole part. The tree's joints are
+chosen driven joints first, then nearest the roots (a shallow tree); a breadth-first search over
+them orders the entries parents first (one coordinate per tree joint: its angle, 0 where its two
+anchor frames coincide, as engine.spec defines it); every other revolute joint closes a loop. Each
+loop has five rows in the anchor frame of its first body: three position rows along the frame's
+axes and two angular rows about two directions normal to the joint axis. The host evaluates the
+rows at the initial pose in float64 and keeps a largest independent subset (Gram-Schmidt with
+pivoting): a planar loop's out-of-plane rows are implied by its joints' parallel axes, and a
+redundant row would make the loops' matrix singular. A loop joint's armature a and damping c add a
+soft row on its rate about its axis (compliance 1 / (a + dt c), the share a / (a + dt c) of its
+last rate kept), the maximal engine's joint-space dynamics rows. Shapes collide with the ground
+plane only (engine.collide.plane_point: a sphere's lowest point, a capsule's ends, a box's or a
+cylinder's 4 deepest points within SolverConfig.contact_margin), up to contact_capacity contacts
+per world (default: every candidate, at most MAX_CONTACTS); friction is the geometric mean of the
+shape's and the ground's. Only what this path models is accepted, with an error that names the
+joint, shape or body otherwise: revolute joints (and welds to the world), drives on tree joints, no
+limits, no restitution, at most MAX_COORDS coordinates and MAX_ROWS rows per world. Drive effort
+limits are checked, not enforced: a world whose drive torque exceeds its limit stops with the
+reason (ChainModel.failure_reasons). Worlds of a batch may differ in everything (padded).
 
 Step (``chain_step_kernel``, one block per world; the lanes share each stage, a barrier between
 stages; on the CPU a block is one thread):
-1. with the Moreau-Jean midpoint rule (SolverConfig.integrator, the default) the angles first move
-   half a step, q += dt/2 u; the dynamics below are evaluated there (semi-implicit Euler: at q);
-2. kinematics level by level of the tree (a lane per body): body poses, joint points and axes,
-   body velocities, and the velocity-product accelerations (the accelerations at zero joint
-   acceleration);
+1. with the Moreau-Jean midpoint rule (SolverConfig.integrator, the default) the coordinates
+   first move half a step, q += dt/2 u; the dynamics below are evaluated there (semi-implicit
+   Euler: at q);
+2. kinematics level by level of the tree (a lane per entry): body poses, each coordinate's motion
+   (axis a and its moment about the origin), body velocities, and the velocity-product
+   accelerations (the accelerations at zero coordinate acceleration);
 3. composite rigid-body sums, pulled up the tree level by level (a body's children are
    contiguous in the breadth-first order): the mass, first moment and inertia about the world
    origin of each subtree, and its gravity, inertial and gyroscopic wrench; the mass matrix
-   M_ij = S_i . (I_j S_j) for each joint i moving body j (the only non-zeros), the generalized forces;
+   M_ij = S_i . (I_j S_j) for each coordinate i moving body j (the only non-zeros), the
+   generalized forces;
 4. the joints' damping and PD drives implicit: (M + dt C) du = dt tau, C = damping + kd + h kp on
    the diagonal (h the rest of the step the angles still move); M~ = M + dt C factored by one lane
-   as L^T D L along the tree (no fill: the sum of the bodies' depths squared instead of n^3 / 6),
+   as L^T D L along the tree (no fill: the sum of the entries' depths squared instead of n^3 / 6),
    every solve along the ancestors only;
-5. the kept loop rows G (a lane per row, along its two bodies' ancestors), X = M~^-1 G^T (a lane
-   per row), A = G X + 1e-6 diag(G X) factored (dense Cholesky in shared memory, the lanes sharing
-   each column), K = X A^-1 (a lane per coordinate), u = u_f + K (-(G u_f) - baumgarte phi / dt):
-   the loops' velocity constraint holds exactly, not as a penalty;
-6. q += h u, then SolverConfig.position_iterations Gauss-Newton projections of q back onto the
-   loops' position constraint with the step's K (dq = -K phi(q), the tree's poses redone each time);
-7. the poses and velocities of every body (COM frames, as engine.model's State) and a divergence
+5. the loops' rows G (a lane per row, along its two bodies' ancestors; kept rows, then soft rows),
+   X = M~^-1 G^T (a lane per row), A = G X + compliance + 1e-6 diag(G X) factored (dense Cholesky
+   in shared memory, the lanes sharing each column), K = X A^-1 (a lane per coordinate),
+   u = u_f + K (-(G u_f) - baumgarte phi / dt + share G u): the loops' velocity constraint holds
+   exactly, not as a penalty;
+6. contacts (compiled only for batches with shapes): candidates at the evaluation pose (a lane per
+   shape, into shared memory), the rows J (normal and two tangents per contact, along the body's
+   ancestors), P J^T = (M~^-1 - X A^-1 X^T) J^T (the response with the loops held), D = J P J^T,
+   v_f = J u + the normal rows' bias (a gap closed in one step at most, a penetration pushed out by
+   SolverConfig.contact_stabilization per step), a Jacobi preconditioner per contact (one scale for
+   its three rows: the cone keeps its shape), then PADMM (ENGINE.md: De Saxce correction, Coulomb
+   cone projection, adaptive penalty with a new inverse of D + (eta + rho) I when it changes,
+   SolverConfig's tolerances and iteration cap, every lane deciding alike) warm-started from each
+   contact slot's last impulse; u += P J^T lambda;
+7. q += h u, then SolverConfig.position_iterations Gauss-Newton projections of q back onto the
+   loops' position constraint with the step's K (dq = -K phi(q), the tree's poses redone each time;
+   a floating root's six corrections turn and move its frame);
+8. the poses and velocities of every body (COM frames, as engine.model's State) and a divergence
    guard (non-finite or faster than SolverConfig.max_speed: the world is frozen and flagged).
 
 Order of accuracy: the midpoint step evaluates the velocity-product and gyroscopic terms with the
 step's initial rates and the drives' terms backward (stable for stiff drives), so the motion is
 first order in dt wherever those matter (DR Legs hanging at dt 10 ms: 3.1e-3 m from MuJoCo C's
-float64 reference over 2 s, half that at 5 ms; the maximal-coordinate step: 5.6e-4 m). Evaluating
-them at rates extrapolated to the midpoint, u + (u - u_previous) / 2, projected onto the loops'
-tangent (G u = 0), made a three-link chain second order (3.8e-4 -> 2.4e-5 m at dt 4 ms, CPU, 0.4 s)
-and a six-bar 1.4-2.8x closer in a CPU trial; not built (it needs the poses' factors before the
-velocity pass, and a GPU timing).
+float64 reference over 2 s, half that at 5 ms; the maximal-coordinate step: 5.6e-4 m; a free
+floating chain's momenta drift at first order too). Evaluating them at rates extrapolated to the
+midpoint, u + (u - u_previous) / 2, projected onto the loops' tangent (G u = 0), made a three-link
+chain second order (3.8e-4 -> 2.4e-5 m at dt 4 ms, CPU, 0.4 s) and a six-bar 1.4-2.8x closer in a
+CPU trial; not built (it needs the poses' factors before the velocity pass, and a GPU timing).
 
-Measured on an H100 at 4096 worlds (benchmarks/results/README.md, "DR Legs hanging and the
-four-bar in reduced coordinates"): DR Legs hanging 0.374 ms per step with loops within 1.2e-7 m
-and 1.2e-6 rad (MuJoCo Warp 0.801 ms, 5.9e-4 m; our maximal step 1.85 ms), 0.320 ms without the
-projections; the four-bar at 16384 worlds 0.325 ms (MuJoCo Warp's Euler 0.401 ms). The first
-kernel, with a dense Cholesky of M~ and full-detail kinematics every pass, took 0.685 ms on DR Legs.
+Measured at 4096 worlds (benchmarks/results/README.md, "DR Legs hanging and the four-bar in
+reduced coordinates" and "DR Legs standing in reduced coordinates"): DR Legs hanging on an H100
+0.41 ms per step with loops within 1.6e-7 m and 1.0e-6 rad (MuJoCo Warp 0.80 ms, 5.9e-4 m; our
+maximal step 1.85 ms); DR Legs standing on an H200 1.98 ms with the feet's 8 contacts (3 PADMM
+iterations a step), 2.98 ms with all 12 candidates, loops within 1.3e-7 m (MuJoCo Warp 1.34 ms,
+4.2e-4 m; our maximal step 3.26 ms). Where the standing step's time goes (H100, each stage left
+out in turn): the column solves 0.73 ms, K 0.68, the contacts 0.86, the tree factor 0.36 of 2.06
+ms: the floating root's six entries are ancestors of every body, which multiplies the tree's
+solves and factor, and the shared memory (24 KB a block) allows 9 worlds per SM. The kernel is
+capped at MAX_REGISTERS registers per thread (left to the compiler it took 168 on DR Legs hanging,
+12 worlds per SM instead of 16: 0.53 instead of 0.41 ms).
 
 The loops' error of the result is measured by the maximal-coordinate engine's own joint residuals
 (engine.metrics on a maximal model of the same specs), from body_q.
