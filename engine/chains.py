@@ -124,7 +124,7 @@ KIND_ROOT = wp.constant(3)  # and about the z axis: the entry that is the root b
 MAX_LOOPS = 32
 ROW_TOLERANCE = 1.0e-4  # a loop row is redundant when the kept rows leave less than this of its norm
 REGULARIZATION = wp.constant(1.0e-6)  # relative diagonal shift of the loops' matrix (rounding guard)
-CHAIN_BLOCK = 32  # threads per world on a GPU
+CHAIN_BLOCK = 32  # threads per world on a GPU (a warp; two when the padded coordinates are more than 32)
 TILE_STEP = 8  # the shared tiles are sized to the batch's padded coordinates and rows in steps of this
 # registers per thread on CUDA: 128 lets 16 blocks (worlds) share an SM; left to the compiler the step
 # takes 168 (DR Legs hanging, 12 blocks: 0.533 instead of 0.376 ms per step at 4096 worlds, H100)
@@ -1460,6 +1460,8 @@ class ChainModel:
         self.tile_rows = _tile_size(self.max_rows)
         self.contact_capacity = capacity  # the largest world's
         self.max_registers = MAX_REGISTERS
+        # threads per world on a GPU: every coordinate a lane in the stages that take one each
+        self.lanes = CHAIN_BLOCK if self.coords <= CHAIN_BLOCK else 2 * CHAIN_BLOCK
         self.tile_slots = _tile_size(4 * max(len(lay.shapes) for lay in layouts))  # candidate slots (4 per shape)
         self.tile_contacts = _tile_size(3 * capacity) if capacity else 0
 
@@ -1476,7 +1478,7 @@ class ChainModel:
         if record and self.work.matrix.shape != (self.num_worlds, self.coords, self.coords):  # on first use
             self.work.matrix = wp.zeros((self.num_worlds, self.coords, self.coords), dtype=float, device=self.device)
             self.work.rows = wp.zeros((self.num_worlds, self.tile_rows, self.coords), dtype=float, device=self.device)
-        block = CHAIN_BLOCK if wp.get_device(self.device).is_cuda else 1
+        block = self.lanes if wp.get_device(self.device).is_cuda else 1
         kernel = chain_step_kernel(self.coords, self.tile_rows, self.tile_contacts, self.tile_slots, self.max_registers)
         wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
                         inputs=[self.arrays, self.work, float(self.dt), float(c.baumgarte), int(c.position_iterations),
