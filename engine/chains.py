@@ -124,7 +124,7 @@ KIND_ROOT = wp.constant(3)  # and about the z axis: the entry that is the root b
 MAX_LOOPS = 32
 ROW_TOLERANCE = 1.0e-4  # a loop row is redundant when the kept rows leave less than this of its norm
 REGULARIZATION = wp.constant(1.0e-6)  # relative diagonal shift of the loops' matrix (rounding guard)
-CHAIN_BLOCK = 32  # threads per world on a GPU (a warp; two when the padded coordinates are more than 32)
+CHAIN_BLOCK = 32  # threads per world on a GPU (two warps for DR Legs standing's 36 coordinates: 2.04 -> 2.06 ms)
 TILE_STEP = 8  # the shared tiles are sized to the batch's padded coordinates and rows in steps of this
 # registers per thread on CUDA: 128 lets 16 blocks (worlds) share an SM; left to the compiler the step
 # takes 168 (DR Legs hanging, 12 blocks: 0.533 instead of 0.376 ms per step at 4096 worlds, H100)
@@ -1460,8 +1460,7 @@ class ChainModel:
         self.tile_rows = _tile_size(self.max_rows)
         self.contact_capacity = capacity  # the largest world's
         self.max_registers = MAX_REGISTERS
-        # threads per world on a GPU: every coordinate a lane in the stages that take one each
-        self.lanes = CHAIN_BLOCK if self.coords <= CHAIN_BLOCK else 2 * CHAIN_BLOCK
+        self.lanes = CHAIN_BLOCK  # threads per world on a GPU
         self.tile_slots = _tile_size(4 * max(len(lay.shapes) for lay in layouts))  # candidate slots (4 per shape)
         self.tile_contacts = _tile_size(3 * capacity) if capacity else 0
 

@@ -471,7 +471,7 @@ def test_cuda_steps_a_large_tree_as_the_cpu_does():
 def test_cuda_steps_floating_mechanisms_on_the_ground_as_the_cpu_does():
     """Floating worlds with contacts on both devices: the six-bar on a box (two loops, 4 contacts), a
     floating spatial loop landing on a box and a sphere, a sliding box and five spatial loops on
-    one floating frame landing on a box (36 coordinates: two warps a world); CUDA's lanes give the CPU's
+    one floating frame landing on a box (36 coordinates: more than a warp's lanes); CUDA's lanes give the CPU's
     single-thread result to float32 and PADMM-tolerance rounding after 100 steps (a race between
     lanes would not)."""
     import warp as wp
