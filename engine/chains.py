@@ -61,7 +61,7 @@ stages; on the CPU a block is one thread):
    v_f = J u + the normal rows' bias (a gap closed in one step at most, a penetration pushed out by
    SolverConfig.contact_stabilization per step), a Jacobi preconditioner per contact (one scale for
    its three rows: the cone keeps its shape), then PADMM (ENGINE.md: De Saxce correction, Coulomb
-   cone projection, adaptive penalty with a new inverse of D + (eta + rho) I when it changes,
+   cone projection, adaptive penalty from CONTACT_RHO with a new inverse of D + (eta + rho) I when it changes,
    SolverConfig's tolerances and iteration cap, every lane deciding alike) warm-started from each
    contact slot's last impulse; u += P J^T lambda;
 7. q += h u, then SolverConfig.position_iterations Gauss-Newton projections of q back onto the
@@ -117,6 +117,11 @@ __all__ = ["ChainModel", "ChainState", "ChainStepper", "MAX_COORDS", "MAX_ROWS",
 MAX_COORDS = 48  # tree coordinates per world (a floating root counts six)
 MAX_ROWS = 32  # kept loop rows per world
 MAX_CONTACTS = 16  # contacts per world (three rows each)
+# the contacts' initial ADMM penalty, in units of their preconditioned Delassus matrix's diagonal (1):
+# SolverConfig.rho's 1e-3 let capped iterations return wild impulses on new contacts (CPU, a cap of 3:
+# a six-bar on a box thrown 2.6 m up); at 1 the same stay put, for 7 instead of 4 iterations a step on
+# DR Legs standing and 24 instead of 42 on a sliding box at the default tolerances
+CONTACT_RHO = 1.0
 KIND_REVOLUTE = wp.constant(0)  # a tree entry's coordinate: a revolute joint's angle,
 KIND_LINEAR = wp.constant(1)  # a floating root's centre-of-mass velocity along a world axis (first three),
 KIND_ANGULAR = wp.constant(2)  # its angular velocity about a world axis (next two)
@@ -1300,11 +1305,14 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                             tile_set(xs, r, impulse[part] / pre[r])
                             tile_set(ys, r, impulse[part] / pre[r])
                     block_sync()
-                    for r in range(lane, m3, lanes):  # z = D x + v_f (the rows' velocity at the warm start)
-                        tile_set(ddiag, r, Dt[r, r])
-                        acc = vf[r]
-                        for j in range(m3):
-                            acc += Dt[wp.min(r, j), wp.max(r, j)] * xs[j]
+                    for r in range(lane, m3, lanes):  # z = D x + v_f: the rows' velocity at the warm start
+                        tile_set(ddiag, r, Dt[r, r])  # (a new contact's 0: its approach speed / rho would
+                        acc = float(0.0)  # make the first projections' impulses huge, wrong if the cap stops them)
+                        c0 = 3 * (r / 3)
+                        if xs[c0] != 0.0 or xs[c0 + 1] != 0.0 or xs[c0 + 2] != 0.0:
+                            acc = vf[r]
+                            for j in range(m3):
+                                acc += Dt[wp.min(r, j), wp.max(r, j)] * xs[j]
                         tile_set(zs, r, acc)
                     block_sync()
                     rho = rho0
@@ -1482,7 +1490,7 @@ class ChainModel:
         wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
                         inputs=[self.arrays, self.work, float(self.dt), float(c.baumgarte), int(c.position_iterations),
                                 float(c.max_speed), int(c.integrator == Integrator.MOREAU_JEAN), int(record),
-                                float(c.contact_margin), float(c.contact_stabilization), float(c.eta), float(c.rho),
+                                float(c.contact_margin), float(c.contact_stabilization), float(c.eta), CONTACT_RHO,
                                 int(c.adaptive_rho), max(1, int(c.rho_update_interval)), float(c.tolerance),
                                 float(c.relative_tolerance), int(c.max_iterations), state.q, state.u, state.root,
                                 state.body_q, state.body_qd])
@@ -1505,8 +1513,8 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
                 dt: float = 1.0e-3, contact_capacity: int | None = None) -> ChainModel:
     """Pack one world per spec (they may differ) into a ChainModel on ``device``. SolverConfig's
     integrator, baumgarte, position_iterations and max_speed apply, and for contacts contact_margin,
-    contact_stabilization, eta, rho, adaptive_rho, rho_update_interval, tolerance,
-    relative_tolerance and max_iterations. contact_capacity: contacts kept per world and step
+    contact_stabilization, eta, adaptive_rho, rho_update_interval, tolerance, relative_tolerance and
+    max_iterations (the penalty starts at CONTACT_RHO, not SolverConfig.rho). contact_capacity: contacts kept per world and step
     (None: every candidate of its shapes, at most MAX_CONTACTS; those beyond are counted in
     work.contact_dropped). ValueError naming the world and the joint, shape or body this path
     cannot model."""
