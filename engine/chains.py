@@ -1514,7 +1514,8 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     """Pack one world per spec (they may differ) into a ChainModel on ``device``. SolverConfig's
     integrator, baumgarte, position_iterations and max_speed apply, and for contacts contact_margin,
     contact_stabilization, eta, adaptive_rho, rho_update_interval, tolerance, relative_tolerance and
-    max_iterations (the penalty starts at CONTACT_RHO, not SolverConfig.rho). contact_capacity: contacts kept per world and step
+    max_iterations (the penalty starts at CONTACT_RHO, not SolverConfig.rho). contact_capacity:
+    contacts kept per world and step
     (None: every candidate of its shapes, at most MAX_CONTACTS; those beyond are counted in
     work.contact_dropped). ValueError naming the world and the joint, shape or body this path
     cannot model."""
