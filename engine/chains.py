@@ -117,6 +117,7 @@ __all__ = ["ChainModel", "ChainState", "ChainStepper", "MAX_COORDS", "MAX_ROWS",
 MAX_COORDS = 48  # tree coordinates per world (a floating root counts six)
 MAX_ROWS = 32  # kept loop rows per world
 MAX_CONTACTS = 16  # contacts per world (three rows each)
+MAX_SHAPES = 16  # shapes on moving bodies per world (4 candidate slots each: a shared tile of at most 64 rows)
 # the contacts' initial ADMM penalty, in units of their preconditioned Delassus matrix's diagonal (1):
 # SolverConfig.rho's 1e-3 let capped iterations return wild impulses on new contacts (CPU, a cap of 3:
 # a six-bar on a box thrown 2.6 m up); at 1 the same stay put, for 7 instead of 4 iterations a step on
@@ -391,7 +392,7 @@ def chain_layout(spec: MechanismSpec) -> ChainLayout:
         first = len(tree_body)
         for f in range(6):
             tree_body.append(root)
-            parent.append(first + f - 1)
+            parent.append(-1 if f == 0 else first + f - 1)  # the chain starts at no parent
             depth.append(0)
             joint_of.append(-1)
             forward.append(True)
@@ -481,6 +482,9 @@ def chain_layout(spec: MechanismSpec) -> ChainLayout:
         t1, t2 = _perpendiculars(np.asarray(j.axis))
         loop_dirs[li] = np.stack([np.eye(3)[0], np.eye(3)[1], np.eye(3)[2], t1, t2])
     shapes = [si for si, shape in enumerate(spec.shapes) if bodies[shape.body] not in fixed]
+    if len(shapes) > MAX_SHAPES:
+        raise ValueError(f"{where}: {len(shapes)} shapes on moving bodies (shape '{spec.shapes[shapes[-1]].name}'), "
+                         f"at most {MAX_SHAPES} are modelled")
     layout = ChainLayout(spec, tree_body, np.array(parent, dtype=np.int64), np.array(depth, dtype=np.int64),
                          joint_of, parent_R, parent_p, child_R, child_p, axis, q0, u0, loops, loop_body, loop_R,
                          loop_p, loop_dirs, np.zeros((0, 2), dtype=np.int64), np.array(kind, dtype=np.int64),
@@ -972,7 +976,9 @@ def plane_candidates(m: ChainArrays, w: ChainWork, world: int, s: int, n: wp.vec
     """Shape s's candidate contacts against the ground plane into rows 4 s .. 4 s + 3 of the shared
     tile cand (point, distance; 1e30: none): a sphere's lowest point, a capsule's ends', and of a box's
     corners or a cylinder's rim points (engine.collide.plane_point) the 4 deepest within the margin,
-    in their own order (a slot keeps its point from step to step: the warm start's key)."""
+    in their own order (a slot keeps its point from step to step while the same points are the
+    deepest: the warm start's key; when they change, a slot's last impulse starts another point,
+    which costs iterations, not accuracy)."""
     entry = m.shape_entry[world, s]
     X = wp.transform_multiply(w.pose[world, entry], m.shape_X[world, s])
     kind = m.shape_type[world, s]
@@ -1473,7 +1479,9 @@ class ChainModel:
         self.tile_contacts = _tile_size(3 * capacity) if capacity else 0
 
     def state(self) -> ChainState:
-        """A new state at the initial pose."""
+        """A new state at the initial pose (the contacts' warm start, kept in the model's work, is
+        cleared: a new trajectory starts without the last one's impulses)."""
+        self.work.contact_impulse.zero_()
         return ChainState(*(wp.array(self._init[k], device=self.device, dtype=t) for k, t in
                             (("q", float), ("u", float), ("root", wp.transform), ("body_q", wp.transform),
                              ("body_qd", wp.spatial_vector))))
