@@ -82,12 +82,13 @@ CPU trial; not built (it needs the poses' factors before the velocity pass, and 
 Measured at 4096 worlds (benchmarks/results/README.md, "DR Legs hanging and the four-bar in
 reduced coordinates" and "DR Legs standing in reduced coordinates"): DR Legs hanging on an H100
 0.41 ms per step with loops within 1.6e-7 m and 1.0e-6 rad (MuJoCo Warp 0.80 ms, 5.9e-4 m; our
-maximal step 1.85 ms); DR Legs standing on an H200 1.98 ms with the feet's 8 contacts (3 PADMM
-iterations a step), 2.98 ms with all 12 candidates, loops within 1.3e-7 m (MuJoCo Warp 1.34 ms,
-4.2e-4 m; our maximal step 3.26 ms). Where the standing step's time goes (H100, each stage left
-out in turn): the column solves 0.73 ms, K 0.68, the contacts 0.86, the tree factor 0.36 of 2.06
-ms: the floating root's six entries are ancestors of every body, which multiplies the tree's
-solves and factor, and the shared memory (24 KB a block) allows 9 worlds per SM. The kernel is
+maximal step 1.85 ms); DR Legs standing on an H100 2.15 ms with the feet's 8 contacts (8.9 PADMM
+iterations a step; 2.04 ms and 3 iterations with a penalty starting at 1e-3), 3.23 ms with all 12
+candidates, loops within 1.1e-7 m (MuJoCo Warp 1.40 ms, 4.2e-4 m). Where the standing step's time
+goes (H100, penalty 1e-3, each stage left out in turn): the column solves 0.73 ms, K 0.68, the
+contacts 0.86, the tree factor 0.36 of 2.06 ms: the floating root's six entries are ancestors of
+every body, which multiplies the tree's solves and factor, and the shared memory (24 KB a block)
+allows 9 worlds per SM. The kernel is
 capped at MAX_REGISTERS registers per thread (left to the compiler it took 168 on DR Legs hanging,
 12 worlds per SM instead of 16: 0.53 instead of 0.41 ms).
 
