@@ -105,7 +105,7 @@ import numpy as np
 import warp as wp
 
 from engine.collide import PLANE_CONTACTS, plane_point, plane_point_count
-from engine.joints import normal_basis
+from engine.contacts import contact_direction
 from engine.padmm import project_cone
 from engine.linear import block_sync, tile_set
 from engine.model import Integrator, SolverConfig
@@ -1012,14 +1012,6 @@ def plane_candidates(m: ChainArrays, w: ChainWork, world: int, s: int, n: wp.vec
     while slot < 4 * s + 4:
         tile_set(cand, slot, 3, 1.0e30)
         slot += 1
-
-
-@wp.func
-def contact_direction(normal: wp.vec3, part: int):
-    """A contact row's direction: the ground's normal (part 0) or a tangent (1, 2)."""
-    if part == 0:
-        return normal
-    return normal_basis(normal, part - 1)
 
 
 @wp.func
