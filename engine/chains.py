@@ -305,9 +305,10 @@ def chain_layout(spec: MechanismSpec) -> ChainLayout:
     for i, body in enumerate(spec.bodies):
         pose[i] = (_frame(body.orientation), np.asarray(body.position, dtype=np.float64))
     # the spanning tree: every body's distance (in joints) from the fixed set, or from its floating
-    # component's root (the component's heaviest body); joints with drives, armature or damping
-    # first (they must be tree joints), then the others nearest the roots first (a shallow tree)
+    # component's root (the component's heaviest body); driven joints first (drives act on tree
+    # joints only), then the others nearest the roots first (a shallow tree)
     revolute = [ji for ji, j in enumerate(spec.joints) if j.type == JointType.REVOLUTE]
+
     def end_of(name):
         return None if name is None else bodies[name]
 
