@@ -874,3 +874,24 @@ def test_dr_legs_standing_matches_the_maximal_engine_converged_tightly():
     gauge = pack_worlds([spec], device="cpu")
     compute_metrics(gauge, state)
     assert gauge.work.violation_linear.numpy()[0] < 1e-6
+
+
+def test_capsules_and_cylinders_rest_on_the_ground(device):
+    """A capsule lying down (its two ends), a cylinder lying down (its caps' lowest rim points) and
+    a cylinder standing up (its bottom cap's 4 rim points) set on the ground stay there: after
+    0.3 s each body is within 1e-4 m of its resting height and still, on the contacts
+    engine.collide.plane_point gives it within the margin (2, 2 and 4)."""
+    turn = (0.0, math.sqrt(0.5), 0.0, math.sqrt(0.5))  # the shape's axis (local z) along x
+    cases = [("capsule", (0.03, 0.1), turn, 0.03, 2), ("cylinder", (0.05, 0.1), turn, 0.05, 2),
+             ("cylinder", (0.05, 0.1), (0.0, 0.0, 0.0, 1.0), 0.1, 4)]
+    specs = [MechanismSpec([Body("b", 1.0, [2e-3] * 3, position=(0.0, 0.0, h), orientation=q)], [],
+                           shapes=[Shape("s", kind, "b", size=size)], ground=GroundPlane(), name=f"{kind}{k}")
+             for k, (kind, size, q, h, _) in enumerate(cases)]
+    model = pack_chains(specs, device=device, dt=1e-3)
+    state = model.state()
+    for _ in range(300):
+        model.step(state)
+    for w, (_, _, _, height, contacts) in enumerate(cases):
+        assert abs(state.body_q.numpy()[w, 0, 2] - height) < 1e-4
+        assert np.abs(state.body_qd.numpy()[w, 0]).max() < 1e-3
+        assert model.work.contact_count.numpy()[w] == contacts
