@@ -132,6 +132,7 @@ MAX_LOOPS = 32
 ROW_TOLERANCE = 1.0e-4  # a loop row is redundant when the kept rows leave less than this of its norm
 REGULARIZATION = wp.constant(1.0e-6)  # relative diagonal shift of the loops' matrix (rounding guard)
 CHAIN_BLOCK = 32  # threads per world on a GPU (two warps for DR Legs standing's 36 coordinates: 2.04 -> 2.06 ms)
+vec8f = wp.types.vector(length=8, dtype=float)  # a shape's candidate points' distances
 TILE_STEP = 8  # the shared tiles are sized to the batch's padded coordinates and rows in steps of this
 # registers per thread on CUDA: 128 lets 16 blocks (worlds) share an SM; left to the compiler the step
 # takes 168 (DR Legs hanging, 12 blocks: 0.533 instead of 0.376 ms per step at 4096 worlds, H100)
@@ -986,6 +987,9 @@ def plane_candidates(m: ChainArrays, w: ChainWork, world: int, s: int, n: wp.vec
     kind = m.shape_type[world, s]
     size = m.shape_size[world, s]
     count = plane_point_count(kind)
+    depth = vec8f()  # each point's distance above the plane, evaluated once
+    for k in range(count):
+        depth[k] = wp.dot(n, plane_point(kind, X, size, n, k)) - off
     chosen = int(0)  # bit k: point k is kept
     if count <= 4:
         chosen = (1 << count) - 1
@@ -994,11 +998,9 @@ def plane_candidates(m: ChainArrays, w: ChainWork, world: int, s: int, n: wp.vec
             best = int(-1)
             deepest = margin
             for k in range(count):
-                if (chosen & (1 << k)) == 0:
-                    d = wp.dot(n, plane_point(kind, X, size, n, k)) - off
-                    if d < deepest:
-                        deepest = d
-                        best = k
+                if (chosen & (1 << k)) == 0 and depth[k] < deepest:
+                    deepest = depth[k]
+                    best = k
             if best >= 0:
                 chosen = chosen | (1 << best)
     slot = 4 * s
@@ -1008,7 +1010,7 @@ def plane_candidates(m: ChainArrays, w: ChainWork, world: int, s: int, n: wp.vec
             tile_set(cand, slot, 0, p[0])
             tile_set(cand, slot, 1, p[1])
             tile_set(cand, slot, 2, p[2])
-            tile_set(cand, slot, 3, wp.dot(n, p) - off)
+            tile_set(cand, slot, 3, depth[k])
             slot += 1
     while slot < 4 * s + 4:
         tile_set(cand, slot, 3, 1.0e30)
@@ -1468,7 +1470,6 @@ class ChainModel:
         self.tile_rows = _tile_size(self.max_rows)
         self.contact_capacity = capacity  # the largest world's
         self.max_registers = MAX_REGISTERS
-        self.lanes = CHAIN_BLOCK  # threads per world on a GPU
         self.tile_slots = _tile_size(4 * max(len(lay.shapes) for lay in layouts))  # candidate slots (4 per shape)
         self.tile_contacts = _tile_size(3 * capacity) if capacity else 0
 
@@ -1487,7 +1488,7 @@ class ChainModel:
         if record and self.work.matrix.shape != (self.num_worlds, self.coords, self.coords):  # on first use
             self.work.matrix = wp.zeros((self.num_worlds, self.coords, self.coords), dtype=float, device=self.device)
             self.work.rows = wp.zeros((self.num_worlds, self.tile_rows, self.coords), dtype=float, device=self.device)
-        block = self.lanes if wp.get_device(self.device).is_cuda else 1
+        block = CHAIN_BLOCK if wp.get_device(self.device).is_cuda else 1
         kernel = chain_step_kernel(self.coords, self.tile_rows, self.tile_contacts, self.tile_slots, self.max_registers)
         wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
                         inputs=[self.arrays, self.work, float(self.dt), float(c.baumgarte), int(c.position_iterations),
