@@ -49,12 +49,14 @@ stages; on the CPU a block is one thread):
 4. the joints' damping and PD drives implicit: (M + dt C) du = dt tau, C = damping + kd + h kp on
    the diagonal (h the rest of the step the angles still move); M~ = M + dt C factored by one lane
    as L^T D L along the tree (no fill: the sum of the entries' depths squared instead of n^3 / 6),
-   every solve along the ancestors only;
+   every solve along the ancestors only; M~ is packed in shared memory (row k: its ancestors and
+   itself, roots first, a dense run; DR Legs standing 293 entries instead of 40 x 40), which lets
+   11 instead of 8 worlds share an SM;
 5. the loops' rows G (a lane per row, along its two bodies' ancestors; kept rows, then soft rows),
    X = M~^-1 G^T (a lane per row), A = G X + compliance + 1e-6 diag(G X) factored (dense Cholesky
-   in shared memory, the lanes sharing each column), K = X A^-1 (a lane per coordinate),
-   u = u_f + K (-(G u_f) - baumgarte phi / dt + share G u): the loops' velocity constraint holds
-   exactly, not as a penalty;
+   in shared memory, the lanes sharing each column), u = u_f + X A^-1 (-(G u_f) - baumgarte phi / dt
+   + share G u) (the solves with A's factor by the lanes, a barrier per column): the loops'
+   velocity constraint holds exactly, not as a penalty;
 6. contacts (compiled only for batches with shapes): candidates at the evaluation pose (a lane per
    shape, into shared memory), the rows J (normal and two tangents per contact, along the body's
    ancestors), P J^T = (M~^-1 - X A^-1 X^T) J^T (the response with the loops held), D = J P J^T,
@@ -65,7 +67,7 @@ stages; on the CPU a block is one thread):
    SolverConfig's tolerances and iteration cap, every lane deciding alike) warm-started from each
    contact slot's last impulse; u += P J^T lambda;
 7. q += h u, then SolverConfig.position_iterations Gauss-Newton projections of q back onto the
-   loops' position constraint with the step's K (dq = -K phi(q), the tree's poses redone each time;
+   loops' position constraint with the step's X and A (dq = -X A^-1 phi(q), the tree's poses redone each time;
    a floating root's six corrections turn and move its frame);
 8. the poses and velocities of every body (COM frames, as engine.model's State) and a divergence
    guard (non-finite or faster than SolverConfig.max_speed: the world is frozen and flagged).
@@ -538,6 +540,8 @@ class ChainArrays:
     gravity: wp.array(dtype=wp.vec3)
     parent: wp.array2d(dtype=wp.int32)
     depth: wp.array2d(dtype=wp.int32)
+    level: wp.array2d(dtype=wp.int32)  # entry k's ancestors (its chain's length to the root)
+    row_start: wp.array2d(dtype=wp.int32)  # where row k of the packed M~ starts (rows of level + 1 entries)
     first_child: wp.array2d(dtype=wp.int32)  # tree index of body k's first child, -1: none
     child_count: wp.array2d(dtype=wp.int32)
     joint_parent: wp.array2d(dtype=wp.transform)
@@ -739,27 +743,28 @@ def advance(m: ChainArrays, world: int, k: int, q: wp.array2d(dtype=float), root
 
 
 @wp.func
-def correction(m: ChainArrays, w: ChainWork, world: int, K: Any, i: int, R: int):
-    """Row i of K applied to the kept rows' errors: coordinate i's Gauss-Newton correction."""
+def correction(X: Any, lam: Any, i: int, R: int):
+    """Row i of X applied to lam = A^-1 phi (the kept rows' errors): coordinate i's Gauss-Newton
+    correction (X A^-1 phi)_i."""
     acc = float(0.0)
     for r in range(R):
-        acc += K[i, r] * w.phi[world, 6 * m.row_loop[world, r] + m.row_part[world, r]]
+        acc += X[i, r] * lam[r]
     return acc
 
 
 @wp.func
-def project(m: ChainArrays, w: ChainWork, world: int, k: int, q: wp.array2d(dtype=float),
-            root: wp.array2d(dtype=wp.transform), K: Any, R: int):
-    """Entry k's coordinate moved by its Gauss-Newton correction -K phi (a floating root's six at
-    once, on its root entry)."""
+def project(m: ChainArrays, world: int, k: int, q: wp.array2d(dtype=float),
+            root: wp.array2d(dtype=wp.transform), X: Any, lam: Any, R: int):
+    """Entry k's coordinate moved by its Gauss-Newton correction -X A^-1 phi (lam = A^-1 phi; a
+    floating root's six at once, on its root entry)."""
     kind = m.kind[world, k]
     if kind == KIND_REVOLUTE:
-        q[world, k] = q[world, k] - correction(m, w, world, K, k, R)
+        q[world, k] = q[world, k] - correction(X, lam, k, R)
     elif kind == KIND_ROOT:
-        dc = wp.vec3(correction(m, w, world, K, k - 5, R), correction(m, w, world, K, k - 4, R),
-                     correction(m, w, world, K, k - 3, R))
-        dr = wp.vec3(correction(m, w, world, K, k - 2, R), correction(m, w, world, K, k - 1, R),
-                     correction(m, w, world, K, k, R))
+        dc = wp.vec3(correction(X, lam, k - 5, R), correction(X, lam, k - 4, R),
+                     correction(X, lam, k - 3, R))
+        dr = wp.vec3(correction(X, lam, k - 2, R), correction(X, lam, k - 1, R),
+                     correction(X, lam, k, R))
         root[world, k] = turned(root[world, k], -dc, -dr)
 
 
@@ -811,7 +816,7 @@ def loop_errors(m: ChainArrays, w: ChainWork, world: int, lane: int, lanes: int)
 
 
 @wp.func
-def loop_rows_of(m: ChainArrays, w: ChainWork, world: int, r: int, G: Any, X: Any):
+def loop_rows_of(m: ChainArrays, w: ChainWork, world: int, par: Any, r: int, G: Any, X: Any):
     """Kept row r of G (and of G^T in X), by one lane: the row's rate from each tree joint that moves
     either of its loop's bodies (walking up from each; the second body's joints count +, the first's
     -; a common ancestor's cancel in the angular rows and nearly so in the position rows). The
@@ -833,7 +838,7 @@ def loop_rows_of(m: ChainArrays, w: ChainWork, world: int, r: int, G: Any, X: An
             total = G[r, j] + value
             tile_set(G, r, j, total)
             tile_set(X, j, r, total)
-            j = m.parent[world, j]
+            j = par[j]
 
 
 @wp.func
@@ -875,61 +880,121 @@ def solve_row(n: int, L: Any, diag: Any, x: Any, row: int):
 
 
 @wp.func
-def tree_factor(m: ChainArrays, world: int, n: int, H: Any):
-    """In place, by one lane: the mass matrix H (its lower triangle; breadth-first order, parents
-    first) as L^T D L, L unit lower triangular with entries only where the column is an ancestor of
-    the row (no fill: the subtrees stay apart), D on the diagonal. Work: the sum over bodies of their
-    depth squared, instead of n^3 / 6."""
-    for step in range(n):
-        k = n - 1 - step
-        hkk = H[k, k]
-        i = m.parent[world, k]
-        while i >= 0:
-            a = H[k, i] / hkk
-            j = i
-            while j >= 0:
-                tile_set(H, i, j, H[i, j] - a * H[k, j])
-                j = m.parent[world, j]
-            tile_set(H, k, i, a)
-            i = m.parent[world, i]
+def solve_lanes(lane: int, lanes: int, n: int, L: Any, diag: Any, x: Any):
+    """The shared vector x := (L L^T)^-1 x (factor_lanes' L and diag), the lanes sharing each
+    column's updates: a barrier per column, 2 n in all. Entered after a barrier; leaves one."""
+    for j in range(n):  # L y = x: x[i] -= L_ij y_j below column j, y_j = x[j] / d_j once x[j] is final
+        yj = x[j] / diag[j]
+        for i in range(j + 1 + lane, n, lanes):
+            tile_set(x, i, x[i] - L[i, j] * yj)
+        block_sync()
+    for i in range(lane, n, lanes):
+        tile_set(x, i, x[i] / diag[i])
+    block_sync()
+    for step in range(n):  # L^T z = y, the last column first
+        j = n - 1 - step
+        zj = x[j] / diag[j]
+        for i in range(lane, j, lanes):
+            tile_set(x, i, x[i] - L[j, i] * zj)
+        block_sync()
+    for i in range(lane, n, lanes):
+        tile_set(x, i, x[i] / diag[i])
+    block_sync()
 
 
 @wp.func
-def tree_solve_column(m: ChainArrays, world: int, n: int, H: Any, x: Any, col: int):
+def solve_column(n: int, L: Any, diag: Any, x: Any, col: int):
+    """Column ``col`` of the shared tile x := (L L^T)^-1 x[:, col] (factor_lanes' L and diag), by one lane."""
+    for i in range(n):
+        s = x[i, col]
+        for k in range(i):
+            s -= L[i, k] * x[k, col]
+        tile_set(x, i, col, s / diag[i])
+    for step in range(n):
+        i = n - 1 - step
+        s = x[i, col]
+        for k in range(i + 1, n):
+            s -= L[k, i] * x[k, col]
+        tile_set(x, i, col, s / diag[i])
+
+
+@wp.func
+def packed(H: Any, shift: int, e: int):
+    """Entry e of the packed mass matrix H (a shared tile of 2^shift columns read row by row)."""
+    return H[e >> shift, e & ((1 << shift) - 1)]
+
+
+@wp.func
+def packed_set(H: Any, shift: int, e: int, value: float):
+    tile_set(H, e >> shift, e & ((1 << shift) - 1), value)
+
+
+@wp.func
+def tree_factor(par: Any, lvl: Any, start: Any, n: int, H: Any, shift: int):
+    """In place, by one lane: the mass matrix (packed in H: row k's entries against its ancestors
+    and itself at start[k] + the column's level, so a row is a dense run ordered roots first;
+    breadth-first order, parents first) as L^T D L, L unit lower triangular with entries only where
+    the column is an ancestor of the row (no fill: the subtrees stay apart), D on the diagonal. Work:
+    the sum over bodies of their depth squared, instead of n^3 / 6."""
+    for step in range(n):
+        k = n - 1 - step
+        ok = start[k]
+        hkk = packed(H, shift, ok + lvl[k])
+        i = par[k]
+        while i >= 0:  # row i minus a times row k, over i's ancestors and itself: their common run
+            li = lvl[i]
+            a = packed(H, shift, ok + li) / hkk
+            oi = start[i]
+            for p in range(li + 1):
+                packed_set(H, shift, oi + p, packed(H, shift, oi + p) - a * packed(H, shift, ok + p))
+            packed_set(H, shift, ok + li, a)
+            i = par[i]
+
+
+@wp.func
+def tree_solve_column(par: Any, lvl: Any, start: Any, n: int, H: Any, shift: int, x: Any, col: int):
     """Column col of the shared tile x := M^-1 x[:, col] with tree_factor's L^T D L, by one lane:
     L^T leaves first, D, then L roots first, each along the ancestors only."""
     for step in range(n):
         i = n - 1 - step
         xi = x[i, col]
-        j = m.parent[world, i]
+        e = start[i] + lvl[i]
+        j = par[i]
         while j >= 0:
-            tile_set(x, j, col, x[j, col] - H[i, j] * xi)
-            j = m.parent[world, j]
+            e -= 1
+            tile_set(x, j, col, x[j, col] - packed(H, shift, e) * xi)
+            j = par[j]
     for i in range(n):
-        s = x[i, col] / H[i, i]
-        j = m.parent[world, i]
+        e = start[i] + lvl[i]
+        s = x[i, col] / packed(H, shift, e)
+        j = par[i]
         while j >= 0:
-            s -= H[i, j] * x[j, col]
-            j = m.parent[world, j]
+            e -= 1
+            s -= packed(H, shift, e) * x[j, col]
+            j = par[j]
         tile_set(x, i, col, s)
 
 
 @wp.func
-def tree_solve_vector(m: ChainArrays, world: int, n: int, H: Any, x: Any):
+def tree_solve_vector(par: Any, lvl: Any, start: Any, n: int, H: Any, shift: int, x: Any):
     """The shared vector x := M^-1 x with tree_factor's L^T D L, by one lane."""
     for step in range(n):
         i = n - 1 - step
         xi = x[i]
-        j = m.parent[world, i]
+        e = start[i] + lvl[i]
+        j = par[i]
         while j >= 0:
-            tile_set(x, j, x[j] - H[i, j] * xi)
-            j = m.parent[world, j]
+            e -= 1
+            tile_set(x, j, x[j] - packed(H, shift, e) * xi)
+            j = par[j]
     for i in range(n):
-        s = x[i] / H[i, i]
-        j = m.parent[world, i]
+        e = start[i] + lvl[i]
+        s = x[i] / packed(H, shift, e)
+        j = par[i]
         while j >= 0:
-            s -= H[i, j] * x[j]
-            j = m.parent[world, j]
+            e -= 1
+            s -= packed(H, shift, e) * x[j]
+            j = par[j]
         tile_set(x, i, s)
 
 
@@ -1052,11 +1117,13 @@ def contact_residuals(nc: int, res_p: Any, res_d: Any, res_y: Any):
 
 @functools.cache
 def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TILE_STEP,
-                      registers: int | None = MAX_REGISTERS):
+                      registers: int | None = MAX_REGISTERS, packed_rows: int = TILE_STEP, packed_shift: int = 3):
     """The step kernel with shared tiles of coords x coords (tree coordinates), rows x rows (kept
     loop rows) and, when contacts > 0, contacts x contacts (contact rows), each a multiple of
     TILE_STEP, and at most ``registers`` registers per thread on CUDA (module docstring: the step)."""
 
+    packed_cols = 1 << packed_shift
+    per_contact = _tile_size(contacts // 3)  # the tiles of one entry per contact
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=registers)
     def chain_step_body(m: ChainArrays, w: ChainWork, dt: float, baumgarte: float, iterations: int, max_speed: float,
                         midpoint: int, record: int, margin: float, stabilization: float, eta: float, rho0: float,
@@ -1066,16 +1133,26 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                         body_qd: wp.array2d(dtype=wp.spatial_vector)):
         world, lane = wp.tid()
         lanes = wp.block_dim()
-        Mt = wp.tile_zeros(shape=(coords, coords), dtype=float, storage="shared")  # M~, then its factor
-        Gt = wp.tile_zeros(shape=(wp.static(max(rows, contacts)), coords), dtype=float, storage="shared")  # G, then J
-        Xt = wp.tile_zeros(shape=(coords, rows), dtype=float, storage="shared")  # M~^-1 G^T, then K = X A^-1
-        # A = G X, then its factor; with contacts, then (D + (eta + rho) I)^-1
-        At = wp.tile_zeros(shape=(wp.static(max(rows, contacts)), wp.static(max(rows, contacts))), dtype=float,
+        # M~, then its factor, packed (tree_factor): 2^shift columns
+        Mt = wp.tile_zeros(shape=(packed_rows, packed_cols), dtype=float, storage="shared")
+        # G, then J, then (D + (eta + rho) I)^-1
+        Gt = wp.tile_zeros(shape=(wp.static(max(rows, contacts)), wp.static(max(coords, contacts))), dtype=float,
                            storage="shared")
+        Xt = wp.tile_zeros(shape=(coords, rows), dtype=float, storage="shared")  # X = M~^-1 G^T
+        At = wp.tile_zeros(shape=(rows, rows), dtype=float, storage="shared")  # A = G X, then its factor
         diag_a = wp.tile_zeros(shape=rows, dtype=float, storage="shared")
         vec = wp.tile_zeros(shape=coords, dtype=float, storage="shared")  # dt tau, then du, then steps
         rhs = wp.tile_zeros(shape=rows, dtype=float, storage="shared")
+        # the tree's parents: the solves and the factor walk them in dependent steps (shared: no
+        # global load on that path)
+        par = wp.tile_zeros(shape=coords, dtype=wp.int32, storage="shared")
+        lvl = wp.tile_zeros(shape=coords, dtype=wp.int32, storage="shared")  # ancestors (of the entry)
+        rstart = wp.tile_zeros(shape=coords, dtype=wp.int32, storage="shared")  # packed M~'s row starts
         n = m.tree_count[world]
+        for i in range(lane, n, lanes):
+            tile_set(par, i, m.parent[world, i])
+            tile_set(lvl, i, m.level[world, i])
+            tile_set(rstart, i, m.row_start[world, i])
         R = m.row_count[world]
         depths = m.depth_count[world]
         frozen = w.diverged[world]
@@ -1117,33 +1194,35 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                 tile_set(vec, i, dt * tau)
             loop_errors(m, w, world, lane, lanes)
             block_sync()
-            for i in range(lane, n, lanes):  # M~: row i against its ancestors j (the tile's other entries stay 0)
+            for i in range(lane, n, lanes):  # M~: row i against its ancestors j (packed: at rstart[i] + lvl[j])
                 j = i
+                e = rstart[i] + lvl[i]
                 while j >= 0:
                     value = wp.dot(w.axis[world, j], w.force_n[world, i]) + wp.dot(w.lin[world, j], w.force_f[world, i])
                     if j == i:
                         value += m.armature[world, i] + dt * (m.damping[world, i] + m.kd[world, i]
                                                               + lead * m.kp[world, i])
-                    tile_set(Mt, i, j, value)
+                    packed_set(Mt, packed_shift, e, value)
                     if record != 0:
                         w.matrix[world, i, j] = value
                         w.matrix[world, j, i] = value
-                    j = m.parent[world, j]
+                    j = par[j]
+                    e -= 1
             for r in range(lane, R, lanes):  # G along the two bodies' ancestors, and G^T into X
-                loop_rows_of(m, w, world, r, Gt, Xt)
+                loop_rows_of(m, w, world, par, r, Gt, Xt)
             block_sync()
             if record != 0:
                 for e in range(lane, R * n, lanes):
                     w.rows[world, e // n, e % n] = Gt[e // n, e % n]
             block_sync()
             if lane == 0:
-                tree_factor(m, world, n, Mt)
+                tree_factor(par, lvl, rstart, n, Mt, packed_shift)
             block_sync()
             for col in range(lane, R + 1, lanes):  # X = M~^-1 G^T a column per lane, and du = M~^-1 (dt tau)
                 if col < R:
-                    tree_solve_column(m, world, n, Mt, Xt, col)
+                    tree_solve_column(par, lvl, rstart, n, Mt, packed_shift, Xt, col)
                 else:
-                    tree_solve_vector(m, world, n, Mt, vec)
+                    tree_solve_vector(par, lvl, rstart, n, Mt, packed_shift, vec)
             block_sync()
             for i in range(lane, n, lanes):
                 w.u_free[world, i] = u[world, i] + vec[i]
@@ -1169,11 +1248,9 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                         start += Gt[r, j] * w.u_start[world, j]
                 tile_set(rhs, r, -acc + keep * start
                          - baumgarte / dt * w.phi[world, 6 * m.row_loop[world, r] + m.row_part[world, r]])
-            factor_lanes(lane, lanes, R, At, diag_a, REGULARIZATION)
-            for i in range(lane, n, lanes):  # K = X A^-1, a row per lane
-                solve_row(R, At, diag_a, Xt, i)
-            block_sync()
-            for i in range(lane, n, lanes):  # u = u_f + K rhs
+            factor_lanes(lane, lanes, R, At, diag_a, REGULARIZATION)  # (At keeps A's factor to the step's end)
+            solve_lanes(lane, lanes, R, At, diag_a, rhs)
+            for i in range(lane, n, lanes):  # u = u_f + X A^-1 rhs
                 acc = w.u_free[world, i]
                 for r in range(R):
                     acc += Xt[i, r] * rhs[r]
@@ -1194,10 +1271,10 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                 ys = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
                 zs = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
                 bs = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
-                res_p = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
-                res_d = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
-                res_y = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")
-                mus = wp.tile_zeros(shape=contacts, dtype=float, storage="shared")  # friction per contact
+                res_p = wp.tile_zeros(shape=per_contact, dtype=float, storage="shared")
+                res_d = wp.tile_zeros(shape=per_contact, dtype=float, storage="shared")
+                res_y = wp.tile_zeros(shape=per_contact, dtype=float, storage="shared")
+                mus = wp.tile_zeros(shape=per_contact, dtype=float, storage="shared")  # friction per contact
                 shapes = m.shape_count[world]
                 nrm = m.ground_normal[world]
                 off = m.ground_offset[world]
@@ -1236,10 +1313,10 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                             while j >= 0:
                                 value = wp.dot(d, wp.cross(w.axis[world, j], x) + w.lin[world, j])
                                 tile_set(Yt, j, 3 * ct + part, value)
-                                j = m.parent[world, j]
+                                j = par[j]
                     block_sync()
                     for col in range(lane, m3, lanes):  # Y = M~^-1 J^T
-                        tree_solve_column(m, world, n, Mt, Yt, col)
+                        tree_solve_column(par, lvl, rstart, n, Mt, packed_shift, Yt, col)
                     block_sync()
                     for e in range(lane, R * m3, lanes):  # G Y
                         r = e // m3
@@ -1249,7 +1326,10 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                             acc += Gt[r, j] * Yt[j, col]
                         tile_set(Dt, r, col, acc)
                     block_sync()
-                    for e in range(lane, n * m3, lanes):  # Y := Y - K G Y = P J^T, P = M~^-1 - X A^-1 X^T
+                    for col in range(lane, m3, lanes):  # A^-1 G Y, a column per lane
+                        solve_column(R, At, diag_a, Dt, col)
+                    block_sync()
+                    for e in range(lane, n * m3, lanes):  # Y := Y - X A^-1 G Y = P J^T, P = M~^-1 - X A^-1 X^T
                         i = e // m3
                         col = e % m3
                         acc = Yt[i, col]
@@ -1270,7 +1350,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                                 value = wp.dot(d, wp.cross(w.axis[world, j], x) + w.lin[world, j])
                                 tile_set(Gt, 3 * ct + part, j, value)
                                 acc += value * u[world, j]
-                                j = m.parent[world, j]
+                                j = par[j]
                             if part == 0:  # closing a gap d > 0 at most, a penetration pushed out by a share per step
                                 dist = cand[ct, 7]  # (at the evaluation pose: the next one is a step of u+ away)
                                 if dist > 0.0:
@@ -1317,8 +1397,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                                 acc += Dt[wp.min(r, j), wp.max(r, j)] * xs[j]
                         tile_set(zs, r, acc)
                     block_sync()
-                    rho = rho0
-                    contact_factor(lane, lanes, m3, Dt, ddiag, fdiag, At, eta + rho)
+                    rho = rho0  # J is done with: Gt takes (D + (eta + rho) I)^-1 (At keeps A's factor)
+                    contact_factor(lane, lanes, m3, Dt, ddiag, fdiag, Gt, eta + rho)
                     its = int(0)
                     done = int(0)
                     while its < max_iterations and done == 0:  # PADMM (ENGINE.md), every lane alike
@@ -1332,7 +1412,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                         for r in range(lane, m3, lanes):
                             acc = float(0.0)
                             for j in range(m3):
-                                acc += At[r, j] * bs[j]
+                                acc += Gt[r, j] * bs[j]
                             tile_set(xn, r, acc)
                         block_sync()
                         for ct in range(lane, nc, lanes):
@@ -1368,7 +1448,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                                 new_rho = wp.max(rho / 4.0, 1.0e-5)
                             if new_rho != rho:
                                 rho = new_rho
-                                contact_factor(lane, lanes, m3, Dt, ddiag, fdiag, At, eta + rho)
+                                contact_factor(lane, lanes, m3, Dt, ddiag, fdiag, Gt, eta + rho)
                     for ct in range(lane, nc, lanes):  # the impulses (unscaled), kept per slot for the next step
                         r = 3 * ct
                         w.contact_impulse[world, w.contact_slot[world, ct]] = wp.vec3(
@@ -1393,8 +1473,12 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                 kinematics(m, w, world, lane, lanes, q, u, root, POSES)
                 loop_errors(m, w, world, lane, lanes)
                 block_sync()
+                for r in range(lane, R, lanes):
+                    tile_set(rhs, r, w.phi[world, 6 * m.row_loop[world, r] + m.row_part[world, r]])
+                block_sync()
+                solve_lanes(lane, lanes, R, At, diag_a, rhs)
                 for i in range(lane, n, lanes):
-                    project(m, w, world, i, q, root, Xt, R)
+                    project(m, world, i, q, root, Xt, rhs, R)
                 block_sync()
             kinematics(m, w, world, lane, lanes, q, u, root, VELOCITIES)
             for k in range(lane, n, lanes):  # the divergence guard
@@ -1428,6 +1512,27 @@ def _capacity(layout: ChainLayout, cap: int | None) -> int:
 
 def _tile_size(count: int) -> int:
     return max(TILE_STEP, -(-count // TILE_STEP) * TILE_STEP)
+
+
+def _packed_rows(parent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per tree entry (parents first) its level (ancestors) and the packed mass matrix's row starts
+    (row k: level[k] + 1 entries, its ancestors roots first, then itself), with the total appended."""
+    level = np.zeros(len(parent), dtype=np.int32)
+    for k, p in enumerate(parent):
+        level[k] = 0 if p < 0 else level[p] + 1
+    return level, np.r_[0, np.cumsum(level + 1)].astype(np.int32)
+
+
+def _packed_tile(layouts: list) -> tuple[int, int]:
+    """The packed mass matrix's shared tile for a batch: (rows, shift) with 2^shift columns, the
+    smallest such tile (rows a multiple of TILE_STEP, at most 64) that holds the largest world's."""
+    size = max(int(_packed_rows(lay.parent)[1][-1]) for lay in layouts)
+    best = None
+    for shift in (3, 4, 5, 6):
+        rows = _tile_size(-(-size // (1 << shift)))
+        if rows <= 64 and (best is None or rows << shift < best[0] << best[1]):
+            best = (rows, shift)
+    return best
 
 
 def _transform(R: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -1472,6 +1577,7 @@ class ChainModel:
         self.max_registers = MAX_REGISTERS
         self.tile_slots = _tile_size(4 * max(len(lay.shapes) for lay in layouts))  # candidate slots (4 per shape)
         self.tile_contacts = _tile_size(3 * capacity) if capacity else 0
+        self.packed_rows, self.packed_shift = _packed_tile(layouts)  # the packed M~'s tile
 
     def state(self) -> ChainState:
         """A new state at the initial pose (the contacts' warm start, kept in the model's work, is
@@ -1489,7 +1595,8 @@ class ChainModel:
             self.work.matrix = wp.zeros((self.num_worlds, self.coords, self.coords), dtype=float, device=self.device)
             self.work.rows = wp.zeros((self.num_worlds, self.tile_rows, self.coords), dtype=float, device=self.device)
         block = CHAIN_BLOCK if wp.get_device(self.device).is_cuda else 1
-        kernel = chain_step_kernel(self.coords, self.tile_rows, self.tile_contacts, self.tile_slots, self.max_registers)
+        kernel = chain_step_kernel(self.coords, self.tile_rows, self.tile_contacts, self.tile_slots, self.max_registers,
+                                   self.packed_rows, self.packed_shift)
         wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
                         inputs=[self.arrays, self.work, float(self.dt), float(c.baumgarte), int(c.position_iterations),
                                 float(c.max_speed), int(c.integrator == Integrator.MOREAU_JEAN), int(record),
@@ -1547,7 +1654,7 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     f = {k: np.zeros((W, N)) for k in ("mass", "armature", "damping", "kp", "kd", "q_target", "v_target", "q", "u",
                                        "effort")}
     i32 = {k: np.zeros((W, N), dtype=np.int32) for k in ("parent", "depth", "body_out", "first_child", "child_count",
-                                                         "kind", "sub_of")}
+                                                         "kind", "sub_of", "level", "row_start")}
     S = max(1, max(len(lay.shapes) for lay in layouts))
     shape_i32 = {k: np.zeros((W, S), dtype=np.int32) for k in ("entry", "type")}
     shape_X = np.zeros((W, S, 7))
@@ -1582,6 +1689,8 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         n = lay.n
         counts[:, w_] = (n, (lay.depth.max() + 1) if n else 0, len(lay.loops), len(lay.rows) + len(lay.soft))
         gravity[w_] = spec.gravity
+        level, packed = _packed_rows(lay.parent)
+        i32["level"][w_, :n], i32["row_start"][w_, :n] = level, packed[:-1]
         for k in range(n):
             body = spec.bodies[lay.tree_body[k]]
             kind = int(lay.kind[k])
@@ -1670,7 +1779,7 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     a.tree_count, a.depth_count, a.loop_count, a.row_count = (
         wp.array(c, dtype=wp.int32, device=dev) for c in counts)
     a.gravity = wp.array(gravity, dtype=wp.vec3, device=dev)
-    for k in ("parent", "depth", "body_out", "first_child", "child_count", "kind", "sub_of"):
+    for k in ("parent", "depth", "body_out", "first_child", "child_count", "kind", "sub_of", "level", "row_start"):
         setattr(a, k, wp.array(i32[k], dtype=wp.int32, device=dev))
     a.shape_count = wp.array(per_world[0], dtype=wp.int32, device=dev)
     a.contact_capacity = wp.array(per_world[1], dtype=wp.int32, device=dev)

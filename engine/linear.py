@@ -31,9 +31,10 @@ SHARED_TILE_SIZES = (8, 16, 24, 32, 40, 48, 56, 64)  # sides of the shared tiles
 
 
 def _define_tile_set():
-    """Element writes into shared float tiles of every shape built from SHARED_TILE_SIZES (overloads
-    of one tile_set), which, unlike Warp's tile element assignment, do not end in a block barrier:
-    the lanes write different entries in divergent code and the callers place the barriers."""
+    """Element writes into shared float tiles of every shape built from SHARED_TILE_SIZES and into
+    shared int32 vectors of those lengths (overloads of one tile_set), which, unlike Warp's tile
+    element assignment, do not end in a block barrier: the lanes write different entries in
+    divergent code and the callers place the barriers."""
     setter = None
     for rows in SHARED_TILE_SIZES:
         for cols in SHARED_TILE_SIZES:
@@ -44,6 +45,11 @@ def _define_tile_set():
 
         @wp.func_native("t.data(wp::tile_coord(i)) = value;")
         def tile_set(t: wp.tile(dtype=float, shape=(rows,), storage="shared"), i: int, value: float):  # noqa: F811
+            """t[i] = value, without a barrier."""
+        setter = tile_set
+
+        @wp.func_native("t.data(wp::tile_coord(i)) = value;")
+        def tile_set(t: wp.tile(dtype=wp.int32, shape=(rows,), storage="shared"), i: int, value: int):  # noqa: F811
             """t[i] = value, without a barrier."""
         setter = tile_set
     return setter
