@@ -541,6 +541,7 @@ class ChainArrays:
     parent: wp.array2d(dtype=wp.int32)
     depth: wp.array2d(dtype=wp.int32)
     level: wp.array2d(dtype=wp.int32)  # entry k's ancestors (its chain's length to the root)
+    ancestor: wp.array2d(dtype=wp.int32)  # packed like M~: row k's ancestors, roots first, then k
     row_start: wp.array2d(dtype=wp.int32)  # where row k of the packed M~ starts (rows of level + 1 entries)
     first_child: wp.array2d(dtype=wp.int32)  # tree index of body k's first child, -1: none
     child_count: wp.array2d(dtype=wp.int32)
@@ -930,25 +931,41 @@ def packed_set(H: Any, shift: int, e: int, value: float):
 
 
 @wp.func
-def tree_factor(par: Any, lvl: Any, start: Any, n: int, H: Any, shift: int):
-    """In place, by one lane: the mass matrix (packed in H: row k's entries against its ancestors
-    and itself at start[k] + the column's level, so a row is a dense run ordered roots first;
-    breadth-first order, parents first) as L^T D L, L unit lower triangular with entries only where
-    the column is an ancestor of the row (no fill: the subtrees stay apart), D on the diagonal. Work:
-    the sum over bodies of their depth squared, instead of n^3 / 6."""
+def tree_factor(m: ChainArrays, world: int, lane: int, lanes: int, lvl: Any, start: Any, n: int, H: Any,
+                shift: int):
+    """In place: the mass matrix (packed in H: row k's entries against its ancestors and itself at
+    start[k] + the column's level, a dense run ordered roots first; breadth-first order, parents
+    first) as L^T D L, L unit lower triangular with entries only where the column is an ancestor of
+    the row (no fill: the subtrees stay apart), D on the diagonal. Work: the sum over entries of their
+    level squared, instead of n^3 / 6. Eliminating entry k (leaves first) subtracts
+    H_ki H_kj / H_kk from every entry (i, j) of its ancestors' rows, j up to i: the lanes share those
+    pairs (distinct entries, reading row k, which no other pair writes), a barrier per entry; row k is
+    never touched again, so its division by H_kk waits for one pass at the end. Entered after a
+    barrier; leaves one."""
     for step in range(n):
         k = n - 1 - step
+        lk = lvl[k]
+        if lk > 0:  # (every lane alike)
+            ok = start[k]
+            hkk = packed(H, shift, ok + lk)
+            for e in range(lane, lk * (lk + 1) / 2, lanes):  # pair e: ancestor at level li, its entry p <= li
+                li = int((wp.sqrt(8.0 * float(e) + 1.0) - 1.0) * 0.5)
+                if (li + 1) * (li + 2) / 2 <= e:
+                    li += 1
+                elif li * (li + 1) / 2 > e:
+                    li -= 1
+                p = e - li * (li + 1) / 2
+                ei = start[m.ancestor[world, ok + li]] + p
+                hki = packed(H, shift, ok + li)
+                packed_set(H, shift, ei, packed(H, shift, ei) - hki * packed(H, shift, ok + p) / hkk)
+            block_sync()
+    for k in range(lane, n, lanes):
         ok = start[k]
-        hkk = packed(H, shift, ok + lvl[k])
-        i = par[k]
-        while i >= 0:  # row i minus a times row k, over i's ancestors and itself: their common run
-            li = lvl[i]
-            a = packed(H, shift, ok + li) / hkk
-            oi = start[i]
-            for p in range(li + 1):
-                packed_set(H, shift, oi + p, packed(H, shift, oi + p) - a * packed(H, shift, ok + p))
-            packed_set(H, shift, ok + li, a)
-            i = par[i]
+        lk = lvl[k]
+        hkk = packed(H, shift, ok + lk)
+        for p in range(lk):
+            packed_set(H, shift, ok + p, packed(H, shift, ok + p) / hkk)
+    block_sync()
 
 
 @wp.func
@@ -1215,9 +1232,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                 for e in range(lane, R * n, lanes):
                     w.rows[world, e // n, e % n] = Gt[e // n, e % n]
             block_sync()
-            if lane == 0:
-                tree_factor(par, lvl, rstart, n, Mt, packed_shift)
-            block_sync()
+            tree_factor(m, world, lane, lanes, lvl, rstart, n, Mt, packed_shift)
             for col in range(lane, R + 1, lanes):  # X = M~^-1 G^T a column per lane, and du = M~^-1 (dt tau)
                 if col < R:
                     tree_solve_column(par, lvl, rstart, n, Mt, packed_shift, Xt, col)
@@ -1653,6 +1668,7 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     B = max(len(lay.spec.bodies) for lay in layouts)
     f = {k: np.zeros((W, N)) for k in ("mass", "armature", "damping", "kp", "kd", "q_target", "v_target", "q", "u",
                                        "effort")}
+    ancestor = np.zeros((W, max(int(_packed_rows(lay.parent)[1][-1]) for lay in layouts)), dtype=np.int32)
     i32 = {k: np.zeros((W, N), dtype=np.int32) for k in ("parent", "depth", "body_out", "first_child", "child_count",
                                                          "kind", "sub_of", "level", "row_start")}
     S = max(1, max(len(lay.shapes) for lay in layouts))
@@ -1691,6 +1707,11 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         gravity[w_] = spec.gravity
         level, packed = _packed_rows(lay.parent)
         i32["level"][w_, :n], i32["row_start"][w_, :n] = level, packed[:-1]
+        for k in range(n):
+            j = k
+            while j >= 0:
+                ancestor[w_, packed[k] + level[j]] = j
+                j = lay.parent[j]
         for k in range(n):
             body = spec.bodies[lay.tree_body[k]]
             kind = int(lay.kind[k])
@@ -1763,6 +1784,7 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     # every world from its distinct spec's rows
     f = {k: v[kind_of] for k, v in f.items()}
     i32 = {k: v[kind_of] for k, v in i32.items()}
+    ancestor = ancestor[kind_of]
     v3 = {k: v[kind_of] for k, v in v3.items()}
     inertia, jp, jc, loop_body, loop_anchor, loop_axis = (x[kind_of] for x in (inertia, jp, jc, loop_body, loop_anchor,
                                                                                loop_axis))
@@ -1781,6 +1803,7 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     a.gravity = wp.array(gravity, dtype=wp.vec3, device=dev)
     for k in ("parent", "depth", "body_out", "first_child", "child_count", "kind", "sub_of", "level", "row_start"):
         setattr(a, k, wp.array(i32[k], dtype=wp.int32, device=dev))
+    a.ancestor = wp.array(ancestor, dtype=wp.int32, device=dev)
     a.shape_count = wp.array(per_world[0], dtype=wp.int32, device=dev)
     a.contact_capacity = wp.array(per_world[1], dtype=wp.int32, device=dev)
     a.shape_entry = wp.array(shape_i32["entry"], dtype=wp.int32, device=dev)
