@@ -47,8 +47,9 @@ stages; on the CPU a block is one thread):
    M_ij = S_i . (I_j S_j) for each coordinate i moving body j (the only non-zeros), the
    generalized forces;
 4. the joints' damping and PD drives implicit: (M + dt C) du = dt tau, C = damping + kd + h kp on
-   the diagonal (h the rest of the step the angles still move); M~ = M + dt C factored by one lane
-   as L^T D L along the tree (no fill: the sum of the entries' depths squared instead of n^3 / 6),
+   the diagonal (h the rest of the step the angles still move); M~ = M + dt C factored as L^T D L
+   along the tree by the lanes (each eliminated entry's ancestor pairs shared, a barrier per entry;
+   no fill: the sum of the entries' depths squared instead of n^3 / 6),
    every solve along the ancestors only; M~ is packed in shared memory (row k: its ancestors and
    itself, roots first, a dense run; DR Legs standing 293 entries instead of 40 x 40), which lets
    11 instead of 8 worlds share an SM;
@@ -82,15 +83,15 @@ chain second order (3.8e-4 -> 2.4e-5 m at dt 4 ms, CPU, 0.4 s) and a six-bar 1.4
 CPU trial; not built (it needs the poses' factors before the velocity pass, and a GPU timing).
 
 Measured at 4096 worlds (benchmarks/results/README.md, "DR Legs hanging and the four-bar in
-reduced coordinates" and "DR Legs standing in reduced coordinates"): DR Legs hanging on an H100
-0.41 ms per step with loops within 1.6e-7 m and 1.0e-6 rad (MuJoCo Warp 0.80 ms, 5.9e-4 m; our
-maximal step 1.85 ms); DR Legs standing on an H100 2.15 ms with the feet's 8 contacts (8.9 PADMM
-iterations a step; 2.04 ms and 3 iterations with a penalty starting at 1e-3), 3.23 ms with all 12
-candidates, loops within 1.1e-7 m (MuJoCo Warp 1.40 ms, 4.2e-4 m). Where the standing step's time
-goes (H100, penalty 1e-3, each stage left out in turn): the column solves 0.73 ms, K 0.68, the
-contacts 0.86, the tree factor 0.36 of 2.06 ms: the floating root's six entries are ancestors of
-every body, which multiplies the tree's solves and factor, and the shared memory (24 KB a block)
-allows 9 worlds per SM. The kernel is
+reduced coordinates", "DR Legs standing in reduced coordinates" and "DR Legs standing: where the
+reduced step waited, and the packed mass matrix"), one call per comparison on an H200: DR Legs
+standing 1.48 ms per step with the feet's 8 contacts (7.4 PADMM iterations a step), 2.27 ms with
+all 12 candidates, loops within 1.9e-7 m (MuJoCo Warp 1.33 ms, 4.2e-4 m); DR Legs hanging
+0.375 ms, loops within 1.5e-7 m (MuJoCo Warp 0.762 ms, 5.9e-4 m). The step is bound by latency,
+not bandwidth: with 20.9 KB of shared memory a world (the packed M~ made it 11 worlds per SM
+instead of 8, 2.15 -> 1.70 ms standing) the warps wait on dependent arithmetic and shared-memory
+loads; on DR Legs standing the contact factor and PADMM, the column solves along the floating
+pelvis's six entries and the projections' kinematics take most of a world's step. The kernel is
 capped at MAX_REGISTERS registers per thread (left to the compiler it took 168 on DR Legs hanging,
 12 worlds per SM instead of 16: 0.53 instead of 0.41 ms).
 
