@@ -618,6 +618,7 @@ class ChainWork:
     contact_rho: wp.array(dtype=float)  # the contacts' penalty at the end of the last step (0: none yet)
     contact_dropped: wp.array(dtype=wp.int32)  # contacts within the margin beyond the capacity (last step)
     iterations: wp.array(dtype=wp.int32)  # PADMM iterations of the last step
+    stage_clock: wp.array2d(dtype=wp.int64)  # ChainModel.step(stages=True): clock readings (W, len(STAGES) + 1)
     matrix: wp.array3d(dtype=float)  # record: M~ (W, N, N)
     rows: wp.array3d(dtype=float)  # record: G (W, R, N)
 
@@ -870,20 +871,31 @@ def factor_lanes(lane: int, lanes: int, n: int, A: Any, diag: Any, relative: flo
         block_sync()
 
 
+# the step's stages as ChainModel.step(stages=True) times them (ChainModel.stage_cycles)
+STAGES = ("kinematics and own terms", "subtree sums, forces, loop errors", "M~ and G", "tree factor",
+          "X = M~^-1 G^T", "A = G X", "the loops' velocity solve", "contact candidates", "Y = M~^-1 J^T",
+          "P J^T = Y - X A^-1 G Y", "J, v_f, D", "preconditioner, warm start", "contact factor and PADMM",
+          "integration", "projections, velocities, guard", "output")
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+return clock64();
+#else
+return (long long)__builtin_readcyclecounter();
+#endif
+""")
+def clock_now() -> wp.int64:
+    """The SM's cycle counter on CUDA, the processor's on the CPU."""
+    ...
+
+
 @wp.func
-def solve_row(n: int, L: Any, diag: Any, x: Any, row: int):
-    """Row ``row`` of the shared tile x := (L L^T)^-1 x[row, :] (factor_lanes' L and diag), by one lane."""
-    for i in range(n):
-        s = x[row, i]
-        for k in range(i):
-            s -= L[i, k] * x[row, k]
-        tile_set(x, row, i, s / diag[i])
-    for step in range(n):
-        i = n - 1 - step
-        s = x[row, i]
-        for k in range(i + 1, n):
-            s -= L[k, i] * x[row, k]
-        tile_set(x, row, i, s / diag[i])
+def stamp(w: ChainWork, world: int, lane: int, stage: int):
+    """Lane 0 reads the clock into work.stage_clock[world, stage] (the end of stage - 1, the start
+    of stage)."""
+    if lane == 0:
+        w.stage_clock[world, stage] = clock_now()
 
 
 @wp.func
@@ -1109,7 +1121,7 @@ def plane_candidates(m: ChainArrays, w: ChainWork, world: int, s: int, n: wp.vec
 def contact_factor(lane: int, lanes: int, m3: int, D: Any, ddiag: Any, fdiag: Any, Finv: Any, shift: float):
     """Finv = (D + shift I)^-1 for the m3 x m3 contact matrix whose upper triangle (and ddiag, its
     diagonal) hold D: the lower triangle is refilled from the upper and factored in place
-    (factor_lanes), then Finv a row per lane. Entered after a barrier; leaves one."""
+    (factor_lanes), then Finv a column per lane. Entered after a barrier; leaves one."""
     for e in range(lane, m3 * m3, lanes):
         a = e // m3
         b = e % m3
@@ -1119,13 +1131,13 @@ def contact_factor(lane: int, lanes: int, m3: int, D: Any, ddiag: Any, fdiag: An
             tile_set(D, a, a, ddiag[a] + shift)
     block_sync()
     factor_lanes(lane, lanes, m3, D, fdiag, 0.0)
-    for r in range(lane, m3, lanes):
+    for r in range(lane, m3, lanes):  # column r (symmetric: also row r), a lane per column
         for j in range(m3):
             value = float(0.0)
             if j == r:
                 value = 1.0
-            tile_set(Finv, r, j, value)
-        solve_row(m3, D, fdiag, Finv, r)
+            tile_set(Finv, j, r, value)
+        solve_column(m3, D, fdiag, Finv, r)
     block_sync()
 
 
@@ -1140,10 +1152,13 @@ def contact_residuals(nc: int, res_p: Any, res_d: Any, res_y: Any):
 
 @functools.cache
 def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TILE_STEP,
-                      registers: int | None = MAX_REGISTERS, packed_rows: int = TILE_STEP, packed_shift: int = 3):
+                      registers: int | None = MAX_REGISTERS, packed_rows: int = TILE_STEP, packed_shift: int = 3,
+                      stages: bool = False):
     """The step kernel with shared tiles of coords x coords (tree coordinates), rows x rows (kept
     loop rows) and, when contacts > 0, contacts x contacts (contact rows), each a multiple of
-    TILE_STEP, and at most ``registers`` registers per thread on CUDA (module docstring: the step)."""
+    TILE_STEP, and at most ``registers`` registers per thread on CUDA (module docstring: the step).
+    stages: lane 0 writes a clock reading at the end of each of STAGES into work.stage_clock (the
+    same step otherwise; without it the readings are compiled out)."""
 
     packed_cols = 1 << packed_shift
     per_contact = _tile_size(contacts // 3)  # the tiles of one entry per contact
@@ -1180,6 +1195,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
         depths = m.depth_count[world]
         frozen = w.diverged[world]
         block_sync()
+        if wp.static(stages):
+            stamp(w, world, lane, 0)
         lead = dt  # q+ = q_eval + lead u+
         if midpoint != 0:
             lead = 0.5 * dt
@@ -1196,6 +1213,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
             for k in range(lane, n, lanes):
                 own_terms(m, w, world, k, g)
             block_sync()
+            if wp.static(stages):
+                stamp(w, world, lane, 1)
             for step in range(depths - 1):  # subtree sums, deepest parents first
                 level = depths - 2 - step
                 for k in range(lane, n, lanes):
@@ -1217,6 +1236,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                 tile_set(vec, i, dt * tau)
             loop_errors(m, w, world, lane, lanes)
             block_sync()
+            if wp.static(stages):
+                stamp(w, world, lane, 2)
             for i in range(lane, n, lanes):  # M~: row i against its ancestors j (packed: at rstart[i] + lvl[j])
                 j = i
                 e = rstart[i] + lvl[i]
@@ -1238,13 +1259,19 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                 for e in range(lane, R * n, lanes):
                     w.rows[world, e // n, e % n] = Gt[e // n, e % n]
             block_sync()
+            if wp.static(stages):
+                stamp(w, world, lane, 3)
             tree_factor(m, world, lane, lanes, lvl, rstart, n, Mt, packed_shift)
+            if wp.static(stages):
+                stamp(w, world, lane, 4)
             for col in range(lane, R + 1, lanes):  # X = M~^-1 G^T a column per lane, and du = M~^-1 (dt tau)
                 if col < R:
                     tree_solve_column(par, lvl, rstart, n, Mt, packed_shift, Xt, col)
                 else:
                     tree_solve_vector(par, lvl, rstart, n, Mt, packed_shift, vec)
             block_sync()
+            if wp.static(stages):
+                stamp(w, world, lane, 5)
             for i in range(lane, n, lanes):
                 w.u_free[world, i] = u[world, i] + vec[i]
             for e in range(lane, R * R, lanes):  # A = G X (lower triangle)
@@ -1258,6 +1285,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                         acc += m.row_compliance[world, r]
                     tile_set(At, r, s, acc)
             block_sync()
+            if wp.static(stages):
+                stamp(w, world, lane, 6)
             for r in range(lane, R, lanes):  # the right-hand side: -(G u_f) - baumgarte phi / dt (+ keep G u)
                 acc = float(0.0)
                 start = float(0.0)
@@ -1277,6 +1306,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                     acc += Xt[i, r] * rhs[r]
                 u[world, i] = acc
             block_sync()
+            if wp.static(stages):
+                stamp(w, world, lane, 7)
             if wp.static(contacts > 0):
                 Yt = wp.tile_zeros(shape=(coords, contacts), dtype=float, storage="shared")  # M~^-1 J^T, then P J^T
                 # G M~^-1 J^T, then D (upper triangle) and its factor
@@ -1318,9 +1349,13 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                         else:
                             w.contact_impulse[world, slot] = wp.vec3()
                     w.contact_count[world] = count
+                    if count == 0:  # off the ground: the next contacts start from CONTACT_RHO
+                        w.contact_rho[world] = 0.0
                     w.contact_dropped[world] = dropped
                     w.iterations[world] = 0
                 block_sync()
+                if wp.static(stages):
+                    stamp(w, world, lane, 8)
                 nc = w.contact_count[world]
                 m3 = 3 * nc
                 if nc > 0:
@@ -1339,6 +1374,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                     for col in range(lane, m3, lanes):  # Y = M~^-1 J^T
                         tree_solve_column(par, lvl, rstart, n, Mt, packed_shift, Yt, col)
                     block_sync()
+                    if wp.static(stages):
+                        stamp(w, world, lane, 9)
                     for e in range(lane, R * m3, lanes):  # G Y
                         r = e // m3
                         col = e % m3
@@ -1360,6 +1397,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                     for e in range(lane, R * n, lanes):  # G is done with: its tile takes J (rows 0 .. m3)
                         tile_set(Gt, e // n, e % n, float(0.0))
                     block_sync()
+                    if wp.static(stages):
+                        stamp(w, world, lane, 10)
                     for ct in range(lane, nc, lanes):  # J, and v_f = J u + bias: a lane per contact
                         slot = w.contact_slot[world, ct]
                         x = wp.vec3(cand[ct, 4], cand[ct, 5], cand[ct, 6])
@@ -1389,6 +1428,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                                 acc += Gt[ra, j] * Yt[j, rb]
                             tile_set(Dt, ra, rb, acc)
                     block_sync()
+                    if wp.static(stages):
+                        stamp(w, world, lane, 11)
                     for ct in range(lane, nc, lanes):  # Jacobi preconditioner, one scale per contact (cones keep)
                         mean = (Dt[3 * ct, 3 * ct] + Dt[3 * ct + 1, 3 * ct + 1] + Dt[3 * ct + 2, 3 * ct + 2]) / 3.0
                         scale = 1.0 / wp.sqrt(wp.max(mean, 1.0e-20))
@@ -1418,9 +1459,16 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                                 acc += Dt[wp.min(r, j), wp.max(r, j)] * xs[j]
                         tile_set(zs, r, acc)
                     block_sync()
+                    if wp.static(stages):
+                        stamp(w, world, lane, 12)
                     rho = rho0  # J is done with: Gt takes (D + (eta + rho) I)^-1 (At keeps A's factor)
-                    if adaptive != 0 and w.contact_rho[world] > 0.0:  # where the last step's adaptation left it
-                        rho = w.contact_rho[world]
+                    if adaptive != 0 and w.contact_rho[world] > 0.0:  # where the last step's adaptation left it,
+                        warm = int(0)  # while a contact carries its impulse over (new ones alone: CONTACT_RHO)
+                        for r in range(m3):
+                            if xs[r] != 0.0:
+                                warm = 1
+                        if warm != 0:
+                            rho = w.contact_rho[world]
                     contact_factor(lane, lanes, m3, Dt, ddiag, fdiag, Gt, eta + rho)
                     its = int(0)
                     done = int(0)
@@ -1485,6 +1533,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                             acc += Yt[i, r] * pre[r] * ys[r]
                         u[world, i] = u[world, i] + acc
                     block_sync()
+                    if wp.static(stages):
+                        stamp(w, world, lane, 13)
             for i in range(lane, n, lanes):  # q += lead u; a drive past its effort limit stops the world
                 ui = u[world, i]
                 effort = m.kp[world, i] * (m.q_target[world, i] - q[world, i] - lead * ui)
@@ -1493,6 +1543,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                     w.diverged[world] = EFFORT_LIMIT
                 advance(m, world, i, q, root, u, lead)
             block_sync()
+            if wp.static(stages):
+                stamp(w, world, lane, 14)
             for it in range(iterations):  # Gauss-Newton projections onto the loops with the step's factors
                 kinematics(m, w, world, lane, lanes, q, u, root, POSES)
                 loop_errors(m, w, world, lane, lanes)
@@ -1512,6 +1564,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                 if not (wp.isfinite(c) and wp.isfinite(v) and wp.isfinite(om)) or wp.length(v) > max_speed:
                     w.diverged[world] = DIVERGED
             block_sync()
+            if wp.static(stages):
+                stamp(w, world, lane, 15)
             if w.diverged[world] == 0:
                 for k in range(lane, n, lanes):
                     b = m.body_out[world, k]
@@ -1523,6 +1577,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                     q[world, i] = w.q_start[world, i]
                     u[world, i] = w.u_start[world, i]
                     root[world, i] = w.root_start[world, i]
+            if wp.static(stages):
+                stamp(w, world, lane, 16)
 
     return chain_step_body
 
@@ -1612,16 +1668,22 @@ class ChainModel:
                             (("q", float), ("u", float), ("root", wp.transform), ("body_q", wp.transform),
                              ("body_qd", wp.spatial_vector))))
 
-    def step(self, state: ChainState, record: bool = False) -> None:
+    def step(self, state: ChainState, record: bool = False, stages: bool = False) -> None:
         """Advance state by one step of self.dt (in place). record: also write the step's mass matrix
-        M~ into work.matrix (W, coords, coords) and its kept loop rows G into work.rows (W, rows, coords)."""
+        M~ into work.matrix (W, coords, coords) and its kept loop rows G into work.rows (W, rows, coords).
+        stages: also time the step's STAGES (a kernel with clock readings; stage_cycles reads them)."""
         c = self.config
         if record and self.work.matrix.shape != (self.num_worlds, self.coords, self.coords):  # on first use
             self.work.matrix = wp.zeros((self.num_worlds, self.coords, self.coords), dtype=float, device=self.device)
             self.work.rows = wp.zeros((self.num_worlds, self.tile_rows, self.coords), dtype=float, device=self.device)
+        if stages:
+            if self.work.stage_clock.shape != (self.num_worlds, len(STAGES) + 1):
+                self.work.stage_clock = wp.zeros((self.num_worlds, len(STAGES) + 1), dtype=wp.int64,
+                                                 device=self.device)
+            self.work.stage_clock.zero_()
         block = CHAIN_BLOCK if wp.get_device(self.device).is_cuda else 1
         kernel = chain_step_kernel(self.coords, self.tile_rows, self.tile_contacts, self.tile_slots, self.max_registers,
-                                   self.packed_rows, self.packed_shift)
+                                   self.packed_rows, self.packed_shift, bool(stages))
         wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
                         inputs=[self.arrays, self.work, float(self.dt), float(c.baumgarte), int(c.position_iterations),
                                 float(c.max_speed), int(c.integrator == Integrator.MOREAU_JEAN), int(record),
@@ -1629,6 +1691,23 @@ class ChainModel:
                                 int(c.adaptive_rho), max(1, int(c.rho_update_interval)), float(c.tolerance),
                                 float(c.relative_tolerance), int(c.max_iterations), state.q, state.u, state.root,
                                 state.body_q, state.body_qd])
+
+    def stage_cycles(self) -> dict:
+        """The last step(stages=True)'s clock cycles per stage (STAGES), the mean over the worlds that
+        ran it (a stage with no such world, e.g. the contacts' in a batch without any: absent): cycles
+        of the world's block from the stage's start to its end, which on a GPU include the waits for
+        the other blocks sharing its SM."""
+        clock = self.work.stage_clock.numpy().astype(np.int64)
+        if clock.shape != (self.num_worlds, len(STAGES) + 1):
+            raise RuntimeError("ChainModel.stage_cycles: no step(stages=True) has run")
+        out = {}
+        previous = clock[:, 0]
+        for k, name in enumerate(STAGES, start=1):
+            ran = (clock[:, k] != 0) & (previous != 0)
+            if ran.any():
+                out[name] = float((clock[ran, k] - previous[ran]).mean())
+            previous = np.where(clock[:, k] != 0, clock[:, k], previous)
+        return out
 
     @property
     def diverged(self) -> np.ndarray:
@@ -1861,6 +1940,7 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     k.contact_rho = wp.zeros(W, dtype=float, device=dev)
     k.contact_dropped = wp.zeros(W, dtype=wp.int32, device=dev)
     k.iterations = wp.zeros(W, dtype=wp.int32, device=dev)
+    k.stage_clock = wp.zeros((1, 1), dtype=wp.int64, device=dev)  # ChainModel.step(stages=True) sizes it
     k.matrix = wp.zeros((1, 1, 1), dtype=float, device=dev)  # ChainModel.step(record=True) sizes them
     k.rows = wp.zeros((1, 1, 1), dtype=float, device=dev)
     init = {"q": f["q"], "u": f["u"], "root": root, "body_q": body_q, "body_qd": body_qd}

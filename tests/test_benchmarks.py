@@ -281,6 +281,31 @@ def test_kernel_times_account_for_every_launch_of_a_staged_step(tmp_path, capsys
         kernel_times.main(["--device", "cpu", "--clock", "device"])
 
 
+def test_chains_stages_reports_every_stage_of_the_reduced_step(tmp_path, capsys):
+    """benchmarks.chains_stages on the CPU: the four-bar in reduced coordinates (no contacts: the
+    contact stages absent) has one row with positive cycles for each stage it ran, summing to the
+    step's; the CSV has a row per stage, the PNG is written; a scene without that variant is refused."""
+    import csv
+
+    from benchmarks import chains_stages
+    from engine.chains import STAGES
+
+    out = tmp_path / "stages" / "fourbar.json"
+    assert chains_stages.main(["--device", "cpu", "--scenes", "fourbar", "--worlds", "2", "--steps", "2",
+                               "--warmup", "1", "--out", str(out)]) == 0
+    (row,) = json.loads(out.read_text())["results"]
+    stages = row["stages"]
+    assert "contact factor and PADMM" not in stages and {"tree factor", "X = M~^-1 G^T", "output"} <= set(stages)
+    assert set(stages) <= set(STAGES) and all(c > 0 for c in stages.values())
+    assert row["step_cycles"] == pytest.approx(sum(stages.values()))
+    with open(out.with_suffix(".csv")) as f:
+        assert len(list(csv.DictReader(f))) == len(stages)
+    assert out.with_suffix(".png").stat().st_size > 0
+    assert len(capsys.readouterr().out.strip().splitlines()) == 1
+    with pytest.raises(SystemExit):
+        chains_stages.main(["--device", "cpu", "--scenes", "walker", "--worlds", "1"])
+
+
 def test_heterogeneity_times_both_batches_at_each_cap(tmp_path, capsys):
     """benchmarks.heterogeneity on the CPU: random walkers (two topologies) and copies of the
     default walker at each iteration cap, finite times, the largest world's iterations within the

@@ -366,22 +366,29 @@ def test_projection_closes_what_the_velocity_constraint_lets_drift(device):
     assert gaps[0] > 100 * gaps[1] and gaps[1] < 1e-6
 
 
-def test_passive_fourbar_conserves_energy(device):
-    """No damping, no drives: kinetic plus potential energy (engine.metrics on our poses) stays
-    within 0.5 % of what the four-bar can lose (E0 - E_min) over 1 s at dt 0.25 ms."""
-    scene = fourbar()
-    model = pack_chains([scene.spec], device=device, dt=2.5e-4)
+def _energy_error(scene, model, device, chunks: int, steps: int):
+    """Step world 0 of ``model`` chunks x steps times from its initial state: (the state, the
+    largest |E(t) - E(0)| at the chunks' ends, E(0) - E_min), energies from engine.metrics."""
     gauge = pack_worlds([scene.spec], device=device)
     state = model.state()
     compute_metrics(gauge, state)
     e0 = gauge.work.energy.numpy()[0]
     worst = 0.0
-    for _ in range(20):
-        for _ in range(200):
+    for _ in range(chunks):
+        for _ in range(steps):
             model.step(state)
         compute_metrics(gauge, state)
         worst = max(worst, abs(gauge.work.energy.numpy()[0] - e0))
-    assert worst < 5e-3 * (e0 - scene.potential_min)
+    return state, worst, e0 - scene.potential_min
+
+
+def test_passive_fourbar_conserves_energy(device):
+    """No damping, no drives: kinetic plus potential energy (engine.metrics on our poses) stays
+    within 0.5 % of what the four-bar can lose (E0 - E_min) over 1 s at dt 0.25 ms."""
+    scene = fourbar()
+    model = pack_chains([scene.spec], device=device, dt=2.5e-4)
+    _, worst, available = _energy_error(scene, model, device, 20, 200)
+    assert worst < 5e-3 * available
 
 
 def test_pd_drive_settles_at_the_static_equilibrium(device):
@@ -782,6 +789,39 @@ def test_capped_contact_iterations_stay_physical(device):
     assert model.work.iterations.numpy().max() <= 3
 
 
+def test_a_box_that_leaves_the_ground_lands_from_a_fresh_penalty(device):
+    """Each step's contact penalty starts where the world's last step left it, but not for contacts
+    that carry no impulse over: a box at rest (its penalty settled below CONTACT_RHO), tossed up at
+    1 m/s with three PADMM iterations a step from then on (too few for the penalty to adapt), is off
+    the ground for 0.2 s (the carried penalty cleared), lands from CONTACT_RHO, and 0.4 s after the
+    toss rests on the ground and is still, having risen to its toss's apex (5.1 cm) and no higher."""
+    from engine.chains import CONTACT_RHO
+
+    model = pack_chains([_box()], device=device, dt=1e-3)
+    state = model.state()
+    for _ in range(100):
+        model.step(state)
+    assert 0.0 < model.work.contact_rho.numpy()[0] < CONTACT_RHO
+    model.config = dataclasses.replace(model.config, max_iterations=3)
+    u = state.u.numpy()
+    u[0, 2] = 1.0  # the root's centre-of-mass velocity, up
+    state.u.assign(u)
+    heights, flying, landed = [], 0, None
+    for _ in range(400):
+        model.step(state)
+        heights.append(state.body_q.numpy()[0, 0, 2])
+        contacts, rho = model.work.contact_count.numpy()[0], model.work.contact_rho.numpy()[0]
+        if contacts == 0:
+            flying += 1
+            assert rho == 0.0
+        elif flying and landed is None:
+            landed = rho
+    assert flying > 150 and landed == CONTACT_RHO
+    assert abs(max(heights) - (0.05 + 1.0 / (2 * 9.81))) < 2e-3
+    assert abs(heights[-1] - 0.05) < 1e-3 and np.abs(state.body_qd.numpy()[0, 0]).max() < 1e-2
+    assert not model.diverged.any()
+
+
 def test_independent_parts_of_one_world_move_as_if_alone(device):
     """A world of a fixed two-link pendulum, a free ball resting on the ground and a free ball
     falling: each moves as it would alone (the pendulum's angles as the pendulum alone's, the
@@ -913,15 +953,36 @@ def test_the_packed_mass_matrix_holds_the_deepest_tree(device):
     assert starts[-1] == MAX_COORDS * (MAX_COORDS + 1) // 2
     assert model.packed_rows << model.packed_shift >= starts[-1]
     assert np.array_equal(model.arrays.ancestor.numpy()[0, starts[-2]:starts[-1]], np.arange(MAX_COORDS))
-    gauge = pack_worlds([scene.spec], device=device)
-    state = model.state()
-    compute_metrics(gauge, state)
-    e0 = gauge.work.energy.numpy()[0]
-    worst = 0.0
-    for _ in range(10):
-        for _ in range(100):
-            model.step(state)
-        compute_metrics(gauge, state)
-        worst = max(worst, abs(gauge.work.energy.numpy()[0] - e0))
+    state, worst, available = _energy_error(scene, model, device, 10, 100)
     assert np.abs(state.q.numpy()[0, :MAX_COORDS] - layout.q0).max() > 1e-2  # it swung
-    assert worst < 1e-4 * (e0 - scene.potential_min)
+    assert worst < 1e-4 * available
+
+
+def test_stage_clocks_leave_the_step_unchanged(device):
+    """ChainModel.step(stages=True) compiles clock readings into the step and nothing else: a box
+    on the ground and a six-bar (contacts in one world, none in the other) stepped 20 times with
+    and without them end bit for bit alike; the readings rise stage by stage, every stage has its
+    cycles (the contact stages only from the box's world), and before any such step stage_cycles
+    says so."""
+    from engine.chains import STAGES
+
+    specs = [_box(), sixbar().spec]
+    plain, timed = (pack_chains(specs, device=device, dt=1e-3) for _ in range(2))
+    with pytest.raises(RuntimeError, match="stages=True"):
+        timed.stage_cycles()
+    states = [plain.state(), timed.state()]
+    for _ in range(20):
+        plain.step(states[0])
+        timed.step(states[1], stages=True)
+    for name in ("q", "u", "root", "body_q", "body_qd"):
+        assert np.array_equal(getattr(states[0], name).numpy(), getattr(states[1], name).numpy()), name
+    clock = timed.work.stage_clock.numpy()
+    assert clock.shape == (2, len(STAGES) + 1)
+    box_clock = clock[0]
+    assert (box_clock > 0).all() and (np.diff(box_clock) >= 0).all()
+    ran = clock[1] > 0
+    contact_stages = [STAGES.index(s) + 1 for s in ("Y = M~^-1 J^T", "contact factor and PADMM")]
+    assert not ran[contact_stages].any() and ran[[0, 1, len(STAGES)]].all()
+    assert (np.diff(clock[1][ran]) >= 0).all()
+    cycles = timed.stage_cycles()
+    assert list(cycles) == list(STAGES) and all(c >= 0.0 for c in cycles.values())
