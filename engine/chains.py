@@ -945,6 +945,7 @@ def packed(H: Any, shift: int, e: int):
 
 @wp.func
 def packed_set(H: Any, shift: int, e: int, value: float):
+    """Entry e of the packed mass matrix H := value (without a barrier, as tile_set)."""
     tile_set(H, e >> shift, e & ((1 << shift) - 1), value)
 
 
