@@ -1613,6 +1613,8 @@ def _packed_tile(layouts: list) -> tuple[int, int]:
         rows = _tile_size(-(-size // (1 << shift)))
         if rows <= 64 and (best is None or rows << shift < best[0] << best[1]):
             best = (rows, shift)
+    if best is None:  # (MAX_COORDS keeps a chain's sum of levels within 64 x 64)
+        raise ValueError(f"pack_chains: a packed mass matrix of {size} entries exceeds the largest shared tile (4096)")
     return best
 
 
