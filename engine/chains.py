@@ -1604,10 +1604,10 @@ def _packed_rows(parent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return level, np.r_[0, np.cumsum(level + 1)].astype(np.int32)
 
 
-def _packed_tile(layouts: list) -> tuple[int, int]:
-    """The packed mass matrix's shared tile for a batch: (rows, shift) with 2^shift columns, the
-    smallest such tile (rows a multiple of TILE_STEP, at most 64) that holds the largest world's."""
-    size = max(int(_packed_rows(lay.parent)[1][-1]) for lay in layouts)
+def _packed_tile(size: int) -> tuple[int, int]:
+    """The packed mass matrix's shared tile for a batch whose largest world's has ``size`` entries:
+    (rows, shift) with 2^shift columns, the smallest such tile (rows a multiple of TILE_STEP, at
+    most 64) that holds it."""
     best = None
     for shift in (3, 4, 5, 6):
         rows = _tile_size(-(-size // (1 << shift)))
@@ -1660,7 +1660,7 @@ class ChainModel:
         self.max_registers = MAX_REGISTERS
         self.tile_slots = _tile_size(4 * max(len(lay.shapes) for lay in layouts))  # candidate slots (4 per shape)
         self.tile_contacts = _tile_size(3 * capacity) if capacity else 0
-        self.packed_rows, self.packed_shift = _packed_tile(layouts)  # the packed M~'s tile
+        self.packed_rows, self.packed_shift = _packed_tile(arrays.ancestor.shape[1])  # the packed M~'s tile
 
     def state(self) -> ChainState:
         """A new state at the initial pose (the contacts' warm start, kept in the model's work, is
@@ -1761,7 +1761,8 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     B = max(len(lay.spec.bodies) for lay in layouts)
     f = {k: np.zeros((W, N)) for k in ("mass", "armature", "damping", "kp", "kd", "q_target", "v_target", "q", "u",
                                        "effort")}
-    ancestor = np.zeros((W, max(int(_packed_rows(lay.parent)[1][-1]) for lay in layouts)), dtype=np.int32)
+    packs = [_packed_rows(lay.parent) for lay in layouts]  # per distinct layout: levels, packed row starts
+    ancestor = np.zeros((W, max(int(starts[-1]) for _, starts in packs)), dtype=np.int32)
     i32 = {k: np.zeros((W, N), dtype=np.int32) for k in ("parent", "depth", "body_out", "first_child", "child_count",
                                                          "kind", "sub_of", "level", "row_start")}
     S = max(1, max(len(lay.shapes) for lay in layouts))
@@ -1798,7 +1799,7 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         n = lay.n
         counts[:, w_] = (n, (lay.depth.max() + 1) if n else 0, len(lay.loops), len(lay.rows) + len(lay.soft))
         gravity[w_] = spec.gravity
-        level, packed = _packed_rows(lay.parent)
+        level, packed = packs[w_]
         i32["level"][w_, :n], i32["row_start"][w_, :n] = level, packed[:-1]
         for k in range(n):
             j = k
