@@ -140,10 +140,11 @@ ROW_TOLERANCE = 1.0e-4  # a loop row is redundant when the kept rows leave less 
 REGULARIZATION = wp.constant(1.0e-6)  # relative diagonal shift of the loops' matrix (rounding guard)
 CHAIN_BLOCK = 32  # threads per world on a GPU (two warps for DR Legs standing's 36 coordinates: 2.04 -> 2.06 ms)
 vec8f = wp.types.vector(length=8, dtype=float)  # a shape's candidate points' distances
-TILE_STEP = 8  # the shared tiles are sized to the batch's padded coordinates and rows in steps of this
+TILE_STEP = 4  # the shared tiles are sized to the batch's padded coordinates and rows in steps of this
 # registers per thread on CUDA: 128 lets 16 blocks (worlds) share an SM; left to the compiler the step
 # takes 168 (DR Legs hanging, 12 blocks: 0.533 instead of 0.376 ms per step at 4096 worlds, H100)
 MAX_REGISTERS = 128
+MAX_PACKED = 4096  # entries of the packed mass matrix (a shared tile; MAX_COORDS' deepest chain needs 1176)
 
 
 
@@ -544,7 +545,8 @@ class ChainArrays:
     row_count: wp.array(dtype=wp.int32)
     gravity: wp.array(dtype=wp.vec3)
     parent: wp.array2d(dtype=wp.int32)
-    depth: wp.array2d(dtype=wp.int32)
+    by_depth: wp.array2d(dtype=wp.int32)  # the entries ordered by depth (roots first)
+    depth_start: wp.array2d(dtype=wp.int32)  # where depth d starts in by_depth (depth_count + 1 of them)
     level: wp.array2d(dtype=wp.int32)  # entry k's ancestors (its chain's length to the root)
     ancestor: wp.array2d(dtype=wp.int32)  # packed like M~: row k's ancestors, roots first, then k
     row_start: wp.array2d(dtype=wp.int32)  # where row k of the packed M~ starts (rows of level + 1 entries)
@@ -719,11 +721,9 @@ def kinematics(m: ChainArrays, w: ChainWork, world: int, lane: int, lanes: int, 
                u: wp.array2d(dtype=float), root: wp.array2d(dtype=wp.transform), detail: int):
     """The tree's kinematics level by level (a lane per entry) to ``detail``. Entered after a barrier;
     leaves one."""
-    n = m.tree_count[world]
     for level in range(m.depth_count[world]):
-        for k in range(lane, n, lanes):
-            if m.depth[world, k] == level:
-                kinematics_body(m, w, world, k, q, u, root, detail)
+        for t in range(m.depth_start[world, level] + lane, m.depth_start[world, level + 1], lanes):
+            kinematics_body(m, w, world, m.by_depth[world, t], q, u, root, detail)
         block_sync()
 
 
@@ -938,20 +938,7 @@ def solve_column(n: int, L: Any, diag: Any, x: Any, col: int):
 
 
 @wp.func
-def packed(H: Any, shift: int, e: int):
-    """Entry e of the packed mass matrix H (a shared tile of 2^shift columns read row by row)."""
-    return H[e >> shift, e & ((1 << shift) - 1)]
-
-
-@wp.func
-def packed_set(H: Any, shift: int, e: int, value: float):
-    """Entry e of the packed mass matrix H := value (without a barrier, as tile_set)."""
-    tile_set(H, e >> shift, e & ((1 << shift) - 1), value)
-
-
-@wp.func
-def tree_factor(m: ChainArrays, world: int, lane: int, lanes: int, lvl: Any, start: Any, n: int, H: Any,
-                shift: int):
+def tree_factor(m: ChainArrays, world: int, lane: int, lanes: int, lvl: Any, start: Any, n: int, H: Any):
     """In place: the mass matrix (packed in H: row k's entries against its ancestors and itself at
     start[k] + the column's level, a dense run ordered roots first; breadth-first order, parents
     first) as L^T D L, L unit lower triangular with entries only where the column is an ancestor of
@@ -966,7 +953,7 @@ def tree_factor(m: ChainArrays, world: int, lane: int, lanes: int, lvl: Any, sta
         lk = lvl[k]
         if lk > 0:  # (every lane alike)
             ok = start[k]
-            hkk = packed(H, shift, ok + lk)
+            hkk = H[ok + lk]
             for e in range(lane, lk * (lk + 1) / 2, lanes):  # pair e: ancestor at level li, its entry p <= li
                 li = int((wp.sqrt(8.0 * float(e) + 1.0) - 1.0) * 0.5)
                 if (li + 1) * (li + 2) / 2 <= e:
@@ -975,44 +962,47 @@ def tree_factor(m: ChainArrays, world: int, lane: int, lanes: int, lvl: Any, sta
                     li -= 1
                 p = e - li * (li + 1) / 2
                 ei = start[m.ancestor[world, ok + li]] + p
-                hki = packed(H, shift, ok + li)
-                packed_set(H, shift, ei, packed(H, shift, ei) - hki * packed(H, shift, ok + p) / hkk)
+                hki = H[ok + li]
+                tile_set(H, ei, H[ei] - hki * H[ok + p] / hkk)
             block_sync()
     for k in range(lane, n, lanes):
         ok = start[k]
         lk = lvl[k]
-        hkk = packed(H, shift, ok + lk)
+        hkk = H[ok + lk]
         for p in range(lk):
-            packed_set(H, shift, ok + p, packed(H, shift, ok + p) / hkk)
+            tile_set(H, ok + p, H[ok + p] / hkk)
     block_sync()
 
 
 @wp.func
-def tree_solve_column(par: Any, lvl: Any, start: Any, n: int, H: Any, shift: int, x: Any, col: int):
+def tree_solve_column(par: Any, lvl: Any, start: Any, n: int, H: Any, x: Any, col: int):
     """Column col of the shared tile x := M^-1 x[:, col] with tree_factor's L^T D L, by one lane:
-    L^T leaves first, D, then L roots first, each along the ancestors only."""
+    L^T leaves first, D, then L roots first, each along the ancestors only. The first pass skips the
+    entries still 0 (a column of G^T or J^T is nonzero only along a few bodies' ancestors, and the
+    pass keeps it so: half the pass's walks for DR Legs)."""
     for step in range(n):
         i = n - 1 - step
         xi = x[i, col]
-        e = start[i] + lvl[i]
-        j = par[i]
-        while j >= 0:
-            e -= 1
-            tile_set(x, j, col, x[j, col] - packed(H, shift, e) * xi)
-            j = par[j]
+        if xi != 0.0:
+            e = start[i] + lvl[i]
+            j = par[i]
+            while j >= 0:
+                e -= 1
+                tile_set(x, j, col, x[j, col] - H[e] * xi)
+                j = par[j]
     for i in range(n):
         e = start[i] + lvl[i]
-        s = x[i, col] / packed(H, shift, e)
+        s = x[i, col] / H[e]
         j = par[i]
         while j >= 0:
             e -= 1
-            s -= packed(H, shift, e) * x[j, col]
+            s -= H[e] * x[j, col]
             j = par[j]
         tile_set(x, i, col, s)
 
 
 @wp.func
-def tree_solve_vector(par: Any, lvl: Any, start: Any, n: int, H: Any, shift: int, x: Any):
+def tree_solve_vector(par: Any, lvl: Any, start: Any, n: int, H: Any, x: Any):
     """The shared vector x := M^-1 x with tree_factor's L^T D L, by one lane."""
     for step in range(n):
         i = n - 1 - step
@@ -1021,15 +1011,15 @@ def tree_solve_vector(par: Any, lvl: Any, start: Any, n: int, H: Any, shift: int
         j = par[i]
         while j >= 0:
             e -= 1
-            tile_set(x, j, x[j] - packed(H, shift, e) * xi)
+            tile_set(x, j, x[j] - H[e] * xi)
             j = par[j]
     for i in range(n):
         e = start[i] + lvl[i]
-        s = x[i] / packed(H, shift, e)
+        s = x[i] / H[e]
         j = par[i]
         while j >= 0:
             e -= 1
-            s -= packed(H, shift, e) * x[j]
+            s -= H[e] * x[j]
             j = par[j]
         tile_set(x, i, s)
 
@@ -1153,7 +1143,7 @@ def contact_residuals(nc: int, res_p: Any, res_d: Any, res_y: Any):
 
 @functools.cache
 def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TILE_STEP,
-                      registers: int | None = MAX_REGISTERS, packed_rows: int = TILE_STEP, packed_shift: int = 3,
+                      registers: int | None = MAX_REGISTERS, packed_size: int = TILE_STEP,
                       stages: bool = False):
     """The step kernel with shared tiles of coords x coords (tree coordinates), rows x rows (kept
     loop rows) and, when contacts > 0, contacts x contacts (contact rows), each a multiple of
@@ -1161,7 +1151,6 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
     stages: lane 0 writes a clock reading at the end of each of STAGES into work.stage_clock (the
     same step otherwise; without it the readings are compiled out)."""
 
-    packed_cols = 1 << packed_shift
     per_contact = _tile_size(contacts // 3)  # the tiles of one entry per contact
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=registers)
     def chain_step_body(m: ChainArrays, w: ChainWork, dt: float, baumgarte: float, iterations: int, max_speed: float,
@@ -1172,8 +1161,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                         body_qd: wp.array2d(dtype=wp.spatial_vector)):
         world, lane = wp.tid()
         lanes = wp.block_dim()
-        # M~, then its factor, packed (tree_factor): 2^shift columns
-        Mt = wp.tile_zeros(shape=(packed_rows, packed_cols), dtype=float, storage="shared")
+        Mt = wp.tile_zeros(shape=packed_size, dtype=float, storage="shared")  # M~, then its factor (packed)
         # G, then J, then (D + (eta + rho) I)^-1
         Gt = wp.tile_zeros(shape=(wp.static(max(rows, contacts)), wp.static(max(coords, contacts))), dtype=float,
                            storage="shared")
@@ -1218,9 +1206,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                 stamp(w, world, lane, 1)
             for step in range(depths - 1):  # subtree sums, deepest parents first
                 level = depths - 2 - step
-                for k in range(lane, n, lanes):
-                    if m.depth[world, k] == level:
-                        add_children(m, w, world, k)
+                for t in range(m.depth_start[world, level] + lane, m.depth_start[world, level + 1], lanes):
+                    add_children(m, w, world, m.by_depth[world, t])
                 block_sync()
             for i in range(lane, n, lanes):  # per coordinate: its subtree's inertia applied to its motion, its force
                 a = w.axis[world, i]
@@ -1247,7 +1234,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                     if j == i:
                         value += m.armature[world, i] + dt * (m.damping[world, i] + m.kd[world, i]
                                                               + lead * m.kp[world, i])
-                    packed_set(Mt, packed_shift, e, value)
+                    tile_set(Mt, e, value)
                     if record != 0:
                         w.matrix[world, i, j] = value
                         w.matrix[world, j, i] = value
@@ -1262,14 +1249,14 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
             block_sync()
             if wp.static(stages):
                 stamp(w, world, lane, 3)
-            tree_factor(m, world, lane, lanes, lvl, rstart, n, Mt, packed_shift)
+            tree_factor(m, world, lane, lanes, lvl, rstart, n, Mt)
             if wp.static(stages):
                 stamp(w, world, lane, 4)
             for col in range(lane, R + 1, lanes):  # X = M~^-1 G^T a column per lane, and du = M~^-1 (dt tau)
                 if col < R:
-                    tree_solve_column(par, lvl, rstart, n, Mt, packed_shift, Xt, col)
+                    tree_solve_column(par, lvl, rstart, n, Mt, Xt, col)
                 else:
-                    tree_solve_vector(par, lvl, rstart, n, Mt, packed_shift, vec)
+                    tree_solve_vector(par, lvl, rstart, n, Mt, vec)
             block_sync()
             if wp.static(stages):
                 stamp(w, world, lane, 5)
@@ -1373,7 +1360,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                                 j = par[j]
                     block_sync()
                     for col in range(lane, m3, lanes):  # Y = M~^-1 J^T
-                        tree_solve_column(par, lvl, rstart, n, Mt, packed_shift, Yt, col)
+                        tree_solve_column(par, lvl, rstart, n, Mt, Yt, col)
                     block_sync()
                     if wp.static(stages):
                         stamp(w, world, lane, 9)
@@ -1604,18 +1591,13 @@ def _packed_rows(parent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return level, np.r_[0, np.cumsum(level + 1)].astype(np.int32)
 
 
-def _packed_tile(size: int) -> tuple[int, int]:
+def _packed_tile(size: int) -> int:
     """The packed mass matrix's shared tile for a batch whose largest world's has ``size`` entries:
-    (rows, shift) with 2^shift columns, the smallest such tile (rows a multiple of TILE_STEP, at
-    most 64) that holds it."""
-    best = None
-    for shift in (3, 4, 5, 6):
-        rows = _tile_size(-(-size // (1 << shift)))
-        if rows <= 64 and (best is None or rows << shift < best[0] << best[1]):
-            best = (rows, shift)
-    if best is None:  # (MAX_COORDS keeps a chain's sum of levels within 64 x 64)
-        raise ValueError(f"pack_chains: a packed mass matrix of {size} entries exceeds the largest shared tile (4096)")
-    return best
+    size rounded up to TILE_STEP, at most MAX_PACKED."""
+    if size > MAX_PACKED:  # (MAX_COORDS keeps a chain's sum of levels within it)
+        raise ValueError(f"pack_chains: a packed mass matrix of {size} entries exceeds the largest shared tile "
+                         f"({MAX_PACKED})")
+    return _tile_size(size)
 
 
 def _transform(R: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -1660,7 +1642,7 @@ class ChainModel:
         self.max_registers = MAX_REGISTERS
         self.tile_slots = _tile_size(4 * max(len(lay.shapes) for lay in layouts))  # candidate slots (4 per shape)
         self.tile_contacts = _tile_size(3 * capacity) if capacity else 0
-        self.packed_rows, self.packed_shift = _packed_tile(arrays.ancestor.shape[1])  # the packed M~'s tile
+        self.packed_size = _packed_tile(arrays.ancestor.shape[1])  # the packed M~'s tile
 
     def state(self) -> ChainState:
         """A new state at the initial pose (the contacts' warm start, kept in the model's work, is
@@ -1686,7 +1668,7 @@ class ChainModel:
             self.work.stage_clock.zero_()
         block = CHAIN_BLOCK if wp.get_device(self.device).is_cuda else 1
         kernel = chain_step_kernel(self.coords, self.tile_rows, self.tile_contacts, self.tile_slots, self.max_registers,
-                                   self.packed_rows, self.packed_shift, bool(stages))
+                                   self.packed_size, bool(stages))
         wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
                         inputs=[self.arrays, self.work, float(self.dt), float(c.baumgarte), int(c.position_iterations),
                                 float(c.max_speed), int(c.integrator == Integrator.MOREAU_JEAN), int(record),
@@ -1763,8 +1745,9 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
                                        "effort")}
     packs = [_packed_rows(lay.parent) for lay in layouts]  # per distinct layout: levels, packed row starts
     ancestor = np.zeros((W, max(int(starts[-1]) for _, starts in packs)), dtype=np.int32)
-    i32 = {k: np.zeros((W, N), dtype=np.int32) for k in ("parent", "depth", "body_out", "first_child", "child_count",
-                                                         "kind", "sub_of", "level", "row_start")}
+    i32 = {k: np.zeros((W, N), dtype=np.int32) for k in ("parent", "by_depth", "body_out", "first_child",
+                                                         "child_count", "kind", "sub_of", "level", "row_start")}
+    depth_start = np.zeros((W, N + 1), dtype=np.int32)
     S = max(1, max(len(lay.shapes) for lay in layouts))
     shape_i32 = {k: np.zeros((W, S), dtype=np.int32) for k in ("entry", "type")}
     shape_X = np.zeros((W, S, 7))
@@ -1801,6 +1784,9 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         gravity[w_] = spec.gravity
         level, packed = packs[w_]
         i32["level"][w_, :n], i32["row_start"][w_, :n] = level, packed[:-1]
+        i32["by_depth"][w_, :n] = np.argsort(lay.depth, kind="stable")
+        depth_start[w_, :counts[1, w_] + 1] = np.searchsorted(lay.depth, np.arange(counts[1, w_] + 1),
+                                                              sorter=np.argsort(lay.depth, kind="stable"))
         for k in range(n):
             j = k
             while j >= 0:
@@ -1810,7 +1796,6 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
             body = spec.bodies[lay.tree_body[k]]
             kind = int(lay.kind[k])
             i32["parent"][w_, k] = lay.parent[k]
-            i32["depth"][w_, k] = lay.depth[k]
             i32["kind"][w_, k] = kind
             i32["sub_of"][w_, k] = lay.sub_of[k]
             children = np.flatnonzero(lay.parent == k)
@@ -1878,7 +1863,7 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     # every world from its distinct spec's rows
     f = {k: v[kind_of] for k, v in f.items()}
     i32 = {k: v[kind_of] for k, v in i32.items()}
-    ancestor = ancestor[kind_of]
+    ancestor, depth_start = ancestor[kind_of], depth_start[kind_of]
     v3 = {k: v[kind_of] for k, v in v3.items()}
     inertia, jp, jc, loop_body, loop_anchor, loop_axis = (x[kind_of] for x in (inertia, jp, jc, loop_body, loop_anchor,
                                                                                loop_axis))
@@ -1895,8 +1880,9 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     a.tree_count, a.depth_count, a.loop_count, a.row_count = (
         wp.array(c, dtype=wp.int32, device=dev) for c in counts)
     a.gravity = wp.array(gravity, dtype=wp.vec3, device=dev)
-    for k in ("parent", "depth", "body_out", "first_child", "child_count", "kind", "sub_of", "level", "row_start"):
+    for k in ("parent", "by_depth", "body_out", "first_child", "child_count", "kind", "sub_of", "level", "row_start"):
         setattr(a, k, wp.array(i32[k], dtype=wp.int32, device=dev))
+    a.depth_start = wp.array(depth_start, dtype=wp.int32, device=dev)
     a.ancestor = wp.array(ancestor, dtype=wp.int32, device=dev)
     a.shape_count = wp.array(per_world[0], dtype=wp.int32, device=dev)
     a.contact_capacity = wp.array(per_world[1], dtype=wp.int32, device=dev)
