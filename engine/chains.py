@@ -84,15 +84,16 @@ chain second order (3.8e-4 -> 2.4e-5 m at dt 4 ms, CPU, 0.4 s) and a six-bar 1.4
 CPU trial; not built (it needs the poses' factors before the velocity pass, and a GPU timing).
 
 Measured at 4096 worlds (benchmarks/results/README.md, "DR Legs hanging and the four-bar in
-reduced coordinates", "DR Legs standing in reduced coordinates" and "DR Legs standing: where the
-reduced step waited, and the packed mass matrix"), one call per comparison on an H200: DR Legs
-standing 1.48 ms per step with the feet's 8 contacts (7.4 PADMM iterations a step), 2.27 ms with
-all 12 candidates, loops within 1.9e-7 m (MuJoCo Warp 1.33 ms, 4.2e-4 m); DR Legs hanging
-0.375 ms, loops within 1.5e-7 m (MuJoCo Warp 0.762 ms, 5.9e-4 m). The step is bound by latency,
-not bandwidth: with 20.9 KB of shared memory a world (the packed M~ made it 11 worlds per SM
-instead of 8, 2.15 -> 1.70 ms standing) the warps wait on dependent arithmetic and shared-memory
-loads; on DR Legs standing the contact factor and PADMM, the column solves along the floating
-pelvis's six entries and the projections' kinematics take most of a world's step. The kernel is
+reduced coordinates", "DR Legs standing in reduced coordinates", "DR Legs standing: where the
+reduced step waited, and the packed mass matrix" and "DR Legs standing: the carried-over penalty
+on the GPU, ..."), on an H200: DR Legs standing with the feet's 8 contacts 1.40 ms per step
+against MuJoCo Warp's 1.35 ms in one call (3.0 PADMM iterations a step, loops within 2.1e-7 m
+against its 4.2e-4 m), then 1.28 ms (1.63 ms with all 12 candidates) after the changes measured
+A/B since; DR Legs hanging 0.375 ms, loops within 1.5e-7 m (MuJoCo Warp 0.762 ms, 5.9e-4 m). The
+step is bound by latency, not bandwidth: the packed M~ made it 11 worlds per SM instead of 8
+(2.15 -> 1.70 ms standing), and the warps wait on dependent arithmetic and shared-memory loads;
+on DR Legs standing the column solves of X and Y (a lane per column along the ancestors), the
+projections with their kinematics and the contact factor and PADMM take most of a world's step. The kernel is
 capped at MAX_REGISTERS registers per thread (left to the compiler it took 168 on DR Legs hanging,
 12 worlds per SM instead of 16: 0.53 instead of 0.41 ms).
 
