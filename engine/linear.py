@@ -27,32 +27,26 @@ def block_sync():
     must reach it."""
 
 
-SHARED_TILE_SIZES = (8, 16, 24, 32, 40, 48, 56, 64)  # sides of the shared tiles tile_set writes
-
-
 def _define_tile_set():
-    """Element writes into shared float tiles of every shape built from SHARED_TILE_SIZES and into
-    shared int32 vectors of those lengths (overloads of one tile_set), which, unlike Warp's tile
-    element assignment, do not end in a block barrier: the lanes write different entries in
-    divergent code and the callers place the barriers."""
-    setter = None
-    for rows in SHARED_TILE_SIZES:
-        for cols in SHARED_TILE_SIZES:
-            @wp.func_native("t.data(wp::tile_coord(i, j)) = value;")
-            def tile_set(t: wp.tile(dtype=float, shape=(rows, cols), storage="shared"), i: int, j: int, value: float):
-                """t[i, j] = value, without a barrier."""
-            setter = tile_set
+    """Element writes into shared tiles (overloads of one tile_set: a 2-D float tile, a 1-D float
+    tile and a 1-D int32 tile), which, unlike Warp's tile element assignment, do not end in a block
+    barrier: the lanes write different entries in divergent code and the callers place the
+    barriers. Warp matches a tile argument by its dtype alone, so each overload serves every shape
+    (the 8 x 8 and 8 in the signatures are placeholders; the native code indexes the actual tile)."""
 
-        @wp.func_native("t.data(wp::tile_coord(i)) = value;")
-        def tile_set(t: wp.tile(dtype=float, shape=(rows,), storage="shared"), i: int, value: float):  # noqa: F811
-            """t[i] = value, without a barrier."""
-        setter = tile_set
+    @wp.func_native("t.data(wp::tile_coord(i, j)) = value;")
+    def tile_set(t: wp.tile(dtype=float, shape=(8, 8), storage="shared"), i: int, j: int, value: float):
+        """t[i, j] = value, without a barrier."""
 
-        @wp.func_native("t.data(wp::tile_coord(i)) = value;")
-        def tile_set(t: wp.tile(dtype=wp.int32, shape=(rows,), storage="shared"), i: int, value: int):  # noqa: F811
-            """t[i] = value, without a barrier."""
-        setter = tile_set
-    return setter
+    @wp.func_native("t.data(wp::tile_coord(i)) = value;")
+    def tile_set(t: wp.tile(dtype=float, shape=(8,), storage="shared"), i: int, value: float):  # noqa: F811
+        """t[i] = value, without a barrier."""
+
+    @wp.func_native("t.data(wp::tile_coord(i)) = value;")
+    def tile_set(t: wp.tile(dtype=wp.int32, shape=(8,), storage="shared"), i: int, value: int):  # noqa: F811
+        """t[i] = value, without a barrier."""
+
+    return tile_set
 
 
 tile_set = _define_tile_set()
