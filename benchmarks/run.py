@@ -145,7 +145,8 @@ def chains_run(batch, dt: float, steps: int, record_every: int, config: SolverCo
                potential_min=None, pack: dict | None = None) -> dict:
     """engine_run's measurement of a batch in reduced coordinates (engine.chains: one fused launch per
     step; PADMM iterations only on contact rows), its loop errors and energy from a maximal model of
-    the same worlds. Its PADMM iteration counts are those of the last step of each record chunk."""
+    the same worlds. Its PADMM iteration and projection counts (the Gauss-Newton corrections the
+    skip floors left) are those of the last step of each record chunk."""
     from engine.chains import ChainStepper, pack_chains
 
     gauge = pack_worlds(batch, device=device, dt=dt)  # measures only: its joint residuals and energy
@@ -155,12 +156,13 @@ def chains_run(batch, dt: float, steps: int, record_every: int, config: SolverCo
     pack_s = time.perf_counter() - t0
     stepper = ChainStepper(model, model.state(), chunk=record_every)
 
-    iterations, dropped = [], []
+    iterations, dropped, projections = [], [], []
 
     def measure():
         compute_metrics(gauge, stepper.state)
         work = gauge.work
         iterations.append(model.work.iterations.numpy())
+        projections.append(model.work.projections.numpy())
         dropped.append(int(model.work.contact_dropped.numpy().max()))
         return work.violation_linear.numpy(), work.violation_angular.numpy(), work.energy.numpy(), model.diverged
 
@@ -172,6 +174,7 @@ def chains_run(batch, dt: float, steps: int, record_every: int, config: SolverCo
         **row, "pack_s": pack_s,
         "padmm_iterations_mean": float(counts.mean()), "padmm_iterations_max": int(counts.max()),
         "unconverged_step_fraction": capped, "contacts_dropped_max": max(dropped),
+        "projections_mean": float(np.mean(projections[1:] or projections)),
         "contact_capacity": model.contact_capacity,
         "step_kernel": "chains", "linear_solver": "dense (reduced coordinates)", "max_rows": model.max_rows,
         "fused_block": None, "cuda_graph": bool(stepper.capture),

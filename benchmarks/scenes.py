@@ -248,7 +248,10 @@ DRLEGS_STANDING_SWEEP = [s for s in DRLEGS_SWEEP if s["label"] != "float32 state
 # the feet alone have 8: the "8 contacts" variant keeps no more (contacts_dropped_max counts any loss)
 FEET = dict(contact_capacity=8)
 DRLEGS_STANDING_REDUCED_VARIANTS = DRLEGS_REDUCED_VARIANTS + [
-    dict(label="reduced coordinates, 8 contacts", model="chains", config=REDUCED, pack=FEET)]
+    dict(label="reduced coordinates, 8 contacts", model="chains", config=REDUCED, pack=FEET),
+    dict(label="reduced coordinates, 8 contacts, 1 projection", model="chains", config=REDUCED_ONE, pack=FEET),
+    dict(label="reduced coordinates, 8 contacts, no projection (Baumgarte 0.5)", model="chains",
+         config=REDUCED_NO_PROJECTION, pack=FEET)]
 DRLEGS_STANDING_SWEEP += [
     dict(label="reduced coordinates, 8 contacts, dt x2", dt_scale=2.0, model="chains", config=REDUCED, pack=FEET),
     dict(label="reduced coordinates, 8 contacts, dt x4", dt_scale=4.0, model="chains", config=REDUCED, pack=FEET)]
