@@ -1682,7 +1682,7 @@ class ChainModel:
         self.config, self.dt, self.device = config, dt, device
         self.num_worlds = len(layouts)
         self.max_rows = max(len(lay.rows) + len(lay.soft) for lay in layouts)
-        self.coords = _tile_size(max(lay.n for lay in layouts))
+        self.coords = max(_tile_size(max(lay.n for lay in layouts)), MAX_PREFIX)  # (the solves index 0 .. 5)
         self.tile_rows = _tile_size(self.max_rows)
         self.contact_capacity = capacity  # the largest world's
         self.max_registers = MAX_REGISTERS
