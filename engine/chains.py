@@ -1179,9 +1179,10 @@ def contact_residuals(nc: int, res_p: Any, res_d: Any, res_y: Any):
 def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TILE_STEP,
                       registers: int | None = MAX_REGISTERS, packed_size: int = TILE_STEP,
                       stages: bool = False):
-    """The step kernel with shared tiles of coords x coords (tree coordinates), rows x rows (kept
-    loop rows) and, when contacts > 0, contacts x contacts (contact rows), each a multiple of
-    TILE_STEP, and at most ``registers`` registers per thread on CUDA (module docstring: the step).
+    """The step kernel with shared tiles sized by coords (tree coordinates, at least MAX_PREFIX),
+    rows (kept loop rows), contacts (contact rows; 0: no contact code), slots (candidate contacts)
+    and packed_size (the packed mass matrix), each a multiple of TILE_STEP, and at most
+    ``registers`` registers per thread on CUDA (module docstring: the step).
     stages: lane 0 writes a clock reading at the end of each of STAGES into work.stage_clock (the
     same step otherwise; without it the readings are compiled out)."""
 
