@@ -79,7 +79,9 @@ stages; on the CPU a block is one thread):
    kept row's error is within SolverConfig.projection_skip_floor [m] (angular rows:
    projection_skip_floor_angular [rad]; both 0: never): its correction would be float32 rounding.
    A still mechanism then skips them all (DR Legs standing: the projections' stage 33 k -> 18 k
-   CPU cycles a step, loops 1.2e-7 m either way; not yet timed on a GPU);
+   CPU cycles a step, loops 1.2e-7 m either way; not yet timed on a GPU). The check's kinematics
+   carries the velocities from the iteration at which the world's last step stopped, so that a
+   stop there also spares the final kinematics pass;
 8. the poses and velocities of every body (COM frames, as engine.model's State) and a divergence
    guard (non-finite or faster than SolverConfig.max_speed: the world is frozen and flagged).
 
@@ -1221,6 +1223,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
             tile_set(rstart, i, m.row_start[world, i])
         R = m.row_count[world]
         chain_prefix = m.prefix[world]
+        last_projections = w.projections[world]  # the last step's corrections (read before this step's)
         depths = m.depth_count[world]
         frozen = w.diverged[world]
         block_sync()
@@ -1554,7 +1557,10 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
             fresh = int(0)  # the last kinematics pass was at the final angles, with velocities
             applied = int(0)
             for it in range(iterations):  # Gauss-Newton projections onto the loops with the step's factors
-                kinematics(m, w, world, lane, lanes, q, u, root, VELOCITIES)
+                detail = POSES  # with velocities where the check is expected to pass (as on the last step)
+                if it >= last_projections:
+                    detail = VELOCITIES
+                kinematics(m, w, world, lane, lanes, q, u, root, detail)
                 loop_errors(m, w, world, lane, lanes)
                 block_sync()
                 worst = float(0.0)  # every lane alike: the kept rows' largest errors, linear and angular
@@ -1568,7 +1574,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                         worst_angular = wp.max(worst_angular, err)
                 if (skip_floor > 0.0 or skip_floor_angular > 0.0) and worst <= skip_floor and (
                         worst_angular <= skip_floor_angular):  # closed to rounding: no correction, final poses
-                    fresh = 1
+                    if detail == VELOCITIES:
+                        fresh = 1
                     break
                 for r in range(lane, R, lanes):
                     tile_set(rhs, r, w.phi[world, 6 * m.row_loop[world, r] + m.row_part[world, r]])
