@@ -624,7 +624,6 @@ class ChainWork:
     phi: wp.array2d(dtype=float)  # every loop's six errors (W, 6 L; the sixth, its rate row's, is 0)
     dirs: wp.array2d(dtype=wp.vec3)  # and directions
     ends: wp.array2d(dtype=wp.vec3)  # anchor points, 2 per loop
-    u_free: wp.array2d(dtype=float)
     q_start: wp.array2d(dtype=float)  # the step's initial angles and rates
     u_start: wp.array2d(dtype=float)
     root_start: wp.array2d(dtype=wp.transform)  # floating roots' centre-of-mass frames at the step's start
@@ -840,11 +839,13 @@ def loop_errors(m: ChainArrays, w: ChainWork, world: int, lane: int, lanes: int)
 
 
 @wp.func
-def loop_rows_of(m: ChainArrays, w: ChainWork, world: int, par: Any, r: int, G: Any, X: Any):
+def loop_rows_of(m: ChainArrays, w: ChainWork, world: int, par: Any, r: int, G: Any, X: Any,
+                 u: wp.array2d(dtype=float)):
     """Kept row r of G (and of G^T in X), by one lane: the row's rate from each tree joint that moves
     either of its loop's bodies (walking up from each; the second body's joints count +, the first's
     -; a common ancestor's cancel in the angular rows and nearly so in the position rows). The
-    tiles' other entries stay 0."""
+    tiles' other entries stay 0. Returns (G u)_r, summed along the same walks."""
+    rate = float(0.0)
     li = m.row_loop[world, r]
     part = m.row_part[world, r]
     d = w.dirs[world, 6 * li + part]
@@ -862,7 +863,9 @@ def loop_rows_of(m: ChainArrays, w: ChainWork, world: int, par: Any, r: int, G: 
             total = G[r, j] + value
             tile_set(G, r, j, total)
             tile_set(X, j, r, total)
+            rate += value * u[world, j]
             j = par[j]
+    return rate
 
 
 @wp.func
@@ -1209,7 +1212,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
         Xt = wp.tile_zeros(shape=(coords, rows), dtype=float, storage="shared")  # X = M~^-1 G^T
         At = wp.tile_zeros(shape=(rows, rows), dtype=float, storage="shared")  # A = G X, then its factor
         diag_a = wp.tile_zeros(shape=rows, dtype=float, storage="shared")
-        vec = wp.tile_zeros(shape=coords, dtype=float, storage="shared")  # dt tau, then du, then steps
+        vec = wp.tile_zeros(shape=coords, dtype=float, storage="shared")  # dt tau, then du = M~^-1 dt tau
         rhs = wp.tile_zeros(shape=rows, dtype=float, storage="shared")
         # the tree's parents: the solves and the factor walk them in dependent steps (shared: no
         # global load on that path)
@@ -1284,7 +1287,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                     j = par[j]
                     e -= 1
             for r in range(lane, R, lanes):  # G along the two bodies' ancestors, and G^T into X
-                loop_rows_of(m, w, world, par, r, Gt, Xt)
+                tile_set(rhs, r, loop_rows_of(m, w, world, par, r, Gt, Xt, u))  # (G u, for the right-hand side)
             block_sync()
             if record != 0:
                 for e in range(lane, R * n, lanes):
@@ -1303,8 +1306,6 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
             block_sync()
             if wp.static(stages):
                 stamp(w, world, lane, 5)
-            for i in range(lane, n, lanes):
-                w.u_free[world, i] = u[world, i] + vec[i]
             wp.tile_matmul(wp.tile_view(Gt, offset=(0, 0), shape=(rows, coords)), Xt, At, 1.0, 0.0)  # A = G X
             block_sync()
             for r in range(lane, R, lanes):  # (a soft row's compliance on its diagonal)
@@ -1313,20 +1314,16 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
             if wp.static(stages):
                 stamp(w, world, lane, 6)
             for r in range(lane, R, lanes):  # the right-hand side: -(G u_f) - baumgarte phi / dt (+ keep G u)
-                acc = float(0.0)
-                start = float(0.0)
-                keep = m.row_keep[world, r]
+                start = rhs[r]  # G u (u_f = u + du, du in vec; a soft row's armature keeps a share of G u)
+                acc = start
                 for j in range(n):
-                    acc += Gt[r, j] * w.u_free[world, j]
-                if keep != 0.0:  # a soft row's armature keeps a share of the rate it had
-                    for j in range(n):
-                        start += Gt[r, j] * w.u_start[world, j]
-                tile_set(rhs, r, -acc + keep * start
+                    acc += Gt[r, j] * vec[j]
+                tile_set(rhs, r, -acc + m.row_keep[world, r] * start
                          - baumgarte / dt * w.phi[world, 6 * m.row_loop[world, r] + m.row_part[world, r]])
             factor_lanes(lane, lanes, R, At, diag_a, REGULARIZATION)  # (At keeps A's factor to the step's end)
             solve_lanes(lane, lanes, R, At, diag_a, rhs)
             for i in range(lane, n, lanes):  # u = u_f + X A^-1 rhs
-                acc = w.u_free[world, i]
+                acc = u[world, i] + vec[i]
                 for r in range(R):
                     acc += Xt[i, r] * rhs[r]
                 u[world, i] = acc
@@ -1974,7 +1971,6 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     k.phi = wp.zeros((W, 6 * L), dtype=float, device=dev)
     k.dirs = wp.zeros((W, 6 * L), dtype=wp.vec3, device=dev)
     k.ends = wp.zeros((W, 2 * L), dtype=wp.vec3, device=dev)
-    k.u_free = wp.zeros((W, N), dtype=float, device=dev)
     k.q_start = wp.zeros((W, N), dtype=float, device=dev)
     k.u_start = wp.zeros((W, N), dtype=float, device=dev)
     k.root_start = wp.zeros((W, N), dtype=wp.transform, device=dev)
