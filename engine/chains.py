@@ -1186,8 +1186,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                       stages: bool = False):
     """The step kernel with shared tiles sized by coords (tree coordinates, at least MAX_PREFIX),
     rows (kept loop rows), contacts (contact rows; 0: no contact code), slots (candidate contacts)
-    and packed_size (the packed mass matrix), each a multiple of TILE_STEP, and at most
-    ``registers`` registers per thread on CUDA (module docstring: the step).
+    and packed_size (the packed mass matrix), each a multiple of TILE_STEP (coords may be MAX_PREFIX
+    instead), and at most ``registers`` registers per thread on CUDA (module docstring: the step).
     stages: lane 0 writes a clock reading at the end of each of STAGES into work.stage_clock (the
     same step otherwise; without it the readings are compiled out)."""
 
