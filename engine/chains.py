@@ -79,9 +79,9 @@ stages; on the CPU a block is one thread):
    kept row's error is within SolverConfig.projection_skip_floor [m] (angular rows:
    projection_skip_floor_angular [rad]; both 0: never): its correction would be float32 rounding.
    A still mechanism then skips them all (DR Legs standing: the projections' stage 33 k -> 18 k
-   CPU cycles a step, loops 1.2e-7 m either way; not yet timed on a GPU). The check's kinematics
-   carries the velocities from the iteration at which the world's last step stopped, so that a
-   stop there also spares the final kinematics pass;
+   CPU cycles a step, loops 1.2e-7 m either way). The check's kinematics carries the velocities, so
+   that a stop also spares the final kinematics pass, and its errors go to shared memory in one
+   pass (the correction's right-hand side and their sizes, which every lane then reads);
 8. the poses and velocities of every body (COM frames, as engine.model's State) and a divergence
    guard (non-finite or faster than SolverConfig.max_speed: the world is frozen and flagged).
 
@@ -993,74 +993,81 @@ def tree_factor(m: ChainArrays, world: int, lane: int, lanes: int, lvl: Any, sta
     block_sync()
 
 
-@wp.func
-def tree_solve_column(par: Any, lvl: Any, start: Any, n: int, pre: int, H: Any, x: Any, col: int):
-    """Column col of the shared tile x := M^-1 x[:, col] with tree_factor's L^T D L, by one lane:
-    L^T leaves first, D, then L roots first, each along the ancestors only. The first pass skips the
-    entries still 0 (a column of G^T or J^T is nonzero only along a few bodies' ancestors, and the
-    pass keeps it so). The first pre entries (pre <= MAX_PREFIX) are a chain that is every entry's
-    ancestry's start (a floating root's six): an entry's ancestors among them are entries 0 .. j at
-    its row's first j + 1 places, taken unrolled instead of walking the parents."""
-    for step in range(n):
-        i = n - 1 - step
-        xi = x[i, col]
-        if xi != 0.0:
+@functools.cache
+def tree_solves(unroll: int):
+    """tree_solve_column and tree_solve_vector for batches whose prefixes (ChainArrays.prefix) are at
+    most ``unroll`` long (MAX_PREFIX, or 0 where no world has one: no unrolled code, whose registers
+    cost DR Legs hanging 7 % of its step on an H200)."""
+
+    @wp.func
+    def tree_solve_column(par: Any, lvl: Any, start: Any, n: int, pre: int, H: Any, x: Any, col: int):
+        """Column col of the shared tile x := M^-1 x[:, col] with tree_factor's L^T D L, by one lane:
+        L^T leaves first, D, then L roots first, each along the ancestors only. The first pass skips the
+        entries still 0 (a column of G^T or J^T is nonzero only along a few bodies' ancestors, and the
+        pass keeps it so). The first pre entries (pre <= unroll) are a chain that is every entry's
+        ancestry's start (a floating root's six): an entry's ancestors among them are entries 0 .. j at
+        its row's first j + 1 places, taken unrolled instead of walking the parents."""
+        for step in range(n):
+            i = n - 1 - step
+            xi = x[i, col]
+            if xi != 0.0:
+                e = start[i] + lvl[i]
+                j = par[i]
+                while j >= pre:
+                    e -= 1
+                    tile_set(x, j, col, x[j, col] - H[e] * xi)
+                    j = par[j]
+                b = start[i]
+                for t in range(wp.static(unroll)):
+                    if t <= j:
+                        tile_set(x, t, col, x[t, col] - H[b + t] * xi)
+        for i in range(n):
+            e = start[i] + lvl[i]
+            s = x[i, col] / H[e]
+            j = par[i]
+            while j >= pre:
+                e -= 1
+                s -= H[e] * x[j, col]
+                j = par[j]
+            b = start[i]
+            for t in range(wp.static(unroll)):  # (from the deepest: the walk's order)
+                p = wp.static(unroll - 1) - t
+                if p <= j:
+                    s -= H[b + p] * x[p, col]
+            tile_set(x, i, col, s)
+
+    @wp.func
+    def tree_solve_vector(par: Any, lvl: Any, start: Any, n: int, pre: int, H: Any, x: Any):
+        """The shared vector x := M^-1 x with tree_factor's L^T D L, by one lane (as tree_solve_column)."""
+        for step in range(n):
+            i = n - 1 - step
+            xi = x[i]
             e = start[i] + lvl[i]
             j = par[i]
             while j >= pre:
                 e -= 1
-                tile_set(x, j, col, x[j, col] - H[e] * xi)
+                tile_set(x, j, x[j] - H[e] * xi)
                 j = par[j]
             b = start[i]
-            for t in range(wp.static(MAX_PREFIX)):
+            for t in range(wp.static(unroll)):
                 if t <= j:
-                    tile_set(x, t, col, x[t, col] - H[b + t] * xi)
-    for i in range(n):
-        e = start[i] + lvl[i]
-        s = x[i, col] / H[e]
-        j = par[i]
-        while j >= pre:
-            e -= 1
-            s -= H[e] * x[j, col]
-            j = par[j]
-        b = start[i]
-        for t in range(wp.static(MAX_PREFIX)):  # (from the deepest: the walk's order)
-            p = wp.static(MAX_PREFIX - 1) - t
-            if p <= j:
-                s -= H[b + p] * x[p, col]
-        tile_set(x, i, col, s)
+                    tile_set(x, t, x[t] - H[b + t] * xi)
+        for i in range(n):
+            e = start[i] + lvl[i]
+            s = x[i] / H[e]
+            j = par[i]
+            while j >= pre:
+                e -= 1
+                s -= H[e] * x[j]
+                j = par[j]
+            b = start[i]
+            for t in range(wp.static(unroll)):
+                p = wp.static(unroll - 1) - t
+                if p <= j:
+                    s -= H[b + p] * x[p]
+            tile_set(x, i, s)
 
-
-@wp.func
-def tree_solve_vector(par: Any, lvl: Any, start: Any, n: int, pre: int, H: Any, x: Any):
-    """The shared vector x := M^-1 x with tree_factor's L^T D L, by one lane (as tree_solve_column)."""
-    for step in range(n):
-        i = n - 1 - step
-        xi = x[i]
-        e = start[i] + lvl[i]
-        j = par[i]
-        while j >= pre:
-            e -= 1
-            tile_set(x, j, x[j] - H[e] * xi)
-            j = par[j]
-        b = start[i]
-        for t in range(wp.static(MAX_PREFIX)):
-            if t <= j:
-                tile_set(x, t, x[t] - H[b + t] * xi)
-    for i in range(n):
-        e = start[i] + lvl[i]
-        s = x[i] / H[e]
-        j = par[i]
-        while j >= pre:
-            e -= 1
-            s -= H[e] * x[j]
-            j = par[j]
-        b = start[i]
-        for t in range(wp.static(MAX_PREFIX)):
-            p = wp.static(MAX_PREFIX - 1) - t
-            if p <= j:
-                s -= H[b + p] * x[p]
-        tile_set(x, i, s)
+    return tree_solve_column, tree_solve_vector
 
 
 @wp.func
@@ -1183,15 +1190,17 @@ def contact_residuals(nc: int, res_p: Any, res_d: Any, res_y: Any):
 @functools.cache
 def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TILE_STEP,
                       registers: int | None = MAX_REGISTERS, packed_size: int = TILE_STEP,
-                      stages: bool = False):
+                      stages: bool = False, unroll: int = MAX_PREFIX):
     """The step kernel with shared tiles sized by coords (tree coordinates, at least MAX_PREFIX),
     rows (kept loop rows), contacts (contact rows; 0: no contact code), slots (candidate contacts)
     and packed_size (the packed mass matrix), each a multiple of TILE_STEP (coords may be MAX_PREFIX
     instead), and at most ``registers`` registers per thread on CUDA (module docstring: the step).
     stages: lane 0 writes a clock reading at the end of each of STAGES into work.stage_clock (the
-    same step otherwise; without it the readings are compiled out)."""
+    same step otherwise; without it the readings are compiled out). unroll: the longest prefix
+    (ChainArrays.prefix) the tree solves take unrolled (tree_solves; 0: none, every prefix read as 0)."""
 
     per_contact = _tile_size(contacts // 3)  # the tiles of one entry per contact
+    tree_solve_column, tree_solve_vector = tree_solves(unroll)
     # tile_matmul: Warp's register-blocked scalar product (cuBLASDx for these small tiles: DR Legs standing
     # 1.294 against 1.290 ms per step, 1.682 against 1.630 with 12 contacts, H200, and a long LTO build)
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=registers,
@@ -1214,6 +1223,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
         diag_a = wp.tile_zeros(shape=rows, dtype=float, storage="shared")
         vec = wp.tile_zeros(shape=coords, dtype=float, storage="shared")  # dt tau, then du = M~^-1 dt tau
         rhs = wp.tile_zeros(shape=rows, dtype=float, storage="shared")
+        sizes = wp.tile_zeros(shape=rows, dtype=float, storage="shared")  # the projections' check
         # the tree's parents: the solves and the factor walk them in dependent steps (shared: no
         # global load on that path)
         par = wp.tile_zeros(shape=coords, dtype=wp.int32, storage="shared")
@@ -1225,8 +1235,9 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
             tile_set(lvl, i, m.level[world, i])
             tile_set(rstart, i, m.row_start[world, i])
         R = m.row_count[world]
-        chain_prefix = m.prefix[world]
-        last_projections = w.projections[world]  # the last step's corrections (read before this step's)
+        chain_prefix = int(0)
+        if wp.static(unroll > 0):
+            chain_prefix = m.prefix[world]
         depths = m.depth_count[world]
         frozen = w.diverged[world]
         block_sync()
@@ -1554,29 +1565,30 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
             fresh = int(0)  # the last kinematics pass was at the final angles, with velocities
             applied = int(0)
             for it in range(iterations):  # Gauss-Newton projections onto the loops with the step's factors
-                detail = POSES  # with velocities where the check is expected to pass (as on the last step)
-                if it >= last_projections:
-                    detail = VELOCITIES
-                kinematics(m, w, world, lane, lanes, q, u, root, detail)
+                kinematics(m, w, world, lane, lanes, q, u, root, VELOCITIES)
                 loop_errors(m, w, world, lane, lanes)
                 block_sync()
-                worst = float(0.0)  # every lane alike: the kept rows' largest errors, linear and angular
+                for r in range(lane, R, lanes):  # the kept rows' errors (a soft row's: 0), their sizes
+                    part = m.row_part[world, r]  # signed by kind for the check (angular: negative)
+                    err = w.phi[world, 6 * m.row_loop[world, r] + part]
+                    tile_set(rhs, r, err)
+                    size = wp.abs(err)
+                    if part >= 3:
+                        size = -size
+                    tile_set(sizes, r, size)
+                block_sync()
+                worst = float(0.0)  # every lane alike: the largest errors, linear and angular
                 worst_angular = float(0.0)
                 for r in range(R):
-                    part = m.row_part[world, r]
-                    err = wp.abs(w.phi[world, 6 * m.row_loop[world, r] + part])  # (a soft row's: 0)
-                    if part < 3:
-                        worst = wp.max(worst, err)
+                    size = sizes[r]
+                    if size >= 0.0:
+                        worst = wp.max(worst, size)
                     else:
-                        worst_angular = wp.max(worst_angular, err)
+                        worst_angular = wp.max(worst_angular, -size)
                 if (skip_floor > 0.0 or skip_floor_angular > 0.0) and worst <= skip_floor and (
                         worst_angular <= skip_floor_angular):  # closed to rounding: no correction, final poses
-                    if detail == VELOCITIES:
-                        fresh = 1
+                    fresh = 1
                     break
-                for r in range(lane, R, lanes):
-                    tile_set(rhs, r, w.phi[world, 6 * m.row_loop[world, r] + m.row_part[world, r]])
-                block_sync()
                 solve_lanes(lane, lanes, R, At, diag_a, rhs)
                 for i in range(lane, n, lanes):
                     project(m, world, i, q, root, Xt, rhs, R)
@@ -1694,6 +1706,8 @@ class ChainModel:
         self.tile_slots = _tile_size(4 * max(len(lay.shapes) for lay in layouts))  # candidate slots (4 per shape)
         self.tile_contacts = _tile_size(3 * capacity) if capacity else 0
         self.packed_size = _packed_tile(arrays.ancestor.shape[1])  # the packed M~'s tile
+        # the tree solves' unrolled prefix: compiled only where a world has one (a floating root)
+        self.unroll = MAX_PREFIX if int(arrays.prefix.numpy().max(initial=0)) > 0 else 0
 
     def state(self) -> ChainState:
         """A new state at the initial pose (the contacts' warm start, kept in the model's work, is
@@ -1719,7 +1733,7 @@ class ChainModel:
             self.work.stage_clock.zero_()
         block = CHAIN_BLOCK if wp.get_device(self.device).is_cuda else 1
         kernel = chain_step_kernel(self.coords, self.tile_rows, self.tile_contacts, self.tile_slots, self.max_registers,
-                                   self.packed_size, bool(stages))
+                                   self.packed_size, bool(stages), self.unroll)
         wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
                         inputs=[self.arrays, self.work, float(self.dt), float(c.baumgarte), int(c.position_iterations),
                                 float(c.max_speed), int(c.integrator == Integrator.MOREAU_JEAN), int(record),

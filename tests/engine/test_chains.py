@@ -754,23 +754,27 @@ def _sixbar_on_a_box() -> MechanismSpec:
 def test_the_solves_take_a_floating_roots_chain_unrolled(device):
     """A floating root's six entries start every entry's ancestry: the solves take them unrolled
     (ChainArrays.prefix) instead of walking the parents, in the same order, so the six-bar on a box
-    steps bit for bit as with the walk alone (prefix 0); the prefix counts a leading chain only
-    while it is every other entry's (at most MAX_PREFIX)."""
+    steps bit for bit as with the walk alone (prefix 0) and as with a kernel compiled without the
+    unrolled code (unroll 0, which a batch without floating roots gets); the prefix counts a leading
+    chain only while it is every other entry's (at most MAX_PREFIX)."""
     from engine.chains import MAX_PREFIX, _prefix
 
     assert _prefix(np.array([0, 1, 2, 3, 4, 5, 6, 6, 7])) == 6 and _prefix(np.arange(MAX_COORDS)) == MAX_PREFIX
     assert _prefix(np.array([0, 0, 1, 1])) == 0 and _prefix(np.array([0, 1, 2, 2, 3])) == 2
+    assert pack_chains([sixbar().spec], device=device, dt=2e-3).unroll == 0  # a fixed base: no prefix code
     spec = _sixbar_on_a_box()
-    models = [pack_chains([spec], device=device, dt=2e-3) for _ in range(2)]
-    assert int(models[0].arrays.prefix.numpy()[0]) == 6
+    models = [pack_chains([spec], device=device, dt=2e-3) for _ in range(3)]
+    assert int(models[0].arrays.prefix.numpy()[0]) == 6 and models[0].unroll == MAX_PREFIX
     models[1].arrays.prefix.zero_()
+    models[2].unroll = 0  # the prefix (still 6 in its arrays) read as 0
     states = [model.state() for model in models]
     for _ in range(50):
         for model, state in zip(models, states):
             model.step(state)
     assert models[0].work.contact_count.numpy()[0] > 0
-    assert np.array_equal(states[0].q.numpy(), states[1].q.numpy())
-    assert np.array_equal(states[0].u.numpy(), states[1].u.numpy())
+    for other in states[1:]:
+        assert np.array_equal(states[0].q.numpy(), other.q.numpy())
+        assert np.array_equal(states[0].u.numpy(), other.u.numpy())
 
 
 def test_a_mechanism_on_the_ground_follows_the_maximal_engine(device):
