@@ -97,11 +97,11 @@ CPU trial; not built (it needs the poses' factors before the velocity pass, and 
 Measured at 4096 worlds (benchmarks/results/README.md, "DR Legs hanging and the four-bar in
 reduced coordinates", "DR Legs standing in reduced coordinates", "DR Legs standing: where the
 reduced step waited, and the packed mass matrix" and "DR Legs standing: the carried-over penalty
-on the GPU, ..."), on an H200: DR Legs standing with the feet's 8 contacts 1.40 ms per step
-against MuJoCo Warp's 1.35 ms in one call (3.0 PADMM iterations a step, loops within 2.1e-7 m
-against its 4.2e-4 m), then 1.28 ms (1.63 ms with all 12 candidates) after the changes measured
-A/B since; DR Legs hanging 0.375 ms, loops within 1.5e-7 m (MuJoCo Warp 0.762 ms, 5.9e-4 m). The
-step is bound by latency, not bandwidth: the packed M~ made it 11 worlds per SM instead of 8
+on the GPU, ..." and "DR Legs standing and hanging: the CPU-only changes timed, ..."), on an
+H200: DR Legs standing with the feet's 8 contacts 1.20 ms per step against MuJoCo Warp's 1.34 ms
+in one call (3.0 PADMM iterations a step, loops within 9.4e-8 m against its 4.2e-4 m; 1.59 ms with
+all 12 candidates); DR Legs hanging 0.387 ms, loops within 1.6e-7 m (MuJoCo Warp 0.770 ms,
+5.9e-4 m). The step is bound by latency, not bandwidth: the packed M~ made it 11 worlds per SM instead of 8
 (2.15 -> 1.70 ms standing), and the warps wait on dependent arithmetic and shared-memory loads;
 on DR Legs standing the column solves of X and Y (a lane per column along the ancestors), the
 projections with their kinematics and the contact factor and PADMM take most of a world's step. The kernel is
