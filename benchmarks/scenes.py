@@ -257,8 +257,12 @@ DRLEGS_STANDING_REDUCED_VARIANTS = DRLEGS_REDUCED_VARIANTS + [
     dict(label="reduced coordinates, 8 contacts, skip floors 3e-7 m, 3e-6 rad", model="chains",
          config=dict(REDUCED, projection_skip_floor=3e-7, projection_skip_floor_angular=3e-6), pack=FEET)]
 DRLEGS_STANDING_SWEEP += [
+    dict(label="reduced coordinates, 8 contacts, dt x0.5", dt_scale=0.5, model="chains", config=REDUCED, pack=FEET),
+    dict(label="reduced coordinates, 8 contacts", dt_scale=1.0, model="chains", config=REDUCED, pack=FEET),
     dict(label="reduced coordinates, 8 contacts, dt x2", dt_scale=2.0, model="chains", config=REDUCED, pack=FEET),
-    dict(label="reduced coordinates, 8 contacts, dt x4", dt_scale=4.0, model="chains", config=REDUCED, pack=FEET)]
+    dict(label="reduced coordinates, 8 contacts, dt x4", dt_scale=4.0, model="chains", config=REDUCED, pack=FEET),
+    dict(label="reduced coordinates, 8 contacts, skip floors 3e-7 m, 3e-6 rad, dt x4", dt_scale=4.0, model="chains",
+         config=dict(REDUCED, projection_skip_floor=3e-7, projection_skip_floor_angular=3e-6), pack=FEET)]
 
 SCENES_DECLARED = {
     "fourbar": Declared(lambda assets: _engine_scenes(["fourbar"]), dt=1e-3, duration=2.0,
