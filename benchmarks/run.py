@@ -516,6 +516,7 @@ def plot(result: dict, path: pathlib.Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     peer_rows = [r for r in result["peers"] if r.get("kind") == "throughput" and "error" not in r]
     ours = [r for r in result["throughput"] if "error" not in r and r.get("label", "default") == "default"]
@@ -563,6 +564,7 @@ def plot(result: dict, path: pathlib.Path) -> None:
                     ax.loglog(r["wall_s_per_simulated_s"], max(r[key], 1e-9), marker, color=color,
                               label=name if k == 0 else None)
                     ax.annotate(r["label"], (r["wall_s_per_simulated_s"], max(r[key], 1e-9)), fontsize=6)
+            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # (labels of 2x .. 9x overlap)
             ax.set_xlabel(f"wall s per simulated s ({result['precision'][0].get('num_worlds', '')} worlds)")
             ax.set_ylabel(unit)
             ax.set_title(f"{result['scene']}: {unit.split(' [')[0]} against run time", fontsize=8)
