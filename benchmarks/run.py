@@ -262,6 +262,8 @@ def run_scene(name: str, declared: Declared, args) -> dict:
               "throughput": [], "precision": [], "peers": [], "reference": None}
     dt = declared.dt
     worlds_list = declared.quick_worlds if quick else declared.throughput_worlds
+    if getattr(args, "worlds", None):  # the batch sizes asked for (variants and peers at the largest)
+        worlds_list = sorted(args.worlds)
     steps = 20 if quick else declared.throughput_steps
     chunk = 10 if steps >= 30 else max(1, steps // 4)
     for worlds in (worlds_list if "throughput" in args.parts else []):
@@ -592,6 +594,9 @@ def main(argv=None) -> int:
     parser.add_argument("--settings", nargs="+", default=None, metavar="LABEL",
                         help="only the variants and sweep points of these labels (benchmarks.scenes; the default "
                              "settings' throughput still runs), e.g. 'reduced coordinates'")
+    parser.add_argument("--worlds", nargs="+", type=int, default=None, metavar="N",
+                        help="throughput batch sizes instead of the scene's (the variants run at the largest, the "
+                             "peers at the two largest)")
     parser.add_argument("--assets", default=None, help="folder holding disneyresearch/dr_legs (DR Legs scenes)")
     parser.add_argument("--out", default=None, help="results folder (default benchmarks/results/<device>)")
     args = parser.parse_args(argv)
@@ -604,6 +609,11 @@ def main(argv=None) -> int:
                          f"labels: {sorted(known)}")
         if not args.out:
             parser.error("--settings writes a partial result: give it its own --out folder")
+    if args.worlds:
+        if min(args.worlds) < 1:
+            parser.error(f"--worlds: batch sizes must be at least 1, got {args.worlds}")
+        if not args.out:
+            parser.error("--worlds writes a partial result: give it its own --out folder")
     wp.config.log_level = wp.LOG_WARNING
     wp.init()
     try:

@@ -532,3 +532,23 @@ def test_runner_measures_reduced_coordinates_settings_against_the_reference(tmp_
     assert coarse["trajectory_error_m"] > 2 * fine["trajectory_error_m"]
     with pytest.raises(SystemExit):
         main(["--device", "cpu", "--quick", "--only", "fourbar", "--settings", "no such setting"])
+
+
+def test_runner_takes_the_batch_sizes_asked_for(tmp_path, capsys):
+    """--worlds replaces the scene's throughput batch sizes: the default settings run at each, the
+    variants at the largest; a size below 1, or --worlds without its own --out folder, is refused."""
+    import json
+
+    from benchmarks.run import main
+
+    assert main(["--device", "cpu", "--parts", "throughput", "--only", "fourbar", "--worlds", "5", "3",
+                 "--settings", "reduced coordinates", "--out", str(tmp_path)]) == 0
+    rows = json.loads((tmp_path / "fourbar.json").read_text())["throughput"]
+    assert [(r["label"], r["num_worlds"]) for r in rows] == [("default", 3), ("default", 5),
+                                                             ("reduced coordinates", 5)]
+    assert all(r["world_steps_per_s"] > 0 and r["diverged_worlds"] == 0 for r in rows)
+    for argv, message in ((["--worlds", "0", "--out", str(tmp_path)], "at least 1"),
+                          (["--worlds", "4"], "own --out")):
+        with pytest.raises(SystemExit):
+            main(["--device", "cpu", "--only", "fourbar", *argv])
+        assert message in capsys.readouterr().err
