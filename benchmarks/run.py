@@ -175,7 +175,9 @@ def chains_run(batch, dt: float, steps: int, record_every: int, config: SolverCo
         "padmm_iterations_mean": float(counts.mean()), "padmm_iterations_max": int(counts.max()),
         "unconverged_step_fraction": capped, "contacts_dropped_max": max(dropped),
         "projections_mean": float(np.mean(projections[1:] or projections)),
-        "contact_capacity": model.contact_capacity,
+        "contact_capacity": model.contact_capacity, "contact_working": model.contact_working,
+        # the share of world-steps the full-capacity kernel took over (more contacts than the first one holds)
+        "contact_redone_share": float(model.work.contact_redone.numpy().sum()) / (row["num_worlds"] * row["steps"]),
         "step_kernel": "chains", "linear_solver": "dense (reduced coordinates)", "max_rows": model.max_rows,
         "fused_block": None, "cuda_graph": bool(stepper.capture),
         "engine_arrays_mb": array_megabytes(model.arrays, model.work, stepper.state),

@@ -27,11 +27,17 @@ last rate kept), the maximal engine's joint-space dynamics rows. Shapes collide 
 plane only (engine.collide.plane_point: a sphere's lowest point, a capsule's ends, a box's or a
 cylinder's 4 deepest points within SolverConfig.contact_margin), up to contact_capacity contacts
 per world (default: every candidate, at most MAX_CONTACTS); friction is the geometric mean of the
-shape's and the ground's. Only what this path models is accepted, with an error that names the
-joint, shape or body otherwise: revolute joints (and welds to the world), drives on tree joints, no
-limits, no restitution, at most MAX_COORDS coordinates and MAX_ROWS rows per world. Drive effort
-limits are checked, not enforced: a world whose drive torque exceeds its limit stops with the
-reason (ChainModel.failure_reasons). Worlds of a batch may differ in everything (padded).
+shape's and the ground's. The step kernel's contact tiles hold contact_working contacts (default:
+the most any world has at its initial pose): a world that finds more in a step, within its
+capacity, restores the step's start and a second kernel, with tiles for the full capacity, steps it
+(bit for bit as that kernel alone would; work.contact_redone counts them). Shared memory sets how
+many worlds an SM holds: DR Legs standing keeps 12 per SM with tiles for its feet's 8 contacts,
+8 with tiles for all 12 candidates (1.20 against 1.59 ms per step at 4096 worlds on an H200).
+Only what this path models is accepted, with an error that names the joint, shape or body otherwise:
+revolute joints (and welds to the world), drives on tree joints, no limits, no restitution, at most
+MAX_COORDS coordinates and MAX_ROWS rows per world. Drive effort limits are checked, not enforced: a
+world whose drive torque exceeds its limit stops with the reason (ChainModel.failure_reasons).
+Worlds of a batch may differ in everything (padded).
 
 Step (``chain_step_kernel``, one block per world; the lanes share each stage, a barrier between
 stages; on the CPU a block is one thread):
@@ -634,6 +640,8 @@ class ChainWork:
     contact_impulse: wp.array2d(dtype=wp.vec3)  # per candidate slot: the last impulse (normal, t1, t2), warm start
     contact_rho: wp.array(dtype=float)  # the contacts' penalty at the end of the last step (0: none yet)
     contact_dropped: wp.array(dtype=wp.int32)  # contacts within the margin beyond the capacity (last step)
+    contact_overflow: wp.array(dtype=wp.int32)  # 1: this step found more contacts than the first kernel holds
+    contact_redone: wp.array(dtype=wp.int32)  # steps the full-capacity kernel took over (ChainModel.contact_working)
     iterations: wp.array(dtype=wp.int32)  # PADMM iterations of the last step
     projections: wp.array(dtype=wp.int32)  # Gauss-Newton corrections of the last step (the floors stop them)
     stage_clock: wp.array2d(dtype=wp.int64)  # ChainModel.step(stages=True): clock readings (W, len(STAGES) + 1)
@@ -1209,12 +1217,15 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
     def chain_step_body(m: ChainArrays, w: ChainWork, dt: float, baumgarte: float, iterations: int, max_speed: float,
                         midpoint: int, record: int, margin: float, stabilization: float, eta: float, rho0: float,
                         adaptive: int, rho_interval: int, tolerance: float, relative_tolerance: float,
-                        max_iterations: int, skip_floor: float, skip_floor_angular: float,
-                        q: wp.array2d(dtype=float), u: wp.array2d(dtype=float),
+                        max_iterations: int, skip_floor: float, skip_floor_angular: float, working: int,
+                        second: int, q: wp.array2d(dtype=float), u: wp.array2d(dtype=float),
                         root: wp.array2d(dtype=wp.transform), body_q: wp.array2d(dtype=wp.transform),
                         body_qd: wp.array2d(dtype=wp.spatial_vector)):
         world, lane = wp.tid()
         lanes = wp.block_dim()
+        if second != 0:  # the full-capacity kernel steps only the worlds the first one handed over
+            if w.contact_overflow[world] == 0:
+                return
         Mt = wp.tile_zeros(shape=packed_size, dtype=float, storage="shared")  # M~, then its factor (packed)
         # G, then J, then (D + (eta + rho) I)^-1
         Gt = wp.tile_zeros(shape=(wp.static(max(rows, contacts)), wp.static(max(coords, contacts))), dtype=float,
@@ -1242,6 +1253,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
         depths = m.depth_count[world]
         frozen = w.diverged[world]
         block_sync()
+        if second != 0 and lane == 0:  # (every lane has read the flag)
+            w.contact_overflow[world] = 0
         if wp.static(stages):
             stamp(w, world, lane, 0)
         lead = dt  # q+ = q_eval + lead u+
@@ -1368,26 +1381,40 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                     plane_candidates(m, w, world, s, nrm, off, margin, cand)
                 block_sync()
                 if lane == 0:  # the contacts within the margin, in slot order, up to the capacity (rows of cand)
-                    count = int(0)
-                    dropped = int(0)
-                    for slot in range(4 * shapes):  # (row count <= slot: its columns 4-7 are free)
+                    found = int(0)
+                    for slot in range(4 * shapes):
                         if cand[slot, 3] < margin:
-                            if count < m.contact_capacity[world]:
-                                for f in range(4):
-                                    tile_set(cand, count, 4 + f, cand[slot, f])
-                                w.contact_slot[world, count] = slot
-                                count += 1
+                            found += 1
+                    if found > working and working < m.contact_capacity[world]:  # more than these tiles hold:
+                        w.contact_overflow[world] = 1  # the full-capacity kernel takes the step over
+                        w.contact_redone[world] = w.contact_redone[world] + 1
+                    else:
+                        count = int(0)
+                        dropped = int(0)
+                        for slot in range(4 * shapes):  # (row count <= slot: its columns 4-7 are free)
+                            if cand[slot, 3] < margin:
+                                if count < m.contact_capacity[world]:
+                                    for f in range(4):
+                                        tile_set(cand, count, 4 + f, cand[slot, f])
+                                    w.contact_slot[world, count] = slot
+                                    count += 1
+                                else:
+                                    dropped += 1
+                                    w.contact_impulse[world, slot] = wp.vec3()
                             else:
-                                dropped += 1
                                 w.contact_impulse[world, slot] = wp.vec3()
-                        else:
-                            w.contact_impulse[world, slot] = wp.vec3()
-                    w.contact_count[world] = count
-                    if count == 0:  # off the ground: the next contacts start from CONTACT_RHO
-                        w.contact_rho[world] = 0.0
-                    w.contact_dropped[world] = dropped
-                    w.iterations[world] = 0
+                        w.contact_count[world] = count
+                        if count == 0:  # off the ground: the next contacts start from CONTACT_RHO
+                            w.contact_rho[world] = 0.0
+                        w.contact_dropped[world] = dropped
+                        w.iterations[world] = 0
                 block_sync()
+                if w.contact_overflow[world] != 0:  # handed over: the step's start restored, nothing else written
+                    for i in range(lane, n, lanes):
+                        q[world, i] = w.q_start[world, i]
+                        u[world, i] = w.u_start[world, i]
+                        root[world, i] = w.root_start[world, i]
+                    return
                 if wp.static(stages):
                     stamp(w, world, lane, 8)
                 nc = w.contact_count[world]
@@ -1706,6 +1733,8 @@ class ChainModel:
         self.max_registers = MAX_REGISTERS
         self.tile_slots = _tile_size(4 * max(len(lay.shapes) for lay in layouts))  # candidate slots (4 per shape)
         self.tile_contacts = _tile_size(3 * capacity) if capacity else 0
+        self.contact_working = capacity  # contacts the first kernel's tiles hold (pack_chains sets it)
+        self.tile_working = self.tile_contacts
         self.packed_size = _packed_tile(arrays.ancestor.shape[1])  # the packed M~'s tile
         # the tree solves' unrolled prefix: compiled only where a world has one (a floating root)
         self.unroll = MAX_PREFIX if int(arrays.prefix.numpy().max(initial=0)) > 0 else 0
@@ -1733,16 +1762,23 @@ class ChainModel:
                                                  device=self.device)
             self.work.stage_clock.zero_()
         block = CHAIN_BLOCK if wp.get_device(self.device).is_cuda else 1
-        kernel = chain_step_kernel(self.coords, self.tile_rows, self.tile_contacts, self.tile_slots, self.max_registers,
-                                   self.packed_size, bool(stages), self.unroll)
-        wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
-                        inputs=[self.arrays, self.work, float(self.dt), float(c.baumgarte), int(c.position_iterations),
-                                float(c.max_speed), int(c.integrator == Integrator.MOREAU_JEAN), int(record),
-                                float(c.contact_margin), float(c.contact_stabilization), float(c.eta), CONTACT_RHO,
-                                int(c.adaptive_rho), max(1, int(c.rho_update_interval)), float(c.tolerance),
-                                float(c.relative_tolerance), int(c.max_iterations), float(c.projection_skip_floor),
-                                float(c.projection_skip_floor_angular), state.q, state.u, state.root,
-                                state.body_q, state.body_qd])
+        # the first kernel's contact tiles hold contact_working contacts; a world that finds more (within its
+        # capacity) is handed to a second kernel with tiles for the full capacity (launched only if smaller)
+        passes = [(self.tile_working, 0)]
+        if self.tile_working < self.tile_contacts:
+            passes.append((self.tile_contacts, 1))
+        for tile, second in passes:
+            kernel = chain_step_kernel(self.coords, self.tile_rows, tile, self.tile_slots, self.max_registers,
+                                       self.packed_size, bool(stages), self.unroll)
+            wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
+                            inputs=[self.arrays, self.work, float(self.dt), float(c.baumgarte),
+                                    int(c.position_iterations), float(c.max_speed),
+                                    int(c.integrator == Integrator.MOREAU_JEAN), int(record), float(c.contact_margin),
+                                    float(c.contact_stabilization), float(c.eta), CONTACT_RHO, int(c.adaptive_rho),
+                                    max(1, int(c.rho_update_interval)), float(c.tolerance),
+                                    float(c.relative_tolerance), int(c.max_iterations), float(c.projection_skip_floor),
+                                    float(c.projection_skip_floor_angular), tile // 3, second, state.q, state.u,
+                                    state.root, state.body_q, state.body_qd])
 
     def stage_cycles(self) -> dict:
         """The last step(stages=True)'s clock cycles per stage (STAGES), the mean over the worlds that
@@ -1776,7 +1812,8 @@ class ChainModel:
 
 
 def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | None = None,
-                dt: float = 1.0e-3, contact_capacity: int | None = None) -> ChainModel:
+                dt: float = 1.0e-3, contact_capacity: int | None = None,
+                contact_working: int | None = None) -> ChainModel:
     """Pack one world per spec (they may differ) into a ChainModel on ``device``. SolverConfig's
     integrator, baumgarte, position_iterations and max_speed apply, and for contacts contact_margin,
     contact_stabilization, eta, adaptive_rho, rho_update_interval, tolerance, relative_tolerance and
@@ -1784,14 +1821,21 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     one). contact_capacity:
     contacts kept per world and step
     (None: every candidate of its shapes, at most MAX_CONTACTS; those beyond are counted in
-    work.contact_dropped). ValueError naming the world and the joint, shape or body this path
-    cannot model."""
+    work.contact_dropped). contact_working: the contacts the step kernel's tiles hold (None: the most
+    any world has within the margin at its initial pose, at least 1; at most the capacity); a world
+    that finds more in a step, within its capacity, is stepped again from the step's start by a
+    second kernel with tiles for the full capacity (work.contact_redone counts those steps), so the
+    shared memory of contacts that seldom occur costs no occupancy. ValueError naming the world and
+    the joint, shape or body this path cannot model."""
     config = config or SolverConfig()
     if not (isinstance(dt, (int, float)) and not isinstance(dt, bool) and math.isfinite(dt) and dt > 0):
         raise ValueError(f"pack_chains: dt must be a positive number of seconds, got {dt!r}")
     if contact_capacity is not None and not (isinstance(contact_capacity, (int, np.integer))
                                              and not isinstance(contact_capacity, bool) and contact_capacity >= 0):
         raise ValueError(f"pack_chains: contact_capacity must be a non-negative integer, got {contact_capacity!r}")
+    if contact_working is not None and not (isinstance(contact_working, (int, np.integer))
+                                            and not isinstance(contact_working, bool) and contact_working >= 1):
+        raise ValueError(f"pack_chains: contact_working must be a positive integer, got {contact_working!r}")
     specs = list(specs)
     if not specs:
         raise ValueError("pack_chains: needs at least one MechanismSpec")
@@ -1996,6 +2040,8 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     k.contact_impulse = wp.zeros((W, slots), dtype=wp.vec3, device=dev)
     k.contact_rho = wp.zeros(W, dtype=float, device=dev)
     k.contact_dropped = wp.zeros(W, dtype=wp.int32, device=dev)
+    k.contact_overflow = wp.zeros(W, dtype=wp.int32, device=dev)
+    k.contact_redone = wp.zeros(W, dtype=wp.int32, device=dev)
     k.iterations = wp.zeros(W, dtype=wp.int32, device=dev)
     k.projections = wp.zeros(W, dtype=wp.int32, device=dev)
     k.stage_clock = wp.zeros((1, 1), dtype=wp.int64, device=dev)  # ChainModel.step(stages=True) sizes it
@@ -2010,7 +2056,36 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
                     inputs=[a, k, state.q, state.u, state.root, state.body_q, state.body_qd])
     model._init["body_q"] = state.body_q.numpy()
     model._init["body_qd"] = state.body_qd.numpy()
+    if model.tile_contacts:
+        if contact_working is None:  # the most contacts any world has at its initial pose
+            found = wp.zeros(W, dtype=wp.int32, device=dev)
+            wp.launch_tiled(initial_contacts_kernel(model.tile_slots), dim=[W], block_dim=1, device=dev,
+                            inputs=[a, k, float(config.contact_margin), found])
+            contact_working = int(found.numpy().max())
+        model.contact_working = min(max(1, contact_working), model.contact_capacity)
+        model.tile_working = _tile_size(3 * model.contact_working)
     return model
+
+
+@functools.cache
+def initial_contacts_kernel(slots: int):
+    """A kernel counting each world's candidate contacts within the margin at the poses in its work
+    (after initial_bodies_kernel), at most its capacity (a block of one thread per world)."""
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def initial_contacts(m: ChainArrays, w: ChainWork, margin: float, found: wp.array(dtype=wp.int32)):
+        world, lane = wp.tid()
+        cand = wp.tile_zeros(shape=(slots, 8), dtype=float, storage="shared")
+        shapes = m.shape_count[world]
+        for s in range(shapes):
+            plane_candidates(m, w, world, s, m.ground_normal[world], m.ground_offset[world], margin, cand)
+        count = int(0)
+        for slot in range(4 * shapes):
+            if cand[slot, 3] < margin:
+                count += 1
+        found[world] = wp.min(count, m.contact_capacity[world])
+
+    return initial_contacts
 
 
 @wp.kernel(enable_backward=False)

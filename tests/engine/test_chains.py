@@ -942,6 +942,33 @@ def test_contacts_past_the_capacity_are_counted_and_shapes_limited(device):
         chain_layout(many)
 
 
+def test_steps_with_more_contacts_than_the_tiles_hold_go_to_the_full_kernel(device):
+    """The step kernel's contact tiles hold contact_working contacts, by default the most any world
+    has at its initial pose (a box resting on the ground: its 4 corners; one dropped from 3 cm: none,
+    so 1); a step that finds more, within the capacity, is stepped again from its start by a second
+    kernel with tiles for the full capacity. The dropped box lands (the steps before handled by the
+    first kernel, from the landing on by the second) bit for bit as with tiles for the full capacity
+    throughout; contact_working below 1 is refused."""
+    assert pack_chains([_box()], device=device, dt=1e-3).contact_working == 4
+    dropped = _box(height=0.08)
+    models = [pack_chains([dropped], device=device, dt=1e-3, contact_working=w) for w in (None, 4)]
+    assert models[0].contact_working == 1 and models[0].tile_working < models[0].tile_contacts
+    assert models[1].tile_working == models[1].tile_contacts  # one kernel
+    states = [model.state() for model in models]
+    for _ in range(150):
+        for model, state in zip(models, states):
+            model.step(state)
+    redone = int(models[0].work.contact_redone.numpy()[0])
+    assert 0 < redone < 150 and int(models[1].work.contact_redone.numpy()[0]) == 0
+    assert models[0].work.contact_count.numpy()[0] == 4
+    assert np.array_equal(states[0].q.numpy(), states[1].q.numpy())
+    assert np.array_equal(states[0].u.numpy(), states[1].u.numpy())
+    assert np.array_equal(states[0].body_q.numpy(), states[1].body_q.numpy())
+    assert abs(states[0].body_q.numpy()[0, 0, 2] - 0.05) < 1e-3  # landed, resting on its corners
+    with pytest.raises(ValueError, match="contact_working must be a positive integer"):
+        pack_chains([_box()], device=device, contact_working=0)
+
+
 def test_dr_legs_standing_matches_the_maximal_engine_converged_tightly():
     """DR Legs standing as in Newton's example (a floating pelvis, 12 PD drives, armature and
     damping on every joint, its feet's boxes on the ground): after 1 s at dt 10 ms our bodies are
