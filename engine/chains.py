@@ -641,7 +641,7 @@ class ChainWork:
     contact_rho: wp.array(dtype=float)  # the contacts' penalty at the end of the last step (0: none yet)
     contact_dropped: wp.array(dtype=wp.int32)  # contacts within the margin beyond the capacity (last step)
     contact_overflow: wp.array(dtype=wp.int32)  # 1: this step found more contacts than the first kernel holds
-    contact_redone: wp.array(dtype=wp.int32)  # steps the full-capacity kernel took over (ChainModel.contact_working)
+    contact_redone: wp.array(dtype=wp.int32)  # steps the full-capacity kernel took over since the packing
     iterations: wp.array(dtype=wp.int32)  # PADMM iterations of the last step
     projections: wp.array(dtype=wp.int32)  # Gauss-Newton corrections of the last step (the floors stop them)
     stage_clock: wp.array2d(dtype=wp.int64)  # ChainModel.step(stages=True): clock readings (W, len(STAGES) + 1)
@@ -1199,14 +1199,17 @@ def contact_residuals(nc: int, res_p: Any, res_d: Any, res_y: Any):
 @functools.cache
 def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TILE_STEP,
                       registers: int | None = MAX_REGISTERS, packed_size: int = TILE_STEP,
-                      stages: bool = False, unroll: int = MAX_PREFIX):
+                      stages: bool = False, unroll: int = MAX_PREFIX, handover: int = 0):
     """The step kernel with shared tiles sized by coords (tree coordinates, at least MAX_PREFIX),
     rows (kept loop rows), contacts (contact rows; 0: no contact code), slots (candidate contacts)
     and packed_size (the packed mass matrix), each a multiple of TILE_STEP (coords may be MAX_PREFIX
     instead), and at most ``registers`` registers per thread on CUDA (module docstring: the step).
     stages: lane 0 writes a clock reading at the end of each of STAGES into work.stage_clock (the
     same step otherwise; without it the readings are compiled out). unroll: the longest prefix
-    (ChainArrays.prefix) the tree solves take unrolled (tree_solves; 0: none, every prefix read as 0)."""
+    (ChainArrays.prefix) the tree solves take unrolled (tree_solves; 0: none, every prefix read as 0).
+    handover (ChainModel.contact_working): 0 the only kernel of a step; 1 the first of two, handing a
+    world that finds more contacts than its tiles hold to 2, the second, which steps only those
+    (the code of each role compiled only into its kernel)."""
 
     per_contact = _tile_size(contacts // 3)  # the tiles of one entry per contact
     tree_solve_column, tree_solve_vector = tree_solves(unroll)
@@ -1218,12 +1221,12 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                         midpoint: int, record: int, margin: float, stabilization: float, eta: float, rho0: float,
                         adaptive: int, rho_interval: int, tolerance: float, relative_tolerance: float,
                         max_iterations: int, skip_floor: float, skip_floor_angular: float, working: int,
-                        second: int, q: wp.array2d(dtype=float), u: wp.array2d(dtype=float),
+                        q: wp.array2d(dtype=float), u: wp.array2d(dtype=float),
                         root: wp.array2d(dtype=wp.transform), body_q: wp.array2d(dtype=wp.transform),
                         body_qd: wp.array2d(dtype=wp.spatial_vector)):
         world, lane = wp.tid()
         lanes = wp.block_dim()
-        if second != 0:  # the full-capacity kernel steps only the worlds the first one handed over
+        if wp.static(handover == 2):  # the full-capacity kernel steps only the worlds the first one handed over
             if w.contact_overflow[world] == 0:
                 return
         Mt = wp.tile_zeros(shape=packed_size, dtype=float, storage="shared")  # M~, then its factor (packed)
@@ -1253,8 +1256,9 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
         depths = m.depth_count[world]
         frozen = w.diverged[world]
         block_sync()
-        if second != 0 and lane == 0:  # (every lane has read the flag)
-            w.contact_overflow[world] = 0
+        if wp.static(handover == 2):
+            if lane == 0:  # (every lane has read the flag)
+                w.contact_overflow[world] = 0
         if wp.static(stages):
             stamp(w, world, lane, 0)
         lead = dt  # q+ = q_eval + lead u+
@@ -1382,9 +1386,10 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                 block_sync()
                 if lane == 0:  # the contacts within the margin, in slot order, up to the capacity (rows of cand)
                     found = int(0)
-                    for slot in range(4 * shapes):
-                        if cand[slot, 3] < margin:
-                            found += 1
+                    if wp.static(handover == 1):
+                        for slot in range(4 * shapes):
+                            if cand[slot, 3] < margin:
+                                found += 1
                     if found > working and working < m.contact_capacity[world]:  # more than these tiles hold:
                         w.contact_overflow[world] = 1  # the full-capacity kernel takes the step over
                         w.contact_redone[world] = w.contact_redone[world] + 1
@@ -1409,12 +1414,13 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                         w.contact_dropped[world] = dropped
                         w.iterations[world] = 0
                 block_sync()
-                if w.contact_overflow[world] != 0:  # handed over: the step's start restored, nothing else written
-                    for i in range(lane, n, lanes):
-                        q[world, i] = w.q_start[world, i]
-                        u[world, i] = w.u_start[world, i]
-                        root[world, i] = w.root_start[world, i]
-                    return
+                if wp.static(handover == 1):
+                    if w.contact_overflow[world] != 0:  # handed over: the step's start restored, nothing else written
+                        for i in range(lane, n, lanes):
+                            q[world, i] = w.q_start[world, i]
+                            u[world, i] = w.u_start[world, i]
+                            root[world, i] = w.root_start[world, i]
+                        return
                 if wp.static(stages):
                     stamp(w, world, lane, 8)
                 nc = w.contact_count[world]
@@ -1766,10 +1772,10 @@ class ChainModel:
         # capacity) is handed to a second kernel with tiles for the full capacity (launched only if smaller)
         passes = [(self.tile_working, 0)]
         if self.tile_working < self.tile_contacts:
-            passes.append((self.tile_contacts, 1))
-        for tile, second in passes:
+            passes = [(self.tile_working, 1), (self.tile_contacts, 2)]
+        for tile, handover in passes:
             kernel = chain_step_kernel(self.coords, self.tile_rows, tile, self.tile_slots, self.max_registers,
-                                       self.packed_size, bool(stages), self.unroll)
+                                       self.packed_size, bool(stages), self.unroll, handover)
             wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
                             inputs=[self.arrays, self.work, float(self.dt), float(c.baumgarte),
                                     int(c.position_iterations), float(c.max_speed),
@@ -1777,7 +1783,7 @@ class ChainModel:
                                     float(c.contact_stabilization), float(c.eta), CONTACT_RHO, int(c.adaptive_rho),
                                     max(1, int(c.rho_update_interval)), float(c.tolerance),
                                     float(c.relative_tolerance), int(c.max_iterations), float(c.projection_skip_floor),
-                                    float(c.projection_skip_floor_angular), tile // 3, second, state.q, state.u,
+                                    float(c.projection_skip_floor_angular), tile // 3, state.q, state.u,
                                     state.root, state.body_q, state.body_qd])
 
     def stage_cycles(self) -> dict:
@@ -2062,8 +2068,8 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
             wp.launch_tiled(initial_contacts_kernel(model.tile_slots), dim=[W], block_dim=1, device=dev,
                             inputs=[a, k, float(config.contact_margin), found])
             contact_working = int(found.numpy().max())
-        model.contact_working = min(max(1, contact_working), model.contact_capacity)
-        model.tile_working = _tile_size(3 * model.contact_working)
+        model.tile_working = _tile_size(3 * min(max(1, contact_working), model.contact_capacity))
+        model.contact_working = min(model.tile_working // 3, model.contact_capacity)  # (the tiles' room)
     return model
 
 

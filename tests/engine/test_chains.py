@@ -945,26 +945,36 @@ def test_contacts_past_the_capacity_are_counted_and_shapes_limited(device):
 def test_steps_with_more_contacts_than_the_tiles_hold_go_to_the_full_kernel(device):
     """The step kernel's contact tiles hold contact_working contacts, by default the most any world
     has at its initial pose (a box resting on the ground: its 4 corners; one dropped from 3 cm: none,
-    so 1); a step that finds more, within the capacity, is stepped again from its start by a second
-    kernel with tiles for the full capacity. The dropped box lands (the steps before handled by the
-    first kernel, from the landing on by the second) bit for bit as with tiles for the full capacity
-    throughout; contact_working below 1 is refused."""
+    so the least, 1); a step that finds more, within the capacity, is stepped again from its start
+    by a second kernel with tiles for the full capacity. In one batch with tiles for 1 contact, a
+    resting box (handed over every step), a dropped box and the six-bar dropped on its box (handed
+    over from their landing on; the six-bar's angles move) and a four-bar without shapes (never)
+    step bit for bit as with tiles for the full capacity throughout; contact_working below 1 is
+    refused."""
     assert pack_chains([_box()], device=device, dt=1e-3).contact_working == 4
-    dropped = _box(height=0.08)
-    models = [pack_chains([dropped], device=device, dt=1e-3, contact_working=w) for w in (None, 4)]
+    assert pack_chains([_box(height=0.08)], device=device, dt=1e-3).contact_working == 1
+    sixbar_box = _sixbar_on_a_box()
+    lifted = dataclasses.replace(sixbar_box.bodies[0], position=(0.0, 0.0, 0.13))
+    batch = [_box(), _box(height=0.08), dataclasses.replace(sixbar_box, bodies=[lifted] + list(sixbar_box.bodies[1:])),
+             fourbar().spec]
+    models = [pack_chains(batch, device=device, dt=1e-3, contact_working=w) for w in (1, 4)]
     assert models[0].contact_working == 1 and models[0].tile_working < models[0].tile_contacts
     assert models[1].tile_working == models[1].tile_contacts  # one kernel
     states = [model.state() for model in models]
-    for _ in range(150):
+    steps = 150
+    for _ in range(steps):
         for model, state in zip(models, states):
             model.step(state)
-    redone = int(models[0].work.contact_redone.numpy()[0])
-    assert 0 < redone < 150 and int(models[1].work.contact_redone.numpy()[0]) == 0
-    assert models[0].work.contact_count.numpy()[0] == 4
-    assert np.array_equal(states[0].q.numpy(), states[1].q.numpy())
-    assert np.array_equal(states[0].u.numpy(), states[1].u.numpy())
-    assert np.array_equal(states[0].body_q.numpy(), states[1].body_q.numpy())
-    assert abs(states[0].body_q.numpy()[0, 0, 2] - 0.05) < 1e-3  # landed, resting on its corners
+    redone = models[0].work.contact_redone.numpy()
+    assert redone[0] == steps and 0 < redone[1] < steps and 0 < redone[2] < steps and redone[3] == 0
+    assert not models[1].work.contact_redone.numpy().any()
+    assert list(models[0].work.contact_count.numpy()) == [4, 4, 4, 0]
+    angles = states[0].q.numpy()[2]
+    assert np.abs(angles - models[0]._init["q"][2]).max() > 1e-3  # the six-bar's joints moved
+    for name in ("q", "u", "root", "body_q", "body_qd"):
+        assert np.array_equal(getattr(states[0], name).numpy(), getattr(states[1], name).numpy()), name
+    assert np.array_equal(models[0].work.contact_impulse.numpy(), models[1].work.contact_impulse.numpy())
+    assert abs(states[0].body_q.numpy()[1, 0, 2] - 0.05) < 1e-3  # the dropped box landed on its corners
     with pytest.raises(ValueError, match="contact_working must be a positive integer"):
         pack_chains([_box()], device=device, contact_working=0)
 
