@@ -552,3 +552,42 @@ def test_runner_takes_the_batch_sizes_asked_for(tmp_path, capsys):
         with pytest.raises(SystemExit):
             main(["--device", "cpu", "--only", "fourbar", *argv])
         assert message in capsys.readouterr().err
+
+
+def test_newton_probe_solves_analytic_contact_problems_and_the_walkers_hard_steps(tmp_path):
+    """benchmarks.legged_newton_probe: its semismooth Newton solves small problems whose answers are
+    known (a drive pushed past its bound stops at the bound; a contact approaching at 1 m/s with unit
+    response sticks with impulse 1; one separating carries none; one that also slips at 2 m/s is
+    stopped along its normal with impulse 1 and carries mu times that against the slip), and on the
+    walkers' hardest steps its solutions meet the tolerance and give the rows' velocities of the
+    engine's own PADMM within 100x that tolerance."""
+    import json
+
+    from benchmarks.legged_newton_probe import main, natural_map, newton
+
+    def problem(vf, mu=0.5, legs=0, lo=-1.0, hi=1.0):
+        m = len(vf)
+        return {"legs": legs, "rows": m, "D": np.eye(m), "vf": np.array(vf, float), "mu": np.full(m, mu),
+                "lo": np.full(m, lo), "hi": np.full(m, hi), "x0": np.zeros(m)}
+
+    drive, _ = newton(problem([-1.0], legs=1, lo=-0.1, hi=0.1), 1e-9)
+    assert np.allclose(drive, [0.1])
+    stick, _ = newton(problem([-1.0, 0.0, 0.0]), 1e-9)
+    assert np.allclose(stick, [1.0, 0.0, 0.0])
+    apart, _ = newton(problem([1.0, 0.0, 0.0]), 1e-9)
+    assert np.allclose(apart, 0.0)
+    slide, _ = newton(problem([-1.0, 2.0, 0.0], mu=0.5), 1e-9)
+    # the normal impulse stops the approach (v_n = 0: 1), friction mu = 0.5 slows the slip from 2 to 1.5
+    assert np.allclose(slide, [1.0, -0.5, 0.0])
+    assert np.abs(natural_map(problem([-1.0, 2.0, 0.0], mu=0.5), slide)).max() < 1e-9
+    out = tmp_path / "probe.json"
+    assert main(["--steps", "12", "--skip", "10", "--hardest", "2", "--designs", "8", "--out", str(out)]) == 0
+    rows = json.loads(out.read_text())["results"]
+    probed, total = rows[:-1], rows[-1]["summary"]
+    assert len(probed) == 4 and total["probed_steps"] == 4
+    solved = [r for r in probed if r["newton_steps"] is not None]
+    assert solved and all(r["residual"] < r["tolerance"] for r in solved)
+    compared = [r for r in solved if r["velocity_gap"] is not None]
+    assert compared and all(r["velocity_gap"] < 100 * r["tolerance"] for r in compared)
+    assert (tmp_path / "probe.csv").read_text().startswith("step,world,rows")
+    assert (tmp_path / "probe.png").stat().st_size > 0
