@@ -11,7 +11,8 @@ D = J~ M^-1 J~^T + diag(P^2 R); and their warm start (the last step's impulses b
 by the preconditioner). From that warm start, a semismooth Newton method solves the natural map
 F(x) = x - Pi(x - v^(x)) = 0, where v = D x + v_f~ and v^ adds the De Saxce shift mu |v_t| to each
 normal row; Pi clamps drives to their bounds and projects contact triplets onto their cones. The
-Jacobian is taken by forward differences in float64; a backtracking line search keeps |F| falling.
+Jacobian is in closed form (jacobian; --jacobian difference: forward differences), in float64; a
+backtracking line search keeps |F| falling.
 It stops once max |F| is within the engine's tolerance at the warm start
 (tolerance + relative_tolerance * max |x0|).
 
@@ -85,18 +86,58 @@ def natural_map(p: dict, x: np.ndarray) -> np.ndarray:
     return x - project(p, x - v)
 
 
-def newton(p: dict, tol: float, max_steps: int = 20):
-    """Semismooth Newton from the warm start: (solution, steps) or (None, max_steps)."""
+def jacobian(p: dict, x: np.ndarray) -> np.ndarray:
+    """An element of F's generalized Jacobian at x, in closed form: I - dPi(a) (I - dv^/dx) with
+    a = x - v^, dv^/dx = D plus, on each normal row, mu (v_t . dv_t/dx) / |v_t|; dPi: 1 or 0 for a
+    drive (inside or at its bounds), I, 0 or the derivative of the projection onto the cone's
+    boundary, n = (a_n + mu t) / (1 + mu^2), y_t = mu n a_t / t (t = |a_t|), for a contact."""
+    m, legs, D = p["rows"], p["legs"], p["D"]
+    v = D @ x + p["vf"]
+    dv = D.copy()
+    for r in range(legs, m, 3):
+        t = np.hypot(v[r + 1], v[r + 2])
+        if t > 0.0:
+            dv[r] += p["mu"][r] * (v[r + 1] * D[r + 1] + v[r + 2] * D[r + 2]) / t
+    v_hat = v.copy()
+    for r in range(legs, m, 3):
+        v_hat[r] += p["mu"][r] * np.hypot(v[r + 1], v[r + 2])
+    a = x - v_hat
+    dpi = np.zeros((m, m))
+    for i in range(legs):
+        dpi[i, i] = 1.0 if p["lo"][i] < a[i] < p["hi"][i] else 0.0
+    for r in range(legs, m, 3):
+        mu, n, at = p["mu"][r], a[r], a[r + 1:r + 3]
+        t = np.linalg.norm(at)
+        if t <= mu * n:
+            dpi[r:r + 3, r:r + 3] = np.eye(3)
+        elif mu * t > -n:  # onto the boundary (the polar cone's points go to 0: dPi 0)
+            e = at / t
+            normal = (n + mu * t) / (1.0 + mu * mu)
+            dn = np.r_[1.0, mu * e] / (1.0 + mu * mu)  # d normal / d (a_n, a_t)
+            block = np.zeros((3, 3))
+            block[0] = dn
+            block[1:, :] = mu * np.outer(e, dn)
+            block[1:, 1:] += mu * normal * (np.eye(2) - np.outer(e, e)) / t
+            dpi[r:r + 3, r:r + 3] = block
+    return np.eye(m) - dpi @ (np.eye(m) - dv)
+
+
+def newton(p: dict, tol: float, max_steps: int = 20, analytic: bool = True):
+    """Semismooth Newton from the warm start: (solution, steps) or (None, max_steps). analytic: the
+    closed-form Jacobian (jacobian), else forward differences."""
     x = p["x0"].copy()
     f = natural_map(p, x)
     if np.abs(f).max() < tol:
         return x, 0
     for step in range(1, max_steps + 1):
-        jac = np.empty((len(x), len(x)))
-        for j in range(len(x)):
-            e = np.zeros(len(x))
-            e[j] = 1e-7
-            jac[:, j] = (natural_map(p, x + e) - f) / 1e-7
+        if analytic:
+            jac = jacobian(p, x)
+        else:
+            jac = np.empty((len(x), len(x)))
+            for j in range(len(x)):
+                e = np.zeros(len(x))
+                e[j] = 1e-7
+                jac[:, j] = (natural_map(p, x + e) - f) / 1e-7
         dx = np.linalg.lstsq(jac, -f, rcond=None)[0]
         size, t = np.abs(f).max(), 1.0
         while True:
@@ -111,7 +152,7 @@ def newton(p: dict, tol: float, max_steps: int = 20):
     return None, max_steps
 
 
-def probe(steps: int, skip: int, hardest: int, cap: int, designs: int | None = None) -> list:
+def probe(steps: int, skip: int, hardest: int, cap: int, designs: int | None = None, analytic: bool = True) -> list:
     from benchmarks.heterogeneity import reduced_batches
     from engine import SolverConfig
     from engine.legged import legged_step_batch, pack_legged
@@ -132,7 +173,7 @@ def probe(steps: int, skip: int, hardest: int, cap: int, designs: int | None = N
         for w in np.argsort(iterations, kind="stable")[::-1][:hardest]:
             p = dual_problem(model, int(w), warm[int(w)])
             tol = config.tolerance + config.relative_tolerance * float(np.abs(p["x0"]).max())
-            solution, count = newton(p, tol)
+            solution, count = newton(p, tol, analytic=analytic)
             both = solution is not None and iterations[w] < cap  # the engine converged too: compare the velocities
             row = {"step": step, "world": int(w), "rows": p["rows"], "engine_iterations": int(iterations[w]),
                    "newton_steps": None if solution is None else count, "tolerance": tol,
@@ -183,6 +224,8 @@ def main(argv=None) -> int:
     parser.add_argument("--hardest", type=int, default=4, help="worlds probed per step, most iterations first")
     parser.add_argument("--cap", type=int, default=200, help="the engine's PADMM iteration cap")
     parser.add_argument("--designs", type=int, default=None, help="random designs in the batch (default all 64)")
+    parser.add_argument("--jacobian", choices=["analytic", "difference"], default="analytic",
+                        help="Newton's Jacobian: closed form (default) or forward differences")
     parser.add_argument("--out", default=None, help="JSON file (a CSV beside it)")
     args = parser.parse_args(argv)
     if args.steps <= args.skip or args.skip < 0 or args.hardest < 1 or args.cap < 1:
@@ -191,7 +234,7 @@ def main(argv=None) -> int:
         parser.error("--designs must be >= 1")
     wp.config.quiet = True
     wp.init()
-    rows = probe(args.steps, args.skip, args.hardest, args.cap, args.designs)
+    rows = probe(args.steps, args.skip, args.hardest, args.cap, args.designs, args.jacobian == "analytic")
     total = summary(rows)
     print(json.dumps({"summary": total}), flush=True)
     if args.out:

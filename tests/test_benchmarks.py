@@ -591,3 +591,30 @@ def test_newton_probe_solves_analytic_contact_problems_and_the_walkers_hard_step
     assert compared and all(r["velocity_gap"] < 100 * r["tolerance"] for r in compared)
     assert (tmp_path / "probe.csv").read_text().startswith("step,world,rows")
     assert (tmp_path / "probe.png").stat().st_size > 0
+
+
+def test_newton_probes_closed_form_jacobian_matches_finite_differences():
+    """benchmarks.legged_newton_probe.jacobian, the generalized Jacobian of the natural map in
+    closed form (drives clamped, contact cones' inside, boundary and polar parts, the De Saxce
+    shift's derivative), equals central differences of the map at random points of random problems
+    (2 drives and 3 contacts, a random positive definite D) away from the kinks."""
+    from benchmarks.legged_newton_probe import jacobian, natural_map
+
+    rng = np.random.default_rng(7)
+    parts = {"inside": 0, "boundary": 0, "polar": 0}
+    for _ in range(40):
+        A = rng.normal(size=(11, 11))
+        p = {"legs": 2, "rows": 11, "D": A @ A.T / 11 + 0.1 * np.eye(11), "vf": rng.normal(size=11),
+             "mu": np.full(11, 0.6), "lo": np.full(11, -0.5), "hi": np.full(11, 0.5), "x0": np.zeros(11)}
+        x = rng.normal(size=11)
+        h = 1e-6
+        numeric = np.array([(natural_map(p, x + h * e) - natural_map(p, x - h * e)) / (2 * h) for e in np.eye(11)]).T
+        closed = jacobian(p, x)
+        v = p["D"] @ x + p["vf"]
+        a = x - v
+        for r in range(2, 11, 3):
+            a[r] -= 0.6 * np.hypot(v[r + 1], v[r + 2])
+            t = np.hypot(a[r + 1], a[r + 2])
+            parts["inside" if t <= 0.6 * a[r] else "polar" if 0.6 * t <= -a[r] else "boundary"] += 1
+        assert np.allclose(closed, numeric, atol=1e-5), np.abs(closed - numeric).max()
+    assert min(parts.values()) > 0, parts  # every branch of the cone's projection was checked
