@@ -122,9 +122,11 @@ def jacobian(p: dict, x: np.ndarray) -> np.ndarray:
     return np.eye(m) - dpi @ (np.eye(m) - dv)
 
 
-def newton(p: dict, tol: float, max_steps: int = 20, analytic: bool = True):
+def newton(p: dict, tol: float, max_steps: int = 20, analytic: bool = True, damping: float = 0.0):
     """Semismooth Newton from the warm start: (solution, steps) or (None, max_steps). analytic: the
-    closed-form Jacobian (jacobian), else forward differences."""
+    closed-form Jacobian (jacobian), else forward differences. damping > 0: each step solves
+    (J^T J + damping |J|^2 I) dx = -J^T F by Cholesky (what a kernel would factor: symmetric
+    positive definite however singular J is), else by least squares."""
     x = p["x0"].copy()
     f = natural_map(p, x)
     if np.abs(f).max() < tol:
@@ -138,7 +140,12 @@ def newton(p: dict, tol: float, max_steps: int = 20, analytic: bool = True):
                 e = np.zeros(len(x))
                 e[j] = 1e-7
                 jac[:, j] = (natural_map(p, x + e) - f) / 1e-7
-        dx = np.linalg.lstsq(jac, -f, rcond=None)[0]
+        if damping > 0.0:
+            normal = jac.T @ jac
+            normal[np.diag_indices_from(normal)] += damping * np.abs(jac).max() ** 2
+            dx = -np.linalg.solve(normal, jac.T @ f)
+        else:
+            dx = np.linalg.lstsq(jac, -f, rcond=None)[0]
         size, t = np.abs(f).max(), 1.0
         while True:
             x_new = x + t * dx
@@ -152,7 +159,8 @@ def newton(p: dict, tol: float, max_steps: int = 20, analytic: bool = True):
     return None, max_steps
 
 
-def probe(steps: int, skip: int, hardest: int, cap: int, designs: int | None = None, analytic: bool = True) -> list:
+def probe(steps: int, skip: int, hardest: int, cap: int, designs: int | None = None, analytic: bool = True,
+          damping: float = 0.0) -> list:
     from benchmarks.heterogeneity import reduced_batches
     from engine import SolverConfig
     from engine.legged import legged_step_batch, pack_legged
@@ -173,7 +181,7 @@ def probe(steps: int, skip: int, hardest: int, cap: int, designs: int | None = N
         for w in np.argsort(iterations, kind="stable")[::-1][:hardest]:
             p = dual_problem(model, int(w), warm[int(w)])
             tol = config.tolerance + config.relative_tolerance * float(np.abs(p["x0"]).max())
-            solution, count = newton(p, tol, analytic=analytic)
+            solution, count = newton(p, tol, analytic=analytic, damping=damping)
             both = solution is not None and iterations[w] < cap  # the engine converged too: compare the velocities
             row = {"step": step, "world": int(w), "rows": p["rows"], "engine_iterations": int(iterations[w]),
                    "newton_steps": None if solution is None else count, "tolerance": tol,
@@ -226,6 +234,8 @@ def main(argv=None) -> int:
     parser.add_argument("--designs", type=int, default=None, help="random designs in the batch (default all 64)")
     parser.add_argument("--jacobian", choices=["analytic", "difference"], default="analytic",
                         help="Newton's Jacobian: closed form (default) or forward differences")
+    parser.add_argument("--damping", type=float, default=0.0,
+                        help="> 0: Newton's steps from the damped normal equations (see newton), else least squares")
     parser.add_argument("--out", default=None, help="JSON file (a CSV beside it)")
     args = parser.parse_args(argv)
     if args.steps <= args.skip or args.skip < 0 or args.hardest < 1 or args.cap < 1:
@@ -234,7 +244,10 @@ def main(argv=None) -> int:
         parser.error("--designs must be >= 1")
     wp.config.quiet = True
     wp.init()
-    rows = probe(args.steps, args.skip, args.hardest, args.cap, args.designs, args.jacobian == "analytic")
+    if args.damping < 0:
+        parser.error("--damping must be >= 0")
+    rows = probe(args.steps, args.skip, args.hardest, args.cap, args.designs, args.jacobian == "analytic",
+                 args.damping)
     total = summary(rows)
     print(json.dumps({"summary": total}), flush=True)
     if args.out:

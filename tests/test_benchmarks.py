@@ -574,6 +574,8 @@ def test_newton_probe_solves_analytic_contact_problems_and_the_walkers_hard_step
     assert np.allclose(drive, [0.1])
     stick, _ = newton(problem([-1.0, 0.0, 0.0]), 1e-9)
     assert np.allclose(stick, [1.0, 0.0, 0.0])
+    damped, _ = newton(problem([-1.0, 0.0, 0.0]), 1e-9, damping=1e-9)  # the damped normal equations' step
+    assert np.allclose(damped, [1.0, 0.0, 0.0])
     apart, _ = newton(problem([1.0, 0.0, 0.0]), 1e-9)
     assert np.allclose(apart, 0.0)
     slide, _ = newton(problem([-1.0, 2.0, 0.0], mu=0.5), 1e-9)
