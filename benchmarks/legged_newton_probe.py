@@ -39,26 +39,31 @@ import numpy as np
 import warp as wp
 
 
-def dual_problem(model, w: int, warm: np.ndarray) -> dict:
-    """World w's last dual problem from engine.legged's scratch (preconditioned), and its warm start."""
+SCRATCH = ("leg_count", "row_count", "rows", "rows_J", "mass", "slot_of", "impulse")  # what dual_problem reads
+
+
+def dual_problem(scratch: dict, w: int, warm: np.ndarray) -> dict:
+    """World w's last dual problem from engine.legged's scratch (``scratch``: the model's SCRATCH
+    arrays as NumPy, read once after the step; preconditioned), its warm start and the engine's
+    solution."""
     from engine import legged
 
     nv, per_row = int(legged.NV), int(legged.ROW_VECS)
-    legs = int(model.leg_count.numpy()[w])
-    n, m = 6 + legs, int(model.row_count.numpy()[w])
-    rows = model.rows.numpy()[w].reshape(-1, per_row, 4).reshape(-1, per_row * 4)[:m].astype(float)
+    legs = int(scratch["leg_count"][w])
+    n, m = 6 + legs, int(scratch["row_count"][w])
+    rows = scratch["rows"][w].reshape(-1, per_row * 4)[:m].astype(float)
 
     def field(f):
         return rows[:, int(f)]
 
-    J = model.rows_J.numpy()[w].reshape(-1, nv)[:m, :n].astype(float)
-    M = model.mass.numpy()[w].reshape(nv, nv)[:n, :n].astype(float)
+    J = scratch["rows_J"][w].reshape(-1, nv)[:m, :n].astype(float)
+    M = scratch["mass"][w].reshape(nv, nv)[:n, :n].astype(float)
     P, R = field(legged.F_P), field(legged.F_R)
     D = J @ np.linalg.solve(M, J.T) + np.diag(P * P * R)
-    slots = model.slot_of.numpy()[w][:m]
+    slots = scratch["slot_of"][w][:m]
     return {"legs": legs, "rows": m, "D": D, "vf": field(legged.F_RHS), "mu": field(legged.F_MU),
             "lo": field(legged.F_LO), "hi": field(legged.F_HI), "x0": warm[slots] / P,
-            "engine": model.impulse.numpy()[w][slots].astype(float) / P}
+            "engine": scratch["impulse"][w][slots].astype(float) / P}
 
 
 def project(p: dict, a: np.ndarray) -> np.ndarray:
@@ -178,8 +183,9 @@ def probe(steps: int, skip: int, hardest: int, cap: int, designs: int | None = N
         if step < skip:
             continue
         iterations = model.iterations.numpy()
+        scratch = {name: getattr(model, name).numpy() for name in SCRATCH}
         for w in np.argsort(iterations, kind="stable")[::-1][:hardest]:
-            p = dual_problem(model, int(w), warm[int(w)])
+            p = dual_problem(scratch, int(w), warm[int(w)])
             tol = config.tolerance + config.relative_tolerance * float(np.abs(p["x0"]).max())
             solution, count = newton(p, tol, analytic=analytic, damping=damping)
             both = solution is not None and iterations[w] < cap  # the engine converged too: compare the velocities

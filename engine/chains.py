@@ -1120,6 +1120,16 @@ def add_children(m: ChainArrays, w: ChainWork, world: int, k: int):
 
 
 @wp.func
+def candidates_within(cand: Any, shapes: int, margin: float):
+    """How many of plane_candidates' rows of ``shapes`` shapes lie within the margin."""
+    count = int(0)
+    for slot in range(4 * shapes):
+        if cand[slot, 3] < margin:
+            count += 1
+    return count
+
+
+@wp.func
 def plane_candidates(m: ChainArrays, w: ChainWork, world: int, s: int, n: wp.vec3, off: float, margin: float,
                      cand: Any):
     """Shape s's candidate contacts against the ground plane into rows 4 s .. 4 s + 3 of the shared
@@ -1387,9 +1397,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                 if lane == 0:  # the contacts within the margin, in slot order, up to the capacity (rows of cand)
                     found = int(0)
                     if wp.static(handover == 1):
-                        for slot in range(4 * shapes):
-                            if cand[slot, 3] < margin:
-                                found += 1
+                        found = candidates_within(cand, shapes, margin)
                     if found > working and working < m.contact_capacity[world]:  # more than these tiles hold:
                         w.contact_overflow[world] = 1  # the full-capacity kernel takes the step over
                         w.contact_redone[world] = w.contact_redone[world] + 1
@@ -2085,11 +2093,7 @@ def initial_contacts_kernel(slots: int):
         shapes = m.shape_count[world]
         for s in range(shapes):
             plane_candidates(m, w, world, s, m.ground_normal[world], m.ground_offset[world], margin, cand)
-        count = int(0)
-        for slot in range(4 * shapes):
-            if cand[slot, 3] < margin:
-                count += 1
-        found[world] = wp.min(count, m.contact_capacity[world])
+        found[world] = wp.min(candidates_within(cand, shapes, margin), m.contact_capacity[world])
 
     return initial_contacts
 
