@@ -2,7 +2,7 @@
 
     python -m benchmarks.heterogeneity --device cuda [--worlds 4096] [--caps 100 50] [--stall-ratios 0 0.5]
                                        [--free-rhos 2e-4 1e-3] [--orderings minimum_degree shallow]
-                                       [--model maximal|reduced] [--out FILE]
+                                       [--model maximal|reduced] [--registers 64 0] [--out FILE]
 
 Random walkers (benchmarks.scenes.walkers: Jansen and Klann legs, random geometry, the maximal
 model on the sparse solver) against copies of the default walker (the family's largest topology:
@@ -19,7 +19,12 @@ world's iterations, not the mean. Prints one JSON line per run and writes them t
 --model reduced: the same designs in reduced coordinates (engine.legged, as the walker study runs
 them: studies/walker.toml's dt and [solver] settings, the cap from --caps), where each world
 iterates inside its own warp (a thread above engine.legged.TILED_MAX_WORLDS worlds, where a slow
-world holds up the 32 worlds of its warp) instead of in a loop shared by the whole batch.
+world holds up the 32 worlds of its warp) instead of in a loop shared by the whole batch. It adds
+a third batch, "default, phases spread": the default walker's copies with each world's cranks
+turned by a random angle of its own (spread_phases). Identical copies step in lockstep, every
+world the same loads and iterations at the same time, which a batch of designs never does; this
+batch is the same design without that. --registers: the tiled step's register cap per thread
+(engine.legged.TILED_REGISTERS by default; 0: the compiler's choice), each at every cap.
 """
 
 import argparse
@@ -68,8 +73,19 @@ def run(specs, worlds: int, cap: int, device: str, warmup: int, stall_ratio: flo
             "free_rho_used": float(model.padmm_rho_free.numpy()[0])}
 
 
-def run_reduced(specs, worlds: int, cap: int, device: str, warmup: int, study) -> dict:
-    """run() for engine.legged worlds, with the walker study's dt and solver settings (``study``)."""
+def spread_phases(model, seed: int = 0) -> None:
+    """Turn every world's cranks by one random angle of its own (its legs keep their relative
+    phases), so that copies of one design no longer step in lockstep."""
+    psi = model.psi.numpy()
+    psi += np.random.default_rng(seed).uniform(0.0, 2.0 * np.pi, size=(psi.shape[0], 1))
+    model.psi.assign(np.mod(psi, 2.0 * np.pi).astype(np.float32))
+
+
+def run_reduced(specs, worlds: int, cap: int, device: str, warmup: int, study, phases: bool = False,
+                registers: int | None = None) -> dict:
+    """run() for engine.legged worlds, with the walker study's dt and solver settings (``study``);
+    phases: spread_phases first; registers: LeggedModel.max_registers (None: engine.legged's default,
+    0: the compiler's choice)."""
     import dataclasses
 
     from engine import SolverConfig
@@ -77,6 +93,10 @@ def run_reduced(specs, worlds: int, cap: int, device: str, warmup: int, study) -
 
     config = dataclasses.replace(study.solver_config() or SolverConfig(), max_iterations=cap)
     model = pack_legged([specs[w % len(specs)] for w in range(worlds)], device=device, dt=study.dt, config=config)
+    if registers is not None:
+        model.max_registers = registers or None
+    if phases:
+        spread_phases(model)
     legged_step_batch(model, 1)  # compile outside the capture
     graph = None
     if model.device.is_cuda:
@@ -91,7 +111,8 @@ def run_reduced(specs, worlds: int, cap: int, device: str, warmup: int, study) -
             legged_step_batch(model, 10)
 
     return {**time_chunks(advance, model.iterations, model.device, warmup), "dt": study.dt,
-            "tiled": bool(model.tiled)}
+            "tiled": bool(model.tiled), "max_registers": model.max_registers,
+            "diverged": int(model.diverged.numpy().sum())}
 
 
 def reduced_batches() -> dict:
@@ -113,11 +134,14 @@ def reduced_batches() -> dict:
 
 
 def pair(batches: dict, settings: dict, measure) -> list:
-    """The random batch's row and the default's, ``settings`` plus ``measure(specs)`` each; the
-    random row carries the ratio of their times. Printed as they come."""
-    rows = [{"batch": name, **settings, **measure(specs)} for name, specs in batches.items()]
-    rows[0]["ratio_to_default"] = rows[0]["step_ms"] / rows[1]["step_ms"]
+    """One row per batch (the random batch, the default's, and any other), ``settings`` plus
+    ``measure(name, specs)`` each; every row but the default's carries the ratio of its time to the
+    default's. Printed as they come."""
+    rows = [{"batch": name, **settings, **measure(name, specs)} for name, specs in batches.items()]
+    default = next(row for row in rows if row["batch"] == "default")
     for row in rows:
+        if row is not default:
+            row["ratio_to_default"] = row["step_ms"] / default["step_ms"]
         print(json.dumps(row), flush=True)
     return rows
 
@@ -142,11 +166,16 @@ def main(argv=None) -> int:
     parser.add_argument("--orderings", nargs="+", choices=["minimum_degree", "shallow"], default=None,
                         help="SolverConfig.sparse_ordering values, each at every other setting (default: its "
                              "default; maximal model only)")
+    parser.add_argument("--registers", type=int, nargs="+", default=None,
+                        help="LeggedModel.max_registers values, each at every cap (0: the compiler's choice; "
+                             "default: engine.legged's; reduced model only)")
     parser.add_argument("--warmup", type=int, default=20, help="chunks of 10 steps before timing")
     parser.add_argument("--out", default=None, help="JSON file for the results")
     args = parser.parse_args(argv)
     if args.worlds < 1 or args.warmup < 0 or min(args.caps) < 1:
         parser.error("--worlds and --caps must be >= 1, --warmup >= 0")
+    if args.registers is not None and (args.model != "reduced" or min(args.registers) < 0):
+        parser.error("--registers applies to the reduced model only and must be >= 0")
     if args.model == "reduced" and (args.stall_ratios is not None or args.free_rhos is not None
                                     or args.orderings is not None):
         parser.error("--stall-ratios, --free-rhos and --orderings apply to the maximal model only (engine.legged "
@@ -167,9 +196,13 @@ def main(argv=None) -> int:
 
         study = load_study_spec(pathlib.Path(__file__).resolve().parents[1] / "studies" / "walker.toml")
         batches = reduced_batches()
-        for cap in args.caps:
-            rows += pair(batches, {"model": "reduced", "max_iterations": cap, "num_worlds": args.worlds},
-                         lambda specs: run_reduced(specs, args.worlds, cap, args.device, args.warmup, study))
+        batches["default, phases spread"] = batches["default"]
+        for registers in args.registers or [None]:
+            for cap in args.caps:
+                rows += pair(batches, {"model": "reduced", "max_iterations": cap, "num_worlds": args.worlds},
+                             lambda name, specs: run_reduced(specs, args.worlds, cap, args.device, args.warmup, study,
+                                                             phases=name.endswith("phases spread"),
+                                                             registers=registers))
     else:
         batches = {"random": walkers().specs, "default": walker_default().specs}
         for ordering in args.orderings:
@@ -178,8 +211,9 @@ def main(argv=None) -> int:
                     for cap in args.caps:
                         settings = {"model": "maximal", "max_iterations": cap, "stall_ratio": stall,
                                     "free_rho": free_rho, "sparse_ordering": ordering, "num_worlds": args.worlds}
-                        rows += pair(batches, settings, lambda specs: run(specs, args.worlds, cap, args.device,
-                                                                          args.warmup, stall, free_rho, ordering))
+                        rows += pair(batches, settings, lambda name, specs: run(specs, args.worlds, cap, args.device,
+                                                                                args.warmup, stall, free_rho,
+                                                                                ordering))
     if args.out:
         write_rows(args.out, args.device, "benchmarks.heterogeneity", argv, rows)
     return 0

@@ -40,7 +40,10 @@ every PADMM iteration (their sums and maxima reduced as one vector each), and th
 M + J^T S^-1 J; the (6 + L)-square inverse is applied by every lane. Larger batches (and the CPU)
 step one thread per world, as two kernels (the set-up through the Woodbury factor, then the
 PADMM iterations and the integration): more worlds than a GPU has warps keep it busy anyway. Both
-compute the same step. A row's PADMM state and fields are vec4s, each loaded and stored once per
+compute the same step. The tiled step is held to TILED_REGISTERS registers per thread, so that an
+SM holds 32 worlds: a world's step is a chain of dependent loads and reductions, and worlds that
+are not in lockstep (different designs, or one design at different phases) hide each other's
+latency only when many share an SM. A row's PADMM state and fields are vec4s, each loaded and stored once per
 iteration: with one thread per world a warp's loads touch 32 worlds' cache lines, so the number
 of load instructions, not the bytes, sets the time. A world whose state turns non-finite or whose
 torso moves faster than max_speed is flagged diverged and frozen; halted worlds are frozen.
@@ -71,6 +74,12 @@ MAX_CONTACTS = TORSO_CORNERS + 2 * MAX_LEGS  # slot k < 8: torso corner k; 8 + 2
 MAX_ROWS = wp.constant(MAX_LEGS + 3 * MAX_CONTACTS)
 TWO_PI = wp.constant(2.0 * math.pi)
 TILED_MAX_WORLDS = 8192  # see LeggedModel.lanes (H200: 4096 walkers 5.2 ms per step tiled against 10.1)
+# registers per thread of the tiled step on CUDA (LeggedModel.max_registers): left to the compiler it
+# takes 255, so an SM holds 8 worlds and a step of 4096 worlds runs in four rounds, each as slow as
+# its slowest world; at 64 an SM holds 32 (the most blocks it takes) and all 4096 run at once. H100,
+# 4096 walkers: 64 random designs 2.71 -> 1.68 ms per step, the default walker at spread crank
+# phases 2.55 -> 1.61 ms (identical copies in lockstep 0.96 -> 1.41 ms); 56, 72, 80 and 128 were slower
+TILED_REGISTERS = 64
 ROW_VECS = wp.constant(3)  # vec4 per row in the rows' scratch (see row_at)
 # a row's fields: the first two vec4 are what the PADMM iterations read (and the row velocity they write)
 F_RHS = wp.constant(0)  # free velocity v_f (preconditioned)
@@ -334,6 +343,7 @@ class LeggedModel:
         # rows), one thread per world beyond (more worlds than warps keep a GPU busy) and on the CPU
         self.tiled = self.device.is_cuda and W <= TILED_MAX_WORLDS
         self.lanes = 32 if self.device.is_cuda else 1  # per world, when tiled (a block is one thread on the CPU)
+        self.max_registers = TILED_REGISTERS  # per thread of the tiled step on CUDA (None: the compiler's choice)
         self.drive_torque = wp.zeros((W, MAX_LEGS), dtype=float, device=d)
         self.points = wp.zeros((W, 2 + MAX_LEGS), dtype=wp.vec3, device=d)
         self.energy = wp.zeros(W, dtype=float, device=d)
@@ -594,11 +604,12 @@ def project_cone(mu: float, a: float, b: float, c: float):
 
 
 @functools.cache
-def step_kernel(tiled: bool, phase: str = "all"):
+def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
     """The step kernel: tiled (launch_tiled, one block of lanes per world, lanes sharing the
     PADMM rows) or one thread per world (wp.launch; no block operations). phase: the whole step
     ("all"), or its set-up (through the Woodbury factor, "setup") and the PADMM iterations and
-    the integration ("solve") as two kernels, each with the registers it needs."""
+    the integration ("solve") as two kernels, each with the registers it needs. registers: at most
+    this many registers per thread on CUDA (None: the compiler's choice; see TILED_REGISTERS)."""
 
     @wp.func
     def sync():
@@ -669,7 +680,7 @@ def step_kernel(tiled: bool, phase: str = "all"):
                 Kinv[w, j * KINV_VECS + kv] = part
         sync()
 
-    @wp.kernel(enable_backward=False, module="unique")
+    @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=registers)
     def legged_step(
         dt: float,
         eta: float,
@@ -1412,7 +1423,7 @@ def legged_step_batch(model: LeggedModel, steps: int = 1):
     """Advance every world of ``model`` by ``steps`` steps."""
     inputs = _step_inputs(model)
     if model.tiled:
-        kernel = step_kernel(True)
+        kernel = step_kernel(True, "all", model.max_registers)
         for _ in range(steps):
             wp.launch_tiled(kernel, dim=[model.num_worlds], block_dim=model.lanes, inputs=inputs,
                             device=model.device)

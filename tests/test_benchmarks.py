@@ -335,11 +335,30 @@ def test_heterogeneity_runs_the_reduced_walkers(tmp_path):
 
     out = tmp_path / "hetero_reduced.json"
     assert heterogeneity.main(["--device", "cpu", "--worlds", "4", "--caps", "12", "--warmup", "1",
-                               "--model", "reduced", "--out", str(out)]) == 0
+                               "--model", "reduced", "--registers", "64", "0", "--out", str(out)]) == 0
     rows = json.loads(out.read_text())["results"]
-    assert [(r["batch"], r["model"]) for r in rows] == [("random", "reduced"), ("default", "reduced")]
+    batches = [("random", "reduced"), ("default", "reduced"), ("default, phases spread", "reduced")]
+    assert [(r["batch"], r["model"]) for r in rows] == batches * 2
+    assert [r["max_registers"] for r in rows] == [64] * 3 + [None] * 3
     assert all(r["step_ms"] > 0 and 0 < max(r["iterations_largest_world"]) <= 12 for r in rows)
-    assert rows[0]["ratio_to_default"] == pytest.approx(rows[0]["step_ms"] / rows[1]["step_ms"])
+    assert all(r["diverged"] == 0 for r in rows)
+    for first in (0, 3):
+        random_walkers, default, spread = rows[first:first + 3]
+        assert "ratio_to_default" not in default
+        assert random_walkers["ratio_to_default"] == pytest.approx(random_walkers["step_ms"] / default["step_ms"])
+        assert spread["ratio_to_default"] == pytest.approx(spread["step_ms"] / default["step_ms"])
+    with pytest.raises(SystemExit):
+        heterogeneity.main(["--device", "cpu", "--registers", "64"])  # maximal model: no register cap
+    from engine.legged import pack_legged
+
+    spec = heterogeneity.reduced_batches()["default"][0]
+    model = pack_legged([spec] * 3)
+    before = model.psi.numpy().copy()
+    heterogeneity.spread_phases(model)
+    turn = np.mod(model.psi.numpy() - before, 2 * np.pi)
+    legs = len(spec.legs)
+    assert np.allclose(turn[:, :legs], turn[:, :1], atol=1e-5)  # one turn per world, the legs' phases kept
+    assert np.ptp(turn[:, 0]) > 0.1  # and the worlds turned apart
     from morphopt.study_spec import load_study_spec
 
     study = load_study_spec(pathlib.Path(heterogeneity.__file__).resolve().parents[1] / "studies" / "walker.toml")

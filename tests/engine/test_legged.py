@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from engine import Integrator, SolverConfig, pack_worlds, rollout
-from engine.legged import legged_points, legged_rollout, legged_step_batch, pack_legged
+from engine.legged import TILED_REGISTERS, legged_points, legged_rollout, legged_step_batch, pack_legged, step_kernel
 from morphopt.evaluate import evaluate_dynamic
 from morphopt.families import load_family
 from morphopt.linkage.kinematics import solve_at
@@ -219,8 +219,16 @@ def test_tiled_and_per_thread_steps_agree():
              WALKER.build_legged({**WALKER.space.default(), "leg_family": "klann_leg", "legs_per_side": 2})]
     models = [pack_legged(specs, dt=2e-3, tiled=tiled) for tiled in (True, False)]
     assert [m.tiled for m in models] == [True, False]
-    for m in models:
+    # the tiled step is held to TILED_REGISTERS registers per thread on CUDA (the CPU ignores it);
+    # without the cap (None) it is the same kernel otherwise
+    assert models[0].max_registers == TILED_REGISTERS == 64
+    assert step_kernel(True, "all", models[0].max_registers).options["cuda_max_registers"] == 64
+    uncapped = pack_legged(specs, dt=2e-3, tiled=True)
+    uncapped.max_registers = None
+    assert step_kernel(True, "all", None).options.get("cuda_max_registers") is None
+    for m in (*models, uncapped):
         legged_step_batch(m, 200)
+    assert np.array_equal(uncapped.position.numpy(), models[0].position.numpy())
     tiled, plain = models
     assert np.abs(tiled.position.numpy() - plain.position.numpy()).max() < 1e-6
     assert np.abs(tiled.psi.numpy() - plain.psi.numpy()).max() < 1e-5
