@@ -18,7 +18,7 @@ world's iterations, not the mean. Prints one JSON line per run and writes them t
 
 --model reduced: the same designs in reduced coordinates (engine.legged, as the walker study runs
 them: studies/walker.toml's dt and [solver] settings, the cap from --caps), where each world
-iterates inside its own warp (a thread above engine.legged.TILED_MAX_WORLDS worlds, where a slow
+iterates inside its own warp (a thread above engine.legged.tiled_max_worlds, where a slow
 world holds up the 32 worlds of its warp) instead of in a loop shared by the whole batch. It adds
 a third batch, "default, phases spread": the default walker's copies with each world's cranks
 turned by a random angle of its own (spread_phases). Identical copies step in lockstep, every

@@ -33,20 +33,21 @@ plane z = 0 (the contact point on the capsule's surface below the end), kept wit
 SolverConfig.contact_margin; the contact candidates have fixed slots
 (their warm-start keys).
 
-On a GPU a batch of up to TILED_MAX_WORLDS worlds steps one warp per world: the lanes sum the
-mass matrix and bias forces one leg each, lane 0 assembles the torso blocks, factors and builds
-the rows, the lanes share the rows and contact triplets of the preconditioner, the warm start and
-every PADMM iteration (their sums and maxima reduced as one vector each), and the entries of
-M + J^T S^-1 J; the (6 + L)-square inverse is applied by every lane. Larger batches (and the CPU)
-step one thread per world, as two kernels (the set-up through the Woodbury factor, then the
-PADMM iterations and the integration): more worlds than a GPU has warps keep it busy anyway. Both
-compute the same step. The tiled step is held to TILED_REGISTERS registers per thread, so that an
-SM holds 32 worlds: a world's step is a chain of dependent loads and reductions, and worlds that
-are not in lockstep (different designs, or one design at different phases) hide each other's
-latency only when many share an SM. A row's PADMM state and fields are vec4s, each loaded and stored once per
-iteration: with one thread per world a warp's loads touch 32 worlds' cache lines, so the number
-of load instructions, not the bytes, sets the time. A world whose state turns non-finite or whose
-torso moves faster than max_speed is flagged diverged and frozen; halted worlds are frozen.
+On a GPU a batch of up to tiled_max_worlds(device) worlds (32 an SM) steps one warp per world:
+the lanes sum the mass matrix and bias forces one leg each, lane 0 assembles the torso blocks,
+factors and builds the rows, the lanes share the rows and contact triplets of the preconditioner,
+the warm start and every PADMM iteration (their sums and maxima reduced as one vector each), and
+the entries of M + J^T S^-1 J; the (6 + L)-square inverse is applied by every lane. Larger batches
+(and the CPU) step one thread per world, as two kernels (the set-up through the Woodbury factor,
+then the PADMM iterations and the integration): more worlds than a GPU has warps keep it busy
+anyway. Both compute the same step. The tiled step is held to TILED_REGISTERS registers per
+thread, so that an SM holds 32 worlds: a world's step is a chain of dependent loads and
+reductions, and worlds that are not in lockstep (different designs, or one design at different
+phases) hide each other's latency only when many share an SM. A row's PADMM state and fields are
+vec4s, each loaded and stored once per iteration: with one thread per world a warp's loads touch
+32 worlds' cache lines, so the number of load instructions, not the bytes, sets the time. A
+world whose state turns non-finite or whose torso moves faster than max_speed is flagged diverged
+and frozen; halted worlds are frozen.
 """
 
 import functools
@@ -73,13 +74,25 @@ TORSO_CORNERS = wp.constant(8)
 MAX_CONTACTS = TORSO_CORNERS + 2 * MAX_LEGS  # slot k < 8: torso corner k; 8 + 2 l + e: end e of leg l's shoe
 MAX_ROWS = wp.constant(MAX_LEGS + 3 * MAX_CONTACTS)
 TWO_PI = wp.constant(2.0 * math.pi)
-TILED_MAX_WORLDS = 8192  # see LeggedModel.lanes (H200: 4096 walkers 5.2 ms per step tiled against 10.1)
 # registers per thread of the tiled step on CUDA (LeggedModel.max_registers): left to the compiler it
 # takes 255, so an SM holds 8 worlds and a step of 4096 worlds runs in four rounds, each as slow as
 # its slowest world; at 64 an SM holds 32 (the most blocks it takes) and all 4096 run at once. H100,
 # 4096 walkers: 64 random designs 2.71 -> 1.68 ms per step, the default walker at spread crank
 # phases 2.55 -> 1.61 ms (identical copies in lockstep 0.96 -> 1.41 ms); 56, 72, 80 and 128 were slower
 TILED_REGISTERS = 64
+# worlds per SM the tiled step holds at once (32 blocks, the most an SM takes): a batch of up to
+# this many per SM steps tiled, a larger one a thread per world (tiled_max_worlds). Past one round
+# the tiled step is throughput-bound while the one-thread step barely grows (H100, 132 SMs, 64
+# random designs: tiled 1.68 ms at 4096 worlds, 5.24 at 8192; one thread 3.45, 3.53 and 3.60 ms at
+# 4096, 8192 and 16384)
+TILED_WORLDS_PER_SM = 32
+
+
+def tiled_max_worlds(device) -> int:
+    """The most worlds ``device`` steps tiled (a block of lanes per world): one round of
+    TILED_WORLDS_PER_SM worlds on each of its SMs; 0 on the CPU."""
+    device = wp.get_device(device)
+    return TILED_WORLDS_PER_SM * device.sm_count if device.is_cuda else 0
 ROW_VECS = wp.constant(3)  # vec4 per row in the rows' scratch (see row_at)
 # a row's fields: the first two vec4 are what the PADMM iterations read (and the row velocity they write)
 F_RHS = wp.constant(0)  # free velocity v_f (preconditioned)
@@ -339,9 +352,9 @@ class LeggedModel:
         self.row_count = wp.zeros(W, dtype=wp.int32, device=d)
         self.ufree = wp.zeros((W, NV), dtype=float, device=d)
         self.factor_inverse = wp.zeros((W, NV * KINV_VECS), dtype=wp.vec4, device=d)
-        # one warp per world on a GPU up to TILED_MAX_WORLDS worlds (the lanes share each world's
-        # rows), one thread per world beyond (more worlds than warps keep a GPU busy) and on the CPU
-        self.tiled = self.device.is_cuda and W <= TILED_MAX_WORLDS
+        # one warp per world on a GPU up to tiled_max_worlds (the lanes share each world's rows), one
+        # thread per world beyond (more worlds than warps keep a GPU busy) and on the CPU
+        self.tiled = self.device.is_cuda and W <= tiled_max_worlds(self.device)
         self.lanes = 32 if self.device.is_cuda else 1  # per world, when tiled (a block is one thread on the CPU)
         self.max_registers = TILED_REGISTERS  # per thread of the tiled step on CUDA (None: the compiler's choice)
         self.drive_torque = wp.zeros((W, MAX_LEGS), dtype=float, device=d)
@@ -357,7 +370,7 @@ class LeggedModel:
 def pack_legged(specs: list, *, device="cpu", dt: float = 2e-3, config: SolverConfig | None = None,
                 tiled: bool | None = None) -> LeggedModel:
     """One batch of legged worlds (see LeggedSpec) on ``device``, stepped with ``dt`` [s].
-    tiled: one block of lanes per world (default on a GPU up to TILED_MAX_WORLDS worlds) or one
+    tiled: one block of lanes per world (default on a GPU up to tiled_max_worlds worlds) or one
     thread per world; both compute the same step (on the CPU a block is one thread)."""
     if not specs:
         raise ValueError("pack_legged: needs at least one world")

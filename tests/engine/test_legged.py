@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from engine import Integrator, SolverConfig, pack_worlds, rollout
-from engine.legged import TILED_REGISTERS, legged_points, legged_rollout, legged_step_batch, pack_legged, step_kernel
+from engine.legged import (TILED_REGISTERS, legged_points, legged_rollout, legged_step_batch, pack_legged, step_kernel,
+                           tiled_max_worlds)
 from morphopt.evaluate import evaluate_dynamic
 from morphopt.families import load_family
 from morphopt.linkage.kinematics import solve_at
@@ -222,6 +223,7 @@ def test_tiled_and_per_thread_steps_agree():
     # the tiled step is held to TILED_REGISTERS registers per thread on CUDA (the CPU ignores it);
     # without the cap (None) it is the same kernel otherwise
     assert models[0].max_registers == TILED_REGISTERS == 64
+    assert tiled_max_worlds("cpu") == 0 and not pack_legged(specs).tiled  # the CPU steps a thread per world
     assert step_kernel(True, "all", models[0].max_registers).options["cuda_max_registers"] == 64
     uncapped = pack_legged(specs, dt=2e-3, tiled=True)
     uncapped.max_registers = None
