@@ -1123,23 +1123,37 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
                     for c in range(3):
                         gl = row_add(Jc, w, r0 + c, True, col, bs[c] * invs[c], gl)
                 unit += lanes
-            # Woodbury: x = t - S^-1 J (M + J^T S^-1 J)^-1 J^T t, the small inverse applied by every lane
-            # (symmetric: its lower triangle read once, four entries per load; the rows and columns
-            # past n are zero)
+            # Woodbury: x = t - S^-1 J (M + J^T S^-1 J)^-1 J^T t, the small inverse applied to the sum
+            # (its rows and columns past n are zero)
             gsum = reduce_vector(gl)
             yv = vecnv()
-            for k in range(NV):
-                if k < n:
+            if lanes >= NV:
+                # a lane per entry: lane k takes row k of the inverse (four entries per load), the
+                # lanes share the entries through one tile
+                yk = float(0.0)
+                if lane < n:
                     for kv in range(KINV_VECS):
-                        if 4 * kv <= k:
-                            kq = Kinv[w, k * KINV_VECS + kv]
-                            for t in range(4):
-                                j = 4 * kv + t
-                                if j < k:
-                                    yv[k] += kq[t] * gsum[j]
-                                    yv[j] += kq[t] * gsum[k]
-                                elif j == k:
-                                    yv[k] += kq[t] * gsum[k]
+                        kq = Kinv[w, lane * KINV_VECS + kv]
+                        for t in range(4):
+                            if 4 * kv + t < NV:
+                                yk += kq[t] * gsum[4 * kv + t]
+                entries = wp.tile(yk)
+                for k in range(NV):
+                    yv[k] = wp.tile_extract(entries, k)
+            else:
+                # one lane (the CPU): the symmetric inverse's lower triangle read once
+                for k in range(NV):
+                    if k < n:
+                        for kv in range(KINV_VECS):
+                            if 4 * kv <= k:
+                                kq = Kinv[w, k * KINV_VECS + kv]
+                                for t in range(4):
+                                    j = 4 * kv + t
+                                    if j < k:
+                                        yv[k] += kq[t] * gsum[j]
+                                        yv[j] += kq[t] * gsum[k]
+                                    elif j == k:
+                                        yv[k] += kq[t] * gsum[k]
             rp = float(0.0)
             rd = float(0.0)
             rn = float(0.0)
@@ -1274,19 +1288,22 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
                         merit = 1.0e30
                         beta = 0.0
         sync()
+        # the impulses by slot and J^T lambda, the rows over the lanes (summed as one vector); then
+        # the velocity update and the integration on lane 0
+        for i in range(lane, MAX_ROWS, lanes):
+            impulse[w, i] = 0.0
+        sync()
+        jl = vecnv()
+        for r in range(lane, m, lanes):
+            yr = s2[w, r][0]
+            f0 = rows[w, ROW_VECS * r]
+            impulse[w, slot_of[w, r]] = yr * row_at(rows, w, r, F_P)
+            # the compact rows are preconditioned: J~^T y = J^T lambda
+            jl = row_add(Jc, w, r, f0[F_MU] >= 0.0, int(row_at(rows, w, r, F_COL)), yr, jl)
+        jl = reduce_vector(jl)
         if lane != 0:
             return
         iterations_out[w] = its
-        # impulses, velocity update
-        for i in range(MAX_ROWS):
-            impulse[w, i] = 0.0
-        jl = vecnv()
-        for r in range(m):
-            yr = s2[w, r][0]
-            lam = yr * row_at(rows, w, r, F_P)
-            impulse[w, slot_of[w, r]] = lam
-            for c in range(NV):
-                jl[c] += J[w, r * NV + c] * yr  # J is preconditioned: J~^T y = J^T lambda
         uf = vecnv()
         for c in range(NV):
             uf[c] = ufree[w, c]
