@@ -36,18 +36,20 @@ SolverConfig.contact_margin; the contact candidates have fixed slots
 On a GPU a batch of up to tiled_max_worlds(device) worlds (32 an SM) steps one warp per world:
 the lanes sum the mass matrix and bias forces one leg each, lane 0 assembles the torso blocks,
 factors and builds the rows, the lanes share the rows and contact triplets of the preconditioner,
-the warm start and every PADMM iteration (their sums and maxima reduced as one vector each), and
-the entries of M + J^T S^-1 J; the (6 + L)-square inverse is applied by every lane. Larger batches
-(and the CPU) step one thread per world, as two kernels (the set-up through the Woodbury factor,
-then the PADMM iterations and the integration): more worlds than a GPU has warps keep it busy
-anyway. Both compute the same step. The tiled step is held to TILED_REGISTERS registers per
-thread, so that an SM holds 32 worlds: a world's step is a chain of dependent loads and
-reductions, and worlds that are not in lockstep (different designs, or one design at different
-phases) hide each other's latency only when many share an SM. A row's PADMM state and fields are
-vec4s, each loaded and stored once per iteration: with one thread per world a warp's loads touch
-32 worlds' cache lines, so the number of load instructions, not the bytes, sets the time. A
-world whose state turns non-finite or whose torso moves faster than max_speed is flagged diverged
-and frozen; halted worlds are frozen.
+the warm start and every PADMM iteration (their sums and maxima reduced as one vector each), the
+entries of M + J^T S^-1 J, the rows of its (6 + L)-square inverse when it is applied, and the
+impulses of the velocity update. Larger batches (and the CPU) step one thread per world, as two
+kernels (the set-up through the warm start, then the Woodbury factor, the PADMM iterations and the
+integration): more worlds than a GPU has warps keep it busy anyway. Both compute the same step.
+The tiled step is held to TILED_REGISTERS registers per thread, so that an SM holds 32 worlds: a
+world's step is a chain of dependent loads and reductions, and worlds that are not in lockstep
+(different designs, or one design at different phases) hide each other's latency only when many
+share an SM. Its code is large enough that the instruction cache matters (ncu: a third of the
+warps' stalls wait on an instruction fetch), so the Woodbury factor has one call site. A row's
+PADMM state and fields are vec4s, each loaded and stored once per iteration: with one thread per
+world a warp's loads touch 32 worlds' cache lines, so the number of load instructions, not the
+bytes, sets the time. A world whose state turns non-finite or whose torso moves faster than
+max_speed is flagged diverged and frozen; halted worlds are frozen.
 """
 
 import functools
@@ -620,8 +622,8 @@ def project_cone(mu: float, a: float, b: float, c: float):
 def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
     """The step kernel: tiled (launch_tiled, one block of lanes per world, lanes sharing the
     PADMM rows) or one thread per world (wp.launch; no block operations). phase: the whole step
-    ("all"), or its set-up (through the Woodbury factor, "setup") and the PADMM iterations and
-    the integration ("solve") as two kernels, each with the registers it needs. registers: at most
+    ("all"), or its set-up (through the warm start, "setup") and the Woodbury factor, the PADMM
+    iterations and the integration ("solve") as two kernels, each with the registers it needs. registers: at most
     this many registers per thread on CUDA (None: the compiler's choice; see TILED_REGISTERS)."""
 
     @wp.func
@@ -1069,8 +1071,6 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
                     prior = s2[w, r + c]
                     s2[w, r + c] = wp.vec4(prior[0], zc, prior[2], zc)
                 unit += lanes
-            sync()  # every lane is done with the rows' set-up
-            woodbury_factor(J, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
         if wp.static(phase == "setup"):
             return
         m = row_count[w]  # (again, for the solve phase's kernel)
@@ -1081,7 +1081,14 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
         momentum = float(1.0)
         merit = float(1.0e30)
         beta = float(0.0)
+        refactor = int(1)  # the Woodbury factor at the first iteration and after a new penalty
         while its < max_iterations and converged == 0 and m > 0:
+            if refactor != 0:
+                # one call site: the factor's code is large, and a second inlined copy costs the
+                # instruction cache more than the branch costs
+                sync()  # every lane is done with the rows (their set-up or the new penalties)
+                woodbury_factor(J, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
+                refactor = 0
             # each lane takes units (a drive row or a contact triplet) lane, lane + lanes, ...: the
             # right-hand side b at the extrapolated (y, z) with the De Saxce shift from the velocity
             # at the last iterate, t = S^-1 b and its share of J^T t. A row's PADMM state is two
@@ -1281,8 +1288,7 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
                             for i in range(m):  # z is the unscaled multiplier: it stays; the momentum restarts
                                 prior = s2[w, i]
                                 s2[w, i] = wp.vec4(prior[0], prior[1], prior[0], prior[1])
-                        sync()
-                        woodbury_factor(J, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
+                        refactor = 1  # at the next iteration, if there is one
                         rho = new_rho
                         momentum = 1.0
                         merit = 1.0e30
