@@ -61,7 +61,6 @@ import numpy as np
 import warp as wp
 
 from engine.linear import block_sync
-from engine.matrix_free import block_sum
 from engine.model import SolverConfig
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
@@ -246,6 +245,15 @@ veclegs = wp.types.vector(length=MAX_LEGS, dtype=wp.float32)
 # the legs' sums of a step's set-up: mass, m d (3), the angular block (9), the torso's bias force and
 # torque (6), each leg's bias force (MAX_LEGS)
 vecsetup = wp.types.vector(length=19 + MAX_LEGS, dtype=wp.float32)
+# an iteration's residuals (primal, dual, natural), largest impulse and merit: the first four
+# reduced by their maximum, the merit by its sum (max4_sum1)
+vecstats = wp.types.vector(length=5, dtype=wp.float32)
+
+
+@wp.func
+def max4_sum1(a: vecstats, b: vecstats):
+    """The reduction of an iteration's statistics: largest of the first four, sum of the last."""
+    return vecstats(wp.max(a[0], b[0]), wp.max(a[1], b[1]), wp.max(a[2], b[2]), wp.max(a[3], b[3]), a[4] + b[4])
 
 
 class LeggedModel:
@@ -633,13 +641,6 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
             block_sync()
 
     @wp.func
-    def reduce_sum(value: float):
-        """Sum over the world's lanes."""
-        if wp.static(tiled):
-            return block_sum(value)
-        return value
-
-    @wp.func
     def reduce_vector(value: Any):
         """Sum of a vector over the world's lanes, in one reduction."""
         if wp.static(tiled):
@@ -647,10 +648,10 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
         return value
 
     @wp.func
-    def reduce_max4(value: wp.vec4):
-        """Componentwise largest of a vec4 over the world's lanes, in one reduction."""
+    def reduce_stats(value: vecstats):
+        """An iteration's statistics over the world's lanes (max4_sum1), in one reduction."""
         if wp.static(tiled):
-            return wp.tile_extract(wp.tile_reduce(wp.max, wp.tile(value, preserve_type=True)), 0)
+            return wp.tile_extract(wp.tile_reduce(max4_sum1, wp.tile(value, preserve_type=True)), 0)
         return value
 
     @wp.func
@@ -1256,12 +1257,12 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
                         s1[w, r0 + c] = wp.vec4(xr, xps[c], vels3[c], ts[c])
                         ymax = wp.max(ymax, wp.abs(yn))
                 unit += lanes
-            largest = reduce_max4(wp.vec4(rp, rd, rn, ymax))
-            rp = largest[0]
-            rd = largest[1]
-            rn = largest[2]
-            ymax = largest[3]
-            change = reduce_sum(change)
+            stats = reduce_stats(vecstats(rp, rd, rn, ymax, change))
+            rp = stats[0]
+            rd = stats[1]
+            rn = stats[2]
+            ymax = stats[3]
+            change = stats[4]
             its += 1
             tol = tolerance + relative_tolerance * ymax
             if rp < tol and rd < tol and rn < tol:
