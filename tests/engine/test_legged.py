@@ -4,6 +4,7 @@ conservation laws, static equilibrium on the ground, and the evaluation and stud
 
 import dataclasses
 import math
+import pathlib
 import textwrap
 
 import numpy as np
@@ -236,6 +237,45 @@ def test_tiled_and_per_thread_steps_agree():
     assert np.abs(tiled.psi.numpy() - plain.psi.numpy()).max() < 1e-5
     assert np.abs(tiled.impulse.numpy() - plain.impulse.numpy()).max() < 1e-6
     assert np.linalg.norm(plain.position.numpy()[0] - specs[0].torso_position) > 1e-3  # it moved
+
+
+def test_cuda_tiled_step_matches_the_cpu():
+    """On CUDA the tiled step's 32 lanes share what one lane does on the CPU: the rows of the
+    Woodbury inverse (through a tile), the impulses of the velocity update, one reduction of the
+    residuals and the merit. Walkers of both leg families on the ground, with their contacts and
+    PADMM iterations: after one step and after five, CUDA tiled and CUDA one thread per world give
+    the CPU's result to float32 rounding (a lane reading the wrong row or entry would not), and the
+    register cap changes nothing, bit for bit."""
+    import warp as wp
+
+    if not wp.is_cuda_available():
+        pytest.skip("no CUDA device on this machine")
+    default = WALKER.space.default()
+    specs = [WALKER.build_legged(p) for p in (
+        default, {**default, "leg_family": "klann_leg", "legs_per_side": 2},
+        {**default, "legs_per_side": 2, "stance": 0.8}, {**default, "leg_family": "klann_leg", "scale": 3.5})]
+    study = load_study_spec(pathlib.Path(__file__).resolve().parents[2] / "studies" / "walker.toml")
+    for steps in (1, 5):
+        runs = {}
+        for name, device, tiled, registers in (("cpu", "cpu", True, TILED_REGISTERS),
+                                               ("tiled", "cuda", True, TILED_REGISTERS),
+                                               ("uncapped", "cuda", True, None), ("thread", "cuda", False, None)):
+            model = pack_legged(specs, device=device, dt=study.dt, config=study.solver_config(), tiled=tiled)
+            model.max_registers = registers
+            legged_step_batch(model, steps)
+            assert model.tiled == tiled and not model.diverged.numpy().any()
+            runs[name] = {"velocity": model.velocity.numpy(), "rates": model.psi_dot.numpy(),
+                          "impulse": model.impulse.numpy(), "position": model.position.numpy(),
+                          "iterations": model.iterations.numpy(), "contacts": model.contacts.numpy()}
+        cpu = runs["cpu"]
+        assert cpu["contacts"].min() > 0 and cpu["iterations"].min() > 0  # contacts and PADMM in every world
+        for name in ("tiled", "thread"):
+            run = runs[name]
+            assert np.abs(run["velocity"] - cpu["velocity"]).max() < 1e-4, (steps, name)
+            assert np.abs(run["rates"] - cpu["rates"]).max() < 1e-2, (steps, name)
+            assert np.abs(run["impulse"] - cpu["impulse"]).max() < 1e-4 * max(1.0, np.abs(cpu["impulse"]).max())
+        for key in ("position", "velocity", "rates", "impulse"):
+            assert np.array_equal(runs["uncapped"][key], runs["tiled"][key]), key
 
 
 def test_evaluate_dynamic_reduced():
