@@ -94,6 +94,8 @@ def tiled_max_worlds(device) -> int:
     TILED_WORLDS_PER_SM worlds on each of its SMs; 0 on the CPU."""
     device = wp.get_device(device)
     return TILED_WORLDS_PER_SM * device.sm_count if device.is_cuda else 0
+
+
 ROW_VECS = wp.constant(3)  # vec4 per row in the rows' scratch (see row_at)
 # a row's fields: the first two vec4 are what the PADMM iterations read (and the row velocity they write)
 F_RHS = wp.constant(0)  # free velocity v_f (preconditioned)
@@ -631,8 +633,9 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
     """The step kernel: tiled (launch_tiled, one block of lanes per world, lanes sharing the
     PADMM rows) or one thread per world (wp.launch; no block operations). phase: the whole step
     ("all"), or its set-up (through the warm start, "setup") and the Woodbury factor, the PADMM
-    iterations and the integration ("solve") as two kernels, each with the registers it needs. registers: at most
-    this many registers per thread on CUDA (None: the compiler's choice; see TILED_REGISTERS)."""
+    iterations and the integration ("solve") as two kernels, each with the registers it needs.
+    registers: at most this many registers per thread on CUDA (None: the compiler's choice; see
+    TILED_REGISTERS)."""
 
     @wp.func
     def sync():
@@ -1149,7 +1152,8 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
                 for k in range(NV):
                     yv[k] = wp.tile_extract(entries, k)
             else:
-                # one lane (the CPU): the symmetric inverse's lower triangle read once
+                # one lane (the CPU, or a thread per world): the symmetric inverse's lower triangle
+                # read once
                 for k in range(NV):
                     if k < n:
                         for kv in range(KINV_VECS):
