@@ -1,7 +1,7 @@
 """The `morphopt` command line: nested subcommands.
 
-    morphopt study run SPEC [--device D] [--worlds N] [--generations G] [--seed S]
-    morphopt study resume SPEC
+    morphopt study run SPEC [--device D] [--worlds N] [--generations G] [--seed S] [--fresh] [--steal]
+    morphopt study resume SPEC [--generations G] [--device D] [--steal] [--trust-checkpoint]
     morphopt study show SPEC [--top K]
     morphopt study plot SPEC [--out PNG]
     morphopt study export SPEC --optuna-storage URL
@@ -69,9 +69,15 @@ def _demo(args) -> int:
 
 
 def _study_spec(args):
+    """The study file with the overrides of the command line; every command but `run` first applies
+    the ones the stored study was run with (morphopt.study.stored_spec)."""
     from morphopt.study_spec import load_study_spec
 
     spec = load_study_spec(args.spec)
+    if getattr(args, "study_command", None) != "run":
+        from morphopt.study import stored_spec
+
+        spec = stored_spec(spec)
     overrides = {k: getattr(args, k, None) for k in ("device", "worlds", "generations", "seed")}
     return spec.with_overrides(**overrides)
 
@@ -80,7 +86,8 @@ def _study_run(args) -> int:
     from morphopt.study import run_study
 
     spec = _study_spec(args)
-    result = run_study(spec, resume=args.study_command == "resume")
+    result = run_study(spec, resume=args.study_command == "resume", fresh=getattr(args, "fresh", False),
+                       steal=args.steal, trust_checkpoint=getattr(args, "trust_checkpoint", False))
     print(f"study '{spec.name}': {result.evaluations} designs in {result.seconds:.1f} s "
           f"({result.evaluations / max(result.seconds, 1e-9):,.0f} designs/s; sampling and storage "
           f"{100 * result.overhead:.1f} % of it), results in {spec.storage_url}")
@@ -215,6 +222,18 @@ def build_parser() -> argparse.ArgumentParser:
             sub.add_argument("--worlds", type=_positive(int), help="designs per generation (worlds per batch)")
             sub.add_argument("--generations", type=_positive(int), help="number of generations")
             sub.add_argument("--seed", type=int, help="random seed")
+            sub.add_argument("--fresh", action="store_true",
+                             help="start over on a study that has results (they are kept under a new name)")
+        if name == "resume":
+            sub.add_argument("--generations", type=_positive(int),
+                             help="total generations (more than stored: extends the study)")
+            sub.add_argument("--device", help="Warp device to continue on: cpu, cuda, cuda:N")
+            sub.add_argument("--trust-checkpoint", action="store_true",
+                             help="a study stored by an earlier morphopt (a pickled checkpoint, never unpickled): "
+                                  "rebuild its optimizer from the stored designs")
+        if name in ("run", "resume"):
+            sub.add_argument("--steal", action="store_true",
+                             help="take the study over from a writer that is gone (its lease is not yet stale)")
         if name == "show":
             sub.add_argument("--top", type=_positive(int), default=10, help="rows to show (default 10)")
         if name == "plot":

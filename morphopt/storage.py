@@ -11,31 +11,34 @@ list, parameters with the same value in every design as that value, anything els
 row's ``extras``. Non-finite metrics read back as NaN. Databases written by earlier versions
 (parameters and metrics as JSON text) are read as they are and extended in the new layout.
 
-The optimizer checkpoint is a pickle, read only from the study's own row of its own storage and
-only through ``load_checkpoint``: an unpickler that builds the optimizers' own classes and NumPy,
-pycma and Optuna objects (restoring their state, without running their constructors) and calls
-no function outside a short list of NumPy and standard-library constructors, so a damaged or
-foreign checkpoint fails with a ValueError naming the storage instead of running code.
+Guarantees: nothing read from a database runs code (checkpoints are JSON and float64 arrays,
+morphopt.checkpoint); one writer per study (a lease row in ``studies``, taken before the first
+generation, checked and renewed in every generation's transaction, renewed by a heartbeat while
+the writer lives, taken over only when stale or on request); a generation is stored whole or not
+at all; results are never deleted (a fresh run moves the earlier ones aside under a new name);
+the schema is created race-free by any number of processes at once. Driver errors (read-only,
+locked, damaged, full) are ValueErrors of one line naming the study and its storage.
 """
 
 from __future__ import annotations
 
-import enum
-import io
 import itertools
 import json
 import math
 import operator
+import os
 import pathlib
-import pickle
-import types
-from typing import ClassVar
+import socket
+import threading
+import time
+import uuid
+from datetime import datetime, timezone
 
 import numpy as np
 import pandas as pd
 import sqlalchemy as sa
 
-__all__ = ["StudyStorage", "dump_checkpoint", "export_to_optuna", "load_checkpoint", "read_designs", "storage_exists"]
+__all__ = ["LEASE_SECONDS", "StudyStorage", "export_to_optuna", "read_designs", "storage_exists"]
 
 METADATA = sa.MetaData()
 DESIGNS = sa.Table(
@@ -55,105 +58,60 @@ CHECKPOINTS = sa.Table(
     sa.Column("study", sa.String(200), primary_key=True), sa.Column("generation", sa.Integer),
     sa.Column("state", sa.LargeBinary), sa.Column("seconds", sa.Float),
 )
+STUDIES = sa.Table(  # one row per study: its effective settings and its writer's lease
+    "studies", METADATA,
+    sa.Column("name", sa.String(255), primary_key=True), sa.Column("settings", sa.Text),
+    sa.Column("created", sa.Float), sa.Column("owner", sa.String(64), nullable=True),
+    sa.Column("host", sa.String(255), nullable=True), sa.Column("pid", sa.Integer, nullable=True),
+    sa.Column("since", sa.Float, nullable=True), sa.Column("heartbeat", sa.Float, nullable=True),
+)
+OPTIMIZER_LOG = sa.Table(  # per generation: what the optimizer asked for (a digest) and was told (float64)
+    "optimizer_log", METADATA,
+    sa.Column("study", sa.String(255), primary_key=True), sa.Column("generation", sa.Integer, primary_key=True),
+    sa.Column("asked", sa.String(64)), sa.Column("width", sa.Integer), sa.Column("told", sa.LargeBinary),
+)
+LEASE_SECONDS = 120.0  # a lease whose heartbeat is older than this is stale (the heartbeat runs every 15 s)
+HEARTBEAT_SECONDS = 15.0
+SQLITE_TIMEOUT = 30.0  # seconds a writer waits for another connection's lock before giving up
 
 
-CHECKPOINT_MODULES = ("morphopt.design_space", "morphopt.optimizers", "cma", "optuna", "numpy", "datetime")
-CHECKPOINT_BUILTINS = ("set", "frozenset", "complex", "slice", "range", "bytearray", "getattr")
-CHECKPOINT_CALLS = {  # the only callables a checkpoint may call while it is read (besides enum lookups)
-    ("numpy", "dtype"), ("numpy._core.multiarray", "_reconstruct"), ("numpy.core.multiarray", "_reconstruct"),
-    ("numpy._core.multiarray", "scalar"), ("numpy.core.multiarray", "scalar"),
-    ("numpy.random._pickle", "__bit_generator_ctor"), ("numpy.random._pickle", "__generator_ctor"),
-    ("numpy.random._pickle", "__randomstate_ctor"), ("numpy.random.bit_generator", "__pyx_unpickle_SeedSequence"),
-    ("datetime", "datetime"), ("datetime", "date"), ("datetime", "timedelta"), ("datetime", "timezone"),
-    ("builtins", "set"), ("builtins", "frozenset"), ("builtins", "complex"), ("builtins", "slice"),
-    ("builtins", "range"), ("builtins", "bytearray"), ("builtins", "getattr"),
-}
+def _driver_reason(exc: BaseException) -> str:
+    """The first line of a driver error, with what it means for a study database."""
+    text = str(getattr(exc, "orig", None) or exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    low = text.lower()
+    hints = (("readonly", "the database or its folder is read-only"),
+             ("read-only", "the database or its folder is read-only"),
+             ("locked", f"another connection held a lock on it for more than {SQLITE_TIMEOUT:g} s"),
+             ("malformed", "the file is damaged; restore it from a copy"),
+             ("not a database", "the file is damaged or not an SQLite database"),
+             ("disk is full", "the disk is full; free space, then resume"),
+             ("no space", "the disk is full; free space, then resume"),
+             ("unable to open", "the file or its folder cannot be opened"))
+    hint = next((h for key, h in hints if key in low), None)
+    return f"{text} ({hint})" if hint else text
 
 
-def _allowed_module(module) -> bool:
-    return isinstance(module, str) and any(module == m or module.startswith(m + ".") for m in CHECKPOINT_MODULES)
-
-
-def _checkpoint_getattr(obj, name):
-    """getattr as a checkpoint may use it: public methods of NumPy random generators (pycma keeps
-    ``RandomState.randn`` as its sampler), nothing else."""
-    import numpy as np
-
-    if not isinstance(name, str) or name.startswith("_") or not isinstance(obj, (np.random.RandomState,
-                                                                                  np.random.Generator)):
-        raise pickle.UnpicklingError(f"attribute {name!r} of a {type(obj).__name__} is not allowed in a checkpoint")
-    return getattr(obj, name)
-
-
-class _CheckpointUnpickler(pickle._Unpickler):  # the Python unpickler, whose calls (REDUCE) can be vetted
-    """Builds the classes of CHECKPOINT_MODULES (without running their constructors) and calls
-    only CHECKPOINT_CALLS, with no callable arguments but classes of those modules."""
-
-    dispatch: ClassVar[dict] = dict(pickle._Unpickler.dispatch)
-
-    def __init__(self, data: bytes):
-        super().__init__(io.BytesIO(data))
-        self.callables = {}  # id -> object, of the globals that may be called
-
-    def find_class(self, module, name):
-        if "." in name:  # no walking from an allowed module to whatever it imported
-            raise pickle.UnpicklingError(f"{module}.{name} is not allowed in a checkpoint")
-        if module == "builtins" and name in CHECKPOINT_BUILTINS:
-            obj = _checkpoint_getattr if name == "getattr" else super().find_class(module, name)
-        elif _allowed_module(module):
-            obj = super().find_class(module, name)
-            foreign = callable(obj) and not _allowed_module(getattr(obj, "__module__", None))  # imported from elsewhere
-            if isinstance(obj, types.ModuleType) or foreign:
-                raise pickle.UnpicklingError(f"{module}.{name} is not allowed in a checkpoint (it comes from "
-                                             f"{getattr(obj, '__module__', None) or obj.__name__})")
-        else:
-            raise pickle.UnpicklingError(f"{module}.{name} is not allowed in a checkpoint")
-        if (module, name) in CHECKPOINT_CALLS:
-            self.callables[id(obj)] = obj
-        return obj
-
-    def _reduce(self):
-        func, args = self.stack[-2], self.stack[-1]
-        lookup = isinstance(func, enum.EnumMeta) and len(args) == 1  # Enum(value): a member lookup
-        if not (lookup or self.callables.get(id(func)) is func):
-            raise pickle.UnpicklingError(f"calling {getattr(func, '__qualname__', type(func).__name__)} is not "
-                                         f"allowed in a checkpoint")
-        for arg in args if isinstance(args, tuple) else ():  # numpy's helpers call callables they are given
-            if callable(arg) and not (self.callables.get(id(arg)) is arg
-                                      or (isinstance(arg, type) and _allowed_module(arg.__module__))):
-                raise pickle.UnpicklingError(f"passing {getattr(arg, '__qualname__', type(arg).__name__)} to "
-                                             f"{func.__qualname__} is not allowed in a checkpoint")
-        self.load_reduce()
-
-    def _refuse(self):
-        raise pickle.UnpicklingError("protocol 0/1 instance opcodes are not allowed in a checkpoint")
-
-    dispatch[pickle.REDUCE[0]] = _reduce
-    dispatch[pickle.INST[0]] = _refuse
-    dispatch[pickle.OBJ[0]] = _refuse
-
-
-def dump_checkpoint(optimizer) -> bytes:
-    """The optimizer's state as stored in the checkpoint row."""
-    return pickle.dumps(optimizer, protocol=4)
-
-
-def load_checkpoint(state: bytes, where: str):
-    """The optimizer stored by dump_checkpoint; ValueError naming ``where`` (the study and its
-    storage) when the bytes are damaged or would load anything but an optimizer's state."""
-    if not isinstance(state, (bytes, bytearray, memoryview)):
-        raise ValueError(f"{where}: the optimizer checkpoint is not a byte string")
+def _pid_alive(pid: int) -> bool:
     try:
-        return _CheckpointUnpickler(bytes(state)).load()
-    except Exception as exc:  # whatever the damage, one clear message
-        raise ValueError(f"{where}: the optimizer checkpoint cannot be read ({type(exc).__name__}: {exc}); "
-                         f"start the study afresh with 'study run'") from exc
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True
+    return True
+
+
+def _utc(seconds: float) -> str:
+    return datetime.fromtimestamp(seconds, timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
 
 
 def storage_exists(url: str) -> bool:
     """False only for an SQLite file that is not there (reading it would create it)."""
     prefix = "sqlite:///"
-    return not url.startswith(prefix) or pathlib.Path(url[len(prefix):].split("?")[0]).exists()
+    if not url.startswith(prefix):
+        return True
+    path = url[len(prefix):].split("?")[0]
+    return pathlib.Path(path[len("file:"):] if path.startswith("file:") else path).exists()
 
 
 def _finite_or_none(value):
@@ -300,17 +258,249 @@ def _insert_many(connection, table: sa.Table, rows: list[tuple]) -> None:
 
 
 class StudyStorage:
-    """Designs and checkpoints of one study (``name``) in the database at ``url``."""
+    """Designs, optimizer log, checkpoint, settings and writer's lease of one study (``name``) in
+    the database at ``url``. Opening reads nothing and creates nothing; ``acquire`` (a writer)
+    creates the schema, takes the lease and thereby probes that the database can be written."""
 
     def __init__(self, url: str, name: str):
         self.url, self.name = url, name
+        self.owner: str | None = None  # this writer's lease token, while it holds the lease
+        self._heartbeat: threading.Thread | None = None
+        self._stop = threading.Event()
+        self.lease_lost = False
         try:
-            self.engine = sa.create_engine(url)
-            METADATA.create_all(self.engine)
-            columns = {c["name"] for c in sa.inspect(self.engine).get_columns("designs")}
-        except Exception as exc:  # noqa: BLE001  (any driver error becomes a clear message)
-            raise ValueError(f"cannot open study storage '{url}': {exc}") from exc
-        self.legacy = "extras" not in columns  # written by an earlier version: JSON text, no extras column
+            sqlite = url.startswith("sqlite") and "timeout=" not in url  # a URL may set its own
+            connect_args = {"timeout": SQLITE_TIMEOUT} if sqlite else {}
+            self.engine = sa.create_engine(url, connect_args=connect_args)
+        except Exception as exc:  # noqa: BLE001  (a bad URL or a missing driver: one clear line)
+            raise ValueError(f"cannot open study storage '{url}': {_driver_reason(exc)}") from exc
+
+    @property
+    def where(self) -> str:
+        """The study and its storage, for messages."""
+        return f"study '{self.name}' in {self.url}"
+
+    def _error(self, action: str, exc: BaseException) -> ValueError:
+        return ValueError(f"{self.where}: cannot {action}: {_driver_reason(exc)}")
+
+    def _tables(self) -> set:
+        try:
+            return set(sa.inspect(self.engine).get_table_names())
+        except Exception as exc:  # noqa: BLE001
+            raise self._error("read the database", exc) from exc
+
+    @property
+    def legacy(self) -> bool:
+        """True for a designs table of the earlier layout (JSON text, no extras column)."""
+        if "designs" not in self._tables():
+            return False
+        return "extras" not in {c["name"] for c in sa.inspect(self.engine).get_columns("designs")}
+
+    def create_schema(self) -> None:
+        """Create the missing tables and indexes; safe when several processes do it at once."""
+        for attempt in range(8):
+            try:
+                missing = [t for t in METADATA.sorted_tables if t.name not in self._tables()]
+                with self.engine.begin() as connection:
+                    for table in missing:
+                        connection.execute(sa.schema.CreateTable(table, if_not_exists=True))
+                        for index in table.indexes:
+                            connection.execute(sa.schema.CreateIndex(index, if_not_exists=True))
+                return
+            except sa.exc.SQLAlchemyError as exc:  # another process created the same object in between
+                if attempt == 7:
+                    raise self._error("create the study tables", exc) from exc
+                time.sleep(0.05 * (attempt + 1))
+
+    # ---- the lease -------------------------------------------------------------------------------
+
+    def info(self) -> dict:
+        """What the database holds for this study: stored generations and designs, the settings
+        it was run with (dict or None) and its lease row (or None). Reads only."""
+        tables = self._tables()
+        out = {"generations": 0, "designs": 0, "checkpoint": False, "settings": None, "lease": None}
+        try:
+            with self.engine.connect() as connection:
+                if "designs" in tables:
+                    count, last = connection.execute(sa.select(sa.func.count(), sa.func.max(DESIGNS.c.generation))
+                                                     .where(DESIGNS.c.study == self.name)).one()
+                    out["designs"], out["generations"] = count, (last + 1 if last is not None else 0)
+                if "checkpoints" in tables:
+                    out["checkpoint"] = connection.execute(sa.select(CHECKPOINTS.c.generation)
+                                                           .where(CHECKPOINTS.c.study == self.name)).first() is not None
+                if "studies" in tables:
+                    row = connection.execute(sa.select(STUDIES).where(STUDIES.c.name == self.name)).first()
+                    if row is not None:
+                        out["settings"] = json.loads(row.settings) if row.settings else None
+                        out["lease"] = row
+        except (sa.exc.SQLAlchemyError, ValueError) as exc:
+            raise self._error("read the study", exc) from exc
+        return out
+
+    def _holder(self, row) -> str:
+        beat = f", last heartbeat {time.time() - row.heartbeat:.0f} s ago" if row.heartbeat else ""
+        return f"pid {row.pid} on host {row.host} since {_utc(row.since or 0.0)}{beat}"
+
+    def _stale(self, row) -> bool:
+        """A lease whose process is gone: same host and a dead pid, or no heartbeat for LEASE_SECONDS."""
+        if row.host == socket.gethostname() and row.pid:
+            return not _pid_alive(row.pid)
+        return time.time() - (row.heartbeat or 0.0) > LEASE_SECONDS
+
+    def acquire(self, settings: dict, *, steal: bool = False) -> None:
+        """Take the study's lease (creating the schema and the study's row when needed): a write
+        probe before any work. ValueError when another live writer holds it (unless ``steal``),
+        or when the database cannot be written."""
+        self.create_schema()
+        token = uuid.uuid4().hex
+        me = {"owner": token, "host": socket.gethostname(), "pid": os.getpid()}
+        for attempt in range(50):
+            now = time.time()
+            try:
+                with self.engine.connect() as connection:
+                    row = connection.execute(sa.select(STUDIES).where(STUDIES.c.name == self.name)).first()
+                if row is not None and row.owner and not steal and not self._stale(row):
+                    raise ValueError(f"study '{self.name}' is being written by {self._holder(row)} (storage "
+                                     f"{self.url}); wait, or 'morphopt study resume <spec> --steal' if that "
+                                     f"process is gone")
+                with self.engine.begin() as connection:
+                    if row is None:
+                        connection.execute(STUDIES.insert().values(name=self.name, settings=json.dumps(settings),
+                                                                   created=now, since=now, heartbeat=now, **me))
+                        taken = True
+                    else:  # compare-and-set: only if nobody changed the row since it was read
+                        same = (STUDIES.c.owner.is_(None) if row.owner is None else STUDIES.c.owner == row.owner)
+                        taken = connection.execute(STUDIES.update().where((STUDIES.c.name == self.name) & same)
+                                                   .values(since=now, heartbeat=now, **me)).rowcount == 1
+            except sa.exc.IntegrityError:  # another process inserted the row first: read it again
+                taken = False
+            except sa.exc.OperationalError as exc:
+                if "locked" not in str(exc).lower() or attempt >= 49:
+                    raise self._error("take the study's lease (a write probe)", exc) from exc
+                taken = False
+            except sa.exc.SQLAlchemyError as exc:
+                raise self._error("take the study's lease (a write probe)", exc) from exc
+            if taken:
+                self.owner, self.lease_lost = token, False
+                self._start_heartbeat()
+                return
+            time.sleep(0.02 * (1 + attempt % 5))
+        raise ValueError(f"{self.where}: could not take the study's lease (other processes kept changing it)")
+
+    def _start_heartbeat(self) -> None:
+        self._stop.clear()
+
+        def beat():
+            while not self._stop.wait(HEARTBEAT_SECONDS):
+                try:
+                    if not self._renew():
+                        self.lease_lost = True
+                        return
+                except sa.exc.SQLAlchemyError:
+                    pass  # a busy database: the next beat tries again
+
+        self._heartbeat = threading.Thread(target=beat, name=f"lease {self.name}", daemon=True)
+        self._heartbeat.start()
+
+    def _renew(self, connection=None) -> bool:
+        statement = (STUDIES.update().where((STUDIES.c.name == self.name) & (STUDIES.c.owner == self.owner))
+                     .values(heartbeat=time.time()))
+        if connection is not None:
+            return connection.execute(statement).rowcount == 1
+        with self.engine.begin() as own:
+            return own.execute(statement).rowcount == 1
+
+    def release(self) -> None:
+        """Give the lease back (the end of a run, or its failure); never raises."""
+        self._stop.set()
+        if self._heartbeat is not None:
+            self._heartbeat.join(timeout=5.0)
+            self._heartbeat = None
+        if self.owner is None:
+            return
+        try:
+            with self.engine.begin() as connection:
+                connection.execute(STUDIES.update().where((STUDIES.c.name == self.name)
+                                                          & (STUDIES.c.owner == self.owner))
+                                   .values(owner=None, pid=None, heartbeat=time.time()))
+        except sa.exc.SQLAlchemyError:
+            pass  # the lease goes stale by itself
+        self.owner = None
+
+    def _lost(self, connection, generation: int) -> ValueError:
+        row = connection.execute(sa.select(STUDIES).where(STUDIES.c.name == self.name)).first()
+        holder = self._holder(row) if row is not None and row.owner else "nobody (the study was moved aside)"
+        return ValueError(f"{self.where}: this run lost the study's lease to {holder}; it stops without storing "
+                          f"generation {generation}")
+
+    def archive_name(self) -> str:
+        """A new name for this study's earlier results: '<name>.before-<UTC time>' (unique)."""
+        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+        names = set()
+        if "studies" in self._tables():
+            with self.engine.connect() as connection:
+                names = set(connection.execute(sa.select(STUDIES.c.name)).scalars())
+        base = f"{self.name[:200]}.before-{stamp}"
+        return next(n for n in (base if k == 0 else f"{base}-{k}" for k in itertools.count()) if n not in names)
+
+    # ---- writing ---------------------------------------------------------------------------------
+
+    def write_generation(self, generation: int, params: list, values, metrics: list, failures: list,
+                         state: bytes, seconds: float, *, asked: str = "", told=None, settings: dict | None = None,
+                         archive: str | None = None, backfill: list | None = None) -> None:
+        """Append one generation, its optimizer log row and the new checkpoint in one transaction
+        that first checks (and renews) this writer's lease. ``archive``: move the study's earlier
+        results (designs, log, checkpoint, settings) to that study name first, in the same
+        transaction; ``settings``: store these as the study's settings; ``backfill``: optimizer log
+        rows (generation, digest, told) of earlier generations stored without one. ``metrics``: dicts
+        whose scalar values are stored (others, such as paths, are not); ``told``: (designs, k) float64."""
+        if self.owner is None:
+            raise ValueError(f"{self.where}: writing needs the study's lease (StudyStorage.acquire)")
+        param_layout, param_matrix, extras = encode_params(params)
+        metric_names, metric_matrix = encode_metrics(metrics)
+        layout = json.dumps({"params": param_layout, "metrics": metric_names}, default=_plain)
+        rows = [(self.name, generation, k, _finite_or_none(v), failure, p, m, e)  # in DESIGNS's column order
+                for k, (v, p, m, e, failure) in enumerate(zip(values, _row_bytes(param_matrix),
+                                                              _row_bytes(metric_matrix), extras, failures))]
+        told = np.zeros((len(rows), 0)) if told is None else np.asarray(told, dtype=np.float64).reshape(len(rows), -1)
+        legacy = self.legacy
+        try:
+            with self.engine.begin() as connection:
+                if not self._renew(connection):
+                    raise self._lost(connection, generation)
+                if legacy:
+                    self._upgrade(connection)
+                if archive:
+                    self._move(connection, archive)
+                if settings is not None:
+                    connection.execute(STUDIES.update().where(STUDIES.c.name == self.name)
+                                       .values(settings=json.dumps(settings)))
+                connection.execute(COLUMNS.insert(), [{"study": self.name, "generation": generation,
+                                                       "layout": layout}])
+                _insert_many(connection, DESIGNS, rows)
+                log = [*(backfill or ()), (generation, asked, told)]
+                connection.execute(OPTIMIZER_LOG.insert(), [
+                    {"study": self.name, "generation": g, "asked": digest, "width": array.shape[1],
+                     "told": np.ascontiguousarray(array, "<f8").tobytes()} for g, digest, array in log])
+                connection.execute(CHECKPOINTS.delete().where(CHECKPOINTS.c.study == self.name))
+                connection.execute(CHECKPOINTS.insert(), [{"study": self.name, "generation": generation,
+                                                           "state": state, "seconds": seconds}])
+        except sa.exc.IntegrityError as exc:
+            if "unique" in str(exc).lower() or "duplicate" in str(exc).lower():
+                raise ValueError(f"{self.where}: generation {generation} is stored already; nothing was "
+                                 f"written") from exc
+            raise self._error(f"store generation {generation} (nothing of it was stored)", exc) from exc
+        except sa.exc.SQLAlchemyError as exc:
+            raise self._error(f"store generation {generation} (nothing of it was stored)", exc) from exc
+
+    def _move(self, connection, archive: str) -> None:
+        """Rename the study's stored rows to ``archive`` (and copy its settings row there, unleased)."""
+        for table in (DESIGNS, COLUMNS, CHECKPOINTS, OPTIMIZER_LOG):
+            connection.execute(table.update().where(table.c.study == self.name).values(study=archive))
+        row = connection.execute(sa.select(STUDIES).where(STUDIES.c.name == self.name)).first()
+        connection.execute(STUDIES.insert().values(name=archive, settings=row.settings, created=row.created,
+                                                   owner=None, host=None, pid=None, since=None,
+                                                   heartbeat=time.time()))
 
     def _upgrade(self, connection) -> None:
         """Let a database of the earlier layout take designs of the current one (SQLite stores
@@ -320,68 +510,55 @@ class StudyStorage:
                              f"(JSON text), which this version reads but extends only on SQLite; run the study "
                              f"into a new database")
         connection.exec_driver_sql("ALTER TABLE designs ADD COLUMN extras TEXT")
-        self.legacy = False
 
-    def write_generation(self, generation: int, params: list, values, metrics: list, failures: list,
-                         state: bytes, seconds: float, *, replace: bool = False) -> None:
-        """Append one generation and replace the checkpoint, in one transaction; ``replace`` first
-        removes the study's earlier designs (the first generation of a fresh run), in the same
-        transaction, so that a run which fails before its first generation is stored leaves the
-        earlier results as they were. ``metrics``: dicts whose scalar values are stored (others,
-        such as paths, are not)."""
-        param_layout, param_matrix, extras = encode_params(params)
-        metric_names, metric_matrix = encode_metrics(metrics)
-        layout = json.dumps({"params": param_layout, "metrics": metric_names}, default=_plain)
-        rows = [(self.name, generation, k, _finite_or_none(v), failure, p, m, e)  # in DESIGNS's column order
-                for k, (v, p, m, e, failure) in enumerate(zip(values, _row_bytes(param_matrix),
-                                                              _row_bytes(metric_matrix), extras, failures))]
-        with self.engine.begin() as connection:
-            if self.legacy:
-                self._upgrade(connection)
-            if replace:
-                connection.execute(DESIGNS.delete().where(DESIGNS.c.study == self.name))
-                connection.execute(COLUMNS.delete().where(COLUMNS.c.study == self.name))
-            connection.execute(COLUMNS.delete().where((COLUMNS.c.study == self.name)
-                                                      & (COLUMNS.c.generation == generation)))
-            connection.execute(COLUMNS.insert(), [{"study": self.name, "generation": generation, "layout": layout}])
-            _insert_many(connection, DESIGNS, rows)
-            connection.execute(CHECKPOINTS.delete().where(CHECKPOINTS.c.study == self.name))
-            connection.execute(CHECKPOINTS.insert(), [{"study": self.name, "generation": generation, "state": state,
-                                                       "seconds": seconds}])
-
-    @property
-    def where(self) -> str:
-        """The study and its storage, for messages."""
-        return f"study '{self.name}' in {self.url}"
+    # ---- reading ---------------------------------------------------------------------------------
 
     def checkpoint(self):
-        """(last completed generation, optimizer state (bytes), seconds so far) or None."""
+        """(last completed generation, checkpoint blob (bytes), seconds so far) or None."""
+        if "checkpoints" not in self._tables():
+            return None
         try:
             with self.engine.connect() as connection:
                 row = connection.execute(sa.select(CHECKPOINTS).where(CHECKPOINTS.c.study == self.name)).first()
         except sa.exc.SQLAlchemyError as exc:
-            raise ValueError(f"{self.where}: cannot read the checkpoint ({exc.__class__.__name__}: {exc})") from exc
+            raise self._error("read the checkpoint", exc) from exc
         return None if row is None else (row.generation, row.state, row.seconds)
 
-    def clear(self) -> None:
-        """Remove this study's designs and checkpoint (a fresh run)."""
-        with self.engine.begin() as connection:
-            connection.execute(DESIGNS.delete().where(DESIGNS.c.study == self.name))
-            connection.execute(COLUMNS.delete().where(COLUMNS.c.study == self.name))
-            connection.execute(CHECKPOINTS.delete().where(CHECKPOINTS.c.study == self.name))
+    def optimizer_log(self) -> list:
+        """[(generation, digest of the designs asked for, told (designs, k) float64)] in order."""
+        if "optimizer_log" not in self._tables():
+            return []
+        try:
+            with self.engine.connect() as connection:
+                rows = connection.execute(sa.select(OPTIMIZER_LOG).where(OPTIMIZER_LOG.c.study == self.name)
+                                          .order_by(OPTIMIZER_LOG.c.generation)).all()
+        except sa.exc.SQLAlchemyError as exc:
+            raise self._error("read the optimizer log", exc) from exc
+        out = []
+        for row in rows:
+            told = np.frombuffer(bytes(row.told or b""), dtype="<f8")
+            if not row.width or told.size % row.width:
+                raise ValueError(f"{self.where}: the optimizer log of generation {row.generation} is damaged")
+            out.append((row.generation, str(row.asked), told.reshape(-1, row.width)))
+        return out
 
     def designs(self) -> pd.DataFrame:
         """All designs: generation, member, value, failure, one column per parameter and one
         ``metric_<name>`` column per scalar metric."""
-        wanted = [c for c in DESIGNS.c if c.name != "study" and not (self.legacy and c.name == "extras")]
+        if "designs" not in self._tables():
+            return pd.DataFrame(columns=["generation", "member", "value", "failure"])
+        legacy = self.legacy
+        wanted = [c for c in DESIGNS.c if c.name != "study" and not (legacy and c.name == "extras")]
         try:
             with self.engine.connect() as connection:
                 rows = connection.execute(sa.select(*wanted).where(DESIGNS.c.study == self.name)
                                           .order_by(DESIGNS.c.generation, DESIGNS.c.member)).all()
-                layouts = dict(connection.execute(sa.select(COLUMNS.c.generation, COLUMNS.c.layout)
-                                                  .where(COLUMNS.c.study == self.name)).all())
+                layouts = {}
+                if "design_columns" in self._tables():
+                    layouts = dict(connection.execute(sa.select(COLUMNS.c.generation, COLUMNS.c.layout)
+                                                      .where(COLUMNS.c.study == self.name)).all())
         except sa.exc.SQLAlchemyError as exc:
-            raise ValueError(f"{self.where}: cannot read the designs ({exc.__class__.__name__}: {exc})") from exc
+            raise self._error("read the designs", exc) from exc
         if not rows:
             return pd.DataFrame(columns=["generation", "member", "value", "failure"])
         base = pd.DataFrame({"generation": [r.generation for r in rows], "member": [r.member for r in rows],

@@ -1,19 +1,24 @@
 """run_study: ask -> evaluate (one batch of worlds) -> tell -> store, generation after generation.
 
 Interrupting a run loses at most the generation in flight: each finished generation is stored
-with the optimizer's checkpoint in one transaction, and resume=True continues from it (the
-optimizer's random state included, so a resumed study ends where an uninterrupted one would).
+with the optimizer's log row and checkpoint in one transaction, and resume=True rebuilds the
+optimizer by replaying the stored generations (morphopt.checkpoint), so a resumed study ends
+where an uninterrupted one would, bit for bit.
 
-A run that fails leaves the stored results as they were: the spec, the family and the device are
-checked before the storage is opened; a fresh run removes the earlier designs only in the
-transaction that stores its first generation; resume reads the optimizer only from the study's
-own checkpoint row (morphopt.storage.load_checkpoint) and refuses one of another optimizer or
-design space.
+A run never loses stored results: the spec, the family and the device are checked before the
+storage is opened; a run on a study with results refuses unless it is a resume or ``fresh`` (the
+earlier results are moved aside, never deleted); one process writes a study at a time (its lease,
+morphopt.storage); the effective settings (command-line overrides included) are stored with the
+study and a resume uses them, refusing a study file that changed since.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
+import pathlib
+import sys
 import time
 from dataclasses import dataclass, field
 
@@ -24,10 +29,12 @@ from morphopt.evaluate import evaluate_dynamic, evaluate_kinematic
 from morphopt.families import load_family
 from morphopt.metrics import path_error
 from morphopt.optimizers import CMAES, OptunaSampler, RandomSearch
-from morphopt.storage import StudyStorage, dump_checkpoint, load_checkpoint, storage_exists
-from morphopt.study_spec import StudySpec
+from morphopt import checkpoint
+from morphopt.storage import StudyStorage, storage_exists
+from morphopt.study_spec import StudySpec, check_family_contract
 
-__all__ = ["StudyResult", "objective_matrix", "objective_metric_names", "objective_values", "pareto_front", "run_study"]
+__all__ = ["StudyResult", "objective_matrix", "objective_metric_names", "objective_values", "pareto_front", "run_study",
+           "stored_spec", "study_settings"]
 
 
 @dataclass
@@ -134,9 +141,6 @@ def apply_constraints(spec: StudySpec, evaluation) -> None:
                 break
 
 
-OPTIMIZER_CLASSES = {"cma": CMAES, "optuna": OptunaSampler, "random": RandomSearch}
-
-
 def _check_device(spec: StudySpec) -> None:
     """ValueError naming the spec and 'study.device' when Warp cannot use the device."""
     import warp as wp
@@ -147,23 +151,116 @@ def _check_device(spec: StudySpec) -> None:
         raise ValueError(f"{spec.path}: 'study.device' {spec.device!r} is not available here ({exc})") from exc
 
 
-def _resumed_optimizer(spec: StudySpec, space, storage: StudyStorage, state: bytes):
-    """The checkpointed optimizer, checked against the spec: same optimizer, same design space."""
-    optimizer = load_checkpoint(state, storage.where)
-    expected = OPTIMIZER_CLASSES[spec.optimizer]
-    if type(optimizer) is not expected:
-        raise ValueError(f"{storage.where}: the checkpoint holds a {type(optimizer).__name__}, the spec asks for "
-                         f"optimizer '{spec.optimizer}' ({expected.__name__}); start afresh with 'study run'")
-    if getattr(getattr(optimizer, "space", None), "parameters", None) != space.parameters:
+RUN_OVERRIDES = ("device", "worlds", "generations", "seed")  # what `study run` may override on the command line
+RESUME_CHANGES = ("device", "generations")  # what may differ between a study's runs (a resume extends it)
+
+
+def study_settings(spec: StudySpec) -> dict:
+    """The effective settings of a run (the study file with its command-line overrides) as JSON data."""
+    data = {f.name: getattr(spec, f.name) for f in dataclasses.fields(spec) if f.name != "path"}
+    data["objectives"] = [dataclasses.asdict(o) for o in spec.objectives]
+    return json.loads(json.dumps(data, default=list))  # tuples as lists, as they read back
+
+
+def stored_spec(spec: StudySpec, storage: StudyStorage | None = None) -> StudySpec:
+    """The spec of a stored study: the file's, with the command-line overrides its runs were made
+    with (worlds, seed, generations, device), so that resume, show and export see what ran."""
+    storage = storage or StudyStorage(spec.storage_url, spec.name)
+    if not storage_exists(spec.storage_url):
+        return spec
+    settings = storage.info()["settings"]
+    if not settings:
+        return spec
+    return spec.with_overrides(**{k: settings[k] for k in RUN_OVERRIDES if k in settings})
+
+
+def _check_unchanged(spec: StudySpec, settings: dict | None) -> None:
+    """ValueError naming the key when the study file no longer describes the stored study."""
+    if not settings:
+        return
+    now = study_settings(spec)
+    for key in now:
+        if key in RESUME_CHANGES or key == "storage" or key not in settings or now[key] == settings[key]:
+            continue  # where the database is may change (a moved file, another URL to it)
+        if key == "family" and pathlib.Path(now[key]).name == pathlib.Path(str(settings[key])).name:
+            continue  # the same family file in a moved folder
+        raise ValueError(f"{spec.path}: the study file changed since study '{spec.name}' was run: '{key}' was "
+                         f"{settings[key]!r}, is now {now[key]!r}; restore it, or start over with "
+                         f"'morphopt study run {spec.path} --fresh'")
+
+
+def _stored_told(spec: StudySpec, space, frame) -> list:
+    """The optimizer log of a study stored without one (an earlier morphopt): per generation the
+    digest of its designs and the values the optimizer was told, from the designs table."""
+    log = []
+    names = objective_metric_names(spec)
+    for generation, rows in frame.groupby("generation", sort=True):
+        designs = [{n: _plain(v) for n, v in zip(space.names, row)} for row in rows[space.names].itertuples(index=False)]
+        sign = -1.0 if spec.direction == "maximize" else 1.0
+        values = np.where(rows["value"].notna(), sign * rows["value"].to_numpy(dtype=float), math.inf)
+        columns = [values]
+        if spec.pareto:
+            failed = rows["failure"].to_numpy() != ""
+            for objective, name in zip(spec.objectives, names):
+                metric = objective.sign * rows[f"metric_{name}"].to_numpy(dtype=float)
+                columns.append(np.where(failed | ~np.isfinite(metric), math.inf, metric))
+        log.append((int(generation), checkpoint.designs_digest(designs), np.column_stack(columns)))
+    return log
+
+
+def _plain(value):
+    return value.item() if hasattr(value, "item") else value
+
+
+def _read_checkpoint(spec: StudySpec, space, storage: StudyStorage, state: bytes, trust: bool) -> dict | None:
+    """The checkpoint's header checked against the spec (None: a pickle of an earlier morphopt, to be
+    rebuilt from the stored designs, which needs ``trust``)."""
+    if checkpoint.is_legacy_pickle(state) and trust:
+        return None
+    header, arrays = checkpoint.decode(state, storage.where)
+    if header.get("optimizer") != spec.optimizer:
+        raise ValueError(f"{storage.where}: the checkpoint holds optimizer '{header.get('optimizer')}', the spec asks "
+                         f"for optimizer '{spec.optimizer}'; start over with 'study run --fresh'")
+    if header.get("space") != checkpoint.space_description(space):
         raise ValueError(f"{storage.where}: the checkpoint was made for another design space than the spec's "
-                         f"(its [space] or [fixed] changed); start afresh with 'study run'")
-    return optimizer
+                         f"(its [space] or [fixed] changed); start over with 'study run --fresh'")
+    return {"header": header, "arrays": arrays}
 
 
-def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -> StudyResult:
-    """Run (or resume) a study; returns the best design found."""
+def _rebuilt_optimizer(spec: StudySpec, space, storage: StudyStorage, stored: dict | None, done: int,
+                       progress: bool):
+    """A fresh optimizer brought to the stored state by replaying the study's generations."""
+    optimizer = _make_optimizer(spec, space)
+    log = storage.optimizer_log() if stored is not None else _stored_told(spec, space, storage.designs())
+    if [g for g, _, _ in log] != list(range(done + 1)):
+        raise ValueError(f"{storage.where}: the stored optimizer log does not hold generations 0 to {done}; "
+                         f"start over with 'study run --fresh'")
+    if progress and log:
+        print(f"{spec.name}: rebuilding the optimizer from {len(log)} stored generations", file=sys.stderr)
+    checkpoint.replay(optimizer, log, storage.where)
+    if stored is not None:
+        checkpoint.check_summary(optimizer, stored["arrays"], storage.where)
+    return optimizer, ([] if stored is not None else log)
+
+
+def _checkpoint_blob(spec: StudySpec, space, optimizer, generation: int) -> bytes:
+    header = {"optimizer": spec.optimizer, "study": spec.name, "generation": generation,
+              "space": checkpoint.space_description(space)}
+    return checkpoint.encode(header, checkpoint.summary(optimizer))
+
+
+def run_study(spec: StudySpec, *, resume: bool = False, fresh: bool = False, steal: bool = False,
+              trust_checkpoint: bool = False, progress: bool = True) -> StudyResult:
+    """Run (or resume) a study; returns the best design found.
+
+    A run on a study that has stored results refuses unless ``fresh`` (the earlier results are
+    moved aside as '<name>.before-<time>' in the transaction of the first new generation) or
+    ``resume``. ``steal`` takes the study's lease from another writer (one that is gone);
+    ``trust_checkpoint`` rebuilds the optimizer of a study stored by an earlier morphopt (a pickled
+    checkpoint, never unpickled) from its stored designs."""
     family = load_family(spec.family)
     space = spec.design_space(family)
+    check_family_contract(spec, family)
     _check_device(spec)
     if spec.mode == "dynamic" and spec.model == "reduced" and not hasattr(family, "build_legged"):
         raise ValueError(f"{spec.path}: 'simulation.model' = 'reduced' needs a family with build_legged "
@@ -171,57 +268,98 @@ def run_study(spec: StudySpec, *, resume: bool = False, progress: bool = True) -
     if resume and not storage_exists(spec.storage_url):
         raise ValueError(f"study '{spec.name}' has nothing to resume: no database {spec.storage_url}")
     storage = StudyStorage(spec.storage_url, spec.name)
-    checkpoint = storage.checkpoint() if resume else None
-    if resume and checkpoint is None:
-        raise ValueError(f"study '{spec.name}' has nothing to resume in {spec.storage_url}")
-    if checkpoint:
-        done, state, seconds = checkpoint
-        optimizer = _resumed_optimizer(spec, space, storage, state)
+    if storage_exists(spec.storage_url):
+        _plan(spec, space, storage, resume, fresh, trust_checkpoint)  # refuse before writing anything
+    settings = study_settings(spec)
+    storage.acquire(settings, steal=steal)
+    try:  # under the lease, the same checks again: what they read can no longer change
+        plan = _plan(spec, space, storage, resume, fresh, trust_checkpoint)
+        return _generations(spec, family, space, storage, plan, settings, progress)
+    finally:
+        storage.release()
+
+
+def _plan(spec, space, storage, resume: bool, fresh: bool, trust: bool) -> dict:
+    """What a run starts from (the stored study, its checkpoint), or ValueError when it must not run."""
+    info = storage.info()
+    info["found"] = info["stored"] = None
+    if resume:
+        found = storage.checkpoint()
+        if found is None:
+            raise ValueError(f"study '{spec.name}' has nothing to resume in {spec.storage_url}")
+        info["stored"] = _read_checkpoint(spec, space, storage, found[1], trust)
+        info["found"] = found
+        _check_unchanged(spec, info["settings"])
+    elif (info["designs"] or info["checkpoint"]) and not fresh:
+        raise ValueError(f"study '{spec.name}' already has {info['designs']} designs in {info['generations']} "
+                         f"generations in {spec.storage_url}; continue it with 'morphopt study resume {spec.path}', "
+                         f"or start over with 'morphopt study run {spec.path} --fresh' (which keeps the earlier "
+                         f"results under another name)")
+    return info
+
+
+def _generations(spec, family, space, storage, info, settings, progress) -> StudyResult:
+    """The ask -> evaluate -> tell -> store loop of run_study, under the study's lease."""
+    archive = backfill = None
+    if info["found"] is not None:
+        done, _, seconds = info["found"]
+        optimizer, backfill = _rebuilt_optimizer(spec, space, storage, info["stored"], done, progress)
         start = done + 1
     else:
         optimizer, start, seconds = _make_optimizer(spec, space), 0, 0.0
-    fresh = not checkpoint
+        if info["designs"] or info["checkpoint"]:
+            archive = storage.archive_name()
     sign = -1.0 if spec.direction == "maximize" else 1.0
     evaluating = outside = 0.0
     stages = {}
     bar = tqdm(total=spec.generations, initial=start, desc=spec.name, unit="gen", disable=not progress)
-    for generation in range(start, spec.generations):
-        t0 = time.perf_counter()
-        free = optimizer.ask(spec.worlds)
-        params = [{**p, **spec.fixed} for p in free]
-        t1 = time.perf_counter()
-        if spec.mode == "kinematic":
-            evaluation = evaluate_kinematic(family, params, samples=spec.samples, device=spec.device,
-                                            keep_paths=any(o.metric == "path_error" for o in spec.objectives))
-        else:
-            evaluation = evaluate_dynamic(family, params, duration=spec.duration, dt=spec.dt, device=spec.device,
-                                          crank_speed=spec.crank_speed, config=spec.solver_config(), model=spec.model)
-        t_objectives = time.perf_counter()
-        apply_constraints(spec, evaluation)
-        values = objective_values(spec, evaluation)
-        t2 = time.perf_counter()
-        if spec.pareto:
-            optimizer.tell(free, values.tolist(), objective_matrix(spec, evaluation))
-        else:
-            optimizer.tell(free, values.tolist())
-        t_told = time.perf_counter()
-        storage.write_generation(generation, params, sign * values, evaluation.metrics,
-                                 evaluation.failures, dump_checkpoint(optimizer), seconds + time.perf_counter() - t0,
-                                 replace=fresh)
-        fresh = False
-        t3 = time.perf_counter()
-        seconds += t3 - t0
-        evaluating += t2 - t1
-        outside += (t1 - t0) + (t3 - t2)
-        for stage, spent in (("ask", t1 - t0), *evaluation.timings.items(), ("objectives", t2 - t_objectives),
-                             ("tell", t_told - t2), ("storage", t3 - t_told)):
-            stages[stage] = stages.get(stage, 0.0) + spent
-        bar.update(1)
-        rate = optimizer.evaluations / max(seconds, 1e-9)
-        best = sign * optimizer.best_value if math.isfinite(optimizer.best_value) else float("nan")
-        shown = f"{rate:,.0f}" if rate >= 100 else f"{rate:.3g}"
-        bar.set_postfix_str(f"{shown} designs/s, best {spec.metric} {best:.6g}")
-    bar.close()
+    try:  # the bar ends its line before any error is printed
+        for generation in range(start, spec.generations):
+            t0 = time.perf_counter()
+            free = optimizer.ask(spec.worlds)
+            params = [{**p, **spec.fixed} for p in free]
+            t1 = time.perf_counter()
+            if spec.mode == "kinematic":
+                evaluation = evaluate_kinematic(family, params, samples=spec.samples, device=spec.device,
+                                                keep_paths=any(o.metric == "path_error" for o in spec.objectives))
+            else:
+                evaluation = evaluate_dynamic(family, params, duration=spec.duration, dt=spec.dt, device=spec.device,
+                                              crank_speed=spec.crank_speed, config=spec.solver_config(), model=spec.model)
+            t_objectives = time.perf_counter()
+            apply_constraints(spec, evaluation)
+            values = objective_values(spec, evaluation)
+            told = values[:, None]
+            t2 = time.perf_counter()
+            if spec.pareto:
+                matrix = objective_matrix(spec, evaluation)
+                optimizer.tell(free, values.tolist(), matrix)
+                told = np.column_stack([values, matrix])
+            else:
+                optimizer.tell(free, values.tolist())
+            t_told = time.perf_counter()
+            first = generation == start
+            storage.write_generation(generation, params, sign * values, evaluation.metrics, evaluation.failures,
+                                     _checkpoint_blob(spec, space, optimizer, generation),
+                                     seconds + time.perf_counter() - t0, asked=checkpoint.designs_digest(free), told=told,
+                                     settings=settings if first else None, archive=archive if first else None,
+                                     backfill=backfill if first else None)
+            if first and archive:
+                print(f"{spec.name}: the earlier results were moved aside as study '{archive}' in {spec.storage_url}",
+                      file=sys.stderr)
+            t3 = time.perf_counter()
+            seconds += t3 - t0
+            evaluating += t2 - t1
+            outside += (t1 - t0) + (t3 - t2)
+            for stage, spent in (("ask", t1 - t0), *evaluation.timings.items(), ("objectives", t2 - t_objectives),
+                                 ("tell", t_told - t2), ("storage", t3 - t_told)):
+                stages[stage] = stages.get(stage, 0.0) + spent
+            bar.update(1)
+            rate = optimizer.evaluations / max(seconds, 1e-9)
+            best = sign * optimizer.best_value if math.isfinite(optimizer.best_value) else float("nan")
+            shown = f"{rate:,.0f}" if rate >= 100 else f"{rate:.3g}"
+            bar.set_postfix_str(f"{shown} designs/s, best {spec.metric} {best:.6g}")
+    finally:
+        bar.close()
     best = {**optimizer.best_params, **spec.fixed} if optimizer.best_params is not None else None
     value = sign * optimizer.best_value if math.isfinite(optimizer.best_value) else math.nan
     return StudyResult(best, value, optimizer.evaluations, spec.generations, seconds,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import cma
 import numpy as np
 
@@ -84,8 +86,11 @@ class CMAES(Optimizer):
         self._pending: list[np.ndarray] | None = None
 
     def _strategy(self, start, population: int, sigma: float | None = None):
-        options = {"popsize": max(population, 2), "bounds": [0.0, 1.0], "seed": self.seed + 1 + self.restarts_done,
-                   "verbose": -9}
+        # pycma samples from NumPy's global generator unless given its own; a private one (seeded as pycma
+        # would seed the global one: the same samples) keeps the search independent of other code's draws
+        self.randn_state = np.random.RandomState(self.seed + 1 + self.restarts_done)
+        options = {"popsize": max(population, 2), "bounds": [0.0, 1.0], "seed": math.nan,
+                   "randn": self.randn_state.randn, "verbose": -9}
         return cma.CMAEvolutionStrategy(start, sigma or self.sigma0, options)
 
     def ask(self, count: int) -> list[dict]:

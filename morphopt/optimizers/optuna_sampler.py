@@ -37,6 +37,28 @@ class OptunaSampler(Optimizer):
         self.distributions = space.optuna_distributions()
         self._pending: list = []
 
+    def sampler_states(self) -> list:
+        """The NumPy random states inside the sampler, in a fixed order (for checkpoint summaries)."""
+        import numpy as np
+
+        found, seen = [], set()
+
+        def walk(obj, depth):
+            if id(obj) in seen or depth > 3:
+                return
+            seen.add(id(obj))
+            if isinstance(obj, np.random.RandomState):
+                found.append(obj)
+                return
+            if type(obj).__name__ == "LazyRandomState":
+                found.append(obj.rng)
+                return
+            for key in sorted(getattr(obj, "__dict__", {})):
+                walk(obj.__dict__[key], depth + 1)
+
+        walk(self.study.sampler, 0)
+        return found
+
     def ask(self, count: int) -> list[dict]:
         self._pending = [self.study.ask(self.distributions) for _ in range(count)]
         return [dict(trial.params) for trial in self._pending]

@@ -56,10 +56,11 @@ def generation_data(rng, count=64):
 def test_a_generation_reads_back_as_the_dicts_it_was_written_from(tmp_path):
     rng = np.random.default_rng(3)
     storage = StudyStorage(f"sqlite:///{tmp_path / 's.db'}", "walk")
+    storage.acquire({})
     first = generation_data(rng)
     second = generation_data(rng, 17)
     second[2][0]["new_metric"] = 1.25  # a metric only the second generation has
-    storage.write_generation(0, *first, b"state0", 1.0, replace=True)
+    storage.write_generation(0, *first, b"state0", 1.0)
     storage.write_generation(1, *second, b"state1", 2.0)
     frame = storage.designs()
     expected = pd.concat([expected_frame(0, *first), expected_frame(1, *second)], ignore_index=True)
@@ -70,10 +71,11 @@ def test_a_generation_reads_back_as_the_dicts_it_was_written_from(tmp_path):
     assert frame["metric_stride"].iloc[5] != frame["metric_stride"].iloc[5]  # the string became NaN
     assert "metric_jammed" not in frame and "metric_paths" not in frame  # bools and paths are not stored
     assert storage.checkpoint() == (1, b"state1", 2.0)
-    # a fresh run replaces the study's designs and layouts
-    storage.write_generation(0, *second, b"again", 0.5, replace=True)
-    pd.testing.assert_frame_equal(storage.designs(), expected_frame(0, *second)[storage.designs().columns],
-                                  check_exact=True, check_dtype=False)
+    # a generation is stored once: writing it again changes nothing
+    with pytest.raises(ValueError, match=r"generation 0 is stored already; nothing was written"):
+        storage.write_generation(0, *second, b"again", 0.5)
+    pd.testing.assert_frame_equal(storage.designs(), frame, check_exact=True)
+    assert storage.checkpoint() == (1, b"state1", 2.0)
 
 
 def test_floats_round_trip_bit_for_bit(tmp_path):
@@ -82,7 +84,8 @@ def test_floats_round_trip_bit_for_bit(tmp_path):
     params = [{"x": float(v)} for v in raw]
     metrics = [{"m": float(v), "n": float(-v)} for v in raw]
     storage = StudyStorage(f"sqlite:///{tmp_path / 's.db'}", "exact")
-    storage.write_generation(0, params, list(raw), metrics, [""] * len(raw), b"", 0.0, replace=True)
+    storage.acquire({})
+    storage.write_generation(0, params, list(raw), metrics, [""] * len(raw), b"", 0.0)
     frame = storage.designs()
     for column, want in (("x", raw), ("metric_m", raw), ("metric_n", -raw)):
         assert frame[column].to_numpy().tobytes() == want.tobytes(), column
@@ -106,6 +109,7 @@ def test_a_database_of_the_earlier_json_layout_is_read_and_extended(tmp_path):
     frame = storage.designs()
     assert list(frame["family"]) == ["jansen_leg", "klann_leg"] and list(frame["scale"]) == [1.5, 2.0]
     assert list(frame["metric_walking_speed"]) == [0.25, 0.5] and math.isnan(frame["metric_stride"][0])
+    storage.acquire({})
     new_params = [{"scale": 3.0, "family": "jansen_leg"}]
     storage.write_generation(1, new_params, [-0.75], [{"walking_speed": 0.75, "stride": 0.2}], [""], b"s", 2.0)
     frame = storage.designs()
@@ -117,7 +121,8 @@ def test_a_database_of_the_earlier_json_layout_is_read_and_extended(tmp_path):
 def test_damaged_designs_are_a_clear_error(tmp_path):
     path = tmp_path / "s.db"
     storage = StudyStorage(f"sqlite:///{path}", "walk")
-    storage.write_generation(0, [{"x": 1.0}], [1.0], [{"m": 2.0}], [""], b"", 0.0, replace=True)
+    storage.acquire({})
+    storage.write_generation(0, [{"x": 1.0}], [1.0], [{"m": 2.0}], [""], b"", 0.0)
     with sqlite3.connect(path) as db:
         db.execute("UPDATE designs SET metrics = x'0102'")
     with pytest.raises(ValueError, match=r"study 'walk' in sqlite.*generation 0 cannot be read"):

@@ -61,7 +61,7 @@ def test_resume_gives_the_uninterrupted_result(tmp_path):
     """A study stopped after 4 generations and resumed to 10 ends exactly like a 10-generation run."""
     spec = load_study_spec(toy_study(tmp_path, generations=10))
     full = run_study(spec, progress=False)
-    run_study(spec.with_overrides(generations=4), progress=False)  # "interrupted" after 4 generations
+    run_study(spec.with_overrides(generations=4), progress=False, fresh=True)  # "interrupted" after 4 generations
     resumed = run_study(spec, resume=True, progress=False)
     assert resumed.best_params == full.best_params and resumed.best_value == full.best_value
     assert resumed.evaluations == full.evaluations
@@ -257,7 +257,7 @@ def test_solver_table_reaches_the_engine(tmp_path, monkeypatch):
         metric = "torque_rms"
         direction = "minimize"
         [simulation]
-        duration = 0.02
+        duration = 1.0  # one crank turn at the default 2 pi rad/s (a study needs one)
         dt = 0.002
         {solver}
     """
