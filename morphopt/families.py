@@ -6,15 +6,24 @@ Families are loaded by name from a designs/ folder (the working directory's firs
 project's), or from an explicit path to a .py file. A name is a plain Python identifier
 ("four_bar"); anything else that is not a path ending in .py ("../x", "a/b", "os.path") is
 refused, so a name can never reach outside designs/.
+
+Whatever goes wrong while a family file is loaded (an exception or ``sys.exit`` at import, a
+syntax error, a ``space`` that is no DesignSpace, a ``generate`` that cannot be called) is one
+ValueError naming the file and what is wrong; KeyboardInterrupt still stops the program.
 """
 
 from __future__ import annotations
 
 import importlib.util
 import pathlib
+import traceback
 from types import ModuleType
 
-__all__ = ["DESIGNS_DIR", "available_families", "load_family"]
+from morphopt.design_space import DesignSpace
+
+__all__ = ["DESIGNS_DIR", "available_families", "describe_exception", "load_family"]
+
+FUNCTIONS = ("generate", "build_spec", "build_legged")  # what a study may call; each, if defined, a callable
 
 DESIGNS_DIR = pathlib.Path(__file__).resolve().parents[1] / "designs"
 
@@ -33,8 +42,10 @@ def load_family(name_or_path) -> ModuleType:
     """Load a family module by name (designs/<name>.py) or by an explicit .py path; checks its interface.
 
     Raises ValueError naming the family when the name is neither an identifier nor a .py path,
-    when no such file exists, or when the module lacks ``space`` or both ``generate`` and
-    ``build_spec``.
+    when no such file exists, when executing it fails (see the module docstring), or when the
+    module lacks a DesignSpace ``space`` or both ``generate`` and ``build_spec``, or defines one of
+    FUNCTIONS as something that cannot be called. What the functions return is checked by
+    morphopt.contract, for a study's mode.
     """
     if not isinstance(name_or_path, (str, pathlib.PurePath)) or not str(name_or_path):
         raise ValueError(f"design family: expected a family name or a .py path, got {name_or_path!r}")
@@ -52,11 +63,74 @@ def load_family(name_or_path) -> ModuleType:
     else:
         raise ValueError(f"design family '{text}': expected the name of a module in designs/ (a plain identifier "
                          f"such as 'four_bar') or a path to a .py file")
-    spec = importlib.util.spec_from_file_location(f"morphopt_family_{path.stem}", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = _execute(path)
     if not hasattr(module, "space"):
         raise ValueError(f"design family {path} defines no 'space'")
+    if not isinstance(module.space, DesignSpace):
+        raise ValueError(f"design family {path}: 'space' must be a morphopt.design_space.DesignSpace, got "
+                         f"{_kind(module.space)}")
     if not (hasattr(module, "generate") or hasattr(module, "build_spec")):
         raise ValueError(f"design family {path} defines neither 'generate' (a linkage) nor 'build_spec' (a world)")
+    for name in FUNCTIONS:
+        if hasattr(module, name) and not callable(getattr(module, name)):
+            raise ValueError(f"design family {path}: '{name}' must be a function, got {_kind(getattr(module, name))}")
     return module
+
+
+def _execute(path: pathlib.Path) -> ModuleType:
+    """The module of a family file, executed; any failure of the file (not KeyboardInterrupt) as
+    one ValueError naming the file, the exception and the line."""
+    try:
+        spec = importlib.util.spec_from_file_location(f"morphopt_family_{path.stem}", path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    except SyntaxError as exc:
+        name = pathlib.Path(exc.filename).name if exc.filename else path.name
+        where = f"{name}, line {exc.lineno}" if exc.lineno else name
+        raise ValueError(f"design family {path}: not valid Python: {type(exc).__name__}: {_one_line(exc.msg)} "
+                         f"({where})") from None
+    except SystemExit as exc:
+        raise ValueError(f"design family {path} called sys.exit({exc.code!r}) at import "
+                         f"({_line_in(exc, path)}); a family file must only define its space and functions") from None
+    except Exception as exc:  # noqa: BLE001 - whatever the file raises is reported, by type and line
+        raise ValueError(f"design family {path} failed at import: {describe_exception(exc, path)}") from None
+    return module
+
+
+def describe_exception(exc: BaseException, path) -> str:
+    """'<Type>: <message> (<file>, line N)' on one line, the line being the last one the traceback
+    passes in the family file ``path`` (else the innermost line)."""
+    try:
+        message = _one_line(str(exc))
+    except Exception:  # noqa: BLE001 - an exception whose message itself fails
+        message = "(its message cannot be shown)"
+    return f"{type(exc).__name__}{': ' + message if message else ''} ({_line_in(exc, path)})"
+
+
+def _line_in(exc: BaseException, path) -> str:
+    frames = traceback.extract_tb(exc.__traceback__)
+    target = str(pathlib.Path(path).resolve())
+    inside = [f for f in frames if f.filename and _same_file(f.filename, target)]
+    frame = (inside or frames or [None])[-1]
+    if frame is None:
+        return "no line"
+    shown = pathlib.Path(frame.filename).name
+    return f"{shown}, line {frame.lineno}"
+
+
+def _same_file(name: str, target: str) -> bool:
+    try:
+        return str(pathlib.Path(name).resolve()) == target
+    except (OSError, ValueError):
+        return False
+
+
+def _one_line(text: str) -> str:
+    """Text on one line (exception messages may hold newlines), at most 300 characters."""
+    text = " ".join(str(text).split())
+    return text if len(text) <= 300 else text[:297] + "..."
+
+
+def _kind(value) -> str:
+    text = repr(value)
+    return f"{type(value).__name__} {text if len(text) <= 40 else text[:37] + '...'}"

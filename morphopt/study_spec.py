@@ -29,7 +29,34 @@ or an explicit path to a .py file (relative paths are taken from the spec file's
 other value is refused, so a study never loads code from elsewhere (see morphopt.families).
 
 A study file is data: it is parsed as TOML and checked, never executed. Every error names the
-file, the key and what was expected.
+file, the key and what was expected. The checks run when the file is read and again after
+command-line overrides, so every command (run, resume, show, export) refuses bad input before
+any work:
+
+- names: objective and [constraints] metrics must be metrics the family gives in the study's
+  mode, and a "path_error" point one of its tracked points (morphopt.contract derives both from
+  what the family builds; "path_error" itself cannot be constrained: it is computed after the
+  constraints); the family's generate / build_spec / build_legged must build its default design
+  and return the right type.
+- limits, each with its reason in the message:
+    study.worlds          2 .. 65536: a generation is one batch, held in memory at once (the
+                          largest measured is 16384 worlds)
+    study.generations     1 .. 100000, and generations x worlds <= 10^8: every design is a row
+                          of the study database
+    study.seed            0 .. 2^32 - 1: the optimizers' random generators take 32-bit seeds
+    study.storage         a file or a database server: SQLite in memory (":memory:",
+                          "sqlite://", "sqlite:///:memory:") keeps nothing
+    simulation.samples    8 .. 100000 per crank turn; kinematic mode: worlds x samples <= 10^8
+                          (each sample of a design's turn is held in memory, 28 bytes and 16 per
+                          tracked point)
+    simulation.dt         1e-6 .. 0.1 s: below a microsecond a step moves a body by less than its
+                          float32 position resolves
+    simulation.duration   up to 3600 s; dynamic mode: at most 10^7 steps (duration / dt) and
+                          2 x 10^7 recorded world-steps (worlds x steps / 10, held in memory:
+                          ~0.6 KB each for a walker), and at least one crank turn (the stride and
+                          step height are measured over the last whole turn)
+    simulation.crank_speed  0.01 .. 1000 rad/s in magnitude; dynamic mode: at least 8 records (one
+                          every 10 steps) per crank turn at the fastest drive
 """
 
 from __future__ import annotations
@@ -40,10 +67,11 @@ import re
 import tomllib
 from dataclasses import dataclass, field, replace
 
+from morphopt.contract import RECORD_EVERY, family_metrics
 from morphopt.design_space import Choice, DesignSpace, Float, Int
 from morphopt.families import load_family
 
-__all__ = ["Objective", "StudySpec", "load_study_spec"]
+__all__ = ["Objective", "StudySpec", "check_family_contract", "load_study_spec"]
 
 SECTIONS = {
     "study": {"name": str, "family": str, "mode": str, "seed": int, "generations": int, "worlds": int,
@@ -61,6 +89,21 @@ REQUIRED = {"study": ("name", "family")}
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,199}")  # a study name is also its default file name
 DEVICE_PATTERN = re.compile(r"cpu|cuda(:[0-9]+)?")
 OBJECTIVE_KEYS = {"metric": str, "direction": str, "point": str, "target": list, "weight": float}
+# Limits (the module docstring gives the reasons; the messages repeat them)
+MAX_WORLDS = 65_536
+MAX_GENERATIONS = 100_000
+MAX_DESIGNS = 100_000_000  # generations x worlds
+MAX_SEED = 2**32 - 1
+MAX_SAMPLES = 100_000
+MAX_SAMPLED = 100_000_000  # worlds x samples, kinematic mode
+MIN_DT = 1e-6
+MAX_DURATION = 3600.0
+MAX_STEPS = 10_000_000  # duration / dt, dynamic mode
+MAX_RECORDS = 20_000_000  # worlds x recorded steps, dynamic mode
+CRANK_SPEEDS = (0.01, 1000.0)  # |crank_speed| [rad/s]
+MIN_RECORDS_PER_TURN = 8
+MEMORY_STORAGE = re.compile(r"(?i)\s*(:memory:|sqlite[a-z0-9+]*://(/(:memory:)?)?(\?.*)?|.*mode=memory.*"
+                            r"|sqlite[a-z0-9+]*:///file::memory:.*)\s*")
 
 
 @dataclass(frozen=True)
@@ -319,12 +362,27 @@ def _check_values(spec: StudySpec, where: str) -> None:
         ("optimizer.restart_strategy", spec.restart_strategy in ("ipop", "bipop"), "'ipop' or 'bipop'"),
         ("study.generations", spec.generations >= 1, "an integer >= 1"),
         ("study.worlds", spec.worlds >= 2, "an integer >= 2"),
+        ("study.seed", spec.seed <= MAX_SEED,
+         f"at most 2**32 - 1 = {MAX_SEED}: the optimizers' random generators take 32-bit seeds"),
+        ("study.generations", spec.generations <= MAX_GENERATIONS,
+         f"at most {MAX_GENERATIONS}: every generation is a transaction of the study database and a step of the "
+         f"optimizer; search longer with more worlds a generation"),
+        ("study.worlds", spec.worlds <= MAX_WORLDS,
+         f"at most {MAX_WORLDS}: a generation is one batch of worlds held in memory at once (the largest "
+         f"measured is 16384)"),
         ("optimizer.sigma0", 0.0 < spec.sigma0 <= 1.0, "a number in (0, 1]"),
-        ("simulation.duration", 0.0 < spec.duration < math.inf, "a positive finite number of seconds"),
-        ("simulation.dt", 0.0 < spec.dt <= 0.1, "a time step in (0, 0.1] s"),
+        ("simulation.duration", 0.0 < spec.duration <= MAX_DURATION,
+         f"a positive number of seconds, at most {MAX_DURATION:g} (an hour simulated per design)"),
+        ("simulation.dt", MIN_DT <= spec.dt <= 0.1,
+         f"a time step in [{MIN_DT:g}, 0.1] s: below a microsecond a step moves a body by less than its float32 "
+         f"position resolves"),
         ("simulation.crank_speed", spec.crank_speed is None or (spec.crank_speed != 0.0 and math.isfinite(spec.crank_speed)),
          "a non-zero speed"),
+        ("simulation.crank_speed", spec.crank_speed is None or CRANK_SPEEDS[0] <= abs(spec.crank_speed) <= CRANK_SPEEDS[1],
+         f"{CRANK_SPEEDS[0]:g} to {CRANK_SPEEDS[1]:g} rad/s in magnitude (one turn in 10 minutes to ~9500 rpm)"),
         ("simulation.samples", spec.samples >= 8, "an integer >= 8"),
+        ("simulation.samples", spec.samples <= MAX_SAMPLES,
+         f"at most {MAX_SAMPLES} points per crank turn (one every {360 / MAX_SAMPLES:g} degrees)"),
         ("simulation.model", spec.model in ("maximal", "reduced"),
          "'maximal' (every link a body) or 'reduced' (a walker's torso and crank angles: engine.legged)"),
         ("simulation.model", spec.model == "maximal" or spec.mode == "dynamic",
@@ -333,6 +391,7 @@ def _check_values(spec: StudySpec, where: str) -> None:
     for key, ok, expected in checks:
         if not ok:
             raise ValueError(f"{where}: '{key}' must be {expected}")
+    _check_work(spec, where)
     for k, objective in enumerate(spec.objectives):
         key = "objective" if not spec.multi_objective else f"objectives[{k}]"
         if objective.metric == "path_error" and not (objective.point and len(objective.target) >= 3):
@@ -372,3 +431,98 @@ def _check_values(spec: StudySpec, where: str) -> None:
                                  f"{expected}")
     if len(spec.fixed) == len(family.space.parameters):
         raise ValueError(f"{where}: every parameter is fixed; nothing to optimize")
+    check_family_contract(spec, family, where)
+
+
+def _check_work(spec: StudySpec, where: str) -> None:
+    """Storage that keeps the results, and the memory and steps a generation needs in the study's mode."""
+    if spec.storage and MEMORY_STORAGE.fullmatch(spec.storage):
+        raise ValueError(f"{where}: 'study.storage' = {spec.storage!r} keeps nothing (an in-memory SQLite "
+                         f"database ends with the process); give a file path or a database URL")
+    if spec.generations * spec.worlds > MAX_DESIGNS:
+        raise ValueError(f"{where}: 'study.generations' x 'study.worlds' ({spec.generations} x {spec.worlds}) must be at "
+                         f"most {MAX_DESIGNS:.0e} designs: every design is a row of the study database")
+    if spec.mode == "kinematic" and spec.worlds * spec.samples > MAX_SAMPLED:
+        raise ValueError(f"{where}: 'simulation.samples' x 'study.worlds' ({spec.samples} x {spec.worlds}) must be at "
+                         f"most {MAX_SAMPLED:.0e}: every sample of a generation's crank turns is held in memory "
+                         f"(28 bytes, and 16 per tracked point)")
+    if spec.mode == "dynamic":
+        steps = spec.duration / spec.dt
+        if steps > MAX_STEPS:
+            raise ValueError(f"{where}: 'simulation.duration' / 'simulation.dt' ({spec.duration:g} s / {spec.dt:g} s = "
+                             f"{steps:.3g} steps) must be at most {MAX_STEPS:.0e} steps: every world of a generation "
+                             f"takes them all")
+        records = steps / RECORD_EVERY * spec.worlds
+        if records > MAX_RECORDS:
+            raise ValueError(f"{where}: 'simulation.duration' / 'simulation.dt' x 'study.worlds' / {RECORD_EVERY} "
+                             f"({records:.3g} recorded world-steps) must be at most {MAX_RECORDS:.0e}: a generation's "
+                             f"records are held in memory (~0.6 KB each for a walker); shorten the run, or use "
+                             f"fewer worlds or a larger dt")
+
+
+def check_family_contract(spec: StudySpec, family, where: str | None = None) -> None:
+    """Refuse, before any work, a family that breaks its contract for the study's mode (its
+    default design must build, each function return the right type) and every metric, constraint
+    or path_error point the study's designs do not give; in dynamic mode a duration shorter than
+    a crank turn and a dt that records a turn fewer than 8 times. ValueError naming the file
+    (``where``, default the spec's path) and the key."""
+    where = where or str(spec.path)
+    model = spec.model if spec.mode == "dynamic" else "maximal"
+    try:
+        given = family_metrics(family, spec.design_space(family), spec.fixed, spec.mode, model, spec.crank_speed)
+    except ValueError as exc:
+        raise ValueError(f"{where}: 'study.family': {exc}") from None
+    for k, objective in enumerate(spec.objectives):
+        key = "objective" if not spec.multi_objective else f"objectives[{k}]"
+        if objective.metric == "path_error":
+            if objective.point not in given.points:
+                raise ValueError(f"{where}: '{key}.point' = {objective.point!r} is not a tracked point of "
+                                 f"{_designs(spec, given, objective.point)}; expected one of: {', '.join(given.points)}")
+            continue
+        if objective.point or objective.target:
+            raise ValueError(f"{where}: '{key}.{'point' if objective.point else 'target'}' is read only by metric "
+                             f"'path_error'; metric '{objective.metric}' takes neither point nor target")
+        if objective.metric not in given.metrics:
+            raise ValueError(_unknown_metric(spec, given, f"{key}.metric", objective.metric, where))
+    for name in spec.constraints:
+        if name == "path_error":
+            raise ValueError(f"{where}: 'constraints.path_error' cannot be constrained: path_error is computed for an "
+                             f"objective after the constraints are applied; constrain a metric of the evaluation: "
+                             f"{', '.join(given.metrics)}")
+        if name not in given.metrics:
+            raise ValueError(_unknown_metric(spec, given, f"constraints.{name}", name, where))
+    if spec.mode == "dynamic":
+        _check_crank_turn(spec, given, where)
+
+
+def _designs(spec: StudySpec, given, name: str) -> str:
+    """Whose metrics or points were asked for, in words (the probe without ``name`` if some have it)."""
+    if name in given.lacking:
+        return f"every design of the study ({given.lacking[name]} has none)"
+    return f"family '{spec.family}' in {spec.mode} mode"
+
+
+def _unknown_metric(spec: StudySpec, given, key: str, name: str, where: str) -> str:
+    return (f"{where}: '{key}' = {name!r} is not a metric of {_designs(spec, given, name)}; expected one of: "
+            f"{', '.join(given.metrics)} (or 'path_error' as an objective, with a point and a target)")
+
+
+def _check_crank_turn(spec: StudySpec, given, where: str) -> None:
+    """A dynamic run long enough for one crank turn at the slowest drive, and recorded often
+    enough (every RECORD_EVERY steps) for MIN_RECORDS_PER_TURN records a turn at the fastest."""
+    source = "'simulation.crank_speed'" if spec.crank_speed is not None else "the design's own crank speed"
+    if given.slowest:
+        turn = 2.0 * math.pi / given.slowest
+        if spec.duration < turn * (1.0 - 1e-9):
+            raise ValueError(f"{where}: 'simulation.duration' = {spec.duration:g} s is shorter than one crank turn "
+                             f"({turn:.4g} s at {given.slowest:.4g} rad/s, {source}): the stride and step height "
+                             f"are measured over the last whole turn")
+    if given.fastest:
+        turn = 2.0 * math.pi / given.fastest
+        records = turn / (RECORD_EVERY * spec.dt)
+        if records < MIN_RECORDS_PER_TURN:
+            raise ValueError(f"{where}: 'simulation.dt' = {spec.dt:g} s records a crank turn ({turn:.4g} s at "
+                             f"{given.fastest:.4g} rad/s, {source}) {records:.3g} times (once every {RECORD_EVERY} "
+                             f"steps): at least {MIN_RECORDS_PER_TURN} records a turn are needed for its stride and "
+                             f"step height; use dt <= {turn / (RECORD_EVERY * MIN_RECORDS_PER_TURN):.3g} s or a "
+                             f"slower crank")
