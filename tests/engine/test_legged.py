@@ -326,7 +326,7 @@ def study_file(tmp_path, name, family, model, extra=""):
         [optimizer]
         name = "cma"
         [simulation]
-        duration = 0.2
+        duration = 1.3  # one crank turn at least: 1.26 s at the walker's 5 rad/s, 1 s for the four-bar
         dt = 0.002
         model = "{model}"
         {extra}
@@ -353,7 +353,8 @@ def test_study_simulation_model(tmp_path):
                          spec_hook=lambda spec, params: spec)
     from morphopt.storage import StudyStorage
 
-    spec = load_study_spec(study_file(tmp_path, "walk", "walker", "reduced"))
+    # three legs a side, as in studies/walker.toml: walkers on one or two fall within the crank turn a study runs
+    spec = load_study_spec(study_file(tmp_path, "walk", "walker", "reduced", extra="[fixed]\nlegs_per_side = 3"))
     assert spec.model == "reduced"
     result = run_study(spec, progress=False)
     assert result.evaluations == 2

@@ -100,7 +100,7 @@ def test_export_of_an_unknown_format_or_an_empty_study_fails_cleanly(tmp_path, c
     with pytest.raises(ValueError, match="unknown format 'step'"):
         export_design(load_family("four_bar"), load_family("four_bar").space.default(), "step", tmp_path, name="x")
     empty = tmp_path / "empty.toml"
-    empty.write_text('[study]\nname = "empty"\nfamily = "four_bar"\n[objective]\nmetric = "foot_stride"\n')
+    empty.write_text('[study]\nname = "empty"\nfamily = "four_bar"\n[objective]\nmetric = "coupler_point_stride"\n')
     assert main(["export", str(empty), "--format", "usd"]) == 1
     assert "has no stored designs" in capsys.readouterr().out
 

@@ -581,6 +581,7 @@ def test_explicit_family_paths_are_relative_to_the_study_file(tmp_path, monkeypa
     monkeypatch.chdir(tmp_path.parent)
     data = valid_study()
     del data["space"], data["fixed"]
+    data["objective"]["metric"] = "tip_stride"  # the family tracks "tip"
     data["study"]["family"] = "outside"
     path = tmp_path / "s.toml"
     path.write_text(toml_text(data))
@@ -612,12 +613,15 @@ def test_study_files_are_data_never_code(tmp_path, monkeypatch):
     path.write_text(toml_text(data))
     with pytest.raises(ValueError, match="'study.name' must be"):
         load_study_spec(path)
-    data = valid_study()
-    data["objective"]["metric"] = call
-    data["constraints"] = {call: [0.0, 1.0]}
-    path.write_text(toml_text(data))
-    spec = load_study_spec(path)
-    assert spec.metric == call and list(spec.constraints) == [call]
+    for section in ("objective", "constraints"):
+        data = valid_study()
+        if section == "objective":
+            data["objective"]["metric"] = call
+        else:
+            data["constraints"] = {call: [0.0, 1.0]}
+        path.write_text(toml_text(data))
+        with pytest.raises(ValueError, match="is not a metric of family 'four_bar'"):  # a name, never run
+            load_study_spec(path)
     assert not marker.exists()
 
 
