@@ -2,9 +2,11 @@
 
 Maximal coordinates, every joint (loop closures included) a block of constraint rows, one
 Proximal-ADMM solve per world per step, all worlds of a padded batch stepped together on the
-CPU or a GPU. See engine.model for units, frames and array conventions.
+CPU or a GPU. See engine.model for units, frames and array conventions; a rollout's Trace.health
+flags the worlds it cannot vouch for, with the reason (engine.health).
 """
 
+from engine.health import Health
 from engine.metrics import compute_metrics, metrics_numpy
 from engine.model import Control, Integrator, Model, SolverConfig, State
 from engine.pack import pack_worlds
@@ -14,7 +16,7 @@ from engine.spec import Body, GroundPlane, Joint, JointDrive, JointType, Mechani
 from engine.step import StageTimer, step
 
 __all__ = [
-    "Body", "Control", "GroundPlane", "Integrator", "Joint", "JointDrive", "JointType", "MechanismSpec", "Model",
+    "Body", "Control", "GroundPlane", "Health", "Integrator", "Joint", "JointDrive", "JointType", "MechanismSpec", "Model",
     "Shape", "ShapeType", "SolverConfig", "StageTimer", "State", "Stepper", "Trace", "TrackedPoint", "compute_metrics",
     "metrics_numpy", "pack_worlds", "rollout", "step",
 ]

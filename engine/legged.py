@@ -62,6 +62,7 @@ import warp as wp
 
 from engine.linear import block_sync
 from engine.model import SolverConfig
+from engine.spec import check_inertia
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
@@ -229,10 +230,13 @@ class LeggedSpec:
             raise ValueError(f"{where}: needs 1 to {MAX_LEGS} legs, got {len(self.legs)}")
         if not (np.isfinite(self.torso_mass) and self.torso_mass > 0.0):
             raise ValueError(f"{where}: torso_mass must be positive, got {self.torso_mass}")
+        self.torso_inertia = check_inertia(self.torso_inertia, f"{where}: torso")
         for leg in self.legs:
             k = np.shape(leg.table.links)[1]
             if np.shape(leg.link_mass) != (k,) or np.shape(leg.link_inertia) != (k, 3, 3):
                 raise ValueError(f"{where}, leg '{leg.name}': link_mass must be ({k},) and link_inertia ({k}, 3, 3)")
+            for i, inertia in enumerate(leg.link_inertia):
+                check_inertia(inertia, f"{where}, leg '{leg.name}': link {i}")
             if not leg.scale > 0.0:
                 raise ValueError(f"{where}, leg '{leg.name}': scale must be positive, got {leg.scale}")
 

@@ -142,6 +142,15 @@ class SolverConfig:
         max_speed: a world in which a body's centre of mass moves faster than this [m/s] is
             flagged diverged and frozen, like one whose state is no longer finite: a blow-up
             that grows over many steps is caught before its numbers overflow.
+        health_joint_tolerance: a world whose largest linear joint error at a record exceeds this
+            [m] is flagged (engine.health: its joints came apart); so is one packed where float32's
+            spacing at its coordinates exceeds it (too far from the origin to close a joint).
+        health_angular_tolerance: the same for the angular joint rows [rad]; a gross-tear guard:
+            walkers' crank axes twist by up to 0.03 rad for a few records at foot impacts (24
+            random walkers, 2 s, CPU) and close again.
+        health_residual: a world whose PADMM stops unconverged (iteration cap or stall) with a
+            residual above this (preconditioned units, sqrt [J]: about 1 m/s of error for 1 kg) is
+            flagged. Walkers, whose contacts cap some steps, stopped at up to 0.075 (same run).
         step_kernel: "fused" (the whole step of a world in one warp, one launch per step:
             engine.fused; batches without contact shapes and at most engine.fused.FUSED_MAX_ROWS
             rows), "staged" (one kernel per stage, the PADMM loop as a captured while loop) or
@@ -207,6 +216,9 @@ class SolverConfig:
     inner_tolerance_ratio: float = 0.01
     projection_tolerance: float = 1.0e-3
     max_speed: float = 1.0e3
+    health_joint_tolerance: float = 5.0e-3
+    health_angular_tolerance: float = 0.25
+    health_residual: float = 1.0
     step_kernel: str = "auto"
     sparse_body_nodes: bool = True
     sparse_projection_pattern: str = "auto"
@@ -242,6 +254,9 @@ class SolverConfig:
             "projection_skip_floor": self.projection_skip_floor >= 0.0,
             "projection_skip_floor_angular": self.projection_skip_floor_angular >= 0.0,
             "max_speed": self.max_speed > 0.0,
+            "health_joint_tolerance": self.health_joint_tolerance > 0.0,
+            "health_angular_tolerance": self.health_angular_tolerance > 0.0,
+            "health_residual": self.health_residual > 0.0,
             "max_iterations": self.max_iterations >= 1,
             "tolerance": self.tolerance > 0.0,
             "relative_tolerance": self.relative_tolerance >= 0.0,
@@ -297,7 +312,10 @@ class Model:
         body_row_begin, body_row_end (W, B) int32 into body_row (W, K) int32: each body's rows below
         contact_row_start in row order, coded 2 i + side (0: child, 1: parent; engine.pack.body_row_lists)
         bilateral_row_count (W,) int32: joint rows the position projection works on
-    Host: contact_capacity (contacts per world, 0 when the batch has no shapes), max_pairs,
+    Host: world_extent (W,) the largest coordinate magnitude of a body's centre of mass or a world
+    anchor when packed [m]; world_mass_ratio (W,) the largest mass ratio of two jointed bodies;
+    health_init (W,) int32: engine.health's FAR flag of each world, set when packed;
+    contact_capacity (contacts per world, 0 when the batch has no shapes), max_pairs,
     has_contacts, has_limits, has_bilateral_rows, has_unilateral_or_drive_rows; linear_solver;
     with the sparse solver sparse_system (the PADMM's factor schedules and buffers,
     engine.sparse.SparseSystem) and sparse_projection (the projection's, on the bilateral joint

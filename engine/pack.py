@@ -10,6 +10,7 @@ import warp as wp
 
 from engine.collide import PAIR_CONTACTS, PAIR_SLOTS, PLANE_CONTACTS
 from engine.fused import FUSED_MAX_ROWS, FUSED_REGISTERS, fused_fits
+from engine.health import far_flags
 from engine.model import Model, SolverConfig, Workspace
 from engine.sparse import batch_schedule_cost, bilateral_factor_rows, build_patterns, make_system
 from engine.spec import JOINT_ROW_COUNT, JointType, MechanismSpec, joint_dynamics_rows
@@ -336,6 +337,22 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     model.body_names = [[b.name for b in s.bodies] for s in specs]
     model.joint_names = [[j.name for j in s.joints] for s in specs]
     model.point_names = [[p.name for p in s.points] for s in specs]
+    # engine.health's pack-time facts: how far from the origin each world lies (its FAR flag) and the
+    # largest mass ratio across its joints (named in its reason when its joints come apart); the limits
+    # they guard: benchmarks/results/README.md, "Limits: mass ratio and distance from the origin"
+    extent = np.zeros(W)
+    np.maximum.at(extent, at[0], np.abs(com_world).max(axis=1))
+    ratio = np.ones(W)
+    for w, spec in enumerate(specs):
+        masses = {body.name: body.mass for body in spec.bodies}
+        for joint in spec.joints:
+            if joint.parent is None:
+                extent[w] = max(extent[w], float(np.abs(joint.parent_position).max()))
+            else:
+                a, b = masses[joint.parent], masses[joint.child]
+                ratio[w] = max(ratio[w], a / b, b / a)
+    model.world_extent, model.world_mass_ratio = extent, ratio
+    model.health_init = far_flags(extent, config.health_joint_tolerance)
     dtypes = {
         "body_inertia": wp.mat33, "body_inv_inertia": wp.mat33, "body_q_init": wp.transform,
         "body_qd_init": wp.spatial_vector, "joint_X_p": wp.transform, "joint_X_c": wp.transform,

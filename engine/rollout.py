@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from engine.health import Health, check_joints, note_residual
 from engine.joints import body_twist, joint_coordinate_row, joint_frames
 from engine.metrics import compute_metrics
 from engine.model import Control, Model, State
@@ -28,9 +29,12 @@ def accumulate_step_stats(
     converged: wp.array(dtype=wp.int32),
     valid: wp.array(dtype=wp.int32),
     residual_complementarity: wp.array(dtype=float),
+    residual_primal: wp.array(dtype=float),
+    residual_dual: wp.array(dtype=float),
     contact_count: wp.array(dtype=wp.int32),
     contact_dropped: wp.array(dtype=wp.int32),
     contact_distance: wp.array2d(dtype=float),
+    residual_threshold: float,
     # in/out
     iteration_sum: wp.array(dtype=wp.int32),
     iteration_max: wp.array(dtype=wp.int32),
@@ -41,9 +45,13 @@ def accumulate_step_stats(
     overflow_steps: wp.array(dtype=wp.int32),
     penetration_max: wp.array(dtype=float),
     complementarity_max: wp.array(dtype=float),
+    health: wp.array(dtype=wp.int32),
+    residual_max: wp.array(dtype=float),
+    residual_iterations: wp.array(dtype=wp.int32),
 ):
     """Per world: PADMM iterations (sum, max, capped steps), contacts (sum, max, steps with
-    dropped contacts), deepest penetration [m] and largest complementarity residual."""
+    dropped contacts), deepest penetration [m] and largest complementarity residual; an
+    unconverged stop's residual and engine.health's UNCONVERGED flag."""
     world = wp.tid()
     count = contact_count[world]
     contact_sum[world] = contact_sum[world] + count
@@ -61,6 +69,8 @@ def accumulate_step_stats(
     solved_steps[world] = solved_steps[world] + 1
     if converged[world] == 0:
         unconverged_steps[world] = unconverged_steps[world] + 1
+    note_residual(world, converged[world], its, wp.max(residual_primal[world], residual_dual[world]),
+                  residual_threshold, health, residual_max, residual_iterations)
 
 
 class Stepper:
@@ -70,7 +80,11 @@ class Stepper:
 
     Attributes: state (the current State), steps_done, and per-world statistics (device arrays
     (W,)): iteration_sum, iteration_max, unconverged_steps, solved_steps, contact_sum,
-    contact_max, overflow_steps, penetration_max [m], complementarity_max.
+    contact_max, overflow_steps, penetration_max [m], complementarity_max; engine.health's
+    flags (health: FAR from the pack, UNCONVERGED from every step, JOINTS_OPEN and DIVERGED from
+    check_joints, which rollout calls at every record), joint_error_max [m],
+    joint_error_angular_max [rad], residual_max and residual_iterations. health_report() reads
+    them back as an engine.health.Health.
     """
 
     def __init__(self, model: Model, state: State, control: Control, chunk: int = 1, *,
@@ -87,6 +101,9 @@ class Stepper:
         self.unconverged_steps, self.solved_steps = zeros(), zeros()
         self.contact_sum, self.contact_max, self.overflow_steps = zeros(), zeros(), zeros()
         self.penetration_max, self.complementarity_max = zeros(float), zeros(float)
+        self.health = wp.array(model.health_init, dtype=wp.int32, device=device)
+        self.joint_error_max, self.joint_error_angular_max = zeros(float), zeros(float)
+        self.residual_max, self.residual_iterations = zeros(float), zeros()
         self.capture = device.is_cuda if capture is None else (capture and device.is_cuda)
         self._graphs: dict[int, wp.Graph] = {}
 
@@ -105,10 +122,35 @@ class Stepper:
             work = model.work
             wp.launch(accumulate_step_stats, dim=model.num_worlds, device=model.device,
                       inputs=[work.iterations, work.converged, work.valid, work.residual_complementarity,
-                              work.contact_count, work.contact_dropped, work.contact_distance],
+                              work.residual_primal, work.residual_dual, work.contact_count, work.contact_dropped,
+                              work.contact_distance, float(model.config.health_residual)],
                       outputs=[self.iteration_sum, self.iteration_max, self.unconverged_steps, self.solved_steps,
                                self.contact_sum, self.contact_max, self.overflow_steps, self.penetration_max,
-                               self.complementarity_max])
+                               self.complementarity_max, self.health, self.residual_max, self.residual_iterations])
+
+    def check_joints(self) -> None:
+        """Measure the current state's joint errors (engine.metrics: model.work.violation_*, energy)
+        and update the health flags from them (on the device, no synchronization)."""
+        model, cfg = self.model, self.model.config
+        compute_metrics(model, self.state)
+        work = model.work
+        wp.launch(check_joints, dim=model.num_worlds, device=model.device,
+                  inputs=[work.violation_linear, work.violation_angular, work.diverged,
+                          float(cfg.health_joint_tolerance), float(cfg.health_angular_tolerance)],
+                  outputs=[self.health, self.joint_error_max, self.joint_error_angular_max])
+
+    def health_report(self) -> Health:
+        """The health flags and their measures, read back to the host."""
+        model, cfg = self.model, self.model.config
+        return Health(flags=self.health.numpy().copy(), linear_max=self.joint_error_max.numpy().copy(),
+                      angular_max=self.joint_error_angular_max.numpy().copy(),
+                      residual_max=self.residual_max.numpy().copy(),
+                      residual_iterations=self.residual_iterations.numpy().copy(),
+                      extent=np.asarray(model.world_extent, float).copy(),
+                      mass_ratio=np.asarray(model.world_mass_ratio, float).copy(),
+                      joint_tolerance=float(cfg.health_joint_tolerance),
+                      angular_tolerance=float(cfg.health_angular_tolerance),
+                      residual_threshold=float(cfg.health_residual), max_speed=float(cfg.max_speed))
 
     def advance(self) -> None:
         """Run one chunk of steps."""
@@ -140,7 +182,8 @@ class Trace:
     (T, W, J) torque [N m] (force [N]) of every joint drive in that step (0 without a drive);
     drive_speed (T, W, J) the driven joints' speeds [rad/s] ([m/s]) at the record (0 without a drive);
     diverged (W,) bool; point_names (list per world); halted_at (W,) time [s] at which rollout's
-    halt froze the world (-1: never).
+    halt froze the world (-1: never); health: engine.health.Health, the worlds flagged as not
+    simulated faithfully and why (None where the path that made the trace has no such check).
     """
 
     time: np.ndarray
@@ -154,6 +197,7 @@ class Trace:
     diverged: np.ndarray
     point_names: list
     halted_at: np.ndarray | None = None
+    health: Health | None = None
 
 
 @wp.kernel
@@ -240,7 +284,7 @@ def rollout(model: Model, state: State, control: Control, steps: int, *, dt: flo
     times = []
 
     def record(current: State):
-        compute_metrics(model, current)
+        stepper.check_joints()  # engine.metrics on the current state, and the health flags from it
         wp.launch(tracked_points, dim=(model.num_worlds, model.max_points), device=model.device,
                   inputs=[model.point_count, model.point_body, model.point_local, current.body_q], outputs=[points])
         records["points"].append(points.numpy().copy())
@@ -284,5 +328,5 @@ def rollout(model: Model, state: State, control: Control, steps: int, *, dt: flo
                   iterations=np.stack(records["iterations"]), drive_torque=np.stack(records["drive_torque"]),
                   drive_speed=np.stack(records["drive_speed"]),
                   diverged=model.work.diverged.numpy().astype(bool), point_names=model.point_names,
-                  halted_at=halted_at)
+                  halted_at=halted_at, health=stepper.health_report())
     return trace, stepper.state

@@ -111,6 +111,34 @@ def _quaternion(value, what: str) -> np.ndarray:
     return quat / norm
 
 
+TRIANGLE_TOLERANCE = 1e-5  # share of the largest principal moment by which it may exceed the other two's sum
+
+
+def check_inertia(inertia, where: str) -> np.ndarray:
+    """A symmetric 3x3 inertia tensor [kg m^2] whose principal moments are positive and satisfy the
+    triangle inequality (each at most the sum of the other two, as for any real mass distribution:
+    I_1 + I_2 - I_3 = 2 sum m z^2 >= 0), else ValueError naming ``where`` and the moments. A
+    tensor outside that set is no rigid body; the step would integrate it without complaint."""
+    inertia = _array(inertia, f"{where}: inertia [kg m^2]")
+    if inertia.shape == (3,):
+        inertia = np.diag(inertia)
+    if inertia.shape != (3, 3):
+        raise ValueError(f"{where}: inertia must be 3x3 or a 3-vector, got shape {inertia.shape}")
+    if not np.isfinite(inertia).all():
+        raise ValueError(f"{where}: inertia must be finite, got {inertia.tolist()}")
+    if not np.allclose(inertia, inertia.T, rtol=1e-6, atol=1e-12):
+        raise ValueError(f"{where}: inertia must be symmetric, got {inertia.tolist()}")
+    moments = np.linalg.eigvalsh(inertia)  # ascending
+    if not moments[0] > 0.0:
+        raise ValueError(f"{where}: inertia must be positive definite, got eigenvalues {moments.tolist()}")
+    if moments[2] > (moments[0] + moments[1]) + TRIANGLE_TOLERANCE * moments[2]:
+        shown = ", ".join(f"{m:.6g}" for m in moments)
+        raise ValueError(f"{where}: inertia violates the triangle inequality: principal moments ({shown}) kg m^2, "
+                         f"the largest exceeds the sum of the other two ({moments[0] + moments[1]:.6g}); "
+                         f"no mass distribution has it")
+    return inertia
+
+
 @dataclass
 class Body:
     """A rigid body.
@@ -119,7 +147,8 @@ class Body:
         name: unique name in the mechanism.
         mass: [kg], > 0.
         inertia: 3x3 inertia tensor about the centre of mass in body-frame axes [kg m^2],
-            symmetric positive definite (a 3-vector is taken as the diagonal).
+            symmetric positive definite, its principal moments satisfying the triangle inequality
+            (check_inertia; a 3-vector is taken as the diagonal).
         com: centre of mass in the body frame [m].
         position: body frame origin in the world frame [m].
         orientation: body frame orientation, quaternion (x, y, z, w).
@@ -141,19 +170,7 @@ class Body:
         if not isinstance(self.name, str) or not self.name:
             raise ValueError(f"body name must be a non-empty string, got {self.name!r}")
         self.mass = _scalar(self.mass, f"{where}: mass [kg]", minimum=0.0, strict=True)
-        inertia = _array(self.inertia, f"{where}: inertia [kg m^2]")
-        if inertia.shape == (3,):
-            inertia = np.diag(inertia)
-        if inertia.shape != (3, 3):
-            raise ValueError(f"{where}: inertia must be 3x3 or a 3-vector, got shape {inertia.shape}")
-        if not np.isfinite(inertia).all():
-            raise ValueError(f"{where}: inertia must be finite, got {inertia.tolist()}")
-        if not np.allclose(inertia, inertia.T, rtol=1e-6, atol=1e-12):
-            raise ValueError(f"{where}: inertia must be symmetric, got {inertia.tolist()}")
-        if not np.linalg.eigvalsh(inertia).min() > 0.0:
-            raise ValueError(f"{where}: inertia must be positive definite, got eigenvalues "
-                             f"{np.linalg.eigvalsh(inertia).tolist()}")
-        self.inertia = inertia
+        self.inertia = check_inertia(self.inertia, where)
         self.com = _vector(self.com, 3, f"{where}: com [m]")
         self.position = _vector(self.position, 3, f"{where}: position [m]")
         self.orientation = _quaternion(self.orientation, f"{where}: orientation")

@@ -3,12 +3,14 @@
 Kinematic-only questions (where does the foot go as the crank turns?) use the batched cycle
 kinematics and never touch the dynamics. Dynamic evaluation converts every feasible design to
 an engine world, packs them into one heterogeneous batch and rolls them out together. A design
-that cannot be generated, cannot complete a crank turn or diverges is a failed evaluation with a
-reason; the others in its batch carry on.
+that cannot be generated, cannot complete a crank turn or that the engine flags (engine.health:
+diverged, joints come apart, too far from the origin, the solver stopped far from converged) is a
+failed evaluation with a reason; the others in its batch carry on.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import operator
 import time
@@ -308,7 +310,7 @@ def evaluate_kinematic(family, params: Sequence[dict], *, samples: int = 360, de
 
 def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: float = 1e-3, device: str = "cpu",
                      crank_speed: float | None = None, record_every: int = 10,
-                     spec_hook: Callable | None = None, loop_tolerance: float = 5e-3,
+                     spec_hook: Callable | None = None, loop_tolerance: float | None = None,
                      fall_tilt: float = np.radians(45.0), fall_height: float = 0.5,
                      stall_time: float = 0.2, config=None, workers: int | None = None,
                      model: str = "maximal") -> Evaluation:
@@ -320,9 +322,12 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     heading_drift (sideways per forward distance) and energy_per_distance [J/m] of the motors.
     crank_speed [rad/s] overrides the design's (linkage families default to 2 pi).
     spec_hook(spec, params) may add shapes, ground or change the spec before packing.
-    A design whose state turns non-finite, or whose joints come apart by more than loop_tolerance
-    [m] at any recorded step (a torn mechanism, which can still be finite and even "walk" fast),
-    fails as diverged: its metrics would describe a broken simulation, not the design.
+    A world the engine flags (engine.health, Trace.health) fails with the engine's reason: its state
+    turned non-finite, its joints came apart by more than loop_tolerance [m] at a record (a torn
+    mechanism, which can still be finite and even "walk" fast; None: the config's
+    health_joint_tolerance, 5 mm by default), it lies too far from the origin for float32, or its
+    solver stopped unconverged at a large residual: its metrics would describe a broken
+    simulation, not the design.
     A walker (tracked points "torso" and "torso_up", the latter above the torso centre) that tilts
     by more than fall_tilt [rad] or whose torso sinks below fall_height times its starting height
     fails as fallen (a tumbling or belly-sliding body can cover ground fast without walking); its
@@ -349,8 +354,10 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
         return _evaluate_reduced(family, params, duration=duration, dt=dt, device=device, crank_speed=crank_speed,
                                  record_every=record_every, fall_tilt=fall_tilt, fall_height=fall_height,
                                  stall_time=stall_time, config=config)
-    from engine import pack_worlds, rollout
+    from engine import SolverConfig, pack_worlds, rollout
 
+    if loop_tolerance is not None:  # the engine's joint check is the one test of torn mechanisms
+        config = dataclasses.replace(config or SolverConfig(), health_joint_tolerance=float(loop_tolerance))
     t0 = time.perf_counter()
     built = build_specs(family, params, crank_speed=crank_speed, workers=workers)
     if spec_hook:
@@ -374,7 +381,7 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     record_dt = dt * record_every
     for world, i in enumerate(owners):
         _world_metrics(evaluation, i, trace, world, model.point_names[world], specs[world].joints, record_dt,
-                       loop_tolerance, fall_tilt, fall_height, stall_time)
+                       model.config.health_joint_tolerance, fall_tilt, fall_height, stall_time)
     evaluation.timings.update(pack=t2 - t1, simulate=t3 - t2, metrics=time.perf_counter() - t3)
     return evaluation
 
@@ -394,14 +401,13 @@ def _world_metrics(evaluation: Evaluation, i: int, trace, world: int, names: lis
                    loop_violation: float | None = None, pre: dict | None = None) -> None:
     """Metrics or the failure reason of design i, simulated as ``world`` of ``trace``; joints: the
     entries of trace.drive_torque's last axis (objects with name, type and drive). pre: the
-    batch's _batch_world_metrics (the same metrics, computed for every world at once)."""
-    if trace.diverged[world]:
-        evaluation.failures[i] = "diverged: the simulation produced a non-finite state"
-        return
-    torn = float(trace.violation_linear[:, world].max())
-    if torn > loop_tolerance:
-        evaluation.failures[i] = (f"diverged: joints came apart by {torn:.3g} m "
-                                  f"(more than the {loop_tolerance:g} m tolerance)")
+    batch's _batch_world_metrics (the same metrics, computed for every world at once). A trace
+    with engine health flags fails its flagged worlds with their reason (loop_tolerance is then the
+    engine's, already applied); one without (engine.legged's) is checked for divergence and for
+    joints more than loop_tolerance [m] apart here."""
+    flagged = _flagged(trace, world, loop_tolerance)
+    if flagged:
+        evaluation.failures[i] = flagged
         return
     jammed = _jam(trace, world, joints, stall_time, record_dt) if pre is None or pre["jam"][world] else ""
     if jammed:
@@ -435,6 +441,19 @@ def _world_metrics(evaluation: Evaluation, i: int, trace, world: int, names: lis
     metrics["loop_violation_max"] = (float(trace.violation_linear[:, world].max()) if loop_violation is None
                                      else loop_violation)
     evaluation.metrics[i] = metrics
+
+
+def _flagged(trace, world: int, loop_tolerance: float) -> str:
+    """Why the engine cannot vouch for ``world`` of ``trace`` ("" when it can): engine.health's
+    reason where the trace has one, else divergence and the joints' largest separation."""
+    if trace.health is not None:
+        return trace.health.reason(world)
+    if trace.diverged[world]:
+        return "diverged: the state turned non-finite or a body moved too fast"
+    torn = float(trace.violation_linear[:, world].max())
+    if torn > loop_tolerance:
+        return f"diverged: joints came apart by {torn:.3g} m (more than the {loop_tolerance:g} m tolerance)"
+    return ""
 
 
 def _legged_drives(specs: list, record_dt: float, records: int) -> tuple:
