@@ -513,6 +513,19 @@ class StudyStorage:
 
     # ---- reading ---------------------------------------------------------------------------------
 
+    def names(self) -> list[str]:
+        """Every study of the database (those moved aside by --fresh included), sorted."""
+        tables = self._tables()
+        found = set()
+        try:
+            with self.engine.connect() as connection:
+                for table, column in ((STUDIES, STUDIES.c.name), (DESIGNS, DESIGNS.c.study)):
+                    if table.name in tables:
+                        found |= set(connection.execute(sa.select(column).distinct()).scalars())
+        except sa.exc.SQLAlchemyError as exc:
+            raise self._error("list the studies", exc) from exc
+        return sorted(found)
+
     def checkpoint(self):
         """(last completed generation, checkpoint blob (bytes), seconds so far) or None."""
         if "checkpoints" not in self._tables():

@@ -195,7 +195,7 @@ def _stored_told(spec: StudySpec, space, frame) -> list:
     log = []
     names = objective_metric_names(spec)
     for generation, rows in frame.groupby("generation", sort=True):
-        designs = [{n: _plain(v) for n, v in zip(space.names, row)} for row in rows[space.names].itertuples(index=False)]
+        designs = _designs(space, rows)
         sign = -1.0 if spec.direction == "maximize" else 1.0
         values = np.where(rows["value"].notna(), sign * rows["value"].to_numpy(dtype=float), math.inf)
         columns = [values]
@@ -206,6 +206,11 @@ def _stored_told(spec: StudySpec, space, frame) -> list:
                 columns.append(np.where(failed | ~np.isfinite(metric), math.inf, metric))
         log.append((int(generation), checkpoint.designs_digest(designs), np.column_stack(columns)))
     return log
+
+
+def _designs(space, rows) -> list[dict]:
+    """The free parameters of a generation's stored designs, as the optimizer asked for them."""
+    return [{n: _plain(v) for n, v in zip(space.names, row)} for row in rows[space.names].itertuples(index=False)]
 
 
 def _plain(value):
@@ -231,14 +236,21 @@ def _rebuilt_optimizer(spec: StudySpec, space, storage: StudyStorage, stored: di
                        progress: bool):
     """A fresh optimizer brought to the stored state by replaying the study's generations."""
     optimizer = _make_optimizer(spec, space)
-    log = storage.optimizer_log() if stored is not None else _stored_told(spec, space, storage.designs())
+    stored_designs = stored is not None and getattr(optimizer, "takes_stored_designs", False)
+    frame = storage.designs() if stored is None or stored_designs else None
+    log = storage.optimizer_log() if stored is not None else _stored_told(spec, space, frame)
     if [g for g, _, _ in log] != list(range(done + 1)):
         raise ValueError(f"{storage.where}: the stored optimizer log does not hold generations 0 to {done}; "
                          f"start over with 'study run --fresh'")
     if progress and log:
         print(f"{spec.name}: rebuilding the optimizer from {len(log)} stored generations", file=sys.stderr)
-    checkpoint.replay(optimizer, log, storage.where)
+    designs = None
+    if stored_designs:  # TPE takes the stored designs instead of sampling them again, then its random states
+        designs = [_designs(space, rows) for _, rows in frame.groupby("generation", sort=True)]
+    checkpoint.replay(optimizer, log, storage.where, designs)
     if stored is not None:
+        if designs is not None:
+            checkpoint.restore_random_states(optimizer, stored["arrays"], storage.where)
         checkpoint.check_summary(optimizer, stored["arrays"], storage.where)
     return optimizer, ([] if stored is not None else log)
 

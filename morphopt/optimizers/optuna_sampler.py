@@ -32,6 +32,7 @@ class OptunaSampler(Optimizer):
             raise ValueError(f"unknown Optuna sampler '{sampler}', expected one of {sorted(SAMPLERS)}")
         optuna.logging.set_verbosity(optuna.logging.WARNING)
         self.directions = list(directions) if directions else None
+        self.sampler_name = sampler
         self.study = optuna.create_study(sampler=getattr(optuna.samplers, SAMPLERS[sampler])(seed=seed, **sampler_options),
                                          directions=self.directions)
         self.distributions = space.optuna_distributions()
@@ -58,6 +59,19 @@ class OptunaSampler(Optimizer):
 
         walk(self.study.sampler, 0)
         return found
+
+    @property
+    def takes_stored_designs(self) -> bool:
+        """True when a replay may hand the stored designs to ``ask_stored`` (TPE and random keep no
+        state but the trials and their random generators; NSGA-II marks the trials it samples)."""
+        return self.sampler_name in ("tpe", "random")
+
+    def ask_stored(self, designs: list[dict]) -> list[dict]:
+        """Ask for trials with these parameters (a resume's replay: the sampler is not consulted,
+        which would cost what all the run's sampling cost; its random states are restored after)."""
+        for design in designs:
+            self.study.enqueue_trial(design, skip_if_exists=False)
+        return self.ask(len(designs))
 
     def ask(self, count: int) -> list[dict]:
         self._pending = [self.study.ask(self.distributions) for _ in range(count)]

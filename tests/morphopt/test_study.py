@@ -4,9 +4,11 @@ import math
 import pathlib
 import textwrap
 
+import pandas as pd
 import pytest
 
 from morphopt.cli import main
+from morphopt.storage import StudyStorage
 from morphopt.study import run_study
 from morphopt.study_spec import load_study_spec
 
@@ -57,14 +59,35 @@ def test_study_converges_to_the_known_optimum(tmp_path):
     assert result.evaluations == 12 * 8
 
 
-def test_resume_gives_the_uninterrupted_result(tmp_path):
-    """A study stopped after 4 generations and resumed to 10 ends exactly like a 10-generation run."""
-    spec = load_study_spec(toy_study(tmp_path, generations=10))
+PARETO = """
+[[objectives]]
+metric = "tip_step_height"
+[[objectives]]
+metric = "tip_stride"
+direction = "minimize"
+"""
+
+
+@pytest.mark.parametrize("optimizer", ['name = "cma"\nrestarts = 3\nrestart_strategy = "bipop"\nsigma0 = 0.6',
+                                       'name = "optuna"\nsampler = "tpe"', 'name = "optuna"\nsampler = "nsga2"',
+                                       'name = "random"'], ids=["cma bipop", "tpe", "nsga2 pareto", "random"])
+def test_resume_gives_the_uninterrupted_result(tmp_path, optimizer):
+    """A study stopped after 4 generations and resumed to 10 stores exactly the designs and values of
+    a 10-generation run (the optimizer rebuilt from the stored generations)."""
+    path = toy_study(tmp_path, generations=10, extra=f"[optimizer]\n{optimizer}")
+    if "nsga2" in optimizer:  # several objectives: a Pareto front
+        text = path.read_text()
+        path.write_text(text[:text.index("[objective]")] + PARETO + text[text.index("[simulation]"):])
+    spec = load_study_spec(path)
     full = run_study(spec, progress=False)
     run_study(spec.with_overrides(generations=4), progress=False, fresh=True)  # "interrupted" after 4 generations
     resumed = run_study(spec, resume=True, progress=False)
     assert resumed.best_params == full.best_params and resumed.best_value == full.best_value
-    assert resumed.evaluations == full.evaluations
+    assert resumed.evaluations == full.evaluations == 80
+    storage = StudyStorage(spec.storage_url, spec.name)
+    archived = [name for name in StudyStorage(spec.storage_url, "").names() if name.startswith("toy.before-")]
+    frame, reference = storage.designs(), StudyStorage(spec.storage_url, archived[0]).designs()
+    pd.testing.assert_frame_equal(frame, reference, check_exact=True)
 
 
 @pytest.mark.parametrize("body, message", [
