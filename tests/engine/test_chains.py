@@ -66,7 +66,7 @@ def gimbal() -> MechanismSpec:
     yaw, spin = np.array([0.0, 0.0, 2.0]), np.array([20.0, 0.0, 0.0])
     frame = Body("frame", 0.5, [0.004, 0.003, 0.002], com=(0.05, 0.0, 0.02), angular_velocity=yaw,
                  velocity=np.cross(yaw, [0.05, 0.0, 0.02]))
-    rotor = Body("rotor", 0.3, [0.001, 0.003, 0.0045], com=com, angular_velocity=yaw + spin,
+    rotor = Body("rotor", 0.3, [0.001, 0.003, 0.0038], com=com, angular_velocity=yaw + spin,
                  velocity=np.cross(yaw, pivot) + np.cross(yaw + spin, com - pivot))
     joints = [Joint("yaw", "revolute", None, "frame", axis=(0, 0, 1)),
               Joint("spin", "revolute", "frame", "rotor", parent_position=pivot, child_position=pivot, axis=(1, 0, 0))]
@@ -112,7 +112,7 @@ def random_mechanism(seed: int) -> MechanismSpec:
         Rp, pp = (np.eye(3), np.zeros(3)) if parent < 0 else poses[parent]
         pivot = pp + rng.normal(size=3) * 0.08
         p = pivot + rng.normal(size=3) * 0.08
-        bodies.append(Body(f"b{k}", float(rng.uniform(0.1, 1.0)), rng.uniform(1e-4, 1e-3, size=3),
+        bodies.append(Body(f"b{k}", float(rng.uniform(0.1, 1.0)), rng.uniform(5e-4, 1e-3, size=3),
                            com=rng.normal(size=3) * 0.02, position=p, orientation=_quat(R)))
         poses.append((R, p))
         A = _rotation(rng.normal(size=3), rng.uniform(0, 3))

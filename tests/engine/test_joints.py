@@ -32,7 +32,7 @@ def integrate(body_q, body_qd, h):
 
 
 def joint_spec(joint_type, rng, world_parent):
-    bodies = [Body(name, 1.0 + rng.random(), np.diag(0.1 + rng.random(3)), com=0.1 * rng.normal(size=3),
+    bodies = [Body(name, 1.0 + rng.random(), np.diag(0.5 + 0.5 * rng.random(3)), com=0.1 * rng.normal(size=3),
                    position=0.3 * rng.normal(size=3), orientation=random_quat(rng)) for name in ("p", "c")]
     drive = JointDrive(stiffness=1.0) if joint_type in (JointType.REVOLUTE, JointType.PRISMATIC) else None
     axis = rng.normal(size=3)

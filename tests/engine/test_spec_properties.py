@@ -38,9 +38,12 @@ angles = st.tuples(*[st.floats(-math.pi, math.pi)] * 3)
 
 @st.composite
 def inertia_tensors(draw, valid: bool):
-    """R diag(moments) R^T: positive moments give a valid tensor; one moment <= -1e-3 of the
-    largest (or all zero) gives a symmetric tensor that is clearly not positive definite."""
+    """R diag(moments) R^T: positive moments within the triangle inequality give a valid tensor;
+    one moment <= -1e-3 of the largest (or all zero) gives a symmetric tensor that is clearly not
+    positive definite."""
     moments = np.array(draw(st.lists(st.floats(1e-4, 10.0), min_size=3, max_size=3)))
+    largest = int(np.argmax(moments))
+    moments[largest] = min(moments[largest], moments.sum() - moments[largest])  # I_max <= sum of the others
     if not valid:
         k = draw(st.integers(0, 2))
         moments[k] = -draw(st.floats(1e-3, 1.0)) * moments.max()

@@ -224,7 +224,7 @@ PENDULUM = """<?xml version="1.0"?>
   </link>
   <link name="lower">
     <inertial><origin xyz="0 0 -0.2" rpy="0 0 1.5707963267948966"/><mass value="1.0"/>
-      <inertia ixx="0.02" ixy="0" ixz="0" iyy="0.03" iyz="0" izz="0.001"/></inertial>
+      <inertia ixx="0.02" ixy="0" ixz="0" iyy="0.03" iyz="0" izz="0.015"/></inertial>
     <collision name="bob"><origin xyz="0 0 -0.4"/><geometry><sphere radius="0.05"/></geometry></collision>
   </link>
   <joint name="shoulder" type="revolute">
@@ -253,8 +253,8 @@ def test_a_plain_urdf_pendulum_imports(tmp_path):
         T = body_frame(spec, body.name)
         assert np.allclose(T[:3, :3] @ body.com + T[:3, 3], com)
     T = body_frame(spec, "lower")  # the link turned 90 deg about z, its inertial 90 deg more: 180 deg
-    assert np.allclose(T[:3, :3] @ lower.inertia @ T[:3, :3].T, np.diag([0.02, 0.03, 0.001]), atol=1e-12)
-    assert np.allclose(lower.inertia, np.diag([0.03, 0.02, 0.001]), atol=1e-12)  # in the link (body) frame
+    assert np.allclose(T[:3, :3] @ lower.inertia @ T[:3, :3].T, np.diag([0.02, 0.03, 0.015]), atol=1e-12)
+    assert np.allclose(lower.inertia, np.diag([0.03, 0.02, 0.015]), atol=1e-12)  # in the link (body) frame
     shoulder, elbow = spec.joints
     assert shoulder.parent is None and shoulder.child == "upper" and elbow.parent == "upper"
     assert (shoulder.limit_lower, shoulder.limit_upper, shoulder.damping) == (-1.5, 1.5, 0.1)
