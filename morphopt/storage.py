@@ -429,7 +429,12 @@ class StudyStorage:
 
     def _lost(self, connection, generation: int) -> ValueError:
         row = connection.execute(sa.select(STUDIES).where(STUDIES.c.name == self.name)).first()
-        holder = self._holder(row) if row is not None and row.owner else "nobody (the study was moved aside)"
+        if row is None:
+            holder = "nobody: the study was removed"
+        elif row.owner:
+            holder = self._holder(row)
+        else:
+            holder = "another run (--steal), which has finished since"
         return ValueError(f"{self.where}: this run lost the study's lease to {holder}; it stops without storing "
                           f"generation {generation}")
 

@@ -238,7 +238,7 @@ def test_a_killed_writer_is_taken_over_and_a_stolen_lease_stops_its_writer(tmp_p
     (tmp_path / "hold").unlink()
     status, out, err = finish(writer)
     assert status == 2, (status, out, err)
-    assert "lost the study's lease to pid" in error_line(err), err
+    assert "this run lost the study's lease to " in error_line(err), err
     status, _, err = finish(thief)
     assert status == 0, err
     stored = rows(database, "steal")
