@@ -135,6 +135,7 @@ def wait_for_generation(database, generation, process, timeout=120) -> None:
     raise AssertionError("no generation was stored in time")
 
 
+@pytest.mark.slow
 def test_two_writers_never_interleave(tmp_path):
     """Two `study run` started together on a new study: one runs (exit 0), the other is refused with
     the writer's pid and host (exit 2); while it runs, a fresh run and a resume are refused too. The
@@ -203,6 +204,7 @@ def test_resume_keeps_the_runs_overrides_and_extends(tmp_path, capsys):
     assert "'samples' was 16, is now 24" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_killed_writer_is_taken_over_and_a_stolen_lease_stops_its_writer(tmp_path):
     """kill -9 leaves a lease whose process is gone: resume takes it over at once and ends like an
     uninterrupted run. A live writer's lease is taken only with --steal; the writer then stops at its
