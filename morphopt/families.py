@@ -2,10 +2,11 @@
 (a planar Linkage: kinematic and dynamic studies) or ``build_spec(params)`` (a whole engine world,
 e.g. a walker with a floating torso: dynamic studies only).
 
-Families are loaded by name from a designs/ folder (the working directory's first, then the
-project's), or from an explicit path to a .py file. A name is a plain Python identifier
-("four_bar"); anything else that is not a path ending in .py ("../x", "a/b", "os.path") is
-refused, so a name can never reach outside designs/.
+Families are loaded by name from the working directory's designs/ folder first, then from the
+built-in ones shipped in the package (morphopt/designs/, BUILTIN_DIR, found from the installed
+package wherever the command runs), or from an explicit path to a .py file. A name is a plain
+Python identifier ("four_bar"); anything else that is not a path ending in .py ("../x", "a/b",
+"os.path") is refused, so a name can never reach outside those folders.
 
 Whatever goes wrong while a family file is loaded (an exception or ``sys.exit`` at import, a
 syntax error, a ``space`` that is no DesignSpace, a ``generate`` that cannot be called) is one
@@ -21,25 +22,33 @@ from types import ModuleType
 
 from morphopt.design_space import DesignSpace
 
-__all__ = ["DESIGNS_DIR", "available_families", "describe_exception", "load_family"]
+__all__ = ["BUILTIN_DIR", "available_families", "describe_exception", "family_file", "load_family"]
 
 FUNCTIONS = ("generate", "build_spec", "build_legged")  # what a study may call; each, if defined, a callable
 
-DESIGNS_DIR = pathlib.Path(__file__).resolve().parents[1] / "designs"
+BUILTIN_DIR = pathlib.Path(__file__).resolve().parent / "designs"  # the package's own (morphopt.designs)
 
 
 def _search_dirs() -> list[pathlib.Path]:
-    """designs/ of the working directory first, then the one beside the package (source tree)."""
-    return [d for d in (pathlib.Path.cwd() / "designs", DESIGNS_DIR) if d.is_dir()]
+    """designs/ of the working directory first, then the package's built-in families."""
+    return [d for d in (pathlib.Path.cwd() / "designs", BUILTIN_DIR) if d.is_dir()]
 
 
 def available_families() -> list[str]:
-    """Names of the families found in designs/."""
+    """Names of the families found in ./designs/ and among the built-in ones."""
     return sorted({p.stem for d in _search_dirs() for p in d.glob("*.py") if not p.name.startswith("_")})
 
 
+def family_file(name: str) -> pathlib.Path | None:
+    """The file a family name loads (./designs/ first, then the built-in ones), None if there is none."""
+    if not name.isidentifier() or name.startswith("_"):
+        return None
+    return next((c for c in (d / f"{name}.py" for d in _search_dirs()) if c.is_file()), None)
+
+
 def load_family(name_or_path) -> ModuleType:
-    """Load a family module by name (designs/<name>.py) or by an explicit .py path; checks its interface.
+    """Load a family module by name (<name>.py in ./designs/ or the built-in families) or by an
+    explicit .py path; checks its interface.
 
     Raises ValueError naming the family when the name is neither an identifier nor a .py path,
     when no such file exists, when executing it fails (see the module docstring), or when the
@@ -55,14 +64,13 @@ def load_family(name_or_path) -> ModuleType:
         if path.suffix != ".py" or not path.is_file():
             raise ValueError(f"design family '{text}': no such .py file")
     elif text.isidentifier():
-        candidates = [d / f"{text}.py" for d in _search_dirs()]
-        path = next((c for c in candidates if c.is_file()), None)
+        path = family_file(text)
         if path is None:
-            raise ValueError(f"unknown design family '{text}': no file {text}.py in designs/; "
-                             f"available: {', '.join(available_families())}")
+            raise ValueError(f"unknown design family '{text}': no file {text}.py in ./designs/ or among the "
+                             f"built-in families; available: {', '.join(available_families())}")
     else:
-        raise ValueError(f"design family '{text}': expected the name of a module in designs/ (a plain identifier "
-                         f"such as 'four_bar') or a path to a .py file")
+        raise ValueError(f"design family '{text}': expected the name of a family (a plain identifier such as "
+                         f"'four_bar', from ./designs/ or the built-in ones) or a path to a .py file")
     module = _execute(path)
     if not hasattr(module, "space"):
         raise ValueError(f"design family {path} defines no 'space'")

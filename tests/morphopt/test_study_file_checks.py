@@ -259,8 +259,9 @@ def test_keyboard_interrupt_at_import_still_stops(tmp_path):
 
 
 def test_the_projects_studies_and_families_pass():
-    """Every study of studies/ loads (as on the README's GPU command line too), and every family of
-    designs/ builds its default design in each mode it supports (the sweeps load them directly)."""
+    """Every study of studies/ loads (as on the README's GPU command line too), and every family
+    (the built-in ones, morphopt/designs/) builds its default design in each mode it supports (the
+    sweeps load them directly)."""
     for path in sorted((ROOT / "studies").glob("*.toml")):
         spec = load_study_spec(path)
         spec.with_overrides(device="cuda", worlds=4096)
