@@ -156,7 +156,10 @@ def test_two_writers_never_interleave(tmp_path):
     for pid, (status, _, err) in results.items():
         if pid != winners[0]:
             line = error_line(err)
-            assert status == 2 and f"is being written by pid {winners[0]} on host " in line and "--steal" in line
+            busy = f"is being written by pid {winners[0]} on host " in line and "--steal" in line
+            # a loser of the two simultaneous starts that comes late (a busy machine) finds results instead
+            stored = pid in (first.pid, second.pid) and "already has 4 designs in 1 generations" in line
+            assert status == 2 and (busy or stored), line
     stored = rows(database)
     assert [(g, m) for g, m, _ in stored] == [(g, m) for g in range(4) for m in range(4)]
     assert studies(database) == {"toy": 16}
