@@ -37,7 +37,6 @@ CASES = [  # (name, factory, designs per generation, generations)
     ("cma bipop", lambda n: CMAES(SPACE, popsize=n, seed=1, restarts=4, restart_strategy="bipop"), 4096, 100),
     ("random", lambda n: RandomSearch(SPACE, seed=1), 4096, 100),
     ("optuna tpe", lambda n: OptunaSampler(SPACE, sampler="tpe", seed=1), 64, 30),
-    ("optuna tpe", lambda n: OptunaSampler(SPACE, sampler="tpe", seed=1), 64, 100),
     ("optuna nsga2", lambda n: OptunaSampler(SPACE, sampler="nsga2", seed=1), 256, 30),
 ]
 
