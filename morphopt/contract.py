@@ -5,12 +5,12 @@ Families declare no list of metrics: the names are derived from what the family 
 rules of morphopt.evaluate (tests/morphopt/test_study_file_checks.py runs the evaluation and
 compares, so the two cannot drift apart):
 
-    kinematic  per tracked point P of generate's linkage: P_stride, P_step_height; and
+    kinematic  per tracked point P of generate's linkage: P_stride, P_stride_full, P_step_height; and
                transmission_angle_min
     dynamic    per tracked point P of the world (build_spec, build_legged, or generate's linkage
-               made a world): P_stride, P_step_height; torque_peak, torque_rms, loop_violation_max;
-               with a point "torso": walking_speed, heading_drift, energy_per_distance; with
-               "torso" and "torso_up": torso_tilt_max, torso_height_min
+               made a world): P_stride, P_stride_full, P_step_height; torque_peak, torque_rms,
+               loop_violation_max; with a point "torso": walking_speed, heading_drift,
+               energy_per_distance; with "torso" and "torso_up": torso_tilt_max, torso_height_min
 
 "path_error" is no metric of the evaluation: the study computes it for an objective from the path
 of a tracked point and a target curve.
@@ -37,7 +37,7 @@ from morphopt.families import describe_exception
 
 __all__ = ["FamilyMetrics", "RECORD_EVERY", "check_default_design", "family_metrics", "point_metrics"]
 
-POINT_METRICS = ("stride", "step_height")
+POINT_METRICS = ("stride", "stride_full", "step_height")
 KINEMATIC_METRICS = ("transmission_angle_min",)
 DYNAMIC_METRICS = ("torque_peak", "torque_rms", "loop_violation_max")
 WALKING_METRICS = ("walking_speed", "heading_drift", "energy_per_distance")  # with a point "torso"

@@ -25,7 +25,7 @@ from morphopt.design_space import Float
 from morphopt.linkage import Linkage
 from morphopt.linkage.kinematics import crank_turn_failure, placement_name
 from morphopt.linkage.kinematics_warp import LinkageTables, solve_tables
-from morphopt.metrics import stride_and_step_height
+from morphopt.metrics import gait_metrics, gait_metrics_batch
 
 __all__ = ["Evaluation", "evaluate_dynamic", "evaluate_kinematic"]
 
@@ -132,11 +132,14 @@ class Evaluation:
 
 
 def _path_metrics(paths: dict) -> dict:
+    """Stride, full stride and step height of a rollout's tracked-point paths (its last crank turn's
+    records: an open run, morphopt.metrics.gait_metrics with closed=False)."""
     metrics = {"paths": paths}
     for name, path in paths.items():
-        stride, height = stride_and_step_height(path)
-        metrics[f"{name}_stride"] = float(stride)
-        metrics[f"{name}_step_height"] = float(height)
+        stride, full, height = gait_metrics(path, closed=False)
+        metrics[f"{name}_stride"] = stride
+        metrics[f"{name}_stride_full"] = full
+        metrics[f"{name}_step_height"] = height
     return metrics
 
 
@@ -144,8 +147,8 @@ def _batch_world_metrics(trace, turn: np.ndarray, torso: np.ndarray, up: np.ndar
                          target: np.ndarray, fall_tilt: float, fall_height: float, stall_time: float,
                          record_dt: float) -> dict:
     """The costly parts of _world_metrics for every world of ``trace`` at once (NumPy over the
-    worlds instead of one small call per world and path): per world and tracked point the stride
-    and step height over the last ``turn`` (W,) records (stride_and_step_height's rule); per world
+    worlds instead of one small call per world and path): per world and tracked point the stride,
+    full stride and step height over the last ``turn`` (W,) records (gait_metrics' rule); per world
     the largest torso tilt, the lowest torso height and whether the walker fell (torso, up (W,)
     point indices; fall_tilt, fall_height: see _fall); whether a drive may have jammed (effort,
     target (W, J): effort limit and target speed per drive, target 0 for none; see _jam, which
@@ -154,18 +157,9 @@ def _batch_world_metrics(trace, turn: np.ndarray, torso: np.ndarray, up: np.ndar
     points = trace.points
     T, W, P = points.shape[:3]
     window = np.where((turn <= 0) | (turn > T), T, turn)
-    inside = np.arange(T)[:, None] >= (T - window)[None, :]  # (T, W)
-    x, z = points[..., 0], points[..., 2]
-    mask = inside[:, :, None]
-    finite = np.where(mask[..., None], np.isfinite(points[..., [0, 2]]), True).all(axis=(0, 3))
-    low = np.where(mask, z, np.inf).min(axis=0)
-    high = np.where(mask, z, -np.inf).max(axis=0)
-    with np.errstate(invalid="ignore"):
-        stance = mask & (z <= low + 0.02 * (high - low))
-        stride = np.where(stance, x, -np.inf).max(axis=0) - np.where(stance, x, np.inf).min(axis=0)
-        height = high - low
-    stride = np.where(finite, stride, np.nan)
-    height = np.where(finite, height, np.nan)
+    first = np.repeat(T - window, P)  # the paths as columns (world, point) of (T, W * P)
+    stride, full, height = (a.reshape(W, P) for a in gait_metrics_batch(
+        points[..., 0].reshape(T, W * P), points[..., 2].reshape(T, W * P), first, closed=False))
     tilts, heights = _torso_tilt_height(points, points[0], torso, up)
     needed = max(2, int(np.ceil(stall_time / record_dt)))
     torque = np.abs(trace.drive_torque[1:, :, :effort.shape[1]])
@@ -177,7 +171,8 @@ def _batch_world_metrics(trace, turn: np.ndarray, torso: np.ndarray, up: np.ndar
     if stalled.shape[0] >= needed:
         counts = np.concatenate([np.zeros((1, W, effort.shape[1]), int), np.cumsum(stalled, axis=0)])
         runs = ((counts[needed:] - counts[:-needed]) >= needed).any(axis=0)
-    return {"stride": stride, "height": height, "tilt": tilts.max(axis=0), "lowest": heights.min(axis=0),
+    return {"stride": stride, "stride_full": full, "height": height, "tilt": tilts.max(axis=0),
+            "lowest": heights.min(axis=0),
             "fell": ((tilts > fall_tilt) | (heights < fall_height)).any(axis=0), "jam": runs.any(axis=1)}
 
 
@@ -292,7 +287,7 @@ def evaluate_kinematic(family, params: Sequence[dict], *, samples: int = 360, de
                               keep_points=keep_paths)
         fail_step, fail_placement = result["fail_step"].tolist(), result["fail_placement"].tolist()
         transmission = result["transmission_angle_min"].tolist()
-        stride, height = result["stride"].tolist(), result["step_height"].tolist()
+        stride, full, height = (result[k].tolist() for k in ("stride", "stride_full", "step_height"))
         for j, i in enumerate(indices):
             if fail_step[j] >= 0:
                 angle = tables.phase[j] + 2.0 * np.pi * fail_step[j] / samples
@@ -301,6 +296,7 @@ def evaluate_kinematic(family, params: Sequence[dict], *, samples: int = 360, de
             metrics = {"paths": {n: result["points"][j, :, k] for k, n in enumerate(names)}} if keep_paths else {}
             for k, n in enumerate(names):
                 metrics[f"{n}_stride"] = stride[j][k]
+                metrics[f"{n}_stride_full"] = full[j][k]
                 metrics[f"{n}_step_height"] = height[j][k]
             metrics["transmission_angle_min"] = transmission[j]
             evaluation.metrics[i] = metrics
@@ -422,6 +418,7 @@ def _world_metrics(evaluation: Evaluation, i: int, trace, world: int, names: lis
         metrics = {"paths": paths}
         for k, name in enumerate(names):
             metrics[f"{name}_stride"] = float(pre["stride"][world, k])
+            metrics[f"{name}_stride_full"] = float(pre["stride_full"][world, k])
             metrics[f"{name}_step_height"] = float(pre["height"][world, k])
     if "torso" in names:
         metrics.update(_walking_metrics(trace, world, names.index("torso"), speeds, record_dt))

@@ -19,6 +19,7 @@ import numpy as np
 import warp as wp
 
 from morphopt.linkage.graph import Linkage, Offset
+from morphopt.metrics import BISECTIONS, GROUND_BAND
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
@@ -164,22 +165,65 @@ def dyad_coefficients(first: wp.array2d(dtype=wp.float64), second: wp.array2d(dt
     coefficients[d, k, 3] = wp.float64(0.5) / (ra * rb)
 
 
+@wp.func
+def _hermite(p0: wp.float64, p1: wp.float64, m0: wp.float64, m1: wp.float64, s: wp.float64):
+    """The cubic Hermite curve from p0 to p1 with tangents m0, m1 at s (morphopt.metrics.hermite)."""
+    s2 = s * s
+    s3 = s2 * s
+    one, two, three = wp.float64(1.0), wp.float64(2.0), wp.float64(3.0)
+    return (two * s3 - three * s2 + one) * p0 + (s3 - two * s2 + s) * m0 + (three * s2 - two * s3) * p1 + (s3 - s2) * m1
+
+
+@wp.func
+def _coordinate(points: wp.array3d(dtype=wp.vec2d), d: int, i: int, p: int, axis: int):
+    """Coordinate ``axis`` of output node p at crank step i (taken cyclically) of design d."""
+    n = points.shape[1]
+    return points[d, (i + n) % n, p][axis]
+
+
+@wp.func
+def _refined_extreme(points: wp.array3d(dtype=wp.vec2d), d: int, p: int, axis: int, sign: wp.float64):
+    """The lowest (sign 1) or highest (-1) value of coordinate ``axis`` over the cycle, refined by the
+    parabola through the extreme sample and its neighbours: (value, sample, offset); the rule of
+    morphopt.metrics.gait_metrics_batch's extreme."""
+    n = points.shape[1]
+    at = int(0)
+    best = sign * _coordinate(points, d, 0, p, axis)
+    for i in range(1, n):
+        v = sign * _coordinate(points, d, i, p, axis)
+        if v < best:
+            best = v
+            at = i
+    f0 = _coordinate(points, d, at, p, axis)
+    fm = _coordinate(points, d, at - 1, p, axis)
+    fq = _coordinate(points, d, at + 1, p, axis)
+    curve = fm - wp.float64(2.0) * f0 + fq
+    offset = wp.float64(0.0)
+    if sign * curve > wp.float64(0.0):
+        offset = wp.float64(0.5) * (fm - fq) / curve
+    half = wp.float64(0.5)
+    return wp.vec3d(f0 + half * (fq - fm) * offset + half * curve * offset * offset, wp.float64(at), offset)
+
+
 @wp.kernel
 def cycle_reduce(
     points: wp.array3d(dtype=wp.vec2d),
     failed: wp.array2d(dtype=wp.int32),
     cos_max: wp.array2d(dtype=wp.float64),
     ground_band: wp.float64,
+    bisections: int,
     # out
     fail_step_out: wp.array(dtype=wp.int32),
     fail_placement_out: wp.array(dtype=wp.int32),
     cos_out: wp.array(dtype=wp.float64),
     stride_out: wp.array2d(dtype=wp.float64),
+    full_out: wp.array2d(dtype=wp.float64),
     height_out: wp.array2d(dtype=wp.float64),
 ):
     """Per design: the first failing crank step and placement (-1: feasible), the largest |cos mu|
-    and, per output node, the stride (horizontal extent of the points within ground_band x the step
-    height above the lowest one) and the step height (vertical extent); NaN when infeasible."""
+    and, per output node, the stride, full stride and step height of its closed path by the rule of
+    morphopt.metrics.gait_metrics (refined extrema, band edges on the Hermite curve); NaN when
+    infeasible."""
     d = wp.tid()
     samples = failed.shape[1]
     fail_step = int(-1)  # noqa: UP018 - int(): a variable, not a constant, for Warp
@@ -194,26 +238,64 @@ def cycle_reduce(
     fail_placement_out[d] = fail_placement
     cos_out[d] = worst
     nan = wp.float64(wp.nan)
+    half = wp.float64(0.5)
+    two = wp.float64(2.0)
     for p in range(points.shape[2]):
         if fail_step >= 0:
             stride_out[d, p] = nan
+            full_out[d, p] = nan
             height_out[d, p] = nan
             continue
-        low = points[d, 0, p][1]
-        high = low
-        for i in range(samples):
-            y = points[d, i, p][1]
-            low = wp.min(low, y)
-            high = wp.max(high, y)
+        lowest = _refined_extreme(points, d, p, 1, wp.float64(1.0))
+        low = lowest[0]
+        high = _refined_extreme(points, d, p, 1, wp.float64(-1.0))[0]
         band = low + ground_band * (high - low)
-        left = wp.float64(1.0e300)
-        right = wp.float64(-1.0e300)
+        at = int(lowest[1])
+        offset = lowest[2]
+        x0 = _coordinate(points, d, at, p, 0)
+        xm = _coordinate(points, d, at - 1, p, 0)
+        xq = _coordinate(points, d, at + 1, p, 0)
+        bottom = x0 + half * (xq - xm) * offset + half * (xm - two * x0 + xq) * offset * offset
+        left = bottom
+        right = bottom
         for i in range(samples):
-            q = points[d, i, p]
-            if q[1] <= band:
-                left = wp.min(left, q[0])
-                right = wp.max(right, q[0])
+            x = _coordinate(points, d, i, p, 0)
+            y = _coordinate(points, d, i, p, 1)
+            xp = _coordinate(points, d, i - 1, p, 0)
+            xn = _coordinate(points, d, i + 1, p, 0)
+            yn = _coordinate(points, d, i + 1, p, 1)
+            inside = y <= band
+            if inside:
+                left = wp.min(left, x)
+                right = wp.max(right, x)
+                if _coordinate(points, d, i - 1, p, 1) <= band and yn <= band:
+                    curve = xp - two * x + xn
+                    vertex = x
+                    if curve != wp.float64(0.0):
+                        vertex = x - (xn - xp) * (xn - xp) / (wp.float64(8.0) * curve)
+                    if x >= xp and x >= xn:
+                        right = wp.max(right, vertex)
+                    if x <= xp and x <= xn:
+                        left = wp.min(left, vertex)
+            if inside != (yn <= band):  # a band edge between samples i and i + 1
+                tx0 = half * (xn - xp)
+                tx1 = half * (_coordinate(points, d, i + 2, p, 0) - x)
+                ty0 = half * (yn - _coordinate(points, d, i - 1, p, 1))
+                ty1 = half * (_coordinate(points, d, i + 2, p, 1) - y)
+                lo = wp.float64(0.0)
+                hi = wp.float64(1.0)
+                for _ in range(bisections):
+                    s = half * (lo + hi)
+                    if (_hermite(y, yn, ty0, ty1, s) <= band) == inside:
+                        lo = s
+                    else:
+                        hi = s
+                edge = _hermite(x, xn, tx0, tx1, half * (lo + hi))
+                left = wp.min(left, edge)
+                right = wp.max(right, edge)
         stride_out[d, p] = right - left
+        full_out[d, p] = (_refined_extreme(points, d, p, 0, wp.float64(-1.0))[0]
+                          - _refined_extreme(points, d, p, 0, wp.float64(1.0))[0])
         height_out[d, p] = high - low
 
 
@@ -293,7 +375,7 @@ def _chunks(count: int, device: str) -> list[tuple[int, int]]:
 
 
 def solve_tables(tables: LinkageTables, *, samples: int | None = None, angles: np.ndarray | None = None,
-                 nodes: list[str] | None = None, device: str = "cpu", ground_band: float = 0.02,
+                 nodes: list[str] | None = None, device: str = "cpu", ground_band: float = GROUND_BAND,
                  keep_points: bool = True) -> dict:
     """Solve every design of ``tables`` over ``samples`` crank angles phase + 2 pi k / samples (or
     at its own ``angles`` (D, N)) and reduce each cycle.
@@ -301,8 +383,9 @@ def solve_tables(tables: LinkageTables, *, samples: int | None = None, angles: n
     Returns a dict of NumPy arrays: "points" (D, N, len(nodes), 2) [m] of the nodes asked for (all
     by default; omitted when keep_points is False, which saves the copy from a GPU), "fail_step"
     and "fail_placement" (D,) first crank step and placement that cannot close (-1: feasible; the
-    number of placements: the crank itself), "transmission_angle_min" (D,) [rad], "stride" and
-    "step_height" (D, len(nodes)) [m] (the rule of morphopt.metrics.stride_and_step_height).
+    number of placements: the crank itself), "transmission_angle_min" (D,) [rad], "stride",
+    "stride_full" and "step_height" (D, len(nodes)) [m] (the rule of morphopt.metrics.gait_metrics
+    on the closed path).
     """
     count = tables.count
     nodes = list(tables.names) if nodes is None else list(nodes)
@@ -319,7 +402,8 @@ def solve_tables(tables: LinkageTables, *, samples: int | None = None, angles: n
     host = {"points": np.empty((count, samples, len(nodes), 2)), "failed": np.empty((count, samples), np.int32),
             "cos": np.empty((count, samples)), "fail_step": np.empty(count, np.int32),
             "fail_placement": np.empty(count, np.int32), "cos_max": np.empty(count),
-            "stride": np.empty((count, len(nodes))), "step_height": np.empty((count, len(nodes)))}
+            "stride": np.empty((count, len(nodes))), "stride_full": np.empty((count, len(nodes))),
+            "step_height": np.empty((count, len(nodes)))}
     shared = {name: wp.array(getattr(tables, name), dtype=wp.int32, device=device)
               for name in ("ground_node", "kind", "node", "node_a", "node_b")}
     shared["out_nodes"] = wp.array(out_nodes, dtype=wp.int32, device=device)
@@ -355,8 +439,8 @@ def solve_tables(tables: LinkageTables, *, samples: int | None = None, angles: n
                   outputs=[points, failed, cos])
         reduced = {name: out(name, dtype) for name, dtype in (
             ("fail_step", wp.int32), ("fail_placement", wp.int32), ("cos_max", wp.float64),
-            ("stride", wp.float64), ("step_height", wp.float64))}
-        wp.launch(cycle_reduce, dim=hi - lo, device=device, inputs=[points, failed, cos, ground_band],
+            ("stride", wp.float64), ("stride_full", wp.float64), ("step_height", wp.float64))}
+        wp.launch(cycle_reduce, dim=hi - lo, device=device, inputs=[points, failed, cos, ground_band, BISECTIONS],
                   outputs=list(reduced.values()))
         if not is_cpu:
             for name, array in reduced.items():
@@ -372,7 +456,7 @@ def solve_tables(tables: LinkageTables, *, samples: int | None = None, angles: n
             list(pool.map(lambda r: run(*r), ranges))
     result = {"fail_step": host["fail_step"], "fail_placement": host["fail_placement"],
               "transmission_angle_min": np.arccos(host["cos_max"]), "stride": host["stride"],
-              "step_height": host["step_height"]}
+              "stride_full": host["stride_full"], "step_height": host["step_height"]}
     if keep_points:
         result["points"] = host["points"]
     return result

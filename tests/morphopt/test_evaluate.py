@@ -24,13 +24,13 @@ def test_kinematic_batch_reports_failures_with_reasons_and_keeps_the_rest():
 
 def test_dynamic_evaluation_matches_kinematic_paths():
     """Driven at 2 pi rad/s for 1.5 s, the simulated coupler-point and foot paths over the last turn
-    have the kinematic stride and step height (1 mm), and the crank torque is reported."""
+    have the kinematic stride, full stride and step height (1 mm), and the crank torque is reported."""
     for name, point in (("four_bar", "coupler_point"), ("jansen_leg", "foot")):
         family = load_family(name)
         params = [family.space.default()]
         kinematic = evaluate_kinematic(family, params).metrics[0]
         dynamic = evaluate_dynamic(family, params, duration=1.5, record_every=5).metrics[0]
-        for metric in (f"{point}_stride", f"{point}_step_height"):
+        for metric in (f"{point}_stride", f"{point}_stride_full", f"{point}_step_height"):
             assert abs(dynamic[metric] - kinematic[metric]) < 1e-3, (name, metric)
         assert dynamic["torque_peak"] > 0 and np.isfinite(dynamic["torque_rms"])
         assert dynamic["loop_violation_max"] < 1e-5
@@ -60,9 +60,10 @@ def test_torn_mechanisms_fail_as_diverged():
 def test_batched_kinematic_evaluation_matches_the_numpy_reference():
     """evaluate_kinematic (families called once with parameter arrays, compiled kernels, the batch
     split over the CPU cores) gives the NumPy reference's feasibility, failure reasons, paths,
-    stride, step height and transmission angle (1e-9) for 160 random designs of each family."""
+    stride, full stride, step height and transmission angle (1e-9) for 160 random designs of each
+    family."""
     from morphopt.linkage import solve_cycles
-    from morphopt.metrics import stride_and_step_height
+    from morphopt.metrics import gait_metrics
 
     rng = np.random.default_rng(11)
     for name in ("jansen_leg", "klann_leg", "four_bar", "watt_sixbar"):
@@ -80,8 +81,9 @@ def test_batched_kinematic_evaluation_matches_the_numpy_reference():
             for point in linkage.points:
                 path = solution.point(point, linkage)
                 assert np.abs(metrics["paths"][point] - path).max() < 1e-9
-                stride, height = stride_and_step_height(path)
+                stride, full, height = gait_metrics(path)
                 assert abs(metrics[f"{point}_stride"] - stride) < 1e-9
+                assert abs(metrics[f"{point}_stride_full"] - full) < 1e-9
                 assert abs(metrics[f"{point}_step_height"] - height) < 1e-9
             assert abs(metrics["transmission_angle_min"] - solution.transmission_angle_min) < 1e-9
 
