@@ -7,6 +7,7 @@
     morphopt study export SPEC --optuna-storage URL
     morphopt export SPEC [--best K] --format usd|urdf|mjcf|svg|dxf [--out DIR] [--motion SECONDS]
     morphopt demo fourbar [--worlds N] [--seconds S] [--dt DT] [--device cpu|cuda]
+    morphopt families [show NAME]
 
 Bad input (a missing or malformed study file, an unknown key or family, a bad argument, a device
 that is not there) ends the command with exit status 2 and one line on stderr naming the item and
@@ -198,6 +199,13 @@ def _export(args) -> int:
     return 0
 
 
+def _families(args) -> int:
+    from morphopt.catalog import family_sheet, family_table
+
+    print(family_sheet(args.name) if args.families_command == "show" else family_table())
+    return 0
+
+
 def _plain(value):
     """A pandas/NumPy scalar as a plain Python value (for JSON metadata and the families)."""
     return value.item() if hasattr(value, "item") else value
@@ -258,6 +266,12 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:N (default cpu)")
     demo.add_argument("--json", action="store_true", help="print one JSON object")
     demo.set_defaults(handler=_demo)
+    families = commands.add_parser("families", help="list the design families, or show one's parameters and metrics")
+    families_commands = families.add_subparsers(dest="families_command")
+    show = families_commands.add_parser("show",
+                                        help="a family's parameters (range, default, unit, meaning) and metrics")
+    show.add_argument("name", help="family name (as listed by 'morphopt families') or path to a .py file")
+    families.set_defaults(handler=_families)
     return parser
 
 
@@ -276,6 +290,8 @@ def main(argv=None) -> int:
     """Run one command; returns its exit status (argparse exits with 2 itself on a bad argument)."""
     args = build_parser().parse_args(argv)
     command = f"study {args.study_command}" if args.command == "study" else args.command
+    if args.command == "families" and args.families_command:
+        command = f"families {args.families_command}"
     try:
         if args.command == "demo":
             _check_demo_device(args.device)

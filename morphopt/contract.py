@@ -15,6 +15,9 @@ compares, so the two cannot drift apart):
 "path_error" is no metric of the evaluation: the study computes it for an objective from the path
 of a tracked point and a target curve.
 
+What each metric means, with its unit, is said once, in DEFINITIONS: `morphopt families show`
+prints it and the README's metric list is its markdown (metric_table; a test compares them).
+
 The contract: the function the study's mode uses (generate; build_spec, or build_legged for the
 reduced model) builds the family's own default design without raising and returns a Linkage, an
 engine.MechanismSpec or an engine.legged.LeggedSpec; otherwise one ValueError names the family
@@ -28,6 +31,7 @@ legs_per_side). A metric must be given by every probe.
 
 from __future__ import annotations
 
+import enum
 import itertools
 import math
 from dataclasses import dataclass, field
@@ -35,7 +39,16 @@ from dataclasses import dataclass, field
 from morphopt.design_space import Choice, DesignSpace, Int
 from morphopt.families import describe_exception
 
-__all__ = ["FamilyMetrics", "RECORD_EVERY", "check_default_design", "family_metrics", "point_metrics"]
+__all__ = ["DEFINITIONS", "Definition", "FamilyMetrics", "Mode", "RECORD_EVERY", "check_default_design",
+           "definition", "family_metrics", "metric_table", "point_metrics"]
+
+
+class Mode(enum.StrEnum):
+    """A study's evaluation: one crank turn of kinematics, or a simulation."""
+
+    KINEMATIC = "kinematic"
+    DYNAMIC = "dynamic"
+
 
 POINT_METRICS = ("stride", "stride_full", "step_height")
 KINEMATIC_METRICS = ("transmission_angle_min",)
@@ -45,6 +58,71 @@ UPRIGHT_METRICS = ("torso_tilt_max", "torso_height_min")  # with points "torso" 
 RECORD_EVERY = 10  # a study's rollouts record every 10th step (evaluate_dynamic's default)
 MAX_PROBES = 32
 VALUES_PER_PARAMETER = 8  # an integer parameter of a wider range is probed at 8 values, ends included
+
+
+
+
+@dataclass(frozen=True)
+class Definition:
+    """What a metric means: its unit ("1": a ratio), the modes that give it, one line of meaning;
+    ``per_point``: the name is "<point>_<name>", one per tracked point."""
+
+    name: str
+    unit: str
+    modes: tuple
+    meaning: str
+    per_point: bool = False
+
+    @property
+    def label(self) -> str:
+        """The name as users write it ("<point>_stride" for a per-point metric)."""
+        return f"<point>_{self.name}" if self.per_point else self.name
+
+
+BOTH, KINEMATIC, DYNAMIC = (Mode.KINEMATIC, Mode.DYNAMIC), (Mode.KINEMATIC,), (Mode.DYNAMIC,)
+DEFINITIONS = {d.label: d for d in (
+    Definition("stride", "m", BOTH, "flat-stance stride: horizontal extent of the part of the point's path within 2 % "
+               "of its step height above its lowest point, over a crank turn (dynamic: the last turn's records); "
+               "band edges and extrema interpolated between samples", per_point=True),
+    Definition("stride_full", "m", BOTH, "full stride: the path's whole horizontal extent over a crank turn (the "
+               "stride quoted for Jansen's leg: 67.9 mm at his numbers, of which 49.3 mm flat)", per_point=True),
+    Definition("step_height", "m", BOTH, "vertical extent of the point's path over a crank turn", per_point=True),
+    Definition("transmission_angle_min", "rad", KINEMATIC, "smallest transmission angle of any dyad over the crank "
+               "turn, folded into [0, pi/2] (pi/2 is ideal, 0 locks)"),
+    Definition("torque_peak", "N m", DYNAMIC, "largest absolute torque of the driven joints over the run"),
+    Definition("torque_rms", "N m", DYNAMIC, "RMS torque of the driven joints over the run"),
+    Definition("loop_violation_max", "m", DYNAMIC, "largest joint separation over the run (the loop-closure "
+               "error; reduced model: the leg table's interpolation error at the walker's scale)"),
+    Definition("walking_speed", "m/s", DYNAMIC, "walkers (a point 'torso'): forward distance of the torso over the "
+               "last three quarters of the run, per second"),
+    Definition("heading_drift", "1", DYNAMIC, "walkers: sideways per forward distance of the torso over the last "
+               "three quarters of the run"),
+    Definition("energy_per_distance", "J/m", DYNAMIC, "walkers: the motors' work (absolute torque x crank speed x time) "
+               "per metre walked over the last three quarters of the run (inf below 0.1 mm)"),
+    Definition("torso_tilt_max", "rad", DYNAMIC, "walkers (points 'torso' and 'torso_up'): largest tilt of the "
+               "torso's up axis from vertical (more than 45 degrees: fallen, a failure)"),
+    Definition("torso_height_min", "1", DYNAMIC, "walkers: lowest torso height as a fraction of its starting height "
+               "(below 0.5: fallen, a failure)"),
+    Definition("path_error", "m", BOTH, "objectives only (with a point and a target curve): RMS distance between the "
+               "point's path and the target, both resampled by arc length, the best over start and direction"),
+)}
+
+
+def definition(name: str, points=()) -> Definition | None:
+    """The Definition of metric ``name`` ("foot_stride" is "<point>_stride" for a point "foot" of
+    ``points``), None for a name it does not know."""
+    if name in DEFINITIONS:
+        return DEFINITIONS[name]
+    for point in sorted(points, key=len, reverse=True):  # the longest point that prefixes the name
+        if name.startswith(point + "_") and f"<point>_{name[len(point) + 1:]}" in DEFINITIONS:
+            return DEFINITIONS[f"<point>_{name[len(point) + 1:]}"]
+    return None
+
+
+def metric_table() -> str:
+    """Every metric as a markdown table (name, unit, modes, meaning): the README's list."""
+    rows = [f"| `{d.label}` | {d.unit} | {', '.join(d.modes)} | {d.meaning} |" for d in DEFINITIONS.values()]
+    return "\n".join(["| metric | unit | modes | meaning |", "|---|---|---|---|", *rows])
 
 
 def point_metrics(points, mode: str) -> list[str]:

@@ -3,7 +3,8 @@
 A DesignSpace is an ordered set of named parameters. Optimizers see only this module and
 parameter dicts: they sample in the unit cube (floats, ints) or pick categories, and the space
 maps between that and the design's own values. Optuna distributions come from the same
-definitions.
+definitions. Each parameter may carry a ``unit`` ("m", "rad/s", "" for none) and a ``help``
+line (what it is), shown by `morphopt families show`; neither changes any computation.
 """
 
 from __future__ import annotations
@@ -19,12 +20,15 @@ __all__ = ["Choice", "DesignSpace", "Float", "Int"]
 
 @dataclass(frozen=True)
 class Float:
-    """A real parameter in [low, high]; ``log`` samples it on a log scale (low > 0)."""
+    """A real parameter in [low, high]; ``log`` samples it on a log scale (low > 0); ``unit`` and
+    ``help``: its unit and meaning, for people."""
 
     low: float
     high: float
     default: float | None = None
     log: bool = False
+    unit: str = ""
+    help: str = ""
 
     def check(self, name: str) -> None:
         """Raise ValueError naming ``name`` when the bounds or the default are invalid."""
@@ -61,11 +65,13 @@ class Float:
 
 @dataclass(frozen=True)
 class Int:
-    """An integer parameter in [low, high] (both included)."""
+    """An integer parameter in [low, high] (both included); ``unit`` and ``help`` as for Float."""
 
     low: int
     high: int
     default: int | None = None
+    unit: str = ""
+    help: str = ""
 
     def check(self, name: str) -> None:
         """Raise ValueError naming ``name`` when the bounds or the default are invalid."""
@@ -95,10 +101,13 @@ class Int:
 
 @dataclass(frozen=True)
 class Choice:
-    """A categorical parameter: one of ``options`` (strings, numbers or booleans)."""
+    """A categorical parameter: one of ``options`` (strings, numbers or booleans); ``unit`` and
+    ``help`` as for Float."""
 
     options: tuple
     default: object = None
+    unit: str = ""
+    help: str = ""
 
     def __post_init__(self):
         object.__setattr__(self, "options", tuple(self.options))
@@ -146,6 +155,9 @@ class DesignSpace:
             if not isinstance(parameter, (Float, Int, Choice)):
                 raise ValueError(f"parameter '{name}': expected Float, Int or Choice, got {type(parameter).__name__}")
             parameter.check(name)
+            if not (isinstance(parameter.unit, str) and isinstance(parameter.help, str)):
+                raise ValueError(f"parameter '{name}': unit and help must be text, got {parameter.unit!r} and "
+                                 f"{parameter.help!r}")
         self.parameters: dict[str, Parameter] = dict(parameters)
 
     @property

@@ -24,9 +24,10 @@
     [fixed]       per parameter: a value held fixed
     [constraints] per metric: [low, high]; a design outside fails with the reason (TOML has inf)
 
-``family`` is either the name of a module in designs/ (a plain identifier such as "four_bar")
-or an explicit path to a .py file (relative paths are taken from the spec file's folder); any
-other value is refused, so a study never loads code from elsewhere (see morphopt.families).
+``family`` is either the name of a family (a plain identifier such as "four_bar": a module in
+./designs/ or a built-in one) or an explicit path to a .py file (relative paths are taken from
+the spec file's folder); any other value is refused, so a study never loads code from elsewhere
+(see morphopt.families).
 
 A study file is data: it is parsed as TOML and checked, never executed. Every error names the
 file, the key and what was expected. The checks run when the file is read and again after
@@ -68,7 +69,7 @@ import tomllib
 from dataclasses import dataclass, field, replace
 
 from morphopt.contract import RECORD_EVERY, family_metrics
-from morphopt.design_space import Choice, DesignSpace, Float, Int
+from morphopt.design_space import Choice, DesignSpace, Int
 from morphopt.families import load_family
 
 __all__ = ["Objective", "StudySpec", "check_family_contract", "load_study_spec"]
@@ -209,10 +210,8 @@ class StudySpec:
                 continue
             if name in self.space_overrides:
                 low, high = self.space_overrides[name]
-                kind = Int if isinstance(parameter, Int) else Float
                 default = parameter.default if parameter.default is not None and low <= parameter.default <= high else None
-                parameter = kind(low, high, default=default) if kind is Int else Float(low, high, default=default,
-                                                                                         log=parameter.log)
+                parameter = replace(parameter, low=low, high=high, default=default)  # keeps log, unit and help
             params[name] = parameter
         return DesignSpace(params)
 

@@ -13,12 +13,12 @@ from morphopt.design_space import DesignSpace, Float
 from morphopt.linkage import Crank, Dyad, Link, Linkage
 
 space = DesignSpace({
-    "ground": Float(0.15, 0.45, default=0.30),
-    "crank": Float(0.04, 0.15, default=0.10),
-    "coupler": Float(0.15, 0.45, default=0.30),
-    "rocker": Float(0.10, 0.40, default=0.25),
-    "point_u": Float(-0.5, 1.5, default=0.5),
-    "point_v": Float(-0.2, 0.2, default=0.1),
+    "ground": Float(0.15, 0.45, default=0.30, unit="m", help="ground link: crank pivot O to rocker pivot D"),
+    "crank": Float(0.04, 0.15, default=0.10, unit="m", help="crank: pivot O to crank pin M"),
+    "coupler": Float(0.15, 0.45, default=0.30, unit="m", help="coupler: crank pin M to rocker joint C"),
+    "rocker": Float(0.10, 0.40, default=0.25, unit="m", help="rocker: pivot D to joint C"),
+    "point_u": Float(-0.5, 1.5, default=0.5, unit="", help="coupler point P along M -> C, as a fraction of the coupler"),
+    "point_v": Float(-0.2, 0.2, default=0.1, unit="m", help="coupler point P to the left of the line M -> C"),
 })
 
 

@@ -14,7 +14,15 @@ HOLY_NUMBERS = dict(a=38.0, b=41.5, c=39.3, d=40.1, e=55.8, f=39.4, g=36.7, h=65
                     l=7.8, m=15.0)
 SCALE = 1e-3  # the numbers are in millimetres
 
-space = DesignSpace({name: Float(0.8 * value * SCALE, 1.2 * value * SCALE, default=value * SCALE)
+MEANING = dict(a="crank axle O to fixed pivot A, horizontally", b="fixed pivot A to upper joint B",
+               c="fixed pivot A to lower joint C", d="fixed pivot A to top D of the upper triangle",
+               e="upper joint B to top D (upper triangle A, B, D)", f="top D to knee E",
+               g="lower joint C to knee E", h="knee E to foot F (lower triangle C, E, F)",
+               i="lower joint C to foot F", j="crank pin M to upper joint B", k="crank pin M to lower joint C",
+               l="crank axle O above fixed pivot A, vertically", m="crank radius: axle O to crank pin M")
+
+space = DesignSpace({name: Float(0.8 * value * SCALE, 1.2 * value * SCALE, default=value * SCALE, unit="m",
+                                 help=f"{MEANING[name]} (Jansen's {value:g} mm)")
                      for name, value in HOLY_NUMBERS.items()})
 
 

@@ -13,8 +13,19 @@ DEFAULTS = dict(ax=-0.268, ay=0.176, bx=-0.059, by=-0.383, mc=0.283, bc=0.481, d
                 de=0.681, ae=0.375, f_along=0.599, f_across=-0.868)  # for a 0.1 m crank
 SCALE = 0.15  # -> 15 mm crank
 
-space = DesignSpace({"m": Float(0.012, 0.018, default=0.015),
-                     **{name: Float(min(0.8 * v, 1.2 * v) * SCALE, max(0.8 * v, 1.2 * v) * SCALE, default=v * SCALE)
+MEANING = dict(ax="upper frame pivot A, horizontally from the crank axle O",
+               ay="upper frame pivot A, vertically from the crank axle O",
+               bx="lower frame pivot B, horizontally from the crank axle O",
+               by="lower frame pivot B, vertically from the crank axle O",
+               mc="crank pin M to coupler-rocker joint C (along the coupler)", bc="lower rocker: pivot B to joint C",
+               d_along="coupler end D, along the coupler line M -> C from M",
+               d_across="coupler end D, to the left of the coupler line M -> C",
+               de="upper rocker's joint E to coupler end D (along the leg)", ae="upper rocker: pivot A to joint E",
+               f_along="foot F, along the leg line D -> E from D", f_across="foot F, to the left of the leg line D -> E")
+
+space = DesignSpace({"m": Float(0.012, 0.018, default=0.015, unit="m", help="crank radius: axle O to crank pin M"),
+                     **{name: Float(min(0.8 * v, 1.2 * v) * SCALE, max(0.8 * v, 1.2 * v) * SCALE, default=v * SCALE,
+                                    unit="m", help=MEANING[name])
                         for name, v in DEFAULTS.items()}})
 
 

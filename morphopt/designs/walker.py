@@ -34,13 +34,16 @@ def _load_leg(name):
 LEG_FAMILIES = {name: _load_leg(name) for name in ("jansen_leg", "klann_leg")}
 
 space = DesignSpace({
-    "leg_family": Choice(tuple(LEG_FAMILIES), default="jansen_leg"),
-    "legs_per_side": Int(1, 4, default=3),
-    "scale": Float(2.0, 5.0, default=3.0),  # leg size relative to the families' 15 mm-crank legs
-    "crank_speed": Float(2.0, 10.0, default=5.0),  # [rad/s]
-    "stance": Float(0.5, 1.5, default=1.0),  # leg spacing along the torso, in crank-to-pivot lengths
-    "torso_mass": Float(0.5, 4.0, default=1.5),  # [kg]
-    "side_phase": Float(0.0, 3.141592653589793, default=0.0),  # crank phase of the right legs behind the left [rad]
+    "leg_family": Choice(tuple(LEG_FAMILIES), default="jansen_leg", help="family of every leg (its default leg, scaled)"),
+    "legs_per_side": Int(1, 4, default=3, help="legs on each side of the torso, cranks spread evenly in phase"),
+    "scale": Float(2.0, 5.0, default=3.0, unit="",
+                   help="leg size relative to the families' 15 mm-crank legs (3: a 45 mm crank)"),
+    "crank_speed": Float(2.0, 10.0, default=5.0, unit="rad/s", help="target speed of every crank motor"),
+    "stance": Float(0.5, 1.5, default=1.0, unit="",
+                    help="leg spacing along the torso, in units of 2 x 38 mm x scale (Jansen's axle-to-pivot a)"),
+    "torso_mass": Float(0.5, 4.0, default=1.5, unit="kg", help="mass of the box torso"),
+    "side_phase": Float(0.0, 3.141592653589793, default=0.0, unit="rad",
+                        help="crank phase of the right legs behind the left ones"),
 })
 
 

@@ -11,17 +11,18 @@ from morphopt.design_space import DesignSpace, Float
 from morphopt.linkage import Crank, Dyad, Link, Linkage, Offset
 
 space = DesignSpace({
-    "ground": Float(0.2, 0.4, default=0.30),
-    "crank": Float(0.05, 0.14, default=0.10),
-    "coupler": Float(0.2, 0.4, default=0.30),
-    "rocker": Float(0.15, 0.35, default=0.25),
-    "lever": Float(0.05, 0.2, default=0.10),
-    "pivot2_x": Float(0.3, 0.7, default=0.50),
-    "pivot2_y": Float(-0.3, 0.1, default=-0.15),
-    "coupler2": Float(0.15, 0.4, default=0.25),
-    "rocker2": Float(0.1, 0.35, default=0.20),
-    "point_u": Float(-0.5, 1.5, default=0.5),
-    "point_v": Float(-0.15, 0.15, default=0.05),
+    "ground": Float(0.2, 0.4, default=0.30, unit="m", help="crank pivot O to rocker pivot D (on the x axis)"),
+    "crank": Float(0.05, 0.14, default=0.10, unit="m", help="crank: pivot O to crank pin M"),
+    "coupler": Float(0.2, 0.4, default=0.30, unit="m", help="first coupler: crank pin M to joint C"),
+    "rocker": Float(0.15, 0.35, default=0.25, unit="m", help="rocker: pivot D to joint C"),
+    "lever": Float(0.05, 0.2, default=0.10, unit="m", help="rocker's lever past its pivot: D to lever end E"),
+    "pivot2_x": Float(0.3, 0.7, default=0.50, unit="m", help="second rocker pivot F, horizontally from O"),
+    "pivot2_y": Float(-0.3, 0.1, default=-0.15, unit="m", help="second rocker pivot F, vertically from O"),
+    "coupler2": Float(0.15, 0.4, default=0.25, unit="m", help="second coupler: lever end E to joint H"),
+    "rocker2": Float(0.1, 0.35, default=0.20, unit="m", help="second rocker: pivot F to joint H"),
+    "point_u": Float(-0.5, 1.5, default=0.5, unit="",
+                     help="coupler point P along E -> H, as a fraction of the second coupler"),
+    "point_v": Float(-0.15, 0.15, default=0.05, unit="m", help="coupler point P to the left of the line E -> H"),
 })
 
 
