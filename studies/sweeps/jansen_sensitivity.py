@@ -117,14 +117,16 @@ fig.savefig(OUT / "jansen_one_at_a_time.png", dpi=120)
 # %% [markdown]
 # ### Ranking the lengths
 #
-# The stride is measured on the flat bottom of the foot path (the points within a thin band above
-# its lowest point), so it need not change linearly with a length, or even monotonically. A
-# straight-line fit would hide that, so each length is scored by its mean sensitivity instead:
-# the average of |change of stride in %| / |change of length in %| over the feasible designs of
-# its sweep (a value of 1 means the stride changes, on average, as much as the length). The same
-# score for the step height, the stride's range over the sweep, the published leg's stride as a
-# fraction of the best one of the sweep and the number of infeasible designs complete the picture:
-# a length can matter because it changes the gait, or because the leg stops working.
+# The stride is measured on the flat bottom of the foot path (the part of the path within 2 % of
+# the step height above its lowest point; `foot_stride_full` would be the whole horizontal extent,
+# see `morphopt families show jansen_leg`), so it need not change linearly with a length, or even
+# monotonically. A straight-line fit would hide that, so each length is scored by its mean
+# sensitivity instead: the average of |change of stride in %| / |change of length in %| over the
+# feasible designs of its sweep (a value of 1 means the stride changes, on average, as much as the
+# length). The same score for the step height, the stride's range over the sweep, the published
+# leg's stride as a fraction of the best one of the sweep and the number of infeasible designs
+# complete the picture: a length can matter because it changes the gait, or because the leg stops
+# working.
 
 
 # %%
