@@ -271,10 +271,11 @@ def _generate_each(family, params, indices, failures, kwargs) -> list:
 
 def evaluate_kinematic(family, params: Sequence[dict], *, samples: int = 360, device: str = "cpu",
                        keep_paths: bool = True) -> Evaluation:
-    """Tracked-point paths over one crank turn, stride, step height and transmission angle of
-    every design, from the batched cycle kinematics alone (compiled Warp kernels on ``device``;
-    the CPU splits the batch over its cores). keep_paths=False skips the paths (N, 2) in the
-    metrics, which saves their copy from a GPU when only the scalar metrics are needed."""
+    """Tracked-point paths over one crank turn, their stride, full stride and step height
+    (morphopt.metrics.gait_metrics) and the transmission angle of every design, from the batched
+    cycle kinematics alone (compiled Warp kernels on ``device``; the CPU splits the batch over its
+    cores). keep_paths=False skips the paths (N, 2) in the metrics, which saves their copy from a
+    GPU when only the scalar metrics are needed."""
     if not hasattr(family, "generate"):
         raise ValueError("this design family builds whole worlds (build_spec): evaluate it with mode = 'dynamic'")
     t0 = time.perf_counter()
@@ -312,10 +313,11 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
                      model: str = "maximal") -> Evaluation:
     """Simulate every feasible design for ``duration`` [s] in one heterogeneous batch.
 
-    Metrics: tracked-point paths over the last crank turn (planar, [m]), their stride and step
-    height, crank torque peak and RMS [N m], loop-closure violation max [m]; with a tracked point
-    named "torso" (walkers), over the last three quarters of the run: walking_speed [m/s],
-    heading_drift (sideways per forward distance) and energy_per_distance [J/m] of the motors.
+    Metrics: tracked-point paths over the last crank turn (planar, [m]), their stride, full stride
+    and step height (morphopt.metrics.gait_metrics of the turn's records), crank torque peak and RMS
+    [N m], loop-closure violation max [m]; with a tracked point named "torso" (walkers), over the
+    last three quarters of the run: walking_speed [m/s], heading_drift (sideways per forward
+    distance) and energy_per_distance [J/m] of the motors.
     crank_speed [rad/s] overrides the design's (linkage families default to 2 pi).
     spec_hook(spec, params) may add shapes, ground or change the spec before packing.
     A world the engine flags (engine.health, Trace.health) fails with the engine's reason: its state
