@@ -25,6 +25,7 @@ from morphopt.design_space import Float
 from morphopt.linkage import Linkage
 from morphopt.linkage.kinematics import crank_turn_failure, placement_name
 from morphopt.linkage.kinematics_warp import LinkageTables, solve_tables
+from morphopt.warp_setup import quiet_warp
 from morphopt.metrics import gait_metrics, gait_metrics_batch
 
 __all__ = ["Evaluation", "evaluate_dynamic", "evaluate_kinematic"]
@@ -278,6 +279,7 @@ def evaluate_kinematic(family, params: Sequence[dict], *, samples: int = 360, de
     GPU when only the scalar metrics are needed."""
     if not hasattr(family, "generate"):
         raise ValueError("this design family builds whole worlds (build_spec): evaluate it with mode = 'dynamic'")
+    quiet_warp()
     t0 = time.perf_counter()
     batches, failures = _generate_batched(family, params)
     evaluation = Evaluation(list(params), [{} for _ in params], failures)
@@ -310,7 +312,7 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
                      spec_hook: Callable | None = None, loop_tolerance: float | None = None,
                      fall_tilt: float = np.radians(45.0), fall_height: float = 0.5,
                      stall_time: float = 0.2, config=None, workers: int | None = None,
-                     model: str = "maximal") -> Evaluation:
+                     model: str = "maximal", progress: Callable | None = None) -> Evaluation:
     """Simulate every feasible design for ``duration`` [s] in one heterogeneous batch.
 
     Metrics: tracked-point paths over the last crank turn (planar, [m]), their stride, full stride
@@ -342,16 +344,19 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     a torso and one crank angle per leg, the family's build_legged; walkers only), with the same
     metrics, failure rules and halting; a reduced world's loops are closed by construction (its
     loop_violation_max is the leg table's interpolation error at the walker's scale).
+    progress(steps done, steps, worlds running, worlds fallen), if given, is called after every
+    record (every record_every steps) from data already on the host.
     """
     if model not in ("maximal", "reduced"):
         raise ValueError(f"evaluate_dynamic: model must be 'maximal' or 'reduced', got {model!r}")
+    quiet_warp()
     if model == "reduced":
         if spec_hook is not None:
             raise ValueError("evaluate_dynamic: spec_hook changes MechanismSpecs, which model 'reduced' does not "
                              "build; use model 'maximal'")
         return _evaluate_reduced(family, params, duration=duration, dt=dt, device=device, crank_speed=crank_speed,
                                  record_every=record_every, fall_tilt=fall_tilt, fall_height=fall_height,
-                                 stall_time=stall_time, config=config)
+                                 stall_time=stall_time, config=config, progress=progress)
     from engine import SolverConfig, pack_worlds, rollout
 
     if loop_tolerance is not None:  # the engine's joint check is the one test of torn mechanisms
@@ -374,6 +379,7 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     if ((torso >= 0) & (up >= 0)).any():  # a walker that fell has failed: stop simulating it
         def halt(points, start):
             return _fallen_worlds(points[None], start, torso, up, fall_tilt, fall_height)
+    halt = _reporting(halt, progress, steps, record_every, model.num_worlds)
     trace, _ = rollout(model, model.state(), model.control(), steps, record_every=record_every, halt=halt)
     t3 = time.perf_counter()
     record_dt = dt * record_every
@@ -382,6 +388,26 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
                        model.config.health_joint_tolerance, fall_tilt, fall_height, stall_time)
     evaluation.timings.update(pack=t2 - t1, simulate=t3 - t2, metrics=time.perf_counter() - t3)
     return evaluation
+
+
+def _reporting(halt: Callable | None, progress: Callable | None, steps: int, record_every: int,
+               worlds: int) -> Callable | None:
+    """``halt`` (a rollout's, or None) that also calls progress(steps done, steps, worlds running,
+    worlds fallen) after every record; ``halt`` itself when there is no progress to report."""
+    if progress is None:
+        return halt
+    done = [0]
+    fallen = np.zeros(worlds, bool)
+
+    def report(points, start):
+        marked = np.zeros(worlds, bool) if halt is None else np.asarray(halt(points, start), bool).reshape(worlds)
+        fallen[marked] = True
+        done[0] = min(done[0] + record_every, steps)
+        count = int(fallen.sum())
+        progress(done[0], steps, worlds - count, count)
+        return marked
+
+    return report
 
 
 def _built(params: Sequence[dict], built: list, t0: float) -> tuple:
@@ -472,7 +498,7 @@ def _legged_drives(specs: list, record_dt: float, records: int) -> tuple:
 
 def _evaluate_reduced(family, params: Sequence[dict], *, duration: float, dt: float, device: str,
                       crank_speed: float | None, record_every: int, fall_tilt: float, fall_height: float,
-                      stall_time: float, config) -> Evaluation:
+                      stall_time: float, config, progress: Callable | None = None) -> Evaluation:
     """evaluate_dynamic for model="reduced": engine.legged worlds from family.build_legged."""
     from types import SimpleNamespace
 
@@ -501,7 +527,8 @@ def _evaluate_reduced(family, params: Sequence[dict], *, duration: float, dt: fl
     def halt(points, start):
         return _fallen_worlds(points[None], start, torso, up, fall_tilt, fall_height)
 
-    trace = legged_rollout(model, steps, record_every=record_every, halt=halt)
+    trace = legged_rollout(model, steps, record_every=record_every,
+                           halt=_reporting(halt, progress, steps, record_every, len(specs)))
     t3 = time.perf_counter()
     record_dt = dt * record_every
     turn, effort, target = _legged_drives(specs, record_dt, len(trace.time))

@@ -32,6 +32,7 @@ from morphopt.optimizers import CMAES, OptunaSampler, RandomSearch
 from morphopt import checkpoint
 from morphopt.storage import StudyStorage, storage_exists
 from morphopt.study_spec import StudySpec, check_family_contract
+from morphopt.warp_setup import Kernels, announce_compile, compile_seconds, quiet_warp
 
 __all__ = ["StudyResult", "objective_matrix", "objective_metric_names", "objective_values", "pareto_front", "run_study",
            "stored_spec", "study_settings"]
@@ -143,8 +144,7 @@ def apply_constraints(spec: StudySpec, evaluation) -> None:
 
 def _check_device(spec: StudySpec) -> None:
     """ValueError naming the spec and 'study.device' when Warp cannot use the device."""
-    import warp as wp
-
+    wp = quiet_warp()
     try:
         wp.get_device(spec.device)
     except (RuntimeError, ValueError) as exc:
@@ -255,6 +255,26 @@ def _rebuilt_optimizer(spec: StudySpec, space, storage: StudyStorage, stored: di
     return optimizer, ([] if stored is not None else log)
 
 
+class _SimulationBar:
+    """A second progress line inside a dynamic generation: steps simulated, worlds still running,
+    walkers fallen so far (evaluate_dynamic's progress)."""
+
+    def __init__(self, shown: bool):
+        self.shown, self.bar = bool(shown), None
+
+    def report(self, done: int, total: int, running: int, fallen: int) -> None:
+        if self.bar is None:
+            self.bar = tqdm(total=total, desc="  simulating", unit="step", leave=False, position=1)
+        elif done <= self.bar.n or self.bar.total != total:  # a new generation's rollout
+            self.bar.reset(total=total)
+        self.bar.set_postfix_str(f"{running} worlds running, {fallen} fell", refresh=False)
+        self.bar.update(done - self.bar.n)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
 def _checkpoint_blob(spec: StudySpec, space, optimizer, generation: int) -> bytes:
     header = {"optimizer": spec.optimizer, "study": spec.name, "generation": generation,
               "space": checkpoint.space_description(space)}
@@ -322,11 +342,15 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
         if info["designs"] or info["checkpoint"]:
             archive = storage.archive_name()
     sign = -1.0 if spec.direction == "maximize" else 1.0
-    evaluating = outside = 0.0
+    evaluating = outside = compiling = 0.0
     stages = {}
+    announce_compile(Kernels.KINEMATIC if spec.mode == "kinematic" else
+                     Kernels.REDUCED if spec.model == "reduced" else Kernels.MAXIMAL, spec.device)
     bar = tqdm(total=spec.generations, initial=start, desc=spec.name, unit="gen", disable=not progress)
+    steps = _SimulationBar(spec.mode == "dynamic" and progress)
     try:  # the bar ends its line before any error is printed
         for generation in range(start, spec.generations):
+            compiled_before = compile_seconds()
             t0 = time.perf_counter()
             free = optimizer.ask(spec.worlds)
             params = [{**p, **spec.fixed} for p in free]
@@ -336,7 +360,8 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
                                                 keep_paths=any(o.metric == "path_error" for o in spec.objectives))
             else:
                 evaluation = evaluate_dynamic(family, params, duration=spec.duration, dt=spec.dt, device=spec.device,
-                                              crank_speed=spec.crank_speed, config=spec.solver_config(), model=spec.model)
+                                              crank_speed=spec.crank_speed, config=spec.solver_config(), model=spec.model,
+                                              progress=steps.report if steps.shown else None)
             t_objectives = time.perf_counter()
             apply_constraints(spec, evaluation)
             values = objective_values(spec, evaluation)
@@ -365,12 +390,18 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
             for stage, spent in (("ask", t1 - t0), *evaluation.timings.items(), ("objectives", t2 - t_objectives),
                                  ("tell", t_told - t2), ("storage", t3 - t_told)):
                 stages[stage] = stages.get(stage, 0.0) + spent
+            compiled = compile_seconds() - compiled_before
+            compiling += compiled
+            if compiled > 0.0 and not bar.disable:  # Warp compiled kernels in this generation: not in the ETA
+                bar.start_t += compiled
+                bar.last_print_t += compiled
             bar.update(1)
-            rate = optimizer.evaluations / max(seconds, 1e-9)
+            rate = optimizer.evaluations / max(seconds - compiling, 1e-9)
             best = sign * optimizer.best_value if math.isfinite(optimizer.best_value) else float("nan")
             shown = f"{rate:,.0f}" if rate >= 100 else f"{rate:.3g}"
             bar.set_postfix_str(f"{shown} designs/s, best {spec.metric} {best:.6g}")
     finally:
+        steps.close()
         bar.close()
     best = {**optimizer.best_params, **spec.fixed} if optimizer.best_params is not None else None
     value = sign * optimizer.best_value if math.isfinite(optimizer.best_value) else math.nan

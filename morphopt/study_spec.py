@@ -263,7 +263,7 @@ def load_study_spec(path) -> StudySpec:
     for name, bounds in constraints.items():
         if (not _numbers(bounds, 2) or any(math.isnan(b) for b in bounds) or bounds[0] > bounds[1]):
             raise ValueError(f"{where}: 'constraints.{name}' must be [low, high] with low <= high, got {bounds!r}")
-    solver = _solver(data.get("solver", {}), where)
+    solver = dict(data.get("solver", {}))  # checked by _check_values, after everything that needs no engine
     spec = StudySpec(path=path, space_overrides=dict(data.get("space", {})), fixed=dict(data.get("fixed", {})),
                      constraints=constraints, solver=solver, **values)
     _check_values(spec, where)
@@ -396,6 +396,7 @@ def _check_values(spec: StudySpec, where: str) -> None:
         if objective.metric == "path_error" and not (objective.point and len(objective.target) >= 3):
             raise ValueError(f"{where}: metric 'path_error' needs '{key}.point' and '{key}.target' "
                              f"as at least three [x, y] points")
+    _solver(spec.solver, where)  # the first check that imports the engine (and Warp)
     try:
         family = load_family(spec.family)
     except ValueError as exc:
