@@ -19,9 +19,10 @@ import pytest
 from morphopt.cli import main
 
 SLOW_FAMILY = '''
-"""A crank alone whose designs take a while to build; from the sixth design a process builds on
-(after one check of the family and a first generation of 4), each waits while the file HOLD
-exists, so that a test decides when a writer may go on."""
+"""A crank alone whose designs take a while to build; from the fifth design a process builds that
+is not the family's default (checks of the family build the default), each waits while the file
+HOLD exists: a writer started with HOLD in place stores its first generation and waits inside its
+second until the test removes HOLD."""
 import os
 import time
 
@@ -33,9 +34,10 @@ CALLS = [0]
 
 
 def generate(params, *, crank_speed=6.283185307179586, phase=0.0):
-    time.sleep(DELAY)
-    CALLS[0] += 1
-    while CALLS[0] > 5 and os.path.exists(HOLD):
+    if params != space.default():
+        time.sleep(DELAY)
+        CALLS[0] += 1
+    while CALLS[0] > 4 and os.path.exists(HOLD):
         time.sleep(0.02)
     return Linkage(name="toy", ground={"O": (params["x"], 0.0)},
                    crank=Crank("O", "T", params["r"], phase=phase, speed=crank_speed),
@@ -142,10 +144,10 @@ def test_two_writers_never_interleave(tmp_path):
     database then holds one optimizer's designs, each (generation, member) once."""
     spec = study(tmp_path, generations=4, delay=0.1)
     database = tmp_path / "toy.sqlite"
+    (tmp_path / "hold").touch()  # the writer stores its first generation and waits inside its second
     first, second = cli("study", "run", spec, cwd=tmp_path), cli("study", "run", spec, cwd=tmp_path)
     while stored_generations(database) < 1 and (first.poll() is None or second.poll() is None):
         time.sleep(0.02)
-    (tmp_path / "hold").touch()  # the writer waits inside its next generation
     late = [cli("study", *argv, cwd=tmp_path) for argv in (("run", spec, "--fresh"), ("resume", spec))]
     for process in late:
         process.wait(timeout=240)
@@ -214,10 +216,9 @@ def test_a_killed_writer_is_taken_over_and_a_stolen_lease_stops_its_writer(tmp_p
     next generation without storing it (exit 2), and no generation is stored twice."""
     spec = study(tmp_path, generations=4, delay=0.1)
     database = tmp_path / "toy.sqlite"
-    (tmp_path / "hold").unlink(missing_ok=True)
+    (tmp_path / "hold").touch()  # killed inside its second generation, for certain
     victim = cli("study", "run", spec, cwd=tmp_path)
     wait_for_generation(database, 0, victim)
-    (tmp_path / "hold").touch()  # killed inside its second generation, for certain
     time.sleep(0.3)
     victim.send_signal(signal.SIGKILL)
     (tmp_path / "hold").unlink()
@@ -231,9 +232,9 @@ def test_a_killed_writer_is_taken_over_and_a_stolen_lease_stops_its_writer(tmp_p
 
     spec = study(tmp_path, generations=4, delay=0.1, name="steal")
     database = tmp_path / "steal.sqlite"
+    (tmp_path / "hold").touch()  # the writer waits inside its second generation, the thief in its third
     writer = cli("study", "run", spec, cwd=tmp_path)
     wait_for_generation(database, 0, writer)
-    (tmp_path / "hold").touch()  # the writer waits inside its next generation
     polite, thief = cli("study", "resume", spec, cwd=tmp_path), cli("study", "resume", spec, "--steal", cwd=tmp_path)
     status, _, err = finish(polite)
     assert status == 2 and "is being written by pid" in error_line(err)
