@@ -22,6 +22,7 @@ import os
 import re
 import sys
 import tempfile
+import warnings
 
 __all__ = ["Kernels", "announce_compile", "compile_seconds", "quiet_warp", "set_verbose"]
 
@@ -81,9 +82,7 @@ class _Logger:
             sys.stderr.write(message + "\n")
 
     def warning(self, message: str, category=None, stacklevel: int = 1) -> None:
-        from warp._src.logger import LoggerBasic
-
-        LoggerBasic().warning(message, category, stacklevel + 1)
+        warnings.warn(message, category or UserWarning, stacklevel=stacklevel + 1)  # Python's filters apply
 
     def error(self, message: str) -> None:
         sys.stderr.write("Warp Error: " + message + "\n")
