@@ -9,6 +9,9 @@
     morphopt demo fourbar [--worlds N] [--seconds S] [--dt DT] [--device cpu|cuda]
     morphopt families [show NAME]
 
+``--verbose`` (before or after the command) shows Warp's init banner, module loads and CUDA driver
+warning on stderr; without it stdout holds only the command's results.
+
 Bad input (a missing or malformed study file, an unknown key or family, a bad argument, a device
 that is not there) ends the command with exit status 2 and one line on stderr naming the item and
 what was expected, never a traceback; a failed study command leaves its stored results as they were.
@@ -23,7 +26,20 @@ import sys
 
 from morphopt import __version__
 
-DEMO_SCENES = ("pendulum", "fourbar", "sixbar", "chain", "mixed")
+DEMO_SCENES = {  # engine.scenes: passive planar linkages of slender bars under gravity
+    "pendulum": "one bar hanging from a pivot",
+    "fourbar": "a four-bar linkage (one closed loop)",
+    "sixbar": "a Watt II six-bar (two closed loops)",
+    "chain": "an open chain of 10 bars",
+    "mixed": "the four above, one per world, in one batch",
+}
+EXPORT_FORMATS = {  # morphopt.formats
+    "usd": "OpenUSD with UsdPhysics bodies and joints",
+    "urdf": "URDF of the joints' spanning tree, the loop closures in a <morphopt> extension element",
+    "mjcf": "MuJoCo XML, a body tree whose loops are closed by equality constraints",
+    "svg": "fabrication drawing of the links, 1:1 in mm",
+    "dxf": "the same drawing as DXF",
+}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -47,11 +63,10 @@ def _positive(kind):
 
 
 def _demo(args) -> int:
-    import warp as wp
-
     from engine.testspeed import run
+    from morphopt.warp_setup import Kernels, announce_compile
 
-    wp.config.log_level = wp.LOG_WARNING
+    announce_compile(Kernels.MAXIMAL, args.device)
     steps = max(1, round(args.seconds / args.dt))
     result = run(args.scene, args.worlds, steps, args.dt, args.device, chunk=min(50, steps))
     if args.json:
@@ -74,7 +89,10 @@ def _study_spec(args):
     the ones the stored study was run with (morphopt.study.stored_spec)."""
     from morphopt.study_spec import load_study_spec
 
-    spec = load_study_spec(args.spec)
+    spec = load_study_spec(args.spec)  # checks the file before any heavy import (Warp, the engine, optimizers)
+    from morphopt.warp_setup import quiet_warp
+
+    quiet_warp()
     if getattr(args, "study_command", None) != "run":
         from morphopt.study import stored_spec
 
@@ -84,9 +102,9 @@ def _study_spec(args):
 
 
 def _study_run(args) -> int:
+    spec = _study_spec(args)
     from morphopt.study import run_study
 
-    spec = _study_spec(args)
     result = run_study(spec, resume=args.study_command == "resume", fresh=getattr(args, "fresh", False),
                        steal=args.steal, trust_checkpoint=getattr(args, "trust_checkpoint", False))
     print(f"study '{spec.name}': {result.evaluations} designs in {result.seconds:.1f} s "
@@ -116,28 +134,13 @@ def _stored_designs(args):
 
 
 def _study_show(args) -> int:
-    import pandas as pd
+    from morphopt.families import load_family
+    from morphopt.report import study_report
 
     spec, frame = _stored_designs(args)
     if frame is None:
         return 1
-    done = int(frame["generation"].max()) + 1
-    feasible = frame[frame["failure"] == ""]
-    print(f"study '{spec.name}': {done}/{spec.generations} generations, {len(frame)} designs, "
-          f"{len(feasible)} feasible ({100 * len(feasible) / len(frame):.0f} %)")
-    best = feasible.sort_values("value", ascending=spec.direction == "minimize").head(args.top)
-    columns = ["generation", "value", *[c for c in best.columns if c not in ("generation", "member", "value",
-                                                                            "failure") and not c.startswith("metric_")]]
-    with pd.option_context("display.width", 200, "display.max_columns", 30):
-        print(best[columns].to_string(index=False))
-        if spec.multi_objective:
-            from morphopt.study import objective_metric_names, pareto_front
-
-            front = pareto_front(frame, spec)
-            objectives = [f"metric_{name}" for name in objective_metric_names(spec)]
-            print(f"Pareto front: {len(front)} designs ("
-                  + ", ".join(f"{o.metric} {o.direction}" for o in spec.objectives) + ")")
-            print(front[["generation", "value", *objectives]].head(args.top).to_string(index=False))
+    print(study_report(frame, spec, load_family(spec.family).space, args.top))
     return 0
 
 
@@ -160,9 +163,11 @@ def _study_export(args) -> int:
     if frame is None:
         return 1
     space = spec.design_space(load_family(spec.family))
-    count = export_to_optuna(frame, study_name=spec.name, space=space, direction=spec.direction,
-                             storage=args.optuna_storage)
-    print(f"exported {count} trials of '{spec.name}' to {args.optuna_storage} (optuna-dashboard {args.optuna_storage})")
+    written, present = export_to_optuna(frame, study_name=spec.name, space=space, direction=spec.direction,
+                                        storage=args.optuna_storage)
+    already = f"; {present} designs were there already" if present else ""
+    print(f"exported {written} trials of '{spec.name}' to {args.optuna_storage}{already} "
+          f"(optuna-dashboard {args.optuna_storage})")
     return 0
 
 
@@ -211,19 +216,29 @@ def _plain(value):
     return value.item() if hasattr(value, "item") else value
 
 
+def _choices(options: dict) -> str:
+    return "; ".join(f"{name}: {text}" for name, text in options.items())
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The ``morphopt`` argument parser: ``study run|resume|show|plot`` and their options."""
+    """The ``morphopt`` argument parser: ``study run|resume|show|plot|export``, ``export``, ``demo``."""
+    verbose = argparse.ArgumentParser(add_help=False)  # --verbose after any command as well
+    verbose.add_argument("--verbose", action="store_true", default=argparse.SUPPRESS,
+                         help="show Warp's messages (init banner, module loads, CUDA driver warning) on stderr")
     parser = _Parser(prog="morphopt", description="Closed-chain mechanism design optimization.")
     parser.add_argument("--version", action="version", version=f"morphopt {__version__}")
+    parser.add_argument("--verbose", action="store_true", default=False,
+                        help="show Warp's messages (init banner, module loads, CUDA driver warning) on stderr")
     commands = parser.add_subparsers(dest="command", required=True)
-    study = commands.add_parser("study", help="run, resume, show or plot a design study (TOML spec)")
+    study = commands.add_parser("study", help="run, resume, show, plot or export a design study (TOML spec)",
+                                description="Run, resume, show, plot or export a design study (TOML spec).")
     study_commands = study.add_subparsers(dest="study_command", required=True)
     for name, handler, text in (("run", _study_run, "run a study from scratch"),
                                 ("resume", _study_run, "continue an interrupted study"),
                                 ("show", _study_show, "best designs as a table, and progress"),
                                 ("plot", _study_plot, "convergence and the best design, as a PNG"),
                                 ("export", _study_export, "copy the designs into an Optuna storage")):
-        sub = study_commands.add_parser(name, help=text)
+        sub = study_commands.add_parser(name, help=text, parents=[verbose])
         sub.add_argument("spec", help="study TOML file")
         if name == "run":
             sub.add_argument("--device", help="Warp device: cpu, cuda, cuda:N")
@@ -249,26 +264,30 @@ def build_parser() -> argparse.ArgumentParser:
         if name == "export":
             sub.add_argument("--optuna-storage", required=True, help="Optuna storage URL, e.g. sqlite:///optuna.db")
         sub.set_defaults(handler=handler)
-    export = commands.add_parser("export", help="write the best designs of a study as USD, URDF, MJCF, SVG or DXF")
+    export = commands.add_parser("export", help="write the best designs of a study as USD, URDF, MJCF, SVG or DXF",
+                                 parents=[verbose])
     export.add_argument("spec", help="study TOML file")
     export.add_argument("--best", type=_positive(int), default=1, help="how many of the best designs (default 1)")
-    export.add_argument("--format", required=True, choices=("usd", "urdf", "mjcf", "svg", "dxf"))
+    export.add_argument("--format", required=True, choices=tuple(EXPORT_FORMATS),
+                        help="file format: " + _choices(EXPORT_FORMATS))
     export.add_argument("--out", help="output folder (default: <study name>_export beside the spec)")
     export.add_argument("--motion", type=_positive(float),
                         help="USD only: simulate this many seconds (the study's dt and [solver] settings) and add "
                              "the motion as time samples")
     export.set_defaults(handler=_export)
-    demo = commands.add_parser("demo", help="simulate a reference mechanism and print what was measured")
-    demo.add_argument("scene", choices=DEMO_SCENES)
+    demo = commands.add_parser("demo", help="simulate a reference mechanism and print what was measured",
+                               parents=[verbose])
+    demo.add_argument("scene", choices=tuple(DEMO_SCENES), help="the mechanism: " + _choices(DEMO_SCENES))
     demo.add_argument("--worlds", type=_positive(int), default=16, help="number of worlds (default 16)")
     demo.add_argument("--seconds", type=_positive(float), default=2.0, help="simulated time [s] (default 2)")
     demo.add_argument("--dt", type=_positive(float), default=1e-3, help="time step [s] (default 0.001)")
     demo.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:N (default cpu)")
     demo.add_argument("--json", action="store_true", help="print one JSON object")
     demo.set_defaults(handler=_demo)
-    families = commands.add_parser("families", help="list the design families, or show one's parameters and metrics")
+    families = commands.add_parser("families", help="list the design families, or show one's parameters and metrics",
+                                   parents=[verbose])
     families_commands = families.add_subparsers(dest="families_command")
-    show = families_commands.add_parser("show",
+    show = families_commands.add_parser("show", parents=[verbose],
                                         help="a family's parameters (range, default, unit, meaning) and metrics")
     show.add_argument("name", help="family name (as listed by 'morphopt families') or path to a .py file")
     families.set_defaults(handler=_families)
@@ -292,8 +311,12 @@ def main(argv=None) -> int:
     command = f"study {args.study_command}" if args.command == "study" else args.command
     if args.command == "families" and args.families_command:
         command = f"families {args.families_command}"
+    from morphopt.warp_setup import quiet_warp, set_verbose
+
+    set_verbose(args.verbose)
     try:
         if args.command == "demo":
+            quiet_warp()
             _check_demo_device(args.device)
         return args.handler(args)
     except (ValueError, OSError) as exc:  # bad input: one line naming it, no traceback
