@@ -74,6 +74,7 @@ from morphopt.formats.tree import (
     TreeJoint,
     anchor_frames,
     body_frame,
+    body_twist,
     frame,
     initial_coordinate,
     matrix_to_quat,
@@ -134,17 +135,6 @@ def _tree_joint_frame(spec: MechanismSpec, edge: TreeJoint) -> tuple[np.ndarray,
     return joint.child_position, quat_to_matrix(joint.child_orientation) @ joint.axis
 
 
-def _body_twist(spec: MechanismSpec, name: str | None, point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Velocity [m/s] of the body's material point at world ``point`` and its angular velocity
-    [rad/s], world frame, at the initial state (zeros for the world)."""
-    if name is None:
-        return np.zeros(3), np.zeros(3)
-    body = spec.bodies[spec.body_index[name]]
-    T = body_frame(spec, name)
-    com = T[:3, :3] @ body.com + T[:3, 3]
-    return body.velocity + np.cross(body.angular_velocity, point - com), body.angular_velocity
-
-
 def _dfs(tree: SpanningTree) -> list[tuple[str, TreeJoint | None]]:
     """Bodies in MJCF order (depth first, as MuJoCo numbers them), each with its tree joint
     (None for a floating root): first the world's subtrees, then each floating root's."""
@@ -175,7 +165,7 @@ def initial_keyframe(spec: MechanismSpec, tree: SpanningTree | None = None) -> t
     for name, edge in _dfs(tree):
         T = body_frame(spec, name)
         if edge is None:
-            velocity, omega = _body_twist(spec, name, T[:3, 3])
+            velocity, omega = body_twist(spec, name, T[:3, 3])
             qpos += [*T[:3, 3], *_wxyz(matrix_to_quat(T[:3, :3]))]
             qvel += [*velocity, *(T[:3, :3].T @ omega)]
             continue
@@ -183,8 +173,8 @@ def initial_keyframe(spec: MechanismSpec, tree: SpanningTree | None = None) -> t
             continue
         position, axis = _tree_joint_frame(spec, edge)
         anchor, axis_world = T[:3, :3] @ position + T[:3, 3], T[:3, :3] @ axis
-        v_child, w_child = _body_twist(spec, name, anchor)
-        v_parent, w_parent = _body_twist(spec, edge.parent, anchor)
+        v_child, w_child = body_twist(spec, name, anchor)
+        v_parent, w_parent = body_twist(spec, edge.parent, anchor)
         relative = w_child - w_parent if edge.joint.type == JointType.REVOLUTE else v_child - v_parent
         qpos.append(initial_coordinate(spec, edge.joint))
         qvel.append(float(axis_world @ relative))

@@ -16,8 +16,8 @@ import numpy as np
 
 from engine import Joint, JointType, MechanismSpec
 
-__all__ = ["SpanningTree", "TreeJoint", "anchor_frames", "body_frame", "frame", "initial_coordinate",
-           "matrix_to_quat", "metadata_json", "quat_to_matrix", "spanning_tree"]
+__all__ = ["SpanningTree", "TreeJoint", "anchor_frames", "body_frame", "body_twist", "frame", "initial_coordinate",
+           "initial_rate", "matrix_to_quat", "metadata_json", "quat_to_matrix", "spanning_tree"]
 
 # Joint types a tree edge may have in every tree format (URDF knows no others).
 TREE_TYPES = (JointType.REVOLUTE, JointType.PRISMATIC, JointType.FIXED)
@@ -96,6 +96,30 @@ def initial_coordinate(spec: MechanismSpec, joint: Joint) -> float:
         return 0.0
     q = matrix_to_quat(parent[:3, :3].T @ child[:3, :3])
     return 2.0 * math.atan2(float(q[:3] @ joint.axis), float(q[3]))
+
+
+def body_twist(spec: MechanismSpec, name: str | None, point) -> tuple[np.ndarray, np.ndarray]:
+    """Velocity [m/s] of the body's material point at world ``point`` and its angular velocity
+    [rad/s], world frame, at the initial state (zeros for None, the world)."""
+    if name is None:
+        return np.zeros(3), np.zeros(3)
+    body = spec.bodies[spec.body_index[name]]
+    T = body_frame(spec, name)
+    com = T[:3, :3] @ body.com + T[:3, 3]
+    return body.velocity + np.cross(body.angular_velocity, np.asarray(point, float) - com), body.angular_velocity
+
+
+def initial_rate(spec: MechanismSpec, joint: Joint) -> float:
+    """The rate of initial_coordinate at the initial state: the child's angular velocity relative to
+    the parent about the axis [rad/s] (revolute), or the relative velocity of the child anchor along
+    the axis [m/s] (prismatic); 0 for other types."""
+    if joint.type not in (JointType.REVOLUTE, JointType.PRISMATIC):
+        return 0.0
+    parent, child = anchor_frames(spec, joint)
+    v_child, w_child = body_twist(spec, joint.child, child[:3, 3])
+    v_parent, w_parent = body_twist(spec, joint.parent, child[:3, 3])
+    relative = w_child - w_parent if joint.type == JointType.REVOLUTE else v_child - v_parent
+    return float((parent[:3, :3] @ joint.axis) @ relative)
 
 
 @dataclass(frozen=True)
