@@ -2,7 +2,9 @@
 
 Export (write_usd): one stage per design, metersPerUnit = kilogramsPerUnit = 1, upAxis Z,
 ``/<name>`` the default prim holding
-- ``PhysicsScene`` with the spec's gravity;
+- ``PhysicsScene`` with the spec's gravity and MuJoCo's integrator and step that keep the loops
+  stable (``mjc:option:integrator``, ``mjc:option:timestep``: morphopt.formats.mjcf; Newton's
+  SolverMuJoCo takes the integrator once its custom attributes are registered on the builder);
 - ``Bodies/<body>``: Xform with RigidBodyAPI and MassAPI (mass, centre of mass, principal
   moments and axes of the inertia tensor), initial velocity and angular velocity [deg/s, as
   UsdPhysics measures it]; collision shapes as Sphere / Capsule / Cube / Cylinder prims with
@@ -11,9 +13,21 @@ Export (write_usd): one stage per design, metersPerUnit = kilogramsPerUnit = 1, 
   points as Xforms under ``Points`` marked with ``morphopt:trackedPoint``;
 - ``Joints/<joint>``: Revolute, Prismatic, Spherical and Fixed joints with body0/body1, local
   frames, limits (degrees for angles, as UsdPhysics wants) and DriveAPI (stiffness and damping
-  per degree for angular drives); our joint axis is turned into the joint frame's X axis.
+  per degree for angular drives); our joint axis is turned into the joint frame's X axis. Their
+  two joint frames coincide at the initial state (a prismatic joint's parent anchor moved along
+  the axis onto the child anchor), so every coordinate is 0 there, where importers that build the
+  bodies' poses from the joints start (Newton's add_usd); limits and drive position targets are
+  written less the initial coordinate. PhysX's JointStateAPI (``state:angular:physics:position``
+  0 and ``...:velocity``, deg/s; linear: m, m/s) carries the initial joint velocities to importers
+  that read it (Newton with its PhysX schema resolver).
   Universal, cylindrical and inline joints are generic PhysicsJoints whose LimitAPI locks the
-  degrees of freedom they remove, with ``morphopt:type`` naming the type for our importer.
+  degrees of freedom they remove, with ``morphopt:type`` naming the type for our importer, except
+  planar loop closures: an inline joint outside the tree whose two bodies the tree already holds
+  in planar motion about its axis (revolute tree joints parallel to it, prismatic ones normal to
+  it, fixed ones) is a PhysicsRevoluteJoint about that axis, both joint frames coinciding at the
+  initial state (the same motion; its three extra rows repeat what the tree imposes), as DR Legs
+  writes its loops: importers that know no generic joint (Newton's add_usd reads it as a joint
+  with no degree of freedom, whose closure its MuJoCo solver drops) close these loops.
   Armature and joint damping are ``morphopt:armature`` / ``morphopt:damping``. The joints that
   close loops (outside morphopt.formats.tree.spanning_tree) have excludeFromArticulation, and the
   tree's root carries ArticulationRootAPI;
@@ -41,11 +55,23 @@ import numpy as np
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdPhysics, UsdShade, UsdValidation, Vt
 
 from engine import Body, GroundPlane, Joint, JointDrive, JointType, MechanismSpec, Shape, ShapeType, TrackedPoint
-from morphopt.formats.tree import matrix_to_quat, metadata_json, quat_to_matrix, spanning_tree
+from morphopt.formats.mjcf import MJCF_INTEGRATOR, MJCF_TIMESTEP
+from morphopt.formats.tree import (
+    anchor_frames,
+    body_frame,
+    initial_coordinate,
+    initial_rate,
+    matrix_to_quat,
+    metadata_json,
+    quat_to_matrix,
+    spanning_tree,
+)
 
 __all__ = ["read_usd", "record_motion", "validate_usd", "write_usd"]
 
 DEG = 180.0 / math.pi
+PARALLEL = 1e-9  # |1 - |cos|| (or |cos|) below which two axes count as parallel (or normal)
+COINCIDENT = (JointType.REVOLUTE, JointType.PRISMATIC, JointType.FIXED, JointType.SPHERICAL)  # frames equal at start
 # Generic-joint types: the degrees of freedom their LimitAPI locks (joint frame: axis = X).
 LOCKED = {JointType.UNIVERSAL: ("transX", "transY", "transZ", "rotX"),
           JointType.CYLINDRICAL: ("transY", "transZ", "rotY", "rotZ"),
@@ -65,13 +91,6 @@ def _align_x(axis) -> np.ndarray:
     y = np.cross(helper, x)
     y /= np.linalg.norm(y)
     return np.stack([x, y, np.cross(x, y)], axis=1)
-
-
-def _quat_mul(a, b) -> np.ndarray:
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return np.array([aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz])
 
 
 def _gf_quat(Gf, q, cls="Quatf"):
@@ -95,10 +114,12 @@ def _set_pose(xformable, position, orientation, time=None):
 
 
 def write_usd(spec: MechanismSpec, path, *, metadata: dict | None = None, meshes: dict | None = None,
-              motion: tuple | None = None, fps: float = 60.0) -> pathlib.Path:
+              motion: tuple | None = None, fps: float = 60.0, timestep: float = MJCF_TIMESTEP) -> pathlib.Path:
     """Write ``spec`` as a UsdPhysics stage (.usda text or .usd/.usdc binary, by the suffix).
 
     metadata: JSON-able dict (design parameters, objective values) stored in customLayerData.
+    timestep: MuJoCo's step [s] written on the scene (``mjc:option:timestep``) with the integrator
+    that keeps the linkages stable (``mjc:option:integrator``: morphopt.formats.mjcf).
     meshes: optional {body name: trimesh.Trimesh in the body frame [m]} visual meshes.
     motion: optional (times (T,) [s], poses (T, B, 7) body-frame position + quaternion xyzw per
     body in spec order), e.g. from record_motion(); written as time samples at ``fps``.
@@ -123,6 +144,9 @@ def write_usd(spec: MechanismSpec, path, *, metadata: dict | None = None, meshes
     magnitude = float(np.linalg.norm(g))
     scene.CreateGravityMagnitudeAttr(magnitude)
     scene.CreateGravityDirectionAttr(Gf.Vec3f(*(g / magnitude if magnitude > 0 else (0.0, 0.0, -1.0))))
+    scene_prim = scene.GetPrim()
+    scene_prim.CreateAttribute("mjc:option:integrator", Sdf.ValueTypeNames.Token).Set(MJCF_INTEGRATOR)
+    scene_prim.CreateAttribute("mjc:option:timestep", Sdf.ValueTypeNames.Double).Set(float(timestep))
 
     tree = spanning_tree(spec, any_type=True)
     bodies_path = root_path.AppendChild("Bodies")
@@ -233,7 +257,8 @@ def write_usd(spec: MechanismSpec, path, *, metadata: dict | None = None, meshes
     UsdGeom.Scope.Define(stage, joints_path)
     loops = {j.name for j in tree.loops}
     for joint in spec.joints:
-        _write_joint(stage, joints_path.AppendChild(_prim_name(joint.name)), joint, body_paths, joint.name in loops)
+        _write_joint(stage, joints_path.AppendChild(_prim_name(joint.name)), spec, joint, body_paths,
+                     joint.name in loops, joint.name in loops and _planar_closure(spec, tree, joint))
 
     if motion is not None:
         times, poses = motion
@@ -249,9 +274,68 @@ def write_usd(spec: MechanismSpec, path, *, metadata: dict | None = None, meshes
     return path
 
 
-def _write_joint(stage, path, joint: Joint, body_paths: dict, loop: bool) -> None:
+def _tree_path(tree, body: str | None) -> list:
+    """The tree joints from ``body`` up to its root (the world or a floating root), nearest first."""
+    out = []
+    while body is not None and body in tree.tree:
+        edge = tree.tree[body]
+        out.append(edge)
+        body = edge.parent
+    return out
+
+
+def _planar_closure(spec: MechanismSpec, tree, joint: Joint) -> bool:
+    """Whether an inline loop closure's bodies are held by the tree in planar motion about its axis
+    (module doc): written as a revolute joint."""
+    if joint.type != JointType.INLINE:
+        return False
+    up, down = _tree_path(tree, joint.parent), _tree_path(tree, joint.child)
+    shared = {id(e) for e in up} & {id(e) for e in down}
+    parent_frame, child_frame = anchor_frames(spec, joint)
+    n = parent_frame[:3, :3] @ joint.axis
+    if abs(abs(float(n @ (child_frame[:3, :3] @ joint.axis))) - 1.0) > PARALLEL:
+        return False
+    for edge in up + down:
+        if id(edge) in shared or edge.joint.type == JointType.FIXED:
+            continue
+        axis = anchor_frames(spec, edge.joint)[0][:3, :3] @ edge.joint.axis
+        if edge.joint.type == JointType.REVOLUTE and abs(abs(float(n @ axis)) - 1.0) <= PARALLEL:
+            continue
+        if edge.joint.type == JointType.PRISMATIC and abs(float(n @ axis)) <= PARALLEL:
+            continue
+        return False
+    return True
+
+
+def _joint_frames(spec: MechanismSpec, joint: Joint, coincident: bool) -> tuple:
+    """(localPos0, localRot0, localPos1, localRot1, offset) of a joint, the joint frames' X axis on
+    the joint axis. coincident: the child frame is the parent's at the initial state (and a sliding
+    joint's parent anchor moves along the axis onto the child anchor's projection), so the written
+    coordinate is 0 there and offset [rad or m] is the engine's initial coordinate (limits and drive
+    targets are written less offset); else each frame follows its anchor frame and offset is 0."""
+    align = _align_x(joint.axis)
+    frame0 = quat_to_matrix(joint.parent_orientation) @ align  # in the parent body frame
+    position0 = np.asarray(joint.parent_position, float)
+    if not coincident:
+        child = quat_to_matrix(joint.child_orientation) @ align
+        if joint.type == JointType.UNIVERSAL:  # axis2 (child anchor frame) becomes the child frame's Y axis
+            M = _align_x(joint.axis2)
+            child = quat_to_matrix(joint.child_orientation) @ np.stack([M[:, 1], M[:, 0], -M[:, 2]], axis=1)
+        return position0, matrix_to_quat(frame0), joint.child_position, matrix_to_quat(child), 0.0
+    world0 = body_frame(spec, joint.parent)[:3, :3] @ frame0
+    frame1 = body_frame(spec, joint.child)[:3, :3].T @ world0
+    if joint.type in (JointType.PRISMATIC, JointType.INLINE):
+        parent_anchor, child_anchor = (T[:3, 3] for T in anchor_frames(spec, joint))
+        position0 = position0 + float(world0[:, 0] @ (child_anchor - parent_anchor)) * frame0[:, 0]
+    return (position0, matrix_to_quat(frame0), joint.child_position, matrix_to_quat(frame1),
+            initial_coordinate(spec, joint))
+
+
+def _write_joint(stage, path, spec: MechanismSpec, joint: Joint, body_paths: dict, loop: bool, planar: bool) -> None:
     kind = joint.type
-    if kind == JointType.REVOLUTE:
+    if planar:  # a planar inline loop closure: a revolute joint (module doc)
+        usd_joint = UsdPhysics.RevoluteJoint.Define(stage, path)
+    elif kind == JointType.REVOLUTE:
         usd_joint = UsdPhysics.RevoluteJoint.Define(stage, path)
     elif kind == JointType.PRISMATIC:
         usd_joint = UsdPhysics.PrismaticJoint.Define(stage, path)
@@ -271,38 +355,38 @@ def _write_joint(stage, path, joint: Joint, body_paths: dict, loop: bool) -> Non
     if joint.parent is not None:
         usd_joint.CreateBody0Rel().SetTargets([body_paths[joint.parent]])
     usd_joint.CreateBody1Rel().SetTargets([body_paths[joint.child]])
-    align = matrix_to_quat(_align_x(joint.axis))
-    parent_rot = _quat_mul(joint.parent_orientation, align)
-    child_rot = _quat_mul(joint.child_orientation, align)
-    if kind == JointType.UNIVERSAL:  # axis2 (child anchor frame) becomes the child joint frame's Y axis
-        M = _align_x(joint.axis2)
-        child_rot = _quat_mul(joint.child_orientation, matrix_to_quat(np.stack([M[:, 1], M[:, 0], -M[:, 2]], axis=1)))
-    usd_joint.CreateLocalPos0Attr(Gf.Vec3f(*map(float, joint.parent_position)))
-    usd_joint.CreateLocalRot0Attr(_gf_quat(Gf, parent_rot))
-    usd_joint.CreateLocalPos1Attr(Gf.Vec3f(*map(float, joint.child_position)))
-    usd_joint.CreateLocalRot1Attr(_gf_quat(Gf, child_rot))
+    position0, rot0, position1, rot1, offset = _joint_frames(spec, joint, planar or kind in COINCIDENT)
+    usd_joint.CreateLocalPos0Attr(Gf.Vec3f(*map(float, position0)))
+    usd_joint.CreateLocalRot0Attr(_gf_quat(Gf, rot0))
+    usd_joint.CreateLocalPos1Attr(Gf.Vec3f(*map(float, position1)))
+    usd_joint.CreateLocalRot1Attr(_gf_quat(Gf, rot1))
     if loop:
         usd_joint.CreateExcludeFromArticulationAttr(True)
-    if kind in (JointType.REVOLUTE, JointType.PRISMATIC):
+    if planar or kind == JointType.SPHERICAL:
+        usd_joint.CreateAxisAttr(UsdPhysics.Tokens.x)
+    elif kind in (JointType.REVOLUTE, JointType.PRISMATIC):
         usd_joint.CreateAxisAttr(UsdPhysics.Tokens.x)
         scale = DEG if kind == JointType.REVOLUTE else 1.0
-        usd_joint.CreateLowerLimitAttr(float(joint.limit_lower * scale))
-        usd_joint.CreateUpperLimitAttr(float(joint.limit_upper * scale))
+        usd_joint.CreateLowerLimitAttr(float((joint.limit_lower - offset) * scale))
+        usd_joint.CreateUpperLimitAttr(float((joint.limit_upper - offset) * scale))
+        instance = "angular" if kind == JointType.REVOLUTE else "linear"  # PhysX's JointStateAPI
+        prim.AddAppliedSchema(f"PhysicsJointStateAPI:{instance}")
+        prim.CreateAttribute(f"state:{instance}:physics:position", Sdf.ValueTypeNames.Float).Set(0.0)
+        prim.CreateAttribute(f"state:{instance}:physics:velocity", Sdf.ValueTypeNames.Float).Set(
+            float(initial_rate(spec, joint) * scale))
         if joint.armature:
             prim.CreateAttribute("morphopt:armature", Sdf.ValueTypeNames.Double).Set(float(joint.armature))
         if joint.damping:
             prim.CreateAttribute("morphopt:damping", Sdf.ValueTypeNames.Double).Set(float(joint.damping))
         if joint.drive is not None:
-            drive = UsdPhysics.DriveAPI.Apply(prim, "angular" if kind == JointType.REVOLUTE else "linear")
+            drive = UsdPhysics.DriveAPI.Apply(prim, instance)
             d = joint.drive
             drive.CreateTypeAttr(UsdPhysics.Tokens.force)
             drive.CreateStiffnessAttr(float(d.stiffness / scale))
             drive.CreateDampingAttr(float(d.damping / scale))
-            drive.CreateTargetPositionAttr(float(d.target_position * scale))
+            drive.CreateTargetPositionAttr(float((d.target_position - offset) * scale))
             drive.CreateTargetVelocityAttr(float(d.target_velocity * scale))
             drive.CreateMaxForceAttr(float(d.effort_limit))
-    elif kind == JointType.SPHERICAL:
-        usd_joint.CreateAxisAttr(UsdPhysics.Tokens.x)
 
 
 def record_motion(spec: MechanismSpec, duration: float, *, dt: float = 1e-3, fps: float = 60.0, config=None,
@@ -563,7 +647,9 @@ def _read_joint(prim, body_of_path, poses, meters, to_z, origin, cache):
     if not joint.GetJointEnabledAttr().Get():
         return None  # disabled on purpose by the file
     typename = prim.GetAttribute("morphopt:type").Get() if prim.HasAttribute("morphopt:type") else None
-    if prim.IsA(UsdPhysics.RevoluteJoint):
+    if prim.IsA(UsdPhysics.RevoluteJoint) and typename == "inline":  # a planar loop closure (module doc)
+        kind = JointType.INLINE
+    elif prim.IsA(UsdPhysics.RevoluteJoint):
         kind = JointType.REVOLUTE
     elif prim.IsA(UsdPhysics.PrismaticJoint):
         kind = JointType.PRISMATIC
@@ -605,7 +691,7 @@ def _read_joint(prim, body_of_path, poses, meters, to_z, origin, cache):
         positions[0] = world @ positions[0] + origin
         rotations[0] = matrix_to_quat(world @ quat_to_matrix(rotations[0]))
     axis_token = "X"
-    if kind in (JointType.REVOLUTE, JointType.PRISMATIC, JointType.SPHERICAL):
+    if kind in (JointType.REVOLUTE, JointType.PRISMATIC, JointType.SPHERICAL) or prim.IsA(UsdPhysics.RevoluteJoint):
         axis_token = prim.GetAttribute("physics:axis").Get() or "X"
     axis = np.eye(3)[{"X": 0, "Y": 1, "Z": 2}[axis_token]]
     axis2 = np.array([0.0, 1.0, 0.0])  # universal joints: the child frame's Y axis (the parent's X is the axis)
