@@ -27,19 +27,29 @@ import numpy as np
 from morphopt.families import load_family
 from morphopt.linkage import to_spec
 
-__all__ = ["PARALLEL_MIN_DESIGNS", "build_spec", "build_specs", "default_workers"]
+__all__ = ["LINKAGE_CRANK_SPEED", "PARALLEL_MIN_DESIGNS", "build_spec", "build_specs", "crank_speed_of",
+           "default_workers"]
 
+LINKAGE_CRANK_SPEED = 2.0 * np.pi  # [rad/s] a linkage family's drive when the study sets no crank_speed
 PARALLEL_MIN_DESIGNS = 256  # smaller batches build faster here than a pool sends them back
 _pools: dict[int, ProcessPoolExecutor] = {}
 
 
+def crank_speed_of(family, crank_speed: float | None) -> float | None:
+    """The crank speed [rad/s] build_spec drives a design at: crank_speed, else LINKAGE_CRANK_SPEED
+    for a linkage family, else None (a whole-world family's own default)."""
+    if crank_speed is not None or hasattr(family, "build_spec"):
+        return crank_speed
+    return LINKAGE_CRANK_SPEED
+
+
 def build_spec(family, params: dict, crank_speed: float | None):
     """One design's engine.MechanismSpec: a whole-world family's build_spec, or a linkage family's
-    generate then to_spec (driven at crank_speed, 2 pi rad/s when None). ValueError when the
-    design cannot be built."""
+    generate then to_spec (driven at crank_speed, LINKAGE_CRANK_SPEED when None). ValueError when
+    the design cannot be built."""
     if hasattr(family, "build_spec"):
         return family.build_spec(family.space.validate(params), crank_speed=crank_speed)
-    return to_spec(family.generate(family.space.validate(params), crank_speed=crank_speed or 2.0 * np.pi))
+    return to_spec(family.generate(family.space.validate(params), crank_speed=crank_speed_of(family, crank_speed)))
 
 
 def default_workers() -> int:

@@ -174,6 +174,12 @@ def _study_export(args) -> int:
 def _export(args) -> int:
     import math
 
+    from morphopt.formats import MOTION_FORMATS
+
+    if args.motion is not None and args.format not in MOTION_FORMATS:  # refused before any work
+        raise ValueError(f"--motion: format '{args.format}' cannot carry a motion; only "
+                         f"{', '.join(MOTION_FORMATS)} has time samples")
+    from morphopt.build import crank_speed_of
     from morphopt.families import load_family
     from morphopt.formats import export_design
 
@@ -188,6 +194,8 @@ def _export(args) -> int:
     names = family.space.names
     best = feasible.sort_values("value", ascending=spec.direction == "minimize").head(args.best)
     out = pathlib.Path(args.out) if args.out else pathlib.Path(args.spec).resolve().parent / f"{spec.name}_export"
+    settings = {"mode": spec.mode, "model": spec.model, "dt": spec.dt, "duration": spec.duration,
+                "crank_speed": crank_speed_of(family, spec.crank_speed), "solver": dict(spec.solver)}
     for rank, row in enumerate(best.itertuples(index=False), start=1):
         record = row._asdict()
         params = {k: _plain(record[k]) for k in (*names, *spec.fixed) if k in record}
@@ -196,10 +204,10 @@ def _export(args) -> int:
         name = f"{spec.name}_rank{rank}_g{record['generation']}_m{record['member']}"
         metadata = {"study": spec.name, "family": spec.family, "rank": rank, "generation": int(record["generation"]),
                     "member": int(record["member"]), "objective": {spec.metric: float(record["value"])},
-                    "params": params, "metrics": metrics}
+                    "params": params, "metrics": metrics, "simulation": settings}
         path = export_design(family, params, args.format, out, name=name, metadata=metadata,
-                             motion_seconds=args.motion or 0.0, motion_dt=spec.dt, config=spec.solver_config())
-
+                             crank_speed=spec.crank_speed, dt=spec.dt, config=spec.solver_config(),
+                             motion_seconds=args.motion or 0.0)
         print(f"{path}  ({spec.metric} {record['value']:.6g})")
     return 0
 
@@ -272,8 +280,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="file format: " + _choices(EXPORT_FORMATS))
     export.add_argument("--out", help="output folder (default: <study name>_export beside the spec)")
     export.add_argument("--motion", type=_positive(float),
-                        help="USD only: simulate this many seconds (the study's dt and [solver] settings) and add "
-                             "the motion as time samples")
+                        help="USD only (other formats refuse it): simulate this many seconds (the study's dt, "
+                             "crank_speed and [solver] settings) and add the motion as time samples")
     export.set_defaults(handler=_export)
     demo = commands.add_parser("demo", help="simulate a reference mechanism and print what was measured",
                                parents=[verbose])
