@@ -40,10 +40,12 @@ class Kernels(enum.Enum):
 
     @property
     def module(self) -> str:
+        """The first Warp module a study of this kind loads (its compile notice waits on it)."""
         return self.value[0]
 
     @property
     def seconds(self) -> int:
+        """About how long its kernels take to compile on a cold cache [s] (2-core CPU)."""
         return self.value[1]
 
 
