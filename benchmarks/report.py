@@ -7,7 +7,7 @@
 CURRENT names, per scene, the files that hold its latest measurements (one file per run: device,
 versions, command and every configuration, as benchmarks/run.py writes them). To update the table
 after a new run, commit the run's files, point CURRENT at them and rerun this script; a test
-(tests/test_benchmarks.py) fails when the README's table and the files disagree.
+(tests/test_results_report.py) fails when the README's table and the files disagree.
 """
 
 from __future__ import annotations
@@ -40,17 +40,17 @@ CURRENT = {
 
 
 def _g(value, digits: int = 3) -> str:
-    """A number at ``digits`` significant digits; blank for a missing one."""
+    """A number at ``digits`` significant digits, trailing zeros kept; blank for a missing one."""
     if value is None:
         return ""
-    return f"{value:.{digits}g}"
+    return "0" if value == 0 else f"{value:#.{digits}g}".replace(".e", "e").rstrip(".")
 
 
 def _rate(value) -> str:
     """World-steps per second in millions (M) or thousands (k), three significant digits."""
     if value is None:
         return ""
-    return f"{value / 1e6:.3g} M" if value >= 1e6 else f"{value / 1e3:.3g} k"
+    return f"{_g(value / 1e6)} M" if value >= 1e6 else f"{_g(value / 1e3)} k"
 
 
 def _engine(row: dict) -> str:
@@ -80,7 +80,7 @@ def throughput_rows(scene: str, path: str, result: dict) -> list[str]:
 def precision_rows(scene: str, path: str, result: dict) -> list[str]:
     rows = [r for r in result.get("precision", []) + result.get("peers", [])
             if r.get("kind", "precision") == "precision" and "wall_s_per_simulated_s" in r]
-    return [f"| {scene} | {_engine(r)} | {_g(r.get('dt'))} | {_g(r.get('wall_s_per_simulated_s'))} | "
+    return [f"| {scene} | {_engine(r)} | {r.get('dt'):g} | {_g(r.get('wall_s_per_simulated_s'))} | "
             f"{_g(r.get('loop_error_m'), 2)} | {_g(r.get('loop_error_rad'), 2)} | {_g(r.get('trajectory_error_m'), 2)} | "
             f"{_device(result)} | `{path}` |" for r in rows]
 
