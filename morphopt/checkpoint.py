@@ -206,7 +206,11 @@ def restore_random_states(optimizer, arrays: dict, where: str) -> None:
         key, position = arrays.get(f"optuna.rng{k}.mt19937"), arrays.get(f"optuna.rng{k}.position")
         if key is None or position is None or key.shape != (624,) or position.shape != (3,):
             raise CheckpointError(f"{where}: the checkpoint lacks the state of the sampler's random generator {k}")
-        rng.set_state(("MT19937", key.astype(np.uint32), int(position[0]), int(position[1]), float(position[2])))
+        words_ok = bool(np.all((key >= 0) & (key < 2.0**32) & (key == np.floor(key))))
+        pos, has_gauss, gauss = (float(v) for v in position)
+        if not (words_ok and pos in range(625) and has_gauss in (0.0, 1.0) and math.isfinite(gauss)):
+            raise CheckpointError(f"{where}: the checkpoint's state of the sampler's random generator {k} is damaged")
+        rng.set_state(("MT19937", key.astype(np.uint32), int(pos), int(has_gauss), gauss))
 
 
 def check_summary(optimizer, arrays: dict, where: str) -> None:

@@ -96,7 +96,8 @@ def _study_spec(args):
     if getattr(args, "study_command", None) != "run":
         from morphopt.study import stored_spec
 
-        spec = stored_spec(spec)
+        command = getattr(args, "study_command", None)
+        spec = stored_spec(spec, say=command == "resume" and getattr(args, "generations", None) is None)
     overrides = {k: getattr(args, k, None) for k in ("device", "worlds", "generations", "seed")}
     return spec.with_overrides(**overrides)
 

@@ -22,13 +22,16 @@ locked, damaged, full) are ValueErrors of one line naming the study and its stor
 
 from __future__ import annotations
 
+import functools
 import itertools
 import json
 import math
 import operator
 import os
 import pathlib
+import re
 import socket
+import struct
 import threading
 import time
 import uuid
@@ -64,6 +67,7 @@ STUDIES = sa.Table(  # one row per study: its effective settings and its writer'
     sa.Column("created", sa.Float), sa.Column("owner", sa.String(64), nullable=True),
     sa.Column("host", sa.String(255), nullable=True), sa.Column("pid", sa.Integer, nullable=True),
     sa.Column("since", sa.Float, nullable=True), sa.Column("heartbeat", sa.Float, nullable=True),
+    sa.Column("node", sa.String(255), nullable=True),
 )
 OPTIMIZER_LOG = sa.Table(  # per generation: what the optimizer asked for (a digest) and was told (float64)
     "optimizer_log", METADATA,
@@ -73,6 +77,7 @@ OPTIMIZER_LOG = sa.Table(  # per generation: what the optimizer asked for (a dig
 LEASE_SECONDS = 120.0  # a lease whose heartbeat is older than this is stale (the heartbeat runs every 15 s)
 HEARTBEAT_SECONDS = 15.0
 SQLITE_TIMEOUT = 30.0  # seconds a writer waits for another connection's lock before giving up
+MAX_GENERATIONS = 10**6  # a stored generation number beyond this is damage
 
 
 def _driver_reason(exc: BaseException) -> str:
@@ -91,6 +96,16 @@ def _driver_reason(exc: BaseException) -> str:
     return f"{text} ({hint})" if hint else text
 
 
+def _node() -> str:
+    """This machine and PID namespace (pids mean something only within one): the kernel's boot id
+    and the namespace's inode on Linux, else the host name."""
+    try:
+        boot = pathlib.Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+        return f"{boot}:{os.stat('/proc/self/ns/pid').st_ino}"
+    except OSError:
+        return socket.gethostname()
+
+
 def _pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -101,16 +116,50 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+def _read_guard(action: str):
+    """A reading method whose failures on damaged or hostile data become one ValueError naming the
+    study and its storage (a database can be anyone's file: it may hold any value in any column)."""
+    def wrap(method):
+        @functools.wraps(method)
+        def guarded(self, *args, **kwargs):
+            try:
+                return method(self, *args, **kwargs)
+            except ValueError:
+                raise
+            except sa.exc.SQLAlchemyError as exc:
+                raise self._error(action, exc) from exc
+            except (TypeError, KeyError, IndexError, AttributeError, RecursionError, OverflowError, MemoryError,
+                    UnicodeError, struct.error) as exc:
+                raise ValueError(f"{self.where}: cannot {action}: the stored data is damaged "
+                                 f"({type(exc).__name__}: {str(exc)[:200]})") from exc
+        return guarded
+    return wrap
+
+
+def _generation(value, where: str) -> int:
+    """A stored generation number, checked (0 <= g < MAX_GENERATIONS)."""
+    if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value < MAX_GENERATIONS:
+        raise ValueError(f"{where}: the stored generation {str(value)[:40]!r} is damaged")
+    return value
+
+
+def _printable(text) -> str:
+    """Stored text without control characters (a database may hold terminal escapes)."""
+    return re.sub(r"[\x00-\x08\x0b-\x1f\x7f-\x9f]", "?", text) if isinstance(text, str) else text
+
+
 def _utc(seconds: float) -> str:
     return datetime.fromtimestamp(seconds, timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
 
 
 def storage_exists(url: str) -> bool:
     """False only for an SQLite file that is not there (reading it would create it)."""
-    prefix = "sqlite:///"
-    if not url.startswith(prefix):
+    if not url.startswith("sqlite") or "://" not in url:
         return True
-    path = url[len(prefix):].split("?")[0]
+    path = url.split("://", 1)[1]
+    if not path.startswith("/"):
+        return True  # in memory: refused by the study's checks
+    path = path[1:].split("?")[0]
     return pathlib.Path(path[len("file:"):] if path.startswith("file:") else path).exists()
 
 
@@ -314,6 +363,7 @@ class StudyStorage:
 
     # ---- the lease -------------------------------------------------------------------------------
 
+    @_read_guard('read the study')
     def info(self) -> dict:
         """What the database holds for this study: stored generations and designs, the settings
         it was run with (dict or None) and its lease row (or None). Reads only."""
@@ -333,19 +383,37 @@ class StudyStorage:
                     if row is not None:
                         out["settings"] = json.loads(row.settings) if row.settings else None
                         out["lease"] = row
+                        if out["settings"] is not None and not isinstance(out["settings"], dict):
+                            raise ValueError(f"{self.where}: the stored settings are damaged (not a table)")
         except (sa.exc.SQLAlchemyError, ValueError) as exc:
             raise self._error("read the study", exc) from exc
         return out
 
+    @staticmethod
+    def _lease(row) -> dict:
+        """The lease columns of a studies row with the types they must have (a damaged row reads as
+        a lease without heartbeat, which is stale)."""
+        def number(value, kind):
+            return kind(value) if isinstance(value, (int, float)) and not isinstance(value, bool) and \
+                math.isfinite(value) else None
+        return {"owner": row.owner if isinstance(row.owner, str) else None, "pid": number(row.pid, int),
+                "host": str(row.host)[:255] if row.host is not None else "?", "since": number(row.since, float),
+                "heartbeat": number(row.heartbeat, float),
+                "node": row.node if isinstance(getattr(row, "node", None), str) else None}
+
     def _holder(self, row) -> str:
-        beat = f", last heartbeat {time.time() - row.heartbeat:.0f} s ago" if row.heartbeat else ""
-        return f"pid {row.pid} on host {row.host} since {_utc(row.since or 0.0)}{beat}"
+        lease = self._lease(row)
+        beat = f", last heartbeat {time.time() - lease['heartbeat']:.0f} s ago" if lease["heartbeat"] else ""
+        since = _utc(lease["since"]) if lease["since"] and 0 < lease["since"] < 1e11 else "?"
+        return f"pid {lease['pid']} on host {lease['host']} since {since}{beat}"
 
     def _stale(self, row) -> bool:
-        """A lease whose process is gone: same host and a dead pid, or no heartbeat for LEASE_SECONDS."""
-        if row.host == socket.gethostname() and row.pid:
-            return not _pid_alive(row.pid)
-        return time.time() - (row.heartbeat or 0.0) > LEASE_SECONDS
+        """A lease whose process is gone: its heartbeat (renewed every HEARTBEAT_SECONDS while the
+        writer lives) older than LEASE_SECONDS, or its pid dead in this same PID namespace."""
+        lease = self._lease(row)
+        if time.time() - (lease["heartbeat"] or 0.0) > LEASE_SECONDS:
+            return True
+        return lease["node"] == _node() and lease["pid"] is not None and not _pid_alive(lease["pid"])
 
     def acquire(self, settings: dict, *, steal: bool = False) -> None:
         """Take the study's lease (creating the schema and the study's row when needed): a write
@@ -353,9 +421,10 @@ class StudyStorage:
         or when the database cannot be written."""
         self.create_schema()
         token = uuid.uuid4().hex
-        me = {"owner": token, "host": socket.gethostname(), "pid": os.getpid()}
+        me = {"owner": token, "host": socket.gethostname(), "pid": os.getpid(), "node": _node()}
         for attempt in range(50):
             now = time.time()
+            started = time.perf_counter()
             try:
                 with self.engine.connect() as connection:
                     row = connection.execute(sa.select(STUDIES).where(STUDIES.c.name == self.name)).first()
@@ -374,8 +443,9 @@ class StudyStorage:
                                                    .values(since=now, heartbeat=now, **me)).rowcount == 1
             except sa.exc.IntegrityError:  # another process inserted the row first: read it again
                 taken = False
-            except sa.exc.OperationalError as exc:
-                if "locked" not in str(exc).lower() or attempt >= 49:
+            except sa.exc.OperationalError as exc:  # retried only when SQLite refused at once (two writers
+                waited = time.perf_counter() - started  # upgrading their locks), never after its busy timeout
+                if "locked" not in str(exc).lower() or attempt >= 49 or waited > 0.2:
                     raise self._error("take the study's lease (a write probe)", exc) from exc
                 taken = False
             except sa.exc.SQLAlchemyError as exc:
@@ -445,7 +515,7 @@ class StudyStorage:
         if "studies" in self._tables():
             with self.engine.connect() as connection:
                 names = set(connection.execute(sa.select(STUDIES.c.name)).scalars())
-        base = f"{self.name[:200]}.before-{stamp}"
+        base = f"{self.name[:170]}.before-{stamp}"  # within the 200 characters of the study columns
         return next(n for n in (base if k == 0 else f"{base}-{k}" for k in itertools.count()) if n not in names)
 
     # ---- writing ---------------------------------------------------------------------------------
@@ -514,10 +584,16 @@ class StudyStorage:
             raise ValueError(f"{self.where}: the database holds designs in the layout of an earlier morphopt "
                              f"(JSON text), which this version reads but extends only on SQLite; run the study "
                              f"into a new database")
-        connection.exec_driver_sql("ALTER TABLE designs ADD COLUMN extras TEXT")
+        try:
+            with connection.begin_nested():
+                connection.exec_driver_sql("ALTER TABLE designs ADD COLUMN extras TEXT")
+        except sa.exc.OperationalError as exc:  # another study's writer added it first
+            if "duplicate column" not in str(exc).lower():
+                raise
 
     # ---- reading ---------------------------------------------------------------------------------
 
+    @_read_guard('list the studies')
     def names(self) -> list[str]:
         """Every study of the database (those moved aside by --fresh included), sorted."""
         tables = self._tables()
@@ -531,6 +607,7 @@ class StudyStorage:
             raise self._error("list the studies", exc) from exc
         return sorted(found)
 
+    @_read_guard('read the checkpoint')
     def checkpoint(self):
         """(last completed generation, checkpoint blob (bytes), seconds so far) or None."""
         if "checkpoints" not in self._tables():
@@ -540,8 +617,12 @@ class StudyStorage:
                 row = connection.execute(sa.select(CHECKPOINTS).where(CHECKPOINTS.c.study == self.name)).first()
         except sa.exc.SQLAlchemyError as exc:
             raise self._error("read the checkpoint", exc) from exc
-        return None if row is None else (row.generation, row.state, row.seconds)
+        if row is None:
+            return None
+        seconds = row.seconds if isinstance(row.seconds, (int, float)) and math.isfinite(row.seconds) else 0.0
+        return _generation(row.generation, self.where), row.state, float(seconds)
 
+    @_read_guard('read the optimizer log')
     def optimizer_log(self) -> list:
         """[(generation, digest of the designs asked for, told (designs, k) float64)] in order."""
         if "optimizer_log" not in self._tables():
@@ -555,11 +636,12 @@ class StudyStorage:
         out = []
         for row in rows:
             told = np.frombuffer(bytes(row.told or b""), dtype="<f8")
-            if not row.width or told.size % row.width:
+            if not isinstance(row.width, int) or row.width <= 0 or told.size % row.width:
                 raise ValueError(f"{self.where}: the optimizer log of generation {row.generation} is damaged")
-            out.append((row.generation, str(row.asked), told.reshape(-1, row.width)))
+            out.append((_generation(row.generation, self.where), str(row.asked), told.reshape(-1, row.width)))
         return out
 
+    @_read_guard('read the designs')
     def designs(self) -> pd.DataFrame:
         """All designs: generation, member, value, failure, one column per parameter and one
         ``metric_<name>`` column per scalar metric."""
@@ -581,7 +663,7 @@ class StudyStorage:
             return pd.DataFrame(columns=["generation", "member", "value", "failure"])
         base = pd.DataFrame({"generation": [r.generation for r in rows], "member": [r.member for r in rows],
                              "value": [math.nan if r.value is None else r.value for r in rows],
-                             "failure": [r.failure for r in rows]})
+                             "failure": [_printable(r.failure) for r in rows]})
         parts, start = [], 0
         while start < len(rows):
             generation = rows[start].generation
@@ -639,13 +721,20 @@ def export_to_optuna(frame: pd.DataFrame, *, study_name: str, space, direction: 
     if study.direction.name.lower() != direction:
         raise ValueError(f"Optuna study '{study_name}' in {storage} is to {study.direction.name.lower()}; this study's "
                          f"value is to {direction}: export to another storage")
-    present = {(t.user_attrs.get("generation"), t.user_attrs.get("member")) for t in study.get_trials(deepcopy=False)}
+    present = {(t.user_attrs.get("generation"), t.user_attrs.get("member")): t.params
+               for t in study.get_trials(deepcopy=False)}
     distributions = space.optuna_distributions()
     names = list(distributions)
     trials = []
     for generation, member, value, failure, *params in frame[["generation", "member", "value", "failure",
                                                               *names]].itertuples(index=False, name=None):
-        if (int(generation), int(member)) in present:
+        there = present.get((int(generation), int(member)))
+        if there is not None:
+            mine = {n: (v.item() if hasattr(v, "item") else v) for n, v in zip(names, params)}
+            if there != mine:  # another run of the study (one started over with --fresh): never mix them
+                raise ValueError(f"Optuna study '{study_name}' in {storage} holds another run of this study "
+                                 f"(generation {int(generation)}, member {int(member)} differs); export to another "
+                                 f"storage or Optuna study name")
             continue
         failed = bool(failure) or value is None or not math.isfinite(value)
         trials.append(optuna.trial.create_trial(

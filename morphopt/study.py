@@ -15,6 +15,7 @@ study and a resume uses them, refusing a study file that changed since.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import pathlib
@@ -162,23 +163,43 @@ def study_settings(spec: StudySpec) -> dict:
     return json.loads(json.dumps(data, default=list))  # tuples as lists, as they read back
 
 
-def stored_spec(spec: StudySpec, storage: StudyStorage | None = None) -> StudySpec:
+def stored_spec(spec: StudySpec, storage: StudyStorage | None = None, *, say: bool = False) -> StudySpec:
     """The spec of a stored study: the file's, with the command-line overrides its runs were made
-    with (worlds, seed, generations, device), so that resume, show and export see what ran."""
+    with (worlds, seed, generations, device), so that resume, show and export see what ran;
+    ``say``: a line on stderr for each value of the file that the stored one replaces."""
     storage = storage or StudyStorage(spec.storage_url, spec.name)
     if not storage_exists(spec.storage_url):
         return spec
     settings = storage.info()["settings"]
     if not settings:
         return spec
-    return spec.with_overrides(**{k: settings[k] for k in RUN_OVERRIDES if k in settings})
+    stored = {k: settings[k] for k in RUN_OVERRIDES if k in settings}
+    for key, value in stored.items():
+        kind = str if key == "device" else int
+        if not isinstance(value, kind) or isinstance(value, bool):
+            raise ValueError(f"{storage.where}: the stored settings are damaged ('{key}' = {str(value)[:40]!r})")
+        if say and key != "device" and getattr(spec, key) != value:
+            extend = "; 'study resume --generations N' extends it" if key == "generations" else ""
+            print(f"{spec.name}: {key} = {value} as the study was run (the study file says {getattr(spec, key)})"
+                  f"{extend}", file=sys.stderr)
+    return spec.with_overrides(**stored)
 
 
-def _check_unchanged(spec: StudySpec, settings: dict | None) -> None:
-    """ValueError naming the key when the study file no longer describes the stored study."""
+def family_digest(family) -> str:
+    """SHA-256 of a family module's source: a study resumes only with the family it ran with."""
+    return hashlib.sha256(pathlib.Path(family.__file__).read_bytes()).hexdigest()
+
+
+def _check_unchanged(spec: StudySpec, settings: dict | None, family_sha256: str) -> None:
+    """ValueError naming the key when the study file (or its family's source) no longer describes
+    the stored study."""
     if not settings:
         return
-    now = study_settings(spec)
+    now = {**study_settings(spec), "family_sha256": family_sha256}
+    if settings.get("family_sha256", family_sha256) != family_sha256:
+        raise ValueError(f"{spec.path}: the family {spec.family} is not the source study '{spec.name}' was run "
+                         f"with (the file changed, or another file of that name was found first); restore it, or "
+                         f"start over with 'morphopt study run {spec.path} --fresh'")
     for key in now:
         if key in RESUME_CHANGES or key == "storage" or key not in settings or now[key] == settings[key]:
             continue  # where the database is may change (a moved file, another URL to it)
@@ -252,7 +273,10 @@ def _rebuilt_optimizer(spec: StudySpec, space, storage: StudyStorage, stored: di
         if designs is not None:
             checkpoint.restore_random_states(optimizer, stored["arrays"], storage.where)
         checkpoint.check_summary(optimizer, stored["arrays"], storage.where)
-    return optimizer, ([] if stored is not None else log)
+    if stored is not None:
+        return optimizer, []
+    logged = {g for g, _, _ in storage.optimizer_log()}  # a study converted before keeps its rows
+    return optimizer, [row for row in log if row[0] not in logged]
 
 
 class _SimulationBar:
@@ -300,18 +324,19 @@ def run_study(spec: StudySpec, *, resume: bool = False, fresh: bool = False, ste
     if resume and not storage_exists(spec.storage_url):
         raise ValueError(f"study '{spec.name}' has nothing to resume: no database {spec.storage_url}")
     storage = StudyStorage(spec.storage_url, spec.name)
+    digest = family_digest(family)
     if storage_exists(spec.storage_url):
-        _plan(spec, space, storage, resume, fresh, trust_checkpoint)  # refuse before writing anything
-    settings = study_settings(spec)
+        _plan(spec, space, storage, resume, fresh, trust_checkpoint, digest)  # refuse before writing anything
+    settings = {**study_settings(spec), "family_sha256": digest}
     storage.acquire(settings, steal=steal)
     try:  # under the lease, the same checks again: what they read can no longer change
-        plan = _plan(spec, space, storage, resume, fresh, trust_checkpoint)
+        plan = _plan(spec, space, storage, resume, fresh, trust_checkpoint, digest)
         return _generations(spec, family, space, storage, plan, settings, progress)
     finally:
         storage.release()
 
 
-def _plan(spec, space, storage, resume: bool, fresh: bool, trust: bool) -> dict:
+def _plan(spec, space, storage, resume: bool, fresh: bool, trust: bool, family_sha256: str) -> dict:
     """What a run starts from (the stored study, its checkpoint), or ValueError when it must not run."""
     info = storage.info()
     info["found"] = info["stored"] = None
@@ -321,7 +346,10 @@ def _plan(spec, space, storage, resume: bool, fresh: bool, trust: bool) -> dict:
             raise ValueError(f"study '{spec.name}' has nothing to resume in {spec.storage_url}")
         info["stored"] = _read_checkpoint(spec, space, storage, found[1], trust)
         info["found"] = found
-        _check_unchanged(spec, info["settings"])
+        _check_unchanged(spec, info["settings"], family_sha256)
+        if spec.generations < found[0] + 1:
+            raise ValueError(f"study '{spec.name}' has {found[0] + 1} generations stored; 'study.generations' "
+                             f"(--generations) must be at least that, got {spec.generations}")
     elif (info["designs"] or info["checkpoint"]) and not fresh:
         raise ValueError(f"study '{spec.name}' already has {info['designs']} designs in {info['generations']} "
                          f"generations in {spec.storage_url}; continue it with 'morphopt study resume {spec.path}', "

@@ -164,6 +164,10 @@ class StudySpec:
         elif len(self.objectives) > 1:  # the stored value is the weighted score, minimized
             object.__setattr__(self, "metric", "score")
             object.__setattr__(self, "direction", "minimize")
+        else:  # one [[objectives]] table is the [objective] table written another way
+            only = self.objectives[0]
+            for name in ("metric", "direction", "point", "target"):
+                object.__setattr__(self, name, getattr(only, name))
 
     @property
     def multi_objective(self) -> bool:

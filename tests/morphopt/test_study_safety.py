@@ -349,3 +349,119 @@ class _Write:
 def _quiet_cwd(tmp_path, monkeypatch):
     """Run where the study files are (relative family paths), with no leftover lease between tests."""
     monkeypatch.chdir(tmp_path)
+
+
+# --------------------------------------------------------------------------------------------
+# Found by an adversarial review: crafted values, leases across PID namespaces, long locks.
+
+
+def sql(database, *statements):
+    with sqlite3.connect(database) as connection:
+        for statement in statements:
+            connection.execute(*statement) if isinstance(statement, tuple) else connection.execute(statement)
+    connection.close()
+
+
+def test_crafted_values_in_the_database_are_one_line(tmp_path, capsys):
+    """A database may hold any value in any column: a random-generator state out of range, a huge or
+    textual generation, settings of the wrong type, terminal escapes. Each is one line, exit 2."""
+    from morphopt import checkpoint
+
+    spec = study(tmp_path, generations=2)
+    path = pathlib.Path(spec)
+    path.write_text(path.read_text().replace("[objective]", '[optimizer]\nname = "optuna"\n[objective]'))
+    assert main(["study", "run", spec]) == 0
+    database = tmp_path / "toy.sqlite"
+    with sqlite3.connect(database) as connection:
+        blob = connection.execute("SELECT state FROM checkpoints").fetchone()[0]
+    connection.close()
+    header, arrays = checkpoint.decode(blob, "x")
+    arrays = {**arrays, "optuna.rng0.position": arrays["optuna.rng0.position"].copy()}
+    arrays["optuna.rng0.position"][0] = 100000.0  # would read outside the generator's state
+    damaged = checkpoint.encode({k: v for k, v in header.items() if k not in ("version", "arrays")}, arrays)
+    capsys.readouterr()
+    for statements, argv, fragment in (
+            ([("UPDATE checkpoints SET state = ?", (damaged,))], ["resume", spec, "--generations", "3"],
+             "random generator 0 is damaged"),
+            (["UPDATE checkpoints SET generation = 1000000000000"], ["resume", spec, "--generations", "3"],
+             "stored generation"),
+            (["UPDATE designs SET generation = 'x' WHERE member = 0"], ["show", spec], "damaged"),
+            (["UPDATE studies SET settings = '{\"worlds\": \"abc\"}'"], ["show", spec], "stored settings are damaged")):
+        backup = database.read_bytes()
+        sql(database, *statements)
+        assert main(["study", *argv]) == 2, statements
+        assert fragment in error_line(capsys.readouterr().err), statements
+        database.write_bytes(backup)
+    sql(database, "UPDATE designs SET failure = 'jammed \x1b[31mred\x1b[0m' WHERE member = 1")
+    assert main(["study", "show", spec]) == 0
+    assert "\x1b" not in capsys.readouterr().out
+
+
+def test_a_lease_is_taken_over_only_when_its_writer_is_gone(tmp_path, capsys):
+    """A fresh heartbeat from another PID namespace holds even if its pid means nothing here; an old
+    heartbeat does not, even if its pid is alive here (reused); a lock held by another connection
+    ends the command in about the URL's timeout, not after retries."""
+    spec = study(tmp_path, generations=1)
+    assert main(["study", "run", spec]) == 0
+    database = tmp_path / "toy.sqlite"
+    capsys.readouterr()
+    sql(database, ("UPDATE studies SET owner = 'x', pid = 999999999, node = 'elsewhere', heartbeat = ?, since = ?",
+                   (time.time(), time.time())))
+    assert main(["study", "resume", spec, "--generations", "2"]) == 2
+    assert "is being written by pid 999999999" in capsys.readouterr().err
+    sql(database, ("UPDATE studies SET pid = ?, heartbeat = ?", (os.getpid(), time.time() - 3600)))
+    assert main(["study", "resume", spec, "--generations", "2"]) == 0
+    locked = study(tmp_path, generations=3, name="lk", storage=f"sqlite:///{database}?timeout=0.5")
+    rename(locked, "lk")
+    holder = sqlite3.connect(database)
+    holder.execute("BEGIN IMMEDIATE")  # readers go on, writers wait
+    start = time.perf_counter()
+    try:
+        assert main(["study", "resume", locked]) == 2
+    finally:
+        holder.rollback()
+        holder.close()
+    assert time.perf_counter() - start < 10.0 and "database is locked" in capsys.readouterr().err
+
+
+def test_resume_refuses_another_family_source_and_fewer_generations(tmp_path, capsys):
+    """The family's source is part of a study: an edited family file is refused by resume, and so is
+    --generations below what is stored. One [[objectives]] table is the [objective] table."""
+    spec = study(tmp_path, generations=2)
+    assert main(["study", "run", spec]) == 0
+    capsys.readouterr()
+    assert main(["study", "resume", spec, "--generations", "1"]) == 2
+    assert "has 2 generations stored" in capsys.readouterr().err
+    family = tmp_path / "toy_family.py"
+    family.write_text(family.read_text() + "\n# edited\n")
+    assert main(["study", "resume", spec, "--generations", "3"]) == 2
+    assert "is not the source study 'toy' was run with" in capsys.readouterr().err
+    path = pathlib.Path(spec)
+    one = path.read_text().replace("[objective]", "[[objectives]]").replace('"maximize"', '"minimize"')
+    (tmp_path / "one.toml").write_text(one)
+    from morphopt.study_spec import load_study_spec
+
+    single = load_study_spec(tmp_path / "one.toml")
+    assert (single.metric, single.direction) == ("tip_step_height", "minimize") and not single.multi_objective
+
+
+def test_fresh_runs_are_never_mixed_in_an_optuna_export(tmp_path, capsys):
+    """Exporting a study, starting it over with --fresh and exporting again into the same Optuna
+    study is refused (the designs at the same generation and member differ)."""
+    spec = study(tmp_path, generations=1)
+    url = f"sqlite:///{tmp_path / 'optuna.db'}"
+    assert main(["study", "run", spec]) == 0
+    assert main(["study", "export", spec, "--optuna-storage", url]) == 0
+    path = pathlib.Path(spec)
+    path.write_text(path.read_text().replace("seed = 5", "seed = 6"))
+    assert main(["study", "run", spec, "--fresh"]) == 0
+    capsys.readouterr()
+    assert main(["study", "export", spec, "--optuna-storage", url]) == 2
+    assert "holds another run of this study" in capsys.readouterr().err
+
+
+def test_an_archive_name_fits_the_study_columns(tmp_path):
+    from morphopt.storage import StudyStorage
+
+    storage = StudyStorage(f"sqlite:///{tmp_path / 'x.sqlite'}", "n" * 200)
+    assert len(storage.archive_name()) <= 200
