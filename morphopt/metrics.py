@@ -6,9 +6,8 @@ steps (closed curves: sample N+1 would equal sample 0).
 Gait metrics (gait_metrics) describe the curve through the samples, not the samples: extrema
 are refined by a parabola through the extreme sample and its neighbours, and the ground band's
 edges are found on the cubic Hermite (Catmull-Rom) curve through the samples, so that they
-converge with the sampling (Jansen's leg: within 1e-4 % of the limit at 360 samples, where the
-nearest sample was 1.3 % short). morphopt.linkage.kinematics_warp's cycle_reduce computes the
-same numbers on the device.
+converge with the sampling (benchmarks/results/README.md, "Stride against sampling").
+morphopt.linkage.kinematics_warp's cycle_reduce computes the same numbers on the device.
 """
 
 from __future__ import annotations

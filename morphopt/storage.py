@@ -754,8 +754,8 @@ def export_to_optuna(frame: pd.DataFrame, *, study_name: str, space, direction: 
 def _add_trials(study, storage: str, trials: list) -> None:
     """Add COMPLETE or FAIL FrozenTrials (one value, params, user attributes) to an Optuna study:
     for a database URL in one transaction through the ORM models of Optuna's RDBStorage (its
-    add_trials commits every trial and queries every parameter: 67-172 s for 1,920 designs in
-    SQLite), else, or with another Optuna's internals, by add_trials."""
+    add_trials commits every trial: benchmarks/results/README.md, "Optuna export"), else, or with
+    another Optuna's internals, by add_trials."""
     import optuna
 
     try:

@@ -32,15 +32,9 @@ Conventions of the written file (MuJoCo reads it with MjModel.from_xml_path):
   drive's position error to (-pi, pi]; MuJoCo does not (the same law while |error| < pi).
 - Integrator and step: ``<option integrator timestep>``, by default MJCF_INTEGRATOR ("discrete",
   MuJoCo >= 3.13: the constraints are solved in the metric M + dt D of the implicit damping) at
-  MJCF_TIMESTEP (0.1 ms). The linkages' crank drive is stiff (kd 50 N m s/rad on a crank of ~1e-7
-  kg m^2) and saturates at its effort limit when the crank starts from rest (MuJoCo's default
-  state, qvel = 0), where MuJoCo clamps it explicitly. Measured over 5 s from the default state
-  and from the keyframe (every built-in family's default and 15 random designs each, and the 10
-  best designs of a jansen_stride run, at 2 pi rad/s): "discrete" at 0.1 ms is stable with loops
-  open by less than 0.13 mm; at 0.2 ms the Jansen leg's start opens them by up to 1 mm, and at
-  1 ms it diverges from rest within 11 ms; "implicitfast" diverges at 1 ms (Jansen from rest,
-  Klann, the walker, four of the jansen_stride designs from the keyframe) and still at 0.1 ms
-  for four of those ten; RK4 and Euler diverge at 0.5-1 ms.
+  MJCF_TIMESTEP (0.1 ms): the stiff crank drives saturate when a crank starts from rest (MuJoCo's
+  default state), which MuJoCo clamps explicitly; the measured choice of integrator and step:
+  benchmarks/results/README.md, "MJCF export: integrator and step in MuJoCo".
 - Initial state: ``<keyframe><key name="initial" qpos qvel ctrl/>``: qpos = the refs (and the
   roots' poses); qvel from the bodies' initial velocities: hinge: relative angular velocity
   about the axis [rad/s]; slide: relative velocity of the anchor along the axis [m/s]; free
