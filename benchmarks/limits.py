@@ -17,7 +17,6 @@ reason. Prints one JSON object per case; writes limits_<device>.csv and .png.
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import os
 import pathlib
@@ -31,18 +30,6 @@ import warp as wp  # noqa: E402
 
 RATIOS = (1.0, 10.0, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8)
 DISTANCES = (0.0, 1.0, 10.0, 1e2, 1e3, 1e4, 3e4, 6e4, 7e4, 1e5, 1e6)
-
-
-def shifted(spec, distance: float):
-    """The mechanism moved by ``distance`` [m] along x."""
-    spec = copy.deepcopy(spec)
-    offset = np.array([distance, 0.0, 0.0])
-    for body in spec.bodies:
-        body.position = body.position + offset
-    for joint in spec.joints:
-        if joint.parent is None:
-            joint.parent_position = joint.parent_position + offset
-    return spec
 
 
 def sweep(specs, labels: list[dict], config, device: str, duration: float, dt: float) -> list[dict]:
@@ -74,7 +61,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     wp.config.quiet = True
     from engine import SolverConfig
-    from engine.scenes import chain, fourbar
+    from engine.scenes import chain, fourbar, shifted
 
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -10,6 +10,7 @@ Each builder returns a Scene: the spec and the lowest potential energy the mecha
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -212,6 +213,19 @@ def chain(links: int = 10, length: float = 0.1, angle: float = math.radians(30.0
 
 
 SCENES = {"pendulum": pendulum, "fourbar": fourbar, "sixbar": sixbar, "chain": chain}
+
+
+def shifted(spec: MechanismSpec, distance: float) -> MechanismSpec:
+    """A copy of ``spec`` moved by ``distance`` [m] along x (far from the origin, float32 resolves
+    less: engine.health's FAR flag)."""
+    spec = copy.deepcopy(spec)
+    offset = np.array([distance, 0.0, 0.0])
+    for body in spec.bodies:
+        body.position = body.position + offset
+    for joint in spec.joints:
+        if joint.parent is None:
+            joint.parent_position = joint.parent_position + offset
+    return spec
 
 
 def make_scene(name: str) -> Scene:

@@ -2,7 +2,6 @@
 world with a reason (joints that come apart, coordinates too far from the origin for float32, a
 solver stopped far from converged), and morphopt's evaluation turns a flag into a failure."""
 
-import copy
 import dataclasses
 import math
 
@@ -11,19 +10,7 @@ import pytest
 
 from engine import Body, MechanismSpec, SolverConfig, pack_worlds, rollout
 from engine.health import FAR, JOINTS_OPEN, UNCONVERGED
-from engine.scenes import chain, fourbar
-
-
-def shifted(spec: MechanismSpec, distance: float) -> MechanismSpec:
-    """The same mechanism moved by ``distance`` [m] along x."""
-    spec = copy.deepcopy(spec)
-    offset = np.array([distance, 0.0, 0.0])
-    for body in spec.bodies:
-        body.position = body.position + offset
-    for joint in spec.joints:
-        if joint.parent is None:
-            joint.parent_position = joint.parent_position + offset
-    return spec
+from engine.scenes import chain, fourbar, shifted
 
 
 def alternating_chain(ratio: float) -> MechanismSpec:

@@ -16,26 +16,9 @@ import pytest
 import morphopt.warp_setup as warp_setup
 from morphopt.study import run_study
 from morphopt.study_spec import load_study_spec
-from toyfamily import TOY_FAMILY
+from toyfamily import toy_study
 
 
-
-def toy_study(tmp_path, generations=3, extra=""):
-    (tmp_path / "toy.py").write_text(TOY_FAMILY)
-    path = tmp_path / "toy.toml"
-    path.write_text(textwrap.dedent(f"""
-        [study]
-        name = "toy"
-        family = "{(tmp_path / 'toy.py').as_posix()}"
-        generations = {generations}
-        worlds = 4
-        [objective]
-        metric = "tip_step_height"
-        direction = "maximize"
-        [simulation]
-        samples = 32
-    """) + textwrap.dedent(extra))
-    return path
 
 
 def morphopt(*args, cwd, env=None):

@@ -1,7 +1,6 @@
 """`morphopt study export --optuna-storage` (issue 49, item 7): in seconds for 1,920 designs, and a
 second export adds only what is new."""
 
-import textwrap
 import time
 
 import numpy as np
@@ -12,34 +11,17 @@ import pytest
 from morphopt.cli import main
 from morphopt.design_space import DesignSpace, Float, Int
 from morphopt.storage import export_to_optuna
-from toyfamily import TOY_FAMILY
+from toyfamily import toy_study
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 
 
 
-def toy_study(tmp_path):
-    (tmp_path / "toy.py").write_text(TOY_FAMILY)
-    path = tmp_path / "toy.toml"
-    path.write_text(textwrap.dedent(f"""
-        [study]
-        name = "toy"
-        family = "{(tmp_path / 'toy.py').as_posix()}"
-        generations = 3
-        worlds = 6
-        [objective]
-        metric = "tip_step_height"
-        direction = "maximize"
-        [simulation]
-        samples = 32
-    """))
-    return path
-
 
 def test_export_twice_adds_no_duplicates_and_a_resumed_study_adds_its_new_designs(tmp_path, capsys):
     """Export, export again (nothing new: 0 written, the count of those already there), resume the
     study for one more generation, export: only its 6 designs are added."""
-    spec = toy_study(tmp_path)
+    spec = toy_study(tmp_path, worlds=6)
     url = f"sqlite:///{tmp_path / 'optuna.db'}"
     assert main(["study", "run", str(spec)]) == 0
     assert main(["study", "export", str(spec), "--optuna-storage", url]) == 0

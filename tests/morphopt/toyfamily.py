@@ -1,4 +1,6 @@
-"""The source of a toy design family the study tests write next to their study files."""
+"""A toy design family the study tests write next to their study files, and a kinematic study of it."""
+
+import textwrap
 
 TOY_FAMILY = '''
 """A crank alone: its tip's path is a circle of radius r (step height 2 r)."""
@@ -13,3 +15,22 @@ def generate(params, *, crank_speed=6.283185307179586, phase=0.0):
                    crank=Crank("O", "T", params["r"], phase=phase, speed=crank_speed),
                    links=[Link("crank", ("O", "T"))], points={"tip": "T"})
 '''
+
+
+def toy_study(tmp_path, generations: int = 3, worlds: int = 4, extra: str = ""):
+    """toy.py and toy.toml in ``tmp_path``: maximize the tip's step height, 32 samples a turn."""
+    (tmp_path / "toy.py").write_text(TOY_FAMILY)
+    path = tmp_path / "toy.toml"
+    path.write_text(textwrap.dedent(f"""
+        [study]
+        name = "toy"
+        family = "{(tmp_path / 'toy.py').as_posix()}"
+        generations = {generations}
+        worlds = {worlds}
+        [objective]
+        metric = "tip_step_height"
+        direction = "maximize"
+        [simulation]
+        samples = 32
+    """) + textwrap.dedent(extra))
+    return path
