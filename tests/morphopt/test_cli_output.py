@@ -19,8 +19,6 @@ from morphopt.study_spec import load_study_spec
 from toyfamily import toy_study
 
 
-
-
 def morphopt(*args, cwd, env=None):
     """`morphopt ARGS` as a user runs it: a process of its own; returns (status, stdout, stderr)."""
     done = subprocess.run([sys.executable, "-m", "morphopt.cli", *args], cwd=cwd, capture_output=True, text=True,

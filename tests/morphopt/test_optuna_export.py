@@ -16,8 +16,6 @@ from toyfamily import toy_study
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 
 
-
-
 def test_export_twice_adds_no_duplicates_and_a_resumed_study_adds_its_new_designs(tmp_path, capsys):
     """Export, export again (nothing new: 0 written, the count of those already there), resume the
     study for one more generation, export: only its 6 designs are added."""
