@@ -317,6 +317,7 @@ class StudyStorage:
         self._heartbeat: threading.Thread | None = None
         self._stop = threading.Event()
         self.lease_lost = False
+        self._current_layout = False  # set once this writer stored a generation: the table has extras
         try:
             sqlite = url.startswith("sqlite") and "timeout=" not in url  # a URL may set its own
             connect_args = {"timeout": SQLITE_TIMEOUT} if sqlite else {}
@@ -538,7 +539,7 @@ class StudyStorage:
                 for k, (v, p, m, e, failure) in enumerate(zip(values, _row_bytes(param_matrix),
                                                               _row_bytes(metric_matrix), extras, failures))]
         told = np.zeros((len(rows), 0)) if told is None else np.asarray(told, dtype=np.float64).reshape(len(rows), -1)
-        legacy = self.legacy
+        legacy = not self._current_layout and self.legacy  # asked of the database once per writer
         try:
             with self.engine.begin() as connection:
                 if not self._renew(connection):
@@ -567,6 +568,7 @@ class StudyStorage:
             raise self._error(f"store generation {generation} (nothing of it was stored)", exc) from exc
         except sa.exc.SQLAlchemyError as exc:
             raise self._error(f"store generation {generation} (nothing of it was stored)", exc) from exc
+        self._current_layout = True
 
     def _move(self, connection, archive: str) -> None:
         """Rename the study's stored rows to ``archive`` (and copy its settings row there, unleased)."""

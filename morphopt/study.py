@@ -378,6 +378,9 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
     steps = _SimulationBar(spec.mode == "dynamic" and progress)
     try:  # the bar ends its line before any error is printed
         for generation in range(start, spec.generations):
+            if storage.lease_lost:  # the heartbeat found another writer: compute nothing it cannot store
+                raise ValueError(f"{storage.where}: this run lost the study's lease (--steal); it stops before "
+                                 f"generation {generation}")
             compiled_before = compile_seconds()
             t0 = time.perf_counter()
             free = optimizer.ask(spec.worlds)
