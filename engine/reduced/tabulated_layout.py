@@ -1,0 +1,738 @@
+"""Which MechanismSpecs the tabulated path takes, and their tables (host side, NumPy).
+
+A spec fits when one floating body (the base: no joint to the world) carries sub-chains: the
+connected components of the other bodies, each a planar linkage of revolute and inline joints
+whose axes are all parallel (one plane normal per world, any direction in the base frame), of
+mobility one (3 n - 2 j = 1 with the joints to the base; an inline joint is two rows in the
+plane, as a revolute one) and turned by exactly one driven revolute joint to the base. Every
+link of a sub-chain is then a function of that joint's coordinate q: tabulate_sub_chain solves
+the loop-closure equations over a turn of q (continuation and Newton from the spec's pose) and
+tabulates every link's planar centre of mass and angle with their exact first and second
+derivatives in q (implicit function theorem), so that a world has 6 + L coordinates.
+
+Frames: the reduced state's frame (the "state frame") is the base's body frame turned by a
+constant rotation (TabulatedLayout.frame) that takes its y axis to the plane normal; a link's
+"table frame" is that frame turned about -y by the link's planar angle phi (x along the link,
+y the normal), its body frame a constant rotation (SubChain.link_frame) away. Tables are at unit
+scale: plane coordinates (x, z) relative to the sub-chain's origin (its driving pivot on the
+base) divided by the sub-chain's scale (the longest distance from a link's centre of mass to one
+of its joints, or from the origin to a pivot on the base), so that sub-chains of one geometry up
+to a uniform scale share a table. The tables are cached across calls by a key of that geometry:
+(samples, link count, every joint's pair of links (the base as K), their anchors at unit scale,
+the driving link, the sign and offset of its angle against q, the contact shape's link and
+centre at unit scale), every number rounded to KEY_DIGITS decimals; under one key, one table per
+assembly branch (a sub-chain whose start is not on a cached table gets a table of its own).
+
+Nothing here knows a leg or a torso: contact slots come from shapes (TabulatedLayout.base_slots,
+SubChain.shape) and tracked points are the spec's own.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from engine.pack import collision_pairs
+from engine.spec import JointType, MechanismSpec, ShapeType
+
+__all__ = ["BASE_SLOTS", "MAX_GROUPS", "MAX_LINKS", "TABLE_SAMPLES", "SubChain", "SubChainTable", "TabulatedLayout",
+           "tabulate_sub_chain", "tabulated_layout"]
+
+MAX_GROUPS = 8  # sub-chains per world (the kernel's generalized velocities: 6 + MAX_GROUPS)
+MAX_LINKS = 8  # bodies per sub-chain
+BASE_SLOTS = 8  # contact slots of the base's shapes (a box's corners, sphere centres, capsule ends)
+TABLE_SAMPLES = 512  # samples of a turn of the driving coordinate
+KEY_DIGITS = 6  # normalized geometry is rounded to this many decimals in a table's cache key
+PLANE_TOLERANCE = 1e-6  # relative to a sub-chain's scale: off-plane offsets and axis mismatches it accepts
+START_TOLERANCE = 1e-3  # relative to the scale: how far the spec's start may be from a closed pose
+NEWTON_TOLERANCE = 1e-12  # residual of the loop-closure equations at unit scale
+MIN_STEP = 2.0 * math.pi / 2**16  # the smallest continuation step before a linkage counts as jammed
+TABLE_CACHE = 256  # tables kept across packs (by key, oldest dropped first)
+
+_TWO_PI = 2.0 * math.pi
+_Y = np.array([0.0, 1.0, 0.0])
+
+
+def _cross(a, b) -> np.ndarray:
+    """a x b of two 3-vectors (np.cross costs more than the arithmetic here)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def quat_matrix(q) -> np.ndarray:
+    """Rotation matrix of a unit quaternion (x, y, z, w)."""
+    x, y, z, w = (float(v) for v in q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def matrix_quat(m: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w) of a rotation matrix (w >= 0)."""
+    t = np.trace(m)
+    if t > 0.0:
+        s = 2.0 * math.sqrt(t + 1.0)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+    else:
+        i = int(np.argmax(np.diag(m)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * math.sqrt(max(1.0 + m[i, i] - m[j, j] - m[k, k], 1e-300))
+        q = [0.0, 0.0, 0.0, (m[k, j] - m[j, k]) / s]
+        q[i] = 0.25 * s
+        q[j] = (m[j, i] + m[i, j]) / s
+        q[k] = (m[k, i] + m[i, k]) / s
+    q = np.asarray(q) / np.linalg.norm(q)
+    return q if q[3] >= 0.0 else -q
+
+
+def rot_minus_y(angle: float) -> np.ndarray:
+    """Rotation by ``angle`` about -y: counter-clockwise in the (x, z) plane."""
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
+
+
+def wrap(angle):
+    """Angle(s) wrapped to (-pi, pi]."""
+    return np.angle(np.exp(1j * np.asarray(angle)))
+
+
+def _turn_angle(m: np.ndarray, axis: np.ndarray) -> float:
+    """The angle [rad] of rotation m about the unit ``axis``, as engine.joints measures a revolute
+    joint's coordinate (2 atan2 of the quaternion's part along the axis and its w >= 0)."""
+    q = matrix_quat(m)
+    return 2.0 * math.atan2(float(q[:3] @ axis), float(q[3]))
+
+
+# -- tables ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class SubChainTable:
+    """One sub-chain's kinematics over a turn of its driving coordinate q, at unit scale.
+
+    Sample n is at q = 2 pi n / N. links (N, K, 3): per link its centre of mass in the plane
+    (x, z) relative to the sub-chain's origin [scale] and its planar angle phi [rad] (about the
+    state frame's -y); links_d1, links_d2 their derivatives in q. contact (N, 3): the centre of
+    the sub-chain's contact shape (x, z, and its constant offset along the normal), contact_d1,
+    contact_d2; contact_link: the link that carries it (0 and zeros without a shape).
+    closure_error: the largest distance [scale] between a joint's anchor (or the contact centre)
+    placed by a link read from the table between samples (linearly, as the kernels read it) and
+    the exact one, at the midpoints: the loop-closure error the table stands for. key: the cache
+    key (see the module docstring)."""
+
+    links: np.ndarray
+    links_d1: np.ndarray
+    links_d2: np.ndarray
+    contact: np.ndarray
+    contact_d1: np.ndarray
+    contact_d2: np.ndarray
+    contact_link: int
+    closure_error: float
+    key: tuple = ()
+
+    @property
+    def samples(self) -> int:
+        """Samples of the turn (N)."""
+        return int(self.links.shape[0])
+
+    def between(self, q: float) -> tuple:
+        """The samples around coordinate q [rad] and the weight of the second (i0, i1, f), as the
+        kernels' table_index."""
+        n = self.samples
+        u = (q / _TWO_PI * n) % n
+        i0 = min(int(u), n - 1)
+        return i0, (i0 + 1) % n, u - i0
+
+    def at(self, q: float) -> tuple:
+        """Links (K, 3) and contact centre (3,) at q [rad], interpolated as the kernels do."""
+        i0, i1, f = self.between(q)
+        a, b = self.links[i0], self.links[i1]
+        step = b - a
+        step[:, 2] = wrap(step[:, 2])
+        return a + f * step, (1.0 - f) * self.contact[i0] + f * self.contact[i1]
+
+
+@dataclass
+class _Planar:
+    """A sub-chain's loop-closure problem at unit scale. Unknowns x (..., 3 K): per link its
+    centre of mass (x, z) and angle phi. Joint j holds link ja[j]'s anchor ra[j] (table frame,
+    relative to its centre) on link jb[j]'s anchor rb[j]; index K is the base, whose 'anchor' is
+    a fixed point of the plane. The driving link d turns with q: phi_d = sign q + offset."""
+
+    K: int
+    ja: np.ndarray
+    jb: np.ndarray
+    ra: np.ndarray
+    rb: np.ndarray
+    drive: int
+    sign: float
+    offset: float
+
+    def _extended(self, x):
+        x = np.asarray(x, float)
+        shape = x.shape[:-1]
+        return np.concatenate([x.reshape(*shape, self.K, 3), np.zeros((*shape, 1, 3))], axis=-2)
+
+    @staticmethod
+    def _rot(phi, r):
+        c, s = np.cos(phi), np.sin(phi)
+        return np.stack([c * r[..., 0] - s * r[..., 1], s * r[..., 0] + c * r[..., 1]], axis=-1)
+
+    def anchors(self, x) -> tuple:
+        """Every joint's anchor as placed by its two sides (..., J, 2) each."""
+        xe = self._extended(x)
+        a, b = xe[..., self.ja, :], xe[..., self.jb, :]
+        return a[..., :2] + self._rot(a[..., 2], self.ra), b[..., :2] + self._rot(b[..., 2], self.rb)
+
+    def residual(self, x, q) -> np.ndarray:
+        pa, pb = self.anchors(x)
+        xe = self._extended(x)
+        drive = xe[..., self.drive, 2] - (self.sign * np.asarray(q) + self.offset)
+        return np.concatenate([(pa - pb).reshape(*pa.shape[:-2], -1), drive[..., None]], axis=-1)
+
+    def jacobian(self, x) -> np.ndarray:
+        xe = self._extended(x)
+        shape = xe.shape[:-2]
+        J = len(self.ja)
+        out = np.zeros((*shape, 2 * J + 1, 3 * self.K + 3))
+        rows = np.arange(J)
+        for side, index, r in ((1.0, self.ja, self.ra), (-1.0, self.jb, self.rb)):
+            d = self._rot(xe[..., index, 2], np.stack([-r[:, 1], r[:, 0]], axis=-1))
+            out[..., 2 * rows, 3 * index] = side
+            out[..., 2 * rows + 1, 3 * index + 1] = side
+            out[..., 2 * rows, 3 * index + 2] = side * d[..., 0]
+            out[..., 2 * rows + 1, 3 * index + 2] = side * d[..., 1]
+        out[..., 2 * J, 3 * self.drive + 2] = 1.0
+        return out[..., :3 * self.K]
+
+    def newton(self, x, q, iterations: int = 12) -> tuple:
+        """Newton on the closure equations at q from x: (x, converged (...,) bool)."""
+        x = np.array(x, float)
+        for _ in range(iterations):
+            F = self.residual(x, q)
+            done = np.abs(F).max(axis=-1) < NEWTON_TOLERANCE
+            if done.all():
+                return x, done
+            try:
+                dx = np.linalg.solve(self.jacobian(x), -F[..., None])[..., 0]
+            except np.linalg.LinAlgError:
+                return x, np.zeros(x.shape[:-1], bool)
+            x = x + np.where(done[..., None], 0.0, dx)
+        return x, np.abs(self.residual(x, q)).max(axis=-1) < NEWTON_TOLERANCE
+
+    def derivatives(self, x) -> tuple:
+        """dx/dq and d2x/dq2 at closed poses x (..., 3 K), from the implicit function theorem."""
+        Jm = self.jacobian(x)
+        rhs = np.zeros(Jm.shape[:-1])
+        rhs[..., -1] = self.sign
+        d1 = np.linalg.solve(Jm, rhs[..., None])[..., 0]
+        xe, de = self._extended(x), self._extended(d1)
+        g = []
+        for index, r, side in ((self.ja, self.ra, 1.0), (self.jb, self.rb, -1.0)):
+            g.append(side * self._rot(xe[..., index, 2], r) * (de[..., index, 2] ** 2)[..., None])
+        rhs2 = np.concatenate([(g[0] + g[1]).reshape(*Jm.shape[:-2], -1), np.zeros((*Jm.shape[:-2], 1))], axis=-1)
+        d2 = np.linalg.solve(Jm, rhs2[..., None])[..., 0]
+        return d1, d2
+
+
+def _continue_turn(planar: _Planar, x0: np.ndarray, q0: float, what: str) -> tuple:
+    """Poses over one turn q0 .. q0 + 2 pi by continuation (tangent predictor, Newton corrector,
+    step halved on a failed or large correction or a sign change of det J): returns the steps'
+    offsets t (S,) from q0 and poses (S, 3 K). ValueError when the linkage jams or changes branch."""
+    ts, xs = [0.0], [x0]
+    t, x = 0.0, x0
+    h = _TWO_PI / 64
+    sign0 = np.linalg.slogdet(planar.jacobian(x0))[0]
+    while t < _TWO_PI - 1e-12:
+        step = min(h, _TWO_PI - t)
+        d1, d2 = planar.derivatives(x)
+        guess = x + step * d1 + 0.5 * step * step * d2
+        y, ok = planar.newton(guess, q0 + t + step, iterations=8)
+        good = bool(ok) and np.abs(y - guess).max() < 0.02 and np.linalg.slogdet(planar.jacobian(y))[0] == sign0
+        if not good:
+            h = 0.5 * step
+            if h < MIN_STEP:
+                raise ValueError(f"{what}: cannot make a full turn of its driving joint: it jams (the loop-closure "
+                                 f"equations turn singular) at {wrap(q0 + t):.4f} rad")
+            continue
+        t, x = t + step, y
+        ts.append(t)
+        xs.append(x)
+        h = min(2.0 * step, _TWO_PI / 64)
+    back = y - x0
+    back[2::3] = wrap(back[2::3])
+    if np.abs(back).max() > 1e-6:
+        raise ValueError(f"{what}: does not come back to its start after a full turn of its driving joint "
+                         f"(it changes assembly branch; off by {np.abs(back).max():.3g} at unit scale)")
+    return np.array(ts), np.array(xs)
+
+
+def tabulate_sub_chain(planar: _Planar, x0: np.ndarray, q0: float, samples: int, contact: tuple | None,
+                       what: str, key: tuple = ()) -> SubChainTable:
+    """The SubChainTable of a sub-chain closed at pose x0 (unit scale) at its coordinate q0 [rad].
+    contact: (link, local centre (x, y, z) in its table frame relative to its centre of mass [scale])
+    or None. ValueError naming ``what`` when the linkage cannot make a full turn."""
+    ts, xs = _continue_turn(planar, x0, q0, what)
+    fine = 2 * samples  # the samples and the midpoints between them (closure error)
+    angles = _TWO_PI * np.arange(fine) / fine
+    offsets = (angles - q0) % _TWO_PI
+    coarse = np.clip(np.searchsorted(ts, offsets), 1, len(ts) - 1)
+    nearer = np.where(offsets - ts[coarse - 1] < ts[coarse] - offsets, coarse - 1, coarse)
+    d1, d2 = planar.derivatives(xs)
+    delta = offsets - ts[nearer]
+    guess = xs[nearer] + delta[:, None] * d1[nearer] + 0.5 * (delta**2)[:, None] * d2[nearer]
+    x, ok = planar.newton(guess, q0 + offsets)
+    if not ok.all() or np.abs(x - guess).max() > 0.02:
+        bad = int(np.argmin(ok)) if not ok.all() else int(np.abs(x - guess).max(axis=1).argmax())
+        raise ValueError(f"{what}: the loop-closure equations do not converge near {wrap(angles[bad]):.4f} rad")
+    x[:, 2::3] = wrap(x[:, 2::3])
+    d1, d2 = planar.derivatives(x)
+    K = planar.K
+    values, v1, v2 = (a.reshape(fine, K, 3) for a in (x, d1, d2))
+    # closure error: every joint's anchor placed by the links interpolated halfway between samples
+    exact_a, _ = planar.anchors(x[1::2])
+    before, after = values[0::2], np.roll(values[0::2], -1, axis=0)
+    middle = 0.5 * (before + after)
+    middle[..., 2] = before[..., 2] + 0.5 * wrap(after[..., 2] - before[..., 2])
+    placed_a, placed_b = planar.anchors(middle.reshape(samples, -1))
+    error = float(max(np.abs(placed_a - exact_a).max(), np.abs(placed_b - exact_a).max()))
+    links, links_d1, links_d2 = values[0::2], v1[0::2], v2[0::2]
+    centre = np.zeros((samples, 3))
+    centre_d1 = np.zeros((samples, 3))
+    centre_d2 = np.zeros((samples, 3))
+    link = 0
+    if contact is not None:
+        link, local = contact
+        phi, w1, w2 = links[:, link, 2], links_d1[:, link, 2], links_d2[:, link, 2]
+        lxz = np.broadcast_to(np.array([local[0], local[2]]), (samples, 2))
+        turned = _Planar._rot(phi, lxz)
+        normal = np.stack([-turned[:, 1], turned[:, 0]], axis=1)
+        centre[:, :2] = links[:, link, :2] + turned
+        centre[:, 2] = local[1]
+        centre_d1[:, :2] = links_d1[:, link, :2] + normal * w1[:, None]
+        centre_d2[:, :2] = links_d2[:, link, :2] + normal * w2[:, None] - turned * (w1**2)[:, None]
+        # the contact centre placed by its link halfway between samples, against the exact one
+        exact = values[1::2, link]
+        lxz = lxz[0]
+        error = max(error, float(np.abs(middle[:, link, :2] + _Planar._rot(middle[:, link, 2], lxz)
+                                        - exact[:, :2] - _Planar._rot(exact[:, 2], lxz)).max()))
+    return SubChainTable(links, links_d1, links_d2, centre, centre_d1, centre_d2, int(link), error, key)
+
+
+_TABLES: dict = {}  # cache key -> list of tables (one per assembly branch met)
+
+
+def _cached_table(key: tuple, planar: _Planar, x0: np.ndarray, q0: float, samples: int, contact, what: str):
+    """The table of ``key`` whose pose at q0 is x0 (another assembly branch gets its own table)."""
+    branches = _TABLES.get(key, [])
+    for table in branches:
+        links, _ = table.at(q0)
+        diff = links.reshape(-1) - x0
+        diff[2::3] = wrap(diff[2::3])
+        if np.abs(diff).max() < START_TOLERANCE:
+            return table
+    table = tabulate_sub_chain(planar, x0, q0, samples, contact, what, key)
+    if key not in _TABLES and len(_TABLES) >= TABLE_CACHE:
+        _TABLES.pop(next(iter(_TABLES)))
+    _TABLES.setdefault(key, []).append(table)
+    return table
+
+
+# -- layout ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class SubChain:
+    """One sub-chain of a world. joint: the spec index of its driving joint; bodies: spec body
+    indices in table link order; table (unit scale) and scale [m]; origin: its driving pivot in
+    the state frame relative to the base's centre of mass [m] (y: the plane of its links'
+    centres); angle, rate: the driving coordinate q [rad] and its rate [rad/s] at the start;
+    link_mass (K,) [kg], link_inertia (K, 3, 3) about the centre in the table frame [kg m^2];
+    link_frame (K, 4): each body's orientation in its table frame (quaternion x, y, z, w);
+    drive: target velocity [rad/s], damping [N m s/rad], effort limit [N m]; shape: the contact
+    shape's spec index, radius [m], half length [m] (0: a sphere), its axis's planar angle in the
+    link's table frame [rad] and its friction with the ground (the geometric mean), or None."""
+
+    joint: int
+    bodies: list
+    table: SubChainTable
+    scale: float
+    origin: np.ndarray
+    angle: float
+    rate: float
+    link_mass: np.ndarray
+    link_inertia: np.ndarray
+    link_frame: np.ndarray
+    drive: tuple
+    shape: tuple | None = None
+
+    @property
+    def closure_error(self) -> float:
+        """The table's closure error at this sub-chain's scale [m]."""
+        return self.table.closure_error * self.scale
+
+
+@dataclass
+class TabulatedLayout:
+    """A MechanismSpec read as a floating base carrying tabulated sub-chains (see the module
+    docstring). base: the base's spec index; frame: the state frame in the base's body frame
+    (quaternion; identity when the joints turn about the base's y axis); position, orientation,
+    velocity, angular_velocity: the state frame's start (centre of mass [m], quaternion, world
+    frame [m/s], [rad/s]); base_mass [kg], base_inertia (3, 3) in the state frame [kg m^2];
+    groups: the SubChains; base_slots: the base's contact points, each (point (3,) in the state
+    frame relative to the centre of mass [m], radius [m] below it, friction, shape index);
+    ground: None or (offset [m], friction) of the plane z = offset; points: per tracked point
+    (sub-chain or -1 for the base, link, offset (3,) [m] from that body's centre of mass in its
+    state or table frame); bodies: per spec body (sub-chain or -1, link, its orientation in the
+    state or table frame as a quaternion)."""
+
+    spec: MechanismSpec
+    base: int
+    frame: np.ndarray
+    position: np.ndarray
+    orientation: np.ndarray
+    velocity: np.ndarray
+    angular_velocity: np.ndarray
+    base_mass: float
+    base_inertia: np.ndarray
+    groups: list
+    base_slots: list
+    ground: tuple | None
+    gravity: np.ndarray
+    points: list = field(default_factory=list)
+    bodies: list = field(default_factory=list)
+
+    @property
+    def point_names(self) -> list:
+        """The spec's tracked point names, in its order."""
+        return [p.name for p in self.spec.points]
+
+    @property
+    def closure_error(self) -> float:
+        """The largest closure error of this world's tables at their scales [m] (0 without any)."""
+        return max((g.closure_error for g in self.groups), default=0.0)
+
+
+def _choose_base(spec: MechanismSpec) -> int:
+    """The base: the body that is the parent of the most driven joints, then the body of the most
+    driven joints, then of the most joints, then the first."""
+    score = [[0, 0, 0, -i] for i in range(len(spec.bodies))]
+    index = spec.body_index
+    for joint in spec.joints:
+        if joint.parent is not None and joint.drive is not None:
+            score[index[joint.parent]][0] += 1
+        for name in (joint.parent, joint.child):
+            if name is not None:
+                score[index[name]][1] += joint.drive is not None
+                score[index[name]][2] += 1
+    return max(range(len(spec.bodies)), key=lambda i: score[i])
+
+
+def _components(spec: MechanismSpec, base: int) -> list:
+    """The connected components of the bodies other than the base (lists of body indices in spec
+    order), ordered by their first body."""
+    index = spec.body_index
+    root = list(range(len(spec.bodies)))
+
+    def find(i):
+        while root[i] != i:
+            root[i] = root[root[i]]
+            i = root[i]
+        return i
+
+    for joint in spec.joints:
+        a, b = index[joint.parent], index[joint.child]
+        if base not in (a, b):
+            root[find(a)] = find(b)
+    groups = {}
+    for i in range(len(spec.bodies)):
+        if i != base:
+            groups.setdefault(find(i), []).append(i)
+    return sorted(groups.values(), key=lambda g: g[0])
+
+
+def _frame_to(normal: np.ndarray) -> np.ndarray:
+    """A rotation matrix Q with Q y = +-normal: the identity when the normal is along y, else the
+    shortest turn of y onto the normal (its sign nearest y)."""
+    n = normal if normal @ _Y >= 0.0 else -normal
+    axis = _cross(_Y, n)
+    s, c = np.linalg.norm(axis), float(_Y @ n)
+    if s < 1e-12:
+        return np.eye(3)
+    k = axis / s
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + s * K + (1 - c) * K @ K
+
+
+def _planar_angle(m: np.ndarray) -> float:
+    """The planar angle (about -y) of a body orientation m in the state frame: its x axis's
+    direction in (x, z), or its z axis's when x lies along y."""
+    x = m[:, 0]
+    if math.hypot(x[0], x[2]) > 1e-3:
+        return math.atan2(x[2], x[0])
+    z = m[:, 2]
+    return math.atan2(-z[0], z[2])
+
+
+def _rounded(values) -> tuple:
+    """Numbers of a table's cache key (+ 0.0: no negative zero)."""
+    return tuple(round(float(v), KEY_DIGITS) + 0.0 for v in np.ravel(values))
+
+
+def tabulated_layout(spec: MechanismSpec, *, samples: int = TABLE_SAMPLES) -> TabulatedLayout:
+    """Read ``spec`` as a floating base carrying one-DoF planar sub-chains and tabulate each over
+    ``samples`` per turn (cached by geometry: see the module docstring). Raises ValueError with one
+    line naming the body, joint or shape that prevents it. The base is the parent of the most
+    driven joints (then the body of the most driven joints, of the most joints, the first)."""
+    bodies, joints = spec.bodies, spec.joints
+    index = spec.body_index
+    for joint in joints:
+        if joint.parent is None:
+            raise ValueError(f"joint '{joint.name}' holds body '{joint.child}' to the world: the tabulated path "
+                             f"needs a floating base (no joint to the world)")
+    base = _choose_base(spec)
+    base_body = bodies[base]
+    R_base = quat_matrix(base_body.orientation)
+    base_com = base_body.position + R_base @ base_body.com
+    components = _components(spec, base)
+    if len(components) > MAX_GROUPS:
+        raise ValueError(f"base '{base_body.name}' carries {len(components)} sub-chains: the kernel takes at most "
+                         f"{MAX_GROUPS}")
+    member = {b: g for g, comp in enumerate(components) for b in comp}
+    of_group = [[] for _ in components]
+    for j, joint in enumerate(joints):
+        a, b = index[joint.parent], index[joint.child]
+        of_group[member[b] if a == base else member[a]].append(j)
+        where = f"joint '{joint.name}'"
+        if joint.type not in (JointType.REVOLUTE, JointType.INLINE):
+            raise ValueError(f"{where} is {joint.type.name.lower()}: a tabulated sub-chain has revolute and inline "
+                             f"joints only")
+        if joint.has_limits:
+            raise ValueError(f"{where} has limits: the tabulated path has no limit rows")
+        if joint.armature > 0.0 or joint.damping > 0.0:
+            raise ValueError(f"{where} has armature or joint damping: the tabulated path has neither")
+        if joint.drive is not None:
+            if base not in (a, b):
+                raise ValueError(f"{where} is driven inside a sub-chain: only the joint that turns a sub-chain on "
+                                 f"base '{base_body.name}' may be driven")
+            if joint.drive.stiffness > 0.0:
+                raise ValueError(f"{where}: its drive has stiffness (a position target): the tabulated path has "
+                                 f"velocity drives only")
+    world_R = [quat_matrix(b.orientation) for b in bodies]
+    # one plane normal: every joint's axis, in the base frame
+    normal = None
+    for j, joint in enumerate(joints):
+        a, b = index[joint.parent], index[joint.child]
+        axis_p = R_base.T @ world_R[a] @ quat_matrix(joint.parent_orientation) @ joint.axis
+        if normal is None:
+            normal, first = axis_p, joint
+        elif np.linalg.norm(_cross(normal, axis_p)) > PLANE_TOLERANCE:
+            raise ValueError(f"joint '{joint.name}' turns about {np.round(axis_p, 6).tolist()} in the frame of base "
+                             f"'{base_body.name}', joint '{first.name}' about {np.round(normal, 6).tolist()}: the "
+                             f"kernel takes one plane normal per world")
+        if joint.type == JointType.REVOLUTE:
+            axis_c = R_base.T @ world_R[b] @ quat_matrix(joint.child_orientation) @ joint.axis
+            if np.linalg.norm(_cross(axis_c, axis_p)) > PLANE_TOLERANCE:
+                raise ValueError(f"joint '{joint.name}': its parent and child axes differ at the start")
+    Q = np.eye(3) if normal is None else _frame_to(normal)
+    R_state = R_base @ Q
+    state_R = [R_state.T @ m for m in world_R]  # every body's orientation in the state frame
+
+    def com_world(i):
+        return bodies[i].position + world_R[i] @ bodies[i].com
+
+    def anchor_world(joint, side):
+        i = index[joint.parent if side == "parent" else joint.child]
+        local = joint.parent_position if side == "parent" else joint.child_position
+        return bodies[i].position + world_R[i] @ local
+
+    ground = None
+    if spec.ground is not None:
+        g = spec.ground
+        if np.abs(g.normal - np.array([0.0, 0.0, 1.0])).max() > 1e-9:
+            raise ValueError(f"ground plane: normal {np.round(g.normal, 6).tolist()}: the tabulated path takes a "
+                             f"ground of normal +z")
+        if g.restitution > 0.0:
+            raise ValueError(f"ground plane: restitution {g.restitution:g}: the tabulated path has inelastic contacts")
+        ground = (float(g.offset), float(g.friction))
+    shapes_of = {}
+    if ground is not None:
+        for s, shape in enumerate(spec.shapes):
+            shapes_of.setdefault(index[shape.body], []).append(s)
+            if shape.restitution > 0.0:
+                raise ValueError(f"shape '{shape.name}': restitution {shape.restitution:g}: the tabulated path has "
+                                 f"inelastic contacts")
+    for a, b in collision_pairs(spec):
+        if b >= 0:
+            raise ValueError(f"shapes '{spec.shapes[a].name}' and '{spec.shapes[b].name}' may touch each other: the "
+                             f"tabulated path has ground contacts only (give them a common collision group)")
+    groups = []
+    for g, comp in enumerate(components):
+        groups.append(_sub_chain(spec, comp, of_group[g], base, R_state, state_R, com_world, anchor_world, base_com,
+                                 shapes_of, ground, samples))
+    # the base's contact slots
+    base_slots = []
+    for s in shapes_of.get(base, []):
+        shape = spec.shapes[s]
+        Rs = quat_matrix(shape.orientation)
+        centre = Q.T @ (shape.position - base_body.com)
+        turn = Q.T @ Rs
+        mu = math.sqrt(shape.friction * ground[1])
+        if shape.type == ShapeType.BOX:
+            h = shape.size
+            for k in range(8):
+                signs = np.array([-1.0 if k % 2 else 1.0, -1.0 if (k // 2) % 2 else 1.0, -1.0 if k >= 4 else 1.0])
+                base_slots.append((centre + turn @ (signs * h), 0.0, mu, s))
+        elif shape.type == ShapeType.CAPSULE:
+            for e in (1.0, -1.0):
+                base_slots.append((centre + e * shape.size[1] * turn[:, 2], float(shape.size[0]), mu, s))
+        elif shape.type == ShapeType.SPHERE:
+            base_slots.append((centre, float(shape.size[0]), mu, s))
+        else:
+            raise ValueError(f"shape '{shape.name}' is a {shape.type.name.lower()}: the base's contact slots take "
+                             f"boxes, capsules and spheres")
+    if len(base_slots) > BASE_SLOTS:
+        raise ValueError(f"base '{base_body.name}': its shapes have {len(base_slots)} contact points, the kernel has "
+                         f"{BASE_SLOTS} base slots (one box, or capsules and spheres)")
+    # tracked points and body frames
+    where_is = {base: (-1, 0)}
+    for g, chain in enumerate(groups):
+        for k, i in enumerate(chain.bodies):
+            where_is[i] = (g, k)
+    points = []
+    for point in spec.points:
+        i = index[point.body]
+        g, k = where_is[i]
+        if g < 0:
+            points.append((-1, 0, Q.T @ (point.position - base_body.com)))
+        else:
+            C = quat_matrix(groups[g].link_frame[k])
+            points.append((g, k, C @ (point.position - bodies[i].com)))
+    frames = []
+    for i in range(len(bodies)):
+        g, k = where_is[i]
+        frames.append((-1, 0, matrix_quat(Q.T)) if g < 0 else (g, k, groups[g].link_frame[k]))
+    return TabulatedLayout(spec, base, matrix_quat(Q), base_com, matrix_quat(R_state), base_body.velocity.copy(),
+                           base_body.angular_velocity.copy(), float(base_body.mass), Q.T @ base_body.inertia @ Q,
+                           groups, base_slots, ground, np.asarray(spec.gravity, float), points, frames)
+
+
+def _sub_chain(spec, comp, joint_list, base, R_state, state_R, com_world, anchor_world, base_com, shapes_of, ground,
+               samples) -> SubChain:
+    """One component of the bodies off the base as a tabulated SubChain (see tabulated_layout)."""
+    bodies, joints, index = spec.bodies, spec.joints, spec.body_index
+    what = f"sub-chain of body '{bodies[comp[0]].name}'"
+    K, count = len(comp), len(joint_list)
+    if K > MAX_LINKS:
+        raise ValueError(f"{what}: {K} bodies, the kernel takes at most {MAX_LINKS} per sub-chain")
+    mobility = 3 * K - 2 * count
+    if mobility != 1:
+        raise ValueError(f"{what}: mobility 3 n - 2 j = 3 * {K} - 2 * {count} = {mobility} (a revolute or inline "
+                         f"joint is 2 rows in the plane); the tabulated path needs 1, one driving coordinate")
+    driven = [j for j in joint_list if joints[j].drive is not None]
+    if len(driven) != 1:
+        names = ", ".join(f"'{joints[j].name}'" for j in driven)
+        raise ValueError(f"{what}: {len(driven)} driven joints to the base{' (' + names + ')' if driven else ''}; "
+                         f"the tabulated path needs exactly one (its driving coordinate)")
+    jd = driven[0]
+    driver = joints[jd]
+    what = f"sub-chain turned by joint '{driver.name}'"
+    link_of = {i: k for k, i in enumerate(comp)}
+    phi0 = np.array([_planar_angle(state_R[i]) for i in comp])
+    C = [rot_minus_y(-phi0[k]) @ state_R[i] for k, i in enumerate(comp)]
+    com = np.array([R_state.T @ (com_world(i) - base_com) for i in comp])
+    base_side = "parent" if index[driver.parent] == base else "child"
+    pivot = R_state.T @ (anchor_world(driver, base_side) - base_com)
+    sides, fixed = [], []
+    for j in joint_list:
+        joint = joints[j]
+        ends = []
+        for side in ("parent", "child"):
+            i = index[joint.parent if side == "parent" else joint.child]
+            if i == base:
+                point = R_state.T @ (anchor_world(joint, side) - base_com)
+                ends.append((K, np.array([point[0] - pivot[0], point[2] - pivot[2]]), point[1]))
+                fixed.append(np.hypot(*ends[-1][1]))
+            else:
+                k = link_of[i]
+                local = C[k] @ ((joint.parent_position if side == "parent" else joint.child_position) - bodies[i].com)
+                ends.append((k, local[[0, 2]], com[k][1] + local[1]))
+        if joint.type == JointType.REVOLUTE and abs(ends[0][2] - ends[1][2]) > 1e-6 * max(1.0, np.abs(com).max()):
+            raise ValueError(f"joint '{joint.name}': its anchors are {abs(ends[0][2] - ends[1][2]):.3g} m apart along "
+                             f"its axis at the start")
+        sides.append(ends)
+    reach = [np.hypot(*end[1]) for ends in sides for end in ends if end[0] < K] + fixed
+    scale = max(reach)
+    if not scale > 0.0:
+        raise ValueError(f"{what}: every joint sits at its links' centres of mass: no length sets its scale")
+    plane_y = float(com[:, 1].mean())
+    for k, i in enumerate(comp):
+        if abs(com[k, 1] - plane_y) > PLANE_TOLERANCE * scale:
+            raise ValueError(f"body '{bodies[i].name}': its centre of mass is {abs(com[k, 1] - plane_y):.3g} m off the "
+                             f"plane of the {what} (the kernel keeps a sub-chain's centres of mass in one plane)")
+    origin = np.array([pivot[0], plane_y, pivot[2]])
+    ja = np.array([ends[0][0] for ends in sides])
+    jb = np.array([ends[1][0] for ends in sides])
+    ra = np.array([ends[0][1] for ends in sides]) / scale
+    rb = np.array([ends[1][1] for ends in sides]) / scale
+    # the driving coordinate q, as engine.joints measures it, against the driving link's angle
+    k_d = link_of[index[driver.child if base_side == "parent" else driver.parent]]
+    base_orientation = R_state.T @ quat_matrix(bodies[base].orientation)
+
+    def q_of(phi):
+        link = rot_minus_y(phi) @ C[k_d]
+        parent, child = (base_orientation, link) if base_side == "parent" else (link, base_orientation)
+        rel = (parent @ quat_matrix(driver.parent_orientation)).T @ (child @ quat_matrix(driver.child_orientation))
+        return _turn_angle(rel, driver.axis)
+
+    q0 = q_of(phi0[k_d])
+    sign = float(np.round(wrap(q_of(phi0[k_d] + 0.25) - q0) / 0.25))
+    if abs(sign) != 1.0:
+        raise ValueError(f"joint '{driver.name}' does not turn its link about the plane normal")
+    offset = float(phi0[k_d] - sign * q0)
+    parent_i, child_i = index[driver.parent], index[driver.child]
+    axis_w = quat_matrix(bodies[parent_i].orientation) @ quat_matrix(driver.parent_orientation) @ driver.axis
+    rate = float((bodies[child_i].angular_velocity - bodies[parent_i].angular_velocity) @ axis_w)
+    planar = _Planar(K, ja, jb, ra, rb, k_d, sign, offset)
+    x0 = np.column_stack([(com[:, 0] - origin[0]) / scale, (com[:, 2] - origin[2]) / scale, phi0]).reshape(-1)
+    closed, ok = planar.newton(x0, q0)
+    moved = closed - x0
+    moved[2::3] = wrap(moved[2::3])
+    if not ok or np.abs(moved).max() > START_TOLERANCE:
+        gap = np.abs(planar.residual(x0, q0)).max() * scale
+        raise ValueError(f"{what}: its loops are open by {gap:.3g} m at the start (no closed pose near the spec's)")
+    # the contact shape
+    shape, contact = None, None
+    on = [s for i in comp for s in shapes_of.get(i, [])]
+    if len(on) > 1:
+        names = ", ".join(f"'{spec.shapes[s].name}'" for s in on)
+        raise ValueError(f"{what} carries {len(on)} shapes ({names}): the kernel has two contact slots per "
+                         f"sub-chain, one capsule or one sphere")
+    if on:
+        s = on[0]
+        item = spec.shapes[s]
+        if item.type not in (ShapeType.CAPSULE, ShapeType.SPHERE):
+            raise ValueError(f"shape '{item.name}' is a {item.type.name.lower()}: a sub-chain's contact shape is a "
+                             f"capsule or a sphere")
+        i = index[item.body]
+        k = link_of[i]
+        local = C[k] @ (item.position - bodies[i].com)
+        angle, half = 0.0, 0.0
+        if item.type == ShapeType.CAPSULE:
+            axis = C[k] @ quat_matrix(item.orientation)[:, 2]
+            if abs(axis[1]) > PLANE_TOLERANCE:
+                raise ValueError(f"shape '{item.name}': a capsule on a sub-chain must lie in its plane (its axis is "
+                                 f"{np.round(axis, 6).tolist()} in its link's frame)")
+            angle, half = math.atan2(axis[2], axis[0]), float(item.size[1])
+        shape = (s, float(item.size[0]), half, angle, math.sqrt(item.friction * ground[1]))
+        contact = (k, local / scale)
+    key = (samples, K, tuple(zip(ja.tolist(), jb.tolist())), _rounded(ra), _rounded(rb), k_d, sign,
+           _rounded([math.cos(offset), math.sin(offset)]),
+           None if contact is None else (contact[0], _rounded(contact[1])))
+    table = _cached_table(key, planar, closed, q0, samples, contact, what)
+    inertia = np.array([C[k] @ bodies[i].inertia @ C[k].T for k, i in enumerate(comp)])
+    drive = driver.drive
+    return SubChain(jd, list(comp), table, float(scale), origin, float(q0), rate,
+                    np.array([bodies[i].mass for i in comp]), inertia, np.array([matrix_quat(c) for c in C]),
+                    (float(drive.target_velocity), float(drive.damping), float(drive.effort_limit)), shape)

@@ -1,0 +1,772 @@
+"""The step of the tabulated path: one kernel per (tiled, phase, register cap), built on demand.
+
+It is engine.legged's step on the layout of engine.reduced.tabulated_kernel: mass matrix
+M(q) = sum_k J_k^T diag(m_k, I_k) J_k and bias forces h(q, u) (gravity, the velocity-product terms
+from c_k'' and phi_k'', the gyroscopic torques) summed link by link; semi-implicit Euler: u_f =
+u + dt M^-1 h, then the dual problem over the rows (the driving coordinates' velocity drives with
+the implicit damping law and effort bounds; contact triplets with the engine's stabilization and
+Coulomb cones with the De Saxce correction) by PADMM with a Jacobi preconditioner, whose linear
+solves use the Woodbury identity (D + S)^-1 = S^-1 - S^-1 J (M + J^T S^-1 J)^-1 J^T S^-1 (a factor
+of the (6 + L)-square matrix, never of the rows' Delassus matrix); then u+ = u_f + M^-1 J^T lambda
+and the positions, the base's orientation (exponential map) and the driving coordinates
+integrated with u+.
+
+Contact slots (their warm-start keys): slot k < BASE_SLOTS is the base's point k (a box corner, a
+sphere's or a capsule end's centre with its radius), slot BASE_SLOTS + 2 g + e end e of sub-chain
+g's contact shape (a capsule's two ends, a sphere's centre in e = 0), each against the ground
+plane z = offset within SolverConfig.contact_margin.
+
+On a GPU a batch of up to tiled_max_worlds worlds steps one block of lanes per world (the lanes
+share the sub-chains of the set-up, the rows of the preconditioner, the warm start and every
+PADMM iteration, the Woodbury factor's entries and its inverse's rows, the impulses); larger
+batches and the CPU step one thread per world as two kernels (set-up through the warm start;
+factor, iterations, integration). Both compute the same step. The tiled step is held to
+TILED_REGISTERS registers per thread so that an SM holds 32 worlds; the Woodbury factor has one
+call site (instruction cache); a row's PADMM state and fields are vec4s, each loaded and stored
+once per iteration. Why, with the measurements: benchmarks/results/README.md, "Tabulated
+sub-chains: design notes".
+"""
+
+import functools
+from typing import Any
+
+import warp as wp
+
+from engine.linalg.lanes import block_sync
+from engine.reduced.tabulated_kernel import (BASE_SLOTS, DIVERGED_FAST, DIVERGED_NONFINITE, F_COL, F_FREE, F_HI,
+                                             F_INV, F_LO, F_MU, F_P, F_PEN, F_R, F_RHS, KINV_VECS, MAX_GROUPS,
+                                             MAX_LINKS, MAX_ROWS, NV, ROW_VECS, TWO_PI, TabulatedState,
+                                             TabulatedWorlds, chol_solve, cholesky, contact_read, forward_norm2,
+                                             jrow_dot, link_read, max4_sum1, penalty, plane, plane3, project_cone,
+                                             project_row, rot_minus_y, row_add, row_at, row_dot, set_penalties,
+                                             set_row, table_index, table_read, vecgroups, vecnv, vecsetup, vecstats)
+
+wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
+
+__all__ = ["step_kernel"]
+
+
+@functools.cache
+def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
+    """The step kernel: tiled (launch_tiled, one block of lanes per world, lanes sharing the
+    PADMM rows) or one thread per world (wp.launch; no block operations). phase: the whole step
+    ("all"), or its set-up (through the warm start, "setup") and the Woodbury factor, the PADMM
+    iterations and the integration ("solve") as two kernels, each with the registers it needs.
+    registers: at most this many registers per thread on CUDA (None: the compiler's choice; see
+    TILED_REGISTERS)."""
+
+    @wp.func
+    def sync():
+        """Barrier of the world's lanes (tiled only)."""
+        if wp.static(tiled):
+            block_sync()
+
+    @wp.func
+    def reduce_vector(value: Any):
+        """Sum of a vector over the world's lanes, in one reduction."""
+        if wp.static(tiled):
+            return wp.tile_extract(wp.tile_reduce(wp.add, wp.tile(value, preserve_type=True)), 0)
+        return value
+
+    @wp.func
+    def reduce_stats(value: vecstats):
+        """An iteration's statistics over the world's lanes (max4_sum1), in one reduction."""
+        if wp.static(tiled):
+            return wp.tile_extract(wp.tile_reduce(max4_sum1, wp.tile(value, preserve_type=True)), 0)
+        return value
+
+    @wp.func
+    def woodbury_factor(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=wp.vec4), M: wp.array2d(dtype=float),
+                        K: wp.array2d(dtype=float), Kinv: wp.array2d(dtype=wp.vec4), w: int, m: int, n: int,
+                        sigma_base: float, tmp: wp.array2d(dtype=float), lane: int, lanes: int):
+        """Kinv <- (M + J^T S^-1 J)^-1 (K holds its Cholesky factor on the way; the rows' 1 / S go
+        to their field F_INV and to tmp). The lanes share the rows, then the matrix's entries, then
+        the inverse's columns; lane 0 factors. Every lane of the block must call it."""
+        for r in range(lane, m, lanes):
+            p = row_at(rows, w, r, F_P)
+            inverse = 1.0 / (sigma_base + penalty(rows, w, r) + p * p * row_at(rows, w, r, F_R))
+            tmp[w, r] = inverse
+            set_row(rows, w, r, F_INV, inverse)
+        sync()
+        entries = n * (n + 1) / 2
+        for e in range(lane, entries, lanes):
+            i = int((wp.sqrt(8.0 * float(e) + 1.0) - 1.0) * 0.5)
+            while i * (i + 1) / 2 > e:
+                i -= 1
+            while (i + 1) * (i + 2) / 2 <= e:
+                i += 1
+            j = e - i * (i + 1) / 2
+            acc = M[w, i * NV + j]
+            for r in range(m):
+                acc += J[w, r * NV + i] * J[w, r * NV + j] * tmp[w, r]
+            K[w, i * NV + j] = acc
+        sync()
+        if lane == 0:
+            cholesky(K, w, n, K)  # in place: each entry is read before it is overwritten
+        sync()
+        for j in range(lane, NV, lanes):
+            col = vecnv()
+            if j < n:
+                col[j] = 1.0
+                col = chol_solve(K, w, n, col)
+            for kv in range(KINV_VECS):  # symmetric: column j is row j, written whole by its lane
+                part = wp.vec4()
+                for t in range(4):
+                    if 4 * kv + t < NV:
+                        part[t] = col[4 * kv + t]
+                Kinv[w, j * KINV_VECS + kv] = part
+        sync()
+
+    @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=registers)
+    def tabulated_step(
+        dt: float,
+        eta: float,
+        rho0: float,
+        tolerance: float,
+        relative_tolerance: float,
+        max_iterations: int,
+        rho_update_interval: int,
+        margin: float,
+        stabilization: float,
+        max_speed: float,
+        worlds: TabulatedWorlds,
+        state: TabulatedState,
+        impulse: wp.array2d(dtype=float),
+        frozen: wp.array(dtype=wp.int32),
+        diverged: wp.array(dtype=wp.int32),
+        # out
+        iterations_out: wp.array(dtype=wp.int32),
+        contacts_out: wp.array(dtype=wp.int32),
+        drive_torque: wp.array2d(dtype=float),
+        # scratch
+        J: wp.array2d(dtype=float),
+        Jc: wp.array2d(dtype=wp.vec4),
+        rows: wp.array2d(dtype=wp.vec4),
+        M: wp.array2d(dtype=float),
+        LM: wp.array2d(dtype=float),
+        K: wp.array2d(dtype=float),
+        s1: wp.array2d(dtype=wp.vec4),
+        s2: wp.array2d(dtype=wp.vec4),
+        tmp: wp.array2d(dtype=float),
+        slot_of: wp.array2d(dtype=wp.int32),
+        row_count: wp.array(dtype=wp.int32),
+        ufree: wp.array2d(dtype=float),
+        Kinv: wp.array2d(dtype=wp.vec4),
+    ):
+        """One step of every world (a block of lanes or one thread per world): mass matrix and bias
+        forces, free velocity, drive and contact rows, preconditioned PADMM with Woodbury solves,
+        velocity update and integration; a non-finite or too fast world is flagged diverged (its
+        code) and frozen."""
+        if wp.static(tiled):
+            w, lane = wp.tid()
+            lanes = wp.block_dim()
+        else:
+            w = wp.tid()
+            lane = 0
+            lanes = 1
+        if frozen[w] != 0:
+            return
+        samples = worlds.samples
+        table_links = worlds.table_links
+        table_contact_link = worlds.table_contact_link
+        links0 = worlds.links0
+        links1 = worlds.links1
+        links2 = worlds.links2
+        contact0 = worlds.contact0
+        contact1 = worlds.contact1
+        group_count = worlds.group_count
+        group_table = worlds.group_table
+        group_scale = worlds.group_scale
+        group_origin = worlds.group_origin
+        link_mass = worlds.link_mass
+        link_inertia = worlds.link_inertia
+        drive = worlds.drive
+        group_shape = worlds.group_shape
+        base = worlds.base
+        base_inertia = worlds.base_inertia
+        base_slot = worlds.base_slot
+        base_slot_mu = worlds.base_slot_mu
+        gravity = worlds.gravity
+        position = state.position
+        orientation = state.orientation
+        velocity = state.velocity
+        angular_velocity = state.angular_velocity
+        coord = state.coord
+        coord_rate = state.coord_rate
+        L = group_count[w]
+        n = 6 + L
+        if wp.static(phase != "solve"):
+            # set-up: every sub-chain's column of M and its share of the base blocks and bias forces, one
+            # sub-chain per lane (summed over the lanes as one vector); then on lane 0 the base blocks, the
+            # factor of M, the free velocity and the rows
+            p = position[w]
+            q = orientation[w]
+            v = velocity[w]
+            om = angular_velocity[w]
+            R = wp.quat_to_matrix(q)
+            axis = -(R * wp.vec3(0.0, 1.0, 0.0))
+            g = gravity[w]
+            mb = base[w][0]
+            for i in range(lane, NV * NV, lanes):
+                M[w, i] = 0.0
+            sync()
+            m_part = float(0.0)  # this lane's sub-chains: sum of m_k
+            md_part = wp.vec3()  # sum of m_k d_k
+            rot_part = wp.mat33()  # angular block
+            f_part = wp.vec3()  # bias force on the base
+            t_part = wp.vec3()  # bias torque on the base
+            h_groups = vecgroups()  # each sub-chain's bias force (its own lane's entry)
+            for gi in range(lane, L, lanes):
+                t = group_table[w, gi]
+                s = group_scale[w, gi]
+                ang = coord[w, gi]
+                rate = coord_rate[w, gi]
+                ix = table_index(ang, samples)
+                i0 = int(ix[0])
+                i1 = int(ix[1])
+                f = ix[2]
+                col = 6 + gi
+                o = group_origin[w, gi]
+                me_sum = wp.vec3()  # the sub-chain's column: linear part
+                mw_sum = wp.vec3()  # angular part
+                mjj = float(0.0)
+                hj = float(0.0)
+                for k in range(table_links[t]):
+                    c0 = link_read(links0, t, i0, i1, f, k)
+                    c1 = table_read(links1, t, i0, i1, f, k)
+                    c2 = table_read(links2, t, i0, i1, f, k)
+                    mk = link_mass[w, gi * MAX_LINKS + k]
+                    d = R * (o + wp.vec3(s * c0[0], 0.0, s * c0[1]))
+                    e = plane(R, c1) * s
+                    e2 = plane(R, c2) * s
+                    Rk = R * rot_minus_y(c0[2])
+                    Ik = Rk * link_inertia[w, gi * MAX_LINKS + k] * wp.transpose(Rk)
+                    ax = axis * c1[2]
+                    m_part += mk
+                    md_part += mk * d
+                    rot_part += Ik + mk * (wp.dot(d, d) * wp.identity(n=3, dtype=float) - wp.outer(d, d))
+                    me_sum += mk * e
+                    mw_sum += mk * wp.cross(d, e) + Ik * ax
+                    mjj += mk * wp.dot(e, e) + wp.dot(ax, Ik * ax)
+                    wk = om + ax * rate
+                    acc = wp.cross(om, wp.cross(om, d)) + 2.0 * rate * wp.cross(om, e) + e2 * (rate * rate)
+                    alpha = rate * wp.cross(om, ax) + axis * (c2[2] * rate * rate)
+                    f_lin = mk * (g - acc)
+                    f_ang = -(Ik * alpha) - wp.cross(wk, Ik * wk)
+                    f_part += f_lin
+                    t_part += wp.cross(d, f_lin) + f_ang
+                    hj += wp.dot(e, f_lin) + wp.dot(ax, f_ang)
+                for c in range(MAX_GROUPS):  # a select over constant indices keeps h_groups in registers
+                    if c == gi:
+                        h_groups[c] = hj
+                for i in range(3):
+                    M[w, i * NV + col] = me_sum[i]
+                    M[w, col * NV + i] = me_sum[i]
+                    M[w, (3 + i) * NV + col] = mw_sum[i]
+                    M[w, col * NV + 3 + i] = mw_sum[i]
+                M[w, col * NV + col] = mjj
+            part = vecsetup()
+            part[0] = m_part
+            for i in range(3):
+                part[1 + i] = md_part[i]
+                part[13 + i] = f_part[i]
+                part[16 + i] = t_part[i]
+                for j in range(3):
+                    part[4 + 3 * i + j] = rot_part[i, j]
+            for c in range(MAX_GROUPS):
+                part[19 + c] = h_groups[c]
+            total = reduce_vector(part)
+            sync()  # every lane's sub-chain columns are in M
+            if lane == 0:
+                h = vecnv()
+                It = R * base_inertia[w] * wp.transpose(R)
+                gyro = -wp.cross(om, It * om)
+                for i in range(3):
+                    h[i] = mb * g[i] + total[13 + i]
+                    h[3 + i] = gyro[i] + total[16 + i]
+                for c in range(MAX_GROUPS):
+                    h[6 + c] = total[19 + c]
+                m_sum = mb + total[0]
+                md_sum = wp.vec3(total[1], total[2], total[3])
+                rot_sum = It + wp.mat33(total[4], total[5], total[6], total[7], total[8], total[9], total[10],
+                                        total[11], total[12])
+                # M_vv = m I, M_vw = -[sum m d]x, M_ww = the angular sum
+                cross = wp.skew(md_sum)
+                for i in range(3):
+                    M[w, i * NV + i] = m_sum
+                    for j in range(3):
+                        M[w, i * NV + 3 + j] = -cross[i, j]
+                        M[w, (3 + i) * NV + j] = cross[i, j]
+                        M[w, (3 + i) * NV + 3 + j] = rot_sum[i, j]
+                cholesky(M, w, n, LM)
+                uu = vecnv()
+                for i in range(3):
+                    uu[i] = v[i]
+                    uu[3 + i] = om[i]
+                for gi in range(L):
+                    uu[6 + gi] = coord_rate[w, gi]
+                acc_free = chol_solve(LM, w, n, h)
+                uf = uu + dt * acc_free
+                # rows: drives, then contacts within the margin
+                m = int(0)
+                for gi in range(L):
+                    dr = drive[w, gi]
+                    for c in range(NV):
+                        J[w, m * NV + c] = 0.0
+                    J[w, m * NV + 6 + gi] = 1.0
+                    kd = dr[1]
+                    bound = dt * dr[2]
+                    compliance = 1.0e6
+                    if kd > 0.0:
+                        compliance = 1.0 / (dt * kd)
+                    set_row(rows, w, m, F_R, compliance)
+                    set_row(rows, w, m, F_RHS, uf[6 + gi] - dr[0] * wp.min(1.0, kd * 1.0e6))
+                    set_row(rows, w, m, F_MU, -1.0)
+                    set_row(rows, w, m, F_LO, -bound)
+                    set_row(rows, w, m, F_HI, bound)
+                    set_row(rows, w, m, F_COL, float(6 + gi))
+                    slot_of[w, m] = gi
+                    m += 1
+                count = int(0)
+                if base[w][1] > 0.0:
+                    ground = base[w][2]
+                    for k in range(BASE_SLOTS + 2 * L):
+                        arm = wp.vec3()
+                        lin = wp.vec3()  # the point's velocity per unit driving rate (a sub-chain's shape)
+                        grp = int(-1)
+                        mu = float(0.0)
+                        dist = float(1.0e30)  # an empty slot: never within the margin
+                        if k < BASE_SLOTS:
+                            # a base point (a box corner, a sphere's or capsule end's centre) and the
+                            # radius below it
+                            sp = base_slot[w, k]
+                            if sp[3] >= 0.0:
+                                arm = R * wp.vec3(sp[0], sp[1], sp[2]) + wp.vec3(0.0, 0.0, -sp[3])
+                                dist = p[2] + arm[2] - ground
+                                mu = base_slot_mu[w, k]
+                        else:
+                            grp = (k - BASE_SLOTS) / 2
+                            end = float(1.0)
+                            if (k - BASE_SLOTS) % 2 == 1:
+                                end = -1.0
+                            sh = group_shape[w, grp]
+                            # none (radius < 0), or a sphere's second slot (half length 0): empty
+                            if sh[0] >= 0.0 and (end > 0.0 or sh[1] > 0.0):
+                                t = group_table[w, grp]
+                                s = group_scale[w, grp]
+                                ix = table_index(coord[w, grp], samples)
+                                i0 = int(ix[0])
+                                i1 = int(ix[1])
+                                f = ix[2]
+                                fl = table_contact_link[t]
+                                phi = link_read(links0, t, i0, i1, f, fl)
+                                phi1 = table_read(links1, t, i0, i1, f, fl)
+                                beta = phi[2] + sh[2]
+                                dirn = wp.vec3(wp.cos(beta), wp.sin(beta), 0.0)
+                                perp = wp.vec3(-wp.sin(beta), wp.cos(beta), 0.0)
+                                fp = contact_read(contact0, t, i0, i1, f) * s + dirn * (end * sh[1])
+                                fv = contact_read(contact1, t, i0, i1, f) * s + perp * (end * sh[1] * phi1[2])
+                                # the contact point: on the shape's surface, one radius below its end's
+                                # centre; it moves with its link (turning at axis * phi' per unit
+                                # driving rate about the end's centre)
+                                down = wp.vec3(0.0, 0.0, -sh[0])
+                                arm = R * group_origin[w, grp] + plane3(R, fp) + down
+                                lin = plane(R, fv) + wp.cross(axis * phi1[2], down)
+                                dist = p[2] + arm[2] - ground
+                                mu = sh[3]
+                        if dist < margin:
+                            count += 1
+                            for comp in range(3):
+                                nrm = wp.vec3(0.0, 0.0, 1.0)
+                                if comp == 1:
+                                    nrm = wp.vec3(1.0, 0.0, 0.0)
+                                if comp == 2:
+                                    nrm = wp.vec3(0.0, 1.0, 0.0)
+                                rxn = wp.cross(arm, nrm)
+                                for c in range(NV):
+                                    J[w, m * NV + c] = 0.0
+                                for i in range(3):
+                                    J[w, m * NV + i] = nrm[i]
+                                    J[w, m * NV + 3 + i] = rxn[i]
+                                if grp >= 0:
+                                    J[w, m * NV + 6 + grp] = wp.dot(nrm, lin)
+                                vrow = jrow_dot(J, w, m, n, uf)
+                                if comp == 0:
+                                    if dist > 0.0:
+                                        vrow += dist / dt
+                                    else:
+                                        vrow += stabilization * dist / dt
+                                set_row(rows, w, m, F_R, 0.0)
+                                set_row(rows, w, m, F_RHS, vrow)
+                                set_row(rows, w, m, F_MU, mu)
+                                set_row(rows, w, m, F_COL, float(6 + grp))  # -1 + 6 < 6 for a base slot
+                                slot_of[w, m] = MAX_GROUPS + 3 * k + comp
+                                m += 1
+                contacts_out[w] = count
+                for c in range(NV):
+                    ufree[w, c] = uf[c]
+                row_count[w] = m
+            sync()
+            m = row_count[w]
+            units = L + (m - L) / 3
+            # Jacobi preconditioner P = diag(J M^-1 J^T + R)^-1/2 (one value per contact triplet), the
+            # compact copy of the preconditioned rows, and the warm start from the last step's impulses
+            # by slot, unit by unit over the lanes (LM holds the factor of M). A drive row whose warm
+            # start lies within half its bounds keeps the penalty at or below rho0 (its projection is
+            # then the identity, and a large penalty only slows it).
+            rho = rho0
+            gyl = vecnv()
+            unit = lane
+            while unit < units:
+                r = unit
+                span = int(1)
+                if unit >= L:
+                    r = L + 3 * (unit - L)
+                    span = 3
+                dsum = float(0.0)
+                for rr in range(r, r + span):
+                    jr = vecnv()
+                    for c in range(NV):
+                        jr[c] = J[w, rr * NV + c]
+                    first = int(0)  # a drive row: zero before its sub-chain column
+                    if row_at(rows, w, rr, F_MU) < 0.0:
+                        first = int(row_at(rows, w, rr, F_COL))
+                    dsum += forward_norm2(LM, w, n, jr, first) + row_at(rows, w, rr, F_R)
+                pr = 1.0 / wp.sqrt(wp.max(dsum / float(span), 1.0e-12))
+                xs = wp.vec3()
+                for c in range(span):
+                    rr = r + c
+                    set_row(rows, w, rr, F_P, pr)
+                    set_row(rows, w, rr, F_RHS, pr * row_at(rows, w, rr, F_RHS))
+                    set_row(rows, w, rr, F_LO, row_at(rows, w, rr, F_LO) / pr)
+                    set_row(rows, w, rr, F_HI, row_at(rows, w, rr, F_HI) / pr)
+                    set_row(rows, w, rr, F_PEN, rho0)
+                    for k in range(NV):
+                        J[w, rr * NV + k] = pr * J[w, rr * NV + k]
+                    col = int(row_at(rows, w, rr, F_COL))
+                    driving = float(0.0)
+                    for k in range(6, NV):
+                        if k == col:
+                            driving = J[w, rr * NV + k]
+                    row0 = rr * NV
+                    Jc[w, 2 * rr] = wp.vec4(J[w, row0], J[w, row0 + 1], J[w, row0 + 2], J[w, row0 + 3])
+                    Jc[w, 2 * rr + 1] = wp.vec4(J[w, row0 + 4], J[w, row0 + 5], driving, 0.0)
+                    xs[c] = impulse[w, slot_of[w, rr]] / pr
+                pj = project_row(rows, w, r, xs[0], xs[1], xs[2])
+                for c in range(span):
+                    s1[w, r + c] = wp.vec4(xs[c], xs[c], 0.0, 0.0)
+                    s2[w, r + c] = wp.vec4(pj[c], 0.0, pj[c], 0.0)  # y and its last value; z below
+                    for k in range(NV):
+                        gyl[k] += J[w, (r + c) * NV + k] * pj[c]
+                free = float(0.0)
+                if span == 1 and wp.abs(xs[0]) < 0.5 * row_at(rows, w, r, F_HI):
+                    free = 1.0
+                set_row(rows, w, r, F_FREE, free)
+                unit += lanes
+            # the dual variable from the warm start: z = -(D y + v_f + s), the (shifted) velocity it
+            # gives, so that an unchanged contact set starts at its fixed point
+            gy = reduce_vector(gyl)
+            my = chol_solve(LM, w, n, gy)
+            unit = lane
+            while unit < units:
+                r = unit
+                span = int(1)
+                if unit >= L:
+                    r = L + 3 * (unit - L)
+                    span = 3
+                vels = wp.vec3()
+                for c in range(span):
+                    i = r + c
+                    pr = row_at(rows, w, i, F_P)
+                    vc = (jrow_dot(J, w, i, n, my) + pr * pr * row_at(rows, w, i, F_R) * s2[w, i][0]
+                          + row_at(rows, w, i, F_RHS))
+                    prior = s1[w, i]
+                    s1[w, i] = wp.vec4(prior[0], prior[1], vc, prior[3])
+                    vels[c] = vc
+                shift = float(0.0)
+                if span == 3:
+                    shift = row_at(rows, w, r, F_MU) * wp.sqrt(vels[1] * vels[1] + vels[2] * vels[2])
+                for c in range(span):
+                    zc = -vels[c]
+                    if c == 0:
+                        zc -= shift
+                    prior = s2[w, r + c]
+                    s2[w, r + c] = wp.vec4(prior[0], zc, prior[2], zc)
+                unit += lanes
+        if wp.static(phase == "setup"):
+            return
+        m = row_count[w]  # (again, for the solve phase's kernel)
+        units = L + (m - L) / 3
+        rho = rho0
+        its = int(0)
+        converged = int(0)
+        momentum = float(1.0)
+        merit = float(1.0e30)
+        beta = float(0.0)
+        refactor = int(1)  # the Woodbury factor at the first iteration and after a new penalty
+        while its < max_iterations and converged == 0 and m > 0:
+            if refactor != 0:
+                # one call site: the factor's code is large, and a second inlined copy costs the
+                # instruction cache more than the branch costs
+                sync()  # every lane is done with the rows (their set-up or the new penalties)
+                woodbury_factor(J, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
+                refactor = 0
+            # each lane takes units (a drive row or a contact triplet) lane, lane + lanes, ...: the
+            # right-hand side b at the extrapolated (y, z) with the De Saxce shift from the velocity
+            # at the last iterate, t = S^-1 b and its share of J^T t. A row's PADMM state is two
+            # vec4, (x, x before, its velocity at x, t) and (y, z, y and z before), its fields
+            # read from two (drive rows) or one: each loaded once per pass, stored once (second
+            # pass only, which computes b and t again rather than read them back)
+            gl = vecnv()
+            unit = lane
+            while unit < units:
+                if unit < L:
+                    i = unit
+                    a1 = s1[w, i]
+                    a2 = s2[w, i]
+                    f0 = rows[w, ROW_VECS * i]  # v_f, mu, penalty, 1 / S
+                    yh = a2[0] + beta * (a2[0] - a2[2])
+                    zh = a2[1] + beta * (a2[1] - a2[3])
+                    bi = -f0[0] + eta * a1[0] + f0[2] * yh - zh
+                    gl = row_add(Jc, w, i, False, 6 + i, bi * f0[3], gl)  # drive row i turns sub-chain i
+                else:
+                    r0 = L + 3 * (unit - L)
+                    col = int(rows[w, ROW_VECS * r0 + 1][2])
+                    mu = float(0.0)
+                    bs = wp.vec3()
+                    vts = wp.vec3()
+                    invs = wp.vec3()
+                    for c in range(3):
+                        i = r0 + c
+                        a1 = s1[w, i]
+                        a2 = s2[w, i]
+                        f0 = rows[w, ROW_VECS * i]
+                        if c == 0:
+                            mu = f0[1]
+                        yh = a2[0] + beta * (a2[0] - a2[2])
+                        zh = a2[1] + beta * (a2[1] - a2[3])
+                        bs[c] = -f0[0] + eta * a1[0] + f0[2] * yh - zh
+                        vts[c] = a1[2]  # the velocity at the last iterate
+                        invs[c] = f0[3]
+                    bs[0] = bs[0] - mu * wp.sqrt(vts[1] * vts[1] + vts[2] * vts[2])
+                    for c in range(3):
+                        gl = row_add(Jc, w, r0 + c, True, col, bs[c] * invs[c], gl)
+                unit += lanes
+            # Woodbury: x = t - S^-1 J (M + J^T S^-1 J)^-1 J^T t, the small inverse applied to the sum
+            # (its rows and columns past n are zero)
+            gsum = reduce_vector(gl)
+            yv = vecnv()
+            if lanes >= NV:
+                # a lane per entry: lane k takes row k of the inverse (four entries per load), the
+                # lanes share the entries through one tile
+                yk = float(0.0)
+                if lane < n:
+                    for kv in range(KINV_VECS):
+                        kq = Kinv[w, lane * KINV_VECS + kv]
+                        for t in range(4):
+                            if 4 * kv + t < NV:
+                                yk += kq[t] * gsum[4 * kv + t]
+                entries = wp.tile(yk)
+                for k in range(NV):
+                    yv[k] = wp.tile_extract(entries, k)
+            else:
+                # one lane (the CPU, or a thread per world): the symmetric inverse's lower triangle
+                # read once
+                for k in range(NV):
+                    if k < n:
+                        for kv in range(KINV_VECS):
+                            if 4 * kv <= k:
+                                kq = Kinv[w, k * KINV_VECS + kv]
+                                for t in range(4):
+                                    j = 4 * kv + t
+                                    if j < k:
+                                        yv[k] += kq[t] * gsum[j]
+                                        yv[j] += kq[t] * gsum[k]
+                                    elif j == k:
+                                        yv[k] += kq[t] * gsum[k]
+            rp = float(0.0)
+            rd = float(0.0)
+            rn = float(0.0)
+            ymax = float(0.0)
+            change = float(0.0)
+            unit = lane
+            while unit < units:
+                # b and t again as in the first pass (the state is not written there), x, the
+                # projection of x + z / rho, the velocities at the new x, D x + v_f =
+                # b - (eta + rho) x + v_f, the natural residual x - Pi(x - v^) (v^ with the De Saxce
+                # shift: in the dual cone at a solution), then y, z and the residuals
+                if unit < L:
+                    i = unit
+                    a1 = s1[w, i]
+                    a2 = s2[w, i]
+                    f0 = rows[w, ROW_VECS * i]
+                    f1 = rows[w, ROW_VECS * i + 1]
+                    pen = f0[2]
+                    yh = a2[0] + beta * (a2[0] - a2[2])
+                    zh = a2[1] + beta * (a2[1] - a2[3])
+                    bi = -f0[0] + eta * a1[0] + pen * yh - zh
+                    tv = bi * f0[3]
+                    xr = tv - row_dot(Jc, w, i, False, 6 + i, yv) * f0[3]
+                    yn = wp.clamp(xr + zh / pen, f1[0], f1[1])
+                    vd = bi - (eta + pen) * xr + f0[0]
+                    rn = wp.max(rn, wp.abs(xr - wp.clamp(xr - vd, f1[0], f1[1])))
+                    zn = zh + pen * (xr - yn)
+                    dy = yn - yh
+                    dz = zn - zh
+                    rp = wp.max(rp, wp.abs(xr - yn))
+                    rd = wp.max(rd, wp.abs(eta * (xr - a1[0]) + pen * dy))
+                    change += pen * dy * dy + dz * dz / pen
+                    s2[w, i] = wp.vec4(yn, zn, a2[0], a2[1])
+                    s1[w, i] = wp.vec4(xr, a1[0], vd, tv)
+                    ymax = wp.max(ymax, wp.abs(yn))
+                else:
+                    r0 = L + 3 * (unit - L)
+                    col = int(rows[w, ROW_VECS * r0 + 1][2])
+                    mu = float(0.0)
+                    pen = float(0.0)
+                    xs = wp.vec3()
+                    xps = wp.vec3()
+                    bs = wp.vec3()
+                    ts = wp.vec3()
+                    yo = wp.vec3()
+                    zo = wp.vec3()
+                    yhs = wp.vec3()
+                    zhs = wp.vec3()
+                    rhs = wp.vec3()
+                    vts = wp.vec3()
+                    invs = wp.vec3()
+                    for c in range(3):
+                        i = r0 + c
+                        a1 = s1[w, i]
+                        a2 = s2[w, i]
+                        f0 = rows[w, ROW_VECS * i]
+                        if c == 0:
+                            mu = f0[1]
+                            pen = f0[2]
+                        yh = a2[0] + beta * (a2[0] - a2[2])
+                        zh = a2[1] + beta * (a2[1] - a2[3])
+                        bs[c] = -f0[0] + eta * a1[0] + f0[2] * yh - zh
+                        vts[c] = a1[2]
+                        invs[c] = f0[3]
+                        rhs[c] = f0[0]
+                        xps[c] = a1[0]
+                        yo[c] = a2[0]
+                        zo[c] = a2[1]
+                        yhs[c] = yh
+                        zhs[c] = zh
+                    bs[0] = bs[0] - mu * wp.sqrt(vts[1] * vts[1] + vts[2] * vts[2])
+                    for c in range(3):
+                        ts[c] = bs[c] * invs[c]
+                        xs[c] = ts[c] - row_dot(Jc, w, r0 + c, True, col, yv) * invs[c]
+                    pj = project_cone(mu, xs[0] + zhs[0] / pen, xs[1] + zhs[1] / pen, xs[2] + zhs[2] / pen)
+                    vel = wp.vec3()
+                    for c in range(3):
+                        vel[c] = bs[c] - (eta + pen) * xs[c] + rhs[c]
+                    vels3 = wp.vec3(vel[0], vel[1], vel[2])  # kept for the next iteration's De Saxce shift
+                    vel[0] = vel[0] + mu * wp.sqrt(vel[1] * vel[1] + vel[2] * vel[2])
+                    nat = xs - project_cone(mu, xs[0] - vel[0], xs[1] - vel[1], xs[2] - vel[2])
+                    rn = wp.max(rn, wp.max(wp.abs(nat[0]), wp.max(wp.abs(nat[1]), wp.abs(nat[2]))))
+                    for c in range(3):
+                        yn = pj[c]
+                        xr = xs[c]
+                        zn = zhs[c] + pen * (xr - yn)
+                        dy = yn - yhs[c]
+                        dz = zn - zhs[c]
+                        rp = wp.max(rp, wp.abs(xr - yn))
+                        rd = wp.max(rd, wp.abs(eta * (xr - xps[c]) + pen * dy))
+                        change += pen * dy * dy + dz * dz / pen
+                        s2[w, r0 + c] = wp.vec4(yn, zn, yo[c], zo[c])
+                        s1[w, r0 + c] = wp.vec4(xr, xps[c], vels3[c], ts[c])
+                        ymax = wp.max(ymax, wp.abs(yn))
+                unit += lanes
+            stats = reduce_stats(vecstats(rp, rd, rn, ymax, change))
+            rp = stats[0]
+            rd = stats[1]
+            rn = stats[2]
+            ymax = stats[3]
+            change = stats[4]
+            its += 1
+            tol = tolerance + relative_tolerance * ymax
+            if rp < tol and rd < tol and rn < tol:
+                converged = 1
+            else:
+                beta = 0.0
+                if change < 0.999 * merit:
+                    a_next = 0.5 * (1.0 + wp.sqrt(1.0 + 4.0 * momentum * momentum))
+                    beta = (momentum - 1.0) / a_next
+                    momentum = a_next
+                else:
+                    momentum = 1.0
+                merit = change
+                if its % rho_update_interval == 0:
+                    new_rho = rho
+                    if rp > 10.0 * rd:
+                        new_rho = wp.min(rho * 4.0, 1.0e3)
+                    elif rd > 10.0 * rp:
+                        new_rho = wp.max(rho / 4.0, 1.0e-5)
+                    if new_rho != rho:
+                        sync()  # every lane is done with the rows and the inverse
+                        if lane == 0:
+                            set_penalties(rows, w, m, new_rho, rho0)
+                            for i in range(m):  # z is the unscaled multiplier: it stays; the momentum restarts
+                                prior = s2[w, i]
+                                s2[w, i] = wp.vec4(prior[0], prior[1], prior[0], prior[1])
+                        refactor = 1  # at the next iteration, if there is one
+                        rho = new_rho
+                        momentum = 1.0
+                        merit = 1.0e30
+                        beta = 0.0
+        sync()
+        # the impulses by slot and J^T lambda, the rows over the lanes (summed as one vector); then
+        # the velocity update and the integration on lane 0
+        for i in range(lane, MAX_ROWS, lanes):
+            impulse[w, i] = 0.0
+        sync()
+        jl = vecnv()
+        for r in range(lane, m, lanes):
+            yr = s2[w, r][0]
+            f0 = rows[w, ROW_VECS * r]
+            impulse[w, slot_of[w, r]] = yr * row_at(rows, w, r, F_P)
+            # the compact rows are preconditioned: J~^T y = J^T lambda
+            jl = row_add(Jc, w, r, f0[F_MU] >= 0.0, int(row_at(rows, w, r, F_COL)), yr, jl)
+        jl = reduce_vector(jl)
+        if lane != 0:
+            return
+        iterations_out[w] = its
+        uf = vecnv()
+        for c in range(NV):
+            uf[c] = ufree[w, c]
+        un = uf + chol_solve(LM, w, n, jl)
+        p = position[w]
+        q = orientation[w]
+        for gi in range(L):
+            drive_torque[w, gi] = impulse[w, gi] / dt
+        v = wp.vec3(un[0], un[1], un[2])
+        om = wp.vec3(un[3], un[4], un[5])
+        p = p + dt * v
+        spin = wp.length(om)
+        if spin > 1.0e-12:
+            q = wp.normalize(wp.quat_from_axis_angle(om / spin, spin * dt) * q)
+        ok = wp.isfinite(p) and wp.isfinite(v) and wp.isfinite(om) and wp.isfinite(q)
+        for gi in range(L):
+            if not wp.isfinite(un[6 + gi]):
+                ok = False
+        if not ok:  # frozen at its last finite state (the tables are never read at a non-finite angle)
+            diverged[w] = DIVERGED_NONFINITE
+            frozen[w] = 1
+            return
+        for gi in range(L):
+            rate = un[6 + gi]
+            ang = coord[w, gi] + dt * rate
+            coord[w, gi] = ang - TWO_PI * wp.floor(ang / TWO_PI)
+            coord_rate[w, gi] = rate
+        position[w] = p
+        orientation[w] = q
+        velocity[w] = v
+        angular_velocity[w] = om
+        if wp.length(v) >= max_speed:
+            diverged[w] = DIVERGED_FAST
+            frozen[w] = 1
+
+    return tabulated_step
+
