@@ -1,22 +1,26 @@
 """engine: a Warp rigid multi-body engine for batches of different closed-chain mechanisms.
 
-Maximal coordinates, every joint (loop closures included) a block of constraint rows, one
-Proximal-ADMM solve per world per step, all worlds of a padded batch stepped together on the
-CPU or a GPU. See engine.model for units, frames and array conventions; a rollout's Trace.health
-flags the worlds it cannot vouch for, with the reason (engine.health).
+One face: ``model = engine.pack(specs, device=..., config=..., dt=...)`` plans the batch itself
+(``print(model.plan)``: coordinates, kernel, solver, stages, launch shape and why), then
+``engine.step(model, state_in, state_out)``, ``engine.Stepper`` (CUDA graph replay) and
+``engine.rollout(...) -> (Trace, State)`` run it whatever the plan. Every plan solves the same
+Proximal-ADMM dual problem over joints, loops, limits and frictional contact; a Trace's health
+names the worlds it cannot vouch for and why (engine.health). See engine.model for units, frames
+and array conventions.
 """
 
 from engine.health import Health
 from engine.metrics import compute_metrics, metrics_numpy
 from engine.model import Control, Integrator, Model, SolverConfig, State
-from engine.pack import pack_worlds
+from engine.pack import pack, pack_worlds
+from engine.plan import Coordinates, Plan
 from engine.rollout import Stepper, Trace, rollout
 
 from engine.spec import Body, GroundPlane, Joint, JointDrive, JointType, MechanismSpec, Shape, ShapeType, TrackedPoint
 from engine.step import StageTimer, step
 
 __all__ = [
-    "Body", "Control", "GroundPlane", "Health", "Integrator", "Joint", "JointDrive", "JointType", "MechanismSpec", "Model",
-    "Shape", "ShapeType", "SolverConfig", "StageTimer", "State", "Stepper", "Trace", "TrackedPoint", "compute_metrics",
-    "metrics_numpy", "pack_worlds", "rollout", "step",
+    "Body", "Control", "Coordinates", "GroundPlane", "Health", "Integrator", "Joint", "JointDrive", "JointType",
+    "MechanismSpec", "Model", "Plan", "Shape", "ShapeType", "SolverConfig", "StageTimer", "State", "Stepper", "Trace",
+    "TrackedPoint", "compute_metrics", "metrics_numpy", "pack", "pack_worlds", "rollout", "step",
 ]

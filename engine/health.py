@@ -8,7 +8,9 @@ A world is flagged (Health.flags, a bit each) when
 - JOINTS_OPEN: a record's largest linear joint error exceeds health_joint_tolerance [m], or its
   angular one health_angular_tolerance [rad] (engine.rollout checks every record);
 - UNCONVERGED: the PADMM stopped unconverged (iteration cap or stall) with a residual above
-  SolverConfig.health_residual (engine.rollout's per-step statistics kernel checks every step).
+  SolverConfig.health_residual (engine.rollout's per-step statistics kernel checks every step);
+- EFFORT_LIMIT: a drive's torque passed its effort limit where the plan checks limits but does not
+  enforce them (reduced coordinates: the world stops there).
 The flags live on the device (engine.rollout.Stepper) and cost no host synchronization.
 Limits measured on the CPU (mass ratio, distance from the origin): benchmarks/results/README.md,
 "Limits: mass ratio and distance from the origin".
@@ -23,12 +25,13 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
-__all__ = ["DIVERGED", "FAR", "Health", "JOINTS_OPEN", "UNCONVERGED", "far_flags"]
+__all__ = ["DIVERGED", "EFFORT_LIMIT", "FAR", "Health", "JOINTS_OPEN", "UNCONVERGED", "far_flags"]
 
 DIVERGED = wp.constant(1)
 FAR = wp.constant(2)
 JOINTS_OPEN = wp.constant(4)
 UNCONVERGED = wp.constant(8)
+EFFORT_LIMIT = wp.constant(16)
 MASS_RATIO_LIMIT = 1.0e4  # documented (the README section above): a flagged world's reason names a larger ratio
 
 
@@ -126,6 +129,9 @@ class Health:
             parts.append(f"too far from the origin: coordinates reach {extent:.3g} m, where float32 resolves only "
                          f"{_length(spacing)} (joint tolerance {_length(self.joint_tolerance)})")
         if bits & DIVERGED:  # the other flags follow from it
+            return "; ".join(parts)
+        if bits & EFFORT_LIMIT:
+            parts.append("effort limit: a drive's torque passed its effort limit, so the world stopped there")
             return "; ".join(parts)
         if bits & JOINTS_OPEN:
             linear, angular = float(self.linear_max[world]), float(self.angular_max[world])

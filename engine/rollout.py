@@ -16,6 +16,7 @@ from engine.health import Health, check_joints, note_residual
 from engine.joints import body_twist, joint_coordinate_row, joint_frames
 from engine.metrics import compute_metrics
 from engine.model import Control, Model, State
+from engine.reduced.model import ReducedModel
 from engine.step import step
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
@@ -87,15 +88,25 @@ class Stepper:
     them back as an engine.health.Health.
     """
 
-    def __init__(self, model: Model, state: State, control: Control, chunk: int = 1, *,
+    def __init__(self, model: Model, state: State, control: Control | None = None, chunk: int = 1, *,
                  capture: bool | None = None):
         if chunk < 1:
             raise ValueError(f"Stepper: chunk must be >= 1, got {chunk}")
         self.model, self.control, self.chunk = model, control, chunk
-        self._buffers = [state, model.state()]
+        self.reduced = isinstance(model, ReducedModel)  # steps one State in place (engine.reduced.model)
+        self._buffers = [state] if self.reduced else [state, model.state()]
         self._current = 0
         self.steps_done = 0
+        self._graphs: dict[int, wp.Graph] = {}
         device = model.device
+        self.capture = device.is_cuda if capture is None else (capture and device.is_cuda)
+        if self.reduced:
+            if control is not None:
+                raise ValueError(f"Stepper: the {model.plan.coordinates.value} plan takes its drive targets from the "
+                                 f"specs and has no Control; pack with coordinates='maximal' to drive it from one")
+            return
+        if control is None:
+            self.control = model.control()
         zeros = lambda dtype=wp.int32: wp.zeros(model.num_worlds, dtype=dtype, device=device)  # noqa: E731
         self.iteration_sum, self.iteration_max = zeros(), zeros()
         self.unconverged_steps, self.solved_steps = zeros(), zeros()
@@ -104,8 +115,6 @@ class Stepper:
         self.health = wp.array(model.health_init, dtype=wp.int32, device=device)
         self.joint_error_max, self.joint_error_angular_max = zeros(float), zeros(float)
         self.residual_max, self.residual_iterations = zeros(float), zeros()
-        self.capture = device.is_cuda if capture is None else (capture and device.is_cuda)
-        self._graphs: dict[int, wp.Graph] = {}
 
     @property
     def state(self) -> State:
@@ -114,6 +123,9 @@ class Stepper:
 
     def _run(self, start: int):
         model = self.model
+        if self.reduced:
+            model.advance(self._buffers[0], self.chunk)
+            return
         for k in range(self.chunk):
             src = self._buffers[(start + k) % 2]
             dst = self._buffers[(start + k + 1) % 2]
@@ -159,7 +171,7 @@ class Stepper:
             if start not in self._graphs:
                 if not self._graphs:  # first use: run eagerly once to compile every kernel
                     self._run(start)
-                    self._current = (start + self.chunk) % 2
+                    self._current = 0 if self.reduced else (start + self.chunk) % 2
                     self.steps_done += self.chunk
                     return
                 with wp.ScopedCapture(device=self.model.device) as capture:
@@ -168,7 +180,7 @@ class Stepper:
             wp.capture_launch(self._graphs[start])
         else:
             self._run(start)
-        self._current = (start + self.chunk) % 2
+        self._current = 0 if self.reduced else (start + self.chunk) % 2
         self.steps_done += self.chunk
 
 
@@ -273,6 +285,11 @@ def rollout(model: Model, state: State, control: Control, steps: int, *, dt: flo
     """
     if steps < 0 or record_every < 1:
         raise ValueError(f"rollout: steps must be >= 0 and record_every >= 1, got {steps}, {record_every}")
+    if isinstance(model, ReducedModel):
+        if dt is not None and float(dt) != model.dt:
+            raise ValueError(f"rollout: the {model.plan.coordinates.value} plan steps with the dt it was packed "
+                             f"with ({model.dt:g} s); pack again for dt {dt:g} s")
+        return _rollout_reduced(model, state, control, steps, record_every, halt)
     if dt is not None:
         model.set_dt(dt)
     stepper = Stepper(model, state, control, chunk=record_every)
@@ -329,4 +346,40 @@ def rollout(model: Model, state: State, control: Control, steps: int, *, dt: flo
                   drive_speed=np.stack(records["drive_speed"]),
                   diverged=model.work.diverged.numpy().astype(bool), point_names=model.point_names,
                   halted_at=halted_at, health=stepper.health_report())
+    return trace, stepper.state
+
+
+def _rollout_reduced(model: ReducedModel, state, control, steps: int, record_every: int, halt) -> tuple:
+    """rollout() of a reduced plan: the same records, measured through the plan's gauge (every body's
+    pose and twist into engine.metrics, as for the maximal path); health from the plan's stop flags
+    and the joint errors of every record."""
+    stepper = Stepper(model, state, control, chunk=record_every)
+    records = {name: [] for name in ("points", "violation_linear", "violation_angular", "energy", "iterations",
+                                     "drive_torque", "drive_speed")}
+    times = []
+    halted = np.zeros(model.num_worlds, dtype=bool)
+    halted_at = np.full(model.num_worlds, -1.0)
+
+    def record():
+        for name, value in model.measure(stepper.state).items():
+            records[name].append(value)
+
+    record()
+    times.append(0.0)
+    for _ in range(steps // record_every):
+        stepper.advance()
+        record()
+        times.append(stepper.steps_done * model.dt)
+        if halt is not None:
+            marked = np.asarray(halt(records["points"][-1], records["points"][0]), dtype=bool).reshape(model.num_worlds)
+            new = marked & ~halted
+            if new.any():
+                halted[new] = True
+                halted_at[new] = times[-1]
+                model.set_halted(halted)
+    stacked = {name: np.stack(values) for name, values in records.items()}
+    health = model.health(np.nanmax(np.where(np.isfinite(stacked["violation_linear"]), stacked["violation_linear"], np.inf), axis=0),
+                          np.nanmax(np.where(np.isfinite(stacked["violation_angular"]), stacked["violation_angular"], np.inf), axis=0))
+    trace = Trace(time=np.asarray(times), **stacked, diverged=model.failure_codes() == 1,
+                  point_names=model.point_names, halted_at=halted_at, health=health)
     return trace, stepper.state

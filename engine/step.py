@@ -39,6 +39,7 @@ from engine.integrate import (
 from engine.joints import compute_joint_rows
 from engine.model import Control, Integrator, Model, State
 from engine.padmm import solve_padmm
+from engine.reduced.model import ReducedModel
 
 __all__ = ["StageTimer", "detect_contacts", "step"]
 
@@ -100,14 +101,17 @@ class StageTimer:
         return {k: 1e3 * v / max(self.calls, 1) for k, v in self.seconds.items() if k in self.marked}
 
 
-def step(model: Model, state_in: State, state_out: State, control: Control, dt: float | None = None, *,
+def step(model: Model, state_in: State, state_out: State, control: Control | None = None, dt: float | None = None, *,
          timer: StageTimer | None = None, project_output: bool = True) -> None:
-    """Advance every world by one step from state_in into state_out.
+    """Advance every world by one step from state_in into state_out, whatever the model's plan.
 
     Args:
-        model: the batch (engine.pack_worlds).
-        state_in, state_out: two distinct State buffers; the caller swaps them between steps.
-        control: drive targets, feed-forward efforts and external wrenches.
+        model: the batch (engine.pack).
+        state_in, state_out: two distinct State buffers; the caller swaps them between steps. (A
+            reduced plan steps one State in place: state_out may be state_in; when it is not,
+            state_in is copied into it first.)
+        control: drive targets, feed-forward efforts and external wrenches (maximal plans; None:
+            the specs' targets). Reduced plans take their drive targets from the specs.
         dt: time step [s] for all worlds; None keeps model.world_dt (per-world device array).
             Changing it writes the device array, so pass None inside a captured graph.
         timer: optional StageTimer collecting the wall time of every stage.
@@ -117,6 +121,17 @@ def step(model: Model, state_in: State, state_out: State, control: Control, dt: 
             caller that does not read state_out (engine.rollout.Stepper inside a chunk) skips it;
             the joints of an unprojected state_out are open by the drift of half a step.
     """
+    if isinstance(model, ReducedModel):
+        if control is not None or dt is not None:
+            raise ValueError(f"step: the {model.plan.coordinates.value} plan takes its drive targets from the specs "
+                             f"and keeps the dt it was packed with; pack with coordinates='maximal' for a Control "
+                             f"or a changing dt")
+        model.step(state_in, state_out)
+        return
+    if control is None:
+        if getattr(model, "_default_control", None) is None:
+            model._default_control = model.control()
+        control = model._default_control
     mark = timer.mark if timer is not None else (lambda stage: None)
     if timer is not None:
         timer.start()

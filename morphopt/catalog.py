@@ -19,19 +19,18 @@ __all__ = ["FamilyEntry", "family_entry", "family_sheet", "family_table", "modes
 @dataclass(frozen=True)
 class FamilyEntry:
     """One family as listed: its name, file, whether it is built in, the first sentence of its
-    docstring, the modes it supports and whether it has a reduced model (build_legged)."""
+    docstring and the modes it supports."""
 
     name: str
     path: pathlib.Path
     builtin: bool
     summary: str
     modes: tuple
-    reduced: bool
 
     @property
     def mode_text(self) -> str:
-        """The modes as shown: "kinematic, dynamic", "dynamic (models: maximal, reduced)"."""
-        return ", ".join(self.modes) + (" (models: maximal, reduced)" if self.reduced else "")
+        """The modes as shown: "kinematic, dynamic"."""
+        return ", ".join(self.modes)
 
 
 def modes_of(family) -> tuple:
@@ -52,7 +51,7 @@ def family_entry(name: str, family=None) -> FamilyEntry:
     family = load_family(name) if family is None else family
     path = pathlib.Path(family.__file__).resolve()
     return FamilyEntry(pathlib.Path(name).stem, path, path.parent == BUILTIN_DIR, _summary(family.__doc__),
-                       modes_of(family), hasattr(family, "build_legged"))
+                       modes_of(family))
 
 
 def family_table() -> str:

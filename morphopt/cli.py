@@ -66,7 +66,7 @@ def _demo(args) -> int:
     from engine.testspeed import run
     from morphopt.warp_setup import Kernels, announce_compile
 
-    announce_compile(Kernels.MAXIMAL, args.device)
+    announce_compile(Kernels.DYNAMIC, args.device)
     steps = max(1, round(args.seconds / args.dt))
     result = run(args.scene, args.worlds, steps, args.dt, args.device, chunk=min(50, steps))
     if args.json:
@@ -195,7 +195,7 @@ def _export(args) -> int:
     names = family.space.names
     best = feasible.sort_values("value", ascending=spec.direction == "minimize").head(args.best)
     out = pathlib.Path(args.out) if args.out else pathlib.Path(args.spec).resolve().parent / f"{spec.name}_export"
-    settings = {"mode": spec.mode, "model": spec.model, "dt": spec.dt, "duration": spec.duration,
+    settings = {"mode": spec.mode, "dt": spec.dt, "duration": spec.duration,
                 "crank_speed": crank_speed_of(family, spec.crank_speed), "solver": dict(spec.solver)}
     for rank, row in enumerate(best.itertuples(index=False), start=1):
         record = row._asdict()

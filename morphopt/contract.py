@@ -7,7 +7,7 @@ compares, so the two cannot drift apart):
 
     kinematic  per tracked point P of generate's linkage: P_stride, P_stride_full, P_step_height; and
                transmission_angle_min
-    dynamic    per tracked point P of the world (build_spec, build_legged, or generate's linkage
+    dynamic    per tracked point P of the world (build_spec, or generate's linkage
                made a world): P_stride, P_stride_full, P_step_height; torque_peak, torque_rms,
                loop_violation_max; with a point "torso": walking_speed, heading_drift,
                energy_per_distance; with "torso" and "torso_up": torso_tilt_max, torso_height_min
@@ -18,9 +18,8 @@ of a tracked point and a target curve.
 What each metric means, with its unit, is said once, in DEFINITIONS: `morphopt families show`
 prints it and the README's metric list is its markdown (metric_table; a test compares them).
 
-The contract: the function the study's mode uses (generate; build_spec, or build_legged for the
-reduced model) builds the family's own default design without raising and returns a Linkage, an
-engine.MechanismSpec or an engine.legged.LeggedSpec; otherwise one ValueError names the family
+The contract: the function the study's mode uses (generate, or build_spec) builds the family's own
+default design without raising and returns a Linkage or an engine.MechanismSpec; otherwise one ValueError names the family
 file, the function and what it did (the exception's type, message and line).
 
 The designs built to find these names (probes) are the study's: the defaults of its design space
@@ -92,7 +91,7 @@ DEFINITIONS = {d.label: d for d in (
     Definition("torque_peak", "N m", DYNAMIC, "largest absolute torque of the driven joints over the run"),
     Definition("torque_rms", "N m", DYNAMIC, "RMS torque of the driven joints over the run"),
     Definition("loop_violation_max", "m", DYNAMIC, "largest joint separation over the run (the loop-closure "
-               "error; reduced model: the leg table's interpolation error at the walker's scale)"),
+               "error, measured whatever coordinates the engine planned)"),
     Definition("walking_speed", "m/s", DYNAMIC, "walkers (a point 'torso'): forward distance of the torso over the "
                "last three quarters of the run, per second"),
     Definition("heading_drift", "1", DYNAMIC, "walkers: sideways per forward distance of the torso over the last "
@@ -179,8 +178,8 @@ def _expect(value, kind, family, function: str, what: str, expected: str):
     return value
 
 
-def _build(family, params: dict, mode: str, model: str, crank_speed, what: str) -> tuple:
-    """What the evaluation builds of one design in ``mode`` (and dynamic ``model``): (tracked point
+def _build(family, params: dict, mode: str, crank_speed, what: str) -> tuple:
+    """What the evaluation builds of one design in ``mode``: (tracked point
     names, the fastest crank drive's speed [rad/s] or None). ValueError: the design cannot be
     built; _Broken: the family returned the wrong thing or raised something else."""
     from morphopt.linkage import Linkage
@@ -189,13 +188,6 @@ def _build(family, params: dict, mode: str, model: str, crank_speed, what: str) 
         linkage = _expect(_call(family, "generate", params, what), Linkage, family, "generate", what,
                           "a morphopt.linkage.Linkage")
         return list(linkage.points), None
-    if model == "reduced" and hasattr(family, "build_legged"):
-        from engine.legged import LeggedSpec
-
-        legged = _expect(_call(family, "build_legged", params, what, crank_speed=crank_speed), LeggedSpec, family,
-                         "build_legged", what, "an engine.legged.LeggedSpec")
-        speeds = [abs(leg.target_speed) for leg in legged.legs if leg.target_speed != 0.0]
-        return list(legged.point_names), max(speeds) if speeds else None
     from engine import MechanismSpec
 
     if hasattr(family, "build_spec"):  # morphopt.build.build_spec prefers a family's own world
@@ -215,13 +207,13 @@ def _world(spec) -> tuple:
     return [p.name for p in spec.points], max(speeds) if speeds else None
 
 
-def check_default_design(family, mode: str, model: str = "maximal", crank_speed=None) -> tuple:
-    """Build the family's own default design as the study will (``mode``, ``model``); any
+def check_default_design(family, mode: str, crank_speed=None) -> tuple:
+    """Build the family's own default design as the study will (``mode``); any
     exception or a result of the wrong type is a ValueError naming the family file and the
     function. Returns what _build returns."""
     params = family.space.default()
     try:
-        return _build(family, params, mode, model, crank_speed, "default design")
+        return _build(family, params, mode, crank_speed, "default design")
     except _Broken:
         raise
     except ValueError as exc:
@@ -264,13 +256,13 @@ def _union(lists) -> list:
     return list(dict.fromkeys(name for names in lists for name in names))
 
 
-def family_metrics(family, space: DesignSpace, fixed: dict, mode: str, model: str = "maximal",
+def family_metrics(family, space: DesignSpace, fixed: dict, mode: str,
                    crank_speed=None) -> FamilyMetrics:
     """Check the family's default design (check_default_design), then build the study's probes
     (``space``: the study's design space, ``fixed``: its [fixed] values) and collect what they
     give. A probe that cannot be built (ValueError) is skipped; with none left, the default
     design's names are used. A few ms for a walker's 8 topologies, microseconds for a linkage."""
-    default_points, default_speed = check_default_design(family, mode, model, crank_speed)
+    default_points, default_speed = check_default_design(family, mode, crank_speed)
     built = []
     for params in _probes(space, fixed):
         what = _describe(params, space)
@@ -278,7 +270,7 @@ def family_metrics(family, space: DesignSpace, fixed: dict, mode: str, model: st
             built.append((what, default_points, default_speed))
             continue
         try:
-            points, speed = _build(family, family.space.validate(params), mode, model, crank_speed, what)
+            points, speed = _build(family, family.space.validate(params), mode, crank_speed, what)
         except _Broken:
             raise
         except ValueError:  # this design cannot be built: the evaluation reports it as failed

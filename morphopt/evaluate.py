@@ -11,7 +11,6 @@ failed evaluation with a reason; the others in its batch carry on.
 from __future__ import annotations
 
 import dataclasses
-import math
 import operator
 import time
 from collections import defaultdict
@@ -118,13 +117,15 @@ class Evaluation:
     metrics: one dict per design (floats and, under "paths", tracked-point paths (N, 2) [m]);
     failures: "" for a feasible design, else the reason; timings: wall seconds per stage of the
     evaluation (dynamic: "build" (designs to MechanismSpecs), "pack", "simulate", "metrics";
-    kinematic: "build" (designs to linkage tables), "kinematics" (kernels and metrics)).
+    kinematic: "build" (designs to linkage tables), "kinematics" (kernels and metrics)); plan: the
+    engine's plan of a dynamic batch (engine.plan.Plan; None when nothing was simulated).
     """
 
     params: list
     metrics: list = field(default_factory=list)
     failures: list = field(default_factory=list)
     timings: dict = field(default_factory=dict)
+    plan: object = None
 
     @property
     def feasible(self) -> np.ndarray:
@@ -312,7 +313,7 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
                      spec_hook: Callable | None = None, loop_tolerance: float | None = None,
                      fall_tilt: float = np.radians(45.0), fall_height: float = 0.5,
                      stall_time: float = 0.2, config=None, workers: int | None = None,
-                     model: str = "maximal", progress: Callable | None = None) -> Evaluation:
+                     coordinates=None, progress: Callable | None = None) -> Evaluation:
     """Simulate every feasible design for ``duration`` [s] in one heterogeneous batch.
 
     Metrics: tracked-point paths over the last crank turn (planar, [m]), their stride, full stride
@@ -340,24 +341,15 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     config: the engine.SolverConfig of the batch (None: the defaults; a study's [solver] table).
     workers: processes that build the specs (morphopt.build.build_specs; None: one per core but
     one for batches of 256 designs or more).
-    model: "maximal" (engine: every link a body, every joint its rows) or "reduced" (engine.legged:
-    a torso and one crank angle per leg, the family's build_legged; walkers only), with the same
-    metrics, failure rules and halting; a reduced world's loops are closed by construction (its
-    loop_violation_max is the leg table's interpolation error at the walker's scale).
+    coordinates: None lets the engine plan the batch (engine.pack: a walker of one-DoF legs runs as a
+    torso and one crank angle per leg, a linkage on its spanning tree); "maximal", "tree" or
+    "tabulated" forces the engine's coordinates (benchmarks, tests). The metrics and failure rules
+    are the same whatever the plan; the Evaluation's ``plan`` says which ran.
     progress(steps done, steps, worlds running, worlds fallen), if given, is called after every
     record (every record_every steps) from data already on the host.
     """
-    if model not in ("maximal", "reduced"):
-        raise ValueError(f"evaluate_dynamic: model must be 'maximal' or 'reduced', got {model!r}")
     quiet_warp()
-    if model == "reduced":
-        if spec_hook is not None:
-            raise ValueError("evaluate_dynamic: spec_hook changes MechanismSpecs, which model 'reduced' does not "
-                             "build; use model 'maximal'")
-        return _evaluate_reduced(family, params, duration=duration, dt=dt, device=device, crank_speed=crank_speed,
-                                 record_every=record_every, fall_tilt=fall_tilt, fall_height=fall_height,
-                                 stall_time=stall_time, config=config, progress=progress)
-    from engine import SolverConfig, pack_worlds, rollout
+    from engine import SolverConfig, pack, rollout
 
     if loop_tolerance is not None:  # the engine's joint check is the one test of torn mechanisms
         config = dataclasses.replace(config or SolverConfig(), health_joint_tolerance=float(loop_tolerance))
@@ -369,7 +361,8 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     if not specs:
         return evaluation
     t1 = time.perf_counter()
-    model = pack_worlds(specs, device=device, dt=dt, config=config)
+    model = pack(specs, device=device, dt=dt, config=config, coordinates=coordinates)
+    evaluation.plan = model.plan
     t2 = time.perf_counter()
 
     steps = max(record_every, int(round(duration / dt / record_every)) * record_every)
@@ -380,12 +373,14 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
         def halt(points, start):
             return _fallen_worlds(points[None], start, torso, up, fall_tilt, fall_height)
     halt = _reporting(halt, progress, steps, record_every, model.num_worlds)
-    trace, _ = rollout(model, model.state(), model.control(), steps, record_every=record_every, halt=halt)
+    trace, _ = rollout(model, model.state(), None, steps, record_every=record_every, halt=halt)
     t3 = time.perf_counter()
     record_dt = dt * record_every
+    turn, effort, target = _drives(specs, record_dt, len(trace.time))
+    pre = _batch_world_metrics(trace, turn, torso, up, effort, target, fall_tilt, fall_height, stall_time, record_dt)
     for world, i in enumerate(owners):
         _world_metrics(evaluation, i, trace, world, model.point_names[world], specs[world].joints, record_dt,
-                       model.config.health_joint_tolerance, fall_tilt, fall_height, stall_time)
+                       fall_tilt, fall_height, stall_time, pre=pre)
     evaluation.timings.update(pack=t2 - t1, simulate=t3 - t2, metrics=time.perf_counter() - t3)
     return evaluation
 
@@ -421,15 +416,12 @@ def _built(params: Sequence[dict], built: list, t0: float) -> tuple:
 
 
 def _world_metrics(evaluation: Evaluation, i: int, trace, world: int, names: list, joints: list, record_dt: float,
-                   loop_tolerance: float, fall_tilt: float, fall_height: float, stall_time: float,
-                   loop_violation: float | None = None, pre: dict | None = None) -> None:
+                   fall_tilt: float, fall_height: float, stall_time: float, pre: dict | None = None) -> None:
     """Metrics or the failure reason of design i, simulated as ``world`` of ``trace``; joints: the
-    entries of trace.drive_torque's last axis (objects with name, type and drive). pre: the
-    batch's _batch_world_metrics (the same metrics, computed for every world at once). A trace
-    with engine health flags fails its flagged worlds with their reason (loop_tolerance is then the
-    engine's, already applied); one without (engine.legged's) is checked for divergence and for
-    joints more than loop_tolerance [m] apart here."""
-    flagged = _flagged(trace, world, loop_tolerance)
+    spec's joints (trace.drive_torque's last axis). pre: the batch's _batch_world_metrics (the same
+    metrics, computed for every world at once). A world the engine flags (trace.health: diverged,
+    joints open past the config's tolerance, ...) fails with the engine's reason."""
+    flagged = trace.health.reason(world)
     if flagged:
         evaluation.failures[i] = flagged
         return
@@ -463,83 +455,20 @@ def _world_metrics(evaluation: Evaluation, i: int, trace, world: int, names: lis
     drive = trace.drive_torque[1:, world][:, driven] if driven else np.zeros((1, 1))  # record 0: the start
     metrics["torque_peak"] = float(np.abs(drive).max())
     metrics["torque_rms"] = float(np.sqrt(np.mean(drive**2)))  # over the driven joints
-    metrics["loop_violation_max"] = (float(trace.violation_linear[:, world].max()) if loop_violation is None
-                                     else loop_violation)
+    metrics["loop_violation_max"] = float(trace.violation_linear[:, world].max())
     evaluation.metrics[i] = metrics
 
 
-def _flagged(trace, world: int, loop_tolerance: float) -> str:
-    """Why the engine cannot vouch for ``world`` of ``trace`` ("" when it can): engine.health's
-    reason where the trace has one, else divergence and the joints' largest separation."""
-    if trace.health is not None:
-        return trace.health.reason(world)
-    if trace.diverged[world]:
-        return "diverged: the state turned non-finite or a body moved too fast"
-    torn = float(trace.violation_linear[:, world].max())
-    if torn > loop_tolerance:
-        return f"diverged: joints came apart by {torn:.3g} m (more than the {loop_tolerance:g} m tolerance)"
-    return ""
-
-
-def _legged_drives(specs: list, record_dt: float, records: int) -> tuple:
-    """For _batch_world_metrics, of legged worlds (engine.legged.LeggedSpec): the records of a crank
-    turn at the fastest drive (all ``records`` without one), and every crank drive's effort limit
-    and target speed (worlds, MAX_LEGS; zero past a world's legs)."""
-    from engine.legged import MAX_LEGS
-
-    effort, target = np.zeros((len(specs), MAX_LEGS)), np.zeros((len(specs), MAX_LEGS))
+def _drives(specs: list, record_dt: float, records: int) -> tuple:
+    """For _batch_world_metrics: per world the records of a crank turn at its fastest drive (all
+    ``records`` without one), and every joint's drive effort limit and target speed (W, J; zero
+    for joints without a drive)."""
+    J = max(1, max(len(spec.joints) for spec in specs))
+    effort, target = np.zeros((len(specs), J)), np.zeros((len(specs), J))
     for world, spec in enumerate(specs):
-        for li, leg in enumerate(spec.legs):
-            effort[world, li], target[world, li] = leg.effort_limit, leg.target_speed
+        for j, joint in enumerate(spec.joints):
+            if joint.drive is not None:
+                effort[world, j], target[world, j] = joint.drive.effort_limit, joint.drive.target_velocity
     fastest = np.abs(target).max(axis=1)
     turn = np.where(fastest > 0.0, np.round(2.0 * np.pi / np.maximum(fastest, 1e-9) / record_dt), records)
     return turn.astype(int), effort, target
-
-
-def _evaluate_reduced(family, params: Sequence[dict], *, duration: float, dt: float, device: str,
-                      crank_speed: float | None, record_every: int, fall_tilt: float, fall_height: float,
-                      stall_time: float, config, progress: Callable | None = None) -> Evaluation:
-    """evaluate_dynamic for model="reduced": engine.legged worlds from family.build_legged."""
-    from types import SimpleNamespace
-
-    from engine import JointDrive, JointType
-    from engine.legged import legged_rollout, pack_legged
-
-    if not hasattr(family, "build_legged"):
-        raise ValueError("model 'reduced' needs a family with build_legged (a walker of one-DoF legs); "
-                         "this family has none: use model 'maximal'")
-    t0 = time.perf_counter()
-    built = []
-    for p in params:
-        try:
-            built.append(family.build_legged(family.space.validate(p), crank_speed=crank_speed))
-        except ValueError as exc:
-            built.append(f"cannot be built: {exc}")
-    evaluation, specs, owners = _built(params, built, t0)
-    if not specs:
-        return evaluation
-    t1 = time.perf_counter()
-    model = pack_legged(specs, device=device, dt=dt, config=config)
-    t2 = time.perf_counter()
-    steps = max(record_every, int(round(duration / dt / record_every)) * record_every)
-    torso, up = np.zeros(len(specs), int), np.ones(len(specs), int)  # points 0 and 1 of every legged world
-
-    def halt(points, start):
-        return _fallen_worlds(points[None], start, torso, up, fall_tilt, fall_height)
-
-    trace = legged_rollout(model, steps, record_every=record_every,
-                           halt=_reporting(halt, progress, steps, record_every, len(specs)))
-    t3 = time.perf_counter()
-    record_dt = dt * record_every
-    turn, effort, target = _legged_drives(specs, record_dt, len(trace.time))
-    pre = _batch_world_metrics(trace, turn, torso, up, effort, target, fall_tilt, fall_height, stall_time, record_dt)
-    for world, i in enumerate(owners):
-        spec = specs[world]
-        drives = [SimpleNamespace(name=f"{leg.name}_crank", type=JointType.REVOLUTE,
-                                  drive=JointDrive(damping=leg.damping, target_velocity=leg.target_speed,
-                                                   effort_limit=leg.effort_limit)) for leg in spec.legs]
-        closure = max(leg.table.closure_error * leg.scale for leg in spec.legs)
-        _world_metrics(evaluation, i, trace, world, spec.point_names, drives, record_dt, math.inf, fall_tilt,
-                       fall_height, stall_time, loop_violation=closure, pre=pre)
-    evaluation.timings.update(pack=t2 - t1, simulate=t3 - t2, metrics=time.perf_counter() - t3)
-    return evaluation

@@ -24,7 +24,7 @@ from morphopt.design_space import DesignSpace
 
 __all__ = ["BUILTIN_DIR", "available_families", "describe_exception", "family_file", "load_family"]
 
-FUNCTIONS = ("generate", "build_spec", "build_legged")  # what a study may call; each, if defined, a callable
+FUNCTIONS = ("generate", "build_spec")  # what a study may call; each, if defined, a callable
 
 BUILTIN_DIR = pathlib.Path(__file__).resolve().parent / "designs"  # the package's own (morphopt.designs)
 

@@ -33,7 +33,7 @@ from morphopt.optimizers import CMAES, OptunaSampler, RandomSearch
 from morphopt import checkpoint
 from morphopt.storage import StudyStorage, storage_exists
 from morphopt.study_spec import StudySpec, check_family_contract
-from morphopt.warp_setup import Kernels, announce_compile, compile_seconds, quiet_warp
+from morphopt.warp_setup import Kernels, announce_compile, compile_seconds, is_verbose, quiet_warp
 
 __all__ = ["StudyResult", "objective_matrix", "objective_metric_names", "objective_values", "pareto_front", "run_study",
            "stored_spec", "study_settings"]
@@ -185,6 +185,16 @@ def stored_spec(spec: StudySpec, storage: StudyStorage | None = None, *, say: bo
     return spec.with_overrides(**stored)
 
 
+def _say_plan(name: str, plan, first: bool) -> None:
+    """The engine's plan on stderr: in full with --verbose, else its first line at the first generation."""
+    if plan is None:
+        return
+    if is_verbose():
+        print(f"{name}: {plan}", file=sys.stderr)
+    elif first:
+        print(f"{name}: {str(plan).splitlines()[0]}", file=sys.stderr)
+
+
 def family_digest(family) -> str:
     """SHA-256 of a family module's source: a study resumes only with the family it ran with."""
     return hashlib.sha256(pathlib.Path(family.__file__).read_bytes()).hexdigest()
@@ -318,9 +328,6 @@ def run_study(spec: StudySpec, *, resume: bool = False, fresh: bool = False, ste
     space = spec.design_space(family)
     check_family_contract(spec, family)
     _check_device(spec)
-    if spec.mode == "dynamic" and spec.model == "reduced" and not hasattr(family, "build_legged"):
-        raise ValueError(f"{spec.path}: 'simulation.model' = 'reduced' needs a family with build_legged "
-                         f"(a walker of one-DoF legs); family '{spec.family}' has none")
     if resume and not storage_exists(spec.storage_url):
         raise ValueError(f"study '{spec.name}' has nothing to resume: no database {spec.storage_url}")
     storage = StudyStorage(spec.storage_url, spec.name)
@@ -372,8 +379,7 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
     sign = -1.0 if spec.direction == "maximize" else 1.0
     evaluating = outside = compiling = 0.0
     stages = {}
-    announce_compile(Kernels.KINEMATIC if spec.mode == "kinematic" else
-                     Kernels.REDUCED if spec.model == "reduced" else Kernels.MAXIMAL, spec.device)
+    announce_compile(Kernels.KINEMATIC if spec.mode == "kinematic" else Kernels.DYNAMIC, spec.device)
     bar = tqdm(total=spec.generations, initial=start, desc=spec.name, unit="gen", disable=not progress)
     steps = _SimulationBar(spec.mode == "dynamic" and progress)
     try:  # the bar ends its line before any error is printed
@@ -391,8 +397,9 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
                                                 keep_paths=any(o.metric == "path_error" for o in spec.objectives))
             else:
                 evaluation = evaluate_dynamic(family, params, duration=spec.duration, dt=spec.dt, device=spec.device,
-                                              crank_speed=spec.crank_speed, config=spec.solver_config(), model=spec.model,
+                                              crank_speed=spec.crank_speed, config=spec.solver_config(),
                                               progress=steps.report if steps.shown else None)
+                _say_plan(spec.name, evaluation.plan, generation == start and progress)
             t_objectives = time.perf_counter()
             apply_constraints(spec, evaluation)
             values = objective_values(spec, evaluation)

@@ -15,9 +15,8 @@
                   ("ipop" | "bipop") (cma), sampler
                   ("tpe" | "nsga2" | "random", optuna)
     [simulation]  duration [s], dt [s], crank_speed [rad/s] (dynamic mode; default: the design's
-                  own, 2 pi for linkage families), samples (points per crank turn, kinematic mode),
-                  model ("maximal", the default, or "reduced": walkers in reduced coordinates,
-                  engine.legged, for families with build_legged)
+                  own, 2 pi for linkage families), samples (points per crank turn, kinematic mode);
+                  the engine plans the coordinates itself (engine.pack; --verbose prints the plan)
     [solver]      engine settings of dynamic studies: any field of engine.SolverConfig (e.g.
                   max_iterations, tolerance, linear_solver); default: SolverConfig's own
     [space]       per parameter: [low, high] to narrow the family's bounds
@@ -37,7 +36,7 @@ any work:
 - names: objective and [constraints] metrics must be metrics the family gives in the study's
   mode, and a "path_error" point one of its tracked points (morphopt.contract derives both from
   what the family builds; "path_error" itself cannot be constrained: it is computed after the
-  constraints); the family's generate / build_spec / build_legged must build its default design
+  constraints); the family's generate / build_spec must build its default design
   and return the right type.
 - limits, each with its reason in the message:
     study.worlds          2 .. 65536: a generation is one batch, held in memory at once (the
@@ -80,7 +79,7 @@ SECTIONS = {
     "objective": {"metric": str, "direction": str, "point": str, "target": list},
     "objectives": None,
     "optimizer": {"name": str, "sigma0": float, "sampler": str, "restarts": int, "restart_strategy": str},
-    "simulation": {"duration": float, "dt": float, "crank_speed": float, "samples": int, "model": str},
+    "simulation": {"duration": float, "dt": float, "crank_speed": float, "samples": int},
     "solver": None,
     "space": None,
     "fixed": None,
@@ -89,6 +88,10 @@ SECTIONS = {
 REQUIRED = {"study": ("name", "family")}
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,199}")  # a study name is also its default file name
 DEVICE_PATTERN = re.compile(r"cpu|cuda(:[0-9]+)?")
+REMOVED_KEYS = {  # keys of earlier study files, and what took their place
+    "simulation.model": "the engine chooses the coordinates of every batch itself (remove the key; "
+                        "'morphopt study run --verbose' prints the plan)",
+}
 OBJECTIVE_KEYS = {"metric": str, "direction": str, "point": str, "target": list, "weight": float}
 # Limits (the module docstring gives the reasons; the messages repeat them)
 MAX_WORLDS = 65_536
@@ -150,7 +153,6 @@ class StudySpec:
     dt: float = 1e-3
     crank_speed: float | None = None
     samples: int = 360
-    model: str = "maximal"
     space_overrides: dict = field(default_factory=dict)
     fixed: dict = field(default_factory=dict)
     constraints: dict = field(default_factory=dict)
@@ -320,6 +322,8 @@ def _typed(table: dict, keys: dict, prefix: str, where: str) -> dict:
     """The table's values checked against ``keys`` (name -> type; ints pass as floats)."""
     out = {}
     for name, value in table.items():
+        if f"{prefix}.{name}" in REMOVED_KEYS:
+            raise ValueError(f"{where}: '{prefix}.{name}' is no longer a setting: {REMOVED_KEYS[f'{prefix}.{name}']}")
         if name not in keys:
             raise ValueError(f"{where}: unknown key '{prefix}.{name}'; expected one of {sorted(keys)}")
         expected = keys[name]
@@ -386,10 +390,6 @@ def _check_values(spec: StudySpec, where: str) -> None:
         ("simulation.samples", spec.samples >= 8, "an integer >= 8"),
         ("simulation.samples", spec.samples <= MAX_SAMPLES,
          f"at most {MAX_SAMPLES} points per crank turn (one every {360 / MAX_SAMPLES:g} degrees)"),
-        ("simulation.model", spec.model in ("maximal", "reduced"),
-         "'maximal' (every link a body) or 'reduced' (a walker's torso and crank angles: engine.legged)"),
-        ("simulation.model", spec.model == "maximal" or spec.mode == "dynamic",
-         "'maximal' in kinematic mode (the reduced model simulates dynamics)"),
     ]
     for key, ok, expected in checks:
         if not ok:
@@ -471,9 +471,8 @@ def check_family_contract(spec: StudySpec, family, where: str | None = None) -> 
     a crank turn and a dt that records a turn fewer than 8 times. ValueError naming the file
     (``where``, default the spec's path) and the key."""
     where = where or str(spec.path)
-    model = spec.model if spec.mode == "dynamic" else "maximal"
     try:
-        given = family_metrics(family, spec.design_space(family), spec.fixed, spec.mode, model, spec.crank_speed)
+        given = family_metrics(family, spec.design_space(family), spec.fixed, spec.mode, spec.crank_speed)
     except ValueError as exc:
         raise ValueError(f"{where}: 'study.family': {exc}") from None
     for k, objective in enumerate(spec.objectives):

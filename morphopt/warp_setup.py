@@ -24,7 +24,7 @@ import sys
 import tempfile
 import warnings
 
-__all__ = ["Kernels", "announce_compile", "compile_seconds", "quiet_warp", "set_verbose"]
+__all__ = ["Kernels", "announce_compile", "compile_seconds", "is_verbose", "quiet_warp", "set_verbose"]
 
 _LOAD = re.compile(r"\s*Module (\S+) .*load on device '([^']+)' took ([0-9.]+) ms\s*\(compiled\)")
 _NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
@@ -35,8 +35,7 @@ class Kernels(enum.Enum):
     CPU, measured cold on 2 cores with the shipped studies, rounded up)."""
 
     KINEMATIC = ("morphopt.linkage.kinematics_warp", 5)
-    MAXIMAL = ("engine.joints", 10)
-    REDUCED = ("engine.legged", 15)
+    DYNAMIC = ("engine.joints", 15)  # engine.pack's plans: the maximal kernels or a reduced one
 
     @property
     def module(self) -> str:
@@ -55,7 +54,12 @@ class _State:
     initialized = False
     announced = False
     compile_s = 0.0
-    expected_s = Kernels.MAXIMAL.seconds
+    expected_s = Kernels.DYNAMIC.seconds
+
+
+def is_verbose() -> bool:
+    """Whether morphopt was asked to be verbose (the CLI's --verbose)."""
+    return _State.verbose
 
 
 def set_verbose(verbose: bool) -> None:

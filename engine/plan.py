@@ -1,0 +1,214 @@
+"""The plan: every choice engine.pack makes for a batch, and why, in one printable object.
+
+The coordinates come first, fastest first: TABULATED (a floating base carrying one-DoF closed
+sub-chains, each link a tabulated function of its sub-chain's driving angle: 6 + L coordinates per
+world), TREE (one angle per joint of a spanning tree, every other joint a loop closed by rows) and
+MAXIMAL (six coordinates per body, every joint its rows). ``choose`` takes the first kind every
+world of the batch admits, so a batch never needs the user to know which path is fast; a caller
+may force one (benchmarks, tests) and gets one line naming the world and the reason when it does
+not fit. After packing, ``describe`` fills in what the chosen path decided from the batch and the
+device: kernel form, linear solver, the stages that run, launch shape and register cap, and the
+accuracy the plan stands for.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+__all__ = ["Coordinates", "Plan", "choose"]
+
+
+class Coordinates(enum.Enum):
+    """How a plan describes the worlds' configuration (fastest first)."""
+
+    TABULATED = "tabulated"  # floating base + one-DoF closed sub-chains read from tables of their driving angle
+    TREE = "tree"  # spanning-tree joint angles (+ floating roots), loops closed by constraint rows
+    MAXIMAL = "maximal"  # six coordinates per body, every joint a block of constraint rows
+
+
+ORDER = (Coordinates.TABULATED, Coordinates.TREE, Coordinates.MAXIMAL)
+
+
+@dataclass
+class Plan:
+    """What engine.pack chose for a batch. ``print(model.plan)`` shows it.
+
+    coordinates: Coordinates; forced: whether the caller chose them; worlds, device; refused:
+    (kind, reason) for every faster kind the batch did not admit; analysis: per-world facts the
+    choice rests on (e.g. the sub-chains found); kernel, linear_solver, launch, registers: how a
+    step runs; stages: stage -> whether it runs, with the reason; integrator; control: what
+    drives the joints; accuracy: what the plan guarantees or measured at packing.
+    """
+
+    coordinates: Coordinates
+    worlds: int
+    device: str
+    forced: bool = False
+    refused: list = field(default_factory=list)
+    analysis: list = field(default_factory=list)
+    kernel: str = ""
+    linear_solver: str = ""
+    launch: str = ""
+    registers: int | None = None
+    stages: dict = field(default_factory=dict)
+    integrator: str = ""
+    control: str = ""
+    accuracy: str = ""
+
+    def __str__(self) -> str:
+        why = "forced by the caller" if self.forced else "the fastest kind every world admits"
+        lines = [f"plan for {self.worlds} world{'s' if self.worlds != 1 else ''} on {self.device}: "
+                 f"{self.coordinates.value} coordinates ({why})"]
+        for kind, reason in self.refused:
+            lines.append(f"  not {kind.value}: {reason}")
+        lines += [f"  {fact}" for fact in self.analysis]
+        lines.append(f"  kernel: {self.kernel}")
+        lines.append(f"  linear solver: {self.linear_solver}")
+        lines.append(f"  launch: {self.launch}" + (f", at most {self.registers} registers per thread"
+                                                   if self.registers else ""))
+        for stage, (runs, reason) in self.stages.items():
+            lines.append(f"  {stage}: {'runs' if runs else 'skipped'} ({reason})")
+        lines.append(f"  integrator: {self.integrator}")
+        lines.append(f"  control: {self.control}")
+        lines.append(f"  accuracy: {self.accuracy}")
+        return "\n".join(lines)
+
+
+def _admits(kind: Coordinates, spec):
+    """The kind's layout of ``spec`` (raises ValueError with the reason when it does not fit)."""
+    if kind is Coordinates.TABULATED:
+        from engine.reduced.tabulated_layout import tabulated_layout
+        return tabulated_layout(spec)
+    if kind is Coordinates.TREE:
+        from engine.pack import collision_pairs
+        from engine.reduced.chain_layout import chain_layout
+        for a, b in collision_pairs(spec):
+            if b >= 0:
+                raise ValueError(f"shapes '{spec.shapes[a].name}' and '{spec.shapes[b].name}' may touch each other: "
+                                 f"the tree path has ground contacts only (give them a common collision group)")
+        return chain_layout(spec)
+    return None
+
+
+def _coerce(coordinates) -> Coordinates | None:
+    if coordinates is None or isinstance(coordinates, Coordinates):
+        return coordinates
+    try:
+        return Coordinates(str(coordinates))
+    except ValueError:
+        names = ", ".join(repr(k.value) for k in Coordinates)
+        raise ValueError(f"engine.pack: coordinates must be one of {names} or None (automatic), "
+                         f"got {coordinates!r}") from None
+
+
+def choose(specs: list, device, coordinates=None) -> tuple[Plan, list | None]:
+    """The coordinates of a batch and their per-world layouts (None for MAXIMAL).
+
+    Tries the kinds fastest first and keeps the first that every world admits; a world that
+    refuses a kind ends that kind's check (its reason is kept). ``coordinates`` forces a kind:
+    a world that does not admit it raises ValueError naming the world and the reason.
+    """
+    forced = _coerce(coordinates)
+    refused = []
+    for kind in ([forced] if forced is not None else ORDER):
+        if kind is Coordinates.MAXIMAL:
+            return Plan(kind, len(specs), str(device), forced=forced is not None, refused=refused), None
+        layouts = []
+        for index, spec in enumerate(specs):
+            try:
+                layouts.append(_admits(kind, spec))
+            except ValueError as exc:
+                reason = f"world {index} ({spec.name}): {exc}"
+                if forced is not None:
+                    raise ValueError(f"engine.pack: coordinates {kind.value!r} do not fit {reason}") from None
+                refused.append((kind, reason))
+                break
+        else:
+            return Plan(kind, len(specs), str(device), forced=forced is not None, refused=refused), layouts
+    raise AssertionError("unreachable: MAXIMAL admits every world")
+
+
+def _rows(model) -> str:
+    return f"{model.max_rows} rows per world (padded)"
+
+
+def describe_maximal(plan: Plan, model) -> Plan:
+    """Fill ``plan`` from a packed maximal Model (engine.pack_worlds's choices)."""
+    from engine.fused import FUSED_MAX_ROWS, fused_block, fused_inverse, sharing_used
+    from engine.model import Integrator
+    from engine.pack import MAX_DENSE_ROWS
+
+    cfg, device = model.config, model.device
+    if model.step_kernel == "fused":
+        block = fused_block(device) if model.fused_block is None else model.fused_block
+        inverse = fused_inverse(device, model.max_rows) if model.fused_inverse is None else model.fused_inverse
+        plan.kernel = (f"fused: the whole step in one launch (dense rows, no contacts, at most {FUSED_MAX_ROWS} "
+                       f"rows; {_rows(model)})")
+        plan.launch = (f"one block of {block} lane{'s' if block != 1 else ''} per world"
+                       + (f", lanes share joints and bodies (flags {sharing_used(model)})" if sharing_used(model) else ""))
+        plan.registers = model.fused_registers if device.is_cuda else None
+        plan.linear_solver = ("dense Cholesky per world in shared memory" +
+                              (", solves through the inverse factor" if inverse else ", substitution"))
+    else:
+        plan.kernel = f"staged: one launch per stage ({_rows(model)})"
+        plan.launch = "one thread or tile per world and stage"
+        if model.linear_solver == "dense":
+            plan.linear_solver = f"dense tile Cholesky per world (at most {MAX_DENSE_ROWS} rows)"
+        else:
+            plan.linear_solver = (f"sparse LDL^T on one factor schedule per topology (more than {MAX_DENSE_ROWS} "
+                                  f"rows or asked for)" +
+                                  ("; the projection factors its own pattern" if model.sparse_projection else ""))
+    plan.stages = {
+        "collision": (model.has_contacts, "the batch has shapes" if model.has_contacts else "no shapes"),
+        "contact rows": (model.has_contacts, f"up to {model.contact_capacity} contacts per world"
+                         if model.has_contacts else "no shapes"),
+        "limit rows": (model.has_limits, "joints with limits" if model.has_limits else "no joint limits"),
+        "position projection": (cfg.position_iterations > 0 and model.has_bilateral_rows,
+                                f"{cfg.position_iterations} Gauss-Newton iterations" if model.has_bilateral_rows
+                                else "no bilateral joint rows"),
+    }
+    plan.integrator = ("Moreau-Jean midpoint" if cfg.integrator is Integrator.MOREAU_JEAN
+                       else "semi-implicit Euler")
+    plan.control = "engine.Control: drive targets, efforts and body wrenches per step"
+    plan.accuracy = ("joints held by constraint rows and a position projection; violations measured per record "
+                     "(Trace.violation_*, Trace.health)")
+    return plan
+
+
+def _integrator(config) -> str:
+    from engine.model import Integrator
+    return "Moreau-Jean midpoint" if config.integrator is Integrator.MOREAU_JEAN else "semi-implicit Euler"
+
+
+def describe_reduced(plan: Plan, model) -> Plan:
+    """Fill ``plan`` from a packed reduced model (engine.reduced.model)."""
+    inner, cfg, cuda = model.inner, model.config, model.device.is_cuda
+    plan.control = "the specs' drive targets (no engine.Control)"
+    if plan.coordinates is Coordinates.TREE:
+        from engine.reduced.chain_kernel import CHAIN_BLOCK
+        coords = max(lay.n for lay in inner.layouts)
+        rows = max(len(lay.rows) + len(lay.soft) for lay in inner.layouts)
+        plan.analysis.append(f"largest world: {coords} tree coordinates, {rows} independent loop rows")
+        plan.kernel = "fused: the whole step in one launch (the TREE kernel)"
+        plan.linear_solver = ("mass matrix factored along the tree (no fill), loop rows' matrix by dense Cholesky "
+                              "in shared memory")
+        plan.launch = f"one block of {CHAIN_BLOCK if cuda else 1} lane{'s' if cuda else ''} per world"
+        plan.registers = inner.max_registers if cuda else None
+        contacts = inner.tile_contacts > 0
+        plan.stages = {
+            "collision": (contacts, "shapes against the ground plane" if contacts else "no shapes"),
+            "PADMM iterations": (contacts, f"contact rows only, up to {inner.contact_capacity} contacts per world"
+                                 if contacts else "only bilateral rows: the loops are solved directly"),
+            "limit rows": (False, "no joint limits"),
+            "position projection": (cfg.position_iterations > 0 and rows > 0,
+                                    f"{cfg.position_iterations} Gauss-Newton iterations on the loop rows" if rows
+                                    else "no loops"),
+        }
+        plan.integrator = _integrator(cfg)
+        plan.accuracy = ("loops closed by their rows at every step (velocities exactly, positions projected); "
+                         "joint errors measured at every record through a maximal gauge (Trace.health)")
+    else:
+        from engine.reduced.tabulated import describe
+        describe(plan, inner)
+    return plan

@@ -1,0 +1,251 @@
+"""The one face of the reduced plans: a model that engine.step, engine.Stepper and engine.rollout
+drive like the maximal Model, whatever reduced coordinates the plan chose.
+
+A reduced model steps its state in place (its kernels read and write the coordinates of one State),
+so engine.step copies state_in into state_out first when they differ. Everything a Trace reports is
+measured the one way the maximal path measures it: every body's pose and twist, read from the
+reduced State, go through a maximal model of the same worlds that only measures (its joint rows'
+residuals, energy, tracked points and drive speeds; engine.metrics), so a reduced plan's loop
+closure is measured, never assumed. Drive torques come from the plan's own drive law.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from engine.health import DIVERGED, EFFORT_LIMIT, JOINTS_OPEN, Health
+from engine.metrics import compute_metrics
+from engine.plan import Coordinates, Plan
+
+__all__ = ["ReducedModel", "ReducedState", "TabulatedPlanModel", "TreeModel"]
+
+
+class ReducedState:
+    """A reduced plan's state: its coordinates (``inner``: the path's own state object) and, readable
+    whatever the plan, every body's centre-of-mass pose body_q (W, B) transform and twist body_qd
+    (W, B) spatial_vector (v, w; world frame) in each spec's body order."""
+
+    def __init__(self, model: "ReducedModel", inner):
+        self._model, self.inner = model, inner
+
+    @property
+    def body_q(self):
+        return self._model._bodies(self)[0]
+
+    @property
+    def body_qd(self):
+        return self._model._bodies(self)[1]
+
+
+class ReducedModel:
+    """A packed batch in reduced coordinates (engine.pack chose them; ``plan`` says which and why).
+
+    num_worlds, device, dt [s], config, specs, point_names, joint_names, plan; state() a new State at
+    the specs' initial poses; failure_reasons() per world ('' while it runs)."""
+
+    def __init__(self, inner, specs: list, plan: Plan, config, dt: float, device):
+        self.inner, self.specs, self.plan, self.config = inner, list(specs), plan, config
+        self.dt, self.device = float(dt), wp.get_device(device)
+        self.num_worlds = len(self.specs)
+        self.point_names = [[p.name for p in s.points] for s in self.specs]
+        self.joint_names = [[j.name for j in s.joints] for s in self.specs]
+        self.body_names = [[b.name for b in s.bodies] for s in self.specs]
+        self.max_points = max(1, max(len(s.points) for s in self.specs))
+        self.max_joints = max(1, max(len(s.joints) for s in self.specs))
+        self._gauge = None
+
+    @property
+    def coordinates(self) -> Coordinates:
+        return self.plan.coordinates
+
+    @property
+    def gauge(self):
+        """A maximal model of the same worlds that only measures (built on first use)."""
+        if self._gauge is None:
+            from engine.pack import pack_worlds
+            self._gauge = pack_worlds(self.specs, device=self.device, dt=self.dt, measure_only=True)
+        return self._gauge
+
+    # -- what a plan implements ------------------------------------------------------------------
+    def state(self) -> ReducedState:
+        raise NotImplementedError
+
+    def advance(self, state: ReducedState, steps: int) -> None:
+        """``steps`` steps of ``state`` in place (capturable: no host work, no allocation)."""
+        raise NotImplementedError
+
+    def copy_state(self, source: ReducedState, target: ReducedState) -> None:
+        raise NotImplementedError
+
+    def _bodies(self, state: ReducedState) -> tuple:
+        raise NotImplementedError
+
+    def drive_torque(self, state: ReducedState) -> np.ndarray:
+        """(W, J) every joint drive's torque [N m] (force [N]) at the state; 0 for undriven joints."""
+        raise NotImplementedError
+
+    def iterations(self) -> np.ndarray:
+        """(W,) PADMM iterations of the last step."""
+        raise NotImplementedError
+
+    def failure_codes(self) -> np.ndarray:
+        """(W,) 0 running or halted, 1 diverged, 2 a drive past its effort limit (the world stopped)."""
+        raise NotImplementedError
+
+    def set_halted(self, halted: np.ndarray) -> None:
+        """Freeze the worlds marked (W,) bool: they keep their state and cost no solver work."""
+        raise NotImplementedError
+
+    # -- shared ----------------------------------------------------------------------------------
+    def health(self, linear_max: np.ndarray, angular_max: np.ndarray) -> Health:
+        """engine.health's flags of the worlds: DIVERGED and EFFORT_LIMIT from the step, FAR from the
+        pack, JOINTS_OPEN from the largest joint errors measured over the records."""
+        cfg, gauge = self.config, self.gauge
+        codes = self.failure_codes()
+        flags = gauge.health_init.copy()
+        flags |= np.where(codes == 1, DIVERGED, 0).astype(np.int32)
+        flags |= np.where(codes == 2, EFFORT_LIMIT, 0).astype(np.int32)
+        open_ = (~(linear_max <= cfg.health_joint_tolerance)) | (~(angular_max <= cfg.health_angular_tolerance))
+        flags |= np.where(open_ & (codes == 0), JOINTS_OPEN, 0).astype(np.int32)
+        zeros = np.zeros(self.num_worlds)
+        return Health(flags=flags, linear_max=np.asarray(linear_max, float), angular_max=np.asarray(angular_max, float),
+                      residual_max=zeros, residual_iterations=zeros.astype(np.int32),
+                      extent=np.asarray(gauge.world_extent, float), mass_ratio=np.asarray(gauge.world_mass_ratio, float),
+                      joint_tolerance=float(cfg.health_joint_tolerance),
+                      angular_tolerance=float(cfg.health_angular_tolerance),
+                      residual_threshold=float(cfg.health_residual), max_speed=float(cfg.max_speed))
+
+    def step(self, state_in: ReducedState, state_out: ReducedState) -> None:
+        if state_out is not state_in:
+            self.copy_state(state_in, state_out)
+        self.advance(state_out, 1)
+
+    def measure(self, state: ReducedState) -> dict:
+        """One record of ``state``: points (W, P, 3), violation_linear/angular (W,), energy (W,),
+        drive_speed and drive_torque (W, J), iterations (W,), as NumPy."""
+        from engine.rollout import drive_speeds, tracked_points
+
+        g = self.gauge
+        body_q, body_qd = state.body_q, state.body_qd
+        compute_metrics(g, _Bodies(body_q, body_qd))
+        points = wp.zeros((self.num_worlds, g.max_points), dtype=wp.vec3, device=self.device)
+        wp.launch(tracked_points, dim=(self.num_worlds, g.max_points), device=self.device,
+                  inputs=[g.point_count, g.point_body, g.point_local, body_q], outputs=[points])
+        speeds = wp.zeros((self.num_worlds, g.max_joints), dtype=float, device=self.device)
+        wp.launch(drive_speeds, dim=(self.num_worlds, g.max_joints), device=self.device,
+                  inputs=[g.joint_count, g.joint_type, g.joint_parent, g.joint_child, g.joint_X_p, g.joint_X_c,
+                          g.joint_axis, g.joint_drive_row, body_q, g.work.no_low, body_qd],
+                  outputs=[speeds])
+        return {"points": points.numpy(), "violation_linear": g.work.violation_linear.numpy().copy(),
+                "violation_angular": g.work.violation_angular.numpy().copy(), "energy": g.work.energy.numpy().copy(),
+                "drive_speed": speeds.numpy(), "drive_torque": self.drive_torque(state),
+                "iterations": self.iterations()}
+
+
+class _Bodies:
+    """The two arrays engine.metrics reads from a State."""
+
+    def __init__(self, body_q, body_qd):
+        self.body_q, self.body_qd = body_q, body_qd
+
+
+class TreeModel(ReducedModel):
+    """The TREE plan: engine.reduced.chains's ChainModel (one kernel launch per step)."""
+
+    HALTED = 3  # a code of the chains kernel's stop flag that freezes a world without a failure
+
+    def __init__(self, inner, specs, plan, config, dt, device):
+        super().__init__(inner, specs, plan, config, dt, device)
+        self._drives = []  # (world, tree entry, spec joint) of every driven tree joint
+        for w, (lay, spec) in enumerate(zip(inner.layouts, self.specs)):
+            for k in range(lay.n):
+                j = lay.joint[k]
+                if j is not None and j >= 0 and spec.joints[j].drive is not None:
+                    self._drives.append((w, k, j))
+
+    def state(self) -> ReducedState:
+        self.inner.work.diverged.zero_()  # a new trajectory: every world runs again
+        return ReducedState(self, self.inner.state())
+
+    def advance(self, state: ReducedState, steps: int) -> None:
+        for _ in range(steps):
+            self.inner.step(state.inner)
+
+    def copy_state(self, source: ReducedState, target: ReducedState) -> None:
+        for name in ("q", "u", "root", "body_q", "body_qd"):
+            wp.copy(getattr(target.inner, name), getattr(source.inner, name))
+
+    def _bodies(self, state: ReducedState) -> tuple:
+        return state.inner.body_q, state.inner.body_qd
+
+    def drive_torque(self, state: ReducedState) -> np.ndarray:
+        """The drives' law at the state: kp (q_target - q) + kd (v_target - u) [N m] (a velocity drive's
+        torque is exactly the implicit law the step applied; a position drive's leaves out the part of
+        the step its angle still moves)."""
+        out = np.zeros((self.num_worlds, self.max_joints), np.float32)
+        if not self._drives:
+            return out
+        a = self.inner.arrays
+        q, u = state.inner.q.numpy(), state.inner.u.numpy()
+        kp, kd, qt, vt = (getattr(a, k).numpy() for k in ("kp", "kd", "q_target", "v_target"))
+        for w, k, j in self._drives:
+            out[w, j] = kp[w, k] * (qt[w, k] - q[w, k]) + kd[w, k] * (vt[w, k] - u[w, k])
+        return out
+
+    def iterations(self) -> np.ndarray:
+        return self.inner.work.iterations.numpy().copy()
+
+    def failure_codes(self) -> np.ndarray:
+        codes = self.inner.work.diverged.numpy().copy()
+        codes[codes == self.HALTED] = 0
+        return codes
+
+    def set_halted(self, halted: np.ndarray) -> None:
+        codes = self.inner.work.diverged.numpy()
+        codes[np.asarray(halted, bool) & (codes == 0)] = self.HALTED
+        self.inner.work.diverged.assign(codes)
+
+
+class TabulatedPlanModel(ReducedModel):
+    """The TABULATED plan: engine.reduced.tabulated's TabulatedModel. Its state lives in the model
+    (its kernels take it as a struct), so every State of it is the one state: state() resets it to
+    the specs' initial poses, and steps run in place."""
+
+    STATE = ("position", "orientation", "velocity", "angular_velocity", "coord", "coord_rate", "impulse", "frozen",
+             "diverged")
+
+    def __init__(self, inner, specs, plan, config, dt, device):
+        super().__init__(inner, specs, plan, config, dt, device)
+        self._initial = {name: wp.clone(getattr(inner, name)) for name in self.STATE}
+
+    def state(self) -> ReducedState:
+        for name, value in self._initial.items():
+            wp.copy(getattr(self.inner, name), value)
+        return ReducedState(self, None)
+
+    def advance(self, state: ReducedState, steps: int) -> None:
+        self.inner.step(steps)
+
+    def copy_state(self, source: ReducedState, target: ReducedState) -> None:
+        raise ValueError("step: the tabulated plan keeps one state in the model; step it in place "
+                         "(state_out = state_in)")
+
+    def _bodies(self, state: ReducedState) -> tuple:
+        return self.inner.body_poses(numpy=False)
+
+    def drive_torque(self, state: ReducedState) -> np.ndarray:
+        torque = self.inner.record(numpy=False)[2].numpy()
+        out = np.zeros((self.num_worlds, self.max_joints), np.float32)
+        J = min(out.shape[1], torque.shape[1])
+        out[:, :J] = torque[:, :J]
+        return out
+
+    def iterations(self) -> np.ndarray:
+        return self.inner.iterations.numpy().copy()
+
+    def failure_codes(self) -> np.ndarray:
+        return np.where(self.inner.diverged.numpy() != 0, 1, 0)
+
+    def set_halted(self, halted: np.ndarray) -> None:
+        self.inner.halt(halted)

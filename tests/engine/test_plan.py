@@ -1,0 +1,154 @@
+"""engine.pack plans a batch itself: which coordinates each kind of mechanism gets (and why, in
+print(model.plan)), that a forced plan that does not fit names the world and the reason, and that
+engine.step / Stepper / rollout run every plan through one face with the same Trace, checked
+against the maximal plan of the same worlds (an independent formulation: other coordinates, other
+constraint rows, other solver)."""
+
+import numpy as np
+import pytest
+
+import engine
+from engine import Coordinates, SolverConfig, pack, rollout
+from engine.scenes import make_scene
+from engine.scenes_contact import CONTACT_SCENES
+from morphopt.families import load_family
+
+
+def family_spec(name, **overrides):
+    family = load_family(name)
+    return family.build_spec({**family.space.default(), **overrides}) if hasattr(family, "build_spec") else None
+
+
+def linkage_spec(name):
+    """A morphopt linkage family's default design as morphopt builds it (morphopt.linkage.to_spec:
+    its loops closed by inline joints)."""
+    from morphopt.build import build_specs
+    family = load_family(name)
+    [spec] = build_specs(family, [family.space.default()], workers=1)
+    assert not isinstance(spec, str), spec
+    return spec
+
+
+@pytest.mark.parametrize("name", ["four_bar", "jansen_leg", "klann_leg", "watt_sixbar"])
+def test_linkages_from_to_spec_get_the_tree_plan(name):
+    spec = linkage_spec(name)
+    model = pack([spec, spec])
+    assert model.plan.coordinates is Coordinates.TREE, str(model.plan)
+    text = str(model.plan)
+    assert "tree coordinates (the fastest kind every world admits)" in text
+    assert "not tabulated:" in text  # fixed to the world: no floating base to carry sub-chains
+    assert "PADMM iterations: skipped (only bilateral rows" in text
+
+
+def test_engine_scene_fourbar_gets_the_tree_plan_and_maximal_when_forced():
+    spec = make_scene("fourbar").spec
+    assert pack([spec]).plan.coordinates is Coordinates.TREE
+    forced = pack([spec], coordinates="maximal")
+    assert forced.plan.coordinates is Coordinates.MAXIMAL and forced.plan.forced
+    assert isinstance(forced, engine.Model)
+    assert "maximal coordinates (forced by the caller)" in str(forced.plan)
+
+
+def test_walker_gets_the_tabulated_plan():
+    walker = load_family("walker")
+    specs = [walker.build_spec(walker.space.default()),
+             walker.build_spec({**walker.space.default(), "leg_family": "klann_leg", "legs_per_side": 2})]
+    model = pack(specs)
+    assert model.plan.coordinates is Coordinates.TABULATED, str(model.plan)
+    assert "tabulated coordinates" in str(model.plan)
+
+
+@pytest.mark.parametrize("name, why", [
+    ("fourbar_limits", "joint 'ground_rocker' has limits"),
+    ("box_stack", "shapes 'box0' and 'box1' may touch each other"),
+    ("ball_bounce", "restitution"),
+])
+def test_scenes_the_reduced_plans_cannot_model_stay_maximal_with_the_reasons(name, why):
+    model = pack([CONTACT_SCENES[name]().spec])
+    assert model.plan.coordinates is Coordinates.MAXIMAL
+    text = str(model.plan)
+    assert "not tabulated: world 0" in text and f"not tree: world 0 ({name}): " in text and why in text
+
+
+def test_forcing_a_plan_that_does_not_fit_names_the_world_and_the_reason():
+    fourbar = make_scene("fourbar").spec
+    with pytest.raises(ValueError, match=r"coordinates 'tabulated' do not fit world 0 \(fourbar\): joint 'ground_crank' "):
+        pack([fourbar, fourbar], coordinates=Coordinates.TABULATED)
+    with pytest.raises(ValueError, match="coordinates must be one of"):
+        pack([fourbar], coordinates="reduced")
+
+
+def test_reduced_plans_take_no_control_and_keep_their_dt():
+    model = pack([make_scene("fourbar").spec])
+    state = model.state()
+    with pytest.raises(ValueError, match="drive targets from the specs"):
+        engine.step(model, state, state, control=object())
+    with pytest.raises(ValueError, match="dt it was packed with"):
+        rollout(model, state, None, 10, dt=0.5 * model.dt)
+
+
+@pytest.mark.parametrize("name", ["four_bar", "jansen_leg"])
+def test_tree_plan_trace_matches_the_maximal_plan(name):
+    """The same worlds planned TREE and forced MAXIMAL: tracked points within 1 mm over 0.5 s of a
+    driven crank, loops closed (measured by the same gauge) and the drive torques alike."""
+    spec = linkage_spec(name)
+    dt, steps = 1e-3, 500
+    traces = {}
+    for kind in (None, "maximal"):
+        model = pack([spec], dt=dt, coordinates=kind)
+        traces[model.plan.coordinates], _ = rollout(model, model.state(), None, steps, record_every=50)
+    tree, maximal = traces[Coordinates.TREE], traces[Coordinates.MAXIMAL]
+    assert tree.points.shape == maximal.points.shape
+    assert np.abs(tree.points - maximal.points).max() < 1e-3
+    assert tree.violation_linear.max() < 1e-5 and maximal.violation_linear.max() < 1e-5
+    assert tree.health.ok.all() and maximal.health.ok.all()
+    driven = [j for j, joint in enumerate(spec.joints) if joint.drive is not None]
+    scale = np.abs(maximal.drive_torque[1:, 0, driven]).max()
+    assert np.abs(tree.drive_torque[1:, 0, driven] - maximal.drive_torque[1:, 0, driven]).max() < 0.05 * scale + 1e-6
+
+
+def test_step_and_stepper_agree_with_rollout_on_a_reduced_plan():
+    spec = make_scene("fourbar").spec
+    model = pack([spec, spec])
+    a = model.state()
+    for _ in range(20):
+        engine.step(model, a, a)
+    by_step = a.body_q.numpy().copy()
+    stepper = engine.Stepper(model, model.state(), chunk=10)
+    stepper.advance()
+    stepper.advance()
+    np.testing.assert_array_equal(stepper.state.body_q.numpy(), by_step)
+    trace, final = rollout(model, model.state(), None, 20, record_every=10)
+    np.testing.assert_array_equal(final.body_q.numpy(), by_step)
+    assert trace.points.shape[:2] == (3, 2)
+
+
+def test_distinct_states_step_from_state_in_into_state_out():
+    model = pack([make_scene("fourbar").spec])
+    a, b = model.state(), model.state()
+    engine.step(model, a, b)
+    start = model.state().body_q.numpy()
+    np.testing.assert_array_equal(a.body_q.numpy(), start)  # state_in unchanged
+    assert np.abs(b.body_q.numpy() - start).max() > 0.0
+
+
+def test_halted_worlds_keep_their_state_and_no_failure():
+    spec = make_scene("fourbar").spec
+    model = pack([spec, spec])
+
+    def halt(points, start):
+        return np.array([True, False])
+
+    trace, final = rollout(model, model.state(), None, 40, record_every=10, halt=halt)
+    assert trace.halted_at[0] == pytest.approx(10 * model.dt) and trace.halted_at[1] < 0
+    assert np.array_equal(trace.points[-1, 0], trace.points[1, 0])
+    assert not np.array_equal(trace.points[-1, 1], trace.points[1, 1])
+    assert trace.health.reasons() == ["", ""]
+
+
+def test_worlds_past_the_speed_guard_fail_with_the_reason():
+    spec = make_scene("fourbar").spec
+    model = pack([spec, spec], config=SolverConfig(max_speed=1e-3))  # every moving world trips the guard
+    trace, _ = rollout(model, model.state(), None, 20, record_every=10)
+    assert trace.diverged.all()
+    assert all(r.startswith("diverged") for r in trace.health.reasons())
