@@ -174,7 +174,6 @@ LINKAGE_SWEEP = [
     dict(label="dt x4", dt_scale=4.0),
     dict(label="staged kernels", dt_scale=1.0, config=dict(step_kernel="staged")),
     dict(label="staged, dt x2", dt_scale=2.0, config=dict(step_kernel="staged")),
-    dict(label="matrix-free", dt_scale=1.0, config=dict(step_kernel="staged", linear_solver="matrix_free")),
     dict(label="tolerance 1e-4", dt_scale=1.0, config=dict(tolerance=1e-4, relative_tolerance=1e-2)),
     dict(label="no projection (Baumgarte 0.01)", dt_scale=1.0,
          config=dict(position_iterations=0, projection_velocity_update=False, baumgarte=0.01)),
@@ -194,7 +193,8 @@ TIGHT = dict(tolerance=1e-9, relative_tolerance=0.0, max_iterations=300, positio
 # angle (its: 8e-5 to 1.2e-4 rad); the step skips the projection's solves (standing: also the projection's
 # own matrix and factor)
 NO_PROJECTION = dict(position_iterations=0, projection_velocity_update=False, baumgarte=0.5)
-# and the sparse factor in the elimination order of the shortest estimated schedule (engine.sparse.shallowest)
+# and the sparse factor in the elimination order of the shortest estimated schedule
+# (engine.linalg.sparse_analysis.shallowest)
 DRLEGS_VARIANTS = [dict(label="1 projection iteration", config=dict(position_iterations=1)),
                    dict(label="no projection (Baumgarte 0.5)", config=NO_PROJECTION),
                    dict(label="shallow elimination order", config=dict(sparse_ordering="shallow"))]

@@ -130,7 +130,7 @@ import warp as wp
 from engine.collide import PLANE_CONTACTS, plane_point, plane_point_count
 from engine.contacts import contact_direction
 from engine.padmm import project_cone
-from engine.linear import block_sync, tile_set
+from engine.linalg.lanes import block_sync, tile_set
 from engine.model import Integrator, SolverConfig
 from engine.spec import JointType, MechanismSpec
 

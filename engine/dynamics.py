@@ -8,6 +8,7 @@ x = P^-1 lambda with P = diag(D)^-1/2: matrix P D P (unit diagonal), vector P v_
 
 import warp as wp
 
+from engine.linalg import sparse
 from engine.model import ROW_CONTACT_NORMAL, ROW_CONTACT_TANGENT, UNBOUNDED
 from engine.spatial import gyroscopic_implicit_midpoint, twist, two_sum, world_inertia_inverse
 
@@ -228,7 +229,7 @@ def delassus_entry(world: int, i: int, j: int, row_body_p: wp.array2d(dtype=wp.i
                    row_MJ_p: wp.array2d(dtype=wp.spatial_vector), row_compliance: wp.array2d(dtype=float),
                    row_precond: wp.array2d(dtype=float)):
     """Entry (i, j) of P (J M^-1 J^T + R) P for two rows of a world (the sparse solver's matrix
-    follows engine.sparse.matrix_recipe instead)."""
+    follows engine.linalg.sparse_analysis.matrix_recipe instead)."""
     ci = row_body_c[world, i]
     pi = row_body_p[world, i]
     cj = row_body_c[world, j]
@@ -290,11 +291,9 @@ def build_dual_problem(model, body_q, body_qd, body_qd_low, body_f, body_qd_low_
                       work.row_J_p, work.row_bias, work.row_compliance, work.row_lo, work.row_hi],
               outputs=[work.row_MJ_c, work.row_MJ_p, work.row_precond, work.v_f, work.lo, work.hi])
     if model.linear_solver == "sparse":
-        from engine import sparse  # engine.sparse builds on this module
-
         sparse.roots(model, body_q)
     if model.linear_solver != "dense":
-        return  # the operator is applied (engine.matrix_free) or factored (engine.sparse) from row_J and row_MJ
+        return  # the sparse factor (engine.linalg.sparse) builds its matrix from row_J and row_MJ
     wp.launch(delassus, dim=(W, model.max_rows, model.max_rows), device=device,
               inputs=[work.row_count, work.row_body_p, work.row_body_c, work.row_J_c, work.row_J_p,
                       work.row_MJ_c, work.row_MJ_p, work.row_compliance, work.row_precond],

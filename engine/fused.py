@@ -8,42 +8,22 @@ joints and rows, with a block barrier wherever a stage reads what another lane w
 
 1. midpoint poses (Moreau-Jean), joint rows, free velocities, row operators and the dense
    preconditioned Delassus matrix of the world's n rows, in shared memory;
-2. PADMM with the world's own early exit, its penalty updates refactoring the matrix: a
-   left-looking Cholesky factor in shared memory (the lanes share each column) and
-   column-oriented substitutions (the lanes share each row's updates);
+2. PADMM with the world's own early exit, its penalty updates refactoring the matrix
+   (engine.linalg.dense's per-lane Cholesky factor and solves, in shared memory);
 3. velocity update, pose integration, Gauss-Newton projection onto the joint constraints
    (the factor reused, or the bilateral block refactored, exactly as the staged dense path does);
 4. divergence guard.
 
 Shared memory keeps the factor's and the substitutions' dependent loads on the SM; a register cap
 (FUSED_REGISTERS) lets more worlds share an SM. On the CPU a block is one thread and the same code
-runs serially. Measured on an H100 at 4096 worlds, dt 1 ms (engine.testspeed), before the solves
-through L^-1: four-bar (24 rows) 0.27-0.35 ms per step (staged 1.26 ms; one thread per world
-0.45 ms), six-bar (40 rows) 0.62 ms, 10-link chain (56 rows) 1.40 ms (staged 2.53 ms). It takes
-batches without contact shapes whose padded rows fit ``FUSED_MAX_ROWS``; SolverConfig.step_kernel
-chooses: "auto" (fused where it fits), "fused" (error where it does not) or "staged".
-
-On a GPU, problems of at most INVERSE_MAX_ROWS padded rows solve through G = L^-1, formed by the
-lanes (a column each) after every factor: a solve is then two triangular products in which every
-lane forms whole entries, instead of 2 n substitution steps each a shared store and a barrier
-apart. Per-stage cycle counts of the kernel (fused_profile; engine.testspeed reports them as
-fused_stage_cycles) on an H100, four-bar, one world: 240 k -> 170 k cycles per step, its five
-solves 95 k -> 17 k, the factor 26 k -> 40 k with G. Same run, 4096 / 16384 worlds
-(benchmarks.step_variants): 0.350 / 1.34 ms per step substituting, 0.285 / 1.17 through G, and
-0.256 / 1.03 with the projection's rounding skip as well (SolverConfig.projection_skip_floor).
-The lanes share the work of a body or a joint where a few lanes would otherwise work while the
-rest of the warp waits (fused_sharing; on GPUs): each body's sums over rows (velocity update,
-projection displacement) by an aligned group of lanes with warp shuffles, and a joint's rows one
-part each (engine.joints.JOINT_PARTS) where one pass of the lanes takes them all. Same H100 run:
-four-bar 0.276 -> 0.230 ms per step at 4096 worlds, 1.13 -> 0.953 at 16384; six-bar 1.14x,
-10-link chain 1.08x faster. Where the block is one warp's first lanes (warp_lanes: the default
-32), the sums and maxima over the world's rows (the PADMM residuals, the projection gate's linear
-and angular errors) take one pass of warp shuffles each (lane_reduce6, lane_max2) instead of a
-shared-memory tile reduction per value: four-bar 0.245-0.255 -> 0.232-0.242 ms, six-bar 0.520 ->
-0.494 at 4096 worlds (same run).
-Tried and not kept (no change beyond noise on the H100): the substitutions in registers with warp
-shuffles instead of shared vectors and barriers; matrix tiles padded to 33 columns against bank
-conflicts; the projection reading its solution from the shared vector instead of global memory.
+runs serially. It takes batches without contact shapes whose padded rows fit ``FUSED_MAX_ROWS``;
+SolverConfig.step_kernel chooses: "auto" (fused where it fits), "fused" (error where it does not)
+or "staged". On a GPU, small problems (INVERSE_MAX_ROWS) solve through G = L^-1, formed after
+every factor, instead of substituting (fused_inverse); the lanes share a body's sums over rows
+and a joint's rows where a few lanes would otherwise work while the rest wait (fused_sharing);
+a block of one warp's first lanes reduces the residuals with warp shuffles (engine.linalg.lanes).
+Per-stage cycle counts: fused_profile. Measurements behind these choices, and what was tried and
+not kept: benchmarks/results/README.md, "Maximal path: design notes".
 """
 
 from typing import Any
@@ -63,10 +43,9 @@ from engine.integrate import (
     projection_penalty,
 )
 from engine.joints import JOINT_PARTS, joint_residuals_of, joint_rows_of
-from engine.linear import block_sync, tile_set
-from engine.matrix_free import block_max, block_sum
+from engine.linalg.dense import cholesky_lanes, cholesky_solve_lanes, inverse_solve_lanes, triangular_inverse_lanes
+from engine.linalg.lanes import block_max, block_sum, block_sync, clock, group_sum, lane_max2, lane_reduce6, tile_set
 from engine.model import ROW_ANGULAR, ROW_LINEAR
-from engine.sparse import group_sum
 from engine.padmm import (
     padmm_accelerate_of,
     padmm_decide,
@@ -88,8 +67,9 @@ FUSED_REGISTERS = 128  # register cap per thread: 158 uncapped leave 12 worlds p
 
 
 def fused_block(device) -> int:
-    """Threads (lanes) per world of the fused step: one warp (two were slower at 40 and 56 rows on
-    an H100); one on the CPU, where a block is one thread and the lanes' loops run serially."""
+    """Threads (lanes) per world of the fused step: one warp (two were slower at 40 and 56 rows:
+    benchmarks/results/README.md); one on the CPU, where a block is one thread and the lanes' loops
+    run serially."""
     if not wp.get_device(device).is_cuda:
         return 1
     return 32
@@ -98,49 +78,6 @@ def fused_block(device) -> int:
 def fused_fits(has_contacts: bool, max_rows: int, dense: bool) -> bool:
     """Whether a batch can take the fused step."""
     return dense and not has_contacts and max_rows <= FUSED_MAX_ROWS
-
-
-_LANE_MAX2 = """
-#if defined(__CUDA_ARCH__)
-unsigned int mask = width >= 32 ? 0xffffffffu : ((1u << width) - 1u);
-for (int offset = width >> 1; offset > 0; offset >>= 1) {
-    a = fmaxf(a, __shfl_xor_sync(mask, a, offset));
-    b = fmaxf(b, __shfl_xor_sync(mask, b, offset));
-}
-#endif
-return wp::vec2(a, b);
-"""
-
-
-@wp.func_native(_LANE_MAX2)
-def lane_max2(a: float, b: float, width: int) -> wp.vec2:
-    """The largest a and b over a block of ``width`` threads (a power of two up to 32: one warp's
-    first lanes), both reduced in one pass of warp shuffles without a block barrier; CUDA only
-    (fused_step asks for it on GPUs alone)."""
-
-
-_LANE_REDUCE6 = """
-#if defined(__CUDA_ARCH__)
-unsigned int mask = width >= 32 ? 0xffffffffu : ((1u << width) - 1u);
-for (int offset = width >> 1; offset > 0; offset >>= 1) {
-    float v0 = __shfl_xor_sync(mask, m0, offset);
-    float v1 = __shfl_xor_sync(mask, m1, offset);
-    float v2 = __shfl_xor_sync(mask, m2, offset);
-    float v3 = __shfl_xor_sync(mask, m3, offset);
-    float v4 = __shfl_xor_sync(mask, m4, offset);
-    float v5 = __shfl_xor_sync(mask, s5, offset);
-    m0 = fmaxf(m0, v0); m1 = fmaxf(m1, v1); m2 = fmaxf(m2, v2); m3 = fmaxf(m3, v3); m4 = fmaxf(m4, v4);
-    s5 = s5 + v5;
-}
-#endif
-return wp::spatial_vector(wp::vec3(m0, m1, m2), wp::vec3(m3, m4, s5));
-"""
-
-
-@wp.func_native(_LANE_REDUCE6)
-def lane_reduce6(m0: float, m1: float, m2: float, m3: float, m4: float, s5: float, width: int) -> wp.spatial_vector:
-    """The largest m0..m4 and the sum of s5 over a block of ``width`` threads (as lane_max2: one
-    pass of warp shuffles; the butterfly leaves the same sum, to the bit, in every lane)."""
 
 
 def warp_lanes(block: int) -> bool:
@@ -246,124 +183,12 @@ class StepWork:
     halted: wp.array(dtype=wp.int32)
 
 
-@wp.func
-def is_bilateral(kind: int):
-    """True for a joint row (linear or angular), False for contact and limit rows."""
-    return kind == ROW_LINEAR or kind == ROW_ANGULAR
-
-
-@wp.func
-def matrix_entry(world: int, i: int, j: int, bilateral_only: int, row_kind: wp.array2d(dtype=wp.int32), matrix: Any):
-    """P D P (i, j) from the world's shared matrix tile, or with bilateral_only its bilateral joint
-    block (identity elsewhere)."""
-    if bilateral_only != 0:
-        if not (is_bilateral(row_kind[world, i]) and is_bilateral(row_kind[world, j])):
-            if i == j:
-                return 1.0
-            return 0.0
-    return matrix[i, j]
-
-
 TILE_ROWS = 16  # the shared matrices are sized in steps of this many rows (one kernel per size; the sizes of
-# engine.linear.tile_set)
+# engine.linalg.lanes.tile_set)
 
 
-@wp.func
-def cholesky_lanes(world: int, lane: int, lanes: int, n: int, sigma: float, sigma_free: float,
-                   bilateral_only: int, row_kind: wp.array2d(dtype=wp.int32), row_free: wp.array2d(dtype=wp.int32),
-                   matrix: Any, factor: Any):
-    """Lower Cholesky factor of the world's n x n matrix plus a diagonal shift (sigma_free on the
-    free rows of engine.padmm.row_is_free, sigma on the others) (shared tiles), column by column
-    (left-looking): every lane forms the column's pivot, the lanes share the column's entries below
-    it; one barrier per column. The dot products run in the serial order. Entered after a barrier."""
-    for j in range(n):
-        shift = sigma
-        if row_free[world, j] != 0:
-            shift = sigma_free
-        s = matrix_entry(world, j, j, bilateral_only, row_kind, matrix) + shift
-        for k in range(j):
-            s -= factor[j, k] * factor[j, k]
-        d = wp.sqrt(wp.max(s, 1.0e-30))
-        inv = 1.0 / d
-        if lane == 0:
-            tile_set(factor, j, j, d)
-        for i in range(j + 1 + lane, n, lanes):
-            t = matrix_entry(world, i, j, bilateral_only, row_kind, matrix)
-            for k in range(j):
-                t -= factor[i, k] * factor[j, k]
-            tile_set(factor, i, j, t * inv)
-        block_sync()
-
-
-@wp.func
-def cholesky_solve_lanes(world: int, lane: int, lanes: int, n: int, factor: Any, rhs: wp.array2d(dtype=float),
-                         x: wp.array2d(dtype=float), acc: Any, sol: Any):
-    """x = (L L^T)^-1 rhs for the world's n rows: column-oriented substitutions in two shared
-    vectors (acc, sol), the lanes sharing each column's updates (one barrier per row). Entered
-    after a barrier; leaves x written and a barrier behind."""
-    for i in range(lane, n, lanes):
-        tile_set(acc, i, rhs[world, i])
-    block_sync()
-    for i in range(n):  # forward: L y = rhs, y into sol
-        yi = acc[i] / factor[i, i]
-        if lane == 0:
-            tile_set(sol, i, yi)
-        for k in range(i + 1 + lane, n, lanes):
-            tile_set(acc, k, acc[k] - factor[k, i] * yi)
-        block_sync()
-    for step in range(n):  # backward: L^T x = y, partial sums in sol, the solution into acc
-        i = n - 1 - step
-        xi = sol[i] / factor[i, i]
-        if lane == 0:
-            tile_set(acc, i, xi)
-        for k in range(lane, i, lanes):
-            tile_set(sol, k, sol[k] - factor[i, k] * xi)
-        block_sync()
-    for i in range(lane, n, lanes):
-        x[world, i] = acc[i]
-    block_sync()
-
-
-@wp.func
-def triangular_inverse_lanes(lane: int, lanes: int, n: int, factor: Any, inverse: Any):
-    """G = L^-1 of the world's n x n lower factor into the shared tile ``inverse`` (its lower
-    triangle), the lanes taking one column each by forward substitution on a unit vector. Entered
-    after a barrier; leaves a barrier behind."""
-    for j in range(lane, n, lanes):
-        tile_set(inverse, j, j, 1.0 / factor[j, j])
-        for i in range(j + 1, n):
-            s = float(0.0)
-            for k in range(j, i):
-                s += factor[i, k] * inverse[k, j]
-            tile_set(inverse, i, j, -s / factor[i, i])
-    block_sync()
-
-
-@wp.func
-def inverse_solve_lanes(world: int, lane: int, lanes: int, n: int, inverse: Any, rhs: wp.array2d(dtype=float),
-                        x: wp.array2d(dtype=float), acc: Any, sol: Any):
-    """x = G^T (G rhs) = (L L^T)^-1 rhs with G = L^-1 (triangular_inverse_lanes): two triangular
-    products, each lane forming whole entries (no chain of dependent substitution steps). Entered
-    after a barrier; leaves x written and a barrier behind."""
-    for i in range(lane, n, lanes):
-        tile_set(acc, i, rhs[world, i])
-    block_sync()
-    for i in range(lane, n, lanes):  # y = G rhs
-        s = float(0.0)
-        for k in range(i + 1):
-            s += inverse[i, k] * acc[k]
-        tile_set(sol, i, s)
-    block_sync()
-    for k in range(lane, n, lanes):  # x = G^T y
-        s = float(0.0)
-        for i in range(k, n):
-            s += inverse[i, k] * sol[i]
-        x[world, k] = s
-    block_sync()
-
-
-# On a GPU, worlds padded to at most this many rows solve with G = L^-1 (fused_inverse). NVIDIA H100,
-# four-bar (24 rows), one world: 5 solves 95 k -> 17 k cycles, the factor 26 k -> 40 k with G.
+# On a GPU, worlds padded to at most this many rows solve with G = L^-1 (fused_inverse; measured:
+# benchmarks/results/README.md, "Maximal path: design notes").
 INVERSE_MAX_ROWS = 32
 
 
@@ -403,21 +228,6 @@ def delassus_lower_of(world: int, i: int, row_body_p: wp.array2d(dtype=wp.int32)
         value = precond_i * d * row_precond[world, j]
         tile_set(matrix, i, j, value)
         tile_set(matrix, j, i, value)
-
-
-_CLOCK = """
-#if defined(__CUDA_ARCH__)
-return clock64();
-#else
-return int64_t(0);
-#endif
-"""
-
-
-@wp.func_native(_CLOCK)
-def clock() -> wp.int64:
-    """The multiprocessor's cycle counter (0 on the CPU)."""
-    ...
 
 
 # Stages of the fused step whose cycles fused_profile counts (summed over a stage's passes).

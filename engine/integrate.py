@@ -14,13 +14,13 @@ Position projection (Gauss-Newton): with the residuals phi(q+) of the bilateral 
 damped Newton step on the constraint manifold per iteration. A batch whose rows are all bilateral
 joint rows reuses the factor the PADMM solve already holds; any other batch factors its bilateral
 block once per step (dense: the other rows made identity; sparse: likewise on the PADMM's pattern,
-or on a pattern of the bilateral rows alone, SolverConfig.sparse_projection_pattern); the
-matrix-free solver solves the same system by Conjugate Residual on the bilateral rows.
+or on a pattern of the bilateral rows alone, SolverConfig.sparse_projection_pattern).
 """
 
 import warp as wp
 
-from engine import linear, matrix_free, sparse
+from engine.linalg import dense, sparse
+from engine.linalg.lanes import block_max, block_sync
 from engine.dynamics import free_velocity_of
 from engine.joints import joint_model_inputs, joint_residuals_of
 from engine.model import ROW_ANGULAR, ROW_LINEAR
@@ -382,8 +382,8 @@ def projection_gates(world: int, lane: int, stride: int, row_count: wp.array(dty
                 error_linear = wp.max(error_linear, wp.abs(row_residual[world, i]))
             elif kind == ROW_ANGULAR:
                 error_angular = wp.max(error_angular, wp.abs(row_residual[world, i]))
-    error_linear = matrix_free.block_max(error_linear)
-    error_angular = matrix_free.block_max(error_angular)
+    error_linear = block_max(error_linear)
+    error_angular = block_max(error_angular)
     opened = wp.where(wp.max(error_linear, error_angular) > floor, 1, 0)
     move = wp.where(error_linear > skip_floor or error_angular > skip_floor_angular, project[world], 0)
     return opened, move
@@ -435,7 +435,7 @@ def projection_pass(
             joint_residuals_of(world, j, -1, joint_count, joint_type, joint_parent, joint_child, joint_X_p, joint_X_c,
                                joint_axis, joint_axis2, joint_row_start, joint_inertia_row, joint_drive_row, body_q,
                                body_q_low, exact, row_residual)
-    linear.block_sync()
+    block_sync()
     opened, move = projection_gates(world, lane, stride, row_count, row_kind, row_residual, project, floor, skip_floor,
                                     skip_floor_angular)
     if lane == 0:
@@ -610,8 +610,7 @@ def project_positions(model, body_q, body_qd, *, iterations=None,
         velocity_update = model.config.projection_velocity_update
     if iterations == 0 or not model.has_bilateral_rows:
         return  # nothing to project: no joints in the batch
-    dense = model.linear_solver == "dense"
-    direct = model.linear_solver in ("dense", "sparse")  # a factor to reuse or refactor
+    dense_solver = model.linear_solver == "dense"  # else sparse
     # the bilateral rows' own system: its solves write those rows of delta alone, and the others stay
     # zero (delta is allocated zero and nothing else writes it)
     own_pattern = model.sparse_projection if model.linear_solver == "sparse" else None
@@ -621,23 +620,23 @@ def project_positions(model, body_q, body_qd, *, iterations=None,
         # pattern) and a large ADMM penalty would damp the Gauss-Newton steps: such worlds get a
         # factor of their own (the PADMM's factor, and with the sparse solver its matrix, are free
         # now: the next step rebuilds both, and the projection's own system may share their buffers).
-        if dense and model.has_unilateral_or_drive_rows:
+        if dense_solver and model.has_unilateral_or_drive_rows:
             wp.launch(bilateral_block, dim=(model.num_worlds, model.max_rows, model.max_rows), device=device,
                       inputs=[model.row_kind, work.row_count, work.delassus])
-        if model.has_unilateral_or_drive_rows or not direct:  # a factor (or shifts) of the projection's own
+        if model.has_unilateral_or_drive_rows:  # a factor of the projection's own
             wp.launch(projection_shift, dim=grid_rows, device=device,
                       inputs=[model.padmm_eta, model.padmm_rho_init, model.padmm_rho_free,
                               model.bilateral_row_count, work.valid],
                       outputs=[work.needs_factor, work.project, work.row_shift])
         # else the PADMM's factor serves: engine.padmm.padmm_start set the worlds to project, and every
         # flag for a new factor is clear once the PADMM's loop has ended
-        if dense:
+        if dense_solver:
             if model.has_unilateral_or_drive_rows:  # else no world is flagged: the PADMM's factor serves
-                linear.factor(work.delassus, work.row_shift, work.needs_factor, work.factor)
+                dense.factor(work.delassus, work.row_shift, work.needs_factor, work.factor)
         elif own_pattern is not None:  # the bilateral rows on a pattern of their own (sparse_projection_pattern)
             sparse.matrix(model, own_pattern)
             sparse.factor(model, work.row_shift, work.needs_factor, system=own_pattern)
-        elif direct and model.has_unilateral_or_drive_rows:  # else no world is flagged: the PADMM's factor serves
+        elif model.has_unilateral_or_drive_rows:  # else no world is flagged: the PADMM's factor serves
             sparse.factor(model, work.row_shift, work.needs_factor, bilateral_only=True)
     record = body_q_offset is not None
     compensated = model.config.compensated_state
@@ -658,13 +657,10 @@ def project_positions(model, body_q, body_qd, *, iterations=None,
                                 work.row_precond, work.project, float(cfg.projection_velocity_floor),
                                 float(cfg.projection_skip_floor), float(cfg.projection_skip_floor_angular)],
                         outputs=[work.row_residual, work.projection_gate, mask, work.rhs])
-        if dense:
-            linear.solve(work.factor, work.rhs, mask, work.delta)
-        elif direct:
+        if dense_solver:
+            dense.solve(work.factor, work.rhs, mask, work.delta)
+        else:
             sparse.solve(model, work.rhs, mask, work.delta, system=own_pattern)
-        else:  # Conjugate Residual on the bilateral rows, from zero
-            work.delta.zero_()
-            matrix_free.solve(model, work.rhs, mask, work.delta, bilateral_only=True)
         wp.launch(apply_projection, dim=(model.num_worlds, model.max_bodies), device=device,
                   inputs=[model.body_count, work.row_count, model.contact_row_start, model.body_row_begin,
                           model.body_row_end, model.body_row, work.row_body_c, work.row_body_p, mask,

@@ -60,7 +60,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from engine.linear import block_sync
+from engine.linalg.lanes import block_sync
 from engine.model import SolverConfig
 from engine.spec import check_inertia
 

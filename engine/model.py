@@ -111,9 +111,9 @@ class SolverConfig:
             world whose largest linear bilateral joint error is at or below this [m] and whose
             largest angular one is at or below projection_skip_floor_angular [rad]: its
             correction would be float32 rounding. The second Gauss-Newton iteration usually
-            starts there, and on the four-bar at dt 1 ms the median step skips all four (NVIDIA
-            H100, 4096 worlds: 0.285 -> 0.256 ms per step). It also stops rounding-level
-            corrections from being amplified near singular configurations (the parallelogram of
+            starts there, and on the four-bar at dt 1 ms the median step skips all four (the time
+            saved: benchmarks/results/README.md, "Maximal path: design notes"). It also stops
+            rounding-level corrections from being amplified near singular configurations (the parallelogram of
             benchmarks.stress S3, 20 s on the CPU: tip error 3.3e-2 -> 7.2e-3 m, energy error
             2.1e-4 -> 5.2e-5). Both floors at 0 turn the skip off.
         projection_skip_floor_angular: the angular rows' share of that test [rad]. A relative
@@ -128,17 +128,10 @@ class SolverConfig:
         contact_stabilization: share of a penetration pushed out per step.
         restitution_threshold: approach speeds below this bounce with no restitution [m/s].
         linear_solver: "dense" (per-world Cholesky tile, at most engine.pack.MAX_DENSE_ROWS
-            rows), "sparse" (a Cholesky factor on the Delassus matrix's own sparsity, analysed
-            once per topology: engine.sparse), "matrix_free" (Conjugate Residual with the
-            Delassus operator, inexact) or "auto" (dense when the padded rows fit the tile,
-            else sparse).
-        inner_iterations: Conjugate Residual iterations per PADMM iteration at most
-            (matrix-free; the position projection allows four times as many).
-        inner_tolerance_ratio: a matrix-free inner solve stops once its residual is below this
-            share of the outer PADMM residual (inexact ADMM).
-        projection_tolerance: a matrix-free Gauss-Newton projection solve stops at this residual
-            relative to its right-hand side (each of the position_iterations solves reduces the
-            joint error by about this factor; the dense solver solves exactly).
+            rows: engine.linalg.dense), "sparse" (a Cholesky factor on the Delassus matrix's own
+            sparsity, analysed once per topology: engine.linalg.sparse_analysis and
+            engine.linalg.sparse) or "auto" (dense when the padded rows fit the tile, else
+            sparse). Both solve exactly.
         max_speed: a world in which a body's centre of mass moves faster than this [m/s] is
             flagged diverged and frozen, like one whose state is no longer finite: a blow-up
             that grows over many steps is caught before its numbers overflow.
@@ -157,25 +150,26 @@ class SolverConfig:
             "auto" (fused where it fits).
         sparse_body_nodes: the sparse solver keeps a body acted on by many rows (a walker's
             torso) as six nodes of its factor instead of coupling all its rows with each other,
-            where its analysis estimates a shorter schedule (engine.sparse.choose_body_nodes);
+            where its analysis estimates a shorter schedule
+            (engine.linalg.sparse_analysis.choose_body_nodes);
             off: the rows' own coupling pattern only.
         sparse_projection_pattern: with the sparse solver, a batch with rows besides its
             bilateral joint rows (drives, armature and damping, limits, contacts) cannot project
             with the PADMM factor; it factors its bilateral rows once per step, either on the
             PADMM's pattern with the other rows made identity ("never": no pattern of their own)
-            or on a pattern of the bilateral rows alone (engine.sparse.bilateral_factor_rows;
-            "always"), or the latter where its estimated schedule is the shorter one ("auto",
-            engine.sparse.batch_schedule_cost: DR Legs standing as in Newton's example, 180 of 300
-            factor rows, 9.8 k instead of 12.9 k steps; not for walkers, whose rows are mostly
-            bilateral). True and False read as "always" and "never".
+            or on a pattern of the bilateral rows alone (engine.linalg.sparse_analysis.
+            bilateral_factor_rows; "always"), or the latter where its estimated schedule is the
+            shorter one ("auto", batch_schedule_cost there: DR Legs standing as in Newton's
+            example, 180 of 300 factor rows, 9.8 k instead of 12.9 k steps; not for walkers, whose
+            rows are mostly bilateral). True and False read as "always" and "never".
         sparse_ordering: the sparse solver's elimination order: "minimum_degree" (greedy minimum
             degree, the least fill) or "shallow" (per topology, the shortest estimated schedule,
-            engine.sparse.schedule_cost, of minimum degree and of minimum degree with the
-            elimination tree's height added to each degree at the weights
-            engine.sparse.HEIGHT_WEIGHTS: the factor's and the solves' levels run one after the
-            other, so a shallower tree is a shorter chain; on paper DR Legs hanging 11.6 k -> 8.6 k
-            steps, standing as in Newton's example 12.6 k -> 10.3 k, the default walker 7.5 k ->
-            6.3 k; not yet timed on a GPU, hence not the default).
+            engine.linalg.sparse_analysis.schedule_cost, of minimum degree and of minimum degree
+            with the elimination tree's height added to each degree at the weights HEIGHT_WEIGHTS
+            there: the factor's and the solves' levels run one after the other, so a shallower
+            tree is a shorter chain; on paper DR Legs hanging 11.6 k -> 8.6 k steps, standing as in
+            Newton's example 12.6 k -> 10.3 k, the default walker 7.5 k -> 6.3 k; not yet timed on
+            a GPU, hence not the default).
         compensated_state: sum the twists and the configurations the dynamics run on with
             compensation (State.body_q_low, body_qd_low: engine.integrate) and the joint errors
             the projection corrects in float64 (engine.joints.joint_frames). Off: plain float32
@@ -212,9 +206,6 @@ class SolverConfig:
     contact_stabilization: float = 0.2
     restitution_threshold: float = 0.05
     linear_solver: str = "auto"
-    inner_iterations: int = 25
-    inner_tolerance_ratio: float = 0.01
-    projection_tolerance: float = 1.0e-3
     max_speed: float = 1.0e3
     health_joint_tolerance: float = 5.0e-3
     health_angular_tolerance: float = 0.25
@@ -243,13 +234,10 @@ class SolverConfig:
         if self.sparse_ordering not in ("minimum_degree", "shallow"):
             raise ValueError(f"SolverConfig.sparse_ordering: expected 'minimum_degree' or 'shallow', "
                              f"got {self.sparse_ordering!r}")
-        if self.linear_solver not in ("auto", "dense", "sparse", "matrix_free"):
-            raise ValueError(f"SolverConfig.linear_solver: expected 'auto', 'dense', 'sparse' or 'matrix_free', "
+        if self.linear_solver not in ("auto", "dense", "sparse"):
+            raise ValueError(f"SolverConfig.linear_solver: expected 'auto', 'dense' or 'sparse', "
                              f"got {self.linear_solver!r}")
         checks = {
-            "inner_iterations": self.inner_iterations >= 1,
-            "inner_tolerance_ratio": 0.0 < self.inner_tolerance_ratio < 1.0,
-            "projection_tolerance": 0.0 < self.projection_tolerance < 1.0,
             "projection_velocity_floor": self.projection_velocity_floor >= 0.0,
             "projection_skip_floor": self.projection_skip_floor >= 0.0,
             "projection_skip_floor_angular": self.projection_skip_floor_angular >= 0.0,
@@ -318,8 +306,9 @@ class Model:
     contact_capacity (contacts per world, 0 when the batch has no shapes), max_pairs,
     has_contacts, has_limits, has_bilateral_rows, has_unilateral_or_drive_rows; linear_solver;
     with the sparse solver sparse_system (the PADMM's factor schedules and buffers,
-    engine.sparse.SparseSystem) and sparse_projection (the projection's, on the bilateral joint
-    rows alone; None where it factors on the PADMM's pattern: SolverConfig.sparse_projection_pattern).
+    engine.linalg.sparse_analysis.SparseSystem) and sparse_projection (the projection's, on the
+    bilateral joint rows alone; None where it factors on the PADMM's pattern:
+    SolverConfig.sparse_projection_pattern).
     """
 
     def __init__(self):
@@ -420,10 +409,8 @@ class Workspace:
     (position-level residual [m]/[rad]), row_precond (P).
     Matrices (W, R, R), dense solver only: delassus (P D P), factor (its Cholesky factor with
     (eta + rho) I added). Sparse solver: its matrices and factors live in Model.sparse_system (the
-    PADMM's) and Model.sparse_projection (engine.sparse.SparseSystem); sparse_root (W, B) the body
-    nodes' square roots of the inverse inertias. Matrix-free: no extra arrays (Conjugate Residual
-    vectors live in registers, row Jacobians and body twists in shared memory); inner_iterations
-    (W,) CR iterations summed over a step.
+    PADMM's) and Model.sparse_projection (engine.linalg.sparse_analysis.SparseSystem); sparse_root
+    (W, B) the body nodes' square roots of the inverse inertias.
     PADMM vectors (W, R): v_f, lo, hi (preconditioned), x, x_prev, y, y_prev, y_hat, z, z_prev,
     z_hat, rhs, delta; row_shift (W, R): the factored matrix's diagonal shift per row (eta + the
     row's penalty: engine.padmm.row_penalty); row_free (W, R) int32: the rows on
@@ -458,12 +445,11 @@ class Workspace:
                      "v_f", "lo", "hi", "x", "x_prev", "y", "y_prev", "y_hat", "z", "z_prev", "z_hat",
                      "rhs", "delta", "warm", "row_friction"):
             setattr(self, name, zeros((w, r)))
-        # the dense path keeps P D P and its factor; the matrix-free path needs neither
+        # the dense path keeps P D P and its factor; the sparse path keeps its own (Model.sparse_system)
         self.row_shift = zeros((w, r))  # the factored matrix's diagonal shift per row
         self.row_free = zeros((w, r), wp.int32)  # rows on the free rows' penalty this step (engine.padmm)
         self.delassus = zeros((w, r, r) if dense else (w, 1, 1))
         self.factor = zeros((w, r, r) if dense else (w, 1, 1))
-        self.inner_iterations = zeros(w, wp.int32)
         for name in ("rho", "residual_primal", "residual_dual", "residual_complementarity", "momentum", "momentum_beta", "merit",
                      "stall_reference", "violation_linear", "violation_angular", "energy"):
             setattr(self, name, zeros(w))

@@ -12,7 +12,7 @@ from engine.collide import PAIR_CONTACTS, PAIR_SLOTS, PLANE_CONTACTS
 from engine.fused import FUSED_MAX_ROWS, FUSED_REGISTERS, fused_fits
 from engine.health import far_flags
 from engine.model import Model, SolverConfig, Workspace
-from engine.sparse import batch_schedule_cost, bilateral_factor_rows, build_patterns, make_system
+from engine.linalg.sparse_analysis import batch_schedule_cost, bilateral_factor_rows, build_patterns, make_system
 from engine.spec import JOINT_ROW_COUNT, JointType, MechanismSpec, joint_dynamics_rows
 
 __all__ = ["MAX_DENSE_ROWS", "dense_rows_needed", "pack_worlds"]
@@ -115,7 +115,7 @@ def body_row_lists(row_body_c: np.ndarray, row_body_p: np.ndarray, contact_row_s
 
 
 def factor_rows(specs, pairs, h) -> tuple[np.ndarray, np.ndarray]:
-    """The rows of the sparse solver's factor (engine.sparse) and their bodies, per world: the
+    """The rows of the sparse solver's factor (engine.linalg.sparse) and their bodies, per world: the
     joint rows, then three rows for each candidate contact slot of every collision pair (pair p,
     slot m: rows start + 3 (4 p + m) ..; slots a pair never fills are padding), so that a contact
     row always sits where its bodies are known in advance; then padding to the batch's largest.
@@ -192,7 +192,7 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
             if rows > MAX_DENSE_ROWS:
                 raise ValueError(f"pack_worlds: world {index} ('{spec.name}') needs {rows} constraint rows "
                                  f"({spec.row_count} joint/drive/limit rows + 3 x {capacity} contacts); the dense "
-                                 f"solver takes at most {MAX_DENSE_ROWS} per world: use linear_solver='sparse', 'matrix_free' "
+                                 f"solver takes at most {MAX_DENSE_ROWS} per world: use linear_solver='sparse' "
                                  f"or 'auto', lower contact_capacity or simplify the mechanism")
     max_pairs = max(len(p) for p in pairs)
     max_shapes = max(1, max(len(s.shapes) for s in specs))
@@ -371,7 +371,7 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     bilateral = np.array([sum(JOINT_ROW_COUNT[j.type] for j in s.joints) for s in specs], np.int32)
     model.bilateral_row_count = wp.array(bilateral, dtype=wp.int32, device=device)
     model.has_bilateral_rows = bool(bilateral.any())
-    model.linear_solver = "dense" if dense else ("sparse" if sparse else "matrix_free")
+    model.linear_solver = "dense" if dense else "sparse"
     fits = fused_fits(model.has_contacts, R, dense)
     if config.step_kernel == "fused" and not fits:
         raise ValueError(f"pack_worlds: step_kernel='fused' takes batches without contact shapes and with at most "
@@ -393,10 +393,10 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     model.sparse_system = None
     model.sparse_projection = None
     model.sparse_body_nodes = False
-    if sparse:  # one factor schedule per distinct topology (engine.sparse)
+    if sparse:  # one factor schedule per distinct topology (engine.linalg.sparse_analysis)
         rbc, rbp = factor_rows(specs, pairs, h)
         full = build_patterns(rbc, rbp, device, body_nodes=config.sparse_body_nodes, ordering=config.sparse_ordering)
-        real = None  # with contact slots: rewritten every step (engine.sparse.prepare)
+        real = None  # with contact slots: rewritten every step (engine.linalg.sparse.prepare)
         if not model.has_contacts:  # each factor row stands for the joint row of its index, for good
             rows = np.arange(max(a.rows for a in full[1]))
             real = np.where(rows[None, :] < h["contact_row_start"][:, None], rows[None, :], -1)

@@ -6,7 +6,7 @@ of play, which keep SolverConfig.free_rho) and the factor L L^T = P D P + diag(e
 an active world does (rho standing for each row's rho_i; the functions of each line)
     padmm_rhs_of:     rhs = -v_f - s + eta x + rho y_hat + z_hat, with the De Saxce correction
                       s = mu |z_hat_t| on contact normal rows
-    linear.solve:     x = (L L^T)^-1 rhs
+    solve:            x = (L L^T)^-1 rhs (engine.linalg.dense or engine.linalg.sparse)
     padmm_project_of: y = Pi(x - z_hat / rho): clamp to [lo, hi] (bilateral, drive, limit rows),
                       Coulomb cone per contact triplet;  z = z_hat - rho (x - y)
     row_residuals, padmm_decide: residuals r_p = |x - y|_inf, r_d = |eta (x - x_prev) + rho (y - y_hat)|_inf,
@@ -16,24 +16,23 @@ an active world does (rho standing for each row's rho_i; the functions of each l
                       penalty update (which asks for a new factor), balancing r_p against the dual
                       residual of the rows whose penalty is the world's rho (not the free rows)
     padmm_accelerate_of: y_hat = y + beta (y - y_prev), z_hat = z + beta (z - z_prev)
-    linear.factor:    only for worlds whose penalty changed, or in which a free drive row met its
-                      bound (it takes the world's rho from then on)
+    factor:           only for worlds whose penalty changed (rho_update), or in which a free drive
+                      row met its bound (it takes the world's rho from then on)
 Kernels: padmm_start (the world's state, the warm start, the shifts of the first factor and the
 first right-hand side), then per iteration the solve and padmm_update (everything after the
 solve up to the next iteration's right-hand side, a thread block per world; a world that stops
 writes its impulses lambda = P y there), then the factors it asked for: two or three launches an
-iteration instead of five to eight (DR Legs hanging, 4096 worlds, NVIDIA H100: the PADMM's
-kernels 0.19 -> 0.12 ms per step; random walkers, whose slowest worlds iterate 40-80 times a step,
-43-45 -> 28-29 ms per step).
-With the matrix-free linear solver (engine.matrix_free) the solve is an inexact, warm-started
-Conjugate Residual solve with the Delassus operator and there is no factor.
+iteration instead of five to eight (measured: benchmarks/results/README.md, "Maximal path: design
+notes"). The fused step (engine.fused) calls the same per-row functions, padmm_decide (with the
+penalty rule rho_update) and project_cone inside its one kernel.
 The loop runs under wp.capture_while on a device counter of active worlds, so it can be
 captured into a CUDA graph; converged, capped and diverged worlds do no more work.
 """
 
 import warp as wp
 
-from engine import linear, matrix_free, sparse
+from engine.linalg import dense, sparse
+from engine.linalg.lanes import block_max, block_sum, block_sync
 from engine.model import ROW_ANGULAR, ROW_CONTACT_NORMAL, ROW_CONTACT_TANGENT, ROW_DYNAMICS, ROW_LIMIT, ROW_LINEAR
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
@@ -62,6 +61,19 @@ def row_penalty(free: int, rho: float, rho_free: float):
     if free != 0 and rho_free > 0.0:
         return rho_free
     return rho
+
+
+@wp.func
+def rho_update(rho: float, r_p: float, r_d: float):
+    """The adaptive penalty rule: the penalty RHO_FACTOR times larger where the primal residual r_p
+    exceeds RHO_BALANCE times the dual residual r_d, RHO_FACTOR times smaller in the opposite case,
+    within [RHO_MIN, RHO_MAX]; else rho unchanged (the caller refactors when it changes)."""
+    new_rho = rho
+    if r_p > RHO_BALANCE * r_d:
+        new_rho = wp.min(rho * RHO_FACTOR, RHO_MAX)
+    elif r_d > RHO_BALANCE * r_p:
+        new_rho = wp.max(rho / RHO_FACTOR, RHO_MIN)
+    return new_rho
 
 
 @wp.func
@@ -382,11 +394,7 @@ def padmm_decide(
         momentum[world] = 1.0
     merit[world] = change
     if adaptive_rho != 0 and its % rho_update_interval == 0:
-        new_rho = r
-        if r_p > RHO_BALANCE * r_b:
-            new_rho = wp.min(r * RHO_FACTOR, RHO_MAX)
-        elif r_b > RHO_BALANCE * r_p:
-            new_rho = wp.max(r / RHO_FACTOR, RHO_MIN)
+        new_rho = rho_update(r, r_p, r_b)
         if new_rho != r:
             rho[world] = new_rho
             needs_factor[world] = 1
@@ -480,7 +488,7 @@ def padmm_update(
         if i < rows:
             padmm_project_of(world, i, padmm_rho_free, row_kind, row_free, row_count, row_friction, rho, active, lo,
                              hi, x, z_hat, y, z, y_prev, z_prev, row_free, demote)
-    linear.block_sync()  # a contact triplet's rows are projected by its normal row's thread
+    block_sync()  # a contact triplet's rows are projected by its normal row's thread
     r_p = float(0.0)
     r_d = float(0.0)
     r_c = float(0.0)
@@ -498,19 +506,19 @@ def padmm_update(
             r_c = wp.max(r_c, c_i)
             r_b = wp.max(r_b, b_i)
             change += m_i
-    r_p = matrix_free.block_max(r_p)
-    r_d = matrix_free.block_max(r_d)
-    r_c = matrix_free.block_max(r_c)
-    r_b = matrix_free.block_max(r_b)
-    scale = matrix_free.block_max(scale)
-    change = matrix_free.block_sum(change)
+    r_p = block_max(r_p)
+    r_d = block_max(r_d)
+    r_c = block_max(r_c)
+    r_b = block_max(r_b)
+    scale = block_max(scale)
+    change = block_sum(change)
     if lane == 0:
         if padmm_decide(world, r_p, r_d, r_c, r_b, scale, change, max_iterations, relative_tolerance,
                         rho_update_interval, adaptive_rho, acceleration, padmm_tolerance, rho, active, converged,
                         iterations, momentum, momentum_beta, merit, needs_factor, residual_primal, residual_dual,
                         residual_complementarity, demote, stall_ratio, stall_reference) != 0:
             wp.atomic_sub(active_count, 0, 1)
-    linear.block_sync()  # the decision, the momentum and the penalty reach every thread
+    block_sync()  # the decision, the momentum and the penalty reach every thread
     if active[world] == 0:
         for k in range(sweeps):
             i = lane + k * stride
@@ -527,7 +535,7 @@ def padmm_update(
                 if row_free[world, i] == 2:  # a drive that met its bound: the world's penalty from now on
                     row_free[world, i] = 0
                 row_shift[world, i] = eta + row_penalty(row_free[world, i], r, cap)
-    linear.block_sync()  # the De Saxce term reads the triplet's other rows
+    block_sync()  # the De Saxce term reads the triplet's other rows
     for k in range(sweeps):
         i = lane + k * stride
         if i < rows:
@@ -577,11 +585,10 @@ def padmm_output_of(
 
 def factor_flagged(model):
     """Factor P D P + diag(row_shift) for the worlds flagged in needs_factor (padmm_start, or
-    padmm_update where a penalty changed; the next padmm_update clears the flags). The
-    matrix-free solver has no factor."""
+    padmm_update where a penalty changed; the next padmm_update clears the flags)."""
     work = model.work
     if model.linear_solver == "dense":
-        linear.factor(work.delassus, work.row_shift, work.needs_factor, work.factor)
+        dense.factor(work.delassus, work.row_shift, work.needs_factor, work.factor)
     elif model.linear_solver == "sparse":
         sparse.factor(model, work.row_shift, work.needs_factor)
 
@@ -604,11 +611,9 @@ def padmm_iteration(model, row_lambda_out):
     impulses into row_lambda_out (W, R)), and the new factors it asks for."""
     work, cfg, device = model.work, model.config, model.device
     if model.linear_solver == "dense":
-        linear.solve(work.factor, work.rhs, work.active, work.x)
-    elif model.linear_solver == "sparse":
+        dense.solve(work.factor, work.rhs, work.active, work.x)
+    else:
         sparse.solve(model, work.rhs, work.active, work.x)
-    else:  # inexact Conjugate Residual, warm-started from the last iterate
-        matrix_free.solve(model, work.rhs, work.active, work.x)
     again = refactors(model)  # the new shifts and the factors that follow them
     wp.launch_tiled(padmm_update, dim=[model.num_worlds], block_dim=UPDATE_BLOCK, device=device,
                     inputs=[cfg.max_iterations, float(cfg.relative_tolerance), cfg.rho_update_interval,
@@ -632,8 +637,6 @@ def solve_padmm(model, row_lambda_warm, row_lambda_out):
     padmm_iteration until every world has stopped (captured as a conditional loop)."""
     work, cfg, device = model.work, model.config, model.device
     work.active_count.zero_()
-    if model.linear_solver == "matrix_free":  # the only solves that count inner iterations
-        work.inner_iterations.zero_()
     wp.launch(padmm_start, dim=(model.num_worlds, model.max_rows), device=device,
               inputs=[(1.0 - cfg.warmstart_decay) if cfg.warmstart else 0.0, work.row_count, model.row_kind,
                       model.padmm_rho_init, model.padmm_eta, model.padmm_rho_free, model.bilateral_row_count,
@@ -649,4 +652,5 @@ def solve_padmm(model, row_lambda_warm, row_lambda_out):
     wp.capture_while(work.active_count, padmm_iteration, model=model, row_lambda_out=row_lambda_out)
 
 
-__all__ = ["factor_flagged", "padmm_iteration", "refactors", "solve_padmm"]
+__all__ = ["factor_flagged", "padmm_iteration", "project_cone", "refactors", "rho_update", "row_penalty",
+           "solve_padmm"]

@@ -17,7 +17,6 @@ def test_walker_steps_reports_a_finite_batch_of_three_leg_walkers(tmp_path, caps
     assert result["worlds"] == 2 and result["legs_per_side"] == 3 and result["linear_solver"] == "sparse"
     assert result["rows"] > 128 and result["nan_worlds"] == 0
     assert result["ms_per_step"] > 0 and result["padmm_iterations_mean"] >= 1
-    assert result["cr_iterations_per_step"] == 0  # direct solves: no Conjugate Residual iterations
     assert set(result["stage_ms"]) == {"kinematics", "collision", "dual_problem", "padmm", "integrate", "projection"}
 
 

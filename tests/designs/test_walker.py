@@ -13,7 +13,7 @@ def test_walkers_of_different_topologies_walk_in_one_batch():
     """Jansen walkers with three and one legs per side and a Klann walker with two legs per side
     run in one batch (loops closed, motors working); the default (three Jansen legs per side)
     walks straight at > 0.1 m/s with its feet lifting. The large worlds exceed the dense tile, so
-    the batch runs on the matrix-free solver."""
+    the batch runs on the sparse solver."""
     family = load_family("walker")
     base = family.space.default()
     assert base["legs_per_side"] == 3 and base["leg_family"] == "jansen_leg"

@@ -10,8 +10,9 @@ import pytest
 import warp as wp
 
 from engine import SolverConfig, pack_worlds, step
-from engine.fused import (INVERSE_MAX_ROWS, SHARE_JOINT_PARTS, block_sync, cholesky_lanes, cholesky_solve_lanes,
-                          fused_block, fused_inverse, inverse_solve_lanes, triangular_inverse_lanes)
+from engine.fused import INVERSE_MAX_ROWS, SHARE_JOINT_PARTS, fused_block, fused_inverse
+from engine.linalg.dense import cholesky_lanes, cholesky_solve_lanes, inverse_solve_lanes, triangular_inverse_lanes
+from engine.linalg.lanes import block_sync
 from engine.model import ROW_LIMIT, ROW_LINEAR
 from engine.scenes import chain, fourbar, pendulum, sixbar
 from engine.scenes_contact import CONTACT_SCENES
