@@ -1,4 +1,4 @@
-"""Where engine.chains' fused step spends a world's time: the clock at the end of each stage.
+"""Where engine.reduced.chains' fused step spends a world's time: the clock at the end of each stage.
 
     python -m benchmarks.chains_stages --device cuda --scenes drlegs_standing_newton drlegs_hanging --worlds 4096
         [--variant LABEL] [--steps 20] [--warmup 30] [--assets DIR] [--out FILE]
@@ -6,7 +6,7 @@
 Each scene of benchmarks.scenes (its dt) in reduced coordinates, with the settings and packing of its
 variant ``--variant`` (default "reduced coordinates"; "reduced coordinates, 8 contacts" keeps DR Legs
 standing's feet's 8 contacts): after ``--warmup`` steps, ``--steps`` steps of the step kernel compiled
-with a clock reading at the end of each stage (engine.chains.STAGES, ChainModel.step(stages=True);
+with a clock reading at the end of each stage (engine.reduced.chain_stages.STAGES, ChainModel.step(stages=True);
 the same step otherwise). Per stage: the cycles from its start to its end of each world's block,
 the mean over the worlds that ran it, then over the steps, and its share of the step. On a GPU
 those are SM cycles of one block and include the issue slots it waits for while other blocks run
@@ -31,10 +31,11 @@ import warp as wp
 
 def stage_cycles(specs, worlds: int, dt: float, device: str, config=None, pack: dict | None = None,
                  steps: int = 20, warmup: int = 30) -> dict:
-    """Mean cycles per stage (engine.chains.STAGES order, stages no world ran left out) over
+    """Mean cycles per stage (STAGES order, stages no world ran left out) over
     ``steps`` steps after ``warmup``, ``worlds`` worlds cycling through ``specs``, and the PADMM
     iterations those steps took (mean over worlds and steps)."""
-    from engine.chains import STAGES, pack_chains
+    from engine.reduced.chain_stages import STAGES
+    from engine.reduced.chains import pack_chains
 
     model = pack_chains([specs[w % len(specs)] for w in range(worlds)], device=device, config=config, dt=dt,
                         **(pack or {}))
@@ -69,7 +70,7 @@ def plot(rows: list, path: pathlib.Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from engine.chains import STAGES
+    from engine.reduced.chain_stages import STAGES
 
     names = [s for s in STAGES if any(s in r["stages"] for r in rows)]
     fig, ax = plt.subplots(figsize=(8.0, 0.22 * len(names) * max(1, len(rows)) + 1.5))
@@ -82,7 +83,7 @@ def plot(rows: list, path: pathlib.Path) -> None:
     ax.set_yticklabels(names, fontsize=8)
     ax.invert_yaxis()
     ax.set_xlabel("share of a world's step (clock at each stage's end)")
-    ax.set_title(f"engine.chains' step by stage, {rows[0]['device_name']}", fontsize=9)
+    ax.set_title(f"engine.reduced.chains' step by stage, {rows[0]['device_name']}", fontsize=9)
     ax.legend(fontsize=7)
     ax.grid(True, axis="x", alpha=0.3)
     fig.tight_layout()

@@ -108,7 +108,7 @@ def engine_run(specs, worlds: int, dt: float, steps: int, record_every: int, con
                sample: np.ndarray, potential_min=None, model_kind: str = "maximal", pack: dict | None = None) -> dict:
     """Simulate ``worlds`` worlds (cycling through ``specs``); time every chunk of ``record_every``
     steps after the first two (compile, capture); record errors and sample positions per chunk.
-    model_kind "chains": the same worlds in reduced coordinates (engine.chains, ``pack``: its
+    model_kind "chains": the same worlds in reduced coordinates (engine.reduced.chains, ``pack``: its
     pack_chains options), their errors measured by a maximal model of the same worlds
     (engine.metrics on their body poses)."""
     batch = [specs[w % len(specs)] for w in range(worlds)]
@@ -143,11 +143,11 @@ def engine_run(specs, worlds: int, dt: float, steps: int, record_every: int, con
 
 def chains_run(batch, dt: float, steps: int, record_every: int, config: SolverConfig, device: str, sample: np.ndarray,
                potential_min=None, pack: dict | None = None) -> dict:
-    """engine_run's measurement of a batch in reduced coordinates (engine.chains: one fused launch per
+    """engine_run's measurement of a batch in reduced coordinates (engine.reduced.chains: one fused launch per
     step; PADMM iterations only on contact rows), its loop errors and energy from a maximal model of
     the same worlds. Its PADMM iteration and projection counts (the Gauss-Newton corrections the
     skip floors left) are those of the last step of each record chunk."""
-    from engine.chains import ChainStepper, pack_chains
+    from engine.reduced.chains import ChainStepper, pack_chains
 
     gauge = pack_worlds(batch, device=device, dt=dt)  # measures only: its joint residuals and energy
     pool_before = mempool_megabytes(device)

@@ -180,7 +180,7 @@ LINKAGE_SWEEP = [
     dict(label="semi-implicit Euler", dt_scale=1.0, config=dict(integrator="euler")),
     dict(label="float32 state", dt_scale=1.0, config=dict(compensated_state=False)),
     dict(label="dt x8", dt_scale=8.0),
-    # the same linkages in reduced coordinates (engine.chains)
+    # the same linkages in reduced coordinates (engine.reduced.chains)
     dict(label="reduced coordinates", dt_scale=1.0, model="chains"),
     dict(label="reduced coordinates, dt x4", dt_scale=4.0, model="chains"),
 ]
@@ -222,7 +222,7 @@ DRLEGS_SWEEP = [
     dict(label="no projection (Baumgarte 0.5), dt x4", dt_scale=4.0, config=NO_PROJECTION),
 ]
 DRLEGS_PEER_DT_SCALES = {"mujoco": [0.25, 0.5, 1.0, 2.0, 4.0], "kamino": [1.0, 2.0]}
-# DR Legs hanging in reduced coordinates (engine.chains: 30 joint angles, 18 independent loop rows, one
+# DR Legs hanging in reduced coordinates (engine.reduced.chains: 30 joint angles, 18 independent loop rows, one
 # fused launch per step): the loops' velocity constraint solved exactly, then 2 (or 1, or no) Gauss-Newton
 # projections of the angles onto the loops; no projection: the velocity-level Baumgarte term alone
 REDUCED = dict(position_iterations=2)

@@ -287,7 +287,7 @@ def test_chains_stages_reports_every_stage_of_the_reduced_step(tmp_path, capsys)
     import csv
 
     from benchmarks import chains_stages
-    from engine.chains import STAGES
+    from engine.reduced.chain_stages import STAGES
 
     out = tmp_path / "stages" / "fourbar.json"
     assert chains_stages.main(["--device", "cpu", "--scenes", "fourbar", "--worlds", "2", "--steps", "2",
@@ -527,7 +527,7 @@ def test_variant_flag_times_a_declared_variant_with_its_settings(tmp_path, capsy
 
 
 def test_runner_measures_reduced_coordinates_settings_against_the_reference(tmp_path):
-    """--settings picks declared points by label: the four-bar in reduced coordinates (engine.chains)
+    """--settings picks declared points by label: the four-bar in reduced coordinates (engine.reduced.chains)
     runs as its own rows, its loops measured by the maximal engine's joint residuals (below 1e-6 m),
     its trajectory within 5e-5 m of MuJoCo C's float64 reference at dt 1 ms and measurably further at
     dt 4 ms; a label no scene declares is refused, naming it."""

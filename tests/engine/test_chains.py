@@ -1,4 +1,4 @@
-"""engine.chains (closed chains in reduced coordinates) against independent oracles: finite
+"""engine.reduced.chains (closed chains in reduced coordinates) against independent oracles: finite
 differences of the kinematics for the mass matrix and the loop rows, the compound pendulum's ODE,
 MuJoCo C (float64, RK4) and the maximal-coordinate engine for trajectories, the maximal engine's
 joint residuals for the loops, energy conservation and static equilibrium."""
@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from engine import SolverConfig, compute_metrics, pack_worlds
-from engine.chains import MAX_COORDS, MAX_SHAPES, ChainStepper, chain_layout, pack_chains
+from engine.reduced.chain_layout import MAX_COORDS, MAX_SHAPES, chain_layout
+from engine.reduced.chains import ChainStepper, pack_chains
 from engine.rollout import Stepper
 from engine.scenes import chain, fourbar, pendulum, sixbar
 from engine.spec import Body, GroundPlane, Joint, JointDrive, MechanismSpec, Shape
@@ -757,7 +758,7 @@ def test_the_solves_take_a_floating_roots_chain_unrolled(device):
     steps bit for bit as with the walk alone (prefix 0) and as with a kernel compiled without the
     unrolled code (unroll 0, which a batch without floating roots gets); the prefix counts a leading
     chain only while it is every other entry's (at most MAX_PREFIX)."""
-    from engine.chains import MAX_PREFIX, _prefix
+    from engine.reduced.chain_layout import MAX_PREFIX, _prefix
 
     assert _prefix(np.array([0, 1, 2, 3, 4, 5, 6, 6, 7])) == 6 and _prefix(np.arange(MAX_COORDS)) == MAX_PREFIX
     assert _prefix(np.array([0, 0, 1, 1])) == 0 and _prefix(np.array([0, 1, 2, 2, 3])) == 2
@@ -847,7 +848,7 @@ def test_a_box_that_leaves_the_ground_lands_from_a_fresh_penalty(device):
     1 m/s with three PADMM iterations a step from then on (too few for the penalty to adapt), is off
     the ground for 0.2 s (the carried penalty cleared), lands from CONTACT_RHO, and 0.4 s after the
     toss rests on the ground and is still, having risen to its toss's apex (5.1 cm) and no higher."""
-    from engine.chains import CONTACT_RHO
+    from engine.reduced.chains import CONTACT_RHO
 
     model = pack_chains([_box()], device=device, dt=1e-3)
     state = model.state()
@@ -1032,7 +1033,7 @@ def test_the_packed_mass_matrix_holds_the_deepest_tree(device):
     and its tile holds them; released from 30 degrees without damping, the chain keeps its kinetic
     plus potential energy (engine.metrics) within 1e-4 of what it can lose over 0.1 s at dt 0.1 ms
     (1.2e-5 on the CPU; the factor's off-diagonal entries 1 % off give 7e-4)."""
-    from engine.chains import _packed_rows
+    from engine.reduced.chain_layout import _packed_rows
 
     scene = chain(links=MAX_COORDS)
     model = pack_chains([scene.spec], device=device, dt=1e-4)
@@ -1053,7 +1054,7 @@ def test_stage_clocks_leave_the_step_unchanged(device):
     and without them end bit for bit alike; the readings rise stage by stage, every stage has its
     cycles (the contact stages only from the box's world), and before any such step stage_cycles
     says so."""
-    from engine.chains import STAGES
+    from engine.reduced.chain_stages import STAGES
 
     specs = [_box(), sixbar().spec]
     plain, timed = (pack_chains(specs, device=device, dt=1e-3) for _ in range(2))
