@@ -14,6 +14,8 @@ accuracy the plan stands for.
 from __future__ import annotations
 
 import enum
+
+import numpy as np
 from dataclasses import dataclass, field
 
 __all__ = ["Coordinates", "Plan", "choose"]
@@ -208,6 +210,9 @@ def describe_reduced(plan: Plan, model) -> Plan:
         plan.integrator = _integrator(cfg)
         plan.accuracy = ("loops closed by their rows at every step (velocities exactly, positions projected); "
                          "joint errors measured at every record through a maximal gauge (Trace.health)")
+        if any(np.isfinite(j.drive.effort_limit) for spec in model.specs for j in spec.joints if j.drive):
+            plan.control += ("; effort limits checked, not enforced: a world whose drive passes its limit stops "
+                             "there (health EFFORT_LIMIT)")
     else:
         from engine.reduced.tabulated import describe
         describe(plan, inner)

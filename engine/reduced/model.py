@@ -31,10 +31,12 @@ class ReducedState:
 
     @property
     def body_q(self):
+        """(W, B) wp.transform: every body's centre-of-mass position and orientation [m]."""
         return self._model._bodies(self)[0]
 
     @property
     def body_qd(self):
+        """(W, B) wp.spatial_vector: every body's centre-of-mass velocity and angular velocity [m/s, rad/s]."""
         return self._model._bodies(self)[1]
 
 
@@ -57,6 +59,7 @@ class ReducedModel:
 
     @property
     def coordinates(self) -> Coordinates:
+        """The plan's coordinates."""
         return self.plan.coordinates
 
     @property
@@ -69,6 +72,7 @@ class ReducedModel:
 
     # -- what a plan implements ------------------------------------------------------------------
     def state(self) -> ReducedState:
+        """A State at the specs' initial poses (every world running again)."""
         raise NotImplementedError
 
     def advance(self, state: ReducedState, steps: int) -> None:
@@ -76,6 +80,7 @@ class ReducedModel:
         raise NotImplementedError
 
     def copy_state(self, source: ReducedState, target: ReducedState) -> None:
+        """Copy ``source``'s coordinates into ``target``."""
         raise NotImplementedError
 
     def _bodies(self, state: ReducedState) -> tuple:
@@ -117,6 +122,7 @@ class ReducedModel:
                       residual_threshold=float(cfg.health_residual), max_speed=float(cfg.max_speed))
 
     def step(self, state_in: ReducedState, state_out: ReducedState) -> None:
+        """One step from state_in into state_out (in place when they are one State)."""
         if state_out is not state_in:
             self.copy_state(state_in, state_out)
         self.advance(state_out, 1)
@@ -165,6 +171,7 @@ class TreeModel(ReducedModel):
                     self._drives.append((w, k, j))
 
     def state(self) -> ReducedState:
+        """A new ChainState at the initial poses, every world running again."""
         self.inner.work.diverged.zero_()  # a new trajectory: every world runs again
         return ReducedState(self, self.inner.state())
 
@@ -173,6 +180,7 @@ class TreeModel(ReducedModel):
             self.inner.step(state.inner)
 
     def copy_state(self, source: ReducedState, target: ReducedState) -> None:
+        """Copy the coordinates, rates, roots and body poses of ``source`` into ``target``."""
         for name in ("q", "u", "root", "body_q", "body_qd"):
             wp.copy(getattr(target.inner, name), getattr(source.inner, name))
 
@@ -220,6 +228,7 @@ class TabulatedPlanModel(ReducedModel):
         self._initial = {name: wp.clone(getattr(inner, name)) for name in self.STATE}
 
     def state(self) -> ReducedState:
+        """The model's one state, reset to the specs' initial poses."""
         for name, value in self._initial.items():
             wp.copy(getattr(self.inner, name), value)
         return ReducedState(self, None)
@@ -228,6 +237,7 @@ class TabulatedPlanModel(ReducedModel):
         self.inner.step(steps)
 
     def copy_state(self, source: ReducedState, target: ReducedState) -> None:
+        """Refused: the plan's one state lives in the model."""
         raise ValueError("step: the tabulated plan keeps one state in the model; step it in place "
                          "(state_out = state_in)")
 
