@@ -15,7 +15,7 @@ from engine.model import Model, SolverConfig, Workspace
 from engine.linalg.sparse_analysis import batch_schedule_cost, bilateral_factor_rows, build_patterns, make_system
 from engine.spec import JOINT_ROW_COUNT, JointType, MechanismSpec, joint_dynamics_rows
 
-__all__ = ["MAX_DENSE_ROWS", "dense_rows_needed", "pack_worlds"]
+__all__ = ["MAX_DENSE_ROWS", "dense_rows_needed", "pack", "pack_worlds"]
 
 ROW_KINDS = {  # bilateral row kinds per joint type: 0 linear [m], 1 angular [rad]
     JointType.REVOLUTE: (0, 0, 0, 1, 1),
@@ -135,9 +135,67 @@ def factor_rows(specs, pairs, h) -> tuple[np.ndarray, np.ndarray]:
     return body_c, body_p
 
 
+def pack(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | None = None, dt: float = 1.0e-3,
+         contact_capacity: int | None = None, coordinates=None):
+    """Pack one world per spec into a batch on ``device``, in the coordinates and kernels the plan
+    chooses (engine.plan; ``print(model.plan)`` says which and why).
+
+    Args:
+        specs: the worlds (MechanismSpec); they may differ in everything.
+        device: Warp device ("cpu", "cuda", ...); None = Warp's default.
+        config: SolverConfig (default settings when None).
+        dt: time step of every world [s].
+        contact_capacity: contacts kept per world and step (None: what the shapes can produce).
+        coordinates: None (automatic) or an engine.plan.Coordinates (or its value: "tabulated",
+            "tree", "maximal") to force, for benchmarks and tests; a world it does not fit raises
+            ValueError naming the world and the reason.
+
+    Returns:
+        the packed model for engine.step / engine.Stepper / engine.rollout: an engine.Model for
+        maximal coordinates, an engine.reduced.model.ReducedModel otherwise; both carry ``plan``.
+    """
+    from engine.plan import Coordinates, choose, describe_maximal, describe_reduced
+
+    specs = _checked_specs(specs, "pack")
+    config = config or SolverConfig()
+    if not isinstance(config, SolverConfig):
+        raise ValueError(f"pack: config must be a SolverConfig, got {type(config).__name__}")
+    device = wp.get_device(device)
+    plan, layouts = choose(specs, device, coordinates)
+    if plan.coordinates is Coordinates.MAXIMAL:
+        model = pack_worlds(specs, device, config=config, dt=dt, contact_capacity=contact_capacity)
+        model.plan = describe_maximal(plan, model)
+        return model
+    if plan.coordinates is Coordinates.TREE:
+        from engine.reduced.chains import pack_chains
+        from engine.reduced.model import TreeModel
+        inner = pack_chains(specs, device, config=config, dt=dt, contact_capacity=contact_capacity, layouts=layouts)
+        model = TreeModel(inner, specs, plan, config, dt, device)
+    else:
+        from engine.reduced.model import TabulatedPlanModel
+        from engine.reduced.tabulated import pack_tabulated
+        inner = pack_tabulated(specs, device=device, dt=dt, config=config, layouts=layouts)
+        model = TabulatedPlanModel(inner, specs, plan, config, dt, device)
+    describe_reduced(plan, model)
+    return model
+
+
+def _checked_specs(specs, who: str) -> list:
+    if isinstance(specs, (MechanismSpec, str, bytes)) or not hasattr(specs, "__iter__"):
+        raise ValueError(f"{who}: specs must be a list of MechanismSpec, got {type(specs).__name__}")
+    specs = list(specs)
+    if not specs:
+        raise ValueError(f"{who}: needs at least one MechanismSpec")
+    for index, spec in enumerate(specs):
+        if not isinstance(spec, MechanismSpec):
+            raise ValueError(f"{who}: world {index} is a {type(spec).__name__}, expected MechanismSpec")
+    return specs
+
+
 def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | None = None,
-                dt: float = 1.0e-3, contact_capacity: int | None = None) -> Model:
-    """Pack one world per spec into a padded batch on ``device``.
+                dt: float = 1.0e-3, contact_capacity: int | None = None, measure_only: bool = False) -> Model:
+    """Pack one world per spec into a padded batch in maximal coordinates on ``device`` (the
+    MAXIMAL plan's packer; engine.pack chooses the plan).
 
     Args:
         specs: the worlds; they may differ in bodies, joints and constraint rows.
@@ -148,17 +206,13 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
             world's shape pairs can produce and 4 per shape + 8. A world that produces more is
             counted in model.work.contact_dropped (never silently wrong, never a crash).
 
+        measure_only: a model that only measures states of these worlds (joint residuals, energy,
+            tracked points: a reduced plan's gauge): no solver set-up (no sparse factor schedule).
+
     Returns:
         Model with arrays of shape (num_worlds, max_X) and per-world counts.
     """
-    if isinstance(specs, (MechanismSpec, str, bytes)) or not hasattr(specs, "__iter__"):
-        raise ValueError(f"pack_worlds: specs must be a list of MechanismSpec, got {type(specs).__name__}")
-    specs = list(specs)
-    if not specs:
-        raise ValueError("pack_worlds: needs at least one MechanismSpec")
-    for index, spec in enumerate(specs):
-        if not isinstance(spec, MechanismSpec):
-            raise ValueError(f"pack_worlds: world {index} is a {type(spec).__name__}, expected MechanismSpec")
+    specs = _checked_specs(specs, "pack_worlds")
     config = config or SolverConfig()
     if not isinstance(config, SolverConfig):
         raise ValueError(f"pack_worlds: config must be a SolverConfig, got {type(config).__name__}")
@@ -199,7 +253,7 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     max_rows = max(1, max(s.row_count for s in specs) + 3 * capacity)
     max_rows = ROW_TILE * ((max_rows + ROW_TILE - 1) // ROW_TILE)
     dense = config.linear_solver == "dense" or (config.linear_solver == "auto" and max_rows <= MAX_DENSE_ROWS)
-    sparse = not dense and config.linear_solver in ("auto", "sparse")
+    sparse = not dense and config.linear_solver in ("auto", "sparse") and not measure_only
 
     W, B, J, R, P, S, Q = num_worlds, max_bodies, max_joints, max_rows, max_points, max_shapes, max(max_pairs, 1)
     f32 = np.float32
@@ -386,7 +440,7 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     model.fused_registers = FUSED_REGISTERS  # register cap per thread of the fused step
     model.fused_inverse = None  # solve through L^-1 in the fused step (None: engine.fused.fused_inverse)
     model.fused_sharing = None  # how the fused step's lanes share joints and bodies (None: engine.fused.fused_sharing)
-    model.work = Workspace(W, B, R, device, max_pairs=max_pairs, contact_capacity=capacity, dense=dense)
+    model.work = Workspace(W, B, R, device, max_pairs=max_pairs, contact_capacity=capacity, dense=dense and not measure_only)
     model.work.row_count.assign(h["row_count"])
     model.work.row_body_c = wp.clone(model.row_body_c)  # contact rows rewrite their bodies every step
     model.work.row_body_p = wp.clone(model.row_body_p)
