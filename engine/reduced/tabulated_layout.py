@@ -23,8 +23,8 @@ the driving link, the sign and offset of its angle against q, the contact shape'
 centre at unit scale), every number rounded to KEY_DIGITS decimals; under one key, one table per
 assembly branch (a sub-chain whose start is not on a cached table gets a table of its own).
 
-Nothing here knows a leg or a torso: contact slots come from shapes (TabulatedLayout.base_slots,
-SubChain.shape) and tracked points are the spec's own.
+Nothing here knows a mechanism's anatomy: contact slots come from shapes
+(TabulatedLayout.base_slots, SubChain.shape) and tracked points are the spec's own.
 """
 
 from __future__ import annotations

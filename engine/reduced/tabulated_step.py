@@ -1,6 +1,6 @@
 """The step of the tabulated path: one kernel per (tiled, phase, register cap), built on demand.
 
-It is engine.legged's step on the layout of engine.reduced.tabulated_kernel: mass matrix
+Ported from engine.legged's step onto the layout of engine.reduced.tabulated_kernel: mass matrix
 M(q) = sum_k J_k^T diag(m_k, I_k) J_k and bias forces h(q, u) (gravity, the velocity-product terms
 from c_k'' and phi_k'', the gyroscopic torques) summed link by link; semi-implicit Euler: u_f =
 u + dt M^-1 h, then the dual problem over the rows (the driving coordinates' velocity drives with
