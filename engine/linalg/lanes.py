@@ -140,12 +140,12 @@ _CLOCK = """
 #if defined(__CUDA_ARCH__)
 return clock64();
 #else
-return int64_t(0);
+return (long long)__builtin_readcyclecounter();
 #endif
 """
 
 
 @wp.func_native(_CLOCK)
 def clock() -> wp.int64:
-    """The multiprocessor's cycle counter (0 on the CPU)."""
+    """The multiprocessor's cycle counter on CUDA, the processor's on the CPU."""
     ...

@@ -13,7 +13,7 @@ import warp as wp
 
 from engine.contacts import contact_direction
 from engine.linalg.lanes import block_sync, tile_set
-from engine.padmm import project_cone
+from engine.padmm import project_cone, rho_update
 from engine.reduced.chain_layout import MAX_PREFIX, TILE_STEP, _tile_size
 from engine.reduced.chain_stages import (DIVERGED, DYNAMICS, EFFORT_LIMIT, VELOCITIES, ChainArrays, ChainWork,
                                          add_children, advance, candidates_within, contact_factor, contact_residuals,
@@ -449,11 +449,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                         if largest[0] <= tol and largest[1] <= tol:
                             done = 1
                         elif adaptive != 0 and its % rho_interval == 0:
-                            new_rho = rho
-                            if largest[0] > 10.0 * largest[1]:
-                                new_rho = wp.min(rho * 4.0, 1.0e3)
-                            elif largest[1] > 10.0 * largest[0]:
-                                new_rho = wp.max(rho / 4.0, 1.0e-5)
+                            new_rho = rho_update(rho, largest[0], largest[1])
                             if new_rho != rho:
                                 rho = new_rho
                                 contact_factor(lane, lanes, m3, Dt, ddiag, fdiag, Gt, eta + rho)

@@ -12,7 +12,7 @@ from typing import Any
 import warp as wp
 
 from engine.collide import plane_point, plane_point_count
-from engine.linalg.lanes import block_sync, tile_set
+from engine.linalg.lanes import block_sync, clock, tile_set
 from engine.reduced.chain_layout import KIND_LINEAR, KIND_REVOLUTE, KIND_ROOT
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
@@ -376,24 +376,12 @@ STAGES = ("kinematics and own terms", "subtree sums, forces, loop errors", "M~ a
           "integration", "projections, velocities, guard", "output")
 
 
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-return clock64();
-#else
-return (long long)__builtin_readcyclecounter();
-#endif
-""")
-def clock_now() -> wp.int64:
-    """The SM's cycle counter on CUDA, the processor's on the CPU."""
-    ...
-
-
 @wp.func
 def stamp(w: ChainWork, world: int, lane: int, stage: int):
     """Lane 0 reads the clock into work.stage_clock[world, stage] (the end of stage - 1, the start
     of stage)."""
     if lane == 0:
-        w.stage_clock[world, stage] = clock_now()
+        w.stage_clock[world, stage] = clock()
 
 
 @wp.func
