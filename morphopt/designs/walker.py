@@ -15,12 +15,9 @@ import pathlib
 import numpy as np
 
 from engine import GroundPlane, MechanismSpec, Shape, TrackedPoint
-from engine.legged import LeggedSpec, LegPlacement
 from morphopt.design_space import Choice, DesignSpace, Float, Int
 from morphopt.linkage import BarStyle, linkage_parts
-from morphopt.linkage.kinematics import solve_at
-from morphopt.linkage.leg_table import leg_table
-from morphopt.linkage.to_spec import assemble, link_body, world
+from morphopt.linkage.to_spec import assemble, link_body
 
 
 
@@ -66,7 +63,7 @@ def _style(scale: float) -> BarStyle:
 
 
 def _sizes(params: dict, crank_speed: float | None) -> dict:
-    """What both builds share before any kinematics: the validated parameters, scale, crank
+    """The walker's sizes before any kinematics: the validated parameters, scale, crank
     speed, body sizes, the torso's inertia about its centre and every leg's place (name, x and y
     of its plane's origin relative to the torso centre, crank phase)."""
     p = space.validate(params)
@@ -131,38 +128,3 @@ def build_spec(params: dict, *, crank_speed: float | None = None, effort_limit: 
         shapes.append(Shape(prefix + "foot", "capsule", foot.body, (foot_radius, 0.25 * reach), position=foot.position,
                             orientation=shoe, friction=1.0, collision_group=1))
     return MechanismSpec(bodies, joints, points, shapes=shapes, ground=GroundPlane(friction=1.0), name="walker")
-
-
-def _unit_leg(name: str) -> tuple:
-    """A leg family's table, link masses (K,) and inertias (K, 3, 3) at unit scale (bars of the
-    walker's style at scale 1); a walker at scale s has masses s^3 and inertias s^5 times these."""
-    if name not in _UNIT_LEGS:
-        family = LEG_FAMILIES[name]
-        linkage = family.generate(family.space.default())
-        table = leg_table(linkage)
-        nodes = solve_at([linkage], np.zeros((1, 1)))[0].nodes
-        bodies = [link_body(link.name, [world(nodes[n][0]) for n in link.nodes], _style(1.0)) for link in linkage.links]
-        _UNIT_LEGS[name] = (table, np.array([b.mass for b in bodies]), np.array([b.inertia for b in bodies]))
-    return _UNIT_LEGS[name]
-
-
-_UNIT_LEGS: dict = {}
-
-
-def build_legged(params: dict, *, crank_speed: float | None = None, effort_limit: float = 20.0) -> LeggedSpec:
-    """The same walker in reduced coordinates (engine.legged): the torso and one crank angle per
-    leg, every leg read from its family's table at the walker's scale (no assembly solve: the
-    legs are the family's default leg scaled); same masses, inertias, drives, shoes and friction
-    as build_spec (the start height from the table, within its interpolation error)."""
-    lay = _sizes(params, crank_speed)
-    scale, reach, foot_radius = lay["scale"], lay["reach"], lay["foot_radius"]
-    table, unit_mass, unit_inertia = _unit_leg(lay["p"]["leg_family"])
-    legs, lowest = [], math.inf
-    for name, x, y, phase in lay["places"]:
-        foot, foot_angle = table.foot_at(phase)
-        lowest = min(lowest, scale * foot[1])
-        legs.append(LegPlacement(name, table, scale, (x, y, 0.0), phase, unit_mass * scale**3, unit_inertia * scale**5,
-                                 lay["speed"], CRANK_DAMPING, effort_limit, foot_radius, 0.25 * reach,
-                                 -foot_angle, shoe_friction=1.0))
-    return LeggedSpec("walker", lay["p"]["torso_mass"], lay["torso_inertia"], lay["half"],
-                      (0.0, 0.0, -lowest + foot_radius + 0.001), legs, torso_friction=0.8, ground_friction=1.0)

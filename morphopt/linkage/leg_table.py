@@ -1,4 +1,8 @@
-"""A one-DoF leg linkage tabulated over its crank turn for engine.legged (reduced coordinates).
+"""A one-DoF leg linkage tabulated over its crank turn by morphopt's planar kinematics.
+
+The engine tabulates a MechanismSpec's one-DoF sub-chains itself (engine.reduced.tabulated_layout);
+this table, from the linkage graph and solve_at alone, is the independent reference its tests
+compare with.
 
 The cycle kinematics place every node at N crank angles; each link's planar angle (the direction
 of its first two nodes, as in link_body) and centre of mass follow, and their derivatives in the
@@ -8,18 +12,44 @@ smooth periodic function: the error falls faster than any power of N).
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from engine.legged import LegTable
 from morphopt.linkage.graph import Linkage
 from morphopt.linkage.kinematics import solve_at
 from morphopt.linkage.to_spec import BarStyle, link_body, world
 
-__all__ = ["TABLE_SAMPLES", "leg_table", "periodic_derivatives"]
+__all__ = ["TABLE_SAMPLES", "LegTable", "leg_table", "periodic_derivatives"]
 
 TABLE_SAMPLES = 512
+
+
+@dataclass
+class LegTable:
+    """A leg's kinematics over a crank turn at psi_n = 2 pi n / N, lengths as the linkage's.
+
+    links (N, K, 3): per link its centre of mass in the plane (x, z) [m] and its angle [rad], with
+    links_d1, links_d2 their derivatives in psi; foot, foot_d1, foot_d2 (N, 3): the foot point
+    (x, z, 0) and its derivatives; foot_link: the link carrying it; closure_error: the largest
+    distance [m] between a pivot as its links place it halfway between samples (linear
+    interpolation) and the exact one."""
+
+    name: str
+    links: np.ndarray
+    links_d1: np.ndarray
+    links_d2: np.ndarray
+    foot: np.ndarray
+    foot_d1: np.ndarray
+    foot_d2: np.ndarray
+    foot_link: int
+    link_names: list = field(default_factory=list)
+    closure_error: float = 0.0
+
+    @property
+    def samples(self) -> int:
+        """Crank angles in the table (N)."""
+        return int(np.shape(self.links)[0])
 
 
 def periodic_derivatives(values: np.ndarray, winding: np.ndarray | float = 0.0) -> tuple:
