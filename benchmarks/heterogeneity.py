@@ -7,9 +7,9 @@
 Random walkers (benchmarks.scenes.walkers: Jansen and Klann legs, random geometry, the maximal
 model on the sparse solver) against copies of the default walker (the family's largest topology:
 the same 304 factor rows and schedule as the random Jansen walkers), dt 2 ms, at each PADMM
-iteration cap (SolverConfig.max_iterations), stall ratio (SolverConfig.stall_ratio, 0: off),
-free rows' penalty (SolverConfig.free_rho) and the sparse factor's elimination order
-(SolverConfig.sparse_ordering):
+iteration cap (SolverConfig.max_iterations), stall ratio (Tuning.stall_ratio, 0: off),
+free rows' penalty (Tuning.free_rho) and the sparse factor's elimination order
+(Tuning.sparse_ordering):
 after --warmup chunks of 10 steps (the walkers settle), the median ms per step over 4 chunks
 replayed as CUDA graphs (engine.rollout.Stepper),
 the mean PADMM iterations over worlds and the largest world's at the end of each timed chunk. The
@@ -65,8 +65,9 @@ def run(specs, worlds: int, cap: int, device: str, warmup: int, stall_ratio: flo
     from engine.rollout import Stepper
 
     model = pack_worlds([specs[w % len(specs)] for w in range(worlds)], device=device, dt=2e-3,
-                        config=SolverConfig(max_iterations=cap, stall_ratio=stall_ratio, sparse_ordering=ordering,
-                                            **({} if free_rho is None else {"free_rho": free_rho})))
+                        config=SolverConfig(max_iterations=cap).tuned(
+                            stall_ratio=stall_ratio, sparse_ordering=ordering,
+                            **({} if free_rho is None else {"free_rho": free_rho})))
     stepper = Stepper(model, model.state(), model.control(), chunk=10)
     return {**time_chunks(stepper.advance, model.work.iterations, model.device, warmup),
             "patterns": len(model.sparse_system.analyses) if model.sparse_system else 0,
@@ -149,22 +150,22 @@ def pair(batches: dict, settings: dict, measure) -> list:
 def main(argv=None) -> int:
     from benchmarks.run import write_rows
     from benchmarks.scenes import walker_default, walkers
-    from engine import SolverConfig
+    from engine import Tuning
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--worlds", type=int, default=4096)
     parser.add_argument("--caps", type=int, nargs="+", default=[100, 50])
     parser.add_argument("--stall-ratios", type=float, nargs="+", default=None,
-                        help="SolverConfig.stall_ratio values (0: off, the default), each at every cap; "
+                        help="Tuning.stall_ratio values (0: off, the default), each at every cap; "
                              "maximal model only")
     parser.add_argument("--free-rhos", type=float, nargs="+", default=None,
-                        help="SolverConfig.free_rho values, each at every cap and stall ratio (default: its "
+                        help="Tuning.free_rho values, each at every cap and stall ratio (default: its "
                              "default; maximal model only)")
     parser.add_argument("--model", choices=["maximal", "reduced"], default="maximal",
                         help="maximal coordinates (the sparse solver) or engine.legged's reduced ones")
     parser.add_argument("--orderings", nargs="+", choices=["minimum_degree", "shallow"], default=None,
-                        help="SolverConfig.sparse_ordering values, each at every other setting (default: its "
+                        help="Tuning.sparse_ordering values, each at every other setting (default: its "
                              "default; maximal model only)")
     parser.add_argument("--registers", type=int, nargs="+", default=None,
                         help="LeggedModel.max_registers values, each at every cap (0: the compiler's choice; "
@@ -180,9 +181,9 @@ def main(argv=None) -> int:
                                     or args.orderings is not None):
         parser.error("--stall-ratios, --free-rhos and --orderings apply to the maximal model only (engine.legged "
                      "has no joint rows, no stall test and no sparse factor)")
-    args.orderings = [SolverConfig.sparse_ordering] if args.orderings is None else args.orderings
+    args.orderings = [Tuning.sparse_ordering] if args.orderings is None else args.orderings
     args.stall_ratios = [0.0] if args.stall_ratios is None else args.stall_ratios
-    args.free_rhos = [SolverConfig.free_rho] if args.free_rhos is None else args.free_rhos
+    args.free_rhos = [Tuning.free_rho] if args.free_rhos is None else args.free_rhos
     if not all(0.0 <= r < 1.0 for r in args.stall_ratios):
         parser.error("--stall-ratios must lie in [0, 1)")
     if min(args.free_rhos) <= 0.0:

@@ -3,13 +3,13 @@
     python benchmarks/joint_penalty.py --device cuda --worlds 4096 --assets DIR --out benchmarks/results/h100
     python benchmarks/joint_penalty.py --device cpu --worlds 4 --free-rhos 2e-4 1e-3 --out benchmarks/results/cpu
 
-SolverConfig.cap_joint_penalty gives the free rows (bilateral joint rows, drive rows inside their
-limits) the fixed ADMM penalty SolverConfig.free_rho (engine.padmm.row_penalty); off, every row
+Tuning.cap_joint_penalty gives the free rows (bilateral joint rows, drive rows inside their
+limits) the fixed ADMM penalty Tuning.free_rho (engine.padmm.row_penalty); off, every row
 takes the world's rho. For each scene and
 setting: median time per step (steps 10 to --steps, CUDA graphs of 10 on a GPU), PADMM iterations
 per step, the share of steps that stop at the iteration cap, and the largest joint separation.
 Prints one JSON object per row and writes joint_penalty_<device>.json and .csv. Random walkers:
-benchmarks/walker_steps.py with --config '{"cap_joint_penalty": false}'.
+benchmarks/walker_steps.py with --config '{"tuning": {"cap_joint_penalty": false}}'.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ import warp as wp  # noqa: E402
 
 from benchmarks.run import clean, engine_run  # noqa: E402
 from benchmarks.scenes import dr_legs  # noqa: E402
-from engine import SolverConfig  # noqa: E402
+from engine import SolverConfig, Tuning  # noqa: E402
 
 KEYS = ("step_ms_median", "loop_error_m", "padmm_iterations_mean", "unconverged_step_fraction", "diverged_worlds")
 
@@ -40,8 +40,8 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=70)
     parser.add_argument("--dt", type=float, default=1e-2)
     parser.add_argument("--assets", default=None, help="folder holding disneyresearch/dr_legs")
-    parser.add_argument("--free-rhos", type=float, nargs="+", default=[SolverConfig.free_rho],
-                        help="SolverConfig.free_rho values to run with the penalty on")
+    parser.add_argument("--free-rhos", type=float, nargs="+", default=[Tuning.free_rho],
+                        help="Tuning.free_rho values to run with the penalty on")
     parser.add_argument("--out", default=".")
     args = parser.parse_args(argv)
     if args.worlds < 1 or args.steps < 20:
@@ -55,7 +55,7 @@ def main(argv=None) -> int:
     for standing in (True, False):
         scene = dr_legs(standing, args.assets)
         for cap, free_rho in [(True, value) for value in args.free_rhos] + [(False, None)]:
-            config = SolverConfig(cap_joint_penalty=cap, **({} if free_rho is None else {"free_rho": free_rho}))
+            config = SolverConfig().tuned(cap_joint_penalty=cap, **({} if free_rho is None else {"free_rho": free_rho}))
             result = clean(engine_run(scene.specs, args.worlds, args.dt, args.steps, 10,
                                       config, args.device, np.arange(1), None))
             row = {"scene": "drlegs_standing" if standing else "drlegs_hanging", "cap_joint_penalty": cap,

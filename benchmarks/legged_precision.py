@@ -37,13 +37,15 @@ from morphopt.study_spec import load_study_spec  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
-# (label, dt [s], SolverConfig overrides of BASE); the study's own settings run as well
-BASE = {"rho_update_interval": 8}
-LOOSE = {"rho": 1.0, "tolerance": 1e-4, "relative_tolerance": 1e-3}
+# (label, dt [s], SolverConfig keywords, its knobs under "tuning": engine.Tuning's, over BASE's); the
+# study's own settings run as well. rho: engine.legged's starting penalty (Tuning.rho; its default,
+# None, is engine.config.TABULATED_RHO = 1)
+BASE = {"tuning": {"rho_update_interval": 8}}
+LOOSE = {"tolerance": 1e-4, "relative_tolerance": 1e-3, "tuning": {"rho": 1.0}}
 SETTINGS = [
-    ("dt 2 ms, rho 1e-3", 2e-3, {}),
-    ("dt 2 ms, rho 1", 2e-3, {"rho": 1.0}),
-    ("dt 1 ms, rho 1", 1e-3, {"rho": 1.0}),
+    ("dt 2 ms, rho 1e-3", 2e-3, {"tuning": {"rho": 1e-3}}),
+    ("dt 2 ms, rho 1", 2e-3, {"tuning": {"rho": 1.0}}),
+    ("dt 1 ms, rho 1", 1e-3, {"tuning": {"rho": 1.0}}),
     ("dt 1 ms, loose", 1e-3, LOOSE),
     ("dt 2 ms, loose", 2e-3, LOOSE),
     ("dt 4 ms, loose", 4e-3, LOOSE),
@@ -56,7 +58,12 @@ SETTINGS = [
     ("dt 16 ms, loose, cap 30", 1.6e-2, {**LOOSE, "max_iterations": 30}),
     ("dt 20 ms, loose, cap 30", 2e-2, {**LOOSE, "max_iterations": 30}),
 ]
-REFERENCE = ("reference: dt 0.5 ms, rho 1, cap 400", 5e-4, {"rho": 1.0, "max_iterations": 400})
+REFERENCE = ("reference: dt 0.5 ms, rho 1, cap 400", 5e-4, {"max_iterations": 400, "tuning": {"rho": 1.0}})
+
+
+def config_of(overrides: dict) -> SolverConfig:
+    """BASE with ``overrides`` (their tuning over BASE's)."""
+    return SolverConfig(**{**BASE, **overrides, "tuning": {**BASE["tuning"], **overrides.get("tuning", {})}})
 
 
 def outcome(reason: str) -> str:
@@ -108,7 +115,7 @@ def main(argv=None) -> int:
         if args.quick else SETTINGS
 
     def run(dt, overrides, config=None):
-        config = config or SolverConfig(**{**BASE, **overrides})
+        config = config or config_of(overrides)
         t0 = time.perf_counter()
         evaluation = evaluate_dynamic(family, params, duration=duration, dt=dt, device=args.device,
                                       config=config, model="reduced")

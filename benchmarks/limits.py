@@ -60,14 +60,14 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default=".")
     args = parser.parse_args(argv)
     wp.config.quiet = True
-    from engine import SolverConfig
+    from engine import SolverConfig, Tuning
     from engine.scenes import chain, fourbar, shifted
 
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     configs = {"default": SolverConfig(),
                "tight": SolverConfig(tolerance=1e-8, relative_tolerance=1e-8, max_iterations=200,
-                                     cap_joint_penalty=False)}
+                                     tuning=Tuning(cap_joint_penalty=False))}
     rows = []
     for name, config in configs.items():
         specs = [chain(10, densities=[r if k % 2 else 1.0 for k in range(10)]).spec for r in RATIOS]

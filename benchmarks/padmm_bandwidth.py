@@ -143,8 +143,8 @@ def run_scene(name: str, device: str, worlds: int, warmup: int, steps: int, band
     specs = declared.build(assets).specs
     batch = [specs[w % len(specs)] for w in range(worlds)]
     # the staged step: the fused step runs the loop inside one kernel, with nothing to time apart
-    model = pack_worlds(batch, device=device, dt=declared.dt,
-                        config=SolverConfig(**{"step_kernel": "staged", **config}))
+    staged = {**config, "tuning": {"step_kernel": "staged", **config.get("tuning", {})}}
+    model = pack_worlds(batch, device=device, dt=declared.dt, config=SolverConfig(**staged))
     state_a, state_b = model.state(), model.state()
     for _ in range(warmup):
         step(model, state_a, state_b, model.control())
@@ -182,7 +182,8 @@ def main(argv=None) -> int:
     parser.add_argument("--worlds", type=int, default=4096)
     parser.add_argument("--warmup", type=int, default=20)
     parser.add_argument("--steps", type=int, default=3)
-    parser.add_argument("--config", default="{}", help="SolverConfig keywords as JSON")
+    parser.add_argument("--config", default="{}",
+                        help='SolverConfig keywords as JSON, its knobs under "tuning" (engine.Tuning)')
     parser.add_argument("--assets", default=None, help="folder holding disneyresearch/dr_legs (DR Legs scenes)")
     parser.add_argument("--out", default=".")
     args = parser.parse_args(argv)

@@ -166,19 +166,20 @@ def steps_per_record(record_dt: float, step_dt: float) -> int:
     return steps
 
 
-# work-precision settings: label, dt multiplier of the scene's dt, SolverConfig overrides
+# work-precision settings: label, dt multiplier of the scene's dt, SolverConfig overrides (their knobs under
+# "tuning": engine.Tuning's)
 LINKAGE_SWEEP = [
     dict(label="default", dt_scale=1.0),
     dict(label="dt x0.5", dt_scale=0.5),
     dict(label="dt x2", dt_scale=2.0),
     dict(label="dt x4", dt_scale=4.0),
-    dict(label="staged kernels", dt_scale=1.0, config=dict(step_kernel="staged")),
-    dict(label="staged, dt x2", dt_scale=2.0, config=dict(step_kernel="staged")),
+    dict(label="staged kernels", dt_scale=1.0, config=dict(tuning=dict(step_kernel="staged"))),
+    dict(label="staged, dt x2", dt_scale=2.0, config=dict(tuning=dict(step_kernel="staged"))),
     dict(label="tolerance 1e-4", dt_scale=1.0, config=dict(tolerance=1e-4, relative_tolerance=1e-2)),
     dict(label="no projection (Baumgarte 0.01)", dt_scale=1.0,
-         config=dict(position_iterations=0, projection_velocity_update=False, baumgarte=0.01)),
+         config=dict(position_iterations=0, baumgarte=0.01, tuning=dict(projection_velocity_update=False))),
     dict(label="semi-implicit Euler", dt_scale=1.0, config=dict(integrator="euler")),
-    dict(label="float32 state", dt_scale=1.0, config=dict(compensated_state=False)),
+    dict(label="float32 state", dt_scale=1.0, config=dict(tuning=dict(compensated_state=False))),
     dict(label="dt x8", dt_scale=8.0),
     # the same linkages in reduced coordinates (engine.reduced.chains)
     dict(label="reduced coordinates", dt_scale=1.0, model="chains"),
@@ -192,18 +193,18 @@ TIGHT = dict(tolerance=1e-9, relative_tolerance=0.0, max_iterations=300, positio
 # 1.9e-5 m; 1.0: 5.7e-5 and 8.3e-5 m), below MuJoCo Warp's 4e-4 to 6e-4 m, but 1.0e-4 and 1.4e-3 rad in
 # angle (its: 8e-5 to 1.2e-4 rad); the step skips the projection's solves (standing: also the projection's
 # own matrix and factor)
-NO_PROJECTION = dict(position_iterations=0, projection_velocity_update=False, baumgarte=0.5)
+NO_PROJECTION = dict(position_iterations=0, baumgarte=0.5, tuning=dict(projection_velocity_update=False))
 # and the sparse factor in the elimination order of the shortest estimated schedule
 # (engine.linalg.sparse_analysis.shallowest)
 DRLEGS_VARIANTS = [dict(label="1 projection iteration", config=dict(position_iterations=1)),
                    dict(label="no projection (Baumgarte 0.5)", config=NO_PROJECTION),
-                   dict(label="shallow elimination order", config=dict(sparse_ordering="shallow"))]
+                   dict(label="shallow elimination order", config=dict(tuning=dict(sparse_ordering="shallow")))]
 # standing (drive, armature and contact rows beside the joints'): the projection's factor on the PADMM's
 # pattern with the other rows made identity, or on a pattern of the bilateral rows alone, whichever
-# SolverConfig.sparse_projection_pattern="auto" did not choose
+# Tuning.sparse_projection_pattern="auto" did not choose
 DRLEGS_STANDING_VARIANTS = DRLEGS_VARIANTS + [
-    dict(label="projection on the PADMM pattern", config=dict(sparse_projection_pattern="never")),
-    dict(label="projection on its own pattern", config=dict(sparse_projection_pattern="always"))]
+    dict(label="projection on the PADMM pattern", config=dict(tuning=dict(sparse_projection_pattern="never"))),
+    dict(label="projection on its own pattern", config=dict(tuning=dict(sparse_projection_pattern="always")))]
 
 # DR Legs hanging: step sizes from 2.5 to 40 ms, the projection iterations, the float32 state (its dual
 # problem is linear: one PADMM iteration at any tolerance). Records every 40 ms fall on a step of each.
@@ -215,7 +216,7 @@ DRLEGS_SWEEP = [
     dict(label="dt x4", dt_scale=4.0),
     dict(label="1 projection iteration", dt_scale=1.0, config=dict(position_iterations=1)),
     dict(label="1 projection iteration, dt x2", dt_scale=2.0, config=dict(position_iterations=1)),
-    dict(label="float32 state", dt_scale=1.0, config=dict(compensated_state=False)),
+    dict(label="float32 state", dt_scale=1.0, config=dict(tuning=dict(compensated_state=False))),
     dict(label="no projection (Baumgarte 0.5)", dt_scale=1.0, config=NO_PROJECTION),
     dict(label="no projection (Baumgarte 0.5), dt x2", dt_scale=2.0, config=NO_PROJECTION),
     # CPU, one world, 2 s: loops within 9.0e-4 m hanging and 7.6e-4 m standing, no world diverged
@@ -247,6 +248,8 @@ DRLEGS_STANDING_SWEEP = [s for s in DRLEGS_SWEEP if s["label"] != "float32 state
 # soft rows (the loop joints' armature and damping), up to 12 contacts (3 boxes' 4 deepest corners each);
 # the feet alone have 8: the "8 contacts" variant keeps no more (contacts_dropped_max counts any loss)
 FEET = dict(contact_capacity=8)
+# the projections skipped up to 3x the default floors (Tuning.projection_skip_floor, _angular)
+REDUCED_SKIP_3X = dict(REDUCED, tuning=dict(projection_skip_floor=3e-7, projection_skip_floor_angular=3e-6))
 DRLEGS_STANDING_REDUCED_VARIANTS = DRLEGS_REDUCED_VARIANTS + [
     dict(label="reduced coordinates, 8 contacts", model="chains", config=REDUCED, pack=FEET),
     dict(label="reduced coordinates, 8 contacts, 1 projection", model="chains", config=REDUCED_ONE, pack=FEET),
@@ -255,14 +258,14 @@ DRLEGS_STANDING_REDUCED_VARIANTS = DRLEGS_REDUCED_VARIANTS + [
     # the projections skipped up to 3x the default floors (float32 rounding of the loops on a GPU is
     # about the default floors: DR Legs standing projected 0.6 times a step with them, none with these)
     dict(label="reduced coordinates, 8 contacts, skip floors 3e-7 m, 3e-6 rad", model="chains",
-         config=dict(REDUCED, projection_skip_floor=3e-7, projection_skip_floor_angular=3e-6), pack=FEET)]
+         config=REDUCED_SKIP_3X, pack=FEET)]
 DRLEGS_STANDING_SWEEP += [
     dict(label="reduced coordinates, 8 contacts, dt x0.5", dt_scale=0.5, model="chains", config=REDUCED, pack=FEET),
     dict(label="reduced coordinates, 8 contacts", dt_scale=1.0, model="chains", config=REDUCED, pack=FEET),
     dict(label="reduced coordinates, 8 contacts, dt x2", dt_scale=2.0, model="chains", config=REDUCED, pack=FEET),
     dict(label="reduced coordinates, 8 contacts, dt x4", dt_scale=4.0, model="chains", config=REDUCED, pack=FEET),
     dict(label="reduced coordinates, 8 contacts, skip floors 3e-7 m, 3e-6 rad, dt x4", dt_scale=4.0, model="chains",
-         config=dict(REDUCED, projection_skip_floor=3e-7, projection_skip_floor_angular=3e-6), pack=FEET)]
+         config=REDUCED_SKIP_3X, pack=FEET)]
 
 SCENES_DECLARED = {
     "fourbar": Declared(lambda assets: _engine_scenes(["fourbar"]), dt=1e-3, duration=2.0,

@@ -9,7 +9,7 @@ part of a joint each, engine.fused.SHARE_JOINT_PARTS), "groups_off" (one lane su
 instead of a group of lanes, SHARE_BODY_SUMS), "sharing_off" (neither), "inverse_off"
 (substitutions with the Cholesky factor instead of products with G = L^-1,
 engine.fused.fused_inverse), "skip_off" (no skip of projection iterations whose joint error is at
-float32 rounding, SolverConfig.projection_skip_floor 0) and "before" (the solves, the skip and the
+float32 rounding, Tuning.projection_skip_floor 0) and "before" (the solves, the skip and the
 sharing off). The variants are interleaved and repeated; each timing is the median ms per step over
 6 chunks of 10 steps replayed as CUDA graphs (engine.rollout.Stepper) after a compile and a
 capture chunk, and the first repeat's rows also have the fused step's median cycles per world-step
@@ -51,8 +51,8 @@ def timed(specs, worlds: int, dt: float, config, device: str, chunks: int = 6,
     from engine.fused import fused_inverse, fused_profile, sharing_used
     from engine.rollout import Stepper
 
-    model = pack_worlds([specs[w % len(specs)] for w in range(worlds)], device=device, dt=dt, config=config)
-    model.fused_sharing = sharing
+    model = pack_worlds([specs[w % len(specs)] for w in range(worlds)], device=device, dt=dt,
+                        config=config.tuned(fused_sharing=sharing))
     stepper = Stepper(model, model.state(), model.control(), chunk=chunk)
     stepper.advance()  # compiles
     stepper.advance()  # captures the graph (CUDA)
@@ -86,14 +86,14 @@ def main(argv=None) -> int:
         parser.error("--worlds and --repeats must be >= 1")
     wp.config.log_level = wp.LOG_WARNING
     import engine.fused as fused
-    from engine import SolverConfig
+    from engine import SolverConfig, Tuning
     from engine.scenes import SCENES, make_scene
 
     unknown = [name for name in args.scenes if name not in SCENES]
     if unknown:
         parser.error(f"--scenes: unknown {unknown}; engine.scenes has {sorted(SCENES)}")
-    skip_on = SolverConfig().projection_skip_floor
-    skip_on_angular = SolverConfig().projection_skip_floor_angular
+    skip_on = Tuning.projection_skip_floor
+    skip_on_angular = Tuning.projection_skip_floor_angular
     rows = []
 
     def record(**row):
@@ -108,14 +108,14 @@ def main(argv=None) -> int:
                 for variant in args.variants:
                     inverse, skip, sharing = VARIANTS[variant]
                     fused.INVERSE_MAX_ROWS = default_rows if inverse else 0  # fused_inverse reads it at each step
-                    config = SolverConfig(projection_skip_floor=skip_on if skip else 0.0,
-                                          projection_skip_floor_angular=skip_on_angular if skip else 0.0)
+                    config = SolverConfig(tuning=Tuning(projection_skip_floor=skip_on if skip else 0.0,
+                                                        projection_skip_floor_angular=skip_on_angular if skip else 0.0))
                     for worlds in args.worlds:
                         result = timed(specs, worlds, 1e-3, config, args.device, sharing=sharing,
                                        profile=repeat == 0)
                         record(scene=name, num_worlds=worlds, dt=1e-3, variant=variant,
-                               projection_skip_floor=config.projection_skip_floor,
-                               projection_skip_floor_angular=config.projection_skip_floor_angular, repeat=repeat,
+                               projection_skip_floor=config.tuning.projection_skip_floor,
+                               projection_skip_floor_angular=config.tuning.projection_skip_floor_angular, repeat=repeat,
                                **result)
     finally:
         fused.INVERSE_MAX_ROWS = default_rows
@@ -126,7 +126,7 @@ def main(argv=None) -> int:
         for repeat in range(args.repeats):
             for skip in (0.0, skip_on, 1e-6):
                 angular = skip_on_angular if skip > 0.0 else 0.0  # 0: the skip off for both kinds of error
-                config = SolverConfig(projection_skip_floor=skip, projection_skip_floor_angular=angular)
+                config = SolverConfig(tuning=Tuning(projection_skip_floor=skip, projection_skip_floor_angular=angular))
                 result = timed(legs, 4096, 1e-2, config, args.device, chunks=4)
                 record(scene="drlegs_hanging", num_worlds=4096, dt=1e-2, projection_skip_floor=skip, repeat=repeat,
                        step_ms=result["step_ms"])

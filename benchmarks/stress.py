@@ -36,7 +36,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import numpy as np
 import warp as wp
 
-from engine import Joint, JointDrive, MechanismSpec, SolverConfig, TrackedPoint, pack_worlds, rollout
+from engine import Joint, JointDrive, MechanismSpec, SolverConfig, TrackedPoint, Tuning, pack_worlds, rollout
 from engine.rollout import Stepper
 from engine.scenes import Y_AXIS, bar, chain, fourbar, pin, u
 
@@ -388,8 +388,8 @@ def mass_ratio_chain(links: int, ratio: float) -> MechanismSpec:
 # converge: with their own fixed penalty the 50-link chain took 89 iterations per step (at most 189,
 # cap 200) and opened its joints 7.6e-5 m at free_rho 2e-4, 160 iterations and 3.7e-4 m at 1e-3
 # (CPU; benchmarks/results/README.md, "The free rows' penalty lowered to 2e-4")
-S5_CONFIG = SolverConfig(tolerance=1e-8, relative_tolerance=1e-8, max_iterations=200, stall_ratio=0.0,
-                         cap_joint_penalty=False)
+S5_CONFIG = SolverConfig(tolerance=1e-8, relative_tolerance=1e-8, max_iterations=200,
+                         tuning=Tuning(stall_ratio=0.0, cap_joint_penalty=False))
 
 
 def case_s5(device: str, full: bool) -> dict:

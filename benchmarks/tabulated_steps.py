@@ -23,7 +23,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import numpy as np  # noqa: E402
 import warp as wp  # noqa: E402
 
-from engine import SolverConfig  # noqa: E402
+from engine import SolverConfig, Tuning  # noqa: E402
 from engine.legged import legged_rollout, legged_step_batch, pack_legged  # noqa: E402
 from engine.reduced.tabulated import pack_tabulated, rollout_tabulated  # noqa: E402
 from morphopt.families import load_family  # noqa: E402
@@ -52,7 +52,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     wp.config.log_level = wp.LOG_WARNING
     walker = load_family("walker")
-    config = SolverConfig(rho_update_interval=8)
+    config = SolverConfig(tuning=Tuning(rho_update_interval=8))
     runs = []
     for worlds in args.worlds:
         rng = np.random.default_rng(0)

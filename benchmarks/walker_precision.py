@@ -31,7 +31,7 @@ from benchmarks.walker_steps import walkers  # noqa: E402
 from engine import SolverConfig, pack_worlds, rollout  # noqa: E402
 from morphopt.families import load_family  # noqa: E402
 
-# name: (dt [s], SolverConfig keywords)
+# name: (dt [s], SolverConfig keywords; its knobs under "tuning": engine.Tuning's)
 SETTINGS = {
     "reference": (0.001, {"relative_tolerance": 1e-5, "max_iterations": 300}),
     "default dt 1 ms": (0.001, {}),
@@ -41,11 +41,11 @@ SETTINGS = {
     "relative tol 1e-3, cap 40": (0.002, {"relative_tolerance": 1e-3, "max_iterations": 40}),
     "dt 3 ms": (0.003, {}),
     "dt 4 ms": (0.004, {}),
-    "rho interval 8": (0.002, {"rho_update_interval": 8}),
-    "dt 3 ms, rho interval 8": (0.003, {"rho_update_interval": 8}),
-    "dt 3 ms, rho interval 8, cap 50": (0.003, {"rho_update_interval": 8, "max_iterations": 50}),
-    "joint penalty uncapped": (0.002, {"cap_joint_penalty": False}),
-    "free rho 1e-3": (0.002, {"free_rho": 1e-3}),
+    "rho interval 8": (0.002, {"tuning": {"rho_update_interval": 8}}),
+    "dt 3 ms, rho interval 8": (0.003, {"tuning": {"rho_update_interval": 8}}),
+    "dt 3 ms, rho interval 8, cap 50": (0.003, {"max_iterations": 50, "tuning": {"rho_update_interval": 8}}),
+    "joint penalty uncapped": (0.002, {"tuning": {"cap_joint_penalty": False}}),
+    "free rho 1e-3": (0.002, {"tuning": {"free_rho": 1e-3}}),
 }
 
 

@@ -109,7 +109,8 @@ def main(argv=None) -> int:
     parser.add_argument("--dt", type=float, default=0.002)
     parser.add_argument("--warmup", type=int, default=30, help="steps before timing (rounded to 10)")
     parser.add_argument("--steps", type=int, default=30, help="timed steps (rounded to 10)")
-    parser.add_argument("--config", default="{}", help="SolverConfig keywords as JSON")
+    parser.add_argument("--config", default="{}",
+                        help='SolverConfig keywords as JSON, its knobs under "tuning" (engine.Tuning)')
     parser.add_argument("--label", default="")
     parser.add_argument("--out", default=".")
     args = parser.parse_args(argv)

@@ -1,4 +1,4 @@
-"""DR Legs standing over a long run with and without the warm-start decay (SolverConfig.warmstart_decay).
+"""DR Legs standing over a long run with and without the warm-start decay (Tuning.warmstart_decay).
 
     python -m benchmarks.warmstart_decay --device cuda --worlds 4096 --assets DIR [--free-rho 1e-3]
 
@@ -27,7 +27,7 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=400, help="a multiple of 10, at least 110")
     parser.add_argument("--assets", default=None, help="folder holding disneyresearch/dr_legs")
     parser.add_argument("--decays", type=float, nargs="+", default=[0.0, 0.05])
-    parser.add_argument("--free-rho", type=float, default=None, help="SolverConfig.free_rho (default: its default)")
+    parser.add_argument("--free-rho", type=float, default=None, help="Tuning.free_rho (default: its default)")
     args = parser.parse_args(argv)
     if args.free_rho is not None and args.free_rho <= 0.0:
         parser.error(f"--free-rho must be > 0, got {args.free_rho}")
@@ -42,7 +42,7 @@ def main(argv=None) -> int:
     extra = {} if args.free_rho is None else {"free_rho": args.free_rho}
     for decay in args.decays:
         model = pack_worlds([spec] * args.worlds, device=args.device, dt=1e-2,
-                            config=SolverConfig(warmstart_decay=decay, **extra))
+                            config=SolverConfig().tuned(warmstart_decay=decay, **extra))
         stepper = Stepper(model, model.state(), model.control(), chunk=10)
         rows = []
         for _ in range(args.steps // 10):
@@ -55,7 +55,7 @@ def main(argv=None) -> int:
         r = np.array(rows[1:])  # the first chunk compiles and captures
         print(json.dumps({
             "scene": "drlegs_standing", "device": wp.get_device(args.device).name, "worlds": args.worlds,
-            "warmstart_decay": decay, "free_rho": model.config.free_rho,
+            "warmstart_decay": decay, "free_rho": model.config.tuning.free_rho,
             "ms_per_step_steps_10_100": float(np.median(r[:9, 0])),
             "ms_per_step_steps_100_end": float(np.median(r[9:, 0])), "iterations_steps_10_100": float(r[:9, 1].mean()),
             "iterations_steps_100_end": float(r[9:, 1].mean()), "impulse_max": float(r[:, 2].max()),

@@ -6,12 +6,13 @@ One face: ``model = engine.pack(specs, device=..., config=..., dt=...)`` plans t
 ``engine.rollout(...) -> (Trace, State)`` run it whatever the plan. Every plan solves the same
 Proximal-ADMM dual problem over joints, loops, limits and frictional contact; a Trace's health
 names the worlds it cannot vouch for and why (engine.health). See engine.model for units, frames
-and array conventions.
+and array conventions, engine.config for the settings (SolverConfig) and the solver's knobs (Tuning).
 """
 
+from engine.config import Integrator, SolverConfig, Tuning
 from engine.health import Health
 from engine.metrics import compute_metrics, metrics_numpy
-from engine.model import Control, Integrator, Model, SolverConfig, State
+from engine.model import Control, Model, State
 from engine.pack import pack, pack_worlds
 from engine.plan import Coordinates, Plan
 from engine.rollout import Stepper, Trace, rollout
@@ -22,5 +23,5 @@ from engine.step import StageTimer, step
 __all__ = [
     "Body", "Control", "Coordinates", "GroundPlane", "Health", "Integrator", "Joint", "JointDrive", "JointType",
     "MechanismSpec", "Model", "Plan", "Shape", "ShapeType", "SolverConfig", "StageTimer", "State", "Stepper", "Trace",
-    "TrackedPoint", "compute_metrics", "metrics_numpy", "pack", "pack_worlds", "rollout", "step",
+    "TrackedPoint", "Tuning", "compute_metrics", "metrics_numpy", "pack", "pack_worlds", "rollout", "step",
 ]

@@ -283,7 +283,7 @@ def build_dual_problem(model, body_q, body_qd, body_qd_low, body_f, body_qd_low_
         wp.launch(free_velocity, dim=(W, model.max_bodies), device=device,
                   inputs=[model.body_count, model.body_inv_mass, model.body_inertia, model.body_inv_inertia,
                           model.world_gravity, model.world_dt, body_q, body_qd, body_qd_low, body_f,
-                          int(model.config.compensated_state)],
+                          int(model.config.tuning.compensated_state)],
                   outputs=[work.body_qd_free, body_qd_low_out])
     wp.launch(row_operators, dim=(W, model.max_rows), device=device,
               inputs=[model.row_kind, model.contact_row_start, model.body_inv_mass, model.body_inv_inertia,

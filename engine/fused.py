@@ -17,7 +17,7 @@ joints and rows, with a block barrier wherever a stage reads what another lane w
 Shared memory keeps the factor's and the substitutions' dependent loads on the SM; a register cap
 (FUSED_REGISTERS) lets more worlds share an SM. On the CPU a block is one thread and the same code
 runs serially. It takes batches without contact shapes whose padded rows fit ``FUSED_MAX_ROWS``;
-SolverConfig.step_kernel chooses: "auto" (fused where it fits), "fused" (error where it does not)
+Tuning.step_kernel chooses: "auto" (fused where it fits), "fused" (error where it does not)
 or "staged". On a GPU, small problems (INVERSE_MAX_ROWS) solve through G = L^-1, formed after
 every factor, instead of substituting (fused_inverse); the lanes share a body's sums over rows
 and a joint's rows where a few lanes would otherwise work while the rest wait (fused_sharing);
@@ -319,7 +319,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
     shared-memory tiles of that size (the loads of a factor or substitution never leave the SM).
     With ``timed`` lane 0 adds each stage's cycles (STAGES) into stamps. With ``with_inverse`` the
     solves multiply by G = L^-1, formed once per factor, instead of substituting. ``compensated``:
-    SolverConfig.compensated_state (without it the low parts are neither read nor written).
+    Tuning.compensated_state (without it the low parts are neither read nor written).
     ``shuffled``: the block is one warp's first lanes (warp_lanes), whose sums and maxima over the
     world's rows take warp shuffles (lane_reduce6, lane_max2) instead of tile reductions."""
     inverse_rows = tile_rows if with_inverse else 1
@@ -718,7 +718,7 @@ def fused_step(model, state_in, state_out, control, stamps=None, project_output:
     if model._fused_structs is None:
         model._fused_structs = (_filled(StepModel, model), _filled(StepWork, model.work))
     m, w = model._fused_structs
-    cfg = model.config
+    cfg, tuning = model.config, model.config.tuning
     if model.fused_block is None:
         model.fused_block = fused_block(model.device)
     timed = stamps is not None
@@ -730,16 +730,16 @@ def fused_step(model, state_in, state_out, control, stamps=None, project_output:
         stamps = model._fused_no_stamps
     # warp shuffles on a GPU only (Warp's CPU blocks of several threads, wp.config.enable_cpu_blocks, are not warps)
     shuffled = warp_lanes(model.fused_block) and wp.get_device(model.device).is_cuda
-    kernel = fused_kernel(model.max_rows, model.fused_registers, timed, inverse, cfg.compensated_state, shuffled)
+    kernel = fused_kernel(model.max_rows, model.fused_registers, timed, inverse, tuning.compensated_state, shuffled)
     wp.launch_tiled(kernel, dim=[model.num_worlds], block_dim=model.fused_block, device=model.device,
               inputs=[m, w, int(cfg.integrator.value == "moreau"), float(cfg.baumgarte), float(cfg.limit_margin),
-                      float(cfg.limit_stabilization), (1.0 - cfg.warmstart_decay) if cfg.warmstart else 0.0, cfg.max_iterations,
-                      float(cfg.relative_tolerance), cfg.rho_update_interval, int(cfg.adaptive_rho),
-                      int(cfg.acceleration), float(cfg.stall_ratio),
+                      float(cfg.limit_stabilization), (1.0 - tuning.warmstart_decay) if tuning.warmstart else 0.0,
+                      cfg.max_iterations, float(cfg.relative_tolerance), tuning.rho_update_interval,
+                      int(tuning.adaptive_rho), int(tuning.acceleration), float(tuning.stall_ratio),
                       cfg.position_iterations if model.has_bilateral_rows else 0,
-                      int(model.has_unilateral_or_drive_rows), int(cfg.projection_velocity_update),
-                      float(cfg.projection_velocity_floor), float(cfg.projection_skip_floor),
-                      float(cfg.projection_skip_floor_angular), float(cfg.max_speed),
+                      int(model.has_unilateral_or_drive_rows), int(tuning.projection_velocity_update),
+                      float(tuning.projection_velocity_floor), float(tuning.projection_skip_floor),
+                      float(tuning.projection_skip_floor_angular), float(cfg.max_speed),
                       int(sharing), int(project_output), state_in.body_q, state_in.body_qd, state_in.body_q_offset,
                       state_in.body_q_low, state_in.body_qd_low, state_in.body_q_next, state_in.row_lambda,
                       control.joint_target_position,

@@ -8,13 +8,13 @@ the midpoints) are sums of small increments to large values; each keeps a low pa
 body_qd_low and body_q_low) holding what float32 rounded off, so that the state walks by the
 rounding of the increments, not by that of the state (a crank turning for 20 s at dt 1 ms: 20000
 roundings of 2e-7 m/s each would shift its energy by about 1e-5 and its phase by millimetres).
-SolverConfig.compensated_state turns it off (plain float32 sums; the low parts stay zero).
+Tuning.compensated_state turns it off (plain float32 sums; the low parts stay zero).
 Position projection (Gauss-Newton): with the residuals phi(q+) of the bilateral rows, solve
 (P D P + sigma I) x = -P phi over the bilateral rows and move every body by M^-1 J^T (P x): one
 damped Newton step on the constraint manifold per iteration. A batch whose rows are all bilateral
 joint rows reuses the factor the PADMM solve already holds; any other batch factors its bilateral
 block once per step (dense: the other rows made identity; sparse: likewise on the PADMM's pattern,
-or on a pattern of the bilateral rows alone, SolverConfig.sparse_projection_pattern).
+or on a pattern of the bilateral rows alone, Tuning.sparse_projection_pattern).
 """
 
 import warp as wp
@@ -576,7 +576,7 @@ def projection_shift(padmm_eta: wp.array(dtype=float), padmm_rho_init: wp.array(
                      needs_factor: wp.array(dtype=wp.int32), project_out: wp.array(dtype=wp.int32),
                      row_shift_out: wp.array2d(dtype=float)):
     """Worlds to project: valid ones with bilateral joint rows; flag them for a factor of the
-    projection's own, with the shift eta + rho_free (SolverConfig.free_rho; rho_init with
+    projection's own, with the shift eta + rho_free (Tuning.free_rho; rho_init with
     cap_joint_penalty off) on every row: for batches with drive, limit or contact rows, or no factor
     to reuse (project_positions; otherwise the PADMM's factor serves, its joint rows shifted by
     eta + rho_free too: engine.padmm.row_penalty, with cap_joint_penalty off eta + the world's rho).
@@ -599,7 +599,7 @@ def project_positions(model, body_q, body_qd, *, iterations=None,
     velocity_update: add each displacement / dt to body_qd (config's
     projection_velocity_update when None). body_q_offset: accumulate the displacements there
     (Moreau-Jean's output projection: float32 poses only). Otherwise, with
-    config.compensated_state, the poses and twists are moved with compensation and body_q_low,
+    config.tuning.compensated_state, the poses and twists are moved with compensation and body_q_low,
     body_qd_low (their low parts) are required.
     prepare=False reuses the factor of an earlier call this step.
     """
@@ -607,7 +607,7 @@ def project_positions(model, body_q, body_qd, *, iterations=None,
     grid_rows = (model.num_worlds, model.max_rows)
     iterations = model.config.position_iterations if iterations is None else iterations
     if velocity_update is None:
-        velocity_update = model.config.projection_velocity_update
+        velocity_update = model.config.tuning.projection_velocity_update
     if iterations == 0 or not model.has_bilateral_rows:
         return  # nothing to project: no joints in the batch
     dense_solver = model.linear_solver == "dense"  # else sparse
@@ -639,23 +639,23 @@ def project_positions(model, body_q, body_qd, *, iterations=None,
         elif model.has_unilateral_or_drive_rows:  # else no world is flagged: the PADMM's factor serves
             sparse.factor(model, work.row_shift, work.needs_factor, bilateral_only=True)
     record = body_q_offset is not None
-    compensated = model.config.compensated_state
+    compensated = model.config.tuning.compensated_state
     if not record and compensated and (body_q_low is None or body_qd_low is None):
         raise ValueError("project_positions: the compensated projection needs body_q_low and body_qd_low")
     # any (W, B) arrays of the right types where unused (the output projection writes no low parts)
     offset = body_q_offset if record else work.body_qd_free
     q_low = work.no_low if body_q_low is None else body_q_low
     qd_low = work.body_qd_free if body_qd_low is None else body_qd_low
-    cfg = model.config
-    # the worlds whose joint error is above cfg.projection_skip_floor (angular: projection_skip_floor_angular)
+    tuning = model.config.tuning
+    # the worlds whose joint error is above tuning.projection_skip_floor (angular: projection_skip_floor_angular)
     mask = work.projection_mask
     joints = joint_model_inputs(model)
     for k in range(iterations):
         # the residuals (float64 sums where the dynamics move on), the gate and mask, the rhs
         wp.launch_tiled(projection_pass, dim=[model.num_worlds], block_dim=GATE_BLOCK, device=device,
                         inputs=[work.row_count, model.row_kind, *joints, body_q, q_low, int(compensated and not record),
-                                work.row_precond, work.project, float(cfg.projection_velocity_floor),
-                                float(cfg.projection_skip_floor), float(cfg.projection_skip_floor_angular)],
+                                work.row_precond, work.project, float(tuning.projection_velocity_floor),
+                                float(tuning.projection_skip_floor), float(tuning.projection_skip_floor_angular)],
                         outputs=[work.row_residual, work.projection_gate, mask, work.rhs])
         if dense_solver:
             dense.solve(work.factor, work.rhs, mask, work.delta)

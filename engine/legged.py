@@ -61,7 +61,7 @@ import numpy as np
 import warp as wp
 
 from engine.linalg.lanes import block_sync
-from engine.model import SolverConfig
+from engine.config import TABULATED_RHO, SolverConfig
 from engine.spec import check_inertia
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
@@ -1455,7 +1455,8 @@ def _structs(model: LeggedModel) -> tuple:
 
 def _step_inputs(model: LeggedModel) -> list:
     c = model.config
-    return [model.dt, c.eta, c.rho, c.tolerance, c.relative_tolerance, c.max_iterations, c.rho_update_interval,
+    return [model.dt, c.tuning.eta, c.tuning.rho_or(TABULATED_RHO), c.tolerance, c.relative_tolerance,
+            c.max_iterations, c.tuning.rho_update_interval,
             c.contact_margin, c.contact_stabilization, c.max_speed, *_structs(model),
             model.impulse, model.frozen, model.diverged,
             model.iterations, model.contacts, model.drive_torque,

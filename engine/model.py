@@ -22,13 +22,11 @@ Conventions, used by every module of the engine:
 
 from __future__ import annotations
 
-import enum
-from dataclasses import dataclass
-
 import numpy as np
 import warp as wp
 
 from engine.collide import Candidates
+from engine.config import Integrator, SolverConfig  # re-exported: engine.model was their home
 
 __all__ = ["Control", "Integrator", "Model", "SolverConfig", "State", "Workspace"]
 
@@ -39,232 +37,6 @@ ROW_LIMIT = wp.constant(3)
 ROW_CONTACT_NORMAL = wp.constant(4)
 ROW_CONTACT_TANGENT = wp.constant(5)
 UNBOUNDED = wp.constant(1.0e30)
-
-
-class Integrator(enum.Enum):
-    """Time-stepping scheme."""
-
-    SEMI_IMPLICIT_EULER = "euler"  # velocities implicit in the reactions, poses explicit
-    MOREAU_JEAN = "moreau"  # half pose step, dynamics at the midpoint, half pose step
-
-
-@dataclass(frozen=True)
-class SolverConfig:
-    """Solver settings of a batch (frozen; per-world numbers are copied to device arrays).
-
-    Attributes:
-        integrator: Integrator.SEMI_IMPLICIT_EULER or Integrator.MOREAU_JEAN.
-        max_iterations: PADMM iteration cap per step.
-        tolerance: absolute primal and dual residual tolerance, in preconditioned units (sqrt of [J]).
-        relative_tolerance: added tolerance per unit of the largest preconditioned impulse.
-        eta: proximal weight (> 0; regularizes redundant constraints).
-        rho: initial ADMM penalty.
-        adaptive_rho: rescale rho (and refactor) when primal and dual residuals are unbalanced.
-        cap_joint_penalty: give the free rows their own fixed ADMM penalty, free_rho: the bilateral
-            joint rows, and the drive rows whose warm start lies within half of their effort
-            limits (a drive that meets its limit during the step takes the world's penalty again,
-            with a new factor). Their projection is the identity, so the penalty only slowed them:
-            with the large rho that contacts and saturated drives call for, their soft modes
-            converged at rho / (lambda + rho) per iteration; and a penalty driven down to RHO_MIN
-            (their primal residual is zero) leaves the factor of redundant joint rows too little
-            shift for float32. Off: one rho for all rows.
-        free_rho: the free rows' penalty (cap_joint_penalty on); eta + free_rho is also the shift
-            of the joint rows in the position projection's factor. Their soft modes (eigenvalue
-            lambda of the preconditioned Delassus matrix) shrink by free_rho / (lambda + free_rho)
-            per iteration, and the projection's Gauss-Newton steps are damped by as much; a
-            smaller shift costs float32 digits in the factor of redundant rows. At 2e-4 instead of
-            the initial rho (1e-3), on the CPU: the 10-link 1:10000 chain of benchmarks.stress S5 at
-            its tolerance 1e-8 with this cap on (S5 itself runs it off) needs 31 instead of 66
-            iterations per step and opens 7e-6 instead of 2.2e-5 m; the IFToMM N = 40 four-bar (S3,
-            20 s) ends 4.9e-5 instead of 8.7e-4 m off its exact motion.
-        rho_update_interval: iterations between penalty updates.
-        stall_ratio: 0 (default) or a ratio in (0, 1): a world whose largest residual (primal or
-            dual) did not fall below stall_ratio times its value STALL_WINDOW iterations earlier
-            stops, counted as not converged (checked from 2 x STALL_WINDOW iterations on). The
-            captured PADMM loop runs until a batch's slowest world stops; in batches of random
-            walkers that world chases a near-singular direction at a fraction of a percent per
-            iteration (benchmarks/results/README.md, "The PADMM tail of heterogeneous batches").
-        acceleration: Nesterov momentum with restart.
-        warmstart: start each step from the last step's impulses.
-        warmstart_decay: share of the last step's impulses left out of the warm start. The
-            proximal iterations never change an impulse's component that moves nothing (the
-            redundant directions of over-constrained loops, e.g. a Bricard linkage), so a full
-            warm start lets rounding pile up there step after step (an internal prestress that
-            grows without bound). With 0.05: the Bricard linkage's redundant impulse stays at 3 %
-            of its largest impulse over 2 s (60 % without); DR Legs standing (one world, 2 s on
-            the CPU) peaks at 0.12 instead of 2.1 N s and needs 16 instead of 38 PADMM iterations.
-        baumgarte: velocity-level stabilization factor (bias = -baumgarte / dt * residual).
-        position_iterations: Gauss-Newton projections of the poses back onto the constraint
-            manifold after each step (0 disables; reuses the factored Delassus matrix). They project the
-            next configuration (Moreau-Jean: the next midpoint) with the velocity update;
-            Moreau-Jean then projects the end of the step as often, for output only (engine.step).
-        projection_velocity_update: add each projection displacement / dt to the velocities, so
-            that the step is SHAKE-like (symplectic: energy stays bounded instead of draining).
-        projection_velocity_floor: a projection iteration updates the velocities only when the
-            largest bilateral joint error it corrects exceeds this [m]/[rad] (about two float32
-            ulps of a coordinate of 0.5 m): below it the correction is mostly rounding of the
-            poses. It was needed while Moreau-Jean projected the end of the step (rounding fed a
-            neutral period-two mode, and the energy error grew as dt shrank: four-bar at 0.1 ms
-            3.3 % without it); since the dynamics run on projected midpoints, the four-bar at
-            0.1 ms drifts 5e-5 with or without it. 0 turns it off.
-        projection_skip_floor: a projection iteration is skipped (no solve, nothing moves) in a
-            world whose largest linear bilateral joint error is at or below this [m] and whose
-            largest angular one is at or below projection_skip_floor_angular [rad]: its
-            correction would be float32 rounding. The second Gauss-Newton iteration usually
-            starts there, and on the four-bar at dt 1 ms the median step skips all four (the time
-            saved: benchmarks/results/README.md, "Maximal path: design notes"). It also stops
-            rounding-level corrections from being amplified near singular configurations (the parallelogram of
-            benchmarks.stress S3, 20 s on the CPU: tip error 3.3e-2 -> 7.2e-3 m, energy error
-            2.1e-4 -> 5.2e-5). Both floors at 0 turn the skip off.
-        projection_skip_floor_angular: the angular rows' share of that test [rad]. A relative
-            orientation carries more float32 rounding than a position: DR Legs keeps 4e-7 to 8e-7
-            rad of angular joint error after any number of iterations, so with the linear floor
-            for both it skipped nothing; with 1e-6 its second iteration is skipped on most steps
-            standing (CPU, 2 s: 240 of 440 iterations; loops 6.0e-8 m, 8.6e-7 rad either way).
-        limit_margin: a joint limit row turns on within this distance of the limit [rad]/[m]
-            (plus the distance the joint covers in one step, so fast joints do not tunnel).
-        limit_stabilization: share of a limit violation pushed back per step.
-        contact_margin: contacts closer than this are kept (speculative) [m].
-        contact_stabilization: share of a penetration pushed out per step.
-        restitution_threshold: approach speeds below this bounce with no restitution [m/s].
-        linear_solver: "dense" (per-world Cholesky tile, at most engine.pack.MAX_DENSE_ROWS
-            rows: engine.linalg.dense), "sparse" (a Cholesky factor on the Delassus matrix's own
-            sparsity, analysed once per topology: engine.linalg.sparse_analysis and
-            engine.linalg.sparse) or "auto" (dense when the padded rows fit the tile, else
-            sparse). Both solve exactly.
-        max_speed: a world in which a body's centre of mass moves faster than this [m/s] is
-            flagged diverged and frozen, like one whose state is no longer finite: a blow-up
-            that grows over many steps is caught before its numbers overflow.
-        health_joint_tolerance: a world whose largest linear joint error at a record exceeds this
-            [m] is flagged (engine.health: its joints came apart); so is one packed where float32's
-            spacing at its coordinates exceeds it (too far from the origin to close a joint).
-        health_angular_tolerance: the same for the angular joint rows [rad]; a gross-tear guard:
-            walkers' crank axes twist by up to 0.03 rad for a few records at foot impacts (24
-            random walkers, 2 s, CPU) and close again.
-        health_residual: a world whose PADMM stops unconverged (iteration cap or stall) with a
-            residual above this (preconditioned units, sqrt [J]: about 1 m/s of error for 1 kg) is
-            flagged. Walkers, whose contacts cap some steps, stopped at up to 0.075 (same run).
-        step_kernel: "fused" (the whole step of a world in one warp, one launch per step:
-            engine.fused; batches without contact shapes and at most engine.fused.FUSED_MAX_ROWS
-            rows), "staged" (one kernel per stage, the PADMM loop as a captured while loop) or
-            "auto" (fused where it fits).
-        sparse_body_nodes: the sparse solver keeps a body acted on by many rows (a walker's
-            torso) as six nodes of its factor instead of coupling all its rows with each other,
-            where its analysis estimates a shorter schedule
-            (engine.linalg.sparse_analysis.choose_body_nodes);
-            off: the rows' own coupling pattern only.
-        sparse_projection_pattern: with the sparse solver, a batch with rows besides its
-            bilateral joint rows (drives, armature and damping, limits, contacts) cannot project
-            with the PADMM factor; it factors its bilateral rows once per step, either on the
-            PADMM's pattern with the other rows made identity ("never": no pattern of their own)
-            or on a pattern of the bilateral rows alone (engine.linalg.sparse_analysis.
-            bilateral_factor_rows; "always"), or the latter where its estimated schedule is the
-            shorter one ("auto", batch_schedule_cost there: DR Legs standing as in Newton's
-            example, 180 of 300 factor rows, 9.8 k instead of 12.9 k steps; not for walkers, whose
-            rows are mostly bilateral). True and False read as "always" and "never".
-        sparse_ordering: the sparse solver's elimination order: "minimum_degree" (greedy minimum
-            degree, the least fill) or "shallow" (per topology, the shortest estimated schedule,
-            engine.linalg.sparse_analysis.schedule_cost, of minimum degree and of minimum degree
-            with the elimination tree's height added to each degree at the weights HEIGHT_WEIGHTS
-            there: the factor's and the solves' levels run one after the other, so a shallower
-            tree is a shorter chain; on paper DR Legs hanging 11.6 k -> 8.6 k steps, standing as in
-            Newton's example 12.6 k -> 10.3 k, the default walker 7.5 k -> 6.3 k; not yet timed on
-            a GPU, hence not the default).
-        compensated_state: sum the twists and the configurations the dynamics run on with
-            compensation (State.body_q_low, body_qd_low: engine.integrate) and the joint errors
-            the projection corrects in float64 (engine.joints.joint_frames). Off: plain float32
-            sums, about 10 % faster fused steps, a state that walks by the float32 grid of its
-            values (a crank turning over for 10 s at dt 1 ms: 3.7e-3 instead of 2.3e-4 m from its
-            exact motion; the IFToMM N = 20 four-bar through two flat passes in 3 s: 2.8e-4 instead
-            of 1.3e-5 m).
-    """
-
-    integrator: Integrator = Integrator.MOREAU_JEAN
-    max_iterations: int = 100
-    tolerance: float = 1.0e-6
-    relative_tolerance: float = 1.0e-4
-    eta: float = 1.0e-5
-    rho: float = 1.0e-3
-    adaptive_rho: bool = True
-    cap_joint_penalty: bool = True
-    free_rho: float = 2.0e-4
-
-    rho_update_interval: int = 4
-    stall_ratio: float = 0.0
-    acceleration: bool = True
-    warmstart: bool = True
-    warmstart_decay: float = 0.05
-    baumgarte: float = 0.0
-    position_iterations: int = 2
-    projection_velocity_update: bool = True
-    projection_velocity_floor: float = 1.0e-7
-    projection_skip_floor: float = 1.0e-7
-    projection_skip_floor_angular: float = 1.0e-6
-    limit_margin: float = 0.02
-    limit_stabilization: float = 0.2
-    contact_margin: float = 0.01
-    contact_stabilization: float = 0.2
-    restitution_threshold: float = 0.05
-    linear_solver: str = "auto"
-    max_speed: float = 1.0e3
-    health_joint_tolerance: float = 5.0e-3
-    health_angular_tolerance: float = 0.25
-    health_residual: float = 1.0
-    step_kernel: str = "auto"
-    sparse_body_nodes: bool = True
-    sparse_projection_pattern: str = "auto"
-    sparse_ordering: str = "minimum_degree"
-    compensated_state: bool = True
-
-    def __post_init__(self):
-        if not isinstance(self.integrator, Integrator):
-            try:
-                object.__setattr__(self, "integrator", Integrator(self.integrator))
-            except ValueError as exc:
-                raise ValueError(f"SolverConfig.integrator: expected one of "
-                                 f"{[i.value for i in Integrator]}, got {self.integrator!r}") from exc
-        if self.step_kernel not in ("auto", "fused", "staged"):
-            raise ValueError(f"SolverConfig.step_kernel: expected 'auto', 'fused' or 'staged', got {self.step_kernel!r}")
-        if isinstance(self.sparse_projection_pattern, bool):
-            choice = "always" if self.sparse_projection_pattern else "never"
-            object.__setattr__(self, "sparse_projection_pattern", choice)
-        if self.sparse_projection_pattern not in ("auto", "always", "never"):
-            raise ValueError(f"SolverConfig.sparse_projection_pattern: expected 'auto', 'always' or 'never', "
-                             f"got {self.sparse_projection_pattern!r}")
-        if self.sparse_ordering not in ("minimum_degree", "shallow"):
-            raise ValueError(f"SolverConfig.sparse_ordering: expected 'minimum_degree' or 'shallow', "
-                             f"got {self.sparse_ordering!r}")
-        if self.linear_solver not in ("auto", "dense", "sparse"):
-            raise ValueError(f"SolverConfig.linear_solver: expected 'auto', 'dense' or 'sparse', "
-                             f"got {self.linear_solver!r}")
-        checks = {
-            "projection_velocity_floor": self.projection_velocity_floor >= 0.0,
-            "projection_skip_floor": self.projection_skip_floor >= 0.0,
-            "projection_skip_floor_angular": self.projection_skip_floor_angular >= 0.0,
-            "max_speed": self.max_speed > 0.0,
-            "health_joint_tolerance": self.health_joint_tolerance > 0.0,
-            "health_angular_tolerance": self.health_angular_tolerance > 0.0,
-            "health_residual": self.health_residual > 0.0,
-            "max_iterations": self.max_iterations >= 1,
-            "tolerance": self.tolerance > 0.0,
-            "relative_tolerance": self.relative_tolerance >= 0.0,
-            "eta": self.eta > 0.0,
-            "rho": self.rho > 0.0,
-            "free_rho": self.free_rho > 0.0,
-            "rho_update_interval": self.rho_update_interval >= 1,
-            "stall_ratio": 0.0 <= self.stall_ratio < 1.0,
-            "warmstart_decay": 0.0 <= self.warmstart_decay < 1.0,
-            "baumgarte": 0.0 <= self.baumgarte <= 1.0,
-            "position_iterations": self.position_iterations >= 0,
-            "limit_margin": self.limit_margin >= 0.0,
-            "limit_stabilization": 0.0 <= self.limit_stabilization <= 1.0,
-            "contact_margin": self.contact_margin >= 0.0,
-            "contact_stabilization": 0.0 <= self.contact_stabilization <= 1.0,
-            "restitution_threshold": self.restitution_threshold >= 0.0,
-        }
-        for name, ok in checks.items():
-            if not ok or not np.isfinite(float(getattr(self, name))):
-                raise ValueError(f"SolverConfig.{name}: invalid value {getattr(self, name)!r}")
 
 
 class Model:
@@ -288,7 +60,7 @@ class Model:
         world_gravity (W,) vec3 [m/s^2]; world_dt (W,) [s]
         point_body (W, P) int32; point_local (W, P) vec3 in the COM frame [m]
         padmm_eta, padmm_rho_init, padmm_tolerance (W,) float32; padmm_rho_free (W,): the ADMM
-        penalty of the free rows (SolverConfig.free_rho), 0 where they take the world's
+        penalty of the free rows (Tuning.free_rho), 0 where they take the world's
         (engine.padmm.row_penalty)
         joint_limit_lower, joint_limit_upper (W, J) [rad]/[m]; joint_limit_lower_row,
         joint_limit_upper_row (W, J) int32, -1 when none
@@ -308,7 +80,7 @@ class Model:
     with the sparse solver sparse_system (the PADMM's factor schedules and buffers,
     engine.linalg.sparse_analysis.SparseSystem) and sparse_projection (the projection's, on the
     bilateral joint rows alone; None where it factors on the PADMM's pattern:
-    SolverConfig.sparse_projection_pattern).
+    Tuning.sparse_projection_pattern).
     """
 
     def __init__(self):
@@ -414,7 +186,7 @@ class Workspace:
     PADMM vectors (W, R): v_f, lo, hi (preconditioned), x, x_prev, y, y_prev, y_hat, z, z_prev,
     z_hat, rhs, delta; row_shift (W, R): the factored matrix's diagonal shift per row (eta + the
     row's penalty: engine.padmm.row_penalty); row_free (W, R) int32: the rows on
-    the free rows' penalty (SolverConfig.free_rho) this step (engine.padmm.row_is_free; 2: a drive that met its bound, to take
+    the free rows' penalty (Tuning.free_rho) this step (engine.padmm.row_is_free; 2: a drive that met its bound, to take
     the world's penalty at the next penalty update, flagged in demote (W,)). Per world (W,): rho, valid,
 
     iterations, residual_primal, residual_dual, converged,

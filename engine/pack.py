@@ -11,7 +11,8 @@ import warp as wp
 from engine.collide import PAIR_CONTACTS, PAIR_SLOTS, PLANE_CONTACTS
 from engine.fused import FUSED_MAX_ROWS, FUSED_REGISTERS, fused_fits
 from engine.health import far_flags
-from engine.model import Model, SolverConfig, Workspace
+from engine.config import MAXIMAL_RHO, SolverConfig
+from engine.model import Model, Workspace
 from engine.linalg.sparse_analysis import batch_schedule_cost, bilateral_factor_rows, build_patterns, make_system
 from engine.spec import JOINT_ROW_COUNT, JointType, MechanismSpec, joint_dynamics_rows
 
@@ -216,6 +217,7 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     config = config or SolverConfig()
     if not isinstance(config, SolverConfig):
         raise ValueError(f"pack_worlds: config must be a SolverConfig, got {type(config).__name__}")
+    tuning = config.tuning
     try:
         dt_ok = not isinstance(dt, bool) and math.isfinite(float(dt)) and float(dt) > 0.0
     except (TypeError, ValueError):
@@ -240,20 +242,20 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         capacity = max(min(w, 4 * len(s.shapes) + 8) for s, w in zip(specs, worst))
     else:
         capacity = min(int(contact_capacity), max(worst))
-    if config.linear_solver == "dense":
+    if tuning.linear_solver == "dense":
         for index, spec in enumerate(specs):
             rows = spec.row_count + 3 * capacity
             if rows > MAX_DENSE_ROWS:
                 raise ValueError(f"pack_worlds: world {index} ('{spec.name}') needs {rows} constraint rows "
                                  f"({spec.row_count} joint/drive/limit rows + 3 x {capacity} contacts); the dense "
-                                 f"solver takes at most {MAX_DENSE_ROWS} per world: use linear_solver='sparse' "
+                                 f"solver takes at most {MAX_DENSE_ROWS} per world: use Tuning(linear_solver='sparse') "
                                  f"or 'auto', lower contact_capacity or simplify the mechanism")
     max_pairs = max(len(p) for p in pairs)
     max_shapes = max(1, max(len(s.shapes) for s in specs))
     max_rows = max(1, max(s.row_count for s in specs) + 3 * capacity)
     max_rows = ROW_TILE * ((max_rows + ROW_TILE - 1) // ROW_TILE)
-    dense = config.linear_solver == "dense" or (config.linear_solver == "auto" and max_rows <= MAX_DENSE_ROWS)
-    sparse = not dense and config.linear_solver in ("auto", "sparse") and not measure_only
+    dense = tuning.linear_solver == "dense" or (tuning.linear_solver == "auto" and max_rows <= MAX_DENSE_ROWS)
+    sparse = not dense and tuning.linear_solver in ("auto", "sparse") and not measure_only
 
     W, B, J, R, P, S, Q = num_worlds, max_bodies, max_joints, max_rows, max_points, max_shapes, max(max_pairs, 1)
     f32 = np.float32
@@ -281,8 +283,8 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         "row_body_c": np.full((W, R), -1, np.int32),
         "world_gravity": np.zeros((W, 3), f32), "world_dt": np.full(W, dt, f32),
         "point_body": np.zeros((W, P), np.int32), "point_local": np.zeros((W, P, 3), f32),
-        "padmm_eta": np.full(W, config.eta, f32), "padmm_rho_init": np.full(W, config.rho, f32),
-        "padmm_rho_free": np.full(W, config.free_rho if config.cap_joint_penalty else 0.0, f32),
+        "padmm_eta": np.full(W, tuning.eta, f32), "padmm_rho_init": np.full(W, tuning.rho_or(MAXIMAL_RHO), f32),
+        "padmm_rho_free": np.full(W, tuning.free_rho if tuning.cap_joint_penalty else 0.0, f32),
         "padmm_tolerance": np.full(W, config.tolerance, f32),
         "joint_limit_lower": np.full((W, J), -1.0e30, f32), "joint_limit_upper": np.full((W, J), 1.0e30, f32),
         "joint_limit_lower_row": np.full((W, J), -1, np.int32), "joint_limit_upper_row": np.full((W, J), -1, np.int32),
@@ -427,19 +429,22 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     model.has_bilateral_rows = bool(bilateral.any())
     model.linear_solver = "dense" if dense else "sparse"
     fits = fused_fits(model.has_contacts, R, dense)
-    if config.step_kernel == "fused" and not fits:
+    if tuning.step_kernel == "fused" and not fits:
         raise ValueError(f"pack_worlds: step_kernel='fused' takes batches without contact shapes and with at most "
                          f"{FUSED_MAX_ROWS} dense rows per world; this batch has {R} rows"
                          f"{' and contacts' if model.has_contacts else ''} ({model.linear_solver} solver): use "
-                         f"step_kernel='auto' or 'staged'")
-    model.step_kernel = "fused" if config.step_kernel == "fused" or (config.step_kernel == "auto" and fits) else "staged"
+                         f"step_kernel='auto' or 'staged' (engine.Tuning)")
+    fused = tuning.step_kernel == "fused" or (tuning.step_kernel == "auto" and fits)
+    model.step_kernel = "fused" if fused else "staged"
     model._fused_structs = None  # built on the first fused step
     # the untimed fused kernel's (unused) cycle stamps: allocated here, as steps may be captured
     model._fused_no_stamps = wp.zeros((1, 1), dtype=wp.int64, device=device)
-    model.fused_block = None  # threads per world of the fused step (None: engine.fused.fused_block)
-    model.fused_registers = FUSED_REGISTERS  # register cap per thread of the fused step
-    model.fused_inverse = None  # solve through L^-1 in the fused step (None: engine.fused.fused_inverse)
-    model.fused_sharing = None  # how the fused step's lanes share joints and bodies (None: engine.fused.fused_sharing)
+    # the fused step's knobs (engine.Tuning.fused_*), read by engine.fused at each step
+    model.fused_block = tuning.fused_block  # threads per world (None: engine.fused.fused_block)
+    # register cap per thread (None: the compiler's choice)
+    model.fused_registers = FUSED_REGISTERS if tuning.fused_registers is None else (tuning.fused_registers or None)
+    model.fused_inverse = tuning.fused_inverse  # solve through L^-1 (None: engine.fused.fused_inverse)
+    model.fused_sharing = tuning.fused_sharing  # lanes sharing joints and bodies (None: engine.fused.fused_sharing)
     model.work = Workspace(W, B, R, device, max_pairs=max_pairs, contact_capacity=capacity, dense=dense and not measure_only)
     model.work.row_count.assign(h["row_count"])
     model.work.row_body_c = wp.clone(model.row_body_c)  # contact rows rewrite their bodies every step
@@ -449,19 +454,19 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     model.sparse_body_nodes = False
     if sparse:  # one factor schedule per distinct topology (engine.linalg.sparse_analysis)
         rbc, rbp = factor_rows(specs, pairs, h)
-        full = build_patterns(rbc, rbp, device, body_nodes=config.sparse_body_nodes, ordering=config.sparse_ordering)
+        full = build_patterns(rbc, rbp, device, body_nodes=tuning.sparse_body_nodes, ordering=tuning.sparse_ordering)
         real = None  # with contact slots: rewritten every step (engine.linalg.sparse.prepare)
         if not model.has_contacts:  # each factor row stands for the joint row of its index, for good
             rows = np.arange(max(a.rows for a in full[1]))
             real = np.where(rows[None, :] < h["contact_row_start"][:, None], rows[None, :], -1)
         model.sparse_system = make_system(full, W, device, real=real)
-        choice = config.sparse_projection_pattern
+        choice = tuning.sparse_projection_pattern
         if (choice != "never" and model.has_unilateral_or_drive_rows and model.has_bilateral_rows
                 and config.position_iterations > 0):
             # the projection may factor the bilateral joint rows on a pattern of their own
             real, bc, bp = bilateral_factor_rows(h["row_kind"], h["row_body_c"], h["row_body_p"],
                                                  h["contact_row_start"])
-            own = build_patterns(bc, bp, device, body_nodes=config.sparse_body_nodes, ordering=config.sparse_ordering)
+            own = build_patterns(bc, bp, device, body_nodes=tuning.sparse_body_nodes, ordering=tuning.sparse_ordering)
             if choice == "always" or batch_schedule_cost(own[1]) < batch_schedule_cost(full[1]):
                 model.sparse_projection = make_system(own, W, device, real=real, share=model.sparse_system)
         model.sparse_body_nodes = any(s.body_nodes for s in (model.sparse_system, model.sparse_projection) if s)

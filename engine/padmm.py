@@ -2,7 +2,7 @@
 
 In preconditioned variables (engine.dynamics), with proximal weight eta, penalty rho_i per row
 (row_penalty: the world's rho, except on the free rows of this step, those whose bounds are out
-of play, which keep SolverConfig.free_rho) and the factor L L^T = P D P + diag(eta + rho_i), each iteration of
+of play, which keep Tuning.free_rho) and the factor L L^T = P D P + diag(eta + rho_i), each iteration of
 an active world does (rho standing for each row's rho_i; the functions of each line)
     padmm_rhs_of:     rhs = -v_f - s + eta x + rho y_hat + z_hat, with the De Saxce correction
                       s = mu |z_hat_t| on contact normal rows
@@ -42,7 +42,7 @@ RHO_MAX = wp.constant(1.0e3)
 RHO_FACTOR = wp.constant(4.0)
 RHO_BALANCE = wp.constant(10.0)
 RESTART_RATIO = wp.constant(0.999)
-STALL_WINDOW = wp.constant(10)  # iterations between SolverConfig.stall_ratio's checks
+STALL_WINDOW = wp.constant(10)  # iterations between Tuning.stall_ratio's checks
 
 
 @wp.func
@@ -50,7 +50,7 @@ def row_penalty(free: int, rho: float, rho_free: float):
     """The ADMM penalty of one row: the world's rho, except on free rows (padmm_warmstart_of's row_free:
     bilateral joint rows, and drive rows whose warm start lies well inside their effort limits),
     whose projection is the identity (y = x, z = 0): they need only the proximal pull, so they keep
-    rho_free (SolverConfig.free_rho; 0 with cap_joint_penalty off: the world's rho).
+    rho_free (Tuning.free_rho; 0 with cap_joint_penalty off: the world's rho).
     Above it, the large rho that contacts and saturated drives ask for would turn them into a slow
     proximal-point iteration, whose soft modes (eigenvalue lambda of the Delassus matrix) shrink
     only by rho / (lambda + rho) per iteration. Below it, the factor of a mechanism with redundant
@@ -600,9 +600,9 @@ def refactors(model) -> bool:
     identity, so the primal residual and the balanced dual residual are both zero and no row is
     demoted (the batch's rows as packed, Model.has_unilateral_or_drive_rows)."""
     cfg = model.config
-    if not (cfg.adaptive_rho or cfg.cap_joint_penalty):
+    if not (cfg.tuning.adaptive_rho or cfg.tuning.cap_joint_penalty):
         return False
-    return bool(model.has_unilateral_or_drive_rows or not cfg.cap_joint_penalty)
+    return bool(model.has_unilateral_or_drive_rows or not cfg.tuning.cap_joint_penalty)
 
 
 def padmm_iteration(model, row_lambda_out):
@@ -616,9 +616,9 @@ def padmm_iteration(model, row_lambda_out):
         sparse.solve(model, work.rhs, work.active, work.x)
     again = refactors(model)  # the new shifts and the factors that follow them
     wp.launch_tiled(padmm_update, dim=[model.num_worlds], block_dim=UPDATE_BLOCK, device=device,
-                    inputs=[cfg.max_iterations, float(cfg.relative_tolerance), cfg.rho_update_interval,
-                            int(cfg.adaptive_rho), int(cfg.acceleration),
-                            int(again), float(cfg.stall_ratio),
+                    inputs=[cfg.max_iterations, float(cfg.relative_tolerance), cfg.tuning.rho_update_interval,
+                            int(cfg.tuning.adaptive_rho), int(cfg.tuning.acceleration),
+                            int(again), float(cfg.tuning.stall_ratio),
                             model.row_kind, model.padmm_eta, model.padmm_rho_free, model.padmm_tolerance,
                             work.row_count, work.row_friction, work.row_precond, work.lo, work.hi, work.v_f,
                             work.diverged, work.halted, work.x, work.x_prev, work.y, work.y_hat, work.y_prev, work.z,
@@ -638,8 +638,8 @@ def solve_padmm(model, row_lambda_warm, row_lambda_out):
     work, cfg, device = model.work, model.config, model.device
     work.active_count.zero_()
     wp.launch(padmm_start, dim=(model.num_worlds, model.max_rows), device=device,
-              inputs=[(1.0 - cfg.warmstart_decay) if cfg.warmstart else 0.0, work.row_count, model.row_kind,
-                      model.padmm_rho_init, model.padmm_eta, model.padmm_rho_free, model.bilateral_row_count,
+              inputs=[(1.0 - cfg.tuning.warmstart_decay) if cfg.tuning.warmstart else 0.0, work.row_count,
+                      model.row_kind, model.padmm_rho_init, model.padmm_eta, model.padmm_rho_free, model.bilateral_row_count,
                       work.diverged, work.halted, row_lambda_warm, work.row_precond, work.lo, work.hi, work.v_f],
               outputs=[work.rho, work.valid, work.active, work.converged, work.iterations, work.momentum,
                        work.momentum_beta, work.merit, work.needs_factor, work.demote, work.active_count,

@@ -146,7 +146,7 @@ def step(model: Model, state_in: State, state_out: State, control: Control | Non
     work, device = model.work, model.device
     bodies = (model.num_worlds, model.max_bodies)
     moreau = model.config.integrator is Integrator.MOREAU_JEAN
-    compensated = int(model.config.compensated_state)
+    compensated = int(model.config.tuning.compensated_state)
     body_q, body_q_low = state_in.body_q, state_in.body_q_low
     if moreau:  # the midpoint, and the free velocities there (stage 3's first part)
         wp.launch(midpoint_free_velocity, dim=bodies, device=device,

@@ -26,7 +26,7 @@ import warp as wp
 
 from engine.fused import fused_inverse, fused_profile
 from engine.metrics import compute_metrics
-from engine.model import Integrator, SolverConfig
+from engine.config import Integrator, SolverConfig, Tuning
 from engine.pack import pack_worlds
 from engine.rollout import Stepper
 from engine.scenes import SCENES, make_scene
@@ -35,10 +35,10 @@ from engine.step import StageTimer, step
 
 ALL_SCENES = {**SCENES, **CONTACT_SCENES}
 
-STABILIZATION = {  # name -> SolverConfig fields
-    "shake": dict(position_iterations=2, projection_velocity_update=True, baumgarte=0.0),
-    "projection": dict(position_iterations=2, projection_velocity_update=False, baumgarte=0.0),
-    "baumgarte": dict(position_iterations=0, projection_velocity_update=False, baumgarte=0.01),
+STABILIZATION = {  # name -> SolverConfig fields (tuning: engine.Tuning's)
+    "shake": dict(position_iterations=2, baumgarte=0.0, tuning=dict(projection_velocity_update=True)),
+    "projection": dict(position_iterations=2, baumgarte=0.0, tuning=dict(projection_velocity_update=False)),
+    "baumgarte": dict(position_iterations=0, baumgarte=0.01, tuning=dict(projection_velocity_update=False)),
 }
 
 
@@ -68,9 +68,9 @@ def stage_profile(model, state, control, steps: int = 20) -> dict:
 
 
 def run(scene: str, num_worlds: int, steps: int, dt: float, device: str, *, chunk: int = 10,
-        config: SolverConfig | None = None, stages: bool = True, fused_block: int | None = None,
-        fused_registers: int | None = None) -> dict:
-    """Run the benchmark and return its JSON-able result."""
+        config: SolverConfig | None = None, stages: bool = True) -> dict:
+    """Run the benchmark and return its JSON-able result (the fused step's lanes and register cap:
+    config.tuning.fused_block, fused_registers)."""
     config = config or SolverConfig()
     specs, potential_min = build_batch(scene, num_worlds)
     conservative = all(not s.shapes and not s.ground and not any(j.has_limits or j.drive for j in s.joints)
@@ -79,9 +79,6 @@ def run(scene: str, num_worlds: int, steps: int, dt: float, device: str, *, chun
     t0 = time.perf_counter()
     model = pack_worlds(specs, device=device, config=config, dt=dt)
     pack_s = time.perf_counter() - t0
-    model.fused_block = fused_block
-    if fused_registers is not None:
-        model.fused_registers = fused_registers
     state, control = model.state(), model.control()
     compute_metrics(model, state)
     energy0 = model.work.energy.numpy().copy()
@@ -164,10 +161,11 @@ def main(argv=None) -> int:
     parser.add_argument("--stabilization", choices=sorted(STABILIZATION), default="shake")
     parser.add_argument("--tolerance", type=float, default=SolverConfig.tolerance)
     parser.add_argument("--max-iterations", type=int, default=SolverConfig.max_iterations)
-    parser.add_argument("--step-kernel", choices=["auto", "fused", "staged"], default=SolverConfig.step_kernel,
+    parser.add_argument("--step-kernel", choices=["auto", "fused", "staged"], default=Tuning.step_kernel,
                         help="whole step per world in one launch (fused) or one kernel per stage (staged)")
     parser.add_argument("--fused-block", type=int, default=None, help="threads per world of the fused step")
-    parser.add_argument("--fused-registers", type=int, default=None, help="register cap per thread of the fused step")
+    parser.add_argument("--fused-registers", type=int, default=None,
+                        help="register cap per thread of the fused step (0: the compiler's choice)")
     parser.add_argument("--json", action="store_true", help="print only the JSON object")
     args = parser.parse_args(argv)
     if args.worlds < 1 or args.steps < 1 or not args.dt > 0.0:
@@ -175,9 +173,10 @@ def main(argv=None) -> int:
     if args.json:
         wp.config.log_level = wp.LOG_WARNING
     config = SolverConfig(integrator=args.integrator, tolerance=args.tolerance, max_iterations=args.max_iterations,
-                          step_kernel=args.step_kernel, **STABILIZATION[args.stabilization])
-    result = run(args.scene, args.worlds, args.steps, args.dt, args.device, chunk=args.chunk, config=config,
-                 fused_block=args.fused_block, fused_registers=args.fused_registers)
+                          **STABILIZATION[args.stabilization])
+    config = config.tuned(step_kernel=args.step_kernel, fused_block=args.fused_block,
+                          fused_registers=args.fused_registers)
+    result = run(args.scene, args.worlds, args.steps, args.dt, args.device, chunk=args.chunk, config=config)
     result["stabilization"] = args.stabilization
     if args.json:
         print(json.dumps(result))

@@ -18,7 +18,9 @@
                   own, 2 pi for linkage families), samples (points per crank turn, kinematic mode);
                   the engine plans the coordinates itself (engine.pack; --verbose prints the plan)
     [solver]      engine settings of dynamic studies: any field of engine.SolverConfig (e.g.
-                  max_iterations, tolerance, linear_solver); default: SolverConfig's own
+                  max_iterations, tolerance); default: SolverConfig's own
+    [solver.tuning] the solver's internal knobs, any field of engine.Tuning (e.g. linear_solver,
+                  rho_update_interval); default: Tuning's own (None: the engine's plan chooses)
     [space]       per parameter: [low, high] to narrow the family's bounds
     [fixed]       per parameter: a value held fixed
     [constraints] per metric: [low, high]; a design outside fails with the reason (TOML has inf)
@@ -276,27 +278,49 @@ def load_study_spec(path) -> StudySpec:
     return spec
 
 
-def _solver(table: dict, where: str) -> dict:
-    """The [solver] table checked by building an engine.SolverConfig from it: every key a field of
-    SolverConfig, every value of that field's kind and range."""
+# the kind of value a [solver] or [solver.tuning] key takes, by the first word of its field's annotation
+_KINDS = {"bool": bool, "int": int, "float": float, "str": str, "Integrator": str}
+
+
+def _solver_keys(table: dict, cls, prefix: str, where: str) -> None:
+    """Every key of ``table`` a field of ``cls`` (SolverConfig or Tuning; "tuning" checked apart), every
+    value of that field's kind (a field that may be None: of its other kind)."""
     import dataclasses
 
-    from engine import SolverConfig
+    from engine.config import TUNING_FIELDS
 
-    fields = {f.name: f for f in dataclasses.fields(SolverConfig)}
+    fields = {f.name: f for f in dataclasses.fields(cls)}
     for key, value in table.items():
         if key not in fields:
-            raise ValueError(f"{where}: unknown key 'solver.{key}'; expected a field of engine.SolverConfig: "
-                             f"{sorted(fields)}")
-        default = getattr(SolverConfig, key)
-        kind = bool if isinstance(default, bool) else int if isinstance(default, int) else (
-            float if isinstance(default, float) else str)
+            hint = ""
+            if cls.__name__ == "SolverConfig" and key in TUNING_FIELDS:
+                hint = f" ('{key}' is a field of engine.Tuning: put it under [solver.tuning])"
+            raise ValueError(f"{where}: unknown key '{prefix}.{key}'{hint}; expected a field of "
+                             f"engine.{cls.__name__}: {sorted(k for k in fields if k != 'tuning')}")
+        if key == "tuning" and cls.__name__ == "SolverConfig":
+            continue
+        kind = _KINDS[str(fields[key].type).split("|")[0].strip()]
         ok = isinstance(value, kind) and not (kind is not bool and isinstance(value, bool))
         if kind is float and isinstance(value, int) and not isinstance(value, bool):
             ok = True
         if not ok:
-            raise ValueError(f"{where}: 'solver.{key}' must be {kind.__name__} "
-                             f"(like the default {default!r}), got {value!r}")
+            default = fields[key].default
+            like = "left out: the plan's choice" if default is None else f"like the default {default!r}"
+            raise ValueError(f"{where}: '{prefix}.{key}' must be {kind.__name__} ({like}), got {value!r}")
+
+
+def _solver(table: dict, where: str) -> dict:
+    """The [solver] table (and its [solver.tuning] sub-table) checked by building an
+    engine.SolverConfig from it: every key a field of SolverConfig (of Tuning under tuning), every
+    value of that field's kind and range."""
+    from engine import SolverConfig, Tuning
+
+    _solver_keys(table, SolverConfig, "solver", where)
+    if "tuning" in table:
+        if not isinstance(table["tuning"], dict):
+            raise ValueError(f"{where}: 'solver.tuning' must be a [solver.tuning] table of engine.Tuning's fields, "
+                             f"got {table['tuning']!r}")
+        _solver_keys(table["tuning"], Tuning, "solver.tuning", where)
     try:
         SolverConfig(**table)
     except (TypeError, ValueError) as exc:

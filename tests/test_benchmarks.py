@@ -77,8 +77,8 @@ def test_benchmark_runner_times_a_scenes_variants_at_its_largest_batch(tmp_path,
 
     from benchmarks import run, scenes
 
-    variant = dict(label="no projection", config=dict(position_iterations=0, projection_velocity_update=False,
-                                                      baumgarte=0.01))
+    variant = dict(label="no projection", config=dict(position_iterations=0, baumgarte=0.01,
+                                                      tuning=dict(projection_velocity_update=False)))
     declared = dataclasses.replace(scenes.SCENES_DECLARED["fourbar"], duration=0.0, variants=[variant])
     monkeypatch.setitem(run.SCENES_DECLARED, "fourbar", declared)
     assert run.main(["--device", "cpu", "--quick", "--only", "fourbar", "--parts", "throughput",

@@ -22,7 +22,7 @@ nodes) exists in any order; its rows then couple only through a star. ``choose_b
 keeps the bodies that shorten the estimated schedule (schedule_cost).
 
 ``analyze``: a minimum-degree order of the factor rows (optionally weighted by the elimination
-tree's height, for a shallower tree: ``shallowest``, SolverConfig.sparse_ordering), the
+tree's height, for a shallower tree: ``shallowest``, Tuning.sparse_ordering), the
 elimination tree, the factor's pattern, and schedules for the device:
 - entries grouped by levels of the elimination tree (a column's level is one more than its
   children's highest), so that all columns of a level are computed at once;
@@ -459,7 +459,7 @@ BODY_NODE_ROWS = 12  # a body acted on by fewer rows never gains from nodes of i
 BODY_NODE_TRIES = 16
 BODY_NODE_MISSES = 4  # ... ending early after this many in a row that did not shorten it
 BODY_NODE_GAIN = 0.8
-# Height weights of the elimination orders that SolverConfig.sparse_ordering="shallow" tries besides
+# Height weights of the elimination orders that Tuning.sparse_ordering="shallow" tries besides
 # plain minimum degree (minimum_degree, shallowest). Estimated schedules (schedule_cost) of plain
 # minimum degree / weight 0.5 / 1 / 2, with each topology's body nodes (0.25 estimates as 0.5 on
 # all but the default walker, and is kept on ties, being tried first): DR Legs hanging 11.6 / 8.6 /
@@ -665,7 +665,7 @@ def build_patterns(row_body_c: np.ndarray, row_body_p: np.ndarray, device, body_
     body_nodes: keep the bodies that shorten a schedule as nodes of the factor (choose_body_nodes).
     ordering: "minimum_degree", or "shallow": then each topology keeps the elimination order of
     minimum degree or of minimum degree with a height weight (HEIGHT_WEIGHTS), whichever has the
-    shortest estimated schedule (shallowest; SolverConfig.sparse_ordering).
+    shortest estimated schedule (shallowest; Tuning.sparse_ordering).
     Returns the device struct, the analyses (all with as many nodes) and the largest factor
     (entries per world)."""
     if ordering not in ("minimum_degree", "shallow"):
@@ -742,7 +742,7 @@ class SparseSystem:
     this step each factor row stands for (-1: unused). A model has the PADMM's system (all rows,
     contact slots included: real rewritten every step where the batch has contacts, else fixed at
     packing) and, where its batch has rows besides its
-    bilateral joint rows and SolverConfig.sparse_projection_pattern asks for it, the projection's
+    bilateral joint rows and Tuning.sparse_projection_pattern asks for it, the projection's
     (the bilateral joint rows alone: real fixed at packing), which uses the PADMM's buffers for its
     matrix and factor where they are wide enough (make_system's share)."""
 

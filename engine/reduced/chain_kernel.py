@@ -87,7 +87,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
     7. q += h u, then SolverConfig.position_iterations Gauss-Newton projections of q back onto the
        loops' position constraint with the step's X and A (dq = -X A^-1 phi(q), the tree's poses
        redone each time; a floating root's six corrections turn and move its frame), stopped as
-       soon as every kept row's error is within SolverConfig.projection_skip_floor [m] (angular
+       soon as every kept row's error is within Tuning.projection_skip_floor [m] (angular
        rows: projection_skip_floor_angular [rad]; both 0: never): its correction would be float32
        rounding. The check's kinematics carries the velocities, so that a stop also spares the
        final kinematics pass, and its errors go to shared memory in one pass;

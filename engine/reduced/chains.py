@@ -20,7 +20,7 @@ from typing import Sequence
 import numpy as np
 import warp as wp
 
-from engine.model import Integrator, SolverConfig
+from engine.config import Integrator, SolverConfig
 from engine.reduced.chain_kernel import CHAIN_BLOCK, MAX_REGISTERS, chain_step_kernel
 from engine.reduced.chain_layout import (KIND_ANGULAR, KIND_LINEAR, KIND_REVOLUTE, KIND_ROOT, MAX_CONTACTS, MAX_PREFIX,
                                          MAX_ROWS, ChainLayout, _capacity, _frame, _packed_rows, _packed_tile, _prefix,
@@ -33,10 +33,10 @@ wp.set_module_options({"enable_backward": False})  # no gradients are taken: com
 
 __all__ = ["CONTACT_RHO", "ChainModel", "ChainState", "ChainStepper", "pack_chains"]
 
-# the contacts' initial ADMM penalty, in units of their preconditioned Delassus matrix's diagonal (1):
-# SolverConfig.rho's 1e-3 let capped iterations return wild impulses on new contacts, at 1 they stay put.
-# Each later step starts from the penalty its world's last step ended with (adaptive_rho). The trials:
-# benchmarks/results/README.md, "Reduced closed chains: design notes"
+# the contacts' initial ADMM penalty (Tuning.rho None), in units of their preconditioned Delassus matrix's
+# diagonal (1): the maximal plan's 1e-3 let capped iterations return wild impulses on new contacts, at 1 they
+# stay put. Each later step starts from the penalty its world's last step ended with (adaptive_rho). The
+# trials: benchmarks/results/README.md, "Reduced closed chains: design notes"
 CONTACT_RHO = 1.0
 
 
@@ -62,7 +62,10 @@ class ChainModel:
         self.coords = max(_tile_size(max(lay.n for lay in layouts)), MAX_PREFIX)  # (the solves index 0 .. 5)
         self.tile_rows = _tile_size(self.max_rows)
         self.contact_capacity = capacity  # the largest world's
-        self.max_registers = MAX_REGISTERS
+        # register cap per thread of the step kernel on CUDA (Tuning.tree_registers; None: the compiler's choice)
+        registers = config.tuning.tree_registers
+        self.max_registers = MAX_REGISTERS if registers is None else (registers or None)
+        self.rho_init = config.tuning.rho_or(CONTACT_RHO)  # the contacts' starting penalty (Tuning.rho)
         self.tile_slots = _tile_size(4 * max(len(lay.shapes) for lay in layouts))  # candidate slots (4 per shape)
         self.tile_contacts = _tile_size(3 * capacity) if capacity else 0
         self.contact_working = capacity  # contacts the first kernel's tiles hold (pack_chains sets it)
@@ -74,7 +77,7 @@ class ChainModel:
 
     def state(self) -> ChainState:
         """A new state at the initial pose (the contacts' warm start, kept in the model's work, is
-        cleared: a new trajectory starts without the last one's impulses and from CONTACT_RHO)."""
+        cleared: a new trajectory starts without the last one's impulses and from rho_init)."""
         self.work.contact_impulse.zero_()
         self.work.contact_rho.zero_()
         return ChainState(*(wp.array(self._init[k], device=self.device, dtype=t) for k, t in
@@ -107,10 +110,11 @@ class ChainModel:
                             inputs=[self.arrays, self.work, float(self.dt), float(c.baumgarte),
                                     int(c.position_iterations), float(c.max_speed),
                                     int(c.integrator == Integrator.MOREAU_JEAN), int(record), float(c.contact_margin),
-                                    float(c.contact_stabilization), float(c.eta), CONTACT_RHO, int(c.adaptive_rho),
-                                    max(1, int(c.rho_update_interval)), float(c.tolerance),
-                                    float(c.relative_tolerance), int(c.max_iterations), float(c.projection_skip_floor),
-                                    float(c.projection_skip_floor_angular), tile // 3, state.q, state.u,
+                                    float(c.contact_stabilization), float(c.tuning.eta), self.rho_init,
+                                    int(c.tuning.adaptive_rho), max(1, int(c.tuning.rho_update_interval)),
+                                    float(c.tolerance), float(c.relative_tolerance), int(c.max_iterations),
+                                    float(c.tuning.projection_skip_floor), float(c.tuning.projection_skip_floor_angular),
+                                    tile // 3, state.q, state.u,
                                     state.root, state.body_q, state.body_qd])
 
     def stage_cycles(self) -> dict:
@@ -146,30 +150,28 @@ class ChainModel:
 
 def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | None = None,
                 dt: float = 1.0e-3, contact_capacity: int | None = None,
-                contact_working: int | None = None, layouts: Sequence[ChainLayout] | None = None) -> ChainModel:
+                layouts: Sequence[ChainLayout] | None = None) -> ChainModel:
     """Pack one world per spec (they may differ) into a ChainModel on ``device``. SolverConfig's
     integrator, baumgarte, position_iterations and max_speed apply, and for contacts contact_margin,
-    contact_stabilization, eta, adaptive_rho, rho_update_interval, tolerance, relative_tolerance and
-    max_iterations (the penalty starts at CONTACT_RHO, not SolverConfig.rho, then at each world's last
-    one). contact_capacity:
-    contacts kept per world and step
+    contact_stabilization, tolerance, relative_tolerance and max_iterations; of its Tuning eta,
+    adaptive_rho, rho_update_interval, the projection skip floors, rho (the contacts' starting
+    penalty, None: CONTACT_RHO; each later step starts at its world's last one), tree_registers and
+    tree_contact_working. contact_capacity: contacts kept per world and step
     (None: every candidate of its shapes, at most MAX_CONTACTS; those beyond are counted in
-    work.contact_dropped). contact_working: the contacts the step kernel's tiles hold (None: the most
-    any world has within the margin at its initial pose, at least 1; at most the capacity); a world
-    that finds more in a step, within its capacity, is stepped again from the step's start by a
-    second kernel with tiles for the full capacity (work.contact_redone counts those steps), so the
-    shared memory of contacts that seldom occur costs no occupancy. layouts: chain_layout(spec) of
-    each spec, already made (engine.plan), used instead of making them again. ValueError naming the
-    world and the joint, shape or body this path cannot model."""
+    work.contact_dropped). Tuning.tree_contact_working: the contacts the step kernel's tiles hold
+    (None: the most any world has within the margin at its initial pose, at least 1; at most the
+    capacity); a world that finds more in a step, within its capacity, is stepped again from the
+    step's start by a second kernel with tiles for the full capacity (work.contact_redone counts
+    those steps), so the shared memory of contacts that seldom occur costs no occupancy. layouts:
+    chain_layout(spec) of each spec, already made (engine.plan), used instead of making them again.
+    ValueError naming the world and the joint, shape or body this path cannot model."""
     config = config or SolverConfig()
     if not (isinstance(dt, (int, float)) and not isinstance(dt, bool) and math.isfinite(dt) and dt > 0):
         raise ValueError(f"pack_chains: dt must be a positive number of seconds, got {dt!r}")
     if contact_capacity is not None and not (isinstance(contact_capacity, (int, np.integer))
                                              and not isinstance(contact_capacity, bool) and contact_capacity >= 0):
         raise ValueError(f"pack_chains: contact_capacity must be a non-negative integer, got {contact_capacity!r}")
-    if contact_working is not None and not (isinstance(contact_working, (int, np.integer))
-                                            and not isinstance(contact_working, bool) and contact_working >= 1):
-        raise ValueError(f"pack_chains: contact_working must be a positive integer, got {contact_working!r}")
+    contact_working = config.tuning.tree_contact_working  # (Tuning checked it: None or >= 1)
     specs = list(specs)
     if not specs:
         raise ValueError("pack_chains: needs at least one MechanismSpec")

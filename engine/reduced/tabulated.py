@@ -12,8 +12,10 @@ drives and the contacts (engine.reduced.tabulated_step).
     points, energy, torque, speed = model.record()
     trace = rollout_tabulated(model, 1000, record_every=10)  # an engine.Trace
 
-Of engine.SolverConfig it uses eta, rho, tolerance, relative_tolerance, max_iterations,
-rho_update_interval, contact_margin, contact_stabilization and max_speed; it always integrates
+Of engine.SolverConfig it uses tolerance, relative_tolerance, max_iterations, contact_margin,
+contact_stabilization and max_speed, and of its tuning (engine.Tuning) eta, rho (None:
+engine.config.TABULATED_RHO = 1, the rows' Jacobi-preconditioned scale), rho_update_interval,
+tabulated_tiled and tabulated_registers; it always integrates
 with semi-implicit Euler and has no joint rows, so no projection.
 """
 
@@ -22,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from engine.model import SolverConfig
+from engine.config import TABULATED_RHO, SolverConfig
 from engine.reduced.tabulated_kernel import (BASE_SLOTS, DIVERGED_FAST, DIVERGED_NONFINITE, KINV_VECS, MAX_GROUPS,
                                              MAX_LINKS, MAX_ROWS, NV, ROW_VECS, TILED_REGISTERS, TabulatedState,
                                              TabulatedWorlds, body_poses, freeze_worlds, record_state,
@@ -191,7 +193,8 @@ class TabulatedModel:
 
     def _step_inputs(self) -> list:
         c = self.config
-        return [self.dt, c.eta, c.rho, c.tolerance, c.relative_tolerance, c.max_iterations, c.rho_update_interval,
+        return [self.dt, c.tuning.eta, c.tuning.rho_or(TABULATED_RHO), c.tolerance, c.relative_tolerance,
+                c.max_iterations, c.tuning.rho_update_interval,
                 c.contact_margin, c.contact_stabilization, c.max_speed, *self._structs(),
                 self.impulse, self.frozen, self.diverged, self.iterations, self.contacts, self.drive_torque,
                 self.rows_J, self.rows_Jc, self.rows, self.mass, self.mass_factor, self.factor, *self.work,
@@ -254,12 +257,13 @@ class TabulatedModel:
 
 
 def pack_tabulated(specs: list, *, device="cpu", dt: float = 2e-3, config: SolverConfig | None = None,
-                   tiled: bool | None = None, samples: int = TABLE_SAMPLES, layouts: list | None = None) -> TabulatedModel:
+                   samples: int = TABLE_SAMPLES, layouts: list | None = None) -> TabulatedModel:
     """One batch of worlds (MechanismSpecs) on ``device``, stepped with ``dt`` [s]. Raises
     ValueError "world i (name): reason" for the first world the tabulated path cannot take.
     layouts: the specs' TabulatedLayouts when the caller has them already (tabulated_layout; the
-    analysis is not repeated). tiled: one block of lanes per world (default on a GPU up to
-    tiled_max_worlds worlds) or one thread per world; both compute the same step. samples: per
+    analysis is not repeated). config.tuning.tabulated_tiled: one block of lanes per world (None: on
+    a GPU up to tiled_max_worlds worlds) or one thread per world; both compute the same step;
+    config.tuning.tabulated_registers: the tiled step's register cap (None: TILED_REGISTERS). samples: per
     table turn."""
     specs = list(specs)
     if not specs:
@@ -280,8 +284,11 @@ def pack_tabulated(specs: list, *, device="cpu", dt: float = 2e-3, config: Solve
         except ValueError as exc:
             raise ValueError(f"world {i} ({spec.name}): {exc}") from None
     model = TabulatedModel(built, device, dt, config or SolverConfig())
-    if tiled is not None:
-        model.tiled = bool(tiled)
+    tuning = model.config.tuning  # None: the model's own choice
+    if tuning.tabulated_tiled is not None:
+        model.tiled = bool(tuning.tabulated_tiled)
+    if tuning.tabulated_registers is not None:
+        model.max_registers = tuning.tabulated_registers or None  # 0: the compiler's choice
     return model
 
 

@@ -376,8 +376,8 @@ def test_projection_stops_at_the_rounding_floors(device):
     spec = sixbar().spec
     runs = {}
     for name, config in (("none", SolverConfig(position_iterations=0)),
-                         ("always", SolverConfig(projection_skip_floor=1e9, projection_skip_floor_angular=1e9)),
-                         ("never", SolverConfig(projection_skip_floor=0.0, projection_skip_floor_angular=0.0)),
+                         ("always", SolverConfig().tuned(projection_skip_floor=1e9, projection_skip_floor_angular=1e9)),
+                         ("never", SolverConfig().tuned(projection_skip_floor=0.0, projection_skip_floor_angular=0.0)),
                          ("default", SolverConfig())):
         _, model, state = _chains_positions(spec, 0.5, 2e-3, device, config)
         gauge = pack_worlds([spec], device=device)
@@ -944,21 +944,22 @@ def test_contacts_past_the_capacity_are_counted_and_shapes_limited(device):
 
 
 def test_steps_with_more_contacts_than_the_tiles_hold_go_to_the_full_kernel(device):
-    """The step kernel's contact tiles hold contact_working contacts, by default the most any world
+    """The step kernel's contact tiles hold Tuning.tree_contact_working contacts, by default the most any world
     has at its initial pose (a box resting on the ground: its 4 corners; one dropped from 3 cm: none,
     so the least, 1); a step that finds more, within the capacity, is stepped again from its start
     by a second kernel with tiles for the full capacity. In one batch with tiles for 1 contact, a
     resting box (handed over every step), a dropped box and the six-bar dropped on its box (handed
     over from their landing on; the six-bar's angles move) and a four-bar without shapes (never)
-    step bit for bit as with tiles for the full capacity throughout; contact_working below 1 is
-    refused."""
+    step bit for bit as with tiles for the full capacity throughout; a tree_contact_working below 1
+    is refused."""
     assert pack_chains([_box()], device=device, dt=1e-3).contact_working == 4
     assert pack_chains([_box(height=0.08)], device=device, dt=1e-3).contact_working == 1
     sixbar_box = _sixbar_on_a_box()
     lifted = dataclasses.replace(sixbar_box.bodies[0], position=(0.0, 0.0, 0.13))
     batch = [_box(), _box(height=0.08), dataclasses.replace(sixbar_box, bodies=[lifted] + list(sixbar_box.bodies[1:])),
              fourbar().spec]
-    models = [pack_chains(batch, device=device, dt=1e-3, contact_working=w) for w in (1, 4)]
+    models = [pack_chains(batch, device=device, dt=1e-3, config=SolverConfig().tuned(tree_contact_working=w))
+              for w in (1, 4)]
     assert models[0].contact_working == 1 and models[0].tile_working < models[0].tile_contacts
     assert models[1].tile_working == models[1].tile_contacts  # one kernel
     states = [model.state() for model in models]
@@ -976,8 +977,8 @@ def test_steps_with_more_contacts_than_the_tiles_hold_go_to_the_full_kernel(devi
         assert np.array_equal(getattr(states[0], name).numpy(), getattr(states[1], name).numpy()), name
     assert np.array_equal(models[0].work.contact_impulse.numpy(), models[1].work.contact_impulse.numpy())
     assert abs(states[0].body_q.numpy()[1, 0, 2] - 0.05) < 1e-3  # the dropped box landed on its corners
-    with pytest.raises(ValueError, match="contact_working must be a positive integer"):
-        pack_chains([_box()], device=device, contact_working=0)
+    with pytest.raises(ValueError, match="Tuning.tree_contact_working"):
+        SolverConfig().tuned(tree_contact_working=0)
 
 
 def test_dr_legs_standing_matches_the_maximal_engine_converged_tightly():

@@ -107,7 +107,7 @@ def test_warm_start_matches_contacts_across_steps(device):
     than a cold start, and the stored impulses carry the box's weight."""
     iterations = {}
     for warm in (True, False):
-        model = pack_worlds([box_on_plane(gap=0.0).spec], device=device, config=SolverConfig(warmstart=warm))
+        model = pack_worlds([box_on_plane(gap=0.0).spec], device=device, config=SolverConfig().tuned(warmstart=warm))
         trace, state = rollout(model, model.state(), model.control(), 200, dt=1e-3, record_every=1)
         iterations[warm] = trace.iterations[100:, 0].mean()
         if warm:

@@ -9,7 +9,7 @@ import pytest
 
 import warp as wp
 
-from engine import SolverConfig, pack_worlds, step
+from engine import SolverConfig, Tuning, pack_worlds, step
 from engine.fused import INVERSE_MAX_ROWS, SHARE_JOINT_PARTS, fused_block, fused_inverse
 from engine.linalg.dense import cholesky_lanes, cholesky_solve_lanes, inverse_solve_lanes, triangular_inverse_lanes
 from engine.linalg.lanes import block_sync
@@ -47,15 +47,13 @@ CASES = {
 # The projection's velocity update (SHAKE) divides each position correction by dt, so float32
 # rounding of the poses reaches the twists as noise of ~1e-7 m / dt: two implementations whose
 # substitutions sum in different orders agree to rounding with it off, and to that noise with it on.
-STRICT = SolverConfig(projection_velocity_update=False)
+STRICT = SolverConfig(tuning=Tuning(projection_velocity_update=False))
 
 
 def trajectory(specs, kind, steps, config=None, control_fn=None, device="cpu", inverse=None, sharing=None):
-    config = dataclasses.replace(config or STRICT, step_kernel=kind)
+    config = (config or STRICT).tuned(step_kernel=kind, fused_inverse=inverse, fused_sharing=sharing)
     model = pack_worlds(specs, device=device, config=config, dt=1e-3)
-    assert model.step_kernel == kind
-    model.fused_inverse = inverse
-    model.fused_sharing = sharing
+    assert model.step_kernel == kind and (model.fused_inverse, model.fused_sharing) == (inverse, sharing)
     state, other, control = model.state(), model.state(), model.control()
     if control_fn is not None:
         control_fn(model, control)
@@ -102,7 +100,7 @@ def test_fused_projection_factor_takes_the_free_rows_penalty():
     damped Gauss-Newton steps) the fused and staged Jansen legs keep the same poses to 1e-6 over
     200 steps (1.2e-7 here); a fused factor shifted by eta + rho_init instead parts them by 3e-6."""
     specs = CASES["jansen_drive"]()
-    config = dataclasses.replace(STRICT, free_rho=5e-2)
+    config = STRICT.tuned(free_rho=5e-2)
     staged_model, staged = trajectory(specs, "staged", 200, config)
     fused_model, fused = trajectory(specs, "fused", 200, config)
     assert np.abs(staged.body_q.numpy() - fused.body_q.numpy()).max() < 1e-6
@@ -115,8 +113,8 @@ def test_fused_penalty_updates_refactor_like_the_staged_path(inverse):
     step, joint limits active; with ``inverse`` L^-1 formed again after each) both paths still
     agree and use the same iterations. One penalty for all rows (cap_joint_penalty off): the joint
     rows' zero primal residual then drives it down; with their own penalty they do not move it."""
-    config = dataclasses.replace(STRICT, rho_update_interval=1, tolerance=1e-9, relative_tolerance=0.0,
-                                 max_iterations=40, cap_joint_penalty=False)
+    config = dataclasses.replace(STRICT, tolerance=1e-9, relative_tolerance=0.0, max_iterations=40).tuned(
+        rho_update_interval=1, cap_joint_penalty=False)
     specs = CASES["limits"]() + CASES["jansen_drive"]()[:1]
     staged_model, staged = trajectory(specs, "staged", 100, config)
     fused_model, fused = trajectory(specs, "fused", 100, config, inverse=inverse)
@@ -152,9 +150,9 @@ def test_auto_choice_and_errors():
     walker = CONTACT_SCENES["walker"]().spec
     assert pack_worlds([walker], device="cpu").step_kernel == "staged"
     with pytest.raises(ValueError, match="step_kernel='fused'.*contacts"):
-        pack_worlds([walker], device="cpu", config=SolverConfig(step_kernel="fused"))
+        pack_worlds([walker], device="cpu", config=SolverConfig(tuning=Tuning(step_kernel="fused")))
     with pytest.raises(ValueError, match="step_kernel"):
-        SolverConfig(step_kernel="megakernel")
+        SolverConfig(tuning=Tuning(step_kernel="megakernel"))
 
 
 @wp.kernel(enable_backward=False)
@@ -226,7 +224,7 @@ def test_fused_step_on_the_device_matches_the_staged_step(device, batch):
         specs, config = CASES["mixed"]() + CASES["jansen_drive"]()[:1] + CASES["limits"]()[:1], STRICT
     else:
         specs = CASES["limits"]()[:1] + CASES["armature"]()[:1] + CASES["fourbar"]()[:1]
-        config = dataclasses.replace(STRICT, rho_update_interval=1)
+        config = STRICT.tuned(rho_update_interval=1)
     staged_model, staged = trajectory(specs, "staged", 100, config, device=device)
     fused_model, fused = trajectory(specs, "fused", 100, config, device=device)
     assert fused_model.fused_block == fused_block(device) == (32 if wp.get_device(device).is_cuda else 1)
@@ -248,7 +246,7 @@ def test_default_projection_velocity_update_keeps_the_paths_within_its_noise():
     may fall on either side of it; tests/engine/test_projection_floor.py covers it on both.)"""
     for case in ("fourbar", "jansen_drive", "armature"):
         for integrator in ("euler", "moreau"):
-            config = SolverConfig(integrator=integrator, projection_velocity_floor=0.0)
+            config = SolverConfig(integrator=integrator, tuning=Tuning(projection_velocity_floor=0.0))
             _, staged = trajectory(CASES[case](), "staged", 200, config)
             _, fused = trajectory(CASES[case](), "fused", 200, config)
             assert np.abs(staged.body_q.numpy() - fused.body_q.numpy()).max() < 1e-4, (case, integrator)
@@ -268,11 +266,9 @@ def test_body_sum_groups_only_with_whole_warps():
     assert sharing_used(SimpleNamespace(device=gpu, fused_sharing=both, fused_block=32)) == both
     assert sharing_used(SimpleNamespace(device=gpu, fused_sharing=both, fused_block=64)) == both
     assert sharing_used(SimpleNamespace(device=gpu, fused_sharing=both, fused_block=48)) == int(SHARE_JOINT_PARTS)
-    model = pack_worlds([fourbar().spec], device="cpu")
-    model.fused_sharing = both
+    model = pack_worlds([fourbar().spec], device="cpu", config=SolverConfig().tuned(fused_sharing=both))
     assert sharing_used(model) == int(SHARE_JOINT_PARTS)
-    model.fused_sharing = None
-    assert sharing_used(model) == 0
+    assert sharing_used(pack_worlds([fourbar().spec], device="cpu")) == 0
 
 
 def test_shuffled_reductions_only_for_one_warps_first_lanes():

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from engine import Body, MechanismSpec, SolverConfig, pack_worlds, rollout
+from engine import Body, MechanismSpec, SolverConfig, Tuning, pack_worlds, rollout
 from engine.health import FAR, JOINTS_OPEN, UNCONVERGED
 from engine.scenes import chain, fourbar, shifted
 
@@ -38,7 +38,7 @@ def test_mass_ratio_beyond_the_limit_is_flagged_and_a_mild_one_is_not():
     the 1:10 chain stays closed and is not flagged. Both step kernels."""
     for kernel in ("fused", "staged"):
         model = pack_worlds([alternating_chain(10.0), alternating_chain(1e8)], device="cpu", dt=1e-3,
-                            config=SolverConfig(step_kernel=kernel))
+                            config=SolverConfig(tuning=Tuning(step_kernel=kernel)))
         trace, _ = rollout(model, model.state(), model.control(), 200, record_every=10)
         opened = trace.violation_linear.max(axis=0)
         assert opened[0] < 1e-5 and opened[1] > 2e-2, (kernel, opened)

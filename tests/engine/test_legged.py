@@ -10,7 +10,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from engine import Integrator, SolverConfig, pack_worlds, rollout
+from engine import Integrator, SolverConfig, Tuning, pack_worlds, rollout
 from engine.legged import (TILED_REGISTERS, legged_points, legged_rollout, legged_step_batch, pack_legged, step_kernel,
                            tiled_max_worlds)
 from morphopt.evaluate import evaluate_dynamic
@@ -300,7 +300,7 @@ def test_evaluate_dynamic_reduced():
 def test_reduced_walks_as_fast_as_maximal():
     """The default walker's walking speed in reduced coordinates is within 30 % of the maximal
     engine's (2 s at dt 2e-3, rho_update_interval 8 for both)."""
-    config = SolverConfig(rho_update_interval=8)
+    config = SolverConfig(tuning=Tuning(rho_update_interval=8))
     default = WALKER.space.default()
     runs = {model: evaluate_dynamic(WALKER, [default], duration=2.0, dt=2e-3, config=config, model=model)
             for model in ("maximal", "reduced")}

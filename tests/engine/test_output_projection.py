@@ -5,7 +5,7 @@ must still take effect."""
 import numpy as np
 import pytest
 
-from engine import SolverConfig, compute_metrics, pack_worlds, step
+from engine import SolverConfig, Tuning, compute_metrics, pack_worlds, step
 from engine.rollout import Stepper
 from engine.scenes import make_scene
 
@@ -28,7 +28,7 @@ def test_skipping_the_output_projection_leaves_the_motion_bit_identical(kernel):
     one left (State.body_q_next + body_q_low) whether or not its end was projected; rebuilding it
     from the output instead left the two runs 6e-6 m apart."""
     spec = make_scene("chain").spec
-    runs = [_records(pack_worlds([spec], device="cpu", dt=1e-3, config=SolverConfig(step_kernel=kernel)), chunk, 1000)
+    runs = [_records(pack_worlds([spec], device="cpu", dt=1e-3, config=SolverConfig().tuned(step_kernel=kernel)), chunk, 1000)
             for chunk in (1, 10)]
     np.testing.assert_array_equal(runs[0], runs[1])
 
@@ -41,7 +41,7 @@ def test_an_unprojected_end_of_step_is_left_open_and_a_projected_one_closed(kern
     spec = make_scene("chain").spec
     errors = {}
     for project in (False, True):
-        model = pack_worlds([spec], device="cpu", dt=1e-2, config=SolverConfig(step_kernel=kernel))
+        model = pack_worlds([spec], device="cpu", dt=1e-2, config=SolverConfig(tuning=Tuning(step_kernel=kernel)))
         a, b = model.state(), model.state()
         for k in range(20):
             step(model, a, b, model.control(), project_output=project or k < 19)
@@ -58,7 +58,7 @@ def test_poses_set_by_hand_take_effect(kernel):
     follow a fresh run from the initial state to within 1e-5 m, although the stale midpoint of
     the earlier motion lies centimetres away."""
     spec = make_scene("fourbar").spec
-    model = pack_worlds([spec], device="cpu", dt=1e-3, config=SolverConfig(step_kernel=kernel))
+    model = pack_worlds([spec], device="cpu", dt=1e-3, config=SolverConfig(tuning=Tuning(step_kernel=kernel)))
     stepper = Stepper(model, model.state(), model.control(), chunk=10)
     for _ in range(20):
         stepper.advance()
@@ -70,7 +70,7 @@ def test_poses_set_by_hand_take_effect(kernel):
     state.body_q_offset.zero_()
     for _ in range(30):
         stepper.advance()
-    reference = pack_worlds([spec], device="cpu", dt=1e-3, config=SolverConfig(step_kernel=kernel))
+    reference = pack_worlds([spec], device="cpu", dt=1e-3, config=SolverConfig(tuning=Tuning(step_kernel=kernel)))
     again = Stepper(reference, reference.state(), reference.control(), chunk=10)
     for _ in range(30):
         again.advance()

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import warp as wp
 
-from engine import Body, Joint, JointDrive, MechanismSpec, SolverConfig, pack_worlds, rollout
+from engine import Body, Joint, JointDrive, MechanismSpec, SolverConfig, Tuning, pack_worlds, rollout
+from engine.config import MAXIMAL_RHO
 from engine.model import UNBOUNDED
 from engine.padmm import padmm_decide, solve_padmm
 
@@ -119,7 +120,7 @@ def _mixed_problem_batch(device, cap_joint_penalty: bool, seed: int = 11):
     num_worlds = 3
     model = pack_worlds([spec] * num_worlds, device=device,
                         config=SolverConfig(tolerance=1e-6, relative_tolerance=0.0, max_iterations=2000,
-                                            cap_joint_penalty=cap_joint_penalty, stall_ratio=0.0))
+                                            tuning=Tuning(cap_joint_penalty=cap_joint_penalty, stall_ratio=0.0)))
     R = model.max_rows
     delassus = np.tile(np.eye(R, dtype=np.float32), (num_worlds, 1, 1))
     v_f = np.zeros((num_worlds, R), np.float32)
@@ -161,7 +162,7 @@ def _mixed_problem_batch(device, cap_joint_penalty: bool, seed: int = 11):
 
 
 def test_capped_joint_penalty_solves_mixed_problems_in_fewer_iterations(device):
-    """Joint rows with their own penalty (SolverConfig.cap_joint_penalty, free_rho):
+    """Joint rows with their own penalty (Tuning.cap_joint_penalty, free_rho):
     the same solution of the box-constrained QP min 1/2 x^T A x + b^T x (its KKT conditions
     checked in NumPy: zero gradient on the joint rows and on drive rows inside their box, the
     gradient's sign at a bound) as with one rho for all rows, in far fewer PADMM iterations."""
@@ -208,7 +209,7 @@ def _decide_until_stop(residuals: wp.array(dtype=float), stall_ratio: float, out
 @pytest.mark.parametrize("decay, stall_ratio, stops_at", [(0.95, 0.5, 20), (0.95, 0.6, 200), (0.9, 0.5, 200),
                                                         (0.95, 0.0, 200)])
 def test_stall_ratio_stops_a_world_whose_residual_falls_too_slowly(decay, stall_ratio, stops_at):
-    """SolverConfig.stall_ratio: residuals falling by ``decay`` per iteration fall by decay^10 over
+    """Tuning.stall_ratio: residuals falling by ``decay`` per iteration fall by decay^10 over
     a window of 10 (0.95: 0.60; 0.9: 0.35). A world stops, unconverged, at the first check from
     iteration 20 on where they did not fall below stall_ratio times the last check's value; else it
     runs to the cap (200 here, tolerance 0: never converged); 0 turns the rule off."""
@@ -236,7 +237,7 @@ def test_stall_ratio_cuts_the_tail_of_random_walkers():
     specs = walkers(8).specs
     largest = {}
     for ratio in (0.0, 0.5):
-        model = pack_worlds(specs, device="cpu", dt=2e-3, config=SolverConfig(stall_ratio=ratio))
+        model = pack_worlds(specs, device="cpu", dt=2e-3, config=SolverConfig(tuning=Tuning(stall_ratio=ratio)))
         trace, final = rollout(model, model.state(), model.control(), 60, record_every=1)
         assert np.isfinite(final.body_q.numpy()).all() and model.work.diverged.numpy().sum() == 0
         largest[ratio] = trace.iterations.max(axis=1)
@@ -245,18 +246,18 @@ def test_stall_ratio_cuts_the_tail_of_random_walkers():
 
 def test_stall_ratio_is_validated():
     with pytest.raises(ValueError, match="stall_ratio"):
-        SolverConfig(stall_ratio=1.0)
+        SolverConfig(tuning=Tuning(stall_ratio=1.0))
 
 
 def test_free_rho_is_validated():
     with pytest.raises(ValueError, match="free_rho"):
-        SolverConfig(free_rho=0.0)
+        SolverConfig(tuning=Tuning(free_rho=0.0))
 
 
 @pytest.mark.parametrize("free_rho", [2e-4, 5e-3])
 def test_projection_factor_of_a_driven_linkage_takes_the_free_rows_penalty(free_rho):
     """A batch with drive rows refactors for the position projection (its drive rows taken out):
-    every row of that factor is shifted by eta + SolverConfig.free_rho, the penalty the joint rows
+    every row of that factor is shifted by eta + Tuning.free_rho, the penalty the joint rows
     had in the PADMM factor; with cap_joint_penalty off, by eta + the initial rho."""
     from morphopt.families import load_family
     from morphopt.linkage.to_spec import to_spec
@@ -265,11 +266,11 @@ def test_projection_factor_of_a_driven_linkage_takes_the_free_rows_penalty(free_
     spec = to_spec(family.generate(family.space.default()))
     assert any(j.drive is not None for j in spec.joints)
     for cap in (True, False):
-        config = SolverConfig(step_kernel="staged", free_rho=free_rho, cap_joint_penalty=cap)
+        config = SolverConfig(tuning=Tuning(step_kernel="staged", free_rho=free_rho, cap_joint_penalty=cap))
         model = pack_worlds([spec] * 2, device="cpu", dt=1e-3, config=config)
         rollout(model, model.state(), model.control(), 3)
         n = int(model.row_count.numpy()[0])
-        expected = config.eta + (free_rho if cap else config.rho)
+        expected = config.tuning.eta + (free_rho if cap else MAXIMAL_RHO)  # the maximal plan's starting rho
         assert np.allclose(model.work.row_shift.numpy()[:, :n], expected, rtol=1e-6), cap
 
 
@@ -278,7 +279,7 @@ def test_projection_factor_of_a_driven_linkage_takes_the_free_rows_penalty(free_
 def test_a_redundant_linkage_at_tight_tolerance_keeps_its_joint_rows_penalty(kernel, start_rho):
     """A double parallelogram (one redundant crank: a singular Delassus matrix) at tolerance 1e-9,
     which float32 cannot reach, so PADMM runs to its cap. Its rows are all free joint rows, which
-    keep their own penalty (SolverConfig.free_rho, engine.padmm.row_penalty) and do not take part in the penalty update
+    keep their own penalty (Tuning.free_rho, engine.padmm.row_penalty) and do not take part in the penalty update
     (their primal residual is zero): the world's rho stays where it is, the factor keeps its shift
     eta + free_rho, and the crank follows scipy's motion as closely as at the default tolerance
     (6.5e-6 m over 0.5 s). Also from a world whose rho was driven to RHO_MIN before (as contacts or
@@ -289,9 +290,9 @@ def test_a_redundant_linkage_at_tight_tolerance_keeps_its_joint_rows_penalty(ker
 
     theta0, speed = -1.2, 2.0
     spec = double_parallelogram(theta0, speed)
-    config = SolverConfig(step_kernel=kernel, tolerance=1e-9, relative_tolerance=0.0, max_iterations=300)
+    config = SolverConfig(tolerance=1e-9, relative_tolerance=0.0, max_iterations=300).tuned(step_kernel=kernel)
     model = pack_worlds([spec], device="cpu", dt=1e-3, config=config)
-    rho0 = config.rho if start_rho == "initial" else float(RHO_MIN)
+    rho0 = MAXIMAL_RHO if start_rho == "initial" else float(RHO_MIN)
     model.work.rho.fill_(rho0)
     trace, _ = rollout(model, model.state(), model.control(), 500, record_every=10)
     reference = crank_reference(theta0, speed, trace.time, *parallel_linkage_constants(spec))
@@ -301,4 +302,4 @@ def test_a_redundant_linkage_at_tight_tolerance_keeps_its_joint_rows_penalty(ker
     assert error < 2e-5, error
     if kernel == "staged":  # every row of this linkage is a free joint row: shift eta + free_rho
         n = int(model.row_count.numpy()[0])
-        assert np.allclose(model.work.row_shift.numpy()[0, :n], config.eta + config.free_rho, rtol=1e-6)
+        assert np.allclose(model.work.row_shift.numpy()[0, :n], config.tuning.eta + config.tuning.free_rho, rtol=1e-6)

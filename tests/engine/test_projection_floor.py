@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from benchmarks.stress import n_fourbar
-from engine import SolverConfig, pack_worlds, rollout
+from engine import SolverConfig, Tuning, pack_worlds, rollout
 from engine.scenes import fourbar
 from engine.testspeed import run
 
@@ -18,8 +18,8 @@ def test_energy_holds_at_small_dt_with_or_without_floor(kernel):
     """Four-bar, dt 0.1 ms, 0.3 s: the energy drift stays below 2e-4 with the rounding floor and
     without it (the dynamics run on projected midpoints, so rounding is not fed back; with the end
     of the step projected instead, the drift was 3.3 % without the floor), loops closed."""
-    for floor in (0.0, SolverConfig().projection_velocity_floor):
-        config = SolverConfig(projection_velocity_floor=floor, step_kernel=kernel)
+    for floor in (0.0, Tuning.projection_velocity_floor):
+        config = SolverConfig(tuning=Tuning(projection_velocity_floor=floor, step_kernel=kernel))
         result = run("fourbar", 1, 3000, 1e-4, "cpu", chunk=100, stages=False, config=config)
         assert result["max_constraint_violation_m"] < 1e-6
         assert result["diverged_worlds"] == 0
@@ -35,7 +35,7 @@ def test_parallelogram_keeps_its_energy_through_flat_passes(kernel):
     here, and the cranks' speeds differed by up to 0.2 m/s, alternating sign from step to step."""
     dt = 0.25e-3
     model = pack_worlds([n_fourbar(1, -0.5 * math.pi, 1.0)], device="cpu", dt=dt,
-                        config=SolverConfig(step_kernel=kernel))
+                        config=SolverConfig(tuning=Tuning(step_kernel=kernel)))
     trace, final = rollout(model, model.state(), model.control(), round(2.5 / dt), record_every=40)
     energy = trace.energy[:, 0]
     assert np.isfinite(energy).all()
@@ -47,7 +47,7 @@ def test_parallelogram_keeps_its_energy_through_flat_passes(kernel):
 
 def test_velocity_floor_is_validated():
     with pytest.raises(ValueError, match="projection_velocity_floor"):
-        SolverConfig(projection_velocity_floor=-1.0)
+        SolverConfig(tuning=Tuning(projection_velocity_floor=-1.0))
 
 
 @pytest.mark.parametrize("kernel", ["fused", "staged"])
@@ -57,8 +57,9 @@ def test_projection_skips_iterations_whose_correction_is_rounding(kernel):
     without either floor it runs (mask 1). The motion is the same to rounding: four-bar, 300 steps of 1 ms,
     poses within 1e-5 m of each other, energies within 1e-5 relative, loops closed to 2e-7 m in both."""
     results = {}
-    for skip in (0.0, SolverConfig().projection_skip_floor):
-        config = SolverConfig(step_kernel=kernel, projection_skip_floor=skip, projection_skip_floor_angular=skip)
+    for skip in (0.0, Tuning.projection_skip_floor):
+        config = SolverConfig(tuning=Tuning(step_kernel=kernel, projection_skip_floor=skip,
+                                            projection_skip_floor_angular=skip))
         model = pack_worlds([fourbar().spec] * 2, device="cpu", dt=1e-3, config=config)
         trace, final = rollout(model, model.state(), model.control(), 300, record_every=30)
         assert trace.violation_linear.max() < 2e-7, (skip, trace.violation_linear.max())
@@ -71,7 +72,7 @@ def test_projection_skips_iterations_whose_correction_is_rounding(kernel):
 
 def test_skip_floor_is_validated():
     with pytest.raises(ValueError, match="projection_skip_floor"):
-        SolverConfig(projection_skip_floor=-1.0)
+        SolverConfig(tuning=Tuning(projection_skip_floor=-1.0))
 
 
 def test_projection_gate_weighs_linear_and_angular_errors_by_their_own_floors():
@@ -123,9 +124,10 @@ def test_angular_skip_floor_alone_decides_for_angular_errors(kernel):
     from benchmarks.stress import bricard
 
     for angular, expected in ((0.0, 1), (1.0, 0)):
-        config = SolverConfig(step_kernel=kernel, projection_skip_floor=1.0, projection_skip_floor_angular=angular)
+        config = SolverConfig(tuning=Tuning(step_kernel=kernel, projection_skip_floor=1.0,
+                                            projection_skip_floor_angular=angular))
         model = pack_worlds([bricard()] * 2, device="cpu", dt=1e-3, config=config)
         trace, _ = rollout(model, model.state(), model.control(), 20, record_every=10)
         np.testing.assert_array_equal(model.work.projection_mask.numpy(), [expected] * 2)
     with pytest.raises(ValueError, match="projection_skip_floor_angular"):
-        SolverConfig(projection_skip_floor_angular=-1.0)
+        SolverConfig(tuning=Tuning(projection_skip_floor_angular=-1.0))

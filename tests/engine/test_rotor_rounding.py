@@ -9,7 +9,7 @@ import pytest
 import warp as wp
 
 from benchmarks.stress import n_fourbar
-from engine import SolverConfig, pack_worlds, rollout
+from engine import SolverConfig, Tuning, pack_worlds, rollout
 from engine.spatial import gyroscopic_implicit_midpoint
 
 
@@ -44,7 +44,7 @@ def test_a_spinning_crank_keeps_its_energy_to_rounding(kernel):
     ulp of it per step: 2.7e-4 here."""
     spec = dataclasses.replace(n_fourbar(0, speed=5.0), gravity=(0.0, 0.0, 0.0))
     dt = 1e-3
-    model = pack_worlds([spec], device="cpu", dt=dt, config=SolverConfig(step_kernel=kernel))
+    model = pack_worlds([spec], device="cpu", dt=dt, config=SolverConfig(tuning=Tuning(step_kernel=kernel)))
     trace, _ = rollout(model, model.state(), model.control(), 2000, record_every=100)
     energy = trace.energy[:, 0].astype(np.float64)
     assert abs(energy[0] - 0.5 * 25.0 / 3.0) < 1e-4 * energy[0]  # 1/2 (m l^2 / 3) w^2 about the pin (thin rod)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from engine import SolverConfig, pack_worlds
+from engine import SolverConfig, Tuning, pack_worlds
 from engine.dynamics import delassus
 from engine.integrate import bilateral_block
 from engine.linalg import sparse, sparse_analysis
@@ -65,8 +65,8 @@ def test_factor_and_solve_match_numpy(device, bilateral_only, body_nodes, orderi
     in the elimination order of minimum degree or of the shallowest estimated schedule."""
     one, two = random_walkers(2)  # one and two legs per side
     model = pack_worlds([one, two, one], device=device, dt=2e-3,
-                        config=SolverConfig(linear_solver="sparse", sparse_body_nodes=body_nodes,
-                                            sparse_ordering=ordering))
+                        config=SolverConfig(tuning=Tuning(linear_solver="sparse", sparse_body_nodes=body_nodes,
+                                                          sparse_ordering=ordering)))
     if ordering == "shallow":  # the walkers' topologies order with a height weight: shallower trees
         assert all(a.height_weight in sparse_analysis.HEIGHT_WEIGHTS for a in model.sparse_system.analyses)
     assert len(model.sparse_system.analyses) == 2  # one analysis per topology
@@ -214,9 +214,9 @@ def test_shallow_ordering_keeps_the_shortest_schedule(device):
     with it moves as the one in minimum-degree order does (a passive six-bar, sparse solver,
     0.2 s: the same motion to float32 rounding)."""
     one, two = random_walkers(2)
-    plain = pack_worlds([one, two], device=device, dt=2e-3, config=SolverConfig(linear_solver="sparse"))
+    plain = pack_worlds([one, two], device=device, dt=2e-3, config=SolverConfig(tuning=Tuning(linear_solver="sparse")))
     shallow = pack_worlds([one, two], device=device, dt=2e-3,
-                          config=SolverConfig(linear_solver="sparse", sparse_ordering="shallow"))
+                          config=SolverConfig(tuning=Tuning(linear_solver="sparse", sparse_ordering="shallow")))
     for a, b in zip(plain.sparse_system.analyses, shallow.sparse_system.analyses):
         assert a.height_weight == 0.0 and a.body_nodes == b.body_nodes
         assert b.height_weight in (0.0, *sparse_analysis.HEIGHT_WEIGHTS)
@@ -241,7 +241,8 @@ def test_shallow_ordering_keeps_the_shortest_schedule(device):
     ends = []
     for ordering in ("minimum_degree", "shallow"):
         model = pack_worlds([spec] * 2, device=device, dt=1e-3,
-                            config=SolverConfig(linear_solver="sparse", step_kernel="staged", sparse_ordering=ordering))
+                            config=SolverConfig(tuning=Tuning(linear_solver="sparse", step_kernel="staged",
+                                                              sparse_ordering=ordering)))
         trace, _ = rollout(model, model.state(), model.control(), 200, record_every=200)
         assert not trace.diverged.any()
         ends.append(trace.points[-1])
@@ -256,7 +257,7 @@ def test_supernode_blocks_of_the_solves():
     its child blocks' highest. With one member per block the levels are the factor's own; and the
     schedule's records hold each row's and column's entries outside its block."""
     one, two = random_walkers(2)
-    model = pack_worlds([one, two], device="cpu", dt=2e-3, config=SolverConfig(linear_solver="sparse"))
+    model = pack_worlds([one, two], device="cpu", dt=2e-3, config=SolverConfig(tuning=Tuning(linear_solver="sparse")))
     for a in model.sparse_system.analyses:
         n = a.nodes
         pattern = np.zeros((n, n), bool)
@@ -516,8 +517,8 @@ def test_projection_pattern_solves_the_bilateral_block(device, body_nodes):
     not stand for (drives, contacts) are left alone below the row count and zeroed above it."""
     one, two = random_walkers(2)
     model = pack_worlds([one, two, one], device=device, dt=2e-3,
-                        config=SolverConfig(linear_solver="sparse", sparse_body_nodes=body_nodes,
-                                            sparse_projection_pattern="always"))
+                        config=SolverConfig(tuning=Tuning(linear_solver="sparse", sparse_body_nodes=body_nodes,
+                                                          sparse_projection_pattern="always")))
     system = model.sparse_projection
     assert system is not None and system is not model.sparse_system
     assert system.L is model.sparse_system.L  # the PADMM's buffers, free while the projection runs
@@ -564,19 +565,19 @@ def test_projection_pattern_choice(device):
     spec = make_scene("fourbar").spec
     armature = with_armature(spec)
 
-    def pattern(specs, **settings):
-        model = pack_worlds(specs, device=device, dt=1e-3, config=SolverConfig(linear_solver="sparse", **settings))
+    def pattern(specs, config=SolverConfig(), **knobs):
+        model = pack_worlds(specs, device=device, dt=1e-3, config=config.tuned(linear_solver="sparse", **knobs))
         return model.sparse_projection
 
     assert pattern([armature]) is not None
-    assert pattern([armature], position_iterations=0) is None
+    assert pattern([armature], SolverConfig(position_iterations=0)) is None
     assert pattern([spec]) is None  # only bilateral rows: the PADMM factor serves
     assert pattern(random_walkers(2)) is None
     assert pattern(random_walkers(2), sparse_projection_pattern="always") is not None
     assert pattern(random_walkers(2), sparse_projection_pattern=True) is not None
     assert pattern([armature], sparse_projection_pattern=False) is None
     with pytest.raises(ValueError, match="sparse_projection_pattern"):
-        SolverConfig(sparse_projection_pattern="sometimes")
+        SolverConfig(tuning=Tuning(sparse_projection_pattern="sometimes"))
 
 
 def test_projection_pattern_steps_like_the_padmm_pattern(device):
@@ -590,7 +591,8 @@ def test_projection_pattern_steps_like_the_padmm_pattern(device):
     traces = []
     for choice in ("always", "never"):
         model = pack_worlds(specs, device=device, dt=1e-3,
-                            config=SolverConfig(linear_solver="sparse", sparse_projection_pattern=choice))
+                            config=SolverConfig(tuning=Tuning(linear_solver="sparse",
+                                                              sparse_projection_pattern=choice)))
         assert (model.sparse_projection is not None) == (choice == "always")
         trace, _ = rollout(model, model.state(), model.control(), 400, record_every=20)
         assert not trace.diverged.any()
@@ -685,7 +687,7 @@ LARGE_WORLD_SCENES = {
 
 
 def run_solver(specs, solver, device, steps=400):
-    model = pack_worlds(specs, device=device, config=SolverConfig(linear_solver=solver), dt=1e-3)
+    model = pack_worlds(specs, device=device, config=SolverConfig(tuning=Tuning(linear_solver=solver)), dt=1e-3)
     trace, _ = rollout(model, model.state(), model.control(), steps, record_every=20)
     return model, trace
 
@@ -729,7 +731,7 @@ def test_large_world_runs_without_the_dense_tile_and_matches_small_worlds(device
     big = copies(single, count)
     assert big.row_count > MAX_DENSE_ROWS
     with pytest.raises(ValueError, match="linear_solver='sparse'"):
-        pack_worlds([big], device=device, config=SolverConfig(linear_solver="dense"))
+        pack_worlds([big], device=device, config=SolverConfig(tuning=Tuning(linear_solver="dense")))
     model, trace = run_solver([big, single], "auto", device, steps=300)  # auto picks the sparse factor
     assert model.linear_solver == "sparse"
     _, reference = run_solver([single], "dense", device, steps=300)
@@ -746,4 +748,4 @@ def test_large_world_runs_without_the_dense_tile_and_matches_small_worlds(device
 
 def test_solver_choice_is_validated():
     with pytest.raises(ValueError, match="linear_solver"):
-        SolverConfig(linear_solver="lu")
+        SolverConfig(tuning=Tuning(linear_solver="lu"))

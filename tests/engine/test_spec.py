@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from engine import Body, Joint, JointDrive, MechanismSpec, SolverConfig, pack_worlds
+from engine import Body, Joint, JointDrive, MechanismSpec, SolverConfig, Tuning, pack_worlds
 from engine.scenes import fourbar
 
 
@@ -115,7 +115,7 @@ def test_solver_config_rejects_bad_values():
     with pytest.raises(ValueError, match="integrator"):
         SolverConfig(integrator="rk4")
     with pytest.raises(ValueError, match="sparse_ordering"):
-        SolverConfig(sparse_ordering="nested_dissection")
+        SolverConfig(tuning=Tuning(sparse_ordering="nested_dissection"))
 
 
 def test_row_layout_of_fourbar():

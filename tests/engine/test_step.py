@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from engine import Body, MechanismSpec, SolverConfig, compute_metrics, metrics_numpy, pack_worlds, rollout, step
+from engine import Body, MechanismSpec, SolverConfig, Tuning, compute_metrics, metrics_numpy, pack_worlds, rollout, step
 from engine.scenes import GRAVITY, chain, fourbar, pendulum, sixbar
 
 
@@ -77,7 +77,7 @@ def test_fourbar_ten_seconds_closed_and_conservative(stabilization, device):
     """The passive four-bar over 10 s at dt = 1 ms: loop closure < 1e-5 m and energy drift < 1 %
     of the energy above equilibrium (the projection-only variant must keep the loop closed too)."""
     scene = fourbar()
-    config = SolverConfig(projection_velocity_update=stabilization == "shake")
+    config = SolverConfig(tuning=Tuning(projection_velocity_update=stabilization == "shake"))
     model = pack_worlds([scene.spec], device=device, config=config)
     trace, _ = rollout(model, model.state(), model.control(), 10000, dt=1e-3, record_every=20)
     assert trace.violation_linear.max() < 1e-5
@@ -93,7 +93,7 @@ def test_baumgarte_only_drifts_more_than_projection(device):
     position correction is doing the work (both measured on the four-bar over 2 s)."""
     results = {}
     for name, config in {"baumgarte": SolverConfig(position_iterations=0, baumgarte=0.01,
-                                                   projection_velocity_update=False),
+                                                   tuning=Tuning(projection_velocity_update=False)),
                          "shake": SolverConfig()}.items():
         model = pack_worlds([fourbar().spec], device=device, config=config)
         trace, _ = rollout(model, model.state(), model.control(), 2000, dt=1e-3, record_every=50)

@@ -278,7 +278,7 @@ def test_free_flight_matches_the_maximal_engine(family, dt):
 def test_walks_as_fast_as_the_maximal_engine():
     """The default walker on the ground for 2 s (dt 2e-3, rho_update_interval 8 for both): the
     torso's speed over the last 1.5 s within 30 % of the maximal engine's on the same spec."""
-    config = SolverConfig(rho_update_interval=8)
+    config = SolverConfig().tuned(rho_update_interval=8)
     spec, _ = walker()
     ours = rollout_tabulated(pack_tabulated([spec], dt=2e-3, config=config), 1000, record_every=10)
     maximal = pack_worlds([spec], device="cpu", dt=2e-3, config=config)
@@ -468,7 +468,8 @@ def test_tiled_and_per_thread_steps_agree():
     compute the same walk: two walkers on the ground, 0.4 s at dt 2e-3; the tiled step is held to
     TILED_REGISTERS registers per thread on CUDA (the CPU ignores it)."""
     specs = [walker()[0], walker("klann_leg", legs_per_side=2)[0]]
-    models = [pack_tabulated(specs, dt=2e-3, tiled=tiled) for tiled in (True, False)]
+    models = [pack_tabulated(specs, dt=2e-3, config=SolverConfig().tuned(tabulated_tiled=tiled))
+              for tiled in (True, False)]
     assert [m.tiled for m in models] == [True, False]
     assert models[0].max_registers == TILED_REGISTERS == 64
     assert tiled_max_worlds("cpu") == 0 and not pack_tabulated(specs).tiled
@@ -514,13 +515,13 @@ def test_cuda_tiled_step_matches_the_cpu():
         pytest.skip("no CUDA device on this machine")
     specs = [walker()[0], walker("klann_leg", legs_per_side=2)[0], walker(legs_per_side=2, stance=0.8)[0],
              walker("klann_leg", scale=3.5)[0]]
-    config = SolverConfig(rho_update_interval=8)
+    config = SolverConfig().tuned(rho_update_interval=8)
     for steps in (1, 5):
         runs = {}
         for name, device, tiled, registers in (("cpu", "cpu", True, TILED_REGISTERS),
                                                ("tiled", "cuda", True, TILED_REGISTERS),
                                                ("uncapped", "cuda", True, None), ("thread", "cuda", False, None)):
-            model = pack_tabulated(specs, device=device, dt=2e-3, config=config, tiled=tiled)
+            model = pack_tabulated(specs, device=device, dt=2e-3, config=config.tuned(tabulated_tiled=tiled))
             model.max_registers = registers
             model.step(steps)
             assert model.tiled == tiled and not model.diverged.numpy().any()

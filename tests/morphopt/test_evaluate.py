@@ -199,8 +199,7 @@ def test_batched_walker_metrics_equal_the_per_world_ones():
     specs[5] = dataclasses.replace(specs[5], legs=[dataclasses.replace(leg, target_speed=0.0)
                                                    for leg in specs[5].legs])
     dt, every = 5e-3, 4
-    model = pack_legged(specs, dt=dt, config=SolverConfig(rho=1.0, tolerance=1e-4, relative_tolerance=1e-3,
-                                                          max_iterations=30))
+    model = pack_legged(specs, dt=dt, config=SolverConfig(tolerance=1e-4, relative_tolerance=1e-3, max_iterations=30))
     trace = legged_rollout(model, 160, record_every=every)
     record_dt = dt * every
     trace.drive_torque[5:30, 1, 2] = specs[1].legs[2].effort_limit  # leg 2 of world 1 stalls at its limit

@@ -92,8 +92,16 @@ def test_resume_gives_the_uninterrupted_result(tmp_path, optimizer):
      r"'solver.max_iterations' must be int"),
     ("[study]\nname='s'\nfamily='four_bar'\n[objective]\nmetric='x'\n[solver]\nmax_iterations=0",
      r"\[solver\]: .*max_iterations"),
-    ("[study]\nname='s'\nfamily='four_bar'\n[objective]\nmetric='x'\n[solver]\nlinear_solver='qr'",
+    ("[study]\nname='s'\nfamily='four_bar'\n[objective]\nmetric='x'\n[solver.tuning]\nlinear_solver='qr'",
      r"\[solver\]: .*linear_solver"),
+    ("[study]\nname='s'\nfamily='four_bar'\n[objective]\nmetric='x'\n[solver]\nrho=1.0",
+     r"unknown key 'solver.rho' \('rho' is a field of engine.Tuning: put it under \[solver.tuning\]\)"),
+    ("[study]\nname='s'\nfamily='four_bar'\n[objective]\nmetric='x'\n[solver.tuning]\nrhoo=1.0",
+     r"unknown key 'solver.tuning.rhoo'; expected a field of engine.Tuning"),
+    ("[study]\nname='s'\nfamily='four_bar'\n[objective]\nmetric='x'\n[solver.tuning]\nrho='big'",
+     r"'solver.tuning.rho' must be float"),
+    ("[study]\nname='s'\nfamily='four_bar'\n[objective]\nmetric='x'\n[solver]\ntuning=3",
+     r"'solver.tuning' must be a \[solver.tuning\] table"),
 ])
 def test_bad_spec_names_file_and_key(tmp_path, body, message):
     """Every bad spec fails before running, naming the file and the key."""
@@ -244,10 +252,10 @@ def test_objectives_tables_are_checked(tmp_path):
 
 
 def test_solver_table_reaches_the_engine(tmp_path, monkeypatch):
-    """A dynamic study's [solver] table becomes the SolverConfig of every evaluated batch (and a
-    study without one uses the engine's defaults)."""
+    """A dynamic study's [solver] table (and its [solver.tuning] sub-table) becomes the SolverConfig
+    of every evaluated batch (and a study without one uses the engine's defaults)."""
     import morphopt.study as study_module
-    from engine import SolverConfig
+    from engine import SolverConfig, Tuning
 
     seen = []
     real = study_module.evaluate_dynamic
@@ -273,10 +281,11 @@ def test_solver_table_reaches_the_engine(tmp_path, monkeypatch):
         {solver}
     """
     spec = load_study_spec(write(tmp_path, body.format(name="tuned", solver="[solver]\nmax_iterations = 7\n"
-                                                       "linear_solver = 'dense'\ntolerance = 1e-5"), "tuned.toml"))
-    assert spec.solver == {"max_iterations": 7, "linear_solver": "dense", "tolerance": 1e-5}
+                                                       "tolerance = 1e-5\n[solver.tuning]\nlinear_solver = 'dense'"),
+                                 "tuned.toml"))
+    assert spec.solver == {"max_iterations": 7, "tolerance": 1e-5, "tuning": {"linear_solver": "dense"}}
     run_study(spec, progress=False)
     plain = load_study_spec(write(tmp_path, body.format(name="plain", solver=""), "plain.toml"))
     run_study(plain, progress=False)
-    assert seen[0] == SolverConfig(max_iterations=7, linear_solver="dense", tolerance=1e-5)
+    assert seen[0] == SolverConfig(max_iterations=7, tolerance=1e-5, tuning=Tuning(linear_solver="dense"))
     assert seen[1] is None

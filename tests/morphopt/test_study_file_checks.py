@@ -188,6 +188,11 @@ VALIDATION_CASES = [  # (study keywords, argv after the spec, fragments)
     (dict(FOUR_BAR, study='storage = "sqlite://"'), [], ["'study.storage' = 'sqlite://' keeps nothing"]),
     (dict(FOUR_BAR, study='storage = ":memory:"'), [], ["'study.storage' = ':memory:' keeps nothing"]),
     (dict(FOUR_BAR, study='storage = "sqlite+pysqlite:///:memory:?cache=shared"'), [], ["'study.storage'"]),
+    (dict(JANSEN_DYNAMIC, tables="[solver.tuning]\nrho_updates = 8"), [],
+     ["unknown key 'solver.tuning.rho_updates'; expected a field of engine.Tuning"]),
+    (dict(JANSEN_DYNAMIC, tables="[solver]\nrho_update_interval = 8"), [],
+     ["unknown key 'solver.rho_update_interval' ('rho_update_interval' is a field of engine.Tuning"]),
+    (dict(JANSEN_DYNAMIC, tables="[solver]\nmax_iterations = 30\n[solver.tuning]\nrho_update_interval = 8"), [], []),
 ]
 
 
