@@ -192,6 +192,8 @@ def main(argv=None) -> None:
                 row["error"] = f"{type(exc).__name__}: {exc}"[:300]
             result["rows"].append(row)
             print(json.dumps(row), flush=True)
+            if args.out:  # kept after every row: a run cut short still leaves what it measured
+                pathlib.Path(args.out).write_text(json.dumps(result, indent=1))
             gc.collect()
     if args.walker_study:
         result["walker_study"] = walker_study(engine, args.device, args.walker_study)
