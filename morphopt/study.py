@@ -185,6 +185,21 @@ def stored_spec(spec: StudySpec, storage: StudyStorage | None = None, *, say: bo
     return spec.with_overrides(**stored)
 
 
+def _nested_solver(solver):
+    """A stored [solver] table as this morphopt writes it: studies stored before engine.Tuning kept
+    the method's knobs beside the user's settings; they compare as the [solver.tuning] they are now."""
+    if not isinstance(solver, dict):
+        return solver
+    from engine import SolverConfig
+
+    public = {f.name for f in dataclasses.fields(SolverConfig)} - {"tuning"}
+    out = {k: v for k, v in solver.items() if k in public}
+    tuning = {**{k: v for k, v in solver.items() if k not in public and k != "tuning"}, **solver.get("tuning", {})}
+    if tuning:
+        out["tuning"] = tuning
+    return out
+
+
 def _say_plan(name: str, plan, first: bool) -> None:
     """The engine's plan on stderr: in full with --verbose, else its first line at the first generation."""
     if plan is None:
@@ -210,6 +225,7 @@ def _check_unchanged(spec: StudySpec, settings: dict | None, family_sha256: str)
         raise ValueError(f"{spec.path}: the family {spec.family} is not the source study '{spec.name}' was run "
                          f"with (the file changed, or another file of that name was found first); restore it, or "
                          f"start over with 'morphopt study run {spec.path} --fresh'")
+    settings = {**settings, "solver": _nested_solver(settings.get("solver"))}
     for key in now:
         if key in RESUME_CHANGES or key == "storage" or key not in settings or now[key] == settings[key]:
             continue  # where the database is may change (a moved file, another URL to it)
