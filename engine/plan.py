@@ -89,8 +89,42 @@ def _admits(kind: Coordinates, spec):
             if b >= 0:
                 raise ValueError(f"shapes '{spec.shapes[a].name}' and '{spec.shapes[b].name}' may touch each other: "
                                  f"the tree path has ground contacts only (give them a common collision group)")
+        _effort_limits_clear(spec)
         return chain_layout(spec)
     return None
+
+
+def _quat_rotate(q, v):
+    u, w = np.asarray(q[:3], float), float(q[3])
+    v = np.asarray(v, float)
+    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
+
+
+def _effort_limits_clear(spec) -> None:
+    """ValueError where a velocity drive starts past its effort limit: the tree path checks effort
+    limits without enforcing them (a world whose drive passes its limit stops), so a drive whose
+    limit binds from the first step (a motor started from rest against a low limit) keeps the
+    maximal path, which enforces it."""
+    bodies = spec.body_index
+    for joint in spec.joints:
+        drive = joint.drive
+        if drive is None or not np.isfinite(drive.effort_limit) or drive.damping <= 0.0:
+            continue
+        child = spec.bodies[bodies[joint.child]]
+        parent = None if joint.parent is None else spec.bodies[bodies[joint.parent]]
+        frame = joint.parent_orientation if parent is None else _quat_mul(parent.orientation, joint.parent_orientation)
+        axis = _quat_rotate(frame, joint.axis)
+        rate = np.asarray(child.angular_velocity, float) - (0.0 if parent is None else
+                                                            np.asarray(parent.angular_velocity, float))
+        torque = drive.damping * abs(drive.target_velocity - float(axis @ rate))
+        if torque > drive.effort_limit:
+            raise ValueError(f"joint '{joint.name}': its drive starts past its effort limit ({torque:.3g} > "
+                             f"{drive.effort_limit:g} N m), which the tree path checks but does not enforce")
+
+
+def _quat_mul(a, b):
+    av, aw, bv, bw = np.asarray(a[:3], float), float(a[3]), np.asarray(b[:3], float), float(b[3])
+    return np.concatenate([aw * bv + bw * av + np.cross(av, bv), [aw * bw - av @ bv]])
 
 
 def _coerce(coordinates) -> Coordinates | None:
@@ -208,8 +242,10 @@ def describe_reduced(plan: Plan, model) -> Plan:
                                     else "no loops"),
         }
         plan.integrator = _integrator(cfg)
-        plan.accuracy = ("loops closed by their rows at every step (velocities exactly, positions projected); "
-                         "joint errors measured at every record through a maximal gauge (Trace.health)")
+        plan.accuracy = ("loops closed by their rows at every step (velocities exactly, positions projected), "
+                         "joint errors measured at every record through a maximal gauge (Trace.health); the motion "
+                         "is first order in dt where velocity products matter (passive four-bar, dt 1 ms: crank "
+                         "angle 5.9e-4 rad off a float64 reference, the maximal plan 7.1e-5)")
         if any(np.isfinite(j.drive.effort_limit) for spec in model.specs for j in spec.joints if j.drive):
             plan.control += ("; effort limits checked, not enforced: a world whose drive passes its limit stops "
                              "there (health EFFORT_LIMIT)")

@@ -152,3 +152,25 @@ def test_worlds_past_the_speed_guard_fail_with_the_reason():
     trace, _ = rollout(model, model.state(), None, 20, record_every=10)
     assert trace.diverged.all()
     assert all(r.startswith("diverged") for r in trace.health.reasons())
+
+
+def test_a_motor_started_past_its_effort_limit_keeps_the_maximal_plan_which_enforces_it():
+    """The tree plan checks effort limits without enforcing them: a velocity drive that starts from
+    rest against a low limit would stop its world at once, so the plan keeps such a world maximal;
+    the same linkage started at its drive's speed (as morphopt builds linkages) takes the tree plan."""
+    from engine import Body, Joint, JointDrive, MechanismSpec, TrackedPoint
+
+    def arm(spin):
+        body = Body("arm", mass=0.2, inertia=(1e-5, 1e-3, 1e-3), com=(0.1, 0, 0), angular_velocity=(0, spin, 0))
+        motor = Joint("motor", "revolute", None, "arm", axis=(0, 1, 0),
+                      drive=JointDrive(damping=5.0, target_velocity=6.0, effort_limit=2.0))
+        return MechanismSpec([body], [motor], [TrackedPoint("tip", "arm", (0.2, 0, 0))])
+
+    at_rest = pack([arm(0.0)])
+    assert at_rest.plan.coordinates is Coordinates.MAXIMAL
+    assert "joint 'motor': its drive starts past its effort limit (30 > 2 N m)" in str(at_rest.plan)
+    at_speed = pack([arm(6.0)])
+    assert at_speed.plan.coordinates is Coordinates.TREE
+    assert "effort limits checked, not enforced" in str(at_speed.plan)
+    trace, _ = rollout(at_rest, at_rest.state(), None, 100, record_every=10)
+    assert trace.health.ok.all() and np.abs(trace.drive_torque[1:, 0, 0]).max() <= 2.0 + 1e-4
