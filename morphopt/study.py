@@ -319,6 +319,8 @@ class _SimulationBar:
             self.bar.reset(total=total)
         self.bar.set_postfix_str(f"{running} worlds running, {fallen} fell", refresh=False)
         self.bar.update(done - self.bar.n)
+        if done >= total:  # a generation faster than tqdm's refresh interval still shows its end
+            self.bar.refresh()
 
     def close(self) -> None:
         if self.bar is not None:
