@@ -5,10 +5,13 @@
     python benchmarks/ab_engine.py --compare old.json new.json
 
 Each run imports the engine and benchmarks.scenes of ``--root`` (so a second checkout of an older
-commit measures itself, with the API it had: pack_worlds / engine.chains before engine.pack), builds
-every scene at ``--worlds`` worlds and times each setting of ROWS: CUDA graphs of 10 steps, the
-median of the chunks after two (compile, capture). "maximal" and "tree" force the coordinates
-(before engine.pack: pack_worlds and pack_chains), "default" is what each commit does unasked.
+commit measures itself, with the SolverConfig it had: flat knobs before engine.Tuning), builds
+every scene at ``--worlds`` worlds and times each setting of ROWS through engine.pack and
+engine.Stepper: CUDA graphs of 10 steps, the median of the chunks after two (compile, capture).
+"maximal" and "tree" force the coordinates ("tree": every shape in one collision group, so that
+shapes touch the ground only, as the tree plan models them), "default" is what each commit does
+unasked. A checkout without engine.pack (before commit a7a4708) is refused: the ab_engine.py of
+commit 34ad379 measures those with the API they had.
 --walker-study also times one generation of studies/walker.toml's evaluation (4096 designs by
 default): designs per second, build, pack and simulation included. --compare prints the ratios.
 """
@@ -59,6 +62,14 @@ def _planned(engine) -> bool:
     return callable(getattr(engine, "pack", None))
 
 
+def _ground_only(spec):
+    """``spec`` with every shape in one collision group: ground contacts only, what the tree plan
+    models (it refuses worlds whose shapes may touch each other)."""
+    if not spec.shapes:
+        return spec
+    return dataclasses.replace(spec, shapes=[dataclasses.replace(s, collision_group=1) for s in spec.shapes])
+
+
 def _config(engine, values: dict):
     """A SolverConfig of ``values`` in the API of the commit being measured (flat fields before the
     public/tuning split, SolverConfig(public).tuned(rest) after it)."""
@@ -72,15 +83,10 @@ def _config(engine, values: dict):
 def _stepper(engine, batch, coords, values, pack, device, dt):
     """(stepper, plan text) of one setting."""
     config = _config(engine, values)
-    if _planned(engine):
-        model = engine.pack(batch, device, config=config, dt=dt, coordinates=coords, **pack)
-        return engine.Stepper(model, model.state(), chunk=10), str(model.plan).splitlines()[0]
     if coords == "tree":
-        from engine.chains import ChainStepper, pack_chains
-        model = pack_chains(batch, device, config=config, dt=dt, **pack)
-        return ChainStepper(model, model.state(), chunk=10), "engine.chains"
-    model = engine.pack_worlds(batch, device, config=config, dt=dt, **pack)
-    return engine.Stepper(model, model.state(), model.control(), chunk=10), f"pack_worlds ({model.step_kernel})"
+        batch = [_ground_only(spec) for spec in batch]
+    model = engine.pack(batch, device, config=config, dt=dt, coordinates=coords, **pack)
+    return engine.Stepper(model, model.state(), chunk=10), str(model.plan).splitlines()[0]
 
 
 def time_setting(engine, wp, batch, coords, values, pack, device, dt, steps) -> dict:
@@ -118,11 +124,7 @@ def walker_study(engine, device: str, designs: int) -> dict:
     params = params[:designs]
     values = dict(tolerance=1e-4, relative_tolerance=1e-3, max_iterations=30, rho_update_interval=8)
     kwargs = dict(duration=2.0, dt=0.005, device=device)
-    if _planned(engine):
-        config = _config(engine, values)
-    else:
-        config = _config(engine, {**values, "rho": 1.0})
-        kwargs["model"] = "reduced"
+    config = _config(engine, values)
     out = {}
     for run in ("compile", "timed"):
         t = time.perf_counter()
@@ -171,6 +173,9 @@ def main(argv=None) -> None:
     import engine
     from benchmarks.scenes import SCENES_DECLARED
 
+    if not _planned(engine):
+        parser.error(f"--root {root}: this checkout has no engine.pack (before commit a7a4708); measure it with "
+                     f"the ab_engine.py of commit 34ad379")
     wp.config.quiet = True
     result = {"root": root, "device": wp.get_device(args.device).name, "worlds": args.worlds, "rows": []}
     for scene in args.scenes:
@@ -182,8 +187,6 @@ def main(argv=None) -> None:
             continue
         batch = [specs[w % len(specs)] for w in range(args.worlds)]
         for label, coords, values, pack in ROWS[scene]:
-            if coords is None and not _planned(engine):
-                coords = "maximal"  # before engine.pack the default was the maximal path
             row = {"scene": scene, "label": label}
             try:
                 row.update(time_setting(engine, wp, batch, coords, values, pack, args.device, declared.dt,

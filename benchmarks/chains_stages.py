@@ -3,7 +3,8 @@
     python -m benchmarks.chains_stages --device cuda --scenes drlegs_standing_newton drlegs_hanging --worlds 4096
         [--variant LABEL] [--steps 20] [--warmup 30] [--assets DIR] [--out FILE]
 
-Each scene of benchmarks.scenes (its dt) in reduced coordinates, with the settings and packing of its
+Each scene of benchmarks.scenes (its dt) in reduced coordinates (engine.pack's TREE plan, forced; the
+ChainModel it holds, ``.inner``, is the one stepped with clocks), with the settings and packing of its
 variant ``--variant`` (default "reduced coordinates"; "reduced coordinates, 8 contacts" keeps DR Legs
 standing's feet's 8 contacts): after ``--warmup`` steps, ``--steps`` steps of the step kernel compiled
 with a clock reading at the end of each stage (engine.reduced.chain_stages.STAGES, ChainModel.step(stages=True);
@@ -32,13 +33,14 @@ import warp as wp
 def stage_cycles(specs, worlds: int, dt: float, device: str, config=None, pack: dict | None = None,
                  steps: int = 20, warmup: int = 30) -> dict:
     """Mean cycles per stage (STAGES order, stages no world ran left out) over
-    ``steps`` steps after ``warmup``, ``worlds`` worlds cycling through ``specs``, and the PADMM
-    iterations those steps took (mean over worlds and steps)."""
+    ``steps`` steps after ``warmup``, ``worlds`` worlds cycling through ``specs`` packed by
+    engine.pack in the TREE plan (``pack``: its other options; the ChainModel it holds is stepped
+    with the clocks), and the PADMM iterations those steps took (mean over worlds and steps)."""
+    import engine
     from engine.reduced.chain_stages import STAGES
-    from engine.reduced.chains import pack_chains
 
-    model = pack_chains([specs[w % len(specs)] for w in range(worlds)], device=device, config=config, dt=dt,
-                        **(pack or {}))
+    batch = [specs[w % len(specs)] for w in range(worlds)]
+    model = engine.pack(batch, device, config=config, dt=dt, coordinates="tree", **(pack or {})).inner
     state = model.state()
     for _ in range(warmup):
         model.step(state)
@@ -55,11 +57,12 @@ def stage_cycles(specs, worlds: int, dt: float, device: str, config=None, pack: 
 
 
 def variant_of(declared, label: str) -> dict:
-    """The variant of ``declared`` (a benchmarks.scenes.Declared) with this label, in reduced coordinates."""
+    """The variant of ``declared`` (a benchmarks.scenes.Declared) with this label, in reduced coordinates
+    (coordinates "tree")."""
     for variant in declared.variants:
-        if variant["label"] == label and variant.get("model") == "chains":
+        if variant["label"] == label and variant.get("coordinates") == "tree":
             return variant
-    labels = [v["label"] for v in declared.variants if v.get("model") == "chains"]
+    labels = [v["label"] for v in declared.variants if v.get("coordinates") == "tree"]
     raise ValueError(f"chains_stages: no reduced-coordinate variant {label!r} (this scene has {labels})")
 
 
@@ -93,7 +96,7 @@ def plot(rows: list, path: pathlib.Path) -> None:
 
 def main(argv=None) -> int:
     from benchmarks.run import write_rows
-    from benchmarks.scenes import SCENES_DECLARED
+    from benchmarks.scenes import SCENES_DECLARED, ground_contacts_only
     from engine import SolverConfig
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -119,10 +122,11 @@ def main(argv=None) -> int:
         except ValueError as exc:
             parser.error(f"{name}: {exc}")
         scene = declared.build(args.assets)
+        specs = [ground_contacts_only(spec) for spec in scene.specs] if variant.get("ground_only") else scene.specs
         row = {"scene": name, "variant": args.variant, "device": str(device), "device_name": device.name,
                "num_worlds": args.worlds, "dt": declared.dt, "steps": args.steps, "settings": variant["config"],
                "pack": variant.get("pack", {}),
-               **stage_cycles(scene.specs, args.worlds, declared.dt, args.device,
+               **stage_cycles(specs, args.worlds, declared.dt, args.device,
                               SolverConfig(**variant["config"]), variant.get("pack"), args.steps, args.warmup)}
         print(json.dumps(row), flush=True)
         rows.append(row)

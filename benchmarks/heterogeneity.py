@@ -16,15 +16,17 @@ the mean PADMM iterations over worlds and the largest world's at the end of each
 captured PADMM loop runs until the batch's slowest world stops, so the ratio follows the largest
 world's iterations, not the mean. Prints one JSON line per run and writes them to --out.
 
---model reduced: the same designs in reduced coordinates (engine.legged, as the walker study runs
-them: studies/walker.toml's dt and [solver] settings, the cap from --caps), where each world
-iterates inside its own warp (a thread above engine.legged.tiled_max_worlds, where a slow
-world holds up the 32 worlds of its warp) instead of in a loop shared by the whole batch. It adds
+--model reduced: the same designs in the coordinates engine.pack plans for them (TABULATED: the
+torso and one crank angle per leg), as the walker study runs them (studies/walker.toml's dt and
+[solver] settings, the cap from --caps), where each world iterates inside its own warp (a thread
+above engine.reduced.tabulated_kernel.tiled_max_worlds, where a slow world holds up the 32 worlds
+of its warp) instead of in a loop shared by the whole batch. It adds
 a third batch, "default, phases spread": the default walker's copies with each world's cranks
 turned by a random angle of its own (spread_phases). Identical copies step in lockstep, every
 world the same loads and iterations at the same time, which a batch of designs never does; this
 batch is the same design without that. --registers: the tiled step's register cap per thread
-(engine.legged.TILED_REGISTERS by default; 0: the compiler's choice), each at every cap.
+(Tuning.tabulated_registers; engine.reduced.tabulated_kernel.TILED_REGISTERS by default; 0: the
+compiler's choice), each at every cap.
 """
 
 import argparse
@@ -76,62 +78,42 @@ def run(specs, worlds: int, cap: int, device: str, warmup: int, stall_ratio: flo
 
 def spread_phases(model, seed: int = 0) -> None:
     """Turn every world's cranks by one random angle of its own (its legs keep their relative
-    phases), so that copies of one design no longer step in lockstep."""
-    psi = model.psi.numpy()
-    psi += np.random.default_rng(seed).uniform(0.0, 2.0 * np.pi, size=(psi.shape[0], 1))
-    model.psi.assign(np.mod(psi, 2.0 * np.pi).astype(np.float32))
+    phases), so that copies of one design no longer step in lockstep. ``model``: a packed
+    TABULATED plan (engine.reduced.model.TabulatedPlanModel), whose state lives in its ``inner``
+    model: call it after model.state(), which resets the state."""
+    inner = model.inner
+    coord = inner.coord.numpy()
+    groups = inner.group_count.numpy()
+    turn = np.random.default_rng(seed).uniform(0.0, 2.0 * np.pi, size=(coord.shape[0], 1))
+    used = np.arange(coord.shape[1])[None, :] < groups[:, None]  # each world's sub-chains, not the padding
+    coord = np.where(used, np.mod(coord + turn, 2.0 * np.pi), coord)
+    inner.coord.assign(coord.astype(np.float32))
 
 
 def run_reduced(specs, worlds: int, cap: int, device: str, warmup: int, study, phases: bool = False,
                 registers: int | None = None) -> dict:
-    """run() for engine.legged worlds, with the walker study's dt and solver settings (``study``);
-    phases: spread_phases first; registers: LeggedModel.max_registers (None: engine.legged's default,
-    0: the compiler's choice)."""
+    """run() in the coordinates engine.pack plans for the walkers (TABULATED: the base and one crank
+    angle per leg), with the walker study's dt and solver settings (``study``); phases:
+    spread_phases first; registers: Tuning.tabulated_registers (None: the plan's default, 0: the
+    compiler's choice). Two chunks run before the warmup (compile, capture)."""
     import dataclasses
 
-    from engine import SolverConfig
-    from engine.legged import legged_step_batch, pack_legged
+    import engine
 
-    config = dataclasses.replace(study.solver_config() or SolverConfig(), max_iterations=cap)
-    model = pack_legged([specs[w % len(specs)] for w in range(worlds)], device=device, dt=study.dt, config=config)
+    config = dataclasses.replace(study.solver_config() or engine.SolverConfig(), max_iterations=cap)
     if registers is not None:
-        model.max_registers = registers or None
+        config = config.tuned(tabulated_registers=registers)
+    model = engine.pack([specs[w % len(specs)] for w in range(worlds)], device, dt=study.dt, config=config)
+    state = model.state()
     if phases:
         spread_phases(model)
-    legged_step_batch(model, 1)  # compile outside the capture
-    graph = None
-    if model.device.is_cuda:
-        with wp.ScopedCapture(device=model.device) as capture:
-            legged_step_batch(model, 10)
-        graph = capture.graph
-
-    def advance():
-        if graph is not None:
-            wp.capture_launch(graph)
-        else:
-            legged_step_batch(model, 10)
-
-    return {**time_chunks(advance, model.iterations, model.device, warmup), "dt": study.dt,
-            "tiled": bool(model.tiled), "max_registers": model.max_registers,
-            "diverged": int(model.diverged.numpy().sum())}
-
-
-def reduced_batches() -> dict:
-    """The benchmark's random walkers (benchmarks.scenes.walker_params) and the default walker as
-    engine.legged specs."""
-    from benchmarks.scenes import walker_default_params, walker_params
-    from morphopt.families import load_family
-
-    family = load_family("walker")
-    random_specs = []
-    for params in walker_params():
-        try:
-            random_specs.append(family.build_legged(params))
-        except ValueError:
-            continue
-    if not random_specs:
-        raise ValueError("heterogeneity: none of the random walker designs could be built in reduced coordinates")
-    return {"random": random_specs, "default": [family.build_legged(walker_default_params())]}
+    stepper = engine.Stepper(model, state, chunk=10)
+    stepper.advance()  # compile
+    stepper.advance()  # capture (CUDA)
+    inner = model.inner
+    return {**time_chunks(stepper.advance, inner.iterations, model.device, warmup), "dt": study.dt,
+            "coordinates": model.plan.coordinates.value, "tiled": bool(inner.tiled),
+            "max_registers": inner.max_registers, "diverged": int((model.failure_codes() != 0).sum())}
 
 
 def pair(batches: dict, settings: dict, measure) -> list:
@@ -163,13 +145,14 @@ def main(argv=None) -> int:
                         help="Tuning.free_rho values, each at every cap and stall ratio (default: its "
                              "default; maximal model only)")
     parser.add_argument("--model", choices=["maximal", "reduced"], default="maximal",
-                        help="maximal coordinates (the sparse solver) or engine.legged's reduced ones")
+                        help="maximal coordinates (the sparse solver) or the reduced ones engine.pack plans "
+                             "(tabulated)")
     parser.add_argument("--orderings", nargs="+", choices=["minimum_degree", "shallow"], default=None,
                         help="Tuning.sparse_ordering values, each at every other setting (default: its "
                              "default; maximal model only)")
     parser.add_argument("--registers", type=int, nargs="+", default=None,
-                        help="LeggedModel.max_registers values, each at every cap (0: the compiler's choice; "
-                             "default: engine.legged's; reduced model only)")
+                        help="Tuning.tabulated_registers values, each at every cap (0: the compiler's choice; "
+                             "default: the plan's; reduced model only)")
     parser.add_argument("--warmup", type=int, default=20, help="chunks of 10 steps before timing")
     parser.add_argument("--out", default=None, help="JSON file for the results")
     args = parser.parse_args(argv)
@@ -179,8 +162,8 @@ def main(argv=None) -> int:
         parser.error("--registers applies to the reduced model only and must be >= 0")
     if args.model == "reduced" and (args.stall_ratios is not None or args.free_rhos is not None
                                     or args.orderings is not None):
-        parser.error("--stall-ratios, --free-rhos and --orderings apply to the maximal model only (engine.legged "
-                     "has no joint rows, no stall test and no sparse factor)")
+        parser.error("--stall-ratios, --free-rhos and --orderings apply to the maximal model only (the tabulated "
+                     "plan has no joint rows, no stall test and no sparse factor)")
     args.orderings = [Tuning.sparse_ordering] if args.orderings is None else args.orderings
     args.stall_ratios = [0.0] if args.stall_ratios is None else args.stall_ratios
     args.free_rhos = [Tuning.free_rho] if args.free_rhos is None else args.free_rhos
@@ -196,7 +179,7 @@ def main(argv=None) -> int:
         from morphopt.study_spec import load_study_spec
 
         study = load_study_spec(pathlib.Path(__file__).resolve().parents[1] / "studies" / "walker.toml")
-        batches = reduced_batches()
+        batches = {"random": walkers().specs, "default": walker_default().specs}
         batches["default, phases spread"] = batches["default"]
         for registers in args.registers or [None]:
             for cap in args.caps:

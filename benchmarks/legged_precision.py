@@ -1,18 +1,20 @@
-"""Work against precision of the walker study's simulation (reduced coordinates, engine.legged).
+"""Work against precision of the walker study's simulation (the reduced coordinates engine.pack plans
+for walkers: TABULATED, the torso and one crank angle per leg; once engine.legged's).
 
     python benchmarks/legged_precision.py --device cuda --designs 4096 --out DIR
 
 Samples designs of the walker family (three legs per side, seeded, the default design first) and
-evaluates them (morphopt.evaluate, model "reduced", the study's duration) under a grid of time
-steps and PADMM settings (SolverConfig with a penalty update every 8 iterations; "loose": rho 1,
+evaluates them (morphopt.evaluate_dynamic in the engine's own plan, the study's duration) under a grid
+of time steps and PADMM settings (SolverConfig with a penalty update every 8 iterations; "loose": rho 1,
 tolerance 1e-4, relative tolerance 1e-3), and with the study's own settings, against a reference at
 dt 0.5 ms with rho 1 and the iteration cap raised to 400.
 Per setting: the wall time of the simulation (simulated seconds per wall second over the batch),
 how many designs get the reference's outcome (walks, or fails for the same kind of reason), and
 the walking-speed error [m/s] of the designs that walk in both (median, 90th percentile, largest,
 and relative to the reference's median speed) and the rank correlation of their speeds with the
-reference's (what an optimizer sees). Prints one JSON object; writes legged_precision_<device>.json,
-.csv.gz (one row per design and setting) and a plot of error against run time (PNG).
+reference's (what an optimizer sees), and the plan's coordinates. Prints one JSON object; writes
+legged_precision_<device>.json, .csv.gz (one row per design and setting) and a plot of error against
+run time (PNG).
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ from morphopt.study_spec import load_study_spec  # noqa: E402
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 # (label, dt [s], SolverConfig keywords, its knobs under "tuning": engine.Tuning's, over BASE's); the
-# study's own settings run as well. rho: engine.legged's starting penalty (Tuning.rho; its default,
+# study's own settings run as well. rho: the tabulated plan's starting penalty (Tuning.rho; its default,
 # None, is engine.config.TABULATED_RHO = 1)
 BASE = {"tuning": {"rho_update_interval": 8}}
 LOOSE = {"tolerance": 1e-4, "relative_tolerance": 1e-3, "tuning": {"rho": 1.0}}
@@ -117,12 +119,11 @@ def main(argv=None) -> int:
     def run(dt, overrides, config=None):
         config = config or config_of(overrides)
         t0 = time.perf_counter()
-        evaluation = evaluate_dynamic(family, params, duration=duration, dt=dt, device=args.device,
-                                      config=config, model="reduced")
+        evaluation = evaluate_dynamic(family, params, duration=duration, dt=dt, device=args.device, config=config)
         return evaluation, time.perf_counter() - t0
 
-    evaluate_dynamic(family, params[:1], duration=0.02, dt=2e-3, device=args.device, config=SolverConfig(),
-                     model="reduced")  # compile outside the timing
+    evaluate_dynamic(family, params[:1], duration=0.02, dt=2e-3, device=args.device,
+                     config=SolverConfig())  # compile outside the timing
     reference, _ = run(REFERENCE[1], REFERENCE[2])
     ref_speed = np.array([m.get("walking_speed", np.nan) for m in reference.metrics])
     ref_kind = [outcome(r) for r in reference.failures]
@@ -143,6 +144,7 @@ def main(argv=None) -> int:
             if both.sum() > 2 else None
         settings_used = (spec.solver or {}) if overrides is None else overrides
         result = {"setting": label, "dt": dt, **settings_used, "designs": len(params),
+                  "coordinates": evaluation.plan.coordinates.value,
                   "simulate_s": simulate, "evaluate_s": seconds,
                   "simulated_s_per_s": len(params) * duration / simulate,
                   "same_outcome": float(same.mean()), "walk_in_both": int(both.sum()),

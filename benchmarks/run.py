@@ -5,13 +5,16 @@ MuJoCo Warp on the same mechanisms in the same run (--peers).
     python -m benchmarks.run --device cpu --quick
 
 Scenes and settings are data (benchmarks/scenes.py). Per scene:
-- throughput: world-steps/s at each batch size of the scene (default solver settings), CUDA graphs
-  of 10 steps (engine.rollout.Stepper), median time per step after the compile and capture chunks;
+- throughput: world-steps/s at each batch size of the scene (default solver settings, engine.pack's
+  automatic plan: rows labelled "default"; where that plan is not maximal coordinates, the same in
+  maximal coordinates beside them: "maximal", what earlier runs' "default" rows measured), CUDA graphs
+  of 10 steps (engine.Stepper), median time per step after the compile and capture chunks;
   memory: the engine's arrays (model, workspace, states) and, on CUDA, the growth of Warp's memory
   pool over the run (graphs and scratch included; the peers' the same way); the scene's variants
-  (other settings) at its largest batch;
+  (other settings; maximal coordinates unless they name others) at its largest batch;
 - work-precision (linkage scenes, DR Legs): each setting of the sweep (dt, step kernel, linear solver,
-  tolerance, stabilization, integrator) simulates the scene's duration on the precision batch;
+  tolerance, stabilization, integrator; maximal coordinates unless it names others, e.g. "reduced
+  coordinates") simulates the scene's duration on the precision batch;
   errors: largest loop-closure violation [m] over all worlds and records, energy drift
   |E(t) - E(0)| / (E(0) - E_min) (passive scenes), and trajectory error: largest distance [m] of a
   body's centre of mass from the reference at records every Declared.record_dt (40 ms; quick:
@@ -42,8 +45,8 @@ import numpy as np
 import warp as wp
 
 from benchmarks.scenes import SCENES_DECLARED, Declared, steps_per_record
-from engine import SolverConfig, compute_metrics, pack_worlds
-from engine.rollout import Stepper
+import engine
+from engine import Coordinates, SolverConfig, compute_metrics
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 
@@ -105,84 +108,77 @@ def mempool_megabytes(device: str) -> float | None:
 
 
 def engine_run(specs, worlds: int, dt: float, steps: int, record_every: int, config: SolverConfig, device: str,
-               sample: np.ndarray, potential_min=None, model_kind: str = "maximal", pack: dict | None = None) -> dict:
-    """Simulate ``worlds`` worlds (cycling through ``specs``); time every chunk of ``record_every``
-    steps after the first two (compile, capture); record errors and sample positions per chunk.
-    model_kind "chains": the same worlds in reduced coordinates (engine.reduced.chains, ``pack``: its
-    pack_chains options), their errors measured by a maximal model of the same worlds
-    (engine.metrics on their body poses)."""
+               sample: np.ndarray, potential_min=None, coordinates="maximal", pack: dict | None = None,
+               ground_only: bool = False) -> dict:
+    """Simulate ``worlds`` worlds (cycling through ``specs``) packed by engine.pack in ``coordinates``
+    (None: its automatic plan; "maximal", "tree" or "tabulated" forced; ``pack``: its other options,
+    e.g. contact_capacity; ground_only: the specs through benchmarks.scenes.ground_contacts_only) and
+    stepped by engine.Stepper; time every chunk of ``record_every`` steps after the first two
+    (compile, capture); record errors and sample positions per chunk. A reduced plan's loop errors
+    and energy are measured by its gauge (a maximal model of the same worlds: engine.metrics on its
+    body poses), its PADMM iteration and projection counts are those of the last step of each chunk."""
+    from benchmarks.scenes import ground_contacts_only
+
     batch = [specs[w % len(specs)] for w in range(worlds)]
-    if model_kind == "chains":
-        return chains_run(batch, dt, steps, record_every, config, device, sample, potential_min, pack or {})
+    if ground_only:
+        batch = [ground_contacts_only(spec) for spec in batch]
     pool_before = mempool_megabytes(device)
     t0 = time.perf_counter()
-    model = pack_worlds(batch, device=device, config=config, dt=dt)
+    model = engine.pack(batch, device, config=config, dt=dt, coordinates=coordinates, **(pack or {}))
     pack_s = time.perf_counter() - t0
-    stepper = Stepper(model, model.state(), model.control(), chunk=record_every)
-
-    def measure():
-        compute_metrics(model, stepper.state)
-        work = model.work
-        return (work.violation_linear.numpy(), work.violation_angular.numpy(), work.energy.numpy(),
-                work.diverged.numpy().astype(bool))
-
-    row = timed_chunks(stepper, measure, dt, steps, record_every, device, sample, potential_min)
-    solved = np.maximum(stepper.solved_steps.numpy(), 1)
-    pool_after = mempool_megabytes(device)
-    return {
-        **row, "pack_s": pack_s,
-        "padmm_iterations_mean": float((stepper.iteration_sum.numpy() / solved).mean()),
-        "padmm_iterations_max": int(stepper.iteration_max.numpy().max()),
-        "unconverged_step_fraction": float((stepper.unconverged_steps.numpy() / solved).mean()),
-        "step_kernel": model.step_kernel, "linear_solver": model.linear_solver, "max_rows": model.max_rows,
-        "fused_block": model.fused_block, "cuda_graph": bool(stepper.capture),
-        "engine_arrays_mb": array_megabytes(model, model.work, stepper, *stepper._buffers),
-        "device_memory_mb": None if pool_before is None else pool_after - pool_before,
-    }
-
-
-def chains_run(batch, dt: float, steps: int, record_every: int, config: SolverConfig, device: str, sample: np.ndarray,
-               potential_min=None, pack: dict | None = None) -> dict:
-    """engine_run's measurement of a batch in reduced coordinates (engine.reduced.chains: one fused launch per
-    step; PADMM iterations only on contact rows), its loop errors and energy from a maximal model of
-    the same worlds. Its PADMM iteration and projection counts (the Gauss-Newton corrections the
-    skip floors left) are those of the last step of each record chunk."""
-    from engine.reduced.chains import ChainStepper, pack_chains
-
-    gauge = pack_worlds(batch, device=device, dt=dt)  # measures only: its joint residuals and energy
-    pool_before = mempool_megabytes(device)
-    t0 = time.perf_counter()
-    model = pack_chains(batch, device=device, config=config, dt=dt, **(pack or {}))
-    pack_s = time.perf_counter() - t0
-    stepper = ChainStepper(model, model.state(), chunk=record_every)
-
+    kind = model.plan.coordinates
+    gauge_mb = 0.0
+    if kind is not Coordinates.MAXIMAL:  # built now, its memory left out of the run's (it only measures)
+        pool_packed = mempool_megabytes(device)
+        gauge = model.gauge
+        gauge_mb = 0.0 if pool_packed is None else mempool_megabytes(device) - pool_packed
+    else:
+        gauge = model
+    stepper = engine.Stepper(model, model.state(), chunk=record_every)
+    inner = getattr(model, "inner", None)
     iterations, dropped, projections = [], [], []
 
     def measure():
         compute_metrics(gauge, stepper.state)
         work = gauge.work
-        iterations.append(model.work.iterations.numpy())
-        projections.append(model.work.projections.numpy())
-        dropped.append(int(model.work.contact_dropped.numpy().max()))
-        return work.violation_linear.numpy(), work.violation_angular.numpy(), work.energy.numpy(), model.diverged
+        if kind is Coordinates.MAXIMAL:
+            diverged = work.diverged.numpy().astype(bool)
+        else:
+            iterations.append(model.iterations())
+            diverged = model.failure_codes() != 0
+        if kind is Coordinates.TREE:
+            projections.append(inner.work.projections.numpy())
+            dropped.append(int(inner.work.contact_dropped.numpy().max()))
+        return work.violation_linear.numpy(), work.violation_angular.numpy(), work.energy.numpy(), diverged
 
     row = timed_chunks(stepper, measure, dt, steps, record_every, device, sample, potential_min)
-    pool_after = mempool_megabytes(device)  # the model, its graph and scratch (the gauge came before)
+    pool_after = mempool_megabytes(device)
+    row.update(pack_s=pack_s, coordinates=kind.value, cuda_graph=bool(stepper.capture),
+               device_memory_mb=None if pool_before is None else pool_after - pool_before - gauge_mb)
+    if kind is Coordinates.MAXIMAL:
+        solved = np.maximum(stepper.solved_steps.numpy(), 1)
+        row.update(padmm_iterations_mean=float((stepper.iteration_sum.numpy() / solved).mean()),
+                   padmm_iterations_max=int(stepper.iteration_max.numpy().max()),
+                   unconverged_step_fraction=float((stepper.unconverged_steps.numpy() / solved).mean()),
+                   step_kernel=model.step_kernel, linear_solver=model.linear_solver, max_rows=model.max_rows,
+                   fused_block=model.fused_block,
+                   engine_arrays_mb=array_megabytes(model, model.work, stepper, *stepper._buffers))
+        return row
     counts = np.array(iterations[1:] or iterations)
-    capped = float((counts >= config.max_iterations).mean()) if model.tile_contacts else 0.0
-    return {
-        **row, "pack_s": pack_s,
-        "padmm_iterations_mean": float(counts.mean()), "padmm_iterations_max": int(counts.max()),
-        "unconverged_step_fraction": capped, "contacts_dropped_max": max(dropped),
-        "projections_mean": float(np.mean(projections[1:] or projections)),
-        "contact_capacity": model.contact_capacity, "contact_working": model.contact_working,
-        # the share of world-steps the full-capacity kernel took over (more contacts than the first one holds)
-        "contact_redone_share": float(model.work.contact_redone.numpy().sum()) / (row["num_worlds"] * row["steps"]),
-        "step_kernel": "chains", "linear_solver": "dense (reduced coordinates)", "max_rows": model.max_rows,
-        "fused_block": None, "cuda_graph": bool(stepper.capture),
-        "engine_arrays_mb": array_megabytes(model.arrays, model.work, stepper.state),
-        "device_memory_mb": None if pool_before is None else pool_after - pool_before,
-    }
+    row.update(padmm_iterations_mean=float(counts.mean()), padmm_iterations_max=int(counts.max()),
+               step_kernel=kind.value, fused_block=None, engine_arrays_mb=array_megabytes(inner, stepper.state.inner))
+    if kind is Coordinates.TREE:  # PADMM runs on contact rows only: a capped share where there are contacts
+        capped = float((counts >= config.max_iterations).mean()) if inner.tile_contacts else 0.0
+        row.update(unconverged_step_fraction=capped, contacts_dropped_max=max(dropped),
+                   projections_mean=float(np.mean(projections[1:] or projections)),
+                   contact_capacity=inner.contact_capacity, contact_working=inner.contact_working,
+                   # the share of world-steps the full-capacity kernel took over (more contacts than the first holds)
+                   contact_redone_share=float(inner.work.contact_redone.numpy().sum()) / (worlds * row["steps"]),
+                   linear_solver="dense (reduced coordinates)", max_rows=inner.max_rows)
+    else:
+        row.update(unconverged_step_fraction=float((counts >= config.max_iterations).mean()),
+                   linear_solver=model.plan.linear_solver, max_rows=None)
+    return row
 
 
 def timed_chunks(stepper, measure, dt: float, steps: int, record_every: int, device: str, sample: np.ndarray,
@@ -254,6 +250,13 @@ def clean(row: dict) -> dict:
     return {k: v for k, v in row.items() if k not in ("positions", "energy")}
 
 
+def placement(setting: dict) -> dict:
+    """engine_run's coordinates, pack and ground_only of a declared variant or sweep point (benchmarks.scenes:
+    maximal coordinates unless it names others)."""
+    return {"coordinates": setting.get("coordinates", "maximal"), "pack": setting.get("pack"),
+            "ground_only": setting.get("ground_only", False)}
+
+
 def run_scene(name: str, declared: Declared, args) -> dict:
     scene = declared.build(args.assets)
     specs = scene.specs
@@ -270,11 +273,16 @@ def run_scene(name: str, declared: Declared, args) -> dict:
     chunk = 10 if steps >= 30 else max(1, steps // 4)
     for worlds in (worlds_list if "throughput" in args.parts else []):
         sample = np.arange(min(worlds, len(specs)))
-        row = engine_run(specs, worlds, dt, steps + 2 * chunk, chunk, SolverConfig(), args.device, sample,
-                         scene.potential_min)
-        row.update(kind="throughput", engine="morphopt", label="default")
-        result["throughput"].append(clean(row))
-        print(json.dumps({"scene": name, **clean(row)}), flush=True)
+        # "default": engine.pack's automatic plan; "maximal" beside it where that plan is another (the label
+        # earlier runs' "default" rows compare with)
+        for label, coordinates in (("default", None), ("maximal", "maximal")):
+            row = engine_run(specs, worlds, dt, steps + 2 * chunk, chunk, SolverConfig(), args.device, sample,
+                             scene.potential_min, coordinates)
+            row.update(kind="throughput", engine="morphopt", label=label)
+            result["throughput"].append(clean(row))
+            print(json.dumps({"scene": name, **clean(row)}), flush=True)
+            if row["coordinates"] == "maximal":
+                break
     chosen = getattr(args, "settings", None)
 
     def picked(settings: list) -> list:
@@ -284,9 +292,8 @@ def run_scene(name: str, declared: Declared, args) -> dict:
         worlds = worlds_list[-1]
         try:
             row = engine_run(specs, worlds, dt, steps + 2 * chunk, chunk, SolverConfig(**variant["config"]),
-                             args.device, np.arange(min(worlds, len(specs))), scene.potential_min,
-                             variant.get("model", "maximal"), variant.get("pack"))
-        except ValueError as exc:  # e.g. a model this scene's mechanisms do not fit
+                             args.device, np.arange(min(worlds, len(specs))), scene.potential_min, **placement(variant))
+        except ValueError as exc:  # e.g. coordinates this scene's mechanisms do not fit
             result["throughput"].append({"label": variant["label"], "error": str(exc)})
             continue
         row.update(kind="throughput", engine="morphopt", label=variant["label"], settings=variant["config"])
@@ -311,7 +318,7 @@ def run_scene(name: str, declared: Declared, args) -> dict:
             try:
                 config = SolverConfig(**setting.get("config", {}))
                 row = engine_run(specs, worlds, step_dt, round(duration / step_dt), every, config, args.device,
-                                 sample, scene.potential_min, setting.get("model", "maximal"), setting.get("pack"))
+                                 sample, scene.potential_min, **placement(setting))
             except ValueError as exc:  # e.g. a setting this batch cannot take
                 result["precision"].append({"label": setting["label"], "error": str(exc)})
                 continue
@@ -480,7 +487,7 @@ def peer_throughput(specs, worlds_list, dt, steps, args) -> list:
     return rows
 
 
-CSV_FIELDS = ["kind", "engine", "label", "integrator", "num_worlds", "dt", "steps", "step_ms_median",
+CSV_FIELDS = ["kind", "engine", "label", "coordinates", "integrator", "num_worlds", "dt", "steps", "step_ms_median",
               "device_memory_mb", "engine_arrays_mb",
               "world_steps_per_s", "wall_s_per_simulated_s", "loop_error_m", "loop_error_rad", "energy_drift_rel",
               "trajectory_error_m", "padmm_iterations_mean", "padmm_iterations_max", "step_kernel", "linear_solver",
@@ -500,8 +507,11 @@ def write(result: dict, out: pathlib.Path) -> None:
     plot(result, out / f"{name}.png")
 
 
-def _throughput_panel(ax, result: dict, ours: list, variants: list) -> None:
+def _throughput_panel(ax, result: dict, ours: list, variants: list, maximal: list = ()) -> None:
     ax.loglog([r["num_worlds"] for r in ours], [r["world_steps_per_s"] for r in ours], "o-", label="morphopt")
+    if maximal:  # the default settings in maximal coordinates, where the automatic plan is another
+        ax.loglog([r["num_worlds"] for r in maximal], [r["world_steps_per_s"] for r in maximal], "o:", color="C0",
+                  alpha=0.6, label="morphopt, maximal")
     for k, r in enumerate(variants):
         ax.loglog([r["num_worlds"]], [r["world_steps_per_s"]], "^", color=f"C{k + 3}", label=f"morphopt, {r['label']}")
     for j, label in enumerate(sorted({r["label"] for r in result["peers"] if r.get("kind") == "throughput"})):
@@ -524,7 +534,9 @@ def plot(result: dict, path: pathlib.Path) -> None:
 
     peer_rows = [r for r in result["peers"] if r.get("kind") == "throughput" and "error" not in r]
     ours = [r for r in result["throughput"] if "error" not in r and r.get("label", "default") == "default"]
-    variants = [r for r in result["throughput"] if "error" not in r and r.get("label", "default") != "default"]
+    maximal = [r for r in result["throughput"] if "error" not in r and r.get("label") == "maximal"]
+    variants = [r for r in result["throughput"] if "error" not in r
+                and r.get("label", "default") not in ("default", "maximal")]
     # the throughput panel only where there are throughput rows (a --parts precision run has none);
     # a work-precision panel per error that some row has (no trajectory error without a reference)
     throughput_panel = bool(ours or peer_rows or not result["precision"])
@@ -536,12 +548,12 @@ def plot(result: dict, path: pathlib.Path) -> None:
     fig, axes = plt.subplots(1, panels, figsize=(5.2 * panels, 4.0), squeeze=False)
     axes = list(axes[0])
     if throughput_panel:
-        _throughput_panel(axes.pop(0), result, ours, variants)
+        _throughput_panel(axes.pop(0), result, ours, variants, maximal)
     if not result["precision"] and peer_rows:  # time per step against loop error, each engine's batches
         ax = axes[0]
         # the colours and markers of the throughput panel: peers C1, C2 ... squares, variants triangles
         peer_labels = sorted({r["label"] for r in peer_rows})
-        engines = ([("morphopt", ours, "o", "C0")]
+        engines = ([("morphopt", ours, "o", "C0")] + ([("morphopt, maximal", maximal, "x", "C0")] if maximal else [])
                    + [(label, [r for r in peer_rows if r.get("label") == label], "s", f"C{j + 1}")
                       for j, label in enumerate(peer_labels)]
                    + [(f"morphopt, {r['label']}", [r], "^", f"C{k + 3}") for k, r in enumerate(variants)])

@@ -6,8 +6,9 @@
 Runs studies/walker.toml (with the given device, worlds and generations; storage under --out),
 then simulates the family's default design and the best design found side by side in one batch
 with the study's settings. Prints one JSON object and writes walker_study_<device>.json, with the
-simulated seconds per wall second of the whole study and their ratio to leggedsnake's.
---model overrides the study's [simulation] model ("maximal" or "reduced").
+simulated seconds per wall second of the whole study and their ratio to leggedsnake's, and the
+coordinates the engine planned for the pair (engine.pack chooses them; a study file no longer
+sets a model).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import warp as wp  # noqa: E402
 
+import engine  # noqa: E402
 from morphopt.evaluate import evaluate_dynamic  # noqa: E402
 from morphopt.families import load_family  # noqa: E402
 from morphopt.study import run_study  # noqa: E402
@@ -39,39 +41,39 @@ def main(argv=None) -> int:
     parser.add_argument("--generations", type=int, default=1)
     parser.add_argument("--spec", default=str(ROOT / "studies" / "walker.toml"))
     parser.add_argument("--out", default=".")
-    parser.add_argument("--model", choices=("maximal", "reduced"), default=None,
-                        help="override the study's [simulation] model")
     args = parser.parse_args(argv)
     wp.config.log_level = wp.LOG_WARNING
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     spec = load_study_spec(args.spec).with_overrides(
-        device=args.device, worlds=args.worlds, generations=args.generations, model=args.model,
+        device=args.device, worlds=args.worlds, generations=args.generations,
         storage=f"sqlite:///{(out / 'walker_study.sqlite').resolve()}")
     family = load_family(spec.family)
     # compile the kernels outside the timed study
-    evaluate_dynamic(family, [{**family.space.default(), **spec.fixed}], duration=4 * spec.dt, dt=spec.dt,
-                     device=spec.device, config=spec.solver_config(), model=spec.model)
-    if spec.model == "reduced":  # both step kernels (a batch of one world takes the one-warp kernel)
-        from engine.legged import legged_step_batch, pack_legged
-
-        one = [family.build_legged({**family.space.default(), **spec.fixed})]
+    default = {**family.space.default(), **spec.fixed}
+    warm = evaluate_dynamic(family, [default], duration=4 * spec.dt, dt=spec.dt, device=spec.device,
+                            config=spec.solver_config())
+    if warm.plan is not None and warm.plan.coordinates is engine.Coordinates.TABULATED:
+        # both of the plan's step kernels (a batch of one world takes the one-warp kernel)
+        one = [family.build_spec(default, crank_speed=spec.crank_speed)]
+        config = spec.solver_config() or engine.SolverConfig()
         for tiled in (True, False):
-            legged_step_batch(pack_legged(one, device=spec.device, dt=spec.dt, config=spec.solver_config(),
-                                          tiled=tiled))
+            model = engine.pack(one, spec.device, dt=spec.dt, config=config.tuned(tabulated_tiled=tiled))
+            state = model.state()
+            engine.step(model, state, state)
     t0 = time.perf_counter()
     result = run_study(spec, progress=True)
     seconds = time.perf_counter() - t0
-    default = {**family.space.default(), **spec.fixed}
     pair = evaluate_dynamic(family, [default, result.best_params], duration=spec.duration, dt=spec.dt,
-                            device=spec.device, config=spec.solver_config(), model=spec.model)
+                            device=spec.device, config=spec.solver_config())
     speeds = [m.get("walking_speed", float("nan")) for m in pair.metrics]
     report = {
         "device": wp.get_device(args.device).name if args.device != "cpu" else "cpu", "worlds": args.worlds,
         "generations": args.generations, "evaluations": result.evaluations, "seconds": seconds,
         "designs_per_s": result.evaluations / seconds, "overhead_share": result.overhead,
         "seconds_by_stage": result.stages,
-        "simulated_s_per_design": spec.duration, "dt": spec.dt, "solver": spec.solver, "model": spec.model,
+        "simulated_s_per_design": spec.duration, "dt": spec.dt, "solver": spec.solver,
+        "coordinates": None if pair.plan is None else pair.plan.coordinates.value,
         "simulated_s_per_s": result.evaluations * spec.duration / seconds,
         "over_leggedsnake": result.evaluations * spec.duration / seconds / LEGGEDSNAKE_SIMULATED_S_PER_S,
         "best_walking_speed": result.best_value, "best_params": result.best_params,

@@ -44,8 +44,10 @@ def test_walker_precision_compares_settings_with_the_reference(tmp_path):
 
 def test_benchmark_runner_quick_fourbar_writes_results_with_a_float64_reference(tmp_path):
     """python -m benchmarks.run --quick on the CPU: throughput and work-precision rows with the
-    promised fields; the default setting's trajectory stays within 1e-5 m of MuJoCo's float64 RK4
-    reference (an independent simulator), a 4x larger step is measurably worse, and the files exist."""
+    promised fields (throughput "default": engine.pack's plan, the tree for the four-bar, with
+    "maximal" beside it; the sweep in maximal coordinates); the default setting's trajectory stays
+    within 1e-5 m of MuJoCo's float64 RK4 reference (an independent simulator), a 4x larger step is
+    measurably worse, and the files exist."""
     import json
 
     from benchmarks.run import main
@@ -54,6 +56,10 @@ def test_benchmark_runner_quick_fourbar_writes_results_with_a_float64_reference(
     result = json.loads((tmp_path / "fourbar.json").read_text())
     assert result["reference"]["engine"].startswith("mujoco C")
     assert {r["num_worlds"] for r in result["throughput"]} == {1, 8}
+    plans = [(r["label"], r["num_worlds"], r["coordinates"]) for r in result["throughput"]]
+    assert plans[:4] == [("default", 1, "tree"), ("maximal", 1, "maximal"), ("default", 8, "tree"),
+                         ("maximal", 8, "maximal")]
+    assert all(r["coordinates"] == "maximal" for r in result["precision"] if "reduced" not in r["label"])
     for row in result["throughput"] + result["precision"]:
         assert row["world_steps_per_s"] > 0 and row["diverged_worlds"] == 0
         assert row["loop_error_m"] < 1e-5 and row["energy_drift_rel"] < 1e-2
@@ -64,14 +70,17 @@ def test_benchmark_runner_quick_fourbar_writes_results_with_a_float64_reference(
     for ext in ("csv", "png"):
         assert (tmp_path / f"fourbar.{ext}").stat().st_size > 0
     # memory: the engine's arrays grow with the batch (the CPU has no memory pool to read)
-    memory = {r["num_worlds"]: r["engine_arrays_mb"] for r in result["throughput"]}
-    assert 0 < memory[1] < memory[8] and all(r["device_memory_mb"] is None for r in result["throughput"])
+    for label in ("default", "maximal"):
+        memory = {r["num_worlds"]: r["engine_arrays_mb"] for r in result["throughput"] if r["label"] == label}
+        assert 0 < memory[1] < memory[8]
+    assert all(r["device_memory_mb"] is None for r in result["throughput"])
 
 
 def test_benchmark_runner_times_a_scenes_variants_at_its_largest_batch(tmp_path, monkeypatch):
-    """A declared variant (other solver settings) gets its own throughput row at the largest batch,
-    labelled, with its settings and its measured loop error: without the projection (Baumgarte
-    feedback instead) the four-bar's loops open by more than the default's."""
+    """A declared variant (other solver settings, maximal coordinates unless it names others) gets
+    its own throughput row at the largest batch, labelled, with its settings and its measured loop
+    error: without the projection (Baumgarte feedback instead) the four-bar's loops open by more
+    than with it (the "maximal" row: the default settings in maximal coordinates)."""
     import dataclasses
     import json
 
@@ -84,9 +93,11 @@ def test_benchmark_runner_times_a_scenes_variants_at_its_largest_batch(tmp_path,
     assert run.main(["--device", "cpu", "--quick", "--only", "fourbar", "--parts", "throughput",
                      "--out", str(tmp_path)]) == 0
     rows = json.loads((tmp_path / "fourbar.json").read_text())["throughput"]
-    assert [(r["label"], r["num_worlds"]) for r in rows] == [("default", 1), ("default", 8), ("no projection", 8)]
-    assert rows[2]["settings"] == variant["config"] and rows[2]["world_steps_per_s"] > 0
-    assert rows[2]["loop_error_m"] > 10 * rows[1]["loop_error_m"]
+    assert [(r["label"], r["num_worlds"]) for r in rows] == [("default", 1), ("maximal", 1), ("default", 8),
+                                                             ("maximal", 8), ("no projection", 8)]
+    assert rows[4]["settings"] == variant["config"] and rows[4]["world_steps_per_s"] > 0
+    assert rows[4]["coordinates"] == rows[3]["coordinates"] == "maximal"
+    assert rows[4]["loop_error_m"] > 10 * rows[3]["loop_error_m"]
     assert (tmp_path / "fourbar.png").stat().st_size > 0
 
 
@@ -145,18 +156,6 @@ def test_walker_study_writes_its_time_by_stage(tmp_path):
     assert [r[0] for r in rows] == ["simulate", "build", "ask", "storage"]  # largest first
     assert [float(r[2]) for r in rows] == [0.75, 0.1875, 0.03125, 0.015625]
     assert (tmp_path / "walker_study_cpu_stages.png").stat().st_size > 5000
-
-
-def test_legged_steps_reports_the_reduced_walkers_time_per_step(tmp_path, capsys):
-    from benchmarks import legged_steps
-
-    assert legged_steps.main(["--device", "cpu", "--worlds", "2", "--steps", "20", "--out", str(tmp_path)]) == 0
-    report = json.loads((tmp_path / "legged_steps_cpu.json").read_text())
-    assert report["dt"] == 0.005 and report["solver"]["max_iterations"] == 30  # the walker study's settings
-    (run,) = report["runs"]
-    assert run["worlds"] == 2 and run["tiled"] is False and run["diverged"] == 0
-    assert run["rollout_ms_per_step"] > 0 and 1 <= run["iterations_mean"] <= 30
-    assert run["simulated_s_per_s"] == pytest.approx(2 * 20 * 0.005 / run["rollout_s"])
 
 
 def test_legged_precision_compares_the_study_and_settings_with_the_reference(tmp_path):
@@ -328,9 +327,12 @@ def test_heterogeneity_times_both_batches_at_each_cap(tmp_path, capsys):
 
 def test_heterogeneity_runs_the_reduced_walkers(tmp_path):
     """benchmarks.heterogeneity --model reduced: the same random designs and the default walker in
-    engine.legged's coordinates, with the walker study's dt; the largest world's iterations within
-    the cap, finite times and the ratio on the random batch's row."""
+    the coordinates engine.pack plans for them (tabulated), with the walker study's dt; the largest
+    world's iterations within the cap, finite times and the ratio on the random batch's row;
+    spread_phases turns each world's cranks by an angle of its own."""
+    import engine
     from benchmarks import heterogeneity
+    from benchmarks.scenes import walker_default
 
     out = tmp_path / "hetero_reduced.json"
     assert heterogeneity.main(["--device", "cpu", "--worlds", "4", "--caps", "12", "--warmup", "1",
@@ -338,6 +340,7 @@ def test_heterogeneity_runs_the_reduced_walkers(tmp_path):
     rows = json.loads(out.read_text())["results"]
     batches = [("random", "reduced"), ("default", "reduced"), ("default, phases spread", "reduced")]
     assert [(r["batch"], r["model"]) for r in rows] == batches * 2
+    assert all(r["coordinates"] == "tabulated" for r in rows)
     assert [r["max_registers"] for r in rows] == [64] * 3 + [None] * 3
     assert all(r["step_ms"] > 0 and 0 < max(r["iterations_largest_world"]) <= 12 for r in rows)
     assert all(r["diverged"] == 0 for r in rows)
@@ -348,16 +351,16 @@ def test_heterogeneity_runs_the_reduced_walkers(tmp_path):
         assert spread["ratio_to_default"] == pytest.approx(spread["step_ms"] / default["step_ms"])
     with pytest.raises(SystemExit):
         heterogeneity.main(["--device", "cpu", "--registers", "64"])  # maximal model: no register cap
-    from engine.legged import pack_legged
-
-    spec = heterogeneity.reduced_batches()["default"][0]
-    model = pack_legged([spec] * 3)
-    before = model.psi.numpy().copy()
+    spec = walker_default().specs[0]
+    model = engine.pack([spec] * 3, "cpu", coordinates="tabulated")
+    model.state()
+    before = model.inner.coord.numpy().copy()
     heterogeneity.spread_phases(model)
-    turn = np.mod(model.psi.numpy() - before, 2 * np.pi)
-    legs = len(spec.legs)
-    assert np.allclose(turn[:, :legs], turn[:, :1], atol=1e-5)  # one turn per world, the legs' phases kept
+    turn = np.mod(model.inner.coord.numpy() - before, 2 * np.pi)
+    legs = len(model.inner.layouts[0].groups)
+    assert legs == 6 and np.allclose(turn[:, :legs], turn[:, :1], atol=1e-5)  # one turn per world, phases kept
     assert np.ptp(turn[:, 0]) > 0.1  # and the worlds turned apart
+    assert not turn[:, legs:].any()  # the padding left alone
     from morphopt.study_spec import load_study_spec
 
     study = load_study_spec(pathlib.Path(heterogeneity.__file__).resolve().parents[1] / "studies" / "walker.toml")
@@ -527,8 +530,9 @@ def test_variant_flag_times_a_declared_variant_with_its_settings(tmp_path, capsy
 
 
 def test_runner_measures_reduced_coordinates_settings_against_the_reference(tmp_path):
-    """--settings picks declared points by label: the four-bar in reduced coordinates (engine.reduced.chains)
-    runs as its own rows, its loops measured by the maximal engine's joint residuals (below 1e-6 m),
+    """--settings picks declared points by label: the four-bar in reduced coordinates (engine.pack's
+    TREE plan, forced) runs as its own rows, its loops measured by the maximal engine's joint residuals
+    (below 1e-6 m),
     its trajectory within 5e-5 m of MuJoCo C's float64 reference at dt 1 ms and measurably further at
     dt 4 ms; a label no scene declares is refused, naming it."""
     import json
@@ -538,12 +542,13 @@ def test_runner_measures_reduced_coordinates_settings_against_the_reference(tmp_
     assert main(["--device", "cpu", "--quick", "--only", "fourbar", "--settings", "reduced coordinates",
                  "reduced coordinates, dt x4", "--out", str(tmp_path)]) == 0
     result = json.loads((tmp_path / "fourbar.json").read_text())
-    variants = [r for r in result["throughput"] if r["label"] != "default"]
-    assert [(r["label"], r["step_kernel"]) for r in variants] == [("reduced coordinates", "chains")]
+    variants = [r for r in result["throughput"] if r["label"] not in ("default", "maximal")]
+    assert [(r["label"], r["step_kernel"]) for r in variants] == [("reduced coordinates", "tree")]
     rows = {r["label"]: r for r in result["precision"]}
     assert sorted(rows) == ["reduced coordinates", "reduced coordinates, dt x4"]
     for row in list(rows.values()) + variants:
-        assert row["step_kernel"] == "chains" and row["diverged_worlds"] == 0 and row["world_steps_per_s"] > 0
+        assert row["step_kernel"] == row["coordinates"] == "tree"
+        assert row["diverged_worlds"] == 0 and row["world_steps_per_s"] > 0
         assert 0 < row["loop_error_m"] < 1e-6
     assert rows["reduced coordinates"]["trajectory_error_m"] < 5e-5
     coarse, fine = rows["reduced coordinates, dt x4"], rows["reduced coordinates"]
@@ -553,8 +558,9 @@ def test_runner_measures_reduced_coordinates_settings_against_the_reference(tmp_
 
 
 def test_runner_takes_the_batch_sizes_asked_for(tmp_path, capsys):
-    """--worlds replaces the scene's throughput batch sizes: the default settings run at each, the
-    variants at the largest; a size below 1, or --worlds without its own --out folder, is refused."""
+    """--worlds replaces the scene's throughput batch sizes: the default settings run at each (in
+    engine.pack's plan and in maximal coordinates), the variants at the largest; a size below 1, or
+    --worlds without its own --out folder, is refused."""
     import json
 
     from benchmarks.run import main
@@ -562,79 +568,11 @@ def test_runner_takes_the_batch_sizes_asked_for(tmp_path, capsys):
     assert main(["--device", "cpu", "--parts", "throughput", "--only", "fourbar", "--worlds", "5", "3",
                  "--settings", "reduced coordinates", "--out", str(tmp_path)]) == 0
     rows = json.loads((tmp_path / "fourbar.json").read_text())["throughput"]
-    assert [(r["label"], r["num_worlds"]) for r in rows] == [("default", 3), ("default", 5),
-                                                             ("reduced coordinates", 5)]
+    assert [(r["label"], r["num_worlds"]) for r in rows] == [("default", 3), ("maximal", 3), ("default", 5),
+                                                             ("maximal", 5), ("reduced coordinates", 5)]
     assert all(r["world_steps_per_s"] > 0 and r["diverged_worlds"] == 0 for r in rows)
     for argv, message in ((["--worlds", "0", "--out", str(tmp_path)], "at least 1"),
                           (["--worlds", "4"], "own --out")):
         with pytest.raises(SystemExit):
             main(["--device", "cpu", "--only", "fourbar", *argv])
         assert message in capsys.readouterr().err
-
-
-def test_newton_probe_solves_analytic_contact_problems_and_the_walkers_hard_steps(tmp_path):
-    """benchmarks.legged_newton_probe: its semismooth Newton solves small problems whose answers are
-    known (a drive pushed past its bound stops at the bound; a contact approaching at 1 m/s with unit
-    response sticks with impulse 1; one separating carries none; one that also slips at 2 m/s is
-    stopped along its normal with impulse 1 and carries mu times that against the slip), and on the
-    walkers' hardest steps its solutions meet the tolerance and give the rows' velocities of the
-    engine's own PADMM within 100x that tolerance."""
-    import json
-
-    from benchmarks.legged_newton_probe import main, natural_map, newton
-
-    def problem(vf, mu=0.5, legs=0, lo=-1.0, hi=1.0):
-        m = len(vf)
-        return {"legs": legs, "rows": m, "D": np.eye(m), "vf": np.array(vf, float), "mu": np.full(m, mu),
-                "lo": np.full(m, lo), "hi": np.full(m, hi), "x0": np.zeros(m)}
-
-    drive, _ = newton(problem([-1.0], legs=1, lo=-0.1, hi=0.1), 1e-9)
-    assert np.allclose(drive, [0.1])
-    stick, _ = newton(problem([-1.0, 0.0, 0.0]), 1e-9)
-    assert np.allclose(stick, [1.0, 0.0, 0.0])
-    damped, _ = newton(problem([-1.0, 0.0, 0.0]), 1e-9, damping=1e-9)  # the damped normal equations' step
-    assert np.allclose(damped, [1.0, 0.0, 0.0])
-    apart, _ = newton(problem([1.0, 0.0, 0.0]), 1e-9)
-    assert np.allclose(apart, 0.0)
-    slide, _ = newton(problem([-1.0, 2.0, 0.0], mu=0.5), 1e-9)
-    # the normal impulse stops the approach (v_n = 0: 1), friction mu = 0.5 slows the slip from 2 to 1.5
-    assert np.allclose(slide, [1.0, -0.5, 0.0])
-    assert np.abs(natural_map(problem([-1.0, 2.0, 0.0], mu=0.5), slide)).max() < 1e-9
-    out = tmp_path / "probe.json"
-    assert main(["--steps", "12", "--skip", "10", "--hardest", "2", "--designs", "8", "--out", str(out)]) == 0
-    rows = json.loads(out.read_text())["results"]
-    probed, total = rows[:-1], rows[-1]["summary"]
-    assert len(probed) == 4 and total["probed_steps"] == 4
-    solved = [r for r in probed if r["newton_steps"] is not None]
-    assert solved and all(r["residual"] < r["tolerance"] for r in solved)
-    compared = [r for r in solved if r["velocity_gap"] is not None]
-    assert compared and all(r["velocity_gap"] < 100 * r["tolerance"] for r in compared)
-    assert (tmp_path / "probe.csv").read_text().startswith("step,world,rows")
-    assert (tmp_path / "probe.png").stat().st_size > 0
-
-
-def test_newton_probes_closed_form_jacobian_matches_finite_differences():
-    """benchmarks.legged_newton_probe.jacobian, the generalized Jacobian of the natural map in
-    closed form (drives clamped, contact cones' inside, boundary and polar parts, the De Saxce
-    shift's derivative), equals central differences of the map at random points of random problems
-    (2 drives and 3 contacts, a random positive definite D) away from the kinks."""
-    from benchmarks.legged_newton_probe import jacobian, natural_map
-
-    rng = np.random.default_rng(7)
-    parts = {"inside": 0, "boundary": 0, "polar": 0}
-    for _ in range(40):
-        A = rng.normal(size=(11, 11))
-        p = {"legs": 2, "rows": 11, "D": A @ A.T / 11 + 0.1 * np.eye(11), "vf": rng.normal(size=11),
-             "mu": np.full(11, 0.6), "lo": np.full(11, -0.5), "hi": np.full(11, 0.5), "x0": np.zeros(11)}
-        x = rng.normal(size=11)
-        h = 1e-6
-        numeric = np.array([(natural_map(p, x + h * e) - natural_map(p, x - h * e)) / (2 * h) for e in np.eye(11)]).T
-        closed = jacobian(p, x)
-        v = p["D"] @ x + p["vf"]
-        a = x - v
-        for r in range(2, 11, 3):
-            a[r] -= 0.6 * np.hypot(v[r + 1], v[r + 2])
-            t = np.hypot(a[r + 1], a[r + 2])
-            parts["inside" if t <= 0.6 * a[r] else "polar" if 0.6 * t <= -a[r] else "boundary"] += 1
-        assert np.allclose(closed, numeric, atol=1e-5), np.abs(closed - numeric).max()
-    assert min(parts.values()) > 0, parts  # every branch of the cone's projection was checked

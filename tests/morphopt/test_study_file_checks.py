@@ -142,7 +142,7 @@ def run_cli(argv, capsys):
 FOUR_BAR = dict(family="four_bar", metric="coupler_point_stride")
 JANSEN_DYNAMIC = dict(family="jansen_leg", metric="foot_stride", study='mode = "dynamic"')
 WALKER = dict(family="walker", metric="walking_speed", study='mode = "dynamic"',
-              simulation='model = "reduced"\ndt = 0.005\nduration = 2.0')
+              simulation='dt = 0.005\nduration = 2.0')
 VALIDATION_CASES = [  # (study keywords, argv after the spec, fragments)
     (dict(FOUR_BAR, study="worlds = 1000000000"), [], ["'study.worlds' must be at most 65536", "memory"]),
     (FOUR_BAR, ["--worlds", "100000"], ["(with worlds=100000)", "'study.worlds' must be at most 65536"]),
@@ -177,8 +177,11 @@ VALIDATION_CASES = [  # (study keywords, argv after the spec, fragments)
      ["'objective.metric' = 'left3_foot_stride' is not a metric of every design of the study",
       "legs_per_side=1 has none"]),
     (dict(WALKER, metric="left3_foot_stride", tables="[fixed]\nlegs_per_side = 4"), [], []),
-    (dict(WALKER, simulation='model = "reduced"\ndt = 0.005\nduration = 1.0'), [],
+    (dict(WALKER, simulation='dt = 0.005\nduration = 1.0'), [],
      ["'simulation.duration' = 1 s is shorter than one crank turn (1.257 s at 5 rad/s, the design's own crank speed)"]),
+    # a key of earlier study files: refused in one line that says what took its place
+    (dict(WALKER, simulation='model = "reduced"\ndt = 0.005\nduration = 2.0'), [],
+     ["'simulation.model' is no longer a setting: the engine chooses the coordinates of every batch itself"]),
     (dict(FOUR_BAR, tables="[constraints]\ncoupler_point_strid = [0.0, 1.0]"), [],
      ["'constraints.coupler_point_strid' = 'coupler_point_strid' is not a metric"]),
     (dict(FOUR_BAR, tables="[constraints]\npath_error = [0.0, 1.0]"), [],
@@ -278,14 +281,14 @@ def test_the_projects_studies_and_families_pass():
             assert family_metrics(family, space, {}, mode).metrics, (name, mode)
 
 
-def derived(family, mode, params, model="maximal"):
+def derived(family, mode, params):
     """The names morphopt.contract accepts for a study fixed at ``params``."""
     from morphopt.design_space import DesignSpace, Float
 
     free = next(n for n, p in family.space.parameters.items() if isinstance(p, Float))
     space = DesignSpace({free: family.space.parameters[free]})
     fixed = {k: v for k, v in params.items() if k != free}
-    return set(family_metrics(family, space, fixed, mode, model).metrics)
+    return set(family_metrics(family, space, fixed, mode).metrics)
 
 
 def produced(evaluation) -> list[tuple]:
@@ -309,8 +312,8 @@ def test_kinematic_metric_names_are_what_the_evaluation_produces(name):
 
 def test_dynamic_metric_names_are_what_the_evaluation_produces():
     """The derived dynamic names equal the metric keys of evaluate_dynamic: a linkage made a world,
-    and walkers (maximal and reduced) of two topologies, a few steps each; the record interval
-    the duration checks assume is evaluate_dynamic's."""
+    and walkers of two topologies in the engine's own plan (tabulated) and in maximal coordinates,
+    a few steps each; the record interval the duration checks assume is evaluate_dynamic's."""
     assert inspect.signature(evaluate_dynamic).parameters["record_every"].default == RECORD_EVERY
     jansen = load_family("jansen_leg")
     evaluation = evaluate_dynamic(jansen, [jansen.space.default()], duration=0.02, dt=1e-3)
@@ -318,10 +321,11 @@ def test_dynamic_metric_names_are_what_the_evaluation_produces():
     walker = load_family("walker")
     designs = [{**walker.space.default(), "legs_per_side": 1},
                {**walker.space.default(), "legs_per_side": 2, "leg_family": "klann_leg"}]
-    for model in ("reduced", "maximal"):
-        evaluation = evaluate_dynamic(walker, designs, duration=0.02, dt=2e-3, model=model)
+    for coordinates in (None, "maximal"):
+        evaluation = evaluate_dynamic(walker, designs, duration=0.02, dt=2e-3, coordinates=coordinates)
+        assert evaluation.plan.coordinates.value == (coordinates or "tabulated")
         assert len(produced(evaluation)) == 2, evaluation.failures
         for params, metrics in produced(evaluation):
-            assert metrics == derived(walker, "dynamic", params, model), model
+            assert metrics == derived(walker, "dynamic", params), coordinates
     assert "torso_tilt_max" in point_metrics(["torso", "torso_up"], "dynamic")
     assert "torso_tilt_max" not in point_metrics(["torso"], "dynamic")
