@@ -82,7 +82,7 @@ def _vector(value, size: int, what: str) -> np.ndarray:
         raise ValueError(f"{what}: expected {size} numbers, got {value!r}") from exc
     if array.size != size:
         raise ValueError(f"{what}: expected {size} numbers, got {array.size}")
-    if not np.isfinite(array).all():
+    if not all(map(math.isfinite, array.tolist())):  # np.isfinite's test, without a ufunc call on 3 numbers
         raise ValueError(f"{what}: must be finite, got {array.tolist()}")
     return array
 
@@ -104,6 +104,10 @@ def _scalar(value, what: str, *, minimum: float | None = None, strict: bool = Fa
 
 def _quaternion(value, what: str) -> np.ndarray:
     """A unit quaternion (x, y, z, w) from any non-zero finite 4-vector."""
+    return _once(value, "quaternion", what)
+
+
+def _unit_quaternion(value, what: str) -> np.ndarray:
     quat = _vector(value, 4, what)
     norm = math.sqrt(float(quat @ quat))
     if norm < 1e-9:
@@ -111,7 +115,46 @@ def _quaternion(value, what: str) -> np.ndarray:
     return quat / norm
 
 
+def _unit_axis(value, what: str) -> np.ndarray:
+    """A joint axis normalized (a non-zero finite 3-vector)."""
+    axis = _vector(value, 3, what)
+    norm = math.sqrt(float(axis @ axis))
+    if norm < 1e-9:
+        raise ValueError(f"{what} must be non-zero, got {axis.tolist()}")
+    return axis / norm
+
+
+_CHECKS = {"quaternion": _unit_quaternion, "axis": _unit_axis}
+_PLAIN = (float, int)
+_ONCE: dict = {}  # (id of a tuple of plain numbers, check) -> (the tuple, its checked array)
+_ONCE_SIZE = 256
+
+
+def _once(value, check: str, what: str) -> np.ndarray:
+    """_CHECKS[check](value, what), computed once per tuple object of plain numbers (a dataclass's
+    default, a module's constant axis: the same object for every joint) and copied out, so that
+    every item still gets its own array; anything else (arrays, lists) is checked every time. A
+    tuple is immutable and kept alive by the cache, so its id cannot come back for another one."""
+    if type(value) is not tuple:
+        return _CHECKS[check](value, what)
+    key = (id(value), check)
+    entry = _ONCE.get(key)
+    if entry is None or entry[0] is not value:
+        if not all(type(x) in _PLAIN for x in value):
+            return _CHECKS[check](value, what)
+        result = _CHECKS[check](value, what)  # raises for bad numbers: nothing is kept
+        if len(_ONCE) >= _ONCE_SIZE:
+            _ONCE.pop(next(iter(_ONCE)))
+        _ONCE[key] = entry = (value, result)
+    return entry[1].copy()
+
+
 TRIANGLE_TOLERANCE = 1e-5  # share of the largest principal moment by which it may exceed the other two's sum
+
+
+def _close(x: float, y: float) -> bool:
+    """np.isclose(x, y, rtol=1e-6, atol=1e-12) of two finite numbers (the same operations)."""
+    return abs(x - y) <= 1e-12 + 1e-6 * abs(y) or x == y
 
 
 def check_inertia(inertia, where: str) -> np.ndarray:
@@ -124,10 +167,13 @@ def check_inertia(inertia, where: str) -> np.ndarray:
         inertia = np.diag(inertia)
     if inertia.shape != (3, 3):
         raise ValueError(f"{where}: inertia must be 3x3 or a 3-vector, got shape {inertia.shape}")
-    if not np.isfinite(inertia).all():
-        raise ValueError(f"{where}: inertia must be finite, got {inertia.tolist()}")
-    if not np.allclose(inertia, inertia.T, rtol=1e-6, atol=1e-12):
-        raise ValueError(f"{where}: inertia must be symmetric, got {inertia.tolist()}")
+    rows = inertia.tolist()
+    if not all(math.isfinite(x) for row in rows for x in row):
+        raise ValueError(f"{where}: inertia must be finite, got {rows}")
+    (_, a01, a02), (a10, _, a12), (a20, a21, _) = rows
+    if not (_close(a01, a10) and _close(a10, a01) and _close(a02, a20) and _close(a20, a02) and _close(a12, a21)
+            and _close(a21, a12)):  # np.allclose(inertia, inertia.T, rtol=1e-6, atol=1e-12), entry by entry
+        raise ValueError(f"{where}: inertia must be symmetric, got {rows}")
     moments = np.linalg.eigvalsh(inertia)  # ascending
     if not moments[0] > 0.0:
         raise ValueError(f"{where}: inertia must be positive definite, got eigenvalues {moments.tolist()}")
@@ -137,6 +183,27 @@ def check_inertia(inertia, where: str) -> np.ndarray:
                          f"the largest exceeds the sum of the other two ({moments[0] + moments[1]:.6g}); "
                          f"no mass distribution has it")
     return inertia
+
+
+def _held(cls, **values):
+    """An instance of dataclass ``cls`` holding ``values`` (every field, in order) without running its
+    __post_init__: for the batch constructors, whose array checks stand for it."""
+    item = object.__new__(cls)
+    item.__dict__.update(values)
+    return item
+
+
+def _stack(value, shape: tuple) -> np.ndarray | None:
+    """``value`` when it is a float64 array of ``shape``, else None."""
+    return value if isinstance(value, np.ndarray) and value.dtype == np.float64 and value.shape == shape else None
+
+
+def _finite(*arrays) -> bool:
+    return all(np.isfinite(a).all() for a in arrays)
+
+
+def _names(values) -> bool:
+    return all(isinstance(v, str) and v for v in values)
 
 
 @dataclass
@@ -176,6 +243,38 @@ class Body:
         self.orientation = _quaternion(self.orientation, f"{where}: orientation")
         self.velocity = _vector(self.velocity, 3, f"{where}: velocity [m/s]")
         self.angular_velocity = _vector(self.angular_velocity, 3, f"{where}: angular_velocity [rad/s]")
+
+    @classmethod
+    def batch(cls, names, mass, inertia, com, position, orientation, velocity=None, angular_velocity=None):
+        """Bodies from stacked numbers: names (N strings), mass (N,), inertia (N, 3, 3), com and
+        position (N, 3), orientation (N, 4), velocity and angular_velocity (N, 3) or None (zero),
+        float64 arrays. The same bodies as ``Body(name, mass, inertia, com=..., ...)`` row by row
+        (the constructor's checks run on the arrays at once; each body holds the numbers the
+        constructor would: views of the rows, the orientation normalized as it normalizes), or
+        None when any row fails a check: build those one by one for the constructor's error."""
+        n = len(names)
+        mass, inertia = _stack(mass, (n,)), _stack(inertia, (n, 3, 3))
+        com, position, orientation = _stack(com, (n, 3)), _stack(position, (n, 3)), _stack(orientation, (n, 4))
+        velocity = np.zeros((n, 3)) if velocity is None else _stack(velocity, (n, 3))
+        angular_velocity = np.zeros((n, 3)) if angular_velocity is None else _stack(angular_velocity, (n, 3))
+        arrays = (mass, inertia, com, position, orientation, velocity, angular_velocity)
+        if any(a is None for a in arrays) or not _names(names) or not _finite(*arrays) or not (mass > 0.0).all():
+            return None
+        if n == 0:
+            return []
+        if not (np.abs(inertia - inertia.swapaxes(1, 2)) <= 1e-12 + 1e-6 * np.abs(inertia.swapaxes(1, 2))).all():
+            return None  # check_inertia's symmetry (np.isclose's test)
+        moments = np.linalg.eigvalsh(inertia)  # LAPACK on each matrix, as for one
+        if not ((moments[:, 0] > 0.0) & ~(moments[:, 2] > (moments[:, 0] + moments[:, 1])
+                                          + TRIANGLE_TOLERANCE * moments[:, 2])).all():
+            return None
+        norm = np.sqrt((orientation[:, None, :] @ orientation[:, :, None])[:, 0, 0])  # quat @ quat of each
+        if not (norm >= 1e-9).all():
+            return None
+        unit = orientation / norm[:, None]
+        return [_held(cls, name=name, mass=m, inertia=inertia[i], com=com[i], position=position[i], orientation=unit[i],
+                      velocity=velocity[i], angular_velocity=angular_velocity[i])
+                for i, (name, m) in enumerate(zip(names, mass.tolist()))]
 
 
 @dataclass
@@ -262,12 +361,8 @@ class Joint:
         self.child_position = _vector(self.child_position, 3, f"{where}: child_position [m]")
         self.parent_orientation = _quaternion(self.parent_orientation, f"{where}: parent_orientation")
         self.child_orientation = _quaternion(self.child_orientation, f"{where}: child_orientation")
-        for attr in ("axis", "axis2"):
-            axis = _vector(getattr(self, attr), 3, f"{where}: {attr}")
-            norm = math.sqrt(float(axis @ axis))
-            if norm < 1e-9:
-                raise ValueError(f"{where}: {attr} must be non-zero, got {axis.tolist()}")
-            setattr(self, attr, axis / norm)
+        self.axis = _once(self.axis, "axis", f"{where}: axis")
+        self.axis2 = _once(self.axis2, "axis", f"{where}: axis2")
         self.armature = _scalar(self.armature, f"{where}: armature", minimum=0.0)
         self.damping = _scalar(self.damping, f"{where}: damping", minimum=0.0)
         drivable = self.type in DRIVABLE
@@ -291,6 +386,41 @@ class Joint:
             if not isinstance(self.drive, JointDrive):
                 raise ValueError(f"{where}: drive must be a JointDrive, got {type(self.drive).__name__}")
             self.drive.validate(where)
+
+    @classmethod
+    def batch(cls, names, types, parents, children, parent_position, child_position, axis, drives):
+        """Joints from stacked numbers: names, types (JointType or name), parents (name or None),
+        children, parent_position and child_position (N, 3) float64 arrays, one ``axis`` for all,
+        drives (JointDrive or None each, validated here), the other fields at their defaults. The
+        same joints as the constructor makes row by row (its checks on the arrays at once; each
+        joint holds the numbers it would), or None when any row fails a check: build those one by
+        one for the constructor's error."""
+        n = len(names)
+        parent_position, child_position = _stack(parent_position, (n, 3)), _stack(child_position, (n, 3))
+        if parent_position is None or child_position is None or not _finite(parent_position, child_position):
+            return None
+        if not (_names(names) and _names(children) and all(p is None or (isinstance(p, str) and p) for p in parents)):
+            return None
+        if any(p == c for p, c in zip(parents, children)):
+            return None
+        try:
+            types = [JointType[t.upper()] if isinstance(t, str) else JointType(t) for t in types]
+            defaults = cls.__dataclass_fields__
+            default_q, default_axis2 = defaults["parent_orientation"].default, defaults["axis2"].default
+            unit = _once(axis, "axis", "axis")
+            for kind, drive in zip(types, drives):
+                if drive is not None:
+                    if kind not in DRIVABLE or not isinstance(drive, JointDrive):
+                        return None
+                    drive.validate("joint")
+        except (AttributeError, KeyError, TypeError, ValueError):
+            return None
+        unit_q, unit_axis2 = _once(default_q, "quaternion", ""), _once(default_axis2, "axis", "")
+        return [_held(cls, name=names[i], type=types[i], parent=parents[i], child=children[i],
+                      parent_position=parent_position[i], parent_orientation=unit_q.copy(),
+                      child_position=child_position[i], child_orientation=unit_q.copy(), axis=unit.copy(),
+                      axis2=unit_axis2.copy(), armature=0.0, damping=0.0, drive=drives[i], limit_lower=-math.inf,
+                      limit_upper=math.inf) for i in range(n)]
 
 
     @property
@@ -409,6 +539,15 @@ class TrackedPoint:
             raise ValueError(f"tracked point name must be a non-empty string, got {self.name!r}")
         self.body = _name(self.body, f"tracked point '{self.name}': body")
         self.position = _vector(self.position, 3, f"tracked point '{self.name}': position [m]")
+
+    @classmethod
+    def batch(cls, names, bodies, position):
+        """Tracked points from names, body names and positions (N, 3) float64: the constructor's
+        points row by row (its checks at once), or None when any row fails one."""
+        position = _stack(position, (len(names), 3))
+        if position is None or not (_names(names) and _names(bodies) and _finite(position)):
+            return None
+        return [_held(cls, name=name, body=body, position=position[i]) for i, (name, body) in enumerate(zip(names, bodies))]
 
 
 @dataclass

@@ -480,11 +480,468 @@ def _rounded(values) -> tuple:
     return tuple(round(float(v), KEY_DIGITS) + 0.0 for v in np.ravel(values))
 
 
+# -- the array path ------------------------------------------------------------------------------------
+#
+# tabulated_layout reads a spec with arrays: every body's and joint's matrices at once, and the
+# sub-chains that share their local structure (a walker's legs) together. Each number is computed
+# by the operations _plain_layout applies to it one item at a time (stacked matmul runs the same
+# BLAS call per item; element-wise NumPy and Python floats round alike; reductions, transcendental
+# functions and Python's round keep their own form), so both give the same layout to the last bit.
+# What depends only on a spec's structure (names, joint graph, shapes' bodies, types and groups) is
+# cached by that structure. A spec the array path does not take as it is (a check fails, or an
+# array is not a C-ordered float64 of its shape) goes through _plain_layout, which names the first
+# thing wrong.
+
+_F64 = np.dtype(np.float64)
+_STRUCTURES: dict = {}  # structure key -> _Structure, or None where _plain_layout refuses the structure
+STRUCTURE_CACHE = 256  # structures kept (by key, oldest dropped first)
+
+
+@dataclass
+class _Chain:
+    """One sub-chain's structure: comp (spec body indices, table order), joints (spec joint indices),
+    driver (spec index), ends per joint (parent, child) as (is base, body index, link index or K),
+    k_d (the driving link), base_side, contact (shape index, link) or None, signature (what
+    sub-chains computed together share)."""
+
+    comp: list
+    joints: list
+    driver: int
+    ends: list
+    k_d: int
+    base_side: str
+    contact: tuple | None
+    signature: tuple
+
+
+@dataclass
+class _Structure:
+    """What tabulated_layout reads from a spec's structure alone (see _analyse)."""
+
+    base: int
+    ends: list
+    chains: list
+    batches: list
+    base_shapes: list
+    where_is: dict
+    point_bodies: list
+
+
+def _structure_key(spec: MechanismSpec) -> tuple:
+    return (tuple(b.name for b in spec.bodies),
+            tuple((j.parent, j.child, j.type, j.drive is not None) for j in spec.joints),
+            tuple((s.body, s.type, s.collision_group) for s in spec.shapes), spec.ground is None,
+            tuple(p.body for p in spec.points))
+
+
+def _analyse(spec: MechanismSpec) -> _Structure | None:
+    """The structure's facts, in _plain_layout's terms; None when one of its structural checks fails."""
+    bodies, joints = spec.bodies, spec.joints
+    index = spec.body_index
+    if any(joint.parent is None for joint in joints):
+        return None
+    base = _choose_base(spec)
+    components = _components(spec, base)
+    if len(components) > MAX_GROUPS:
+        return None
+    member = {b: g for g, comp in enumerate(components) for b in comp}
+    of_group = [[] for _ in components]
+    ends = []
+    for j, joint in enumerate(joints):
+        a, b = index[joint.parent], index[joint.child]
+        ends.append((a, b))
+        of_group[member[b] if a == base else member[a]].append(j)
+        if joint.type not in (JointType.REVOLUTE, JointType.INLINE) or (joint.drive is not None and base not in (a, b)):
+            return None
+    shapes_of = {}
+    if spec.ground is not None:
+        for s, shape in enumerate(spec.shapes):
+            shapes_of.setdefault(index[shape.body], []).append(s)
+    if any(b >= 0 for _, b in collision_pairs(spec)):
+        return None
+    chains = []
+    for comp, joint_list in zip(components, of_group):
+        K = len(comp)
+        driven = [j for j in joint_list if joints[j].drive is not None]
+        if K > MAX_LINKS or 3 * K - 2 * len(joint_list) != 1 or len(driven) != 1:
+            return None
+        link_of = {i: k for k, i in enumerate(comp)}
+        driver = joints[driven[0]]
+        base_side = "parent" if index[driver.parent] == base else "child"
+        chain_ends = []
+        for j in joint_list:
+            pair = []
+            for i in ends[j]:
+                pair.append((i == base, i, K if i == base else link_of[i]))
+            chain_ends.append(tuple(pair))
+        k_d = link_of[index[driver.child if base_side == "parent" else driver.parent]]
+        on = [s for i in comp for s in shapes_of.get(i, [])]
+        contact = None
+        if len(on) > 1:
+            return None
+        if on:
+            item = spec.shapes[on[0]]
+            if item.type not in (ShapeType.CAPSULE, ShapeType.SPHERE):
+                return None
+            contact = (on[0], link_of[index[item.body]])
+        signature = (K, tuple((joints[j].type, tuple((e[0], e[2]) for e in pair)) for j, pair in zip(joint_list, chain_ends)),
+                     joint_list.index(driven[0]), k_d, base_side,
+                     None if contact is None else (contact[1], spec.shapes[contact[0]].type))
+        chains.append(_Chain(list(comp), list(joint_list), driven[0], chain_ends, k_d, base_side, contact, signature))
+    batches = {}
+    for g, chain in enumerate(chains):
+        batches.setdefault(chain.signature, []).append(g)
+    slots = {ShapeType.BOX: 8, ShapeType.CAPSULE: 2, ShapeType.SPHERE: 1}
+    base_shapes = shapes_of.get(base, [])
+    if any(spec.shapes[s].type not in slots for s in base_shapes) or \
+            sum(slots[spec.shapes[s].type] for s in base_shapes) > BASE_SLOTS:
+        return None
+    where_is = {base: (-1, 0)}
+    for g, chain in enumerate(chains):
+        for k, i in enumerate(chain.comp):
+            where_is[i] = (g, k)
+    return _Structure(base, ends, chains, list(batches.values()), base_shapes, where_is,
+                      [index[p.body] for p in spec.points])
+
+
+def _regular(arrays, shape: tuple, strides: tuple) -> bool:
+    """Whether every item is a float64 ndarray of ``shape`` laid out C-ordered (strides)."""
+    return all(type(a) is np.ndarray and a.dtype is _F64 and a.shape == shape and a.strides == strides for a in arrays)
+
+
+def _quat_matrices(q: np.ndarray) -> np.ndarray:
+    """quat_matrix of every row of q (..., 4): the same operations, element by element."""
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
+                     np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
+                     np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1)], axis=-2)
+
+
+def _dots(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a[i] @ b[i] of the last axes (matmul's dot, as each 1-D ``a @ b`` and ``a.dot(b)`` computes it)."""
+    return (a[..., None, :] @ b[..., :, None])[..., 0, 0]
+
+
+def _matrix_quats(m: np.ndarray) -> np.ndarray:
+    """matrix_quat of every matrix of m (N, 3, 3): the same operations and branches, item by item."""
+    n = m.shape[0]
+    q = np.empty((n, 4))
+    t = (m[:, 0, 0] + m[:, 1, 1]) + m[:, 2, 2]  # np.trace's sum
+    up = t > 0.0
+    if up.any():
+        a, s = m[up], 2.0 * np.sqrt(t[up] + 1.0)
+        q[up] = np.stack([(a[:, 2, 1] - a[:, 1, 2]) / s, (a[:, 0, 2] - a[:, 2, 0]) / s, (a[:, 1, 0] - a[:, 0, 1]) / s,
+                          0.25 * s], axis=-1)
+    down = ~up
+    if down.any():
+        a = m[down]
+        rows = np.arange(len(a))
+        i = np.argmax(np.diagonal(a, axis1=1, axis2=2), axis=1)
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(np.maximum(1.0 + a[rows, i, i] - a[rows, j, j] - a[rows, k, k], 1e-300))
+        part = np.empty((len(a), 4))
+        part[rows, 3] = (a[rows, k, j] - a[rows, j, k]) / s
+        part[rows, i] = 0.25 * s
+        part[rows, j] = (a[rows, j, i] + a[rows, i, j]) / s
+        part[rows, k] = (a[rows, k, i] + a[rows, i, k]) / s
+        q[down] = part
+    q = q / np.sqrt(_dots(q, q))[:, None]  # np.linalg.norm: sqrt(q.dot(q))
+    flip = ~(q[:, 3] >= 0.0)
+    q[flip] = -q[flip]
+    return q
+
+
+def _crosses(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """_cross of every pair of 3-vectors (broadcast over the leading axes)."""
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+
+
+_BOX_SIGNS = np.array([[-1.0 if k % 2 else 1.0, -1.0 if (k // 2) % 2 else 1.0, -1.0 if k >= 4 else 1.0]
+                       for k in range(8)])  # a box's corners in _plain_layout's order
+
+
+def _rot_minus_ys(angles) -> np.ndarray:
+    """rot_minus_y of every angle (Python floats or NumPy scalars; math's cosine and sine), stacked."""
+    angles = [float(a) for a in angles]
+    c = np.array([math.cos(a) for a in angles])
+    s = np.array([math.sin(a) for a in angles])
+    out = np.zeros((len(angles), 3, 3))
+    out[:, 0, 0], out[:, 0, 2], out[:, 1, 1], out[:, 2, 0], out[:, 2, 2] = c, -s, 1.0, s, c
+    return out
+
+
+def _rounded_rows(values: np.ndarray) -> list:
+    """_rounded of every row of values (N, ...): Python's round(v, KEY_DIGITS) + 0.0, found as
+    rint(v 10^6) / 10^6 (the same nearest double) where v 10^6 is clearly off a half, else by round."""
+    flat = values.reshape(len(values), -1)
+    y = flat * 10.0**KEY_DIGITS
+    fraction = y - np.floor(y)
+    out = np.rint(y) / 10.0**KEY_DIGITS + 0.0
+    clear = (np.abs(fraction - 0.5) > 1e-9 + 4e-16 * np.abs(y)) & (np.abs(y) < 2.0**50)
+    if not clear.all():
+        for r, c in zip(*np.nonzero(~clear)):
+            out[r, c] = round(float(flat[r, c]), KEY_DIGITS) + 0.0
+    return [tuple(row) for row in out.tolist()]
+
+
 def tabulated_layout(spec: MechanismSpec, *, samples: int = TABLE_SAMPLES) -> TabulatedLayout:
     """Read ``spec`` as a floating base carrying one-DoF planar sub-chains and tabulate each over
     ``samples`` per turn (cached by geometry: see the module docstring). Raises ValueError with one
     line naming the body, joint or shape that prevents it. The base is the parent of the most
-    driven joints (then the body of the most driven joints, of the most joints, the first)."""
+    driven joints (then the body of the most driven joints, of the most joints, the first).
+
+    The analysis runs on arrays (see the array path's notes above); a spec that it does not take
+    as it is goes through _plain_layout, item by item, with the same result."""
+    key = _structure_key(spec)
+    structure = _STRUCTURES.get(key, False)
+    if structure is False:
+        structure = _analyse(spec)
+        if len(_STRUCTURES) >= STRUCTURE_CACHE:
+            _STRUCTURES.pop(next(iter(_STRUCTURES)))
+        _STRUCTURES[key] = structure
+    layout = None if structure is None else _array_layout(spec, structure, samples)
+    return layout if layout is not None else _plain_layout(spec, samples=samples)
+
+
+def _array_layout(spec: MechanismSpec, st: _Structure, samples: int) -> TabulatedLayout | None:
+    """tabulated_layout on arrays for a spec of structure ``st``; None where _plain_layout must decide."""
+    bodies, joints, shapes = spec.bodies, spec.joints, spec.shapes
+    for joint in joints:  # the joint checks on values
+        if joint.has_limits or joint.armature > 0.0 or joint.damping > 0.0 or \
+                (joint.drive is not None and joint.drive.stiffness > 0.0):
+            return None
+    com_local = [b.com for b in bodies]
+    inertia = [b.inertia for b in bodies]
+    axes = [j.axis for j in joints]
+    parent_positions = [j.parent_position for j in joints]
+    child_positions = [j.child_position for j in joints]
+    if not (_regular(com_local, (3,), (8,)) and _regular(inertia, (3, 3), (24, 8)) and _regular(axes, (3,), (8,))
+            and _regular(parent_positions, (3,), (8,)) and _regular(child_positions, (3,), (8,))):
+        return None
+    try:
+        orientation = np.array([b.orientation for b in bodies], dtype=float)
+        position = np.array([b.position for b in bodies], dtype=float)
+        angular_velocity = np.array([b.angular_velocity for b in bodies], dtype=float)
+        joint_frames = np.array([(j.parent_orientation, j.child_orientation) for j in joints], dtype=float)
+    except (TypeError, ValueError):
+        return None
+    if orientation.shape != (len(bodies), 4) or position.shape != (len(bodies), 3) or \
+            angular_velocity.shape != (len(bodies), 3) or joint_frames.shape != (len(joints), 2, 4):
+        return None
+    com_local, inertia = np.array(com_local), np.array(inertia)
+    axes, parent_positions, child_positions = np.array(axes), np.array(parent_positions), np.array(child_positions)
+    base = st.base
+    base_body = bodies[base]
+    R_base = quat_matrix(base_body.orientation)
+    base_com = base_body.position + R_base @ base_body.com
+    world_R = _quat_matrices(orientation)
+    frames = _quat_matrices(joint_frames)  # (J, 2, 3, 3): every joint's parent and child anchor frame
+    # one plane normal: every joint's axis in the base frame
+    normal = None
+    if joints:
+        a_index = np.array([a for a, _ in st.ends])
+        b_index = np.array([b for _, b in st.ends])
+        axis_p = ((R_base.T @ world_R[a_index] @ frames[:, 0]) @ axes[..., None])[..., 0]
+        axis_c = ((R_base.T @ world_R[b_index] @ frames[:, 1]) @ axes[..., None])[..., 0]
+        normal = axis_p[0]
+        off, tilt = _crosses(normal, axis_p), _crosses(axis_c, axis_p)
+        revolute = np.array([j.type == JointType.REVOLUTE for j in joints])
+        if (np.sqrt(_dots(off, off))[1:] > PLANE_TOLERANCE).any() or \
+                (revolute & (np.sqrt(_dots(tilt, tilt)) > PLANE_TOLERANCE)).any():
+            return None
+    Q = np.eye(3) if normal is None else _frame_to(normal)
+    R_state = R_base @ Q
+    state_R = R_state.T @ world_R
+    com_world = position + (world_R @ com_local[..., None])[..., 0]
+    ground = None
+    if spec.ground is not None:
+        g = spec.ground
+        if np.abs(g.normal - np.array([0.0, 0.0, 1.0])).max() > 1e-9 or g.restitution > 0.0:
+            return None
+        ground = (float(g.offset), float(g.friction))
+        if any(shape.restitution > 0.0 for shape in shapes):
+            return None
+    made = [None] * len(st.chains)
+    numbers = (R_state, state_R, world_R, frames, com_world, com_local, inertia, axes, parent_positions,
+               child_positions, position, angular_velocity, base_com, ground, samples)
+    for batch in st.batches:
+        chains = _sub_chains(spec, st, batch, *numbers)
+        if chains is None:
+            return None
+        for g, chain in zip(batch, chains):
+            made[g] = chain
+    # every sub-chain's checks passed; their tables in order (a new one is computed here and may jam)
+    groups = []
+    for fields, key, planar, closed, contact, what in made:
+        table = _cached_table(key, planar, closed, fields["angle"], samples, contact, what)
+        groups.append(SubChain(table=table, **fields))
+    # the base's contact slots
+    base_slots = []
+    for s in st.base_shapes:
+        shape = shapes[s]
+        Rs = quat_matrix(shape.orientation)
+        centre = Q.T @ (shape.position - base_body.com)
+        turn = Q.T @ Rs
+        mu = math.sqrt(shape.friction * ground[1])
+        if shape.type == ShapeType.BOX:
+            corners = (turn @ (_BOX_SIGNS * shape.size)[..., None])[..., 0]
+            base_slots += [(centre + corner, 0.0, mu, s) for corner in corners]
+        elif shape.type == ShapeType.CAPSULE:
+            for e in (1.0, -1.0):
+                base_slots.append((centre + e * shape.size[1] * turn[:, 2], float(shape.size[0]), mu, s))
+        else:
+            base_slots.append((centre, float(shape.size[0]), mu, s))
+    # tracked points and body frames
+    points = []
+    for point, i in zip(spec.points, st.point_bodies):
+        g, k = st.where_is[i]
+        if g < 0:
+            points.append((-1, 0, Q.T @ (point.position - base_body.com)))
+        else:
+            C = quat_matrix(groups[g].link_frame[k])
+            points.append((g, k, C @ (point.position - bodies[i].com)))
+    base_frame = matrix_quat(Q.T)
+    body_frames = []
+    for i in range(len(bodies)):
+        g, k = st.where_is[i]
+        body_frames.append((-1, 0, base_frame) if g < 0 else (g, k, groups[g].link_frame[k]))
+    return TabulatedLayout(spec, base, matrix_quat(Q), base_com, matrix_quat(R_state), base_body.velocity.copy(),
+                           base_body.angular_velocity.copy(), float(base_body.mass), Q.T @ base_body.inertia @ Q,
+                           groups, base_slots, ground, np.asarray(spec.gravity, float), points, body_frames)
+
+
+def _sub_chains(spec, st, batch, R_state, state_R, world_R, frames, com_world, com_local, inertia, axes,
+                parent_positions, child_positions, position, angular_velocity, base_com, ground, samples):
+    """_plain_layout's _sub_chain for the sub-chains ``batch`` (one signature) at once: per sub-chain
+    (SubChain fields but the table, table key, _Planar, closed start pose, contact, name for errors),
+    or None when a check fails."""
+    bodies, joints, shapes = spec.bodies, spec.joints, spec.shapes
+    chains = [st.chains[g] for g in batch]
+    first = chains[0]
+    G, K, base = len(chains), len(first.comp), st.base
+    comp = np.array([chain.comp for chain in chains])  # (G, K)
+    joint_list = np.array([chain.joints for chain in chains])  # (G, n)
+    n = joint_list.shape[1]
+    SR = state_R[comp]
+    x_axes, z_axes = SR[..., :, 0].tolist(), SR[..., :, 2].tolist()
+    phi0 = []  # _planar_angle of every link
+    for xs, zs in zip(x_axes, z_axes):
+        row = []
+        for x, z in zip(xs, zs):
+            row.append(math.atan2(x[2], x[0]) if math.hypot(x[0], x[2]) > 1e-3 else math.atan2(-z[0], z[2]))
+        phi0.append(row)
+    phi = np.array(phi0)
+    C = _rot_minus_ys([-p for row in phi0 for p in row]).reshape(G, K, 3, 3) @ SR
+    com = (R_state.T @ (com_world[comp] - base_com)[..., None])[..., 0]  # (G, K, 3)
+    drivers = [chain.driver for chain in chains]
+    base_side = first.base_side
+    driver_local = (parent_positions if base_side == "parent" else child_positions)[drivers]
+    pivot = (R_state.T @ (position[base] + (world_R[base] @ driver_local[..., None])[..., 0] - base_com)[..., None])[..., 0]
+    # every joint's two ends: base ends in the state frame from the pivot, link ends in the table frame
+    side_base = np.array([e[0] for pair in first.ends for e in pair])  # (2 n,)
+    side_link = np.array([e[2] for pair in first.ends for e in pair])
+    side_body = np.array([[e[1] for pair in chain.ends for e in pair] for chain in chains])  # (G, 2 n)
+    end_position = np.stack([parent_positions[joint_list], child_positions[joint_list]], axis=2).reshape(G, 2 * n, 3)
+    at_base = (R_state.T @ (position[base] + (world_R[base] @ end_position[..., None])[..., 0] - base_com)[..., None])[..., 0]
+    link = np.minimum(side_link, K - 1)
+    on_link = (C[:, link] @ (end_position - com_local[side_body])[..., None])[..., 0]
+    planar = np.where(side_base[:, None], np.stack([at_base[..., 0] - pivot[:, None, 0],
+                                                    at_base[..., 2] - pivot[:, None, 2]], axis=-1), on_link[..., [0, 2]])
+    height = np.where(side_base, at_base[..., 1], com[:, link, 1] + on_link[..., 1])
+    reach = np.hypot(planar[..., 0], planar[..., 1])
+    if not (np.isfinite(reach).all() and np.isfinite(height).all() and np.isfinite(com).all()):
+        return None
+    scale = reach.max(axis=1)
+    revolute = np.array([joints[j].type == JointType.REVOLUTE for j in first.joints])
+    apart = np.abs(height[:, 0::2] - height[:, 1::2]) > 1e-6 * np.maximum(1.0, np.abs(com).max(axis=(1, 2)))[:, None]
+    if (apart & revolute).any() or not (scale > 0.0).all():
+        return None
+    plane_y = [float(com[g][:, 1].mean()) for g in range(G)]
+    if (np.abs(com[..., 1] - np.array(plane_y)[:, None]) > PLANE_TOLERANCE * scale[:, None]).any():
+        return None
+    ja = np.array([pair[0][2] for pair in first.ends])
+    jb = np.array([pair[1][2] for pair in first.ends])
+    ra = planar[:, 0::2] / scale[:, None, None]
+    rb = planar[:, 1::2] / scale[:, None, None]
+    k_d = first.k_d
+    # the driving coordinate q against the driving link's angle (_sub_chain's q_of, twice per sub-chain)
+    base_orientation = R_state.T @ quat_matrix(bodies[base].orientation)
+    angles = [phi0[g][k_d] for g in range(G)] + list(phi[:, k_d] + 0.25)
+    turned = _rot_minus_ys(angles) @ np.concatenate([C[:, k_d], C[:, k_d]])
+    Qp, Qc = frames[drivers + drivers, 0], frames[drivers + drivers, 1]
+    parent, child = (base_orientation, turned) if base_side == "parent" else (turned, base_orientation)
+    rel = (parent @ Qp).swapaxes(-1, -2) @ (child @ Qc)
+    q = _matrix_quats(rel)
+    along = _dots(q[:, :3], axes[drivers + drivers])
+    q_of = [2.0 * math.atan2(a, w) for a, w in zip(along.tolist(), q[:, 3].tolist())]
+    q0 = q_of[:G]
+    sign = np.round(wrap(np.array(q_of[G:]) - np.array(q0)) / 0.25)
+    if not (np.abs(sign) == 1.0).all():
+        return None
+    sign = sign.tolist()
+    offset = [float(phi[g, k_d] - sign[g] * q0[g]) for g in range(G)]
+    ends = [joints[j] for j in drivers]
+    parent_i = [st.ends[j][0] for j in drivers]
+    child_i = [st.ends[j][1] for j in drivers]
+    axis_w = ((world_R[parent_i] @ frames[drivers, 0]) @ axes[drivers][..., None])[..., 0]
+    rate = _dots(angular_velocity[child_i] - angular_velocity[parent_i], axis_w).tolist()
+    origin = [np.array([pivot[g, 0], plane_y[g], pivot[g, 2]]) for g in range(G)]
+    x0 = np.stack([(com[..., 0] - pivot[:, None, 0]) / scale[:, None], (com[..., 2] - pivot[:, None, 2]) / scale[:, None],
+                   phi], axis=-1).reshape(G, 3 * K)
+    batched = _Planar(K, ja, jb, ra, rb, k_d, np.array(sign), np.array(offset))
+    closed = x0.copy()
+    ok = np.abs(batched.residual(x0, np.array(q0))).max(axis=-1) < NEWTON_TOLERANCE
+    planars = [_Planar(K, ja, jb, ra[g], rb[g], k_d, sign[g], offset[g]) for g in range(G)]
+    for g in np.nonzero(~ok)[0]:
+        closed[g], ok[g] = planars[g].newton(x0[g], q0[g])
+    moved = closed - x0
+    moved[:, 2::3] = wrap(moved[:, 2::3])
+    if not ok.all() or np.abs(moved).max() > START_TOLERANCE:
+        return None
+    # the contact shape
+    shape, contact = [None] * G, [None] * G
+    if first.contact is not None:
+        k = first.contact[1]
+        items = [shapes[chain.contact[0]] for chain in chains]
+        at = comp[:, k]
+        local = (C[:, k] @ (np.array([item.position for item in items]) - com_local[at])[..., None])[..., 0]
+        angle, half = [0.0] * G, [0.0] * G
+        if items[0].type == ShapeType.CAPSULE:
+            turn = _quat_matrices(np.array([item.orientation for item in items], dtype=float))
+            axis = (C[:, k] @ turn[:, :, 2, None])[..., 0]
+            if (np.abs(axis[:, 1]) > PLANE_TOLERANCE).any():
+                return None
+            angle = [math.atan2(a[2], a[0]) for a in axis.tolist()]
+            half = [float(item.size[1]) for item in items]
+        contact_local = local / scale[:, None]
+        for g, item in enumerate(items):
+            shape[g] = (chains[g].contact[0], float(item.size[0]), half[g], angle[g], math.sqrt(item.friction * ground[1]))
+            contact[g] = (k, contact_local[g])
+        contact_keys = _rounded_rows(contact_local)
+    pairs = tuple(zip(ja.tolist(), jb.tolist()))
+    ra_keys, rb_keys = _rounded_rows(ra), _rounded_rows(rb)
+    turn_keys = _rounded_rows(np.array([[math.cos(o), math.sin(o)] for o in offset]))
+    link_inertia = C @ inertia[comp] @ C.swapaxes(-1, -2)
+    link_frame = _matrix_quats(C.reshape(-1, 3, 3)).reshape(G, K, 4)
+    out = []
+    for g, chain in enumerate(chains):
+        driver = ends[g]
+        key = (samples, K, pairs, ra_keys[g], rb_keys[g], k_d, sign[g], turn_keys[g],
+               None if contact[g] is None else (contact[g][0], contact_keys[g]))
+        drive = driver.drive
+        fields = dict(joint=chain.driver, bodies=list(chain.comp), scale=float(scale[g]), origin=origin[g],
+                      angle=float(q0[g]), rate=float(rate[g]), link_mass=np.array([bodies[i].mass for i in chain.comp]),
+                      link_inertia=link_inertia[g], link_frame=link_frame[g],
+                      drive=(float(drive.target_velocity), float(drive.damping), float(drive.effort_limit)),
+                      shape=shape[g])
+        out.append((fields, key, planars[g], closed[g], contact[g], f"sub-chain turned by joint '{driver.name}'"))
+    return out
+
+
+def _plain_layout(spec: MechanismSpec, *, samples: int = TABLE_SAMPLES) -> TabulatedLayout:
+    """tabulated_layout item by item: every check in order, each raising its ValueError (the
+    reference the array path equals, and its way out)."""
     bodies, joints = spec.bodies, spec.joints
     index = spec.body_index
     for joint in joints:

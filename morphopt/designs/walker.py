@@ -16,8 +16,8 @@ import numpy as np
 
 from engine import GroundPlane, MechanismSpec, Shape, TrackedPoint
 from morphopt.design_space import Choice, DesignSpace, Float, Int
-from morphopt.linkage import BarStyle, linkage_parts
-from morphopt.linkage.to_spec import assemble, link_body
+from morphopt.linkage import BarStyle
+from morphopt.linkage.to_spec import assemble, link_body, linkages_parts
 
 
 
@@ -112,11 +112,12 @@ def build_spec(params: dict, *, crank_speed: float | None = None, effort_limit: 
     # torso_up: one torso half-length above the centre, for the torso's tilt (falls are failures)
     points = [TrackedPoint("torso", "torso", (half[0], 0.0, 0.0)),
               TrackedPoint("torso_up", "torso", (half[0], 0.0, half[0]))]
-    for (prefix, x, y, linkage), solution in zip(lay["placements"], lay["solutions"]):
-        leg_bodies, leg_joints, leg_points = linkage_parts(
-            linkage, style=lay["style"], crank_damping=CRANK_DAMPING, effort_limit=effort_limit, start_at_speed=False,
-            origin=(x, y, height), prefix=prefix, base=torso, solution=solution)
-
+    placements = lay["placements"]  # every leg's numbers computed at once, its objects leg by leg
+    legs = linkages_parts([linkage for _, _, _, linkage in placements], style=lay["style"], crank_damping=CRANK_DAMPING,
+                          effort_limit=effort_limit, start_at_speed=False, base=torso, solutions=lay["solutions"],
+                          origins=[(x, y, height) for _, x, y, _ in placements],
+                          prefixes=[prefix for prefix, _, _, _ in placements])
+    for (prefix, _, _, _), (leg_bodies, leg_joints, leg_points) in zip(placements, legs):
         bodies += leg_bodies
         joints += leg_joints
         points += leg_points

@@ -123,6 +123,7 @@ class Linkage:
         numbers = [*(c for xy in self.ground.values() for c in xy), self.crank.radius, self.crank.phase]
         for d in self.dyads:
             numbers += [d.along, d.across] if isinstance(d, Offset) else [d.ra, d.rb, d.branch]
+        numbers = [x for x in numbers if type(x) not in _SCALARS]  # plain numbers have no length
         sizes = {np.shape(x)[0] for x in numbers if np.ndim(x) == 1}
         if any(np.ndim(x) > 1 for x in numbers) or len(sizes) > 1:
             raise ValueError(f"linkage '{self.name}': numbers must be floats or (D,) arrays of one length, "
@@ -142,13 +143,20 @@ class Linkage:
                 tuple((link.name, tuple(link.nodes)) for link in self.links), tuple(self.points.items()))
 
 
+_SCALARS = (float, int)
+
+
 def _number(value):
     """A float, or a float64 array for a batched linkage."""
+    if type(value) is float:
+        return value
     return float(value) if np.ndim(value) == 0 else np.asarray(value, dtype=np.float64)
 
 
 def _plain(item):
     """The item with 0-d NumPy numbers turned into Python numbers (NumPy-written families)."""
+    if not any(isinstance(value, np.ndarray | np.generic) for value in vars(item).values()):
+        return item  # nothing to turn (the fields of these dataclasses are all there is in vars)
     zero_d = {f.name: getattr(item, f.name).item() for f in fields(item)
               if isinstance(getattr(item, f.name), np.ndarray | np.generic) and np.ndim(getattr(item, f.name)) == 0}
     return replace(item, **zero_d) if zero_d else item

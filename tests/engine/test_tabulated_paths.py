@@ -1,0 +1,130 @@
+"""tabulated_layout's array path gives the item-by-item analysis's layout to the last bit.
+
+engine.reduced.tabulated_layout reads a spec with arrays (every body and joint at once, sub-chains
+of one structure together, structure facts cached); _plain_layout is the analysis one item at a
+time, every check in order. For walkers of every topology, a base frame turned off the plane
+normal and a lone four-bar, both must give equal layouts (every number bit for bit, the same table
+objects); a spec the array path does not take as it is (a strided array) or refuses (a joint limit)
+goes through _plain_layout, with its result or its error.
+"""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from engine import Body, MechanismSpec
+from engine.reduced import tabulated_layout as layout_module
+from engine.reduced.tabulated_layout import SubChainTable, _plain_layout, tabulated_layout
+from morphopt.families import load_family
+from morphopt.linkage import Crank, Dyad, Link, Linkage
+from morphopt.linkage.to_spec import BarStyle, linkage_parts
+
+WALKER = load_family("walker")
+
+
+def _leaves(obj, path="layout"):
+    """Every number of a layout as (path, kind, exact value); tables by identity; the spec left out."""
+    if isinstance(obj, SubChainTable):
+        return [(path, "table", id(obj))]
+    if isinstance(obj, np.ndarray):
+        return [(path, "array", obj.dtype.str, obj.shape, np.ascontiguousarray(obj).tobytes())]
+    if isinstance(obj, (float, np.floating)):
+        return [(path, type(obj).__name__, np.float64(obj).tobytes())]
+    if obj is None or isinstance(obj, (bool, int, str, np.integer)):
+        return [(path, type(obj).__name__, obj)]
+    if dataclasses.is_dataclass(obj):
+        return [leaf for f in dataclasses.fields(obj) if f.name != "spec"
+                for leaf in _leaves(getattr(obj, f.name), f"{path}.{f.name}")]
+    if isinstance(obj, (list, tuple)):
+        return [(path, type(obj).__name__, len(obj))] + [leaf for i, item in enumerate(obj)
+                                                         for leaf in _leaves(item, f"{path}[{i}]")]
+    raise AssertionError(f"{path}: unexpected {type(obj).__name__}")
+
+
+def _assert_same_layout(spec):
+    structure = layout_module._analyse(spec)
+    assert structure is not None
+    fast = layout_module._array_layout(spec, structure, layout_module.TABLE_SAMPLES)
+    assert fast is not None, "the array path should take this spec"
+    plain = _plain_layout(spec)
+    a, b = _leaves(fast), _leaves(plain)
+    assert len(a) == len(b)
+    for x, y in zip(a, b):
+        assert x == y, f"{x[0]} differs"
+    assert _leaves(tabulated_layout(spec)) == b
+
+
+def _walkers():
+    rng = np.random.default_rng(21)
+    designs = [{**WALKER.space.default(), "leg_family": family, "legs_per_side": count}
+               for family in ("jansen_leg", "klann_leg") for count in (1, 2, 3, 4)]
+    return designs + WALKER.space.sample(rng, 6)
+
+
+@pytest.mark.parametrize("index", range(14))
+def test_walker_layouts_equal_the_item_by_item_analysis(index):
+    """Both leg families, one to four legs per side, random walkers."""
+    _assert_same_layout(WALKER.build_spec(_walkers()[index]))
+
+
+def _turned(spec, angle=0.5 * math.pi):
+    """``spec`` with its base (body 0) frame turned by ``angle`` about z: joints now turn about the
+    base frame's x axis (the state frame is no longer the base frame)."""
+    c, s = math.cos(angle), math.sin(angle)
+    G = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    g = np.array([0.0, 0.0, math.sin(0.5 * angle), math.cos(0.5 * angle)])
+
+    def mul(a, b):
+        av, aw, bv, bw = a[:3], a[3], b[:3], b[3]
+        return np.concatenate([aw * bv + bw * av + np.cross(av, bv), [aw * bw - av @ bv]])
+
+    g_inv = g * np.array([-1.0, -1.0, -1.0, 1.0])
+    base = spec.bodies[0]
+    bodies = [dataclasses.replace(base, orientation=mul(base.orientation, g), com=G.T @ base.com,
+                                  inertia=G.T @ base.inertia @ G), *spec.bodies[1:]]
+    joints = [dataclasses.replace(j, parent_position=G.T @ j.parent_position,
+                                  parent_orientation=mul(g_inv, j.parent_orientation)) if j.parent == base.name else j
+              for j in spec.joints]
+    shapes = [dataclasses.replace(sh, position=G.T @ sh.position, orientation=mul(g_inv, sh.orientation))
+              if sh.body == base.name else sh for sh in spec.shapes]
+    points = [dataclasses.replace(p, position=G.T @ p.position) if p.body == base.name else p for p in spec.points]
+    return dataclasses.replace(spec, bodies=bodies, joints=joints, shapes=shapes, points=points)
+
+
+def _four_bar():
+    base = Body("base", 1.0, np.diag([0.01, 0.02, 0.02]), position=(0.0, 0.0, 1.0))
+    linkage = Linkage("four_bar", ground={"O": (0.0, 0.0), "A": (0.2, 0.0)}, crank=Crank("O", "M", 0.05, speed=3.0),
+                      dyads=[Dyad("B", "M", 0.2, "A", 0.1)],
+                      links=[Link("crank", ("O", "M")), Link("coupler", ("M", "B")), Link("rocker", ("A", "B"))],
+                      points={"tip": "B"})
+    bodies, joints, points = linkage_parts(linkage, base=base, origin=(0.0, 0.0, 1.0), style=BarStyle(),
+                                           crank_damping=5.0, effort_limit=10.0)
+    return MechanismSpec([base, *bodies], joints, points, name="four_bar")
+
+
+def test_turned_base_and_a_lone_four_bar_equal_the_item_by_item_analysis():
+    walker = WALKER.build_spec({**WALKER.space.default(), "legs_per_side": 2})
+    _assert_same_layout(_turned(walker))
+    _assert_same_layout(_turned(walker, 0.3))
+    _assert_same_layout(_four_bar())
+
+
+def test_what_the_array_path_does_not_take_goes_item_by_item():
+    """A strided array in the spec: the array path steps aside, the layout is _plain_layout's. A
+    refused spec: the same error as _plain_layout's."""
+    spec = WALKER.build_spec(WALKER.space.default())
+    strided = np.empty(6)
+    strided[::2] = spec.bodies[3].com
+    spec.bodies[3].com = strided[::2]
+    structure = layout_module._analyse(spec)
+    assert layout_module._array_layout(spec, structure, layout_module.TABLE_SAMPLES) is None
+    assert _leaves(tabulated_layout(spec)) == _leaves(_plain_layout(spec))
+    limited = WALKER.build_spec(WALKER.space.default())
+    limited.joints[5].limit_upper = 1.0
+    with pytest.raises(ValueError) as plain:
+        _plain_layout(limited)
+    with pytest.raises(ValueError, match="has limits") as fast:
+        tabulated_layout(limited)
+    assert str(fast.value) == str(plain.value)
