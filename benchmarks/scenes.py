@@ -64,7 +64,8 @@ def dr_legs(standing: bool, assets: str | None = None, joints: dict | None = Non
         raise FileNotFoundError("the DR Legs asset was not found (pass --assets or set MORPHOPT_ASSETS)")
     if standing:
         spec = read_usd(path, origin=(0.0, 0.0, 0.265))
-        spec = dataclasses.replace(spec, ground=GroundPlane())
+        # its boxes touch the ground only, as both Newton peers run it (enable_self_collisions=False)
+        spec = ground_contacts_only(dataclasses.replace(spec, ground=GroundPlane()))
         note = "DR Legs standing on its 12 PD drives (file gains), ground contact"
         if joints is not None:
             spec = dataclasses.replace(spec, joints=[dataclasses.replace(

@@ -161,8 +161,17 @@ def pack(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | 
     config = config or SolverConfig()
     if not isinstance(config, SolverConfig):
         raise ValueError(f"pack: config must be a SolverConfig, got {type(config).__name__}")
+    try:
+        dt_ok = not isinstance(dt, bool) and math.isfinite(float(dt)) and float(dt) > 0.0
+    except (TypeError, ValueError):
+        dt_ok = False
+    if not dt_ok:
+        raise ValueError(f"pack: dt must be a positive number of seconds, got {dt!r}")
+    integral = isinstance(contact_capacity, (int, np.integer)) and not isinstance(contact_capacity, bool)
+    if contact_capacity is not None and not (integral and contact_capacity >= 0):
+        raise ValueError(f"pack: contact_capacity must be a non-negative integer, got {contact_capacity!r}")
     device = wp.get_device(device)
-    plan, layouts = choose(specs, device, coordinates)
+    plan, layouts = choose(specs, device, coordinates, contact_capacity)
     if plan.coordinates is Coordinates.MAXIMAL:
         model = pack_worlds(specs, device, config=config, dt=dt, contact_capacity=contact_capacity)
         model.plan = describe_maximal(plan, model)

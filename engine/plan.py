@@ -90,6 +90,7 @@ def _admits(kind: Coordinates, spec):
                 raise ValueError(f"shapes '{spec.shapes[a].name}' and '{spec.shapes[b].name}' may touch each other: "
                                  f"the tree path has ground contacts only (give them a common collision group)")
         _effort_limits_clear(spec)
+        _near_the_origin(spec)
         return chain_layout(spec)
     return None
 
@@ -122,6 +123,20 @@ def _effort_limits_clear(spec) -> None:
                              f"{drive.effort_limit:g} N m), which the tree path checks but does not enforce")
 
 
+# farthest a tree world may lie from the origin [m]: the tree path keeps float32 positions without
+# the maximal path's compensated state; a four-bar diverged from 500 m on and ran at 300 m (CPU)
+TREE_EXTENT = 100.0
+
+
+def _near_the_origin(spec) -> None:
+    """ValueError where a body or a world anchor lies farther than TREE_EXTENT from the origin."""
+    far = max([float(np.abs(b.position).max()) for b in spec.bodies] +
+              [float(np.abs(j.parent_position).max()) for j in spec.joints if j.parent is None])
+    if far > TREE_EXTENT:
+        raise ValueError(f"it lies {far:.3g} m from the origin; the tree path keeps float32 positions without "
+                         f"compensation and is used within {TREE_EXTENT:g} m")
+
+
 def _quat_mul(a, b):
     av, aw, bv, bw = np.asarray(a[:3], float), float(a[3]), np.asarray(b[:3], float), float(b[3])
     return np.concatenate([aw * bv + bw * av + np.cross(av, bv), [aw * bw - av @ bv]])
@@ -138,16 +153,24 @@ def _coerce(coordinates) -> Coordinates | None:
                          f"got {coordinates!r}") from None
 
 
-def choose(specs: list, device, coordinates=None) -> tuple[Plan, list | None]:
+def choose(specs: list, device, coordinates=None, contact_capacity: int | None = None) -> tuple[Plan, list | None]:
     """The coordinates of a batch and their per-world layouts (None for MAXIMAL).
 
     Tries the kinds fastest first and keeps the first that every world admits; a world that
-    refuses a kind ends that kind's check (its reason is kept). ``coordinates`` forces a kind:
+    refuses a kind ends that kind's check (its reason is kept); a contact_capacity rules out the
+    tabulated kind (its contact slots are fixed by the shapes). ``coordinates`` forces a kind:
     a world that does not admit it raises ValueError naming the world and the reason.
     """
     forced = _coerce(coordinates)
     refused = []
     for kind in ([forced] if forced is not None else ORDER):
+        if kind is Coordinates.TABULATED and contact_capacity is not None:
+            reason = ("contact_capacity was given: the tabulated path keeps one contact slot per shape point of "
+                      "every world")
+            if forced is not None:
+                raise ValueError(f"engine.pack: coordinates 'tabulated' do not fit: {reason}")
+            refused.append((kind, reason))
+            continue
         if kind is Coordinates.MAXIMAL:
             return Plan(kind, len(specs), str(device), forced=forced is not None, refused=refused), None
         layouts = []

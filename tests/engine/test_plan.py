@@ -174,3 +174,41 @@ def test_a_motor_started_past_its_effort_limit_keeps_the_maximal_plan_which_enfo
     assert "effort limits checked, not enforced" in str(at_speed.plan)
     trace, _ = rollout(at_rest, at_rest.state(), None, 100, record_every=10)
     assert trace.health.ok.all() and np.abs(trace.drive_torque[1:, 0, 0]).max() <= 2.0 + 1e-4
+
+
+def test_pack_checks_its_arguments_whatever_the_plan():
+    walker = load_family("walker")
+    spec = walker.build_spec(walker.space.default())
+    for bad in (0.0, -1e-3, float("nan"), "x"):
+        with pytest.raises(ValueError, match=r"^pack: dt must be a positive number of seconds"):
+            pack([spec], dt=bad)
+    with pytest.raises(ValueError, match=r"^pack: contact_capacity must be a non-negative integer"):
+        pack([spec], contact_capacity=-1)
+    capped = pack([spec], contact_capacity=8)  # fixed contact slots cannot honour a cap: not tabulated
+    assert capped.plan.coordinates is not Coordinates.TABULATED
+    assert "not tabulated: contact_capacity was given" in str(capped.plan)
+
+
+def test_a_mechanism_far_from_the_origin_keeps_the_compensated_maximal_plan():
+    from engine.scenes import shifted
+
+    near, far = make_scene("fourbar").spec, shifted(make_scene("fourbar").spec, 500.0)
+    assert pack([near]).plan.coordinates is Coordinates.TREE
+    model = pack([far])
+    assert model.plan.coordinates is Coordinates.MAXIMAL
+    assert "lies 500 m from the origin" in str(model.plan)
+    trace, _ = rollout(model, model.state(), None, 200, record_every=50)
+    assert trace.health.ok.all()
+
+
+@pytest.mark.parametrize("standing", [False, True])
+def test_dr_legs_gets_the_tree_plan(standing):
+    """DR Legs hanging (welded pelvis, 6 loops) and standing (its boxes on the ground, as the
+    benchmark and both Newton peers run it) plan in tree coordinates unasked."""
+    from benchmarks.scenes import dr_legs, dr_legs_path
+
+    if dr_legs_path() is None:
+        pytest.skip("the DR Legs asset is not beside this checkout (shared/assets)")
+    model = pack(dr_legs(standing).specs)
+    assert model.plan.coordinates is Coordinates.TREE, str(model.plan)
+    assert ("collision: runs" in str(model.plan)) == standing
