@@ -136,6 +136,63 @@ def factor_rows(specs, pairs, h) -> tuple[np.ndarray, np.ndarray]:
     return body_c, body_p
 
 
+def _pack_joints(h: dict, w: int, joints: list, index: dict, coms: list) -> int:
+    """World w's joint entries and joint, drive and limit rows in the host arrays ``h``, each joint's
+    numbers written in one array assignment per field; returns the world's row count."""
+    if not joints:
+        return 0
+    n = len(joints)
+    parent = [-1 if joint.parent is None else index[joint.parent] for joint in joints]
+    child = [index[joint.child] for joint in joints]
+    zero = np.zeros(3)
+    h["joint_type"][w, :n] = [int(joint.type) for joint in joints]
+    h["joint_parent"][w, :n] = parent
+    h["joint_child"][w, :n] = child
+    h["joint_X_p"][w, :n] = np.concatenate([
+        np.array([joint.parent_position for joint in joints], float) - np.array([zero if p < 0 else coms[p] for p in parent]),
+        np.array([joint.parent_orientation for joint in joints], float)], axis=1)
+    h["joint_X_c"][w, :n] = np.concatenate([
+        np.array([joint.child_position for joint in joints], float) - np.array([coms[c] for c in child]),
+        np.array([joint.child_orientation for joint in joints], float)], axis=1)
+    h["joint_axis"][w, :n] = [joint.axis for joint in joints]
+    h["joint_axis2"][w, :n] = [joint.axis2 for joint in joints]
+    h["joint_armature"][w, :n] = [joint.armature for joint in joints]
+    h["joint_damping"][w, :n] = [joint.damping for joint in joints]
+    row, starts, kinds, bodies_p, bodies_c = 0, [], [], [], []
+    for j, joint in enumerate(joints):
+        starts.append(row)
+        joint_kinds = ROW_KINDS[joint.type]
+        assert len(joint_kinds) == JOINT_ROW_COUNT[joint.type]
+        extra = [kind for kind, present in zip((2, 2), joint_dynamics_rows(joint)) if present]
+        sides = joint.limit_sides
+        count = len(joint_kinds) + len(extra) + len(sides)
+        kinds += [*joint_kinds, *extra, *([3] * len(sides))]
+        bodies_p += [parent[j]] * count
+        bodies_c += [child[j]] * count
+        row += len(joint_kinds)
+        if joint.drive is not None:
+            drive = joint.drive
+            h["joint_stiffness"][w, j] = drive.stiffness
+            h["joint_drive_damping"][w, j] = drive.damping
+            h["joint_effort_limit"][w, j] = min(drive.effort_limit, 1.0e30)
+            h["joint_target_position_init"][w, j] = drive.target_position
+            h["joint_target_velocity_init"][w, j] = drive.target_velocity
+        for name, present in zip(("joint_inertia_row", "joint_drive_row"), joint_dynamics_rows(joint)):
+            if present:
+                h[name][w, j] = row
+                row += 1
+        for side in sides:
+            name = "lower" if side > 0 else "upper"
+            h[f"joint_limit_{name}"][w, j] = getattr(joint, f"limit_{name}")
+            h[f"joint_limit_{name}_row"][w, j] = row
+            row += 1
+    h["joint_row_start"][w, :n] = starts
+    h["row_kind"][w, :row] = kinds
+    h["row_body_p"][w, :row] = bodies_p
+    h["row_body_c"][w, :row] = bodies_c
+    return row
+
+
 def pack(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | None = None, dt: float = 1.0e-3,
          contact_capacity: int | None = None, coordinates=None):
     """Pack one world per spec into a batch on ``device``, in the coordinates and kernels the plan
@@ -320,7 +377,8 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     h["body_inertia"][at] = inertia
     h["body_inv_inertia"][at] = np.linalg.inv(inertia)
     h["body_q_init"][at] = np.concatenate([com_world, orientation], axis=1)
-    h["body_qd_init"][at] = np.array([np.concatenate([body.velocity, body.angular_velocity]) for body in bodies])
+    h["body_qd_init"][at] = np.concatenate([np.array([body.velocity for body in bodies], float),
+                                            np.array([body.angular_velocity for body in bodies], float)], axis=1)
     for w, spec in enumerate(specs):
         index = spec.body_index
         coms = [body.com for body in spec.bodies]
@@ -328,43 +386,7 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         h["joint_count"][w] = len(spec.joints)
         h["point_count"][w] = len(spec.points)
         h["world_gravity"][w] = spec.gravity
-        row = 0
-        for j, joint in enumerate(spec.joints):
-            parent = -1 if joint.parent is None else index[joint.parent]
-            child = index[joint.child]
-            parent_com = np.zeros(3) if parent < 0 else coms[parent]
-            h["joint_type"][w, j] = int(joint.type)
-            h["joint_parent"][w, j] = parent
-            h["joint_child"][w, j] = child
-            h["joint_X_p"][w, j] = np.concatenate([joint.parent_position - parent_com, joint.parent_orientation])
-            h["joint_X_c"][w, j] = np.concatenate([joint.child_position - coms[child], joint.child_orientation])
-            h["joint_axis"][w, j] = joint.axis
-            h["joint_axis2"][w, j] = joint.axis2
-            h["joint_row_start"][w, j] = row
-            kinds = ROW_KINDS[joint.type]
-            assert len(kinds) == JOINT_ROW_COUNT[joint.type]
-            for kind in kinds:
-                h["row_kind"][w, row], h["row_body_p"][w, row], h["row_body_c"][w, row] = kind, parent, child
-                row += 1
-            h["joint_armature"][w, j] = joint.armature
-            h["joint_damping"][w, j] = joint.damping
-            if joint.drive is not None:
-                h["joint_stiffness"][w, j] = joint.drive.stiffness
-                h["joint_drive_damping"][w, j] = joint.drive.damping
-                h["joint_effort_limit"][w, j] = min(joint.drive.effort_limit, 1.0e30)
-                h["joint_target_position_init"][w, j] = joint.drive.target_position
-                h["joint_target_velocity_init"][w, j] = joint.drive.target_velocity
-            for name, present in zip(("joint_inertia_row", "joint_drive_row"), joint_dynamics_rows(joint)):
-                if present:
-                    h[name][w, j] = row
-                    h["row_kind"][w, row], h["row_body_p"][w, row], h["row_body_c"][w, row] = 2, parent, child
-                    row += 1
-            for side in joint.limit_sides:
-                name = "lower" if side > 0 else "upper"
-                h[f"joint_limit_{name}"][w, j] = getattr(joint, f"limit_{name}")
-                h[f"joint_limit_{name}_row"][w, j] = row
-                h["row_kind"][w, row], h["row_body_p"][w, row], h["row_body_c"][w, row] = 3, parent, child
-                row += 1
+        row = _pack_joints(h, w, spec.joints, index, coms)
         h["row_count"][w] = row
         h["contact_row_start"][w] = row
         for k in range(capacity):  # contact rows: normal then two tangents; bodies are set per step
