@@ -1,4 +1,5 @@
-"""Spatial math as @wp.func only: quaternions, rotations, twists.
+"""Spatial math: quaternions, rotations, twists as @wp.func for the kernels, and a host section
+(NumPy, float64) with the rotations the set-up code shares.
 
 Conventions (see engine.model): quaternions in Warp's (x, y, z, w) order; a twist is a
 ``wp.spatial_vector`` (v, w) with the linear part first: ``wp.spatial_top`` is the linear
@@ -8,6 +9,7 @@ both in the world frame.
 
 from typing import Any
 
+import numpy as np
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
@@ -76,12 +78,6 @@ def advance_pose(X: wp.transform, low: wp.transform, v: wp.vec3, omega: wp.vec3,
 
 
 @wp.func
-def quat_rotate_vector(q: wp.quat, rotation_vector: wp.vec3):
-    """Rotate q by the finite rotation vector (axis * angle) given in the world frame."""
-    return quat_integrate(q, rotation_vector, 1.0)
-
-
-@wp.func
 def skew(v: wp.vec3):
     """Cross-product matrix: skew(v) @ x == cross(v, x)."""
     return wp.mat33(0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0)
@@ -129,3 +125,28 @@ def relative_rotation(q_parent: wp.quat, q_child: wp.quat):
 def wrap_angle(a: float):
     """Map an angle [rad] to (-pi, pi]."""
     return wp.atan2(wp.sin(a), wp.cos(a))
+
+
+# -- host side (NumPy, float64) ------------------------------------------------------------------
+# One copy of each; the layouts' bit-for-bit tests (tests/engine/test_tabulated_paths.py) rely on
+# the exact arithmetic, so keep the formulas as they are.
+
+
+def cross(a, b) -> np.ndarray:
+    """a x b over the last axis of arrays (broadcast); np.cross's arithmetic, without its overhead."""
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+
+
+def rotate(quat, vec) -> np.ndarray:
+    """vec (..., 3) rotated by the unit quaternion quat (..., 4), (x, y, z, w)."""
+    u, s = quat[..., :3], quat[..., 3:]
+    return vec + 2.0 * cross(u, cross(u, vec) + s * vec)
+
+
+def quat_matrix(q) -> np.ndarray:
+    """Rotation matrix of a unit quaternion (x, y, z, w)."""
+    x, y, z, w = (float(v) for v in q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])

@@ -13,6 +13,7 @@ import numpy as np
 import warp as wp
 
 from engine.collide import PLANE_CONTACTS
+from engine.spatial import quat_matrix
 from engine.spec import JointType, MechanismSpec
 
 __all__ = ["ChainLayout", "KIND_ANGULAR", "KIND_LINEAR", "KIND_REVOLUTE", "KIND_ROOT", "MAX_CONTACTS", "MAX_COORDS",
@@ -34,15 +35,8 @@ MAX_PREFIX = 6  # the leading chain the solves take unrolled (a floating root's 
 MAX_PACKED = 4096  # entries of the packed mass matrix (a shared tile; MAX_COORDS' deepest chain needs 1176)
 
 
-def _quat_matrix(q: np.ndarray) -> np.ndarray:
-    x, y, z, w = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
 def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
-    return _quat_matrix(np.r_[np.sin(angle / 2) * axis, np.cos(angle / 2)])
+    return quat_matrix(np.r_[np.sin(angle / 2) * axis, np.cos(angle / 2)])
 
 
 def _perpendiculars(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -177,10 +171,6 @@ class ChainLayout:
         return np.asarray(self.spec.joints[self.loops[li]].axis)
 
 
-def _frame(q) -> np.ndarray:
-    return _quat_matrix(np.asarray(q, dtype=np.float64))
-
-
 def chain_layout(spec: MechanismSpec) -> ChainLayout:
     """The spanning tree and loops of one spec, or ValueError naming what this path cannot model.
 
@@ -216,7 +206,7 @@ def chain_layout(spec: MechanismSpec) -> ChainLayout:
             if joint.parent is not None:
                 raise ValueError(f"{where}: joint '{joint.name}': only welds to the world are modelled, "
                                  f"this one welds '{joint.child}' to '{joint.parent}'")
-            R = _frame(joint.parent_orientation) @ _frame(joint.child_orientation).T
+            R = quat_matrix(joint.parent_orientation) @ quat_matrix(joint.child_orientation).T
             p = np.asarray(joint.parent_position) - R @ np.asarray(joint.child_position)
             fixed[bodies[joint.child]] = (R, p)
         elif joint.type not in (JointType.REVOLUTE, JointType.INLINE):
@@ -232,7 +222,7 @@ def chain_layout(spec: MechanismSpec) -> ChainLayout:
             raise ValueError(f"{where}: shape '{shape.name}': restitution is not modelled")
     pose = {}
     for i, body in enumerate(spec.bodies):
-        pose[i] = (_frame(body.orientation), np.asarray(body.position, dtype=np.float64))
+        pose[i] = (quat_matrix(body.orientation), np.asarray(body.position, dtype=np.float64))
     # the spanning tree: every body's distance (in joints) from the fixed set, or from its floating
     # component's root (the component's heaviest body); driven joints first (drives act on tree
     # joints only), then the others nearest the roots first (a shallow tree)
@@ -373,10 +363,10 @@ def chain_layout(spec: MechanismSpec) -> ChainLayout:
             continue
         j = spec.joints[joint_of[k]]
         near_name, far_name = (j.parent, j.child) if forward[k] else (j.child, j.parent)
-        near_R, near_p = ((_frame(j.parent_orientation), np.asarray(j.parent_position)) if forward[k]
-                          else (_frame(j.child_orientation), np.asarray(j.child_position)))
-        far_R, far_p = ((_frame(j.child_orientation), np.asarray(j.child_position)) if forward[k]
-                        else (_frame(j.parent_orientation), np.asarray(j.parent_position)))
+        near_R, near_p = ((quat_matrix(j.parent_orientation), np.asarray(j.parent_position)) if forward[k]
+                          else (quat_matrix(j.child_orientation), np.asarray(j.child_position)))
+        far_R, far_p = ((quat_matrix(j.child_orientation), np.asarray(j.child_position)) if forward[k]
+                        else (quat_matrix(j.parent_orientation), np.asarray(j.parent_position)))
         a = np.asarray(j.axis) * (1.0 if forward[k] else -1.0)
         near = None if near_name is None else bodies[near_name]
         if parent[k] < 0:  # the joint frame in the world frame
@@ -409,10 +399,10 @@ def chain_layout(spec: MechanismSpec) -> ChainLayout:
             if b is None or b in fixed:
                 Rf, pf = fixed_frame(b)
                 loop_body[li, side] = -1
-                loop_R[li, side], loop_p[li, side] = Rf @ _frame(Rq), pf + Rf @ np.asarray(p)
+                loop_R[li, side], loop_p[li, side] = Rf @ quat_matrix(Rq), pf + Rf @ np.asarray(p)
             else:
                 loop_body[li, side] = tree_index[b]
-                loop_R[li, side], loop_p[li, side] = _frame(Rq), np.asarray(p)
+                loop_R[li, side], loop_p[li, side] = quat_matrix(Rq), np.asarray(p)
         if j.type == JointType.INLINE:  # the first anchor frame turned to (t1, t2, axis): its x and y rows are
             t1, t2 = _perpendiculars(np.asarray(j.axis))  # the anchor's position normal to the axis
             loop_R[li, 0] = loop_R[li, 0] @ np.column_stack([t1, t2, np.asarray(j.axis)])

@@ -23,10 +23,11 @@ import warp as wp
 from engine.config import Integrator, SolverConfig
 from engine.reduced.chain_kernel import CHAIN_BLOCK, MAX_REGISTERS, chain_step_kernel
 from engine.reduced.chain_layout import (KIND_ANGULAR, KIND_LINEAR, KIND_REVOLUTE, KIND_ROOT, MAX_CONTACTS, MAX_PREFIX,
-                                         MAX_ROWS, ChainLayout, _capacity, _frame, _packed_rows, _packed_tile, _prefix,
-                                         _tile_size, _transform, chain_layout)
+                                         MAX_ROWS, ChainLayout, _capacity, _packed_rows, _packed_tile, _prefix, _tile_size,
+                                         _transform, chain_layout)
 from engine.reduced.chain_stages import (STAGES, VELOCITIES, ChainArrays, ChainWork, candidates_within, kinematics,
                                          plane_candidates)
+from engine.spatial import quat_matrix
 from engine.spec import MechanismSpec
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
@@ -309,7 +310,7 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
             gain = joint.armature + dt * joint.damping
             row_soft[:, w_, r] = (1.0 / gain, joint.armature / gain)
         for i, body in enumerate(spec.bodies):
-            R = _frame(body.orientation)
+            R = quat_matrix(body.orientation)
             body_q[w_, i] = np.r_[np.asarray(body.position) + R @ np.asarray(body.com), body.orientation]
     # every world from its distinct spec's rows
     f = {k: v[kind_of] for k, v in f.items()}

@@ -29,8 +29,9 @@ from engine.reduced.tabulated_kernel import (BASE_SLOTS, DIVERGED_FAST, DIVERGED
                                              MAX_LINKS, MAX_ROWS, NV, ROW_VECS, TILED_REGISTERS, TabulatedState,
                                              TabulatedWorlds, body_poses, freeze_worlds, record_state,
                                              tiled_max_worlds)
-from engine.reduced.tabulated_layout import TABLE_SAMPLES, tabulated_layout
+from engine.reduced.tabulated_layout import tabulated_layout
 from engine.reduced.tabulated_step import step_kernel
+from engine.reduced.tabulated_tables import TABLE_SAMPLES
 from engine.spec import MechanismSpec
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only

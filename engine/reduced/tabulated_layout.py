@@ -1,27 +1,22 @@
-"""Which MechanismSpecs the tabulated path takes, and their tables (host side, NumPy).
+"""Which MechanismSpecs the tabulated path takes, and their layout (host side, NumPy).
 
 A spec fits when one floating body (the base: no joint to the world) carries sub-chains: the
 connected components of the other bodies, each a planar linkage of revolute and inline joints
 whose axes are all parallel (one plane normal per world, any direction in the base frame), of
 mobility one (3 n - 2 j = 1 with the joints to the base; an inline joint is two rows in the
-plane, as a revolute one) and turned by exactly one driven revolute joint to the base. Every
-link of a sub-chain is then a function of that joint's coordinate q: tabulate_sub_chain solves
-the loop-closure equations over a turn of q (continuation and Newton from the spec's pose) and
-tabulates every link's planar centre of mass and angle with their exact first and second
-derivatives in q (implicit function theorem), so that a world has 6 + L coordinates.
+plane, as a revolute one) and turned by exactly one driven revolute joint to the base. Every link
+of a sub-chain is then a function of that joint's coordinate q, tabulated over a turn
+(engine.reduced.tabulated_tables), so that a world has 6 + L coordinates.
 
 Frames: the reduced state's frame (the "state frame") is the base's body frame turned by a
 constant rotation (TabulatedLayout.frame) that takes its y axis to the plane normal; a link's
 "table frame" is that frame turned about -y by the link's planar angle phi (x along the link,
-y the normal), its body frame a constant rotation (SubChain.link_frame) away. Tables are at unit
-scale: plane coordinates (x, z) relative to the sub-chain's origin (its driving pivot on the
-base) divided by the sub-chain's scale (the longest distance from a link's centre of mass to one
-of its joints, or from the origin to a pivot on the base), so that sub-chains of one geometry up
-to a uniform scale share a table. The tables are cached across calls by a key of that geometry:
-(samples, link count, every joint's pair of links (the base as K), their anchors at unit scale,
-the driving link, the sign and offset of its angle against q, the contact shape's link and
-centre at unit scale), every number rounded to KEY_DIGITS decimals; under one key, one table per
-assembly branch (a sub-chain whose start is not on a cached table gets a table of its own).
+y the normal), its body frame a constant rotation (SubChain.link_frame) away. A sub-chain's scale
+is the longest distance from a link's centre of mass to one of its joints, or from its origin to
+a pivot on the base. A table's cache key: (samples, link count, every joint's pair of links (the
+base as K), their anchors at unit scale, the driving link, the sign and offset of its angle
+against q, the contact shape's link and centre at unit scale), every number rounded to
+KEY_DIGITS decimals.
 
 Nothing here knows a mechanism's anatomy: contact slots come from shapes
 (TabulatedLayout.base_slots, SubChain.shape) and tracked points are the spec's own.
@@ -35,37 +30,20 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from engine.pack import collision_pairs
+from engine.reduced.tabulated_tables import (NEWTON_TOLERANCE, START_TOLERANCE, TABLE_SAMPLES, SubChainTable, _Planar,
+                                            cached_table, wrap)
+from engine.spatial import cross, quat_matrix
 from engine.spec import JointType, MechanismSpec, ShapeType
 
-__all__ = ["BASE_SLOTS", "MAX_GROUPS", "MAX_LINKS", "TABLE_SAMPLES", "SubChain", "SubChainTable", "TabulatedLayout",
-           "tabulate_sub_chain", "tabulated_layout"]
+__all__ = ["BASE_SLOTS", "MAX_GROUPS", "MAX_LINKS", "SubChain", "TabulatedLayout", "tabulated_layout"]
 
 MAX_GROUPS = 8  # sub-chains per world (the kernel's generalized velocities: 6 + MAX_GROUPS)
 MAX_LINKS = 8  # bodies per sub-chain
 BASE_SLOTS = 8  # contact slots of the base's shapes (a box's corners, sphere centres, capsule ends)
-TABLE_SAMPLES = 512  # samples of a turn of the driving coordinate
 KEY_DIGITS = 6  # normalized geometry is rounded to this many decimals in a table's cache key
 PLANE_TOLERANCE = 1e-6  # relative to a sub-chain's scale: off-plane offsets and axis mismatches it accepts
-START_TOLERANCE = 1e-3  # relative to the scale: how far the spec's start may be from a closed pose
-NEWTON_TOLERANCE = 1e-12  # residual of the loop-closure equations at unit scale
-MIN_STEP = 2.0 * math.pi / 2**16  # the smallest continuation step before a linkage counts as jammed
-TABLE_CACHE = 256  # tables kept across packs (by key, oldest dropped first)
 
-_TWO_PI = 2.0 * math.pi
 _Y = np.array([0.0, 1.0, 0.0])
-
-
-def _cross(a, b) -> np.ndarray:
-    """a x b of two 3-vectors (np.cross costs more than the arithmetic here)."""
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
-
-
-def quat_matrix(q) -> np.ndarray:
-    """Rotation matrix of a unit quaternion (x, y, z, w)."""
-    x, y, z, w = (float(v) for v in q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
 def matrix_quat(m: np.ndarray) -> np.ndarray:
@@ -92,254 +70,11 @@ def rot_minus_y(angle: float) -> np.ndarray:
     return np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
 
 
-def wrap(angle):
-    """Angle(s) wrapped to (-pi, pi]."""
-    return np.angle(np.exp(1j * np.asarray(angle)))
-
-
 def _turn_angle(m: np.ndarray, axis: np.ndarray) -> float:
     """The angle [rad] of rotation m about the unit ``axis``, as engine.joints measures a revolute
     joint's coordinate (2 atan2 of the quaternion's part along the axis and its w >= 0)."""
     q = matrix_quat(m)
     return 2.0 * math.atan2(float(q[:3] @ axis), float(q[3]))
-
-
-# -- tables ----------------------------------------------------------------------------------------
-
-
-@dataclass
-class SubChainTable:
-    """One sub-chain's kinematics over a turn of its driving coordinate q, at unit scale.
-
-    Sample n is at q = 2 pi n / N. links (N, K, 3): per link its centre of mass in the plane
-    (x, z) relative to the sub-chain's origin [scale] and its planar angle phi [rad] (about the
-    state frame's -y); links_d1, links_d2 their derivatives in q. contact (N, 3): the centre of
-    the sub-chain's contact shape (x, z, and its constant offset along the normal), contact_d1,
-    contact_d2; contact_link: the link that carries it (0 and zeros without a shape).
-    closure_error: the largest distance [scale] between a joint's anchor (or the contact centre)
-    placed by a link read from the table between samples (linearly, as the kernels read it) and
-    the exact one, at the midpoints: the loop-closure error the table stands for. key: the cache
-    key (see the module docstring)."""
-
-    links: np.ndarray
-    links_d1: np.ndarray
-    links_d2: np.ndarray
-    contact: np.ndarray
-    contact_d1: np.ndarray
-    contact_d2: np.ndarray
-    contact_link: int
-    closure_error: float
-    key: tuple = ()
-
-    @property
-    def samples(self) -> int:
-        """Samples of the turn (N)."""
-        return int(self.links.shape[0])
-
-    def between(self, q: float) -> tuple:
-        """The samples around coordinate q [rad] and the weight of the second (i0, i1, f), as the
-        kernels' table_index."""
-        n = self.samples
-        u = (q / _TWO_PI * n) % n
-        i0 = min(int(u), n - 1)
-        return i0, (i0 + 1) % n, u - i0
-
-    def at(self, q: float) -> tuple:
-        """Links (K, 3) and contact centre (3,) at q [rad], interpolated as the kernels do."""
-        i0, i1, f = self.between(q)
-        a, b = self.links[i0], self.links[i1]
-        step = b - a
-        step[:, 2] = wrap(step[:, 2])
-        return a + f * step, (1.0 - f) * self.contact[i0] + f * self.contact[i1]
-
-
-@dataclass
-class _Planar:
-    """A sub-chain's loop-closure problem at unit scale. Unknowns x (..., 3 K): per link its
-    centre of mass (x, z) and angle phi. Joint j holds link ja[j]'s anchor ra[j] (table frame,
-    relative to its centre) on link jb[j]'s anchor rb[j]; index K is the base, whose 'anchor' is
-    a fixed point of the plane. The driving link d turns with q: phi_d = sign q + offset."""
-
-    K: int
-    ja: np.ndarray
-    jb: np.ndarray
-    ra: np.ndarray
-    rb: np.ndarray
-    drive: int
-    sign: float
-    offset: float
-
-    def _extended(self, x):
-        x = np.asarray(x, float)
-        shape = x.shape[:-1]
-        return np.concatenate([x.reshape(*shape, self.K, 3), np.zeros((*shape, 1, 3))], axis=-2)
-
-    @staticmethod
-    def _rot(phi, r):
-        c, s = np.cos(phi), np.sin(phi)
-        return np.stack([c * r[..., 0] - s * r[..., 1], s * r[..., 0] + c * r[..., 1]], axis=-1)
-
-    def anchors(self, x) -> tuple:
-        """Every joint's anchor as placed by its two sides (..., J, 2) each."""
-        xe = self._extended(x)
-        a, b = xe[..., self.ja, :], xe[..., self.jb, :]
-        return a[..., :2] + self._rot(a[..., 2], self.ra), b[..., :2] + self._rot(b[..., 2], self.rb)
-
-    def residual(self, x, q) -> np.ndarray:
-        pa, pb = self.anchors(x)
-        xe = self._extended(x)
-        drive = xe[..., self.drive, 2] - (self.sign * np.asarray(q) + self.offset)
-        return np.concatenate([(pa - pb).reshape(*pa.shape[:-2], -1), drive[..., None]], axis=-1)
-
-    def jacobian(self, x) -> np.ndarray:
-        xe = self._extended(x)
-        shape = xe.shape[:-2]
-        J = len(self.ja)
-        out = np.zeros((*shape, 2 * J + 1, 3 * self.K + 3))
-        rows = np.arange(J)
-        for side, index, r in ((1.0, self.ja, self.ra), (-1.0, self.jb, self.rb)):
-            d = self._rot(xe[..., index, 2], np.stack([-r[:, 1], r[:, 0]], axis=-1))
-            out[..., 2 * rows, 3 * index] = side
-            out[..., 2 * rows + 1, 3 * index + 1] = side
-            out[..., 2 * rows, 3 * index + 2] = side * d[..., 0]
-            out[..., 2 * rows + 1, 3 * index + 2] = side * d[..., 1]
-        out[..., 2 * J, 3 * self.drive + 2] = 1.0
-        return out[..., :3 * self.K]
-
-    def newton(self, x, q, iterations: int = 12) -> tuple:
-        """Newton on the closure equations at q from x: (x, converged (...,) bool)."""
-        x = np.array(x, float)
-        for _ in range(iterations):
-            F = self.residual(x, q)
-            done = np.abs(F).max(axis=-1) < NEWTON_TOLERANCE
-            if done.all():
-                return x, done
-            try:
-                dx = np.linalg.solve(self.jacobian(x), -F[..., None])[..., 0]
-            except np.linalg.LinAlgError:
-                return x, np.zeros(x.shape[:-1], bool)
-            x = x + np.where(done[..., None], 0.0, dx)
-        return x, np.abs(self.residual(x, q)).max(axis=-1) < NEWTON_TOLERANCE
-
-    def derivatives(self, x) -> tuple:
-        """dx/dq and d2x/dq2 at closed poses x (..., 3 K), from the implicit function theorem."""
-        Jm = self.jacobian(x)
-        rhs = np.zeros(Jm.shape[:-1])
-        rhs[..., -1] = self.sign
-        d1 = np.linalg.solve(Jm, rhs[..., None])[..., 0]
-        xe, de = self._extended(x), self._extended(d1)
-        g = []
-        for index, r, side in ((self.ja, self.ra, 1.0), (self.jb, self.rb, -1.0)):
-            g.append(side * self._rot(xe[..., index, 2], r) * (de[..., index, 2] ** 2)[..., None])
-        rhs2 = np.concatenate([(g[0] + g[1]).reshape(*Jm.shape[:-2], -1), np.zeros((*Jm.shape[:-2], 1))], axis=-1)
-        d2 = np.linalg.solve(Jm, rhs2[..., None])[..., 0]
-        return d1, d2
-
-
-def _continue_turn(planar: _Planar, x0: np.ndarray, q0: float, what: str) -> tuple:
-    """Poses over one turn q0 .. q0 + 2 pi by continuation (tangent predictor, Newton corrector,
-    step halved on a failed or large correction or a sign change of det J): returns the steps'
-    offsets t (S,) from q0 and poses (S, 3 K). ValueError when the linkage jams or changes branch."""
-    ts, xs = [0.0], [x0]
-    t, x = 0.0, x0
-    h = _TWO_PI / 64
-    sign0 = np.linalg.slogdet(planar.jacobian(x0))[0]
-    while t < _TWO_PI - 1e-12:
-        step = min(h, _TWO_PI - t)
-        d1, d2 = planar.derivatives(x)
-        guess = x + step * d1 + 0.5 * step * step * d2
-        y, ok = planar.newton(guess, q0 + t + step, iterations=8)
-        good = bool(ok) and np.abs(y - guess).max() < 0.02 and np.linalg.slogdet(planar.jacobian(y))[0] == sign0
-        if not good:
-            h = 0.5 * step
-            if h < MIN_STEP:
-                raise ValueError(f"{what}: cannot make a full turn of its driving joint: it jams (the loop-closure "
-                                 f"equations turn singular) at {wrap(q0 + t):.4f} rad")
-            continue
-        t, x = t + step, y
-        ts.append(t)
-        xs.append(x)
-        h = min(2.0 * step, _TWO_PI / 64)
-    back = y - x0
-    back[2::3] = wrap(back[2::3])
-    if np.abs(back).max() > 1e-6:
-        raise ValueError(f"{what}: does not come back to its start after a full turn of its driving joint "
-                         f"(it changes assembly branch; off by {np.abs(back).max():.3g} at unit scale)")
-    return np.array(ts), np.array(xs)
-
-
-def tabulate_sub_chain(planar: _Planar, x0: np.ndarray, q0: float, samples: int, contact: tuple | None,
-                       what: str, key: tuple = ()) -> SubChainTable:
-    """The SubChainTable of a sub-chain closed at pose x0 (unit scale) at its coordinate q0 [rad].
-    contact: (link, local centre (x, y, z) in its table frame relative to its centre of mass [scale])
-    or None. ValueError naming ``what`` when the linkage cannot make a full turn."""
-    ts, xs = _continue_turn(planar, x0, q0, what)
-    fine = 2 * samples  # the samples and the midpoints between them (closure error)
-    angles = _TWO_PI * np.arange(fine) / fine
-    offsets = (angles - q0) % _TWO_PI
-    coarse = np.clip(np.searchsorted(ts, offsets), 1, len(ts) - 1)
-    nearer = np.where(offsets - ts[coarse - 1] < ts[coarse] - offsets, coarse - 1, coarse)
-    d1, d2 = planar.derivatives(xs)
-    delta = offsets - ts[nearer]
-    guess = xs[nearer] + delta[:, None] * d1[nearer] + 0.5 * (delta**2)[:, None] * d2[nearer]
-    x, ok = planar.newton(guess, q0 + offsets)
-    if not ok.all() or np.abs(x - guess).max() > 0.02:
-        bad = int(np.argmin(ok)) if not ok.all() else int(np.abs(x - guess).max(axis=1).argmax())
-        raise ValueError(f"{what}: the loop-closure equations do not converge near {wrap(angles[bad]):.4f} rad")
-    x[:, 2::3] = wrap(x[:, 2::3])
-    d1, d2 = planar.derivatives(x)
-    K = planar.K
-    values, v1, v2 = (a.reshape(fine, K, 3) for a in (x, d1, d2))
-    # closure error: every joint's anchor placed by the links interpolated halfway between samples
-    exact_a, _ = planar.anchors(x[1::2])
-    before, after = values[0::2], np.roll(values[0::2], -1, axis=0)
-    middle = 0.5 * (before + after)
-    middle[..., 2] = before[..., 2] + 0.5 * wrap(after[..., 2] - before[..., 2])
-    placed_a, placed_b = planar.anchors(middle.reshape(samples, -1))
-    error = float(max(np.abs(placed_a - exact_a).max(), np.abs(placed_b - exact_a).max()))
-    links, links_d1, links_d2 = values[0::2], v1[0::2], v2[0::2]
-    centre = np.zeros((samples, 3))
-    centre_d1 = np.zeros((samples, 3))
-    centre_d2 = np.zeros((samples, 3))
-    link = 0
-    if contact is not None:
-        link, local = contact
-        phi, w1, w2 = links[:, link, 2], links_d1[:, link, 2], links_d2[:, link, 2]
-        lxz = np.broadcast_to(np.array([local[0], local[2]]), (samples, 2))
-        turned = _Planar._rot(phi, lxz)
-        normal = np.stack([-turned[:, 1], turned[:, 0]], axis=1)
-        centre[:, :2] = links[:, link, :2] + turned
-        centre[:, 2] = local[1]
-        centre_d1[:, :2] = links_d1[:, link, :2] + normal * w1[:, None]
-        centre_d2[:, :2] = links_d2[:, link, :2] + normal * w2[:, None] - turned * (w1**2)[:, None]
-        # the contact centre placed by its link halfway between samples, against the exact one
-        exact = values[1::2, link]
-        lxz = lxz[0]
-        error = max(error, float(np.abs(middle[:, link, :2] + _Planar._rot(middle[:, link, 2], lxz)
-                                        - exact[:, :2] - _Planar._rot(exact[:, 2], lxz)).max()))
-    return SubChainTable(links, links_d1, links_d2, centre, centre_d1, centre_d2, int(link), error, key)
-
-
-_TABLES: dict = {}  # cache key -> list of tables (one per assembly branch met)
-
-
-def _cached_table(key: tuple, planar: _Planar, x0: np.ndarray, q0: float, samples: int, contact, what: str):
-    """The table of ``key`` whose pose at q0 is x0 (another assembly branch gets its own table)."""
-    branches = _TABLES.get(key, [])
-    for table in branches:
-        links, _ = table.at(q0)
-        diff = links.reshape(-1) - x0
-        diff[2::3] = wrap(diff[2::3])
-        if np.abs(diff).max() < START_TOLERANCE:
-            return table
-    table = tabulate_sub_chain(planar, x0, q0, samples, contact, what, key)
-    if key not in _TABLES and len(_TABLES) >= TABLE_CACHE:
-        _TABLES.pop(next(iter(_TABLES)))
-    _TABLES.setdefault(key, []).append(table)
-    return table
-
-
-# -- layout ----------------------------------------------------------------------------------------
 
 
 @dataclass
@@ -456,7 +191,7 @@ def _frame_to(normal: np.ndarray) -> np.ndarray:
     """A rotation matrix Q with Q y = +-normal: the identity when the normal is along y, else the
     shortest turn of y onto the normal (its sign nearest y)."""
     n = normal if normal @ _Y >= 0.0 else -normal
-    axis = _cross(_Y, n)
+    axis = cross(_Y, n)
     s, c = np.linalg.norm(axis), float(_Y @ n)
     if s < 1e-12:
         return np.eye(3)
@@ -651,12 +386,6 @@ def _matrix_quats(m: np.ndarray) -> np.ndarray:
     return q
 
 
-def _crosses(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """_cross of every pair of 3-vectors (broadcast over the leading axes)."""
-    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
-
-
 _BOX_SIGNS = np.array([[-1.0 if k % 2 else 1.0, -1.0 if (k // 2) % 2 else 1.0, -1.0 if k >= 4 else 1.0]
                        for k in range(8)])  # a box's corners in _plain_layout's order
 
@@ -745,7 +474,7 @@ def _array_layout(spec: MechanismSpec, st: _Structure, samples: int) -> Tabulate
         axis_p = ((R_base.T @ world_R[a_index] @ frames[:, 0]) @ axes[..., None])[..., 0]
         axis_c = ((R_base.T @ world_R[b_index] @ frames[:, 1]) @ axes[..., None])[..., 0]
         normal = axis_p[0]
-        off, tilt = _crosses(normal, axis_p), _crosses(axis_c, axis_p)
+        off, tilt = cross(normal, axis_p), cross(axis_c, axis_p)
         revolute = np.array([j.type == JointType.REVOLUTE for j in joints])
         if (np.sqrt(_dots(off, off))[1:] > PLANE_TOLERANCE).any() or \
                 (revolute & (np.sqrt(_dots(tilt, tilt)) > PLANE_TOLERANCE)).any():
@@ -774,7 +503,7 @@ def _array_layout(spec: MechanismSpec, st: _Structure, samples: int) -> Tabulate
     # every sub-chain's checks passed; their tables in order (a new one is computed here and may jam)
     groups = []
     for fields, key, planar, closed, contact, what in made:
-        table = _cached_table(key, planar, closed, fields["angle"], samples, contact, what)
+        table = cached_table(key, planar, closed, fields["angle"], samples, contact, what)
         groups.append(SubChain(table=table, **fields))
     # the base's contact slots
     base_slots = []
@@ -984,13 +713,13 @@ def _plain_layout(spec: MechanismSpec, *, samples: int = TABLE_SAMPLES) -> Tabul
         axis_p = R_base.T @ world_R[a] @ quat_matrix(joint.parent_orientation) @ joint.axis
         if normal is None:
             normal, first = axis_p, joint
-        elif np.linalg.norm(_cross(normal, axis_p)) > PLANE_TOLERANCE:
+        elif np.linalg.norm(cross(normal, axis_p)) > PLANE_TOLERANCE:
             raise ValueError(f"joint '{joint.name}' turns about {np.round(axis_p, 6).tolist()} in the frame of base "
                              f"'{base_body.name}', joint '{first.name}' about {np.round(normal, 6).tolist()}: the "
                              f"kernel takes one plane normal per world")
         if joint.type == JointType.REVOLUTE:
             axis_c = R_base.T @ world_R[b] @ quat_matrix(joint.child_orientation) @ joint.axis
-            if np.linalg.norm(_cross(axis_c, axis_p)) > PLANE_TOLERANCE:
+            if np.linalg.norm(cross(axis_c, axis_p)) > PLANE_TOLERANCE:
                 raise ValueError(f"joint '{joint.name}': its parent and child axes differ at the start")
     Q = np.eye(3) if normal is None else _frame_to(normal)
     R_state = R_base @ Q
@@ -1187,7 +916,7 @@ def _sub_chain(spec, comp, joint_list, base, R_state, state_R, com_world, anchor
     key = (samples, K, tuple(zip(ja.tolist(), jb.tolist())), _rounded(ra), _rounded(rb), k_d, sign,
            _rounded([math.cos(offset), math.sin(offset)]),
            None if contact is None else (contact[0], _rounded(contact[1])))
-    table = _cached_table(key, planar, closed, q0, samples, contact, what)
+    table = cached_table(key, planar, closed, q0, samples, contact, what)
     inertia = np.array([C[k] @ bodies[i].inertia @ C[k].T for k, i in enumerate(comp)])
     drive = driver.drive
     return SubChain(jd, list(comp), table, float(scale), origin, float(q0), rate,

@@ -10,11 +10,12 @@ import pytest
 
 from engine import (Body, GroundPlane, Integrator, Joint, JointDrive, MechanismSpec, Shape, SolverConfig, pack_worlds,
                     rollout)
-from engine.reduced import tabulated_layout as layout_module
+from engine.reduced import tabulated_tables as tables_module
 from engine.reduced.tabulated import pack_tabulated, rollout_tabulated
 from engine.reduced.tabulated_kernel import MAX_GROUPS, TILED_REGISTERS, tiled_max_worlds
-from engine.reduced.tabulated_layout import tabulated_layout, wrap
+from engine.reduced.tabulated_layout import tabulated_layout
 from engine.reduced.tabulated_step import step_kernel
+from engine.reduced.tabulated_tables import wrap
 from morphopt.families import load_family
 from morphopt.linkage import Crank, Dyad, Link, Linkage
 from morphopt.linkage.kinematics import solve_at
@@ -115,16 +116,16 @@ def test_tables_are_shared_and_cached():
     """Sub-chains of one geometry up to scale share one table: 8 walkers (2 families x 2 scales,
     twice; 48 legs) tabulate twice (once per family) from an empty cache, and not again to pack."""
     calls = []
-    original = layout_module.tabulate_sub_chain
+    original = tables_module.tabulate_sub_chain
 
     def counting(*args, **kwargs):
         calls.append(1)
         return original(*args, **kwargs)
 
-    saved = dict(layout_module._TABLES)
-    layout_module._TABLES.clear()
+    saved = dict(tables_module._TABLES)
+    tables_module._TABLES.clear()
     try:
-        layout_module.tabulate_sub_chain = counting
+        tables_module.tabulate_sub_chain = counting
         specs = [walker(f, scale=sc, legs_per_side=3)[0] for f in LEGS for sc in (2.5, 4.0)] * 2
         layouts = [tabulated_layout(spec) for spec in specs]
         assert len(calls) == 2, calls
@@ -133,8 +134,8 @@ def test_tables_are_shared_and_cached():
         tables = {id(chain.table) for lay in layouts for chain in lay.groups}
         assert len(tables) == 2
     finally:
-        layout_module.tabulate_sub_chain = original
-        layout_module._TABLES.update(saved)
+        tables_module.tabulate_sub_chain = original
+        tables_module._TABLES.update(saved)
 
 
 # -- mobility analysis -----------------------------------------------------------------------------

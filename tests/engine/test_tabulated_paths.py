@@ -16,7 +16,8 @@ import pytest
 
 from engine import Body, MechanismSpec
 from engine.reduced import tabulated_layout as layout_module
-from engine.reduced.tabulated_layout import SubChainTable, _plain_layout, tabulated_layout
+from engine.reduced.tabulated_layout import _plain_layout, tabulated_layout
+from engine.reduced.tabulated_tables import TABLE_SAMPLES, SubChainTable
 from morphopt.families import load_family
 from morphopt.linkage import Crank, Dyad, Link, Linkage
 from morphopt.linkage.to_spec import BarStyle, linkage_parts
@@ -46,7 +47,7 @@ def _leaves(obj, path="layout"):
 def _assert_same_layout(spec):
     structure = layout_module._analyse(spec)
     assert structure is not None
-    fast = layout_module._array_layout(spec, structure, layout_module.TABLE_SAMPLES)
+    fast = layout_module._array_layout(spec, structure, TABLE_SAMPLES)
     assert fast is not None, "the array path should take this spec"
     plain = _plain_layout(spec)
     a, b = _leaves(fast), _leaves(plain)
@@ -119,7 +120,7 @@ def test_what_the_array_path_does_not_take_goes_item_by_item():
     strided[::2] = spec.bodies[3].com
     spec.bodies[3].com = strided[::2]
     structure = layout_module._analyse(spec)
-    assert layout_module._array_layout(spec, structure, layout_module.TABLE_SAMPLES) is None
+    assert layout_module._array_layout(spec, structure, TABLE_SAMPLES) is None
     assert _leaves(tabulated_layout(spec)) == _leaves(_plain_layout(spec))
     limited = WALKER.build_spec(WALKER.space.default())
     limited.joints[5].limit_upper = 1.0
