@@ -27,8 +27,8 @@ __all__ = ["MAXIMAL_RHO", "TABULATED_RHO", "Integrator", "SolverConfig", "Tuning
 # the maximal plan's starting ADMM penalty (Tuning.rho None): its rows are joint rows, whose soft
 # modes a small penalty leaves fast (engine.padmm)
 MAXIMAL_RHO = 1.0e-3
-# the tabulated plan's (and engine.legged's) starting penalty: their rows are Jacobi-preconditioned
-# to a unit diagonal, so 1 is the matrix's own scale; 1e-3 cost walkers 2-3 times the iterations
+# the tabulated plan's starting penalty: its rows are Jacobi-preconditioned to a unit diagonal, so 1
+# is the matrix's own scale
 TABULATED_RHO = 1.0
 
 

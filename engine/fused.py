@@ -67,9 +67,8 @@ FUSED_REGISTERS = 128  # register cap per thread: 158 uncapped leave 12 worlds p
 
 
 def fused_block(device) -> int:
-    """Threads (lanes) per world of the fused step: one warp (two were slower at 40 and 56 rows:
-    benchmarks/results/README.md); one on the CPU, where a block is one thread and the lanes' loops
-    run serially."""
+    """Threads (lanes) per world of the fused step: one warp (benchmarks/results/README.md, "The fused
+    step"); one on the CPU, where a block is one thread and the lanes' loops run serially."""
     if not wp.get_device(device).is_cuda:
         return 1
     return 32

@@ -356,9 +356,9 @@ def joint_thread(t: int, parts: int):
 
 
 def joint_parts(device) -> int:
-    """Threads per joint of the staged joint_rows kernel: JOINT_PARTS on a GPU (DR Legs, 4096
-    worlds, H100: 357 -> 274 us per call), one on the CPU (its threads run one after the other, and
-    the parts would repeat each joint's frames)."""
+    """Threads per joint of the staged joint_rows kernel: JOINT_PARTS on a GPU (benchmarks/results/README.md,
+    "Engine design notes (moved from the code)"), one on the CPU (its threads run one after the
+    other, and the parts would repeat each joint's frames)."""
     return int(JOINT_PARTS) if wp.get_device(device).is_cuda else 1
 
 

@@ -15,7 +15,7 @@ Conventions, used by every module of the engine:
   coordinate: one for armature and viscous damping, one for the drive (bounded by its effort). A row couples a child body and a parent body (-1 = world); its
   velocity is J_c . u_c + J_p . u_p. The padded row count ``max_rows`` is the tile size of the
   per-world dense Delassus matrix.
-- A world's dual problem (ENGINE.md): D lambda + v_f in the normal cone of the row bounds, with
+- A world's dual problem (engine.padmm): D lambda + v_f in the normal cone of the row bounds, with
   D = J M^-1 J^T + R and v_f = J u_free - c, solved by PADMM in Jacobi-preconditioned variables
   x = P^-1 lambda, P = diag(D)^-1/2.
 """

@@ -1,4 +1,4 @@
-"""Proximal ADMM on every world's dual problem at once (ENGINE.md).
+"""Proximal ADMM on every world's dual problem at once.
 
 In preconditioned variables (engine.dynamics), with proximal weight eta, penalty rho_i per row
 (row_penalty: the world's rho, except on the free rows of this step, those whose bounds are out

@@ -12,19 +12,16 @@ block, in parallel, then a lane per block substitutes the block's triangle. The 
 vector in shared memory; the factor stays in global memory.
 
 Both kernels are bound by the latency of their chain of dependent steps and by their issued
-instructions, so: the sums load four products per pass (their loads in flight together); a
-position carries its row's and column's ranges in one record of the solve's schedule; the
-forward substitution reads a row-major copy of the factor (SparseSystem.L_rows) and multiplies
-by the reciprocal diagonal the factor leaves (SparseSystem.L_inv); with enough worlds of one
-topology a block of 32 worlds copies the solve's schedule into shared memory once
-(shared_solve_kernel); the factor's sums and a solve's levels are native code on raw addresses
-(entry_products, substitute_level, factor_level_blocks), as Warp's array indexing spends about
-eight integer instructions per load; an entry's value is loaded before its sum, and the lanes
-take a level's entries in order of their number of products, so that a round's sums end
-together. The matrix build runs a block per world with the world's rows staged in shared memory
-(staged_matrix_kernel). Per step: roots (body nodes), prepare (the row map and the matrix),
-factor and solve. The measurements behind each choice: benchmarks/results/README.md, "Maximal
-path: design notes".
+instructions, so: the sums load four products per pass; a position carries its row's and column's
+ranges in one record; the forward substitution reads a row-major copy of the factor
+(SparseSystem.L_rows) and multiplies by the reciprocal diagonal (SparseSystem.L_inv); with enough
+worlds of one topology a block of 32 worlds shares the solve's schedule in shared memory
+(shared_solve_kernel); the inner sums are native code on raw addresses (entry_products,
+substitute_level, factor_level_blocks); an entry's value is loaded before its sum, and the lanes
+take a level's entries in order of their number of products. The matrix build stages a world's
+rows in shared memory (staged_matrix_kernel). Per step: roots (body nodes), prepare (the row map
+and the matrix), factor and solve. The measurements behind each choice:
+benchmarks/results/README.md, "Maximal path: design notes".
 """
 
 import functools

@@ -3,43 +3,34 @@ analysed once into the factor's pattern and the schedules that the device kernel
 (engine.linalg.sparse) follow.
 
 In maximal coordinates two constraint rows couple only when they act on a common body, so the
-preconditioned Delassus matrix P D P of a linkage is sparse; ordered by minimum degree its
-Cholesky factor stays sparse (a three-legs-per-side walker, 336 factor rows with its contact
-slots: 6.0 k factor entries instead of 56 k dense), and a solve with it is exact.
+preconditioned Delassus matrix P D P of a linkage is sparse, and so is its Cholesky factor in a
+minimum-degree order; a solve with it is exact.
 
-Contacts: a contact row's bodies change from step to step, but they always belong to one
-collision pair, and each pair has four candidate slots (engine.collide). The factor therefore
-has three rows for every candidate slot of every pair (bodies known in advance; slots a pair
-never fills are padding), and each step engine.linalg.sparse.prepare records which of the step's
-compacted rows each factor row stands for (-1: unused, the identity).
+Contacts: a contact row's bodies change from step to step but always belong to one collision pair,
+and each pair has four candidate slots (engine.collide), so the factor has three rows for every
+candidate slot of every pair (slots a pair never fills are padding); each step
+engine.linalg.sparse.prepare records which of the step's compacted rows each factor row stands
+for (-1: unused, the identity).
 
-Bodies as nodes: D = J M^-1 J^T couples every two rows that act on a common body, so a body with
-many rows (a walker's torso carries 72) puts all of them in one dense block of the factor, each
-column its own level. Such a body can instead enter the factor as six nodes of its own: with
-U = P J R (R R^T = M^-1 of those bodies) the augmented matrix [[A, U], [U^T, -I]] has the Schur
-complement A + U U^T = P D P, and it is quasi-definite, so an L S L^T factor (S = -1 on the body
-nodes) exists in any order; its rows then couple only through a star. ``choose_body_nodes``
-keeps the bodies that shorten the estimated schedule (schedule_cost).
+Bodies as nodes: a body with many rows (a walker's torso carries 72) couples all of them into one
+dense block of the factor, each column its own level. It can instead enter as six nodes of its
+own: with U = P J R (R R^T = M^-1 of those bodies) the augmented matrix [[A, U], [U^T, -I]] has
+the Schur complement A + U U^T = P D P and is quasi-definite, so an L S L^T factor (S = -1 on the
+body nodes) exists in any order, and its rows couple only through a star (``choose_body_nodes``
+keeps the bodies that shorten the estimated schedule).
 
-``analyze``: a minimum-degree order of the factor rows (optionally weighted by the elimination
-tree's height, for a shallower tree: ``shallowest``, Tuning.sparse_ordering), the
-elimination tree, the factor's pattern, and schedules for the device:
-- entries grouped by levels of the elimination tree (a column's level is one more than its
-  children's highest), so that all columns of a level are computed at once;
-- for every factor entry L_ij the pairs (L_ik, L_jk), k < j, whose products it subtracts
-  (left-looking Cholesky);
-- for every row of L its entries left of the diagonal (forward substitution), for every column
-  its entries below the diagonal (backward substitution);
-- supernode blocks (``supernodes``): chains of the elimination tree whose block of the factor is
-  dense (a joint's five rows, the dense tail of the last columns), and levels of blocks; the
-  factor and the solves go level of blocks by level (``factor_blocks``, ``solve_blocks``);
-- per level and phase whether each lane takes its own items or the warp shares each item (a
-  warp-shuffle sum), whichever has the shorter chain of dependent steps (``group_shift``);
-- per entry of the matrix, which of its rows' Jacobians it takes (``matrix_recipe``), so that
-  the matrix build loads those alone.
-Worlds of one topology share one analysis (``SparsePatterns`` holds each distinct one once);
-only the factor's values are per world (``SparseSystem``, ``make_system``). The measurements
-behind these choices: benchmarks/results/README.md, "Maximal path: design notes".
+``analyze`` computes the elimination order (minimum degree, optionally weighted by the tree's
+height: ``shallowest``, Tuning.sparse_ordering), the elimination tree, the factor's pattern and
+the device's schedules: entries grouped by levels of the tree (a column's level is one more than
+its children's highest; a level's columns are computed at once); per factor entry L_ij the
+products (L_ik, L_jk), k < j, it subtracts (left-looking); per row of L its entries left of the
+diagonal and per column those below (the substitutions); supernode blocks (``supernodes``: chains
+of the tree whose block of the factor is dense, such as a joint's five rows) and their levels
+(``factor_blocks``, ``solve_blocks``); per level and phase whether each lane takes its own items
+or the warp shares each one (``group_shift``); per matrix entry the Jacobians it needs
+(``matrix_recipe``). Worlds of one topology share one analysis (``SparsePatterns``); only the
+factor's values are per world (``SparseSystem``). The measurements behind these choices:
+benchmarks/results/README.md, "Maximal path: design notes".
 """
 
 import dataclasses
@@ -152,12 +143,8 @@ def analyze(row_body_c: np.ndarray, row_body_p: np.ndarray, body_nodes=(), nodes
     (row_body_c, row_body_p: the bodies of every row, -1 for the world frame; a row with no body
     at all is a padding row, the identity).
 
-    body_nodes: bodies whose rows are not coupled with each other through them; each gets six
-    nodes instead (the augmented system [[A, U], [U^T, -I]] with U = P J R, R R^T = M^-1 of those
-    bodies, whose Schur complement is A + U U^T = P D P: quasi-definite, so its LDL^T factor exists
-    in any order, with negative pivots on the body nodes). A body acted on by many rows (a walker's
-    torso: 72) makes all of them one dense block of the factor; as six nodes it costs a star.
-    nodes: pad with identity nodes up to this many (every analysis of a batch has as many).
+    body_nodes: bodies that enter as six nodes each instead of coupling their rows with each other
+    (the module docstring; negative pivots on those nodes). nodes: pad with identity nodes up to this many (every analysis of a batch has as many).
     blocks: add the supernode schedules of the device (with_blocks; off for trial analyses whose
     estimated cost alone is wanted). height_weight: of the elimination order (minimum_degree)."""
     rows = len(row_body_c)
@@ -347,8 +334,7 @@ def solve_blocks(a: Analysis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     (from L_rows, a lane per row or the warp per row), then a lane per block substitutes the
     block's triangle row by row (its rows' last entries); backward, each row subtracts its
     column's entries below the block, then a lane per block substitutes the block's triangle
-    column by column (its columns' first entries). DR Legs hanging: 71 levels of single rows
-    become 9 of blocks. Returns the records (one per position, in level order, BLOCK_RECORD
+    column by column (its columns' first entries). Returns the records (one per position, in level order, BLOCK_RECORD
     ints: position, block size T, member index t, the forward gather's range in row_entry (the
     block's own entries follow it), the backward's in the column's entries (they precede it)),
     the levels (first record, records, mode: log2 of the lanes sharing a gather, forward and
@@ -452,22 +438,14 @@ BARRIER_STEPS = 1
 SOLVES_PER_FACTOR = 4
 BODY_NODE_ROWS = 12  # a body acted on by fewer rows never gains from nodes of its own (six of them)
 # Candidate bodies (most rows first) tried per topology, and the share of the plain schedule's
-# estimated cost below which the chosen set is used. The estimate is rough, favouring body nodes
-# (DR Legs hanging's feet, shorter on paper, were slower when measured), so the set must save a
-# fifth: DR Legs standing as in Newton's example takes seven bodies, walkers their torso alone,
-# DR Legs hanging none (measured: benchmarks/results/README.md).
+# estimated cost below which the chosen set is used: the estimate favours body nodes, so the set
+# must save a fifth (benchmarks/results/README.md, "Maximal path: design notes").
 BODY_NODE_TRIES = 16
 BODY_NODE_MISSES = 4  # ... ending early after this many in a row that did not shorten it
 BODY_NODE_GAIN = 0.8
 # Height weights of the elimination orders that Tuning.sparse_ordering="shallow" tries besides
-# plain minimum degree (minimum_degree, shallowest). Estimated schedules (schedule_cost) of plain
-# minimum degree / weight 0.5 / 1 / 2, with each topology's body nodes (0.25 estimates as 0.5 on
-# all but the default walker, and is kept on ties, being tried first): DR Legs hanging 11.6 / 8.6 /
-# 8.9 / 8.6 k steps (71 -> 45-50 levels of columns, 9 -> 6-7 of blocks), standing as in Newton's
-# example 12.6 / 10.3 / 14.7 / 14.7 k, its projection's own pattern 9.7 / 8.0 / 8.6 / 8.6 k, the
-# default walker 7.5 / 6.4 / 6.4 / 6.3 k, a random Jansen walker 4.8 / 4.2 / 4.2 / 4.2 k (4.3 k in a
-# batch padded to the larger walkers' nodes). A nested dissection (recursive separators of
-# breadth-first levels) estimated longer than minimum degree on all but one of them.
+# plain minimum degree (minimum_degree, shallowest; their estimates: benchmarks/results/README.md,
+# "Engine design notes (moved from the code)").
 HEIGHT_WEIGHTS = (0.25, 0.5, 1.0, 2.0)
 
 
@@ -492,8 +470,7 @@ def choose_body_nodes(row_body_c: np.ndarray, row_body_p: np.ndarray) -> Analysi
     """The analysis of one topology with the bodies that shorten its schedule kept as nodes:
     the bodies acted on by the most rows are tried one by one (greedy; at most BODY_NODE_TRIES,
     until BODY_NODE_MISSES in a row fail) and kept where schedule_cost drops, and the set is used
-    where it saves a fifth or more (DR Legs standing as in Newton's example: seven bodies; a
-    walker: its torso; DR Legs hanging: none)."""
+    where it saves a fifth or more (1 - BODY_NODE_GAIN)."""
     plain = best = analyze(row_body_c, row_body_p, blocks=False)
     bodies, counts = np.unique(np.concatenate([row_body_c, row_body_p]), return_counts=True)
     keep = bodies >= 0

@@ -4,7 +4,8 @@ sized to the batch's largest world, and the code a batch does not need (contacts
 prefix, inline loops, stage clocks) left out.
 
 Why one kernel: the step is bound by latency, not bandwidth; one launch keeps a world's matrices
-and factors on chip between stages. Measurements: benchmarks/results/README.md, "Reduced closed chains: design notes".
+and factors on chip between stages. Measurements: benchmarks/results/README.md, "Reduced closed
+chains: design notes".
 """
 
 import functools
@@ -26,10 +27,9 @@ wp.set_module_options({"enable_backward": False})  # no gradients are taken: com
 __all__ = ["CHAIN_BLOCK", "MAX_REGISTERS", "chain_step_kernel"]
 
 REGULARIZATION = wp.constant(1.0e-6)  # relative diagonal shift of the loops' matrix (rounding guard)
-CHAIN_BLOCK = 32  # threads per world on a GPU: one warp (two were no faster for 36 coordinates)
-# registers per thread on CUDA: 128 lets 16 blocks (worlds) share an SM; left to the compiler the step takes
-# more, fewer worlds share an SM and it is slower (both: benchmarks/results/README.md, "Reduced closed chains:
-# design notes")
+CHAIN_BLOCK = 32  # threads per world on a GPU: one warp
+# registers per thread on CUDA: 128 lets 16 blocks (worlds) share an SM (measured, with CHAIN_BLOCK:
+# benchmarks/results/README.md, "Reduced closed chains: design notes")
 MAX_REGISTERS = 128
 
 
@@ -50,58 +50,22 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
     (loop_rows_of; without, its code is compiled out).
 
     The step, one thread block per world (the lanes share each stage, a barrier between stages; on
-    the CPU a block is one thread):
-    1. with the Moreau-Jean midpoint rule (SolverConfig.integrator, the default) the coordinates
-       first move half a step, q += dt/2 u; the dynamics below are evaluated there (semi-implicit
-       Euler: at q);
-    2. kinematics level by level of the tree (a lane per entry of the level, from a per-depth list):
-       body poses, each coordinate's motion (axis a and its moment about the origin), body
-       velocities, and the velocity-product accelerations (the accelerations at zero coordinate
-       acceleration);
-    3. composite rigid-body sums, pulled up the tree level by level (a body's children are
-       contiguous in the breadth-first order): the mass, first moment and inertia about the world
-       origin of each subtree, and its gravity, inertial and gyroscopic wrench; the mass matrix
-       M_ij = S_i . (I_j S_j) for each coordinate i moving body j (the only non-zeros), the
-       generalized forces;
-    4. the joints' damping and PD drives implicit: (M + dt C) du = dt tau, C = damping + kd + h kp
-       on the diagonal (h the rest of the step the angles still move); M~ = M + dt C, packed in
-       shared memory (row k: its ancestors and itself, roots first, a dense run in a 1-D tile),
-       factored as L^T D L along the tree by the lanes (tree_factor: no fill), every solve along
-       the ancestors only (tree_solves: the first pass skips the entries still 0, a leading chain
-       every entry descends from is taken unrolled);
-    5. the loops' rows G (a lane per row, along its two bodies' ancestors; kept rows, then soft
-       rows), X = M~^-1 G^T (a lane per row), A = G X (wp.tile_matmul, as every dense product of the
-       step) + compliance + 1e-6 diag(G X) factored (dense Cholesky in shared memory, the lanes
-       sharing each column), u = u_f + X A^-1 (-(G u_f) - baumgarte phi / dt + share G u): the
-       loops' velocity constraint holds exactly, not as a penalty;
-    6. contacts (compiled only for batches with shapes): candidates at the evaluation pose (a lane
-       per shape, into shared memory), the rows J (normal and two tangents per contact, along the
-       body's ancestors), P J^T = (M~^-1 - X A^-1 X^T) J^T (the response with the loops held),
-       D = J P J^T, v_f = J u + the normal rows' bias (a gap closed in one step at most, a
-       penetration pushed out by SolverConfig.contact_stabilization per step), a Jacobi
-       preconditioner per contact (one scale for its three rows: the cone keeps its shape), then
-       PADMM (ENGINE.md: De Saxce correction, Coulomb cone projection, an adaptive penalty with a
-       new inverse of D + (eta + rho) I when it changes, SolverConfig's tolerances and iteration
-       cap, every lane deciding alike) warm-started from each contact slot's last impulse and from
-       the penalty the world's last step ended with (CONTACT_RHO on a new state); u += P J^T lambda;
-    7. q += h u, then SolverConfig.position_iterations Gauss-Newton projections of q back onto the
-       loops' position constraint with the step's X and A (dq = -X A^-1 phi(q), the tree's poses
-       redone each time; a floating root's six corrections turn and move its frame), stopped as
-       soon as every kept row's error is within Tuning.projection_skip_floor [m] (angular
-       rows: projection_skip_floor_angular [rad]; both 0: never): its correction would be float32
-       rounding. The check's kinematics carries the velocities, so that a stop also spares the
-       final kinematics pass, and its errors go to shared memory in one pass;
-    8. the poses and velocities of every body (COM frames, as engine.model's State) and a
-       divergence guard (non-finite or faster than SolverConfig.max_speed: the world is frozen and
-       flagged).
-    The midpoint step evaluates the velocity-product and gyroscopic terms with the step's initial
-    rates and the drives' terms backward (stable for stiff drives), so the motion is first order in
-    dt wherever those matter."""
+    the CPU a block is one thread): (1) Moreau-Jean: q += dt/2 u first; (2) kinematics level by
+    level of the tree; (3) composite rigid-body sums up the tree, the mass matrix and generalized
+    forces; (4) damping and PD drives implicit, M~ = M + dt C packed and factored along the tree
+    (no fill); (5) the loops' rows G, X = M~^-1 G^T, A = G X factored: the loops' velocity
+    constraint holds exactly; (6) contacts (compiled only with shapes): rows with the loops held,
+    PADMM (engine.padmm's method) warm-started from each slot's last impulse and the world's last
+    penalty; (7) q += h u and Gauss-Newton projections onto the loops, skipped below the rounding
+    floors; (8) body poses and velocities, and the divergence guard. Each stage in full:
+    benchmarks/results/README.md, "Engine design notes (moved from the code)". The midpoint step
+    evaluates the velocity-product and gyroscopic terms with the step's initial rates and the
+    drives' terms backward (stable for stiff drives): first order in dt wherever those matter."""
 
     per_contact = _tile_size(contacts // 3)  # the tiles of one entry per contact
     tree_solve_column, tree_solve_vector = tree_solves(unroll)
-    # tile_matmul: Warp's register-blocked scalar product (cuBLASDx for these small tiles was no faster, and
-    # a long LTO build: see benchmarks/results/README.md, "Reduced closed chains: design notes")
+    # tile_matmul: Warp's register-blocked scalar product (against cuBLASDx: benchmarks/results/README.md,
+    # "Reduced closed chains: design notes")
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=registers,
                module_options={"enable_mathdx_gemm": False})
     def chain_step_body(m: ChainArrays, w: ChainWork, dt: float, baumgarte: float, iterations: int, max_speed: float,

@@ -29,8 +29,8 @@ KIND_ANGULAR = wp.constant(2)  # its angular velocity about a world axis (next t
 KIND_ROOT = wp.constant(3)  # and about the z axis: the entry that is the root body
 MAX_LOOPS = 32
 ROW_TOLERANCE = 1.0e-4  # a loop row is redundant when the kept rows leave less than this of its norm
-TILE_STEP = 4  # the shared tiles are sized to the batch's padded coordinates and rows in steps of this (8 was no
-# faster: see benchmarks/results/README.md, "Reduced closed chains: design notes")
+TILE_STEP = 4  # the shared tiles are sized to the batch's padded coordinates and rows in steps of this (against 8:
+# benchmarks/results/README.md, "Reduced closed chains: design notes")
 MAX_PREFIX = 6  # the leading chain the solves take unrolled (a floating root's six entries)
 MAX_PACKED = 4096  # entries of the packed mass matrix (a shared tile; MAX_COORDS' deepest chain needs 1176)
 

@@ -32,7 +32,7 @@ from engine.spec import MechanismSpec
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
-__all__ = ["CONTACT_RHO", "ChainModel", "ChainState", "ChainStepper", "pack_chains"]
+__all__ = ["CONTACT_RHO", "ChainModel", "ChainState", "pack_chains"]
 
 # the contacts' initial ADMM penalty (Tuning.rho None), in units of their preconditioned Delassus matrix's
 # diagonal (1): the maximal plan's 1e-3 let capped iterations return wild impulses on new contacts, at 1 they
@@ -439,30 +439,3 @@ def initial_bodies_kernel(m: ChainArrays, w: ChainWork, q: wp.array2d(dtype=floa
             body_q[world, b] = wp.transform(w.centre[world, k], wp.transform_get_rotation(w.pose[world, k]))
             body_qd[world, b] = wp.spatial_vector(w.vel[world, k], w.omega[world, k])
 
-
-class ChainStepper:
-    """Advance a ChainModel chunk by chunk, replaying a captured CUDA graph of ``chunk`` steps on
-    CUDA (eager elsewhere)."""
-
-    def __init__(self, model: ChainModel, state: ChainState, chunk: int = 10, capture: bool | None = None):
-        self.model, self.state, self.chunk = model, state, int(chunk)
-        device = wp.get_device(model.device)
-        self.capture = device.is_cuda if capture is None else (capture and device.is_cuda)
-        self._graph = None
-
-    def _run(self):
-        for _ in range(self.chunk):
-            self.model.step(self.state)
-
-    def advance(self) -> None:
-        """Advance self.state by one chunk (the first call on CUDA runs it and captures the graph)."""
-        if not self.capture:
-            self._run()
-            return
-        if self._graph is None:
-            self._run()  # compile and load outside the capture
-            with wp.ScopedCapture(device=self.model.device) as capture:
-                self._run()
-            self._graph = capture.graph
-            return
-        wp.capture_launch(self._graph)

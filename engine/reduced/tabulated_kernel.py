@@ -7,7 +7,7 @@ angular velocity (world frame) and the rates of its L sub-chains' driving coordi
 sub-chain g moves with v_k = v + w x d_k + e_k qdot_g and w_k = w + a phi_k' qdot_g, where
 d_k = R (o_g + s_g c_k(q)), e_k = s_g R c_k'(q), a = -R y (the plane normal) and phi_k the
 link's planar angle; c_k, phi_k and their derivatives are read from the sub-chain's table
-(engine.reduced.tabulated_layout) between samples, linearly.
+(engine.reduced.tabulated_tables) between samples, linearly.
 """
 
 import math

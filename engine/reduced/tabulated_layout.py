@@ -271,7 +271,7 @@ def _structure_key(spec: MechanismSpec) -> tuple:
 
 def _analyse(spec: MechanismSpec) -> _Structure | None:
     """The structure's facts, in _plain_layout's terms; None when one of its structural checks fails."""
-    bodies, joints = spec.bodies, spec.joints
+    joints = spec.joints
     index = spec.body_index
     if any(joint.parent is None for joint in joints):
         return None
@@ -505,26 +505,40 @@ def _array_layout(spec: MechanismSpec, st: _Structure, samples: int) -> Tabulate
     for fields, key, planar, closed, contact, what in made:
         table = cached_table(key, planar, closed, fields["angle"], samples, contact, what)
         groups.append(SubChain(table=table, **fields))
-    # the base's contact slots
-    base_slots = []
-    for s in st.base_shapes:
-        shape = shapes[s]
-        Rs = quat_matrix(shape.orientation)
-        centre = Q.T @ (shape.position - base_body.com)
-        turn = Q.T @ Rs
+    base_slots = _base_slots(spec, st.base_shapes, base_body.com, Q, ground)
+    return _assemble(spec, base, Q, R_state, base_com, groups, base_slots, ground, st.where_is, st.point_bodies)
+
+
+def _base_slots(spec: MechanismSpec, shape_indices, com: np.ndarray, Q: np.ndarray, ground: tuple) -> list:
+    """The base's contact slots (TabulatedLayout.base_slots) of its shapes ``shape_indices`` (com: the
+    base's centre of mass in its body frame): a box's corners, a capsule's ends, a sphere's centre;
+    ValueError for another shape."""
+    slots = []
+    for s in shape_indices:
+        shape = spec.shapes[s]
+        centre = Q.T @ (shape.position - com)
+        turn = Q.T @ quat_matrix(shape.orientation)
         mu = math.sqrt(shape.friction * ground[1])
         if shape.type == ShapeType.BOX:
-            corners = (turn @ (_BOX_SIGNS * shape.size)[..., None])[..., 0]
-            base_slots += [(centre + corner, 0.0, mu, s) for corner in corners]
+            slots += [(centre + turn @ (signs * shape.size), 0.0, mu, s) for signs in _BOX_SIGNS]
         elif shape.type == ShapeType.CAPSULE:
             for e in (1.0, -1.0):
-                base_slots.append((centre + e * shape.size[1] * turn[:, 2], float(shape.size[0]), mu, s))
+                slots.append((centre + e * shape.size[1] * turn[:, 2], float(shape.size[0]), mu, s))
+        elif shape.type == ShapeType.SPHERE:
+            slots.append((centre, float(shape.size[0]), mu, s))
         else:
-            base_slots.append((centre, float(shape.size[0]), mu, s))
-    # tracked points and body frames
+            raise ValueError(f"shape '{shape.name}' is a {shape.type.name.lower()}: the base's contact slots take "
+                             f"boxes, capsules and spheres")
+    return slots
+
+
+def _assemble(spec, base, Q, R_state, base_com, groups, base_slots, ground, where_is, point_bodies) -> TabulatedLayout:
+    """The TabulatedLayout of both paths, with its tracked points and body frames. where_is: spec body
+    -> (sub-chain or -1 for the base, link); point_bodies: each tracked point's spec body index."""
+    bodies, base_body = spec.bodies, spec.bodies[base]
     points = []
-    for point, i in zip(spec.points, st.point_bodies):
-        g, k = st.where_is[i]
+    for point, i in zip(spec.points, point_bodies):
+        g, k = where_is[i]
         if g < 0:
             points.append((-1, 0, Q.T @ (point.position - base_body.com)))
         else:
@@ -533,7 +547,7 @@ def _array_layout(spec: MechanismSpec, st: _Structure, samples: int) -> Tabulate
     base_frame = matrix_quat(Q.T)
     body_frames = []
     for i in range(len(bodies)):
-        g, k = st.where_is[i]
+        g, k = where_is[i]
         body_frames.append((-1, 0, base_frame) if g < 0 else (g, k, groups[g].link_frame[k]))
     return TabulatedLayout(spec, base, matrix_quat(Q), base_com, matrix_quat(R_state), base_body.velocity.copy(),
                            base_body.angular_velocity.copy(), float(base_body.mass), Q.T @ base_body.inertia @ Q,
@@ -757,51 +771,16 @@ def _plain_layout(spec: MechanismSpec, *, samples: int = TABLE_SAMPLES) -> Tabul
     for g, comp in enumerate(components):
         groups.append(_sub_chain(spec, comp, of_group[g], base, R_state, state_R, com_world, anchor_world, base_com,
                                  shapes_of, ground, samples))
-    # the base's contact slots
-    base_slots = []
-    for s in shapes_of.get(base, []):
-        shape = spec.shapes[s]
-        Rs = quat_matrix(shape.orientation)
-        centre = Q.T @ (shape.position - base_body.com)
-        turn = Q.T @ Rs
-        mu = math.sqrt(shape.friction * ground[1])
-        if shape.type == ShapeType.BOX:
-            h = shape.size
-            for k in range(8):
-                signs = np.array([-1.0 if k % 2 else 1.0, -1.0 if (k // 2) % 2 else 1.0, -1.0 if k >= 4 else 1.0])
-                base_slots.append((centre + turn @ (signs * h), 0.0, mu, s))
-        elif shape.type == ShapeType.CAPSULE:
-            for e in (1.0, -1.0):
-                base_slots.append((centre + e * shape.size[1] * turn[:, 2], float(shape.size[0]), mu, s))
-        elif shape.type == ShapeType.SPHERE:
-            base_slots.append((centre, float(shape.size[0]), mu, s))
-        else:
-            raise ValueError(f"shape '{shape.name}' is a {shape.type.name.lower()}: the base's contact slots take "
-                             f"boxes, capsules and spheres")
+    base_slots = _base_slots(spec, shapes_of.get(base, []), base_body.com, Q, ground)
     if len(base_slots) > BASE_SLOTS:
         raise ValueError(f"base '{base_body.name}': its shapes have {len(base_slots)} contact points, the kernel has "
                          f"{BASE_SLOTS} base slots (one box, or capsules and spheres)")
-    # tracked points and body frames
     where_is = {base: (-1, 0)}
     for g, chain in enumerate(groups):
         for k, i in enumerate(chain.bodies):
             where_is[i] = (g, k)
-    points = []
-    for point in spec.points:
-        i = index[point.body]
-        g, k = where_is[i]
-        if g < 0:
-            points.append((-1, 0, Q.T @ (point.position - base_body.com)))
-        else:
-            C = quat_matrix(groups[g].link_frame[k])
-            points.append((g, k, C @ (point.position - bodies[i].com)))
-    frames = []
-    for i in range(len(bodies)):
-        g, k = where_is[i]
-        frames.append((-1, 0, matrix_quat(Q.T)) if g < 0 else (g, k, groups[g].link_frame[k]))
-    return TabulatedLayout(spec, base, matrix_quat(Q), base_com, matrix_quat(R_state), base_body.velocity.copy(),
-                           base_body.angular_velocity.copy(), float(base_body.mass), Q.T @ base_body.inertia @ Q,
-                           groups, base_slots, ground, np.asarray(spec.gravity, float), points, frames)
+    return _assemble(spec, base, Q, R_state, base_com, groups, base_slots, ground, where_is,
+                     [index[p.body] for p in spec.points])
 
 
 def _sub_chain(spec, comp, joint_list, base, R_state, state_R, com_world, anchor_world, base_com, shapes_of, ground,

@@ -1,15 +1,14 @@
 """The step of the tabulated path: one kernel per (tiled, phase, register cap), built on demand.
 
-Ported from engine.legged's step onto the layout of engine.reduced.tabulated_kernel: mass matrix
-M(q) = sum_k J_k^T diag(m_k, I_k) J_k and bias forces h(q, u) (gravity, the velocity-product terms
-from c_k'' and phi_k'', the gyroscopic torques) summed link by link; semi-implicit Euler: u_f =
-u + dt M^-1 h, then the dual problem over the rows (the driving coordinates' velocity drives with
-the implicit damping law and effort bounds; contact triplets with the engine's stabilization and
-Coulomb cones with the De Saxce correction) by PADMM with a Jacobi preconditioner, whose linear
-solves use the Woodbury identity (D + S)^-1 = S^-1 - S^-1 J (M + J^T S^-1 J)^-1 J^T S^-1 (a factor
-of the (6 + L)-square matrix, never of the rows' Delassus matrix); then u+ = u_f + M^-1 J^T lambda
-and the positions, the base's orientation (exponential map) and the driving coordinates
-integrated with u+.
+On the layout of engine.reduced.tabulated_kernel: mass matrix M(q) = sum_k J_k^T diag(m_k, I_k)
+J_k and bias forces h(q, u) (gravity, the velocity-product terms from c_k'' and phi_k'', the
+gyroscopic torques) summed link by link; semi-implicit Euler: u_f = u + dt M^-1 h, then the dual
+problem over the rows (the driving coordinates' velocity drives with the implicit damping law and
+effort bounds; contact triplets with the engine's stabilization and Coulomb cones with the De
+Saxce correction) by PADMM with a Jacobi preconditioner, whose linear solves use the Woodbury
+identity (D + S)^-1 = S^-1 - S^-1 J (M + J^T S^-1 J)^-1 J^T S^-1 (a factor of the (6 + L)-square
+matrix, never of the rows' Delassus matrix); then u+ = u_f + M^-1 J^T lambda, and the positions,
+the base's orientation (exponential map) and the driving coordinates integrated with u+.
 
 Contact slots (their warm-start keys): slot k < BASE_SLOTS is the base's point k (a box corner, a
 sphere's or a capsule end's centre with its radius), slot BASE_SLOTS + 2 g + e end e of sub-chain
