@@ -6,9 +6,9 @@ Moreau-Jean: q_mid = q + dt/2 u; dynamics at q_mid; q+ = q_mid + dt/2 u+ (engine
 Compensated summation: the twists and the chain of configurations the dynamics run on (Moreau-Jean:
 the midpoints) are sums of small increments to large values; each keeps a low part (engine.State's
 body_qd_low and body_q_low) holding what float32 rounded off, so that the state walks by the
-rounding of the increments, not by that of the state (a crank turning for 20 s at dt 1 ms: 20000
-roundings of 2e-7 m/s each would shift its energy by about 1e-5 and its phase by millimetres).
-Tuning.compensated_state turns it off (plain float32 sums; the low parts stay zero).
+rounding of the increments, not by that of the state (an estimate: benchmarks/results/README.md,
+"Engine design notes (moved from the code)"). Tuning.compensated_state turns it off (plain float32
+sums; the low parts stay zero).
 Position projection (Gauss-Newton): with the residuals phi(q+) of the bilateral rows, solve
 (P D P + sigma I) x = -P phi over the bilateral rows and move every body by M^-1 J^T (P x): one
 damped Newton step on the constraint manifold per iteration. A batch whose rows are all bilateral

@@ -830,10 +830,8 @@ def _substitute_all(pat: SparsePatterns, p: int, schedule: wp.uint64, factor: wp
 
 
 # The solve with its schedule in shared memory (shared_solve_kernel), on GPUs for batches of one
-# topology, 32 worlds (one warp each) per thread block. Batches of several topologies keep the
-# global kernel (half of their worlds would still read theirs from global memory), and so do
-# batches too small to give at least half of the multiprocessors a block (fewer worlds leave
-# multiprocessors idle with 32 per block). Measured: benchmarks/results/README.md.
+# topology large enough to give at least half of the multiprocessors a block of 32 worlds (one warp
+# each); the others keep the global kernel (benchmarks/results/README.md, "Maximal path: design notes").
 SOLVE_WORLDS_PER_BLOCK = 32
 SOLVE_SHARED = True  # the shared-schedule solve where it fits (False: the global kernel; read at each solve)
 SOLVE_SHARED_BYTES = 160 * 1024  # larger schedules and vectors keep the global kernel (a block holds at most 227 KiB)

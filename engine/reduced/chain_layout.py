@@ -328,8 +328,7 @@ def chain_layout(spec: MechanismSpec) -> ChainLayout:
     n = len(tree_body)
     if n > MAX_COORDS:
         raise ValueError(f"{where}: {n} tree coordinates, at most {MAX_COORDS} are modelled")
-    # every revolute joint off the tree closes a loop, and every inline joint (never a tree joint: it
-    # leaves the anchor's slide along its axis and every rotation free)
+    # every revolute joint off the tree closes a loop, and every inline joint (never a tree joint)
     loops = [ji for ji, j in enumerate(spec.joints)
              if (j.type == JointType.REVOLUTE and ji not in used) or j.type == JointType.INLINE]
     for ji in loops:

@@ -157,15 +157,13 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     contact_stabilization, tolerance, relative_tolerance and max_iterations; of its Tuning eta,
     adaptive_rho, rho_update_interval, the projection skip floors, rho (the contacts' starting
     penalty, None: CONTACT_RHO; each later step starts at its world's last one), tree_registers and
-    tree_contact_working. contact_capacity: contacts kept per world and step
-    (None: every candidate of its shapes, at most MAX_CONTACTS; those beyond are counted in
-    work.contact_dropped). Tuning.tree_contact_working: the contacts the step kernel's tiles hold
-    (None: the most any world has within the margin at its initial pose, at least 1; at most the
-    capacity); a world that finds more in a step, within its capacity, is stepped again from the
-    step's start by a second kernel with tiles for the full capacity (work.contact_redone counts
-    those steps), so the shared memory of contacts that seldom occur costs no occupancy. layouts:
-    chain_layout(spec) of each spec, already made (engine.plan), used instead of making them again.
-    ValueError naming the world and the joint, shape or body this path cannot model."""
+    tree_contact_working. contact_capacity: contacts kept per world and step (None: every candidate
+    of its shapes, at most MAX_CONTACTS; those beyond are counted in work.contact_dropped). A world
+    that finds more contacts than the kernel's tiles hold (Tuning.tree_contact_working), within its
+    capacity, is stepped again from the step's start by a second kernel with tiles for the full
+    capacity (work.contact_redone counts those steps), so that contacts that seldom occur cost no
+    occupancy. layouts: chain_layout(spec) of each spec, already made (engine.plan). ValueError
+    naming the world and the joint, shape or body this path cannot model."""
     config = config or SolverConfig()
     if not (isinstance(dt, (int, float)) and not isinstance(dt, bool) and math.isfinite(dt) and dt > 0):
         raise ValueError(f"pack_chains: dt must be a positive number of seconds, got {dt!r}")
