@@ -173,10 +173,12 @@ def choose(specs: list, device, coordinates=None, contact_capacity: int | None =
             continue
         if kind is Coordinates.MAXIMAL:
             return Plan(kind, len(specs), str(device), forced=forced is not None, refused=refused), None
-        layouts = []
+        layouts, seen = [], {}  # a batch often repeats one spec object: its layout is made once
         for index, spec in enumerate(specs):
             try:
-                layouts.append(_admits(kind, spec))
+                if id(spec) not in seen:
+                    seen[id(spec)] = _admits(kind, spec)
+                layouts.append(seen[id(spec)])
             except ValueError as exc:
                 reason = f"world {index} ({spec.name}): {exc}"
                 if forced is not None:
