@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from engine.health import DIVERGED, EFFORT_LIMIT, JOINTS_OPEN, Health
+from engine.health import DIVERGED, EFFORT_LIMIT, JOINTS_OPEN, Health, far_flags
 from engine.metrics import compute_metrics
 from engine.plan import Coordinates, Plan
 
@@ -102,13 +102,19 @@ class ReducedModel:
         """Freeze the worlds marked (W,) bool: they keep their state and cost no solver work."""
         raise NotImplementedError
 
+    def pack_facts(self) -> tuple:
+        """Per world the largest coordinate magnitude [m] and jointed-mass ratio (engine.health's
+        pack-time facts), from the gauge."""
+        return self.gauge.world_extent, self.gauge.world_mass_ratio
+
     # -- shared ----------------------------------------------------------------------------------
     def health(self, linear_max: np.ndarray, angular_max: np.ndarray) -> Health:
         """engine.health's flags of the worlds: DIVERGED and EFFORT_LIMIT from the step, FAR from the
         pack, JOINTS_OPEN from the largest joint errors measured over the records."""
-        cfg, gauge = self.config, self.gauge
+        cfg = self.config
         codes = self.failure_codes()
-        flags = gauge.health_init.copy()
+        extent, ratio = self.pack_facts()
+        flags = far_flags(extent, cfg.health_joint_tolerance)
         flags |= np.where(codes == 1, DIVERGED, 0).astype(np.int32)
         flags |= np.where(codes == 2, EFFORT_LIMIT, 0).astype(np.int32)
         open_ = (~(linear_max <= cfg.health_joint_tolerance)) | (~(angular_max <= cfg.health_angular_tolerance))
@@ -116,7 +122,7 @@ class ReducedModel:
         zeros = np.zeros(self.num_worlds)
         return Health(flags=flags, linear_max=np.asarray(linear_max, float), angular_max=np.asarray(angular_max, float),
                       residual_max=zeros, residual_iterations=zeros.astype(np.int32),
-                      extent=np.asarray(gauge.world_extent, float), mass_ratio=np.asarray(gauge.world_mass_ratio, float),
+                      extent=np.asarray(extent, float), mass_ratio=np.asarray(ratio, float),
                       joint_tolerance=float(cfg.health_joint_tolerance),
                       angular_tolerance=float(cfg.health_angular_tolerance),
                       residual_threshold=float(cfg.health_residual), max_speed=float(cfg.max_speed))
@@ -259,3 +265,30 @@ class TabulatedPlanModel(ReducedModel):
 
     def set_halted(self, halted: np.ndarray) -> None:
         self.inner.halt(halted)
+
+    def measure(self, state: ReducedState) -> dict:
+        """One record from the path's own kernel (points, energy, drive torques and speeds by spec
+        joint): the loops are closed by the tables, so a record's joint error is each world's table
+        closure error [m], measured when the tables were made (at the midpoints between samples).
+        No maximal gauge is built: a study's generation of walkers spends its host time here."""
+        points, energy, torque, speed = (a.copy() for a in self.inner.record())  # CPU arrays are views
+        J = min(self.max_joints, torque.shape[1])
+        drive_torque = np.zeros((self.num_worlds, self.max_joints), np.float32)
+        drive_speed = np.zeros_like(drive_torque)
+        drive_torque[:, :J], drive_speed[:, :J] = torque[:, :J], speed[:, :J]
+        closure = self.inner.world_closure_error.astype(np.float32)
+        return {"points": points, "violation_linear": closure.copy(), "violation_angular": np.zeros_like(closure),
+                "energy": energy, "drive_speed": drive_speed, "drive_torque": drive_torque,
+                "iterations": self.iterations()}
+
+    def pack_facts(self) -> tuple:
+        """engine.health's pack-time facts from the specs: the largest body or world-anchor coordinate
+        [m] and the largest mass ratio of two jointed bodies."""
+        extent, ratio = np.zeros(self.num_worlds), np.ones(self.num_worlds)
+        for w, spec in enumerate(self.specs):
+            extent[w] = max(float(np.abs(b.position).max()) for b in spec.bodies)
+            mass = {b.name: b.mass for b in spec.bodies}
+            for j in spec.joints:
+                if j.parent is not None:
+                    ratio[w] = max(ratio[w], mass[j.parent] / mass[j.child], mass[j.child] / mass[j.parent])
+        return extent, ratio

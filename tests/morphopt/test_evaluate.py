@@ -253,7 +253,8 @@ def test_walkers_are_planned_tabulated_and_score_as_in_maximal_coordinates():
     alike over a 1.5 s walk at dt 2 ms, within what two discretizations of a contact-rich walk
     allow: the default walker's speed within 35 % (measured 24 %), every foot's full stride within
     10 % (measured at most 8 %), its lowest torso height within 2 % (measured 0.5 %) and its crank
-    torque RMS within 25 % (measured 13 %), loops closed to 1e-5 m in both; a Klann walker on two
+    torque RMS within 25 % (measured 13 %), loops closed to 1e-5 m in maximal coordinates and to the
+    legs' table closure error (1.3e-5 m at scale 3) in tabulated ones; a Klann walker on two
     legs a side falls in both (measured at 0.52 s in both)."""
     from engine import Coordinates
 
@@ -278,4 +279,4 @@ def test_walkers_are_planned_tabulated_and_score_as_in_maximal_coordinates():
         close(key, 0.10)
     close("torso_height_min", 0.02)
     close("torque_rms", 0.25)
-    assert ours["loop_violation_max"] < 1e-5 and theirs["loop_violation_max"] < 1e-5
+    assert ours["loop_violation_max"] < 3e-5 and theirs["loop_violation_max"] < 1e-5  # ours: the table's bound
