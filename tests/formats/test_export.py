@@ -91,7 +91,7 @@ def test_export_writes_the_best_designs_named_with_their_metadata(study, tmp_pat
             metadata = read_dxf_metadata(path)
         assert metadata["rank"] == rank and metadata["objective"]["foot_stride"] == pytest.approx(row.value)
         assert metadata["params"] == pytest.approx(params)
-        assert metadata["simulation"] == {"mode": "kinematic", "model": "maximal", "dt": 0.001, "duration": 2.0,
+        assert metadata["simulation"] == {"mode": "kinematic", "dt": 0.001, "duration": 2.0,
                                           "crank_speed": LINKAGE_CRANK_SPEED, "solver": {}}
 
 
@@ -200,7 +200,7 @@ def test_every_format_drives_the_crank_at_the_studys_speed(tuned, tmp_path):
     from morphopt.formats.mjcf import MJCF_TIMESTEP, read_metadata
     from morphopt.formats.urdf import read_urdf, read_urdf_metadata
 
-    settings = {"mode": "dynamic", "model": "maximal", "dt": 0.002, "duration": 1.0, "crank_speed": 9.0,
+    settings = {"mode": "dynamic", "dt": 0.002, "duration": 1.0, "crank_speed": 9.0,
                 "solver": {"max_iterations": 9}}
     for fmt in ("usd", "urdf", "mjcf"):
         assert main(["export", str(tuned), "--format", fmt, "--out", str(tmp_path / fmt)]) == 0
