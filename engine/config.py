@@ -227,7 +227,7 @@ class SolverConfig:
             [m] is flagged (engine.health; also one packed too far from the origin for float32 to
             close a joint); change it when your joints tolerate more or less opening.
         health_angular_tolerance: the same for the angular joint rows [rad] (a gross-tear guard:
-            walkers twist by up to 0.03 rad at foot impacts); change it when your joints twist more.
+            walkers twist by up to 0.03 rad at ground impacts); change it when your joints twist more.
         health_residual: a world whose PADMM stops unconverged (cap or stall) with a residual above
             this [sqrt(J)], about 1 m/s of error for 1 kg, is flagged; raise it when capped contact
             steps are acceptable (walkers stopped at up to 0.075).

@@ -62,29 +62,30 @@ def box_stack(count: int = 5, half: float = 0.05, mass: float = 1.0, gap: float 
     return Scene(spec, sum(mass * GRAVITY * (half + 2 * half * k) for k in range(count)))
 
 
-WALKER_HIPS = ((0.15, 0.12), (0.15, -0.12), (-0.15, 0.12), (-0.15, -0.12))
+WALKER_PIVOTS = ((0.15, 0.12), (0.15, -0.12), (-0.15, 0.12), (-0.15, -0.12))
 
 
-def walker(leg_length: float = 0.2, leg_radius: float = 0.02, stiffness: float = 40.0, damping: float = 1.0,
+def walker(strut_length: float = 0.2, strut_radius: float = 0.02, stiffness: float = 40.0, damping: float = 1.0,
            effort_limit: float = 8.0) -> Scene:
-    """A 2 kg box body on four capsule legs, each on a PD-driven revolute hip about +y.
+    """A 2 kg box body on four capsule struts, each on a PD-driven revolute pivot about +y.
 
-    Diagonal leg pairs swing in opposite phase when the drive targets follow walker_gait.
+    Diagonal strut pairs swing in opposite phase when the drive targets follow walker_gait.
     """
     half = (0.2, 0.1, 0.05)
-    hip_z = leg_length + leg_radius + 0.002
-    bodies = [solid_box("torso", half, 2.0, position=(0.0, 0.0, hip_z))]
-    joints, shapes = [], [Shape("torso", "box", "torso", half)]
-    leg_mass = 0.2
-    for k, (x, y) in enumerate(WALKER_HIPS):
-        name = f"leg{k}"
-        inertia = (leg_mass * leg_length**2 / 12, leg_mass * leg_length**2 / 12, 0.5 * leg_mass * leg_radius**2)
-        bodies.append(Body(name, leg_mass, inertia, com=(0.0, 0.0, -0.5 * leg_length), position=(x, y, hip_z)))
-        joints.append(Joint(f"hip{k}", "revolute", "torso", name, parent_position=(x, y, 0.0), axis=(0, 1, 0),
+    pivot_z = strut_length + strut_radius + 0.002
+    bodies = [solid_box("body", half, 2.0, position=(0.0, 0.0, pivot_z))]
+    joints, shapes = [], [Shape("body", "box", "body", half)]
+    strut_mass = 0.2
+    for k, (x, y) in enumerate(WALKER_PIVOTS):
+        name = f"strut{k}"
+        inertia = (strut_mass * strut_length**2 / 12, strut_mass * strut_length**2 / 12,
+                   0.5 * strut_mass * strut_radius**2)
+        bodies.append(Body(name, strut_mass, inertia, com=(0.0, 0.0, -0.5 * strut_length), position=(x, y, pivot_z)))
+        joints.append(Joint(f"pivot{k}", "revolute", "body", name, parent_position=(x, y, 0.0), axis=(0, 1, 0),
                             drive=JointDrive(stiffness=stiffness, damping=damping, effort_limit=effort_limit)))
-        shapes.append(Shape(name, "capsule", name, (leg_radius, 0.5 * leg_length), position=(0, 0, -0.5 * leg_length),
-                            collision_group=1))
-    spec = MechanismSpec(bodies, joints, [TrackedPoint("torso", "torso")], shapes=shapes,
+        shapes.append(Shape(name, "capsule", name, (strut_radius, 0.5 * strut_length),
+                            position=(0, 0, -0.5 * strut_length), collision_group=1))
+    spec = MechanismSpec(bodies, joints, [TrackedPoint("body", "body")], shapes=shapes,
                          ground=GroundPlane(friction=1.0), name="walker")
     return Scene(spec, 0.0)
 

@@ -51,7 +51,7 @@ def build_batch(scene: str, num_worlds: int):
 
 
 def set_gait(model, control, time_s: float) -> None:
-    """Walker worlds follow walker_gait: diagonal leg pairs swing in opposite phase."""
+    """Walker worlds follow walker_gait: diagonal strut pairs swing in opposite phase."""
     targets = np.zeros((model.num_worlds, model.max_joints), np.float32)
     targets[:, :4] = walker_gait(time_s)
     control.joint_target_position.assign(targets)

@@ -12,8 +12,8 @@ candidate slot of every pair (slots a pair never fills are padding); each step
 engine.linalg.sparse.prepare records which of the step's compacted rows each factor row stands
 for (-1: unused, the identity).
 
-Bodies as nodes: a body with many rows (a walker's torso carries 72) couples all of them into one
-dense block of the factor, each column its own level. It can instead enter as six nodes of its
+Bodies as nodes: a body with many rows (a walker's body carrying six linkages has 72) couples all
+of them into one dense block of the factor, each column its own level. It can instead enter as six nodes of its
 own: with U = P J R (R R^T = M^-1 of those bodies) the augmented matrix [[A, U], [U^T, -I]] has
 the Schur complement A + U U^T = P D P and is quasi-definite, so an L S L^T factor (S = -1 on the
 body nodes) exists in any order, and its rows couple only through a star (``choose_body_nodes``

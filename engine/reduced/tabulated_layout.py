@@ -218,7 +218,7 @@ def _rounded(values) -> tuple:
 # -- the array path ------------------------------------------------------------------------------------
 #
 # tabulated_layout reads a spec with arrays: every body's and joint's matrices at once, and the
-# sub-chains that share their local structure (a walker's legs) together. Each number is computed
+# sub-chains that share their local structure (a walker's identical linkages) together. Each number is computed
 # by the operations _plain_layout applies to it one item at a time (stacked matmul runs the same
 # BLAS call per item; element-wise NumPy and Python floats round alike; reductions, transcendental
 # functions and Python's round keep their own form), so both give the same layout to the last bit.
