@@ -348,8 +348,7 @@ def joint_rows_of(
 def joint_thread(t: int, parts: int):
     """Joint and part (-1: all of it) of thread t of the joint kernels: a joint's parts on
     consecutive threads, so that a warp's stores of their rows (consecutive in a world) are
-    contiguous (DR Legs hanging, 4096 worlds, H100: with the joints of one part on consecutive
-    threads, their rows five apart, joint_rows took 0.20 ms)."""
+    contiguous (measured: benchmarks/results/README.md, "Engine design notes", engine.joints)."""
     if parts > 1:
         return t // parts, t % parts
     return t, -1
@@ -486,8 +485,7 @@ def joint_residuals(
     row_residual_out: wp.array2d(dtype=float),
 ):
     """Position-level residuals of every joint's rows at body_q (0 for dynamics rows), a thread per
-    joint: by part (each repeating the joint's frames for one cheap residual) DR Legs' residuals
-    took 81 instead of 62 us per call at 4096 worlds on an H100."""
+    joint (by part, each repeating the joint's frames for one cheap residual, was slower)."""
     world, j = wp.tid()
     if j >= joint_count[world]:
         return

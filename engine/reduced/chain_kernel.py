@@ -373,7 +373,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                     contact_factor(lane, lanes, m3, Dt, ddiag, fdiag, Gt, eta + rho)
                     its = int(0)
                     done = int(0)
-                    while its < max_iterations and done == 0:  # PADMM (ENGINE.md), every lane alike
+                    while its < max_iterations and done == 0:  # PADMM (engine.padmm's method), every lane alike
                         for r in range(lane, m3, lanes):
                             shift = float(0.0)  # De Saxce
                             if r % 3 == 0:
