@@ -13,6 +13,7 @@ from engine.fused import FUSED_MAX_ROWS, FUSED_REGISTERS, fused_fits
 from engine.health import far_flags
 from engine.config import MAXIMAL_RHO, SolverConfig
 from engine.model import Model, Workspace
+from engine.plan import ORDER, Coordinates, Plan, choose, fastest
 from engine.linalg.sparse_analysis import batch_schedule_cost, bilateral_factor_rows, build_patterns, make_system
 from engine.spec import JOINT_ROW_COUNT, JointType, MechanismSpec, joint_dynamics_rows
 
@@ -210,10 +211,10 @@ def pack(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | 
 
     Returns:
         the packed model for engine.step / engine.Stepper / engine.rollout: an engine.Model for
-        maximal coordinates, an engine.reduced.model.ReducedModel otherwise; both carry ``plan``.
+        maximal coordinates, an engine.reduced.model.ReducedModel for reduced ones, an
+        engine.grouped.GroupedModel (one of those per group) where the worlds admit different
+        coordinates; each carries ``plan``.
     """
-    from engine.plan import Coordinates, choose, describe_maximal, describe_reduced
-
     specs = _checked_specs(specs, "pack")
     config = config or SolverConfig()
     if not isinstance(config, SolverConfig):
@@ -228,7 +229,32 @@ def pack(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | 
     if contact_capacity is not None and not (integral and contact_capacity >= 0):
         raise ValueError(f"pack: contact_capacity must be a non-negative integer, got {contact_capacity!r}")
     device = wp.get_device(device)
-    plan, layouts = choose(specs, device, coordinates, contact_capacity)
+    if coordinates is not None:
+        plan, layouts = choose(specs, device, coordinates, contact_capacity)
+        return _pack_planned(specs, plan, layouts, device, config, dt, contact_capacity)
+    kinds, layouts, refused = fastest(specs, contact_capacity)
+    order = [kind for kind in ORDER if kind in kinds]
+    if len(order) == 1:
+        plan = Plan(order[0], len(specs), str(device), refused=refused)
+        return _pack_planned(specs, plan, None if order[0] is Coordinates.MAXIMAL else layouts, device, config, dt,
+                             contact_capacity)
+    from engine.grouped import GroupedModel, grouped_plan
+    groups = []
+    for kind in order:  # each group in the fastest coordinates its worlds admit
+        indices = [w for w, k in enumerate(kinds) if k is kind]
+        plan = Plan(kind, len(indices), str(device), refused=[(k, r) for k, r in refused if ORDER.index(k) <
+                                                                ORDER.index(kind)])
+        part = _pack_planned([specs[w] for w in indices], plan, None if kind is Coordinates.MAXIMAL else
+                             [layouts[w] for w in indices], device, config, dt, contact_capacity)
+        groups.append((indices, part))
+    plan = grouped_plan([part.plan for _, part in groups], [len(i) for i, _ in groups], device)
+    return GroupedModel(groups, specs, plan, config, dt, device)
+
+
+def _pack_planned(specs, plan, layouts, device, config, dt, contact_capacity):
+    """The packed model of ``plan`` (one kind of coordinates for every world of ``specs``)."""
+    from engine.plan import describe_maximal, describe_reduced
+
     if plan.coordinates is Coordinates.MAXIMAL:
         model = pack_worlds(specs, device, config=config, dt=dt, contact_capacity=contact_capacity)
         model.plan = describe_maximal(plan, model)

@@ -3,10 +3,10 @@
 The coordinates come first, fastest first: TABULATED (a floating base carrying one-DoF closed
 sub-chains, each link a tabulated function of its sub-chain's driving angle: 6 + L coordinates per
 world), TREE (one angle per joint of a spanning tree, every other joint a loop closed by rows) and
-MAXIMAL (six coordinates per body, every joint its rows). ``choose`` takes the first kind every
-world of the batch admits, so a batch never needs the user to know which path is fast; a caller
-may force one (benchmarks, tests) and gets one line naming the world and the reason when it does
-not fit. After packing, ``describe`` fills in what the chosen path decided from the batch and the
+MAXIMAL (six coordinates per body, every joint its rows). ``fastest`` finds each world's fastest
+kind, and engine.pack runs worlds of different kinds in groups (MIXED: engine.grouped), so a batch
+never needs the user to know which path is fast; a caller may force one kind (``choose``:
+benchmarks, tests) and gets one line naming the world and the reason when it does not fit. After packing, ``describe`` fills in what the chosen path decided from the batch and the
 device: kernel form, linear solver, the stages that run, launch shape and register cap, and the
 accuracy the plan stands for.
 """
@@ -27,9 +27,10 @@ class Coordinates(enum.Enum):
     TABULATED = "tabulated"  # floating base + one-DoF closed sub-chains read from tables of their driving angle
     TREE = "tree"  # spanning-tree joint angles (+ floating roots), loops closed by constraint rows
     MAXIMAL = "maximal"  # six coordinates per body, every joint a block of constraint rows
+    MIXED = "mixed"  # groups of worlds, each in the fastest coordinates its worlds admit (engine.grouped)
 
 
-ORDER = (Coordinates.TABULATED, Coordinates.TREE, Coordinates.MAXIMAL)
+ORDER = (Coordinates.TABULATED, Coordinates.TREE, Coordinates.MAXIMAL)  # MIXED is no kind of its own
 
 
 @dataclass
@@ -57,8 +58,15 @@ class Plan:
     integrator: str = ""
     control: str = ""
     accuracy: str = ""
+    groups: list = field(default_factory=list)  # MIXED: (worlds, Plan) per group
 
     def __str__(self) -> str:
+        if self.coordinates is Coordinates.MIXED:
+            head = (f"plan for {self.worlds} worlds on {self.device}: {len(self.groups)} groups, each in the "
+                    f"fastest coordinates its worlds admit")
+            parts = [head] + [f"group of {n} world{'s' if n != 1 else ''}: " + "\n  ".join(str(p).splitlines())
+                              for n, p in self.groups]
+            return "\n".join(parts)
         why = "forced by the caller" if self.forced else "the fastest kind every world admits"
         lines = [f"plan for {self.worlds} world{'s' if self.worlds != 1 else ''} on {self.device}: "
                  f"{self.coordinates.value} coordinates ({why})"]
@@ -143,6 +151,9 @@ def _quat_mul(a, b):
 
 
 def _coerce(coordinates) -> Coordinates | None:
+    if coordinates is Coordinates.MIXED or coordinates == "mixed":
+        raise ValueError("engine.pack: coordinates 'mixed' is what the plan chooses for a batch whose worlds "
+                         "differ; force one of 'tabulated', 'tree' or 'maximal', or leave it None")
     if coordinates is None or isinstance(coordinates, Coordinates):
         return coordinates
     try:
@@ -188,6 +199,38 @@ def choose(specs: list, device, coordinates=None, contact_capacity: int | None =
         else:
             return Plan(kind, len(specs), str(device), forced=forced is not None, refused=refused), layouts
     raise AssertionError("unreachable: MAXIMAL admits every world")
+
+
+def fastest(specs: list, contact_capacity: int | None = None) -> tuple[list, list, list]:
+    """Per world the fastest kind it admits, its layout there, and the refusals on the way
+    ((kind, 'world i (name): reason'), the first world per kind). A batch repeating one spec
+    object analyses it once."""
+    kinds, layouts, refused, seen, noted = [], [], [], {}, set()
+    for index, spec in enumerate(specs):
+        if id(spec) not in seen:
+            found = None
+            for kind in ORDER:
+                if kind is Coordinates.MAXIMAL:
+                    found = (kind, None, None)
+                    break
+                if kind is Coordinates.TABULATED and contact_capacity is not None:
+                    if kind not in noted:
+                        noted.add(kind)
+                        refused.append((kind, "contact_capacity was given: the tabulated path keeps one contact "
+                                              "slot per shape point of every world"))
+                    continue
+                try:
+                    found = (kind, _admits(kind, spec), None)
+                    break
+                except ValueError as exc:
+                    if kind not in noted:
+                        noted.add(kind)
+                        refused.append((kind, f"world {index} ({spec.name}): {exc}"))
+            seen[id(spec)] = found
+        kind, layout, _ = seen[id(spec)]
+        kinds.append(kind)
+        layouts.append(layout)
+    return kinds, layouts, refused
 
 
 def _rows(model) -> str:

@@ -16,6 +16,7 @@ from engine.health import Health, check_joints, note_residual
 from engine.joints import body_twist, joint_coordinate_row, joint_frames
 from engine.metrics import compute_metrics
 from engine.model import Control, Model, State
+from engine.grouped import GroupedModel, GroupedState, rollout_groups
 from engine.reduced.model import ReducedModel
 from engine.step import step
 
@@ -93,6 +94,15 @@ class Stepper:
         if chunk < 1:
             raise ValueError(f"Stepper: chunk must be >= 1, got {chunk}")
         self.model, self.control, self.chunk = model, control, chunk
+        self.grouped = isinstance(model, GroupedModel)  # a Stepper per group (engine.grouped)
+        if self.grouped:
+            if control is not None:
+                raise ValueError("Stepper: a batch planned in groups takes its drive targets from the specs and "
+                                 "has no Control; pack with coordinates='maximal' to drive it from one")
+            self._parts = [Stepper(part, part_state, None, chunk, capture=capture)
+                           for (_, part), part_state in zip(model.groups, state.parts)]
+            self.steps_done = 0
+            return
         self.reduced = isinstance(model, ReducedModel)  # steps one State in place (engine.reduced.model)
         self._buffers = [state] if self.reduced else [state, model.state()]
         self._current = 0
@@ -119,6 +129,8 @@ class Stepper:
     @property
     def state(self) -> State:
         """The state after the last step (the buffer the next step reads)."""
+        if self.grouped:
+            return GroupedState([part.state for part in self._parts])
         return self._buffers[self._current]
 
     def _run(self, start: int):
@@ -166,6 +178,11 @@ class Stepper:
 
     def advance(self) -> None:
         """Run one chunk of steps."""
+        if self.grouped:
+            for part in self._parts:
+                part.advance()
+            self.steps_done += self.chunk
+            return
         start = self._current
         if self.capture:
             if start not in self._graphs:
@@ -285,10 +302,15 @@ def rollout(model: Model, state: State, control: Control, steps: int, *, dt: flo
     """
     if steps < 0 or record_every < 1:
         raise ValueError(f"rollout: steps must be >= 0 and record_every >= 1, got {steps}, {record_every}")
-    if isinstance(model, ReducedModel):
+    if isinstance(model, (ReducedModel, GroupedModel)):
         if dt is not None and float(dt) != model.dt:
             raise ValueError(f"rollout: the {model.plan.coordinates.value} plan steps with the dt it was packed "
                              f"with ({model.dt:g} s); pack again for dt {dt:g} s")
+        if isinstance(model, GroupedModel):
+            if control is not None:
+                raise ValueError("rollout: a batch planned in groups takes its drive targets from the specs; pack "
+                                 "with coordinates='maximal' to drive it from a Control")
+            return rollout_groups(model, state, steps, record_every, halt, rollout)
         return _rollout_reduced(model, state, control, steps, record_every, halt)
     if dt is not None:
         model.set_dt(dt)

@@ -39,6 +39,7 @@ from engine.integrate import (
 from engine.joints import compute_joint_rows
 from engine.model import Control, Integrator, Model, State
 from engine.padmm import solve_padmm
+from engine.grouped import GroupedModel, step_groups
 from engine.reduced.model import ReducedModel
 
 __all__ = ["StageTimer", "detect_contacts", "step"]
@@ -121,6 +122,12 @@ def step(model: Model, state_in: State, state_out: State, control: Control | Non
             caller that does not read state_out (engine.rollout.Stepper inside a chunk) skips it;
             the joints of an unprojected state_out are open by the drift of half a step.
     """
+    if isinstance(model, GroupedModel):
+        if control is not None or dt is not None:
+            raise ValueError("step: a batch planned in groups takes its drive targets from the specs and keeps the "
+                             "dt it was packed with; pack with coordinates='maximal' for a Control or a changing dt")
+        step_groups(model, state_in, state_out, step)
+        return
     if isinstance(model, ReducedModel):
         if control is not None or dt is not None:
             raise ValueError(f"step: the {model.plan.coordinates.value} plan takes its drive targets from the specs "

@@ -212,3 +212,36 @@ def test_dr_legs_gets_the_tree_plan(standing):
     model = pack(dr_legs(standing).specs)
     assert model.plan.coordinates is Coordinates.TREE, str(model.plan)
     assert ("collision: runs" in str(model.plan)) == standing
+
+
+def test_worlds_that_admit_different_coordinates_run_in_groups_each_as_alone():
+    """A batch of a walker, two four-bars and a box stack: three groups (tabulated, tree, maximal),
+    the plan prints each; a grouped rollout gives every world the trace of its group's plan run
+    alone (the worlds never interact), in the batch's world order; step and Stepper run it too."""
+    walker = load_family("walker")
+    walk = walker.build_spec(walker.space.default())
+    four = make_scene("fourbar").spec
+    stack = CONTACT_SCENES["box_stack"]().spec
+    specs = [four, walk, stack, four]
+    model = pack(specs, dt=2e-3)
+    assert model.plan.coordinates is Coordinates.MIXED
+    text = str(model.plan)
+    assert text.startswith("plan for 4 worlds on cpu: 3 groups")
+    assert "group of 1 world: plan for 1 world on cpu: tabulated coordinates" in text
+    assert "group of 2 worlds: plan for 2 worlds on cpu: tree coordinates" in text
+    assert "group of 1 world: plan for 1 world on cpu: maximal coordinates" in text
+    trace, final = rollout(model, model.state(), None, 40, record_every=10)
+    assert trace.points.shape[:2] == (5, 4) and trace.point_names[1] == [p.name for p in walk.points]
+    for w, spec in enumerate(specs):
+        alone = pack([spec], dt=2e-3)
+        ref, _ = rollout(alone, alone.state(), None, 40, record_every=10)
+        P = len(spec.points)
+        np.testing.assert_array_equal(trace.points[:, w, :P], ref.points[:, 0, :P])
+        assert trace.health.reason(w) == ref.health.reason(0)
+    stepper = engine.Stepper(model, model.state(), chunk=10)
+    for _ in range(4):
+        stepper.advance()
+    for part, ours in zip(stepper.state.parts, final.parts):
+        np.testing.assert_array_equal(part.body_q.numpy(), ours.body_q.numpy())
+    with pytest.raises(ValueError, match="coordinates 'mixed' is what the plan chooses"):
+        pack(specs, coordinates="mixed")
