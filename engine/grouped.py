@@ -92,7 +92,11 @@ def rollout_groups(model: GroupedModel, state: GroupedState, steps: int, record_
     health = traces[0].health
     fields = {f.name: _scatter([getattr(t.health, f.name) for t in traces], groups, model.num_worlds, 0)
               for f in dataclasses.fields(Health) if isinstance(getattr(health, f.name), np.ndarray)}
-    health = dataclasses.replace(health, **fields)
+    detail = [""] * model.num_worlds  # which drive stopped a world, where a group's plan knows
+    for t, (indices, _) in zip(traces, groups):
+        for k, w in enumerate(indices):
+            detail[w] = (t.health.effort_detail or [""] * len(indices))[k]
+    health = dataclasses.replace(health, **fields, effort_detail=detail)
     trace = dataclasses.replace(traces[0], **merged, health=health, point_names=model.point_names,
                                 diverged=_scatter([t.diverged for t in traces], groups, model.num_worlds, 0),
                                 halted_at=_scatter([t.halted_at for t in traces], groups, model.num_worlds, 0))

@@ -110,6 +110,7 @@ class Health:
     angular_tolerance: float
     residual_threshold: float
     max_speed: float
+    effort_detail: list | None = None  # per world: which drive passed its limit ('' or None: not known)
 
     @property
     def ok(self) -> np.ndarray:
@@ -131,7 +132,8 @@ class Health:
         if bits & DIVERGED:  # the other flags follow from it
             return "; ".join(parts)
         if bits & EFFORT_LIMIT:
-            parts.append("effort limit: a drive's torque passed its effort limit, so the world stopped there")
+            detail = self.effort_detail[world] if self.effort_detail else ""
+            parts.append(f"effort limit: {detail or 'a drive'} passed its effort limit, so the world stopped there")
             return "; ".join(parts)
         if bits & JOINTS_OPEN:
             linear, angular = float(self.linear_max[world]), float(self.angular_max[world])

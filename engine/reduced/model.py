@@ -125,7 +125,12 @@ class ReducedModel:
                       extent=np.asarray(extent, float), mass_ratio=np.asarray(ratio, float),
                       joint_tolerance=float(cfg.health_joint_tolerance),
                       angular_tolerance=float(cfg.health_angular_tolerance),
-                      residual_threshold=float(cfg.health_residual), max_speed=float(cfg.max_speed))
+                      residual_threshold=float(cfg.health_residual), max_speed=float(cfg.max_speed),
+                      effort_detail=self.effort_detail(codes))
+
+    def effort_detail(self, codes: np.ndarray) -> list:
+        """Per world stopped at a drive's effort limit, which drive (the health reason names it)."""
+        return [""] * self.num_worlds
 
     def step(self, state_in: ReducedState, state_out: ReducedState) -> None:
         """One step from state_in into state_out (in place when they are one State)."""
@@ -182,6 +187,7 @@ class TreeModel(ReducedModel):
         return ReducedState(self, self.inner.state())
 
     def advance(self, state: ReducedState, steps: int) -> None:
+        self._last = state.inner
         for _ in range(steps):
             self.inner.step(state.inner)
 
@@ -209,6 +215,24 @@ class TreeModel(ReducedModel):
 
     def iterations(self) -> np.ndarray:
         return self.inner.work.iterations.numpy().copy()
+
+    def effort_detail(self, codes: np.ndarray) -> list:
+        """The drive whose law, at the state the world stopped in, is furthest past its limit."""
+        out = [""] * self.num_worlds
+        if not (codes == 2).any():
+            return out
+        a = self.inner.arrays
+        kd, vt, kp, qt = (getattr(a, k).numpy() for k in ("kd", "v_target", "kp", "q_target"))
+        q, u, effort = self._last.q.numpy(), self._last.u.numpy(), a.effort.numpy()
+        for w, k, j in self._drives:
+            if codes[w] != 2:
+                continue
+            torque = kp[w, k] * (qt[w, k] - q[w, k]) + kd[w, k] * (vt[w, k] - u[w, k])
+            ratio = abs(torque) / max(float(effort[w, k]), 1e-30)
+            if not out[w] or ratio > out[w][0]:
+                name = self.specs[w].joints[j].name
+                out[w] = (ratio, f"the drive of joint '{name}' ({float(effort[w, k]):g} N m)")
+        return [d[1] if d else "" for d in out]
 
     def failure_codes(self) -> np.ndarray:
         codes = self.inner.work.diverged.numpy().copy()
