@@ -205,9 +205,9 @@ def _say_plan(name: str, plan, first: bool) -> None:
     if plan is None:
         return
     if is_verbose():
-        print(f"{name}: {plan}", file=sys.stderr)
+        tqdm.write(f"{name}: {plan}", file=sys.stderr)  # above the progress bars, not inside them
     elif first:
-        print(f"{name}: {str(plan).splitlines()[0]}", file=sys.stderr)
+        tqdm.write(f"{name}: {str(plan).splitlines()[0]}", file=sys.stderr)
 
 
 def family_digest(family) -> str:
