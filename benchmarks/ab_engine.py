@@ -57,6 +57,17 @@ ROWS = {
 }
 
 
+def _commit(root: str) -> str:
+    """The checkout's commit (no machine path in a result file), or 'unknown'."""
+    import subprocess
+
+    try:
+        return subprocess.run(["git", "-C", root, "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown (not a git checkout)"
+
+
 def _planned(engine) -> bool:
     """Whether the commit has engine.pack() (before it, engine.pack was the maximal packer's module)."""
     return callable(getattr(engine, "pack", None))
@@ -177,7 +188,7 @@ def main(argv=None) -> None:
         parser.error(f"--root {root}: this checkout has no engine.pack (before commit a7a4708); measure it with "
                      f"the ab_engine.py of commit 34ad379")
     wp.config.quiet = True
-    result = {"root": root, "device": wp.get_device(args.device).name, "worlds": args.worlds, "rows": []}
+    result = {"root": _commit(root), "device": wp.get_device(args.device).name, "worlds": args.worlds, "rows": []}
     for scene in args.scenes:
         declared = SCENES_DECLARED[scene]
         try:

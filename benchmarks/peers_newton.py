@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from engine.pack import _rotate  # row-wise rotation of (N, 3) vectors by (N, 4) quaternions (x, y, z, w)
+from engine.spatial import rotate as _rotate  # (N, 3) vectors by (N, 4) quaternions (x, y, z, w)
 
 __all__ = ["available", "joint_parameters", "newton_drlegs_run"]
 

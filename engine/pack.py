@@ -15,6 +15,7 @@ from engine.config import MAXIMAL_RHO, SolverConfig
 from engine.model import Model, Workspace
 from engine.plan import ORDER, Coordinates, Plan, choose, fastest
 from engine.linalg.sparse_analysis import batch_schedule_cost, bilateral_factor_rows, build_patterns, make_system
+from engine.spatial import rotate
 from engine.spec import JOINT_ROW_COUNT, JointType, MechanismSpec, joint_dynamics_rows
 
 __all__ = ["MAX_DENSE_ROWS", "dense_rows_needed", "pack", "pack_worlds"]
@@ -30,18 +31,6 @@ ROW_KINDS = {  # bilateral row kinds per joint type: 0 linear [m], 1 angular [ra
 }
 ROW_TILE = 8  # the padded row count is a multiple of this (tile size of the Delassus matrix)
 MAX_DENSE_ROWS = 144  # largest per-world Delassus tile the dense solver factors in on-chip memory
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of (N, 3) arrays (np.cross's arithmetic, without its axis handling)."""
-    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
-
-
-def _rotate(quat: np.ndarray, vec: np.ndarray) -> np.ndarray:
-    """Rotate each row of vec (N, 3) by the unit quaternion (x, y, z, w) in the same row of quat (N, 4)."""
-    u, s = quat[:, :3], quat[:, 3:]
-    return vec + 2.0 * _cross(u, _cross(u, vec) + s * vec)
 
 
 def collision_pairs(spec: MechanismSpec) -> list[tuple[int, int]]:
@@ -396,7 +385,7 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     mass = np.array([body.mass for body in bodies], float)
     inertia = np.array([body.inertia for body in bodies], float)
     orientation = np.array([body.orientation for body in bodies], float)
-    com_world = np.array([body.position for body in bodies], float) + _rotate(
+    com_world = np.array([body.position for body in bodies], float) + rotate(
         orientation, np.array([body.com for body in bodies], float))
     h["body_mass"][at] = mass
     h["body_inv_mass"][at] = 1.0 / mass

@@ -14,9 +14,11 @@ accuracy the plan stands for.
 from __future__ import annotations
 
 import enum
+from dataclasses import dataclass, field
 
 import numpy as np
-from dataclasses import dataclass, field
+
+from engine.spatial import rotate
 
 __all__ = ["Coordinates", "Plan", "choose"]
 
@@ -103,12 +105,6 @@ def _admits(kind: Coordinates, spec):
     return None
 
 
-def _quat_rotate(q, v):
-    u, w = np.asarray(q[:3], float), float(q[3])
-    v = np.asarray(v, float)
-    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
-
-
 def _effort_limits_clear(spec) -> None:
     """ValueError where a velocity drive starts past its effort limit: the tree path checks effort
     limits without enforcing them (a world whose drive passes its limit stops), so a drive whose
@@ -121,8 +117,9 @@ def _effort_limits_clear(spec) -> None:
             continue
         child = spec.bodies[bodies[joint.child]]
         parent = None if joint.parent is None else spec.bodies[bodies[joint.parent]]
-        frame = joint.parent_orientation if parent is None else _quat_mul(parent.orientation, joint.parent_orientation)
-        axis = _quat_rotate(frame, joint.axis)
+        axis = rotate(np.asarray(joint.parent_orientation, float), np.asarray(joint.axis, float))
+        if parent is not None:
+            axis = rotate(np.asarray(parent.orientation, float), axis)
         rate = np.asarray(child.angular_velocity, float) - (0.0 if parent is None else
                                                             np.asarray(parent.angular_velocity, float))
         torque = drive.damping * abs(drive.target_velocity - float(axis @ rate))
@@ -143,11 +140,6 @@ def _near_the_origin(spec) -> None:
     if far > TREE_EXTENT:
         raise ValueError(f"it lies {far:.3g} m from the origin; the tree path keeps float32 positions without "
                          f"compensation and is used within {TREE_EXTENT:g} m")
-
-
-def _quat_mul(a, b):
-    av, aw, bv, bw = np.asarray(a[:3], float), float(a[3]), np.asarray(b[:3], float), float(b[3])
-    return np.concatenate([aw * bv + bw * av + np.cross(av, bv), [aw * bw - av @ bv]])
 
 
 def _coerce(coordinates) -> Coordinates | None:

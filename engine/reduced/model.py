@@ -11,6 +11,8 @@ closure is measured, never assumed. Drive torques come from the plan's own drive
 
 from __future__ import annotations
 
+import abc
+
 import numpy as np
 import warp as wp
 
@@ -40,7 +42,7 @@ class ReducedState:
         return self._model._bodies(self)[1]
 
 
-class ReducedModel:
+class ReducedModel(abc.ABC):
     """A packed batch in reduced coordinates (engine.pack chose them; ``plan`` says which and why).
 
     num_worlds, device, dt [s], config, specs, point_names, joint_names, plan; state() a new State at
@@ -71,36 +73,37 @@ class ReducedModel:
         return self._gauge
 
     # -- what a plan implements ------------------------------------------------------------------
+    @abc.abstractmethod
     def state(self) -> ReducedState:
         """A State at the specs' initial poses (every world running again)."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def advance(self, state: ReducedState, steps: int) -> None:
         """``steps`` steps of ``state`` in place (capturable: no host work, no allocation)."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def copy_state(self, source: ReducedState, target: ReducedState) -> None:
         """Copy ``source``'s coordinates into ``target``."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def _bodies(self, state: ReducedState) -> tuple:
-        raise NotImplementedError
+        """(body_q, body_qd) device arrays of the state."""
 
+    @abc.abstractmethod
     def drive_torque(self, state: ReducedState) -> np.ndarray:
         """(W, J) every joint drive's torque [N m] (force [N]) at the state; 0 for undriven joints."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def iterations(self) -> np.ndarray:
         """(W,) PADMM iterations of the last step."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def failure_codes(self) -> np.ndarray:
         """(W,) 0 running or halted, 1 diverged, 2 a drive past its effort limit (the world stopped)."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def set_halted(self, halted: np.ndarray) -> None:
         """Freeze the worlds marked (W,) bool: they keep their state and cost no solver work."""
-        raise NotImplementedError
 
     def pack_facts(self) -> tuple:
         """Per world the largest coordinate magnitude [m] and jointed-mass ratio (engine.health's
