@@ -400,8 +400,9 @@ def _rollout_reduced(model: ReducedModel, state, control, steps: int, record_eve
                 halted_at[new] = times[-1]
                 model.set_halted(halted)
     stacked = {name: np.stack(values) for name, values in records.items()}
-    health = model.health(np.nanmax(np.where(np.isfinite(stacked["violation_linear"]), stacked["violation_linear"], np.inf), axis=0),
-                          np.nanmax(np.where(np.isfinite(stacked["violation_angular"]), stacked["violation_angular"], np.inf), axis=0))
+    worst = {k: np.where(np.isfinite(stacked[k]), stacked[k], np.inf).max(axis=0)  # non-finite: fully open
+             for k in ("violation_linear", "violation_angular")}
+    health = model.health(worst["violation_linear"], worst["violation_angular"])
     trace = Trace(time=np.asarray(times), **stacked, diverged=model.failure_codes() == 1,
                   point_names=model.point_names, halted_at=halted_at, health=health)
     return trace, stepper.state
