@@ -204,19 +204,7 @@ def pack(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | 
         engine.grouped.GroupedModel (one of those per group) where the worlds admit different
         coordinates; each carries ``plan``.
     """
-    specs = _checked_specs(specs, "pack")
-    config = config or SolverConfig()
-    if not isinstance(config, SolverConfig):
-        raise ValueError(f"pack: config must be a SolverConfig, got {type(config).__name__}")
-    try:
-        dt_ok = not isinstance(dt, bool) and math.isfinite(float(dt)) and float(dt) > 0.0
-    except (TypeError, ValueError):
-        dt_ok = False
-    if not dt_ok:
-        raise ValueError(f"pack: dt must be a positive number of seconds, got {dt!r}")
-    integral = isinstance(contact_capacity, (int, np.integer)) and not isinstance(contact_capacity, bool)
-    if contact_capacity is not None and not (integral and contact_capacity >= 0):
-        raise ValueError(f"pack: contact_capacity must be a non-negative integer, got {contact_capacity!r}")
+    specs, config = _checked_arguments("pack", specs, config, dt, contact_capacity, "a positive number of seconds")
     device = wp.get_device(device)
     if coordinates is not None:
         plan, layouts = choose(specs, device, coordinates, contact_capacity)
@@ -262,7 +250,9 @@ def _pack_planned(specs, plan, layouts, device, config, dt, contact_capacity):
     return model
 
 
-def _checked_specs(specs, who: str) -> list:
+def _checked_arguments(who: str, specs, config, dt, contact_capacity, dt_rule: str) -> tuple[list, SolverConfig]:
+    """``specs`` as a list and ``config`` (default settings when None), after checking them, ``dt``
+    (``dt_rule`` says what it must be) and ``contact_capacity``: ValueError naming ``who``."""
     if isinstance(specs, (MechanismSpec, str, bytes)) or not hasattr(specs, "__iter__"):
         raise ValueError(f"{who}: specs must be a list of MechanismSpec, got {type(specs).__name__}")
     specs = list(specs)
@@ -271,7 +261,19 @@ def _checked_specs(specs, who: str) -> list:
     for index, spec in enumerate(specs):
         if not isinstance(spec, MechanismSpec):
             raise ValueError(f"{who}: world {index} is a {type(spec).__name__}, expected MechanismSpec")
-    return specs
+    config = config or SolverConfig()
+    if not isinstance(config, SolverConfig):
+        raise ValueError(f"{who}: config must be a SolverConfig, got {type(config).__name__}")
+    try:
+        dt_ok = not isinstance(dt, bool) and math.isfinite(float(dt)) and float(dt) > 0.0
+    except (TypeError, ValueError):
+        dt_ok = False
+    if not dt_ok:
+        raise ValueError(f"{who}: dt must be {dt_rule}, got {dt!r}")
+    integral = isinstance(contact_capacity, (int, np.integer)) and not isinstance(contact_capacity, bool)
+    if contact_capacity is not None and not (integral and contact_capacity >= 0):
+        raise ValueError(f"{who}: contact_capacity must be a non-negative integer, got {contact_capacity!r}")
+    return specs, config
 
 
 def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | None = None,
@@ -287,24 +289,15 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         contact_capacity: contacts kept per world and step; None = the smaller of what the
             world's shape pairs can produce and 4 per shape + 8. A world that produces more is
             counted in model.work.contact_dropped (never silently wrong, never a crash).
-
         measure_only: a model that only measures states of these worlds (joint residuals, energy,
             tracked points: a reduced plan's gauge): no solver set-up (no sparse factor schedule).
 
     Returns:
         Model with arrays of shape (num_worlds, max_X) and per-world counts.
     """
-    specs = _checked_specs(specs, "pack_worlds")
-    config = config or SolverConfig()
-    if not isinstance(config, SolverConfig):
-        raise ValueError(f"pack_worlds: config must be a SolverConfig, got {type(config).__name__}")
+    specs, config = _checked_arguments("pack_worlds", specs, config, dt, contact_capacity,
+                                       "a positive finite time step [s]")
     tuning = config.tuning
-    try:
-        dt_ok = not isinstance(dt, bool) and math.isfinite(float(dt)) and float(dt) > 0.0
-    except (TypeError, ValueError):
-        dt_ok = False
-    if not dt_ok:
-        raise ValueError(f"pack_worlds: dt must be a positive finite time step [s], got {dt!r}")
     try:
         device = wp.get_device(device)
     except (RuntimeError, ValueError) as exc:  # Warp: unknown identifier, or CUDA not available
@@ -314,9 +307,6 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     max_bodies = max(len(s.bodies) for s in specs)
     max_joints = max(1, max(len(s.joints) for s in specs))
     max_points = max(1, max(len(s.points) for s in specs))
-    integral = isinstance(contact_capacity, (int, np.integer)) and not isinstance(contact_capacity, bool)
-    if contact_capacity is not None and not (integral and contact_capacity >= 0):
-        raise ValueError(f"pack_worlds: contact_capacity must be a non-negative integer, got {contact_capacity!r}")
     pairs = [collision_pairs(s) for s in specs]
     worst = [contact_worst_case(s, p) for s, p in zip(specs, pairs)]
     if contact_capacity is None:

@@ -1,14 +1,13 @@
 """The plan: every choice engine.pack makes for a batch, and why, in one printable object.
 
-The coordinates come first, fastest first: TABULATED (a floating base carrying one-DoF closed
-sub-chains, each link a tabulated function of its sub-chain's driving angle: 6 + L coordinates per
-world), TREE (one angle per joint of a spanning tree, every other joint a loop closed by rows) and
-MAXIMAL (six coordinates per body, every joint its rows). ``fastest`` finds each world's fastest
-kind, and engine.pack runs worlds of different kinds in groups (MIXED: engine.grouped), so a batch
-never needs the user to know which path is fast; a caller may force one kind (``choose``:
-benchmarks, tests) and gets one line naming the world and the reason when it does not fit. After packing, ``describe`` fills in what the chosen path decided from the batch and the
-device: kernel form, linear solver, the stages that run, launch shape and register cap, and the
-accuracy the plan stands for.
+The coordinates, fastest first: TABULATED (a floating base carrying one-DoF closed sub-chains,
+each link a tabulated function of its sub-chain's driving angle: 6 + L coordinates per world),
+TREE (one angle per joint of a spanning tree, every other joint a loop closed by rows) and MAXIMAL
+(six coordinates per body, every joint its rows). ``fastest`` finds each world's fastest kind and
+engine.pack runs worlds of different kinds in groups (MIXED: engine.grouped), so the user never
+needs to know which path is fast; ``choose`` forces one kind (benchmarks, tests) and names the
+world and the reason when it does not fit. After packing, describe_maximal / describe_reduced fill
+in what the path decided: kernel, linear solver, stages, launch shape, register cap and accuracy.
 """
 
 from __future__ import annotations
@@ -18,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from engine.config import Integrator
 from engine.spatial import rotate
 
 __all__ = ["Coordinates", "Plan", "choose"]
@@ -33,6 +33,9 @@ class Coordinates(enum.Enum):
 
 
 ORDER = (Coordinates.TABULATED, Coordinates.TREE, Coordinates.MAXIMAL)  # MIXED is no kind of its own
+# why a batch packed with a contact_capacity is not tabulated
+CAPACITY_NOT_TABULATED = ("contact_capacity was given: the tabulated path keeps one contact slot per shape point "
+                          "of every world")
 
 
 @dataclass
@@ -129,7 +132,7 @@ def _effort_limits_clear(spec) -> None:
 
 
 # farthest a tree world may lie from the origin [m]: the tree path keeps float32 positions without
-# the maximal path's compensated state; a four-bar diverged from 500 m on and ran at 300 m (CPU)
+# compensation (a four-bar diverged from 500 m on, CPU)
 TREE_EXTENT = 100.0
 
 
@@ -168,11 +171,9 @@ def choose(specs: list, device, coordinates=None, contact_capacity: int | None =
     refused = []
     for kind in ([forced] if forced is not None else ORDER):
         if kind is Coordinates.TABULATED and contact_capacity is not None:
-            reason = ("contact_capacity was given: the tabulated path keeps one contact slot per shape point of "
-                      "every world")
             if forced is not None:
-                raise ValueError(f"engine.pack: coordinates 'tabulated' do not fit: {reason}")
-            refused.append((kind, reason))
+                raise ValueError(f"engine.pack: coordinates 'tabulated' do not fit: {CAPACITY_NOT_TABULATED}")
+            refused.append((kind, CAPACITY_NOT_TABULATED))
             continue
         if kind is Coordinates.MAXIMAL:
             return Plan(kind, len(specs), str(device), forced=forced is not None, refused=refused), None
@@ -203,23 +204,22 @@ def fastest(specs: list, contact_capacity: int | None = None) -> tuple[list, lis
             found = None
             for kind in ORDER:
                 if kind is Coordinates.MAXIMAL:
-                    found = (kind, None, None)
+                    found = (kind, None)
                     break
                 if kind is Coordinates.TABULATED and contact_capacity is not None:
                     if kind not in noted:
                         noted.add(kind)
-                        refused.append((kind, "contact_capacity was given: the tabulated path keeps one contact "
-                                              "slot per shape point of every world"))
+                        refused.append((kind, CAPACITY_NOT_TABULATED))
                     continue
                 try:
-                    found = (kind, _admits(kind, spec), None)
+                    found = (kind, _admits(kind, spec))
                     break
                 except ValueError as exc:
                     if kind not in noted:
                         noted.add(kind)
                         refused.append((kind, f"world {index} ({spec.name}): {exc}"))
             seen[id(spec)] = found
-        kind, layout, _ = seen[id(spec)]
+        kind, layout = seen[id(spec)]
         kinds.append(kind)
         layouts.append(layout)
     return kinds, layouts, refused
@@ -229,10 +229,13 @@ def _rows(model) -> str:
     return f"{model.max_rows} rows per world (padded)"
 
 
+def _integrator(config) -> str:
+    return "Moreau-Jean midpoint" if config.integrator is Integrator.MOREAU_JEAN else "semi-implicit Euler"
+
+
 def describe_maximal(plan: Plan, model) -> Plan:
     """Fill ``plan`` from a packed maximal Model (engine.pack_worlds's choices)."""
     from engine.fused import FUSED_MAX_ROWS, fused_block, fused_inverse, sharing_used
-    from engine.model import Integrator
     from engine.pack import MAX_DENSE_ROWS
 
     cfg, device = model.config, model.device
@@ -264,17 +267,11 @@ def describe_maximal(plan: Plan, model) -> Plan:
                                 f"{cfg.position_iterations} Gauss-Newton iterations" if model.has_bilateral_rows
                                 else "no bilateral joint rows"),
     }
-    plan.integrator = ("Moreau-Jean midpoint" if cfg.integrator is Integrator.MOREAU_JEAN
-                       else "semi-implicit Euler")
+    plan.integrator = _integrator(cfg)
     plan.control = "engine.Control: drive targets, efforts and body wrenches per step"
     plan.accuracy = ("joints held by constraint rows and a position projection; violations measured per record "
                      "(Trace.violation_*, Trace.health)")
     return plan
-
-
-def _integrator(config) -> str:
-    from engine.model import Integrator
-    return "Moreau-Jean midpoint" if config.integrator is Integrator.MOREAU_JEAN else "semi-implicit Euler"
 
 
 def describe_reduced(plan: Plan, model) -> Plan:
