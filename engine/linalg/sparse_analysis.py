@@ -2,34 +2,27 @@
 analysed once into the factor's pattern and the schedules that the device kernels
 (engine.linalg.sparse) follow.
 
-In maximal coordinates two constraint rows couple only when they act on a common body, so the
-preconditioned Delassus matrix P D P of a linkage is sparse, and so is its Cholesky factor in a
-minimum-degree order; a solve with it is exact.
+Why sparse: in maximal coordinates two constraint rows couple only when they act on a common
+body, so the preconditioned Delassus matrix P D P of a linkage and its Cholesky factor in a
+minimum-degree order are sparse; a solve with it is exact.
 
-Contacts: a contact row's bodies change from step to step but always belong to one collision pair,
-and each pair has four candidate slots (engine.collide), so the factor has three rows for every
-candidate slot of every pair (slots a pair never fills are padding); each step
-engine.linalg.sparse.prepare records which of the step's compacted rows each factor row stands
-for (-1: unused, the identity).
+Contacts: each collision pair has four candidate slots (engine.collide), so the factor keeps three
+rows for every slot of every pair (slots a pair never fills are padding); each step
+engine.linalg.sparse.prepare records which compacted row each factor row stands for (-1: unused,
+the identity).
 
-Bodies as nodes: a body with many rows (a walker's body carrying six linkages has 72) couples all
-of them into one dense block of the factor, each column its own level. It can instead enter as six nodes of its
-own: with U = P J R (R R^T = M^-1 of those bodies) the augmented matrix [[A, U], [U^T, -I]] has
-the Schur complement A + U U^T = P D P and is quasi-definite, so an L S L^T factor (S = -1 on the
-body nodes) exists in any order, and its rows couple only through a star (``choose_body_nodes``
-keeps the bodies that shorten the estimated schedule).
+Bodies as nodes: a body with many rows couples them all into one dense block of the factor. It
+can instead enter as six nodes of its own: with U = P J R (R R^T = M^-1 of those bodies) the
+augmented matrix [[A, U], [U^T, -I]] has the Schur complement A + U U^T = P D P and is
+quasi-definite, so an L S L^T factor (S = -1 on the body nodes) exists in any order, and its rows
+couple only through a star (``choose_body_nodes`` keeps the bodies that shorten the schedule).
 
-``analyze`` computes the elimination order (minimum degree, optionally weighted by the tree's
-height: ``shallowest``, Tuning.sparse_ordering), the elimination tree, the factor's pattern and
-the device's schedules: entries grouped by levels of the tree (a column's level is one more than
-its children's highest; a level's columns are computed at once); per factor entry L_ij the
-products (L_ik, L_jk), k < j, it subtracts (left-looking); per row of L its entries left of the
-diagonal and per column those below (the substitutions); supernode blocks (``supernodes``: chains
-of the tree whose block of the factor is dense, such as a joint's five rows) and their levels
-(``factor_blocks``, ``solve_blocks``); per level and phase whether each lane takes its own items
-or the warp shares each one (``group_shift``); per matrix entry the Jacobians it needs
-(``matrix_recipe``). Worlds of one topology share one analysis (``SparsePatterns``); only the
-factor's values are per world (``SparseSystem``). The measurements behind these choices:
+``analyze`` gives the elimination order, the elimination tree, the factor's pattern, its levels (a
+column's level is one more than its children's highest; a level's columns are computed at once),
+the left-looking products and the substitutions' lists; ``supernodes``, ``factor_blocks`` and
+``solve_blocks`` schedule dense chains of the tree as blocks; ``matrix_recipe`` says which
+Jacobians each matrix entry needs. Worlds of one topology share one analysis (``SparsePatterns``);
+only the factor's values are per world (``SparseSystem``). The measurements behind these choices:
 benchmarks/results/README.md, "Maximal path: design notes".
 """
 
@@ -143,9 +136,9 @@ def analyze(row_body_c: np.ndarray, row_body_p: np.ndarray, body_nodes=(), nodes
     (row_body_c, row_body_p: the bodies of every row, -1 for the world frame; a row with no body
     at all is a padding row, the identity).
 
-    body_nodes: bodies that enter as six nodes each instead of coupling their rows with each other
-    (the module docstring; negative pivots on those nodes). nodes: pad with identity nodes up to this many (every analysis of a batch has as many).
-    blocks: add the supernode schedules of the device (with_blocks; off for trial analyses whose
+    body_nodes: bodies that enter as six nodes each (the module docstring; negative pivots).
+    nodes: pad with identity nodes up to this many (every analysis of a batch has as many).
+    blocks: add the device's supernode schedules (with_blocks; off for trial analyses whose
     estimated cost alone is wanted). height_weight: of the elimination order (minimum_degree)."""
     rows = len(row_body_c)
     body_nodes = tuple(int(b) for b in body_nodes)
@@ -266,9 +259,8 @@ def analyze(row_body_c: np.ndarray, row_body_p: np.ndarray, body_nodes=(), nodes
         diagonals = level_diag_end[level] - first  # the factor's lanes take each part in order of its products
         by_products = np.concatenate([np.sort(counts[first:first + diagonals])[::-1],
                                       np.sort(counts[first + diagonals:end])[::-1]])
-        # the factor's and the substitutions' steps are estimated column by column, as before the
-        # supernode blocks (factor_blocks, solve_blocks): the body nodes and projection patterns
-        # chosen with this estimate are the measured ones
+        # steps are estimated column by column, not by supernode blocks: the body nodes and
+        # projection patterns were measured as chosen with this estimate
         phases = (by_products, row_counts[members], (col_end - col_begin)[members])
         for phase, lengths in enumerate(phases):
             shift, cost = group_shift(lengths, with_cost=True)
@@ -334,11 +326,11 @@ def solve_blocks(a: Analysis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     (from L_rows, a lane per row or the warp per row), then a lane per block substitutes the
     block's triangle row by row (its rows' last entries); backward, each row subtracts its
     column's entries below the block, then a lane per block substitutes the block's triangle
-    column by column (its columns' first entries). Returns the records (one per position, in level order, BLOCK_RECORD
-    ints: position, block size T, member index t, the forward gather's range in row_entry (the
-    block's own entries follow it), the backward's in the column's entries (they precede it)),
-    the levels (first record, records, mode: log2 of the lanes sharing a gather, forward and
-    backward; first block, blocks) and each block's first record."""
+    column by column (its columns' first entries). Returns the records (one per position, in level
+    order, BLOCK_RECORD ints: position, block size T, member index t, the forward gather's range in
+    row_entry (the block's own entries follow it), the backward's in the column's entries (they
+    precede it)), the levels (first record, records, mode: log2 of the lanes sharing a gather,
+    forward and backward; first block, blocks) and each block's first record."""
     blocks, level = supernodes(a)
     levels = int(level.max()) + 1 if len(blocks) else 0
     records, block_first = [], []
@@ -422,30 +414,27 @@ def blocks_together(records: np.ndarray, firsts) -> bool:
     return together < apart
 
 
-# Dependent steps a level of columns costs besides its sums, per phase (factor: level bounds, the slot record
-# (entry and update range), the entry's value, the division pass and two barriers; a substitution:
-# level bounds, the diagonal's record, one barrier), and solves per factor in a step (PADMM
-# iterations between penalty updates, plus the projections): the weights of schedule_cost.
+# dependent steps a level of columns costs besides its sums, per phase (factor, forward, backward):
+# its loads of level bounds and records, the factor's division pass, and barriers
 LEVEL_STEPS = (8, 5, 5)
 BLOCK_ROWS = 32  # most members of a supernode (supernodes): its rows' products take a lane each
 BLOCK_RECORD = 7  # ints per position in the solves' supernode schedule (solve_blocks)
 BLOCK_LEVEL = 5  # ints per level of it
 FACTOR_LEVEL = 7  # ints per level of the factor's schedule by blocks (factor_blocks)
 TOGETHER_BIT = wp.constant(9)  # of a level's mode in factor_blocks' plan: the warp factors its blocks together
-# Dependent steps a warp barrier costs in blocks_together's estimate (at 1 DR Legs standing's last five
-# levels and hanging's last four go together; against 5 and never: benchmarks/results/README.md).
+# dependent steps a warp barrier costs in blocks_together's estimate (measured against 5 and never:
+# benchmarks/results/README.md, "Maximal path: design notes")
 BARRIER_STEPS = 1
-SOLVES_PER_FACTOR = 4
+SOLVES_PER_FACTOR = 4  # solves per factor in a step (PADMM iterations between penalty updates, projections)
 BODY_NODE_ROWS = 12  # a body acted on by fewer rows never gains from nodes of its own (six of them)
-# Candidate bodies (most rows first) tried per topology, and the share of the plain schedule's
+# candidate bodies (most rows first) tried per topology, and the share of the plain schedule's
 # estimated cost below which the chosen set is used: the estimate favours body nodes, so the set
-# must save a fifth (benchmarks/results/README.md, "Maximal path: design notes").
+# must save a fifth (benchmarks/results/README.md, "Maximal path: design notes")
 BODY_NODE_TRIES = 16
 BODY_NODE_MISSES = 4  # ... ending early after this many in a row that did not shorten it
 BODY_NODE_GAIN = 0.8
-# Height weights of the elimination orders that Tuning.sparse_ordering="shallow" tries besides
-# plain minimum degree (minimum_degree, shallowest; their estimates: benchmarks/results/README.md,
-# "Engine design notes (moved from the code)").
+# height weights that Tuning.sparse_ordering="shallow" tries besides plain minimum degree (their
+# estimates: benchmarks/results/README.md, "Engine design notes (moved from the code)")
 HEIGHT_WEIGHTS = (0.25, 0.5, 1.0, 2.0)
 
 
@@ -498,8 +487,8 @@ def group_shift(lengths, with_cost: bool = False):
     """log2 of the lanes that share each item of a level (0: each lane takes its own items; 5: the
     warp takes the items one after the other), whichever has the shorter chain of dependent
     steps: items go round robin to 32 / g groups of g lanes, each spending ceil(length / g) steps
-    per item plus log2(g) + 1 for its sum (shuffles counted two or three times made the native
-    solves slower: benchmarks/results/README.md)."""
+    per item plus log2(g) + 1 for its sum (benchmarks/results/README.md, "Maximal path: design
+    notes")."""
     lengths = np.asarray(lengths, np.int64)
     if len(lengths) == 0:
         return (0, 0) if with_cost else 0
@@ -557,17 +546,24 @@ def solve_schedule(a: Analysis, levels: int, nodes: int, row_entries: int, entri
     - per block in level order: its first record (at most ``nodes`` blocks);
     - row_col (the column of each entry left of a diagonal, row by row);
     - entry_i (the row of each entry)."""
-    blob = np.zeros(BLOCK_LEVEL * levels + (BLOCK_RECORD + 1) * nodes + row_entries + entries, np.int32)
+    records, firsts, row, entry, size = blob_layout(levels, nodes, row_entries, entries)
+    blob = np.zeros(size, np.int32)
     blob[:a.block_levels.size] = a.block_levels.reshape(-1)
-    o = BLOCK_LEVEL * levels
-    blob[o:o + a.block_records.size] = a.block_records.reshape(-1)
-    o += BLOCK_RECORD * nodes
-    blob[o:o + len(a.block_first)] = a.block_first
-    o += nodes
-    blob[o:o + len(a.row_col)] = a.row_col
-    o += row_entries
-    blob[o:o + a.entries] = a.entry_i
+    blob[records:records + a.block_records.size] = a.block_records.reshape(-1)
+    blob[firsts:firsts + len(a.block_first)] = a.block_first
+    blob[row:row + len(a.row_col)] = a.row_col
+    blob[entry:entry + a.entries] = a.entry_i
     return blob
+
+
+def blob_layout(levels: int, nodes: int, row_entries: int, entries: int) -> tuple[int, int, int, int, int]:
+    """Offsets in a solve schedule (solve_schedule) of the records, the blocks' first records,
+    row_col and entry_i, and its size (the levels start at 0)."""
+    records = BLOCK_LEVEL * levels
+    firsts = records + BLOCK_RECORD * nodes
+    row = firsts + nodes
+    entry = row + row_entries
+    return records, firsts, row, entry, entry + entries
 
 
 def shifted_diagonals(a: Analysis) -> np.ndarray:
@@ -592,9 +588,9 @@ def matrix_recipe(a: Analysis, row_body_c: np.ndarray, row_body_p: np.ndarray) -
     the matrix does not couple: 0), RECIPE_BODY_DIAGONAL (-1), RECIPE_ROWS (two rows, or a row's
     diagonal: bits 2-5 the body terms child-child, child-parent, parent-child, parent-parent, of
     row i's side and row j's, on the bodies they share that are not nodes; 1 on the diagonal of a
-    row unused this step or of a padding node), RECIPE_ROW_BODY (a row and a body node: bit 2 set when the row is at
-    entry_j's position, bit 3 when it acts on the body as its parent, bits 4-6 the node's
-    component, bits 8 up the body)."""
+    row unused this step or of a padding node), RECIPE_ROW_BODY (a row and a body node: bit 2 set
+    when the row is at entry_j's position, bit 3 when it acts on the body as its parent, bits 4-6
+    the node's component, bits 8 up the body)."""
     node_row = a.node_row()
     node_body, node_comp = a.node_body()
     nodes = set(a.body_nodes)
@@ -701,12 +697,8 @@ def build_patterns(row_body_c: np.ndarray, row_body_p: np.ndarray, device, body_
     entries = max(a.entries for a in analyses)
     s.solve_blob = arr(np.concatenate([solve_schedule(a, levels, nodes, row_entries, entries) for a in analyses]))
     s.solve_levels = arr(np.array([len(a.block_levels) for a in analyses], np.int32))
-    s.blob_size = BLOCK_LEVEL * levels + (BLOCK_RECORD + 1) * nodes + row_entries + entries
-    s.blob_diag = BLOCK_LEVEL * levels
-    s.blob_block = s.blob_diag + BLOCK_RECORD * nodes
-    s.blob_row = s.blob_block + nodes
-    s.blob_entry = s.blob_row + row_entries
-    return s, analyses, max(a.entries for a in analyses)
+    s.blob_diag, s.blob_block, s.blob_row, s.blob_entry, s.blob_size = blob_layout(levels, nodes, row_entries, entries)
+    return s, analyses, entries
 
 
 @dataclasses.dataclass
@@ -715,13 +707,11 @@ class SparseSystem:
     pat and analyses from build_patterns, rows (factor rows per world), nodes (positions per
     world), A and L (W, entries) the matrix on the pattern and its factor, L_rows (W, entries left
     of the diagonals) the factor's rows for the forward substitution, L_inv (W, nodes) the
-    reciprocals 1 / |L_jj| of its diagonal by position, real (W, rows) the row of
-    this step each factor row stands for (-1: unused). A model has the PADMM's system (all rows,
-    contact slots included: real rewritten every step where the batch has contacts, else fixed at
-    packing) and, where its batch has rows besides its
-    bilateral joint rows and Tuning.sparse_projection_pattern asks for it, the projection's
-    (the bilateral joint rows alone: real fixed at packing), which uses the PADMM's buffers for its
-    matrix and factor where they are wide enough (make_system's share)."""
+    reciprocals 1 / |L_jj| of its diagonal by position, real (W, rows) the row of this step each
+    factor row stands for (-1: unused). A model has the PADMM's system (all rows, contact slots
+    included: real rewritten every step where the batch has contacts, else fixed at packing) and,
+    where Tuning.sparse_projection_pattern chooses it, the projection's (the bilateral joint rows
+    alone, real fixed at packing; it uses the PADMM's buffers where they are wide enough)."""
 
     pat: SparsePatterns
     analyses: list
