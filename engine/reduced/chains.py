@@ -1,16 +1,15 @@
-"""Closed chains in reduced coordinates: a spanning tree of revolute joints, on fixed bodies or
-floating, its loops closed by constraint rows (revolute and inline joints), contacts with the
-ground plane, one fused kernel launch per step.
+"""Closed chains in reduced coordinates (the TREE plan): a spanning tree of revolute joints, on
+fixed bodies or floating, its loops closed by constraint rows (revolute and inline joints),
+contacts with the ground plane, one fused kernel launch per step.
 
-Why: in maximal coordinates every joint is a block of rows and a step factors their Delassus
-matrix; here a step factors the tree's mass matrix (one angle per tree joint) and the small matrix
-of the loops' independent rows in shared memory, one thread block per world. chain_layout
-(engine.reduced.chain_layout) chooses the tree and rows, pack_chains pads a batch of worlds that
-may differ in everything, ChainModel.step advances it (engine.reduced.chain_kernel), and a
-ChainState holds the coordinates and every body's COM pose and velocity as engine.model's State
-does: the loops' error is measured by the maximal engine's own joint residuals (engine.metrics on a
-maximal model of the same specs) from body_q. Measurements: benchmarks/results/README.md, "Reduced
-closed chains: design notes".
+Why: a step factors the tree's mass matrix (one angle per tree joint) and the small matrix of the
+loops' independent rows in shared memory, one thread block per world, instead of the Delassus
+matrix of every joint's rows. chain_layout (engine.reduced.chain_layout) chooses the tree and
+rows, pack_chains pads a batch of worlds that may differ in everything, ChainModel.step advances
+it (engine.reduced.chain_kernel), and a ChainState holds the coordinates and every body's COM pose
+and velocity as engine.model's State does, so the loops' error is measured by the maximal
+engine's own joint residuals. Measurements: benchmarks/results/README.md, "Reduced closed chains:
+design notes".
 """
 
 import functools
@@ -34,11 +33,15 @@ wp.set_module_options({"enable_backward": False})  # no gradients are taken: com
 
 __all__ = ["CONTACT_RHO", "ChainModel", "ChainState", "pack_chains"]
 
-# the contacts' initial ADMM penalty (Tuning.rho None), in units of their preconditioned Delassus matrix's
-# diagonal (1): the maximal plan's 1e-3 let capped iterations return wild impulses on new contacts, at 1 they
-# stay put. Each later step starts from the penalty its world's last step ended with (adaptive_rho). The
-# trials: benchmarks/results/README.md, "Reduced closed chains: design notes"
+# the contacts' initial ADMM penalty (Tuning.rho None), in units of their preconditioned Delassus
+# diagonal; later steps start from their world's last penalty. Why not the maximal plan's 1e-3:
+# benchmarks/results/README.md, "Reduced closed chains: design notes"
 CONTACT_RHO = 1.0
+# ChainArrays' fields of a Warp vector, matrix or transform type (the others: int32 or float)
+ARRAY_TYPES = {"gravity": wp.vec3, "shape_X": wp.transform, "shape_size": wp.vec3, "ground_normal": wp.vec3,
+               "axis": wp.vec3, "com": wp.vec3, "inertia": wp.mat33, "joint_parent": wp.transform,
+               "joint_child": wp.transform, "loop_anchor": wp.transform, "loop_axis": wp.vec3, "loop_t1": wp.vec3,
+               "loop_t2": wp.vec3}
 
 
 class ChainState:
@@ -99,8 +102,8 @@ class ChainModel:
                                                  device=self.device)
             self.work.stage_clock.zero_()
         block = CHAIN_BLOCK if wp.get_device(self.device).is_cuda else 1
-        # the first kernel's contact tiles hold contact_working contacts; a world that finds more (within its
-        # capacity) is handed to a second kernel with tiles for the full capacity (launched only if smaller)
+        # a world that finds more contacts than the first kernel's tiles hold is handed to a second
+        # kernel with tiles for its full capacity (launched only where the first's are smaller)
         passes = [(self.tile_working, 0)]
         if self.tile_working < self.tile_contacts:
             passes = [(self.tile_working, 1), (self.tile_contacts, 2)]
@@ -152,18 +155,17 @@ class ChainModel:
 def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | None = None,
                 dt: float = 1.0e-3, contact_capacity: int | None = None,
                 layouts: Sequence[ChainLayout] | None = None) -> ChainModel:
-    """Pack one world per spec (they may differ) into a ChainModel on ``device``. SolverConfig's
-    integrator, baumgarte, position_iterations and max_speed apply, and for contacts contact_margin,
-    contact_stabilization, tolerance, relative_tolerance and max_iterations; of its Tuning eta,
-    adaptive_rho, rho_update_interval, the projection skip floors, rho (the contacts' starting
-    penalty, None: CONTACT_RHO; each later step starts at its world's last one), tree_registers and
-    tree_contact_working. contact_capacity: contacts kept per world and step (None: every candidate
-    of its shapes, at most MAX_CONTACTS; those beyond are counted in work.contact_dropped). A world
-    that finds more contacts than the kernel's tiles hold (Tuning.tree_contact_working), within its
-    capacity, is stepped again from the step's start by a second kernel with tiles for the full
-    capacity (work.contact_redone counts those steps), so that contacts that seldom occur cost no
-    occupancy. layouts: chain_layout(spec) of each spec, already made (engine.plan). ValueError
-    naming the world and the joint, shape or body this path cannot model."""
+    """Pack one world per spec (they may differ) into a ChainModel on ``device``.
+
+    SolverConfig's integrator, baumgarte, position_iterations and max_speed apply, and for contacts
+    contact_margin, contact_stabilization, tolerance, relative_tolerance and max_iterations; of its
+    Tuning eta, adaptive_rho, rho_update_interval, the projection skip floors, rho (None:
+    CONTACT_RHO), tree_registers and tree_contact_working. contact_capacity: contacts kept per world
+    and step (None: every candidate of its shapes, at most MAX_CONTACTS; the rest are counted in
+    work.contact_dropped). A world that finds more contacts than the first kernel's tiles hold is
+    stepped again by a second kernel with tiles for its full capacity (work.contact_redone), so that
+    rare contacts cost no occupancy. layouts: chain_layout(spec) of each spec, already made
+    (engine.plan). ValueError naming the world and the joint, shape or body this path cannot model."""
     config = config or SolverConfig()
     if not (isinstance(dt, (int, float)) and not isinstance(dt, bool) and math.isfinite(dt) and dt > 0):
         raise ValueError(f"pack_chains: dt must be a positive number of seconds, got {dt!r}")
@@ -190,205 +192,159 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     W, N = len(layouts), _tile_size(max(lay.n for lay in layouts))  # per-coordinate arrays: the padded size
     L = max(1, max(len(lay.loops) for lay in layouts))
     B = max(len(lay.spec.bodies) for lay in layouts)
-    f = {k: np.zeros((W, N)) for k in ("mass", "armature", "damping", "kp", "kd", "q_target", "v_target", "q", "u",
-                                       "effort")}
-    packs = [_packed_rows(lay.parent) for lay in layouts]  # per distinct layout: levels, packed row starts
-    ancestor = np.zeros((W, max(int(starts[-1]) for _, starts in packs)), dtype=np.int32)
-    i32 = {k: np.zeros((W, N), dtype=np.int32) for k in ("parent", "by_depth", "body_out", "first_child",
-                                                         "child_count", "kind", "sub_of", "level", "row_start")}
-    depth_start = np.zeros((W, N + 1), dtype=np.int32)
     S = max(1, max(len(lay.shapes) for lay in layouts))
-    shape_i32 = {k: np.zeros((W, S), dtype=np.int32) for k in ("entry", "type")}
-    shape_X = np.zeros((W, S, 7))
-    shape_X[..., 6] = 1.0
-    shape_size = np.zeros((W, S, 3))
-    shape_mu = np.zeros((W, S))
-    ground = np.zeros((W, 4))  # normal, offset
-    ground[:, 2] = 1.0
-    per_world = np.zeros((3, W), dtype=np.int32)  # shapes, contact capacity, the solves' prefix
-    root = np.zeros((W, N, 7))
-    root[..., 6] = 1.0
-    v3 = {k: np.zeros((W, N, 3)) for k in ("axis", "com")}
-    inertia = np.tile(np.eye(3), (W, N, 1, 1))
-    jp = np.zeros((W, N, 7))
-    jc = np.zeros((W, N, 7))
-    jp[..., 6] = jc[..., 6] = 1.0
-    loop_body = np.full((W, L, 2), -1, dtype=np.int32)
-    loop_anchor = np.zeros((W, L, 2, 7))
-    loop_anchor[..., 6] = 1.0
-    loop_axis = np.zeros((W, L, 3))
-    loop_inline = np.zeros((W, L), dtype=np.int32)
-    loop_t = np.zeros((2, W, L, 3))
-    row_loop = np.zeros((W, MAX_ROWS), dtype=np.int32)
-    row_part = np.zeros((W, MAX_ROWS), dtype=np.int32)
-    row_soft = np.zeros((2, W, MAX_ROWS))  # compliance, keep
-    body_q = np.zeros((W, B, 7))
-    body_q[..., 6] = 1.0
-    body_qd = np.zeros((W, B, 6))
-    counts = np.zeros((4, W), dtype=np.int32)
-    gravity = np.zeros((W, 3))
+    packs = [_packed_rows(lay.parent) for lay in layouts]  # per distinct layout: levels, packed row starts
+    identity = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+    # ChainArrays' fields on the host, one row per distinct layout
+    h = {k: np.zeros((W, N)) for k in ("mass", "armature", "damping", "kp", "kd", "q_target", "v_target", "effort")}
+    h.update({k: np.zeros((W, N), dtype=np.int32) for k in ("parent", "by_depth", "body_out", "first_child",
+                                                            "child_count", "kind", "sub_of", "level", "row_start")})
+    h.update({k: np.zeros(W, dtype=np.int32) for k in ("tree_count", "depth_count", "loop_count", "row_count",
+                                                       "shape_count", "contact_capacity", "prefix")})
+    h["ancestor"] = np.zeros((W, max(int(starts[-1]) for _, starts in packs)), dtype=np.int32)
+    h["depth_start"] = np.zeros((W, N + 1), dtype=np.int32)
+    h["gravity"] = np.zeros((W, 3))
+    h["shape_entry"] = np.zeros((W, S), dtype=np.int32)
+    h["shape_type"] = np.zeros((W, S), dtype=np.int32)
+    h["shape_X"] = np.tile(identity, (W, S, 1))
+    h["shape_size"] = np.zeros((W, S, 3))
+    h["shape_mu"] = np.zeros((W, S))
+    h["ground_normal"] = np.tile([0.0, 0.0, 1.0], (W, 1))
+    h["ground_offset"] = np.zeros(W)
+    h["axis"] = np.zeros((W, N, 3))
+    h["com"] = np.zeros((W, N, 3))
+    h["inertia"] = np.tile(np.eye(3), (W, N, 1, 1))
+    h["joint_parent"] = np.tile(identity, (W, N, 1))
+    h["joint_child"] = np.tile(identity, (W, N, 1))
+    h["loop_body"] = np.full((W, L, 2), -1, dtype=np.int32)
+    h["loop_anchor"] = np.tile(identity, (W, L, 2, 1))
+    h["loop_axis"] = np.zeros((W, L, 3))
+    h["loop_t1"] = np.zeros((W, L, 3))
+    h["loop_t2"] = np.zeros((W, L, 3))
+    h["loop_inline"] = np.zeros((W, L), dtype=np.int32)
+    h["row_loop"] = np.zeros((W, MAX_ROWS), dtype=np.int32)
+    h["row_part"] = np.zeros((W, MAX_ROWS), dtype=np.int32)
+    h["row_compliance"] = np.zeros((W, MAX_ROWS))  # soft rows: 1 / (armature + dt damping)
+    h["row_keep"] = np.zeros((W, MAX_ROWS))  # soft rows: armature / (armature + dt damping)
+    init = {"q": np.zeros((W, N)), "u": np.zeros((W, N)), "root": np.tile(identity, (W, N, 1)),
+            "body_q": np.tile(identity, (W, B, 1)), "body_qd": np.zeros((W, B, 6))}
     for w_, lay in enumerate(layouts):
         spec = lay.spec
         n = lay.n
-        counts[:, w_] = (n, (lay.depth.max() + 1) if n else 0, len(lay.loops), len(lay.rows) + len(lay.soft))
-        gravity[w_] = spec.gravity
+        depths = (lay.depth.max() + 1) if n else 0
+        h["tree_count"][w_], h["depth_count"][w_] = n, depths
+        h["loop_count"][w_], h["row_count"][w_] = len(lay.loops), len(lay.rows) + len(lay.soft)
+        h["gravity"][w_] = spec.gravity
         level, packed = packs[w_]
-        i32["level"][w_, :n], i32["row_start"][w_, :n] = level, packed[:-1]
-        i32["by_depth"][w_, :n] = np.argsort(lay.depth, kind="stable")
-        depth_start[w_, :counts[1, w_] + 1] = np.searchsorted(lay.depth, np.arange(counts[1, w_] + 1),
-                                                              sorter=np.argsort(lay.depth, kind="stable"))
+        h["level"][w_, :n], h["row_start"][w_, :n] = level, packed[:-1]
+        h["by_depth"][w_, :n] = np.argsort(lay.depth, kind="stable")
+        h["depth_start"][w_, :depths + 1] = np.searchsorted(lay.depth, np.arange(depths + 1),
+                                                            sorter=np.argsort(lay.depth, kind="stable"))
         for k in range(n):
             j = k
             while j >= 0:
-                ancestor[w_, packed[k] + level[j]] = j
+                h["ancestor"][w_, packed[k] + level[j]] = j
                 j = lay.parent[j]
         for k in range(n):
             body = spec.bodies[lay.tree_body[k]]
             kind = int(lay.kind[k])
-            i32["parent"][w_, k] = lay.parent[k]
-            i32["kind"][w_, k] = kind
-            i32["sub_of"][w_, k] = lay.sub_of[k]
+            h["parent"][w_, k] = lay.parent[k]
+            h["kind"][w_, k] = kind
+            h["sub_of"][w_, k] = lay.sub_of[k]
             children = np.flatnonzero(lay.parent == k)
             if kind in (KIND_LINEAR, KIND_ANGULAR):  # a floating root's massless entries: no subtree sums
                 children = children[:0]
-            i32["first_child"][w_, k] = children[0] if len(children) else -1
-            i32["child_count"][w_, k] = len(children)
+            h["first_child"][w_, k] = children[0] if len(children) else -1
+            h["child_count"][w_, k] = len(children)
             if len(children) and not np.array_equal(children, np.arange(children[0], children[0] + len(children))):
                 raise AssertionError("breadth-first order keeps siblings contiguous")
-            jp[w_, k] = _transform(lay.parent_R[k], lay.parent_p[k])
-            jc[w_, k] = _transform(lay.child_R[k], lay.child_p[k])
-            v3["axis"][w_, k] = lay.axis[k]
-            v3["com"][w_, k] = body.com
-            f["effort"][w_, k] = np.inf
-            f["q"][w_, k] = lay.q0[k]
-            f["u"][w_, k] = lay.u0[k]
+            h["joint_parent"][w_, k] = _transform(lay.parent_R[k], lay.parent_p[k])
+            h["joint_child"][w_, k] = _transform(lay.child_R[k], lay.child_p[k])
+            h["axis"][w_, k] = lay.axis[k]
+            h["com"][w_, k] = body.com
+            h["effort"][w_, k] = np.inf
+            init["q"][w_, k] = lay.q0[k]
+            init["u"][w_, k] = lay.u0[k]
             if kind in (KIND_LINEAR, KIND_ANGULAR):
-                i32["body_out"][w_, k] = -1
-                inertia[w_, k] = 0.0
+                h["body_out"][w_, k] = -1
+                h["inertia"][w_, k] = 0.0
                 continue
-            i32["body_out"][w_, k] = lay.tree_body[k]
-            f["mass"][w_, k] = body.mass
-            inertia[w_, k] = body.inertia
+            h["body_out"][w_, k] = lay.tree_body[k]
+            h["mass"][w_, k] = body.mass
+            h["inertia"][w_, k] = body.inertia
             if kind == KIND_ROOT:
-                root[w_, k] = np.r_[lay.parent_p[k] + lay.parent_R[k] @ np.asarray(body.com), body.orientation]
+                init["root"][w_, k] = np.r_[lay.parent_p[k] + lay.parent_R[k] @ np.asarray(body.com), body.orientation]
                 continue
             joint = spec.joints[lay.joint[k]]
-            f["armature"][w_, k] = joint.armature
-            f["damping"][w_, k] = joint.damping
+            h["armature"][w_, k] = joint.armature
+            h["damping"][w_, k] = joint.damping
             if joint.drive is not None:
-                f["kp"][w_, k] = joint.drive.stiffness
-                f["kd"][w_, k] = joint.drive.damping
-                f["q_target"][w_, k] = joint.drive.target_position
-                f["v_target"][w_, k] = joint.drive.target_velocity
-                f["effort"][w_, k] = joint.drive.effort_limit
+                h["kp"][w_, k] = joint.drive.stiffness
+                h["kd"][w_, k] = joint.drive.damping
+                h["q_target"][w_, k] = joint.drive.target_position
+                h["v_target"][w_, k] = joint.drive.target_velocity
+                h["effort"][w_, k] = joint.drive.effort_limit
         tree_index = {b: k for k, b in enumerate(lay.tree_body) if lay.kind[k] in (KIND_REVOLUTE, KIND_ROOT)}
-        per_world[:, w_] = (len(lay.shapes), _capacity(lay, contact_capacity), _prefix(packs[w_][0]))
+        h["shape_count"][w_] = len(lay.shapes)
+        h["contact_capacity"][w_] = _capacity(lay, contact_capacity)
+        h["prefix"][w_] = _prefix(level)
         if spec.ground is not None:
-            ground[w_] = np.r_[spec.ground.normal, spec.ground.offset]
+            h["ground_normal"][w_], h["ground_offset"][w_] = spec.ground.normal, spec.ground.offset
         for s, si in enumerate(lay.shapes):
             shape = spec.shapes[si]
-            shape_i32["entry"][w_, s] = tree_index[spec.body_index[shape.body]]
-            shape_i32["type"][w_, s] = int(shape.type)
-            shape_X[w_, s] = np.r_[shape.position, shape.orientation]
-            shape_size[w_, s] = shape.size
-            shape_mu[w_, s] = math.sqrt(shape.friction * spec.ground.friction)
+            h["shape_entry"][w_, s] = tree_index[spec.body_index[shape.body]]
+            h["shape_type"][w_, s] = int(shape.type)
+            h["shape_X"][w_, s] = np.r_[shape.position, shape.orientation]
+            h["shape_size"][w_, s] = shape.size
+            h["shape_mu"][w_, s] = math.sqrt(shape.friction * spec.ground.friction)
         for li in range(len(lay.loops)):
             for side in range(2):
-                loop_body[w_, li, side] = lay.loop_body[li, side]
-                loop_anchor[w_, li, side] = _transform(lay.loop_R[li, side], lay.loop_p[li, side])
-            loop_axis[w_, li] = lay.axis_of_loop(li)
-            loop_inline[w_, li] = li in lay.inline
-            loop_t[0, w_, li], loop_t[1, w_, li] = lay.loop_dirs[li, 3], lay.loop_dirs[li, 4]
-        row_loop[w_, :len(lay.rows)] = lay.rows[:, 0]
-        row_part[w_, :len(lay.rows)] = lay.rows[:, 1]
+                h["loop_body"][w_, li, side] = lay.loop_body[li, side]
+                h["loop_anchor"][w_, li, side] = _transform(lay.loop_R[li, side], lay.loop_p[li, side])
+            h["loop_axis"][w_, li] = lay.axis_of_loop(li)
+            h["loop_inline"][w_, li] = li in lay.inline
+            h["loop_t1"][w_, li], h["loop_t2"][w_, li] = lay.loop_dirs[li, 3], lay.loop_dirs[li, 4]
+        h["row_loop"][w_, :len(lay.rows)] = lay.rows[:, 0]
+        h["row_part"][w_, :len(lay.rows)] = lay.rows[:, 1]
         for s, li in enumerate(lay.soft):  # armature and damping of a loop joint: a soft row on its rate
             joint = spec.joints[lay.loops[li]]
             r = len(lay.rows) + s
-            row_loop[w_, r], row_part[w_, r] = li, 5
+            h["row_loop"][w_, r], h["row_part"][w_, r] = li, 5
             gain = joint.armature + dt * joint.damping
-            row_soft[:, w_, r] = (1.0 / gain, joint.armature / gain)
+            h["row_compliance"][w_, r], h["row_keep"][w_, r] = 1.0 / gain, joint.armature / gain
         for i, body in enumerate(spec.bodies):
             R = quat_matrix(body.orientation)
-            body_q[w_, i] = np.r_[np.asarray(body.position) + R @ np.asarray(body.com), body.orientation]
+            init["body_q"][w_, i] = np.r_[np.asarray(body.position) + R @ np.asarray(body.com), body.orientation]
     # every world from its distinct spec's rows
-    f = {k: v[kind_of] for k, v in f.items()}
-    i32 = {k: v[kind_of] for k, v in i32.items()}
-    ancestor, depth_start = ancestor[kind_of], depth_start[kind_of]
-    v3 = {k: v[kind_of] for k, v in v3.items()}
-    inertia, jp, jc, loop_body, loop_anchor, loop_axis, loop_inline = (
-        x[kind_of] for x in (inertia, jp, jc, loop_body, loop_anchor, loop_axis, loop_inline))
-    loop_t, counts, row_soft = loop_t[:, kind_of], counts[:, kind_of], row_soft[:, kind_of]
-    row_loop, row_part, body_q, body_qd, gravity = (x[kind_of] for x in (row_loop, row_part, body_q, body_qd, gravity))
-    shape_i32 = {k: v[kind_of] for k, v in shape_i32.items()}
-    shape_X, shape_size, shape_mu, ground, root = (x[kind_of] for x in (shape_X, shape_size, shape_mu, ground, root))
-    per_world = per_world[:, kind_of]
+    h = {k: v[kind_of] for k, v in h.items()}
+    init = {k: v[kind_of] for k, v in init.items()}
     layouts = [layouts[k] for k in kind_of]
     W = len(specs)
-    # the initial body poses and velocities from the tree (fixed bodies keep the spec's)
     dev = device
     a = ChainArrays()
-    a.tree_count, a.depth_count, a.loop_count, a.row_count = (
-        wp.array(c, dtype=wp.int32, device=dev) for c in counts)
-    a.gravity = wp.array(gravity, dtype=wp.vec3, device=dev)
-    for k in ("parent", "by_depth", "body_out", "first_child", "child_count", "kind", "sub_of", "level", "row_start"):
-        setattr(a, k, wp.array(i32[k], dtype=wp.int32, device=dev))
-    a.depth_start = wp.array(depth_start, dtype=wp.int32, device=dev)
-    a.ancestor = wp.array(ancestor, dtype=wp.int32, device=dev)
-    a.shape_count = wp.array(per_world[0], dtype=wp.int32, device=dev)
-    a.contact_capacity = wp.array(per_world[1], dtype=wp.int32, device=dev)
-    a.prefix = wp.array(per_world[2], dtype=wp.int32, device=dev)
-    a.shape_entry = wp.array(shape_i32["entry"], dtype=wp.int32, device=dev)
-    a.shape_type = wp.array(shape_i32["type"], dtype=wp.int32, device=dev)
-    a.shape_X = wp.array(shape_X, dtype=wp.transform, device=dev)
-    a.shape_size = wp.array(shape_size, dtype=wp.vec3, device=dev)
-    a.shape_mu = wp.array(shape_mu, dtype=float, device=dev)
-    a.ground_normal = wp.array(ground[:, :3], dtype=wp.vec3, device=dev)
-    a.ground_offset = wp.array(ground[:, 3], dtype=float, device=dev)
-    a.joint_parent = wp.array(jp, dtype=wp.transform, device=dev)
-    a.joint_child = wp.array(jc, dtype=wp.transform, device=dev)
-    a.axis = wp.array(v3["axis"], dtype=wp.vec3, device=dev)
-    a.com = wp.array(v3["com"], dtype=wp.vec3, device=dev)
-    a.inertia = wp.array(inertia, dtype=wp.mat33, device=dev)
-    for k in ("mass", "armature", "damping", "kp", "kd", "q_target", "v_target", "effort"):
-        setattr(a, k, wp.array(f[k], dtype=float, device=dev))
-    a.loop_body = wp.array(loop_body, dtype=wp.int32, device=dev)
-    a.loop_anchor = wp.array(loop_anchor, dtype=wp.transform, device=dev)
-    a.loop_axis = wp.array(loop_axis, dtype=wp.vec3, device=dev)
-    a.loop_inline = wp.array(loop_inline, dtype=wp.int32, device=dev)
-    a.loop_t1 = wp.array(loop_t[0], dtype=wp.vec3, device=dev)
-    a.loop_t2 = wp.array(loop_t[1], dtype=wp.vec3, device=dev)
-    a.row_loop = wp.array(row_loop, dtype=wp.int32, device=dev)
-    a.row_part = wp.array(row_part, dtype=wp.int32, device=dev)
-    a.row_compliance = wp.array(row_soft[0], dtype=float, device=dev)
-    a.row_keep = wp.array(row_soft[1], dtype=float, device=dev)
+    for name, value in h.items():
+        dtype = ARRAY_TYPES.get(name, wp.int32 if value.dtype == np.int32 else float)
+        setattr(a, name, wp.array(value, dtype=dtype, device=dev))
     k = ChainWork()
     for name, dtype in (("pose", wp.transform), ("centre", wp.vec3), ("lin", wp.vec3), ("axis", wp.vec3),
                         ("omega", wp.vec3), ("vel", wp.vec3), ("alpha", wp.vec3), ("acc", wp.vec3),
                         ("inertia", wp.mat33), ("wrench_t", wp.vec3), ("wrench_f", wp.vec3), ("force_n", wp.vec3),
-                        ("force_f", wp.vec3), ("sub_mass", float), ("sub_moment", wp.vec3), ("sub_inertia", wp.mat33)):
+                        ("force_f", wp.vec3), ("sub_mass", float), ("sub_moment", wp.vec3), ("sub_inertia", wp.mat33),
+                        ("q_start", float), ("u_start", float), ("root_start", wp.transform)):
         setattr(k, name, wp.zeros((W, N), dtype=dtype, device=dev))
+    for name in ("diverged", "contact_count", "contact_dropped", "contact_overflow", "contact_redone", "iterations",
+                 "projections"):
+        setattr(k, name, wp.zeros(W, dtype=wp.int32, device=dev))
     k.phi = wp.zeros((W, 6 * L), dtype=float, device=dev)
     k.dirs = wp.zeros((W, 6 * L), dtype=wp.vec3, device=dev)
     k.ends = wp.zeros((W, 2 * L), dtype=wp.vec3, device=dev)
-    k.q_start = wp.zeros((W, N), dtype=float, device=dev)
-    k.u_start = wp.zeros((W, N), dtype=float, device=dev)
-    k.root_start = wp.zeros((W, N), dtype=wp.transform, device=dev)
-    k.diverged = wp.zeros(W, dtype=wp.int32, device=dev)
-    slots = 4 * S
-    k.contact_count = wp.zeros(W, dtype=wp.int32, device=dev)
     k.contact_slot = wp.zeros((W, MAX_CONTACTS), dtype=wp.int32, device=dev)
-    k.contact_impulse = wp.zeros((W, slots), dtype=wp.vec3, device=dev)
+    k.contact_impulse = wp.zeros((W, 4 * S), dtype=wp.vec3, device=dev)  # a slot per candidate (4 per shape)
     k.contact_rho = wp.zeros(W, dtype=float, device=dev)
-    k.contact_dropped = wp.zeros(W, dtype=wp.int32, device=dev)
-    k.contact_overflow = wp.zeros(W, dtype=wp.int32, device=dev)
-    k.contact_redone = wp.zeros(W, dtype=wp.int32, device=dev)
-    k.iterations = wp.zeros(W, dtype=wp.int32, device=dev)
-    k.projections = wp.zeros(W, dtype=wp.int32, device=dev)
     k.stage_clock = wp.zeros((1, 1), dtype=wp.int64, device=dev)  # ChainModel.step(stages=True) sizes it
     k.matrix = wp.zeros((1, 1, 1), dtype=float, device=dev)  # ChainModel.step(record=True) sizes them
     k.rows = wp.zeros((1, 1, 1), dtype=float, device=dev)
-    init = {"q": f["q"], "u": f["u"], "root": root, "body_q": body_q, "body_qd": body_qd}
-    model = ChainModel(layouts, a, k, init, config, float(dt), device, int(per_world[1].max()))
+    model = ChainModel(layouts, a, k, init, config, float(dt), device, int(h["contact_capacity"].max()))
     # body poses and velocities at the initial angles: one step's kinematics, no integration
     state = model.state()
     # blocks of one thread: kinematics' barriers must be reached by every thread of a block, and worlds differ in depth

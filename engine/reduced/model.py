@@ -18,7 +18,7 @@ import warp as wp
 
 from engine.health import DIVERGED, EFFORT_LIMIT, JOINTS_OPEN, Health, far_flags
 from engine.metrics import compute_metrics
-from engine.plan import Coordinates, Plan
+from engine.plan import Plan
 
 __all__ = ["ReducedModel", "ReducedState", "TabulatedPlanModel", "TreeModel"]
 
@@ -45,8 +45,8 @@ class ReducedState:
 class ReducedModel(abc.ABC):
     """A packed batch in reduced coordinates (engine.pack chose them; ``plan`` says which and why).
 
-    num_worlds, device, dt [s], config, specs, point_names, joint_names, plan; state() a new State at
-    the specs' initial poses; failure_reasons() per world ('' while it runs)."""
+    num_worlds, device, dt [s], config, specs, point_names, joint_names, body_names, plan; state() a
+    new State at the specs' initial poses; health() the worlds' engine.health flags."""
 
     def __init__(self, inner, specs: list, plan: Plan, config, dt: float, device):
         self.inner, self.specs, self.plan, self.config = inner, list(specs), plan, config
@@ -58,11 +58,6 @@ class ReducedModel(abc.ABC):
         self.max_points = max(1, max(len(s.points) for s in self.specs))
         self.max_joints = max(1, max(len(s.joints) for s in self.specs))
         self._gauge = None
-
-    @property
-    def coordinates(self) -> Coordinates:
-        """The plan's coordinates."""
-        return self.plan.coordinates
 
     @property
     def gauge(self):
@@ -209,12 +204,16 @@ class TreeModel(ReducedModel):
         out = np.zeros((self.num_worlds, self.max_joints), np.float32)
         if not self._drives:
             return out
-        a = self.inner.arrays
-        q, u = state.inner.q.numpy(), state.inner.u.numpy()
-        kp, kd, qt, vt = (getattr(a, k).numpy() for k in ("kp", "kd", "q_target", "v_target"))
+        torque = self._drive_law(state.inner)
         for w, k, j in self._drives:
-            out[w, j] = kp[w, k] * (qt[w, k] - q[w, k]) + kd[w, k] * (vt[w, k] - u[w, k])
+            out[w, j] = torque[w, k]
         return out
+
+    def _drive_law(self, chain_state) -> np.ndarray:
+        """(W, N) kp (q_target - q) + kd (v_target - u) of every tree entry at a ChainState."""
+        a = self.inner.arrays
+        kp, kd, qt, vt = (getattr(a, k).numpy() for k in ("kp", "kd", "q_target", "v_target"))
+        return kp * (qt - chain_state.q.numpy()) + kd * (vt - chain_state.u.numpy())
 
     def iterations(self) -> np.ndarray:
         return self.inner.work.iterations.numpy().copy()
@@ -224,14 +223,11 @@ class TreeModel(ReducedModel):
         out = [""] * self.num_worlds
         if not (codes == 2).any():
             return out
-        a = self.inner.arrays
-        kd, vt, kp, qt = (getattr(a, k).numpy() for k in ("kd", "v_target", "kp", "q_target"))
-        q, u, effort = self._last.q.numpy(), self._last.u.numpy(), a.effort.numpy()
+        torque, effort = self._drive_law(self._last), self.inner.arrays.effort.numpy()
         for w, k, j in self._drives:
             if codes[w] != 2:
                 continue
-            torque = kp[w, k] * (qt[w, k] - q[w, k]) + kd[w, k] * (vt[w, k] - u[w, k])
-            ratio = abs(torque) / max(float(effort[w, k]), 1e-30)
+            ratio = abs(torque[w, k]) / max(float(effort[w, k]), 1e-30)
             if not out[w] or ratio > out[w][0]:
                 name = self.specs[w].joints[j].name
                 out[w] = (ratio, f"the drive of joint '{name}' ({float(effort[w, k]):g} N m)")
