@@ -16,7 +16,6 @@ from engine.model import Control, Model, State
 from engine.pack import pack, pack_worlds
 from engine.plan import Coordinates, Plan
 from engine.rollout import Stepper, Trace, rollout
-
 from engine.spec import Body, GroundPlane, Joint, JointDrive, JointType, MechanismSpec, Shape, ShapeType, TrackedPoint
 from engine.step import StageTimer, step
 

@@ -79,6 +79,11 @@ def angle_of(vec: np.ndarray) -> float:
     return math.atan2(-vec[2], vec[0])
 
 
+def _y_cross(r) -> np.ndarray:
+    """The x and z components of y x r."""
+    return np.array([r[2], -r[0]])
+
+
 def fourbar_configuration(ground: float, crank: float, coupler: float, rocker: float, phi1: float, omega1: float):
     """Assembled pivots A, B, C, D, bar angles and loop-consistent angular speeds of a four-bar."""
     A, D = np.zeros(3), np.array([ground, 0.0, 0.0])
@@ -86,14 +91,25 @@ def fourbar_configuration(ground: float, crank: float, coupler: float, rocker: f
     C = circle_intersection(B, coupler, D, rocker)
     phi2, phi3 = angle_of(C - B), angle_of(C - D)
     # velocity closure: omega1 y x (B-A) + omega2 y x (C-B) = omega3 y x (C-D) in the x-z plane
-    yx = lambda r: np.array([r[2], -r[0]])  # noqa: E731  (y x r, x and z components)
-    matrix = np.stack([yx(C - B), -yx(C - D)], axis=1)
-    omega2, omega3 = np.linalg.solve(matrix, -omega1 * yx(B - A))
+    matrix = np.stack([_y_cross(C - B), -_y_cross(C - D)], axis=1)
+    omega2, omega3 = np.linalg.solve(matrix, -omega1 * _y_cross(B - A))
     return dict(A=A, B=B, C=C, D=D, phi=(phi1, phi2, phi3), omega=(omega1, omega2, omega3))
 
 
 def _bar_potential(length: float, start: np.ndarray, end: np.ndarray, density: float = 1.0) -> float:
     return density * length * GRAVITY * 0.5 * (start[2] + end[2])
+
+
+def _lowest_potential(potential, samples: int = 1440) -> float:
+    """The least potential(crank angle) over ``samples`` angles of a turn (angles at which the
+    linkage cannot be assembled are skipped)."""
+    best = math.inf
+    for k in range(samples):
+        try:
+            best = min(best, potential(2.0 * math.pi * k / samples))
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+    return best
 
 
 def pendulum(length: float = 0.5, angle: float = math.radians(30.0)) -> Scene:
@@ -117,20 +133,13 @@ def fourbar(ground: float = 0.30, crank: float = 0.10, coupler: float = 0.30, ro
               pin("coupler_rocker", "coupler", "rocker", (coupler, 0, 0), (rocker, 0, 0)),
               pin("ground_rocker", None, "rocker", s["D"])]
     points = [TrackedPoint("coupler_mid", "coupler", (0.5 * coupler, 0.0, 0.0))]
-    return Scene(MechanismSpec(bodies, joints, points, name="fourbar"),
-                 _fourbar_potential_min(ground, crank, coupler, rocker))
 
+    def potential(phi: float) -> float:
+        c = fourbar_configuration(ground, crank, coupler, rocker, phi, 0.0)
+        return (_bar_potential(crank, c["A"], c["B"]) + _bar_potential(coupler, c["B"], c["C"])
+                + _bar_potential(rocker, c["D"], c["C"]))
 
-def _fourbar_potential_min(ground, crank, coupler, rocker, samples: int = 1440) -> float:
-    best = math.inf
-    for k in range(samples):
-        try:
-            s = fourbar_configuration(ground, crank, coupler, rocker, 2.0 * math.pi * k / samples, 0.0)
-        except (ValueError, np.linalg.LinAlgError):
-            continue
-        best = min(best, _bar_potential(crank, s["A"], s["B"]) + _bar_potential(coupler, s["B"], s["C"])
-                   + _bar_potential(rocker, s["D"], s["C"]))
-    return best
+    return Scene(MechanismSpec(bodies, joints, points, name="fourbar"), _lowest_potential(potential))
 
 
 SIXBAR = dict(ground=0.30, crank=0.10, coupler=0.30, rocker=0.25, lever=0.10, pivot2=(0.50, 0.0, 0.15),
@@ -146,9 +155,8 @@ def _sixbar_configuration(phi1: float, omega1: float, p=SIXBAR):
     E = D - p["lever"] * u(phi3)  # lever on the far side of D
     H = circle_intersection(E, p["coupler2"], F, p["rocker2"])
     phi4, phi5 = angle_of(H - E), angle_of(H - F)
-    yx = lambda r: np.array([r[2], -r[0]])  # noqa: E731
-    v_E = w3 * yx(E - D)
-    matrix = np.stack([yx(H - E), -yx(H - F)], axis=1)
+    v_E = w3 * _y_cross(E - D)
+    matrix = np.stack([_y_cross(H - E), -_y_cross(H - F)], axis=1)
     w4, w5 = np.linalg.solve(matrix, -v_E)
     s.update(E=E, F=F, H=H, phi4=phi4, phi5=phi5, omega4=w4, omega5=w5)
     return s
@@ -179,16 +187,14 @@ def sixbar(crank_angle: float = math.radians(45.0), crank_speed: float = 3.0) ->
         pin("ground_rocker2", None, "rocker2", s["F"]),
     ]
     points = [TrackedPoint("coupler2_mid", "coupler2", (0.5 * p["coupler2"], 0.0, 0.0))]
-    best = math.inf
-    for k in range(1440):
-        try:
-            c = _sixbar_configuration(2.0 * math.pi * k / 1440, 0.0)
-        except (ValueError, np.linalg.LinAlgError):
-            continue
-        best = min(best, _bar_potential(p["crank"], c["A"], c["B"]) + _bar_potential(p["coupler"], c["B"], c["C"])
-                   + _bar_potential(lever_length, c["E"], c["C"]) + _bar_potential(p["coupler2"], c["E"], c["H"])
-                   + _bar_potential(p["rocker2"], c["F"], c["H"]))
-    return Scene(MechanismSpec(bodies, joints, points, name="sixbar"), best)
+
+    def potential(phi: float) -> float:
+        c = _sixbar_configuration(phi, 0.0)
+        return (_bar_potential(p["crank"], c["A"], c["B"]) + _bar_potential(p["coupler"], c["B"], c["C"])
+                + _bar_potential(lever_length, c["E"], c["C"]) + _bar_potential(p["coupler2"], c["E"], c["H"])
+                + _bar_potential(p["rocker2"], c["F"], c["H"]))
+
+    return Scene(MechanismSpec(bodies, joints, points, name="sixbar"), _lowest_potential(potential))
 
 
 def chain(links: int = 10, length: float = 0.1, angle: float = math.radians(30.0),

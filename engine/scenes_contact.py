@@ -24,13 +24,17 @@ def solid_box(name: str, half, mass: float, **kwargs) -> Body:
     return Body(name, mass, inertia, **kwargs)
 
 
+def _cube(name: str, half: float, mass: float, friction: float, **kwargs) -> Scene:
+    """A scene of one cube ``box`` above the ground plane (kwargs: its Body's pose and velocity)."""
+    body = solid_box("box", (half,) * 3, mass, **kwargs)
+    spec = MechanismSpec([body], shapes=[Shape("box", "box", "box", (half,) * 3, friction=friction)],
+                         ground=GroundPlane(friction=friction), points=[TrackedPoint("center", "box")], name=name)
+    return Scene(spec, mass * GRAVITY * half)
+
+
 def box_on_plane(half: float = 0.05, mass: float = 1.0, friction: float = 0.8, gap: float = 0.001) -> Scene:
     """A cube released ``gap`` above the ground plane."""
-    body = solid_box("box", (half,) * 3, mass, position=(0.0, 0.0, half + gap))
-    spec = MechanismSpec([body], shapes=[Shape("box", "box", "box", (half,) * 3, friction=friction)],
-                         ground=GroundPlane(friction=friction), points=[TrackedPoint("center", "box")],
-                         name="box_on_plane")
-    return Scene(spec, mass * GRAVITY * half)
+    return _cube("box_on_plane", half, mass, friction, position=(0.0, 0.0, half + gap))
 
 
 def ball_bounce(radius: float = 0.05, height: float = 1.0, restitution: float = 0.5, mass: float = 1.0) -> Scene:
@@ -44,10 +48,7 @@ def ball_bounce(radius: float = 0.05, height: float = 1.0, restitution: float = 
 
 def box_slide(speed: float = 2.0, friction: float = 0.5, half: float = 0.05, mass: float = 1.0) -> Scene:
     """A cube resting on the plane, launched along +x at ``speed`` [m/s]."""
-    body = solid_box("box", (half,) * 3, mass, position=(0.0, 0.0, half), velocity=(speed, 0.0, 0.0))
-    spec = MechanismSpec([body], shapes=[Shape("box", "box", "box", (half,) * 3, friction=friction)],
-                         ground=GroundPlane(friction=friction), points=[TrackedPoint("center", "box")], name="box_slide")
-    return Scene(spec, mass * GRAVITY * half)
+    return _cube("box_slide", half, mass, friction, position=(0.0, 0.0, half), velocity=(speed, 0.0, 0.0))
 
 
 def box_stack(count: int = 5, half: float = 0.05, mass: float = 1.0, gap: float = 0.0005) -> Scene:

@@ -66,9 +66,9 @@ def quat_increment(q: wp.quat, omega: wp.vec3, h: float):
 def advance_pose(X: wp.transform, low: wp.transform, v: wp.vec3, omega: wp.vec3, h: float):
     """Compensated pose step: the pose X + low (low: the parts float32 X could not hold, its
     rotation a raw quaternion difference) moved by h v and turned by exp(h omega), returned as a
-    new (X, low) pair. The rotation's norm is pulled back to 1 by a first-order scaling (radial:
-    the rotation it stands for is unchanged); left alone it wandered by the rounding of the
-    increments, up to 1e-6 over 20 s at dt 1 ms, and scaled the lever arms with it."""
+    new (X, low) pair. The rotation's norm is pulled back to 1 by a first-order radial scaling
+    (the rotation is unchanged), so that rounding cannot scale the lever arms (left alone: 1e-6
+    over 20 s at dt 1 ms)."""
     t, t_low = two_sum(wp.transform_get_translation(X), wp.transform_get_translation(low) + h * v)
     q = wp.transform_get_rotation(X)
     r, r_low = two_sum(q, wp.transform_get_rotation(low) + quat_increment(q, omega, h))
@@ -95,12 +95,10 @@ def gyroscopic_implicit_midpoint(omega: wp.vec3, inertia: wp.mat33, h: float):
     """Change of the body-frame angular velocity over a torque-free step of Euler's equations.
 
     Solves I d + h * wm x (I wm) = 0 for d = w1 - w0 with wm = w0 + d / 2 by three Newton steps.
-    The implicit midpoint rule keeps |I w| and the rotational kinetic energy exactly, which an
-    explicit gyroscopic term does not (it feeds energy into a body spinning about its
-    intermediate axis). The change, not w1, is returned: the caller adds it to the world-frame
-    velocity, so a body turning about a principal axis (d = 0) keeps its velocity bit for bit
-    instead of taking the rounding of a rotation to the body frame and back (with float32
-    quaternions a steady gain of about one ulp of w per step).
+    The implicit midpoint rule keeps |I w| and the rotational kinetic energy exactly (an explicit
+    gyroscopic term feeds energy into a body spinning about its intermediate axis). The change,
+    not w1, is returned, so that a body turning about a principal axis (d = 0) keeps its
+    world-frame velocity bit for bit instead of the rounding of a round trip to the body frame.
     """
     d = wp.vec3(0.0)
     for _it in range(3):
@@ -128,8 +126,7 @@ def wrap_angle(a: float):
 
 
 # -- host side (NumPy, float64) ------------------------------------------------------------------
-# One copy of each; the layouts' bit-for-bit tests (tests/engine/test_tabulated_paths.py) rely on
-# the exact arithmetic, so keep the formulas as they are.
+# the layouts' bit-for-bit tests (tests/engine/test_tabulated_paths.py) rely on these exact formulas
 
 
 def cross(a, b) -> np.ndarray:
