@@ -144,20 +144,16 @@ class Tuning:
     tabulated_registers: int | None = None
 
     def __post_init__(self):
-        if self.step_kernel not in ("auto", "fused", "staged"):
-            raise ValueError(f"Tuning.step_kernel: expected 'auto', 'fused' or 'staged', got {self.step_kernel!r}")
         if isinstance(self.sparse_projection_pattern, bool):
             choice = "always" if self.sparse_projection_pattern else "never"
             object.__setattr__(self, "sparse_projection_pattern", choice)
-        if self.sparse_projection_pattern not in ("auto", "always", "never"):
-            raise ValueError(f"Tuning.sparse_projection_pattern: expected 'auto', 'always' or 'never', "
-                             f"got {self.sparse_projection_pattern!r}")
-        if self.sparse_ordering not in ("minimum_degree", "shallow"):
-            raise ValueError(f"Tuning.sparse_ordering: expected 'minimum_degree' or 'shallow', "
-                             f"got {self.sparse_ordering!r}")
-        if self.linear_solver not in ("auto", "dense", "sparse"):
-            raise ValueError(f"Tuning.linear_solver: expected 'auto', 'dense' or 'sparse', "
-                             f"got {self.linear_solver!r}")
+        for name, choices in (("step_kernel", ("auto", "fused", "staged")),
+                              ("sparse_projection_pattern", ("auto", "always", "never")),
+                              ("sparse_ordering", ("minimum_degree", "shallow")),
+                              ("linear_solver", ("auto", "dense", "sparse"))):
+            if getattr(self, name) not in choices:
+                expected = ", ".join(repr(c) for c in choices[:-1]) + f" or {choices[-1]!r}"
+                raise ValueError(f"Tuning.{name}: expected {expected}, got {getattr(self, name)!r}")
         if self.rho is not None and not (_finite(self.rho) and self.rho > 0.0):
             raise ValueError(f"Tuning.rho: expected None (the plan's own) or a positive number, got {self.rho!r}")
         for name, low in (("fused_block", 1), ("fused_registers", 0), ("fused_sharing", 0), ("tree_registers", 0),
