@@ -24,6 +24,7 @@ Nothing here knows a mechanism's anatomy: contact slots come from shapes
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass, field
 
@@ -35,7 +36,8 @@ from engine.reduced.tabulated_tables import (NEWTON_TOLERANCE, START_TOLERANCE, 
 from engine.spatial import cross, quat_matrix
 from engine.spec import JointType, MechanismSpec, ShapeType
 
-__all__ = ["BASE_SLOTS", "MAX_GROUPS", "MAX_LINKS", "SubChain", "TabulatedLayout", "tabulated_layout"]
+__all__ = ["BASE_SLOTS", "MAX_GROUPS", "MAX_LINKS", "SubChain", "TabulatedLayout", "analysed_together",
+           "tabulated_layout", "tabulated_layouts"]
 
 MAX_GROUPS = 8  # sub-chains per world (the kernel's generalized velocities: 6 + MAX_GROUPS)
 MAX_LINKS = 8  # bodies per sub-chain
@@ -218,7 +220,9 @@ def _rounded(values) -> tuple:
 # -- the array path ------------------------------------------------------------------------------------
 #
 # tabulated_layout reads a spec with arrays: every body's and joint's matrices at once, and the
-# sub-chains that share their local structure (a walker's identical linkages) together. Each number is computed
+# sub-chains that share their local structure (a walker's identical linkages) together;
+# tabulated_layouts reads the specs of one structure (a study's walkers of one topology) together as
+# well, every array with a leading axis of specs. Each number is computed
 # by the operations _plain_layout applies to it one item at a time (stacked matmul runs the same
 # BLAS call per item; element-wise NumPy and Python floats round alike; reductions, transcendental
 # functions and Python's round keep their own form), so both give the same layout to the last bit.
@@ -260,6 +264,8 @@ class _Structure:
     base_shapes: list
     where_is: dict
     point_bodies: list
+    point_at: list = field(default_factory=list)  # per tracked point (sub-chain or -1, link)
+    body_at: list = field(default_factory=list)  # per spec body (sub-chain or -1, link)
 
 
 def _structure_key(spec: MechanismSpec) -> tuple:
@@ -335,8 +341,9 @@ def _analyse(spec: MechanismSpec) -> _Structure | None:
     for g, chain in enumerate(chains):
         for k, i in enumerate(chain.comp):
             where_is[i] = (g, k)
-    return _Structure(base, ends, chains, list(batches.values()), base_shapes, where_is,
-                      [index[p.body] for p in spec.points])
+    point_bodies = [index[p.body] for p in spec.points]
+    return _Structure(base, ends, chains, list(batches.values()), base_shapes, where_is, point_bodies,
+                      [where_is[i] for i in point_bodies], [where_is[i] for i in range(len(spec.bodies))])
 
 
 def _regular(arrays, shape: tuple, strides: tuple) -> bool:
@@ -421,92 +428,240 @@ def tabulated_layout(spec: MechanismSpec, *, samples: int = TABLE_SAMPLES) -> Ta
     driven joints (then the body of the most driven joints, of the most joints, the first).
 
     The analysis runs on arrays (see the array path's notes above); a spec that it does not take
-    as it is goes through _plain_layout, item by item, with the same result."""
-    key = _structure_key(spec)
+    as it is goes through _plain_layout, item by item, with the same result. Inside
+    ``analysed_together(specs)`` a spec of that batch answers from their joint analysis."""
+    ready = _READY.get(id(spec))
+    if ready is not None and ready[0] is spec and ready[1] == samples:
+        if isinstance(ready[2], str):
+            raise ValueError(ready[2])
+        return ready[2]
+    structure = _structure(spec)
+    layout = None if structure is None else _array_layout(spec, structure, samples)
+    return layout if layout is not None else _plain_layout(spec, samples=samples)
+
+
+def _structure(spec: MechanismSpec, key: tuple | None = None) -> _Structure | None:
+    """The cached _Structure of the spec's structure key (analysed on first sight)."""
+    key = _structure_key(spec) if key is None else key
     structure = _STRUCTURES.get(key, False)
     if structure is False:
         structure = _analyse(spec)
         if len(_STRUCTURES) >= STRUCTURE_CACHE:
             _STRUCTURES.pop(next(iter(_STRUCTURES)))
         _STRUCTURES[key] = structure
-    layout = None if structure is None else _array_layout(spec, structure, samples)
-    return layout if layout is not None else _plain_layout(spec, samples=samples)
+    return structure
+
+
+def tabulated_layouts(specs, *, samples: int = TABLE_SAMPLES) -> list:
+    """tabulated_layout of every spec, analysed together: per spec its TabulatedLayout, or the
+    ValueError tabulated_layout raises for it (returned, not raised). Specs of one structure key
+    (a study's walkers of one topology: the same bodies, joint graph and shapes in other
+    dimensions) share one structural analysis and go through the array path as one batch, every
+    number by the operations of a spec alone; then, in the order of ``specs``, each spec's tables
+    are looked up (or made) and a spec the array path left goes item by item, as one call per spec
+    would. Equal to tabulated_layout of each spec in turn, to the last bit."""
+    specs = list(specs)
+    groups = {}
+    for i, spec in enumerate(specs):
+        groups.setdefault(_structure_key(spec), []).append(i)
+    pending, structures = [None] * len(specs), [None] * len(specs)
+    for key, indices in groups.items():
+        structure = _structure(specs[indices[0]], key)
+        if structure is None:
+            continue
+        for i, numbers in zip(indices, _pending_layouts([specs[i] for i in indices], structure, samples)):
+            pending[i], structures[i] = numbers, structure
+    out = []
+    for i, spec in enumerate(specs):
+        try:
+            out.append(_plain_layout(spec, samples=samples) if pending[i] is None else
+                       _finish(spec, structures[i], pending[i], samples))
+        except ValueError as exc:
+            out.append(exc)
+    return out
+
+
+_READY: dict = {}  # id(spec) -> (spec, samples, layout or its ValueError's message): see analysed_together
+
+
+@contextlib.contextmanager
+def analysed_together(specs, *, samples: int = TABLE_SAMPLES):
+    """A block in which tabulated_layout(spec) of a spec of ``specs`` answers from their joint
+    analysis (tabulated_layouts, run on entry; the block gets its list) instead of analysing the
+    spec alone: for a caller about to pack the batch (engine.pack plans world by world). The specs
+    must not change inside the block; nothing is kept after it."""
+    specs = [s for s in specs if isinstance(s, MechanismSpec)]
+    made = tabulated_layouts(specs, samples=samples)
+    mine = {id(spec): (spec, samples, str(layout) if isinstance(layout, ValueError) else layout)
+            for spec, layout in zip(specs, made)}
+    _READY.update(mine)
+    try:
+        yield made
+    finally:
+        for key, entry in mine.items():
+            if _READY.get(key) is entry:
+                del _READY[key]
 
 
 def _array_layout(spec: MechanismSpec, st: _Structure, samples: int) -> TabulatedLayout | None:
     """tabulated_layout on arrays for a spec of structure ``st``; None where _plain_layout must decide."""
-    bodies, joints, shapes = spec.bodies, spec.joints, spec.shapes
-    for joint in joints:  # the joint checks on values
+    numbers = _pending_layouts([spec], st, samples)[0]
+    return None if numbers is None else _finish(spec, st, numbers, samples)
+
+
+class _Refused(Exception):
+    """A check of the array path failed for the specs that ``mask`` marks (None: unknown which)."""
+
+    def __init__(self, mask=None):
+        super().__init__()
+        self.mask = None if mask is None else np.asarray(mask, bool)
+
+
+def _takes(spec: MechanismSpec) -> bool:
+    """Whether the array path takes the spec's values as they are: no joint limit, armature,
+    damping or drive stiffness, and every vector the C-ordered float64 array of its shape."""
+    for joint in spec.joints:
         if joint.has_limits or joint.armature > 0.0 or joint.damping > 0.0 or \
                 (joint.drive is not None and joint.drive.stiffness > 0.0):
-            return None
-    com_local = [b.com for b in bodies]
-    inertia = [b.inertia for b in bodies]
-    axes = [j.axis for j in joints]
-    parent_positions = [j.parent_position for j in joints]
-    child_positions = [j.child_position for j in joints]
-    if not (_regular(com_local, (3,), (8,)) and _regular(inertia, (3, 3), (24, 8)) and _regular(axes, (3,), (8,))
-            and _regular(parent_positions, (3,), (8,)) and _regular(child_positions, (3,), (8,))):
-        return None
-    try:
-        orientation = np.array([b.orientation for b in bodies], dtype=float)
-        position = np.array([b.position for b in bodies], dtype=float)
-        angular_velocity = np.array([b.angular_velocity for b in bodies], dtype=float)
-        joint_frames = np.array([(j.parent_orientation, j.child_orientation) for j in joints], dtype=float)
-    except (TypeError, ValueError):
-        return None
-    if orientation.shape != (len(bodies), 4) or position.shape != (len(bodies), 3) or \
-            angular_velocity.shape != (len(bodies), 3) or joint_frames.shape != (len(joints), 2, 4):
-        return None
-    com_local, inertia = np.array(com_local), np.array(inertia)
-    axes, parent_positions, child_positions = np.array(axes), np.array(parent_positions), np.array(child_positions)
-    base = st.base
-    base_body = bodies[base]
-    R_base = quat_matrix(base_body.orientation)
-    base_com = base_body.position + R_base @ base_body.com
-    world_R = _quat_matrices(orientation)
-    frames = _quat_matrices(joint_frames)  # (J, 2, 3, 3): every joint's parent and child anchor frame
-    # one plane normal: every joint's axis in the base frame
-    normal = None
-    if joints:
-        a_index = np.array([a for a, _ in st.ends])
-        b_index = np.array([b for _, b in st.ends])
-        axis_p = ((R_base.T @ world_R[a_index] @ frames[:, 0]) @ axes[..., None])[..., 0]
-        axis_c = ((R_base.T @ world_R[b_index] @ frames[:, 1]) @ axes[..., None])[..., 0]
-        normal = axis_p[0]
-        off, tilt = cross(normal, axis_p), cross(axis_c, axis_p)
-        revolute = np.array([j.type == JointType.REVOLUTE for j in joints])
-        if (np.sqrt(_dots(off, off))[1:] > PLANE_TOLERANCE).any() or \
-                (revolute & (np.sqrt(_dots(tilt, tilt)) > PLANE_TOLERANCE)).any():
-            return None
-    Q = np.eye(3) if normal is None else _frame_to(normal)
-    R_state = R_base @ Q
-    state_R = R_state.T @ world_R
-    com_world = position + (world_R @ com_local[..., None])[..., 0]
-    ground = None
-    if spec.ground is not None:
-        g = spec.ground
-        if np.abs(g.normal - np.array([0.0, 0.0, 1.0])).max() > 1e-9 or g.restitution > 0.0:
-            return None
-        ground = (float(g.offset), float(g.friction))
-        if any(shape.restitution > 0.0 for shape in shapes):
-            return None
-    made = [None] * len(st.chains)
-    numbers = (R_state, state_R, world_R, frames, com_world, com_local, inertia, axes, parent_positions,
-               child_positions, position, angular_velocity, base_com, ground, samples)
-    for batch in st.batches:
-        chains = _sub_chains(spec, st, batch, *numbers)
-        if chains is None:
-            return None
-        for g, chain in zip(batch, chains):
-            made[g] = chain
-    # every sub-chain's checks passed; their tables in order (a new one is computed here and may jam)
+            return False
+    bodies, joints = spec.bodies, spec.joints
+    return (_regular([b.com for b in bodies], (3,), (8,)) and _regular([b.inertia for b in bodies], (3, 3), (24, 8))
+            and _regular([j.axis for j in joints], (3,), (8,))
+            and _regular([j.parent_position for j in joints], (3,), (8,))
+            and _regular([j.child_position for j in joints], (3,), (8,)))
+
+
+def _pending_layouts(specs: list, st: _Structure, samples: int) -> list:
+    """The array path's numbers (everything but the tables: see _finish) for specs of structure
+    ``st``, computed together (a leading axis of specs on every array; each number by the
+    operations of one spec alone); None for a spec whose checks fail (_plain_layout decides)."""
+    out = [None] * len(specs)
+    taken = [i for i, spec in enumerate(specs) if _takes(spec)]
+    while taken:
+        try:
+            made = _numbers_of([specs[i] for i in taken], st, samples)
+        except _Refused as refused:
+            if len(taken) == 1:
+                break
+            mask = refused.mask
+            if mask is None:  # the batch's arrays do not stack: ask each spec alone
+                mask = [_pending_layouts([specs[i]], st, samples)[0] is None for i in taken]
+            taken = [i for i, bad in zip(taken, mask) if not bad]
+            continue
+        for i, numbers in zip(taken, made):
+            out[i] = numbers
+        break
+    return out
+
+
+def _finish(spec: MechanismSpec, st: _Structure, numbers: dict, samples: int) -> TabulatedLayout:
+    """The layout of a spec from its array-path numbers: its sub-chains' tables in order (a new
+    one is computed here and may raise ValueError: the linkage jams), base slots and the rest
+    (what _assemble makes, its numbers computed with the batch)."""
     groups = []
-    for fields, key, planar, closed, contact, what in made:
+    for fields, key, planar, closed, contact, what in numbers["chains"]:
         table = cached_table(key, planar, closed, fields["angle"], samples, contact, what)
         groups.append(SubChain(table=table, **fields))
+    base, Q, ground = st.base, numbers["Q"], numbers["ground"]
+    base_body = spec.bodies[base]
     base_slots = _base_slots(spec, st.base_shapes, base_body.com, Q, ground)
-    return _assemble(spec, base, Q, R_state, base_com, groups, base_slots, ground, st.where_is, st.point_bodies)
+    points = [(g, k, local) for (g, k), local in zip(st.point_at, numbers["points"])]
+    frame = numbers["base_frame"]
+    body_frames = [(-1, 0, frame) if g < 0 else (g, k, groups[g].link_frame[k]) for g, k in st.body_at]
+    return TabulatedLayout(spec, base, numbers["frame"], numbers["base_com"], numbers["orientation"],
+                           base_body.velocity.copy(), base_body.angular_velocity.copy(), float(base_body.mass),
+                           numbers["base_inertia"], groups, base_slots, ground, np.asarray(spec.gravity, float),
+                           points, body_frames)
+
+
+def _numbers_of(specs: list, st: _Structure, samples: int) -> list:
+    """_pending_layouts for specs that passed _takes: per spec (sub-chains as _sub_chain_batch
+    gives them, Q, R_state, base centre of mass, ground); raises _Refused for specs a check fails."""
+    S = len(specs)
+    bodies0, joints0 = specs[0].bodies, specs[0].joints
+    B, J = len(bodies0), len(joints0)
+    try:
+        orientation = np.array([[b.orientation for b in spec.bodies] for spec in specs], dtype=float)
+        position = np.array([[b.position for b in spec.bodies] for spec in specs], dtype=float)
+        angular_velocity = np.array([[b.angular_velocity for b in spec.bodies] for spec in specs], dtype=float)
+        joint_frames = np.array([[(j.parent_orientation, j.child_orientation) for j in spec.joints] for spec in specs],
+                                dtype=float)
+    except (TypeError, ValueError):
+        raise _Refused() from None
+    if orientation.shape != (S, B, 4) or position.shape != (S, B, 3) or angular_velocity.shape != (S, B, 3) or \
+            joint_frames.shape != (S, J, 2, 4):
+        raise _Refused()
+    com_local = np.array([[b.com for b in spec.bodies] for spec in specs]).reshape(S, B, 3)
+    inertia = np.array([[b.inertia for b in spec.bodies] for spec in specs]).reshape(S, B, 3, 3)
+    axes = np.array([[j.axis for j in spec.joints] for spec in specs]).reshape(S, J, 3)
+    parent_positions = np.array([[j.parent_position for j in spec.joints] for spec in specs]).reshape(S, J, 3)
+    child_positions = np.array([[j.child_position for j in spec.joints] for spec in specs]).reshape(S, J, 3)
+    base = st.base
+    R_base = _quat_matrices(orientation[:, base])  # quat_matrix of each base's orientation
+    base_com = position[:, base] + (R_base @ com_local[:, base, :, None])[..., 0]
+    world_R = _quat_matrices(orientation)  # (S, B, 3, 3)
+    frames = _quat_matrices(joint_frames)  # (S, J, 2, 3, 3): every joint's parent and child anchor frame
+    # one plane normal: every joint's axis in the base frame
+    Q = np.empty((S, 3, 3))
+    Q[:] = np.eye(3)
+    if J:
+        a_index = np.array([a for a, _ in st.ends])
+        b_index = np.array([b for _, b in st.ends])
+        R_base_T = R_base.swapaxes(-1, -2)[:, None]
+        axis_p = ((R_base_T @ world_R[:, a_index] @ frames[:, :, 0]) @ axes[..., None])[..., 0]
+        axis_c = ((R_base_T @ world_R[:, b_index] @ frames[:, :, 1]) @ axes[..., None])[..., 0]
+        normal = axis_p[:, 0]
+        off, tilt = cross(normal[:, None], axis_p), cross(axis_c, axis_p)
+        revolute = np.array([j.type == JointType.REVOLUTE for j in joints0])
+        refused = (np.sqrt(_dots(off, off))[:, 1:] > PLANE_TOLERANCE).any(axis=1) | \
+            (revolute & (np.sqrt(_dots(tilt, tilt)) > PLANE_TOLERANCE)).any(axis=1)
+        if refused.any():
+            raise _Refused(refused)
+        for s in range(S):
+            Q[s] = _frame_to(normal[s])
+    R_state = R_base @ Q
+    R_state_T = R_state.swapaxes(-1, -2)
+    state_R = R_state_T[:, None] @ world_R
+    com_world = position + (world_R @ com_local[..., None])[..., 0]
+    grounds = []
+    refused = np.zeros(S, bool)
+    for s, spec in enumerate(specs):
+        ground = None
+        if spec.ground is not None:
+            g = spec.ground
+            if np.abs(g.normal - np.array([0.0, 0.0, 1.0])).max() > 1e-9 or g.restitution > 0.0 or \
+                    any(shape.restitution > 0.0 for shape in spec.shapes):
+                refused[s] = True
+            ground = (float(g.offset), float(g.friction))
+        grounds.append(ground)
+    if refused.any():
+        raise _Refused(refused)
+    chains = [[None] * len(st.chains) for _ in range(S)]
+    numbers = (R_state_T, state_R, world_R, R_base, frames, com_world, com_local, inertia, axes, parent_positions,
+               child_positions, position, angular_velocity, base_com, grounds, samples)
+    for batch in st.batches:
+        made = _sub_chain_batch(specs, st, batch, *numbers)
+        for s in range(S):
+            for g, chain in zip(batch, made[s]):
+                chains[s][g] = chain
+    # _assemble's numbers: tracked points in their link's table frame (or the base's state frame),
+    # the frames as quaternions, the base's inertia in the state frame
+    points = np.zeros((S, len(st.point_at), 3))
+    on_link = [p for p, (g, _) in enumerate(st.point_at) if g >= 0]
+    on_base = [p for p, (g, _) in enumerate(st.point_at) if g < 0]
+    position = np.array([[p.position for p in spec.points] for spec in specs], dtype=float).reshape(S, -1, 3)
+    if on_link:
+        frames_at = np.array([[chains[s][g][0]["link_frame"][k] for g, k in (st.point_at[p] for p in on_link)]
+                              for s in range(S)])
+        body = [st.point_bodies[p] for p in on_link]
+        points[:, on_link] = (_quat_matrices(frames_at) @ (position[:, on_link] - com_local[:, body])[..., None])[..., 0]
+    if on_base:
+        points[:, on_base] = (Q.swapaxes(-1, -2)[:, None] @ (position[:, on_base]
+                                                             - com_local[:, base][:, None])[..., None])[..., 0]
+    frame, orientation, base_frame = (_matrix_quats(m) for m in (Q, R_state, Q.swapaxes(-1, -2)))
+    base_inertia = Q.swapaxes(-1, -2) @ inertia[:, base] @ Q
+    return [dict(chains=chains[s], Q=Q[s], base_com=base_com[s], ground=grounds[s], points=points[s], frame=frame[s],
+                 orientation=orientation[s], base_frame=base_frame[s], base_inertia=base_inertia[s]) for s in range(S)]
 
 
 def _base_slots(spec: MechanismSpec, shape_indices, com: np.ndarray, Q: np.ndarray, ground: tuple) -> list:
@@ -554,131 +709,161 @@ def _assemble(spec, base, Q, R_state, base_com, groups, base_slots, ground, wher
                            groups, base_slots, ground, np.asarray(spec.gravity, float), points, body_frames)
 
 
-def _sub_chains(spec, st, batch, R_state, state_R, world_R, frames, com_world, com_local, inertia, axes,
-                parent_positions, child_positions, position, angular_velocity, base_com, ground, samples):
-    """_plain_layout's _sub_chain for the sub-chains ``batch`` (one signature) at once: per sub-chain
-    (SubChain fields but the table, table key, _Planar, closed start pose, contact, name for errors),
-    or None when a check fails."""
-    bodies, joints, shapes = spec.bodies, spec.joints, spec.shapes
+def _sub_chain_batch(specs, st, batch, R_state_T, state_R, world_R, R_base, frames, com_world, com_local,
+                     inertia, axes, parent_positions, child_positions, position, angular_velocity, base_com, grounds,
+                     samples):
+    """_plain_layout's _sub_chain for the sub-chains ``batch`` (one signature) of every spec at once
+    (arrays (S, G, ...)): per spec and sub-chain (SubChain fields but the table, table key,
+    _Planar, closed start pose, contact, name for errors); raises _Refused for the specs whose
+    checks fail."""
     chains = [st.chains[g] for g in batch]
     first = chains[0]
-    G, K, base = len(chains), len(first.comp), st.base
+    S, G, K, base = len(specs), len(chains), len(first.comp), st.base
+    joints0 = specs[0].joints
     comp = np.array([chain.comp for chain in chains])  # (G, K)
     joint_list = np.array([chain.joints for chain in chains])  # (G, n)
     n = joint_list.shape[1]
-    SR = state_R[comp]
+    SR = state_R[:, comp]  # (S, G, K, 3, 3)
     x_axes, z_axes = SR[..., :, 0].tolist(), SR[..., :, 2].tolist()
-    phi0 = []  # _planar_angle of every link
-    for xs, zs in zip(x_axes, z_axes):
-        row = []
-        for x, z in zip(xs, zs):
-            row.append(math.atan2(x[2], x[0]) if math.hypot(x[0], x[2]) > 1e-3 else math.atan2(-z[0], z[2]))
-        phi0.append(row)
-    phi = np.array(phi0)
-    C = _rot_minus_ys([-p for row in phi0 for p in row]).reshape(G, K, 3, 3) @ SR
-    com = (R_state.T @ (com_world[comp] - base_com)[..., None])[..., 0]  # (G, K, 3)
+    phi0 = []  # _planar_angle of every link, (S, G, K)
+    for spec_x, spec_z in zip(x_axes, z_axes):
+        rows = []
+        for xs, zs in zip(spec_x, spec_z):
+            row = []
+            for x, z in zip(xs, zs):
+                row.append(math.atan2(x[2], x[0]) if math.hypot(x[0], x[2]) > 1e-3 else math.atan2(-z[0], z[2]))
+            rows.append(row)
+        phi0.append(rows)
+    phi = np.array(phi0).reshape(S, G, K)
+    C = _rot_minus_ys([-p for spec_rows in phi0 for row in spec_rows for p in row]).reshape(S, G, K, 3, 3) @ SR
+    com = (R_state_T[:, None, None] @ (com_world[:, comp] - base_com[:, None, None])[..., None])[..., 0]  # (S, G, K, 3)
     drivers = [chain.driver for chain in chains]
     base_side = first.base_side
-    driver_local = (parent_positions if base_side == "parent" else child_positions)[drivers]
-    pivot = (R_state.T @ (position[base] + (world_R[base] @ driver_local[..., None])[..., 0] - base_com)[..., None])[..., 0]
+    driver_local = (parent_positions if base_side == "parent" else child_positions)[:, drivers]  # (S, G, 3)
+    base_R = world_R[:, base][:, None]
+    pivot = (R_state_T[:, None] @ (position[:, base][:, None] + (base_R @ driver_local[..., None])[..., 0]
+                                   - base_com[:, None])[..., None])[..., 0]  # (S, G, 3)
     # every joint's two ends: base ends in the state frame from the pivot, link ends in the table frame
     side_base = np.array([e[0] for pair in first.ends for e in pair])  # (2 n,)
     side_link = np.array([e[2] for pair in first.ends for e in pair])
     side_body = np.array([[e[1] for pair in chain.ends for e in pair] for chain in chains])  # (G, 2 n)
-    end_position = np.stack([parent_positions[joint_list], child_positions[joint_list]], axis=2).reshape(G, 2 * n, 3)
-    at_base = (R_state.T @ (position[base] + (world_R[base] @ end_position[..., None])[..., 0] - base_com)[..., None])[..., 0]
+    end_position = np.stack([parent_positions[:, joint_list], child_positions[:, joint_list]], axis=3).reshape(
+        S, G, 2 * n, 3)
+    at_base = (R_state_T[:, None, None] @ (position[:, base][:, None, None]
+                                           + (base_R[:, None] @ end_position[..., None])[..., 0]
+                                           - base_com[:, None, None])[..., None])[..., 0]
     link = np.minimum(side_link, K - 1)
-    on_link = (C[:, link] @ (end_position - com_local[side_body])[..., None])[..., 0]
-    planar = np.where(side_base[:, None], np.stack([at_base[..., 0] - pivot[:, None, 0],
-                                                    at_base[..., 2] - pivot[:, None, 2]], axis=-1), on_link[..., [0, 2]])
-    height = np.where(side_base, at_base[..., 1], com[:, link, 1] + on_link[..., 1])
+    on_link = (C[:, :, link] @ (end_position - com_local[:, side_body])[..., None])[..., 0]
+    planar = np.where(side_base[:, None], np.stack([at_base[..., 0] - pivot[:, :, None, 0],
+                                                    at_base[..., 2] - pivot[:, :, None, 2]], axis=-1),
+                      on_link[..., [0, 2]])
+    height = np.where(side_base, at_base[..., 1], com[:, :, link, 1] + on_link[..., 1])
     reach = np.hypot(planar[..., 0], planar[..., 1])
-    if not (np.isfinite(reach).all() and np.isfinite(height).all() and np.isfinite(com).all()):
-        return None
-    scale = reach.max(axis=1)
-    revolute = np.array([joints[j].type == JointType.REVOLUTE for j in first.joints])
-    apart = np.abs(height[:, 0::2] - height[:, 1::2]) > 1e-6 * np.maximum(1.0, np.abs(com).max(axis=(1, 2)))[:, None]
-    if (apart & revolute).any() or not (scale > 0.0).all():
-        return None
-    plane_y = [float(com[g][:, 1].mean()) for g in range(G)]
-    if (np.abs(com[..., 1] - np.array(plane_y)[:, None]) > PLANE_TOLERANCE * scale[:, None]).any():
-        return None
+    refused = ~(np.isfinite(reach).all(axis=(1, 2)) & np.isfinite(height).all(axis=(1, 2))
+                & np.isfinite(com).all(axis=(1, 2, 3)))
+    scale = reach.max(axis=2)  # (S, G)
+    revolute = np.array([joints0[j].type == JointType.REVOLUTE for j in first.joints])
+    apart = np.abs(height[..., 0::2] - height[..., 1::2]) > 1e-6 * np.maximum(1.0, np.abs(com).max(axis=(2, 3)))[..., None]
+    refused |= (apart & revolute).any(axis=(1, 2)) | ~(scale > 0.0).all(axis=1)
+    plane_y = np.ascontiguousarray(com[..., 1]).reshape(S * G, K).mean(axis=1).reshape(S, G)
+    refused |= (np.abs(com[..., 1] - plane_y[..., None]) > PLANE_TOLERANCE * scale[..., None]).any(axis=(1, 2))
+    if refused.any():
+        raise _Refused(refused)
     ja = np.array([pair[0][2] for pair in first.ends])
     jb = np.array([pair[1][2] for pair in first.ends])
-    ra = planar[:, 0::2] / scale[:, None, None]
-    rb = planar[:, 1::2] / scale[:, None, None]
+    ra = planar[:, :, 0::2] / scale[..., None, None]
+    rb = planar[:, :, 1::2] / scale[..., None, None]
     k_d = first.k_d
     # the driving coordinate q against the driving link's angle (_sub_chain's q_of, twice per sub-chain)
-    base_orientation = R_state.T @ quat_matrix(bodies[base].orientation)
-    angles = [phi0[g][k_d] for g in range(G)] + list(phi[:, k_d] + 0.25)
-    turned = _rot_minus_ys(angles) @ np.concatenate([C[:, k_d], C[:, k_d]])
-    Qp, Qc = frames[drivers + drivers, 0], frames[drivers + drivers, 1]
-    parent, child = (base_orientation, turned) if base_side == "parent" else (turned, base_orientation)
-    rel = (parent @ Qp).swapaxes(-1, -2) @ (child @ Qc)
-    q = _matrix_quats(rel)
-    along = _dots(q[:, :3], axes[drivers + drivers])
-    q_of = [2.0 * math.atan2(a, w) for a, w in zip(along.tolist(), q[:, 3].tolist())]
-    q0 = q_of[:G]
-    sign = np.round(wrap(np.array(q_of[G:]) - np.array(q0)) / 0.25)
-    if not (np.abs(sign) == 1.0).all():
-        return None
-    sign = sign.tolist()
-    offset = [float(phi[g, k_d] - sign[g] * q0[g]) for g in range(G)]
-    ends = [joints[j] for j in drivers]
+    base_orientation = R_state_T @ R_base  # R_state^T quat_matrix(base orientation), per spec
+    angles = np.concatenate([phi[:, :, k_d], phi[:, :, k_d] + 0.25], axis=1)  # (S, 2 G)
+    turned = _rot_minus_ys(angles.reshape(-1)).reshape(S, 2 * G, 3, 3) @ np.concatenate([C[:, :, k_d], C[:, :, k_d]],
+                                                                                         axis=1)
+    Qp, Qc = frames[:, drivers + drivers, 0], frames[:, drivers + drivers, 1]
+    if base_side == "parent":
+        rel = (base_orientation[:, None] @ Qp).swapaxes(-1, -2) @ (turned @ Qc)
+    else:
+        rel = (turned @ Qp).swapaxes(-1, -2) @ (base_orientation[:, None] @ Qc)
+    q = _matrix_quats(rel.reshape(-1, 3, 3))
+    along = _dots(q[:, :3], axes[:, drivers + drivers].reshape(-1, 3))
+    q_of = np.array([2.0 * math.atan2(a, w) for a, w in zip(along.tolist(), q[:, 3].tolist())]).reshape(S, 2 * G)
+    q0 = q_of[:, :G]
+    sign = np.round(wrap(q_of[:, G:] - q0) / 0.25)
+    refused = ~(np.abs(sign) == 1.0).all(axis=1)
+    if refused.any():
+        raise _Refused(refused)
+    offset = phi[:, :, k_d] - sign * q0
     parent_i = [st.ends[j][0] for j in drivers]
     child_i = [st.ends[j][1] for j in drivers]
-    axis_w = ((world_R[parent_i] @ frames[drivers, 0]) @ axes[drivers][..., None])[..., 0]
-    rate = _dots(angular_velocity[child_i] - angular_velocity[parent_i], axis_w).tolist()
-    origin = [np.array([pivot[g, 0], plane_y[g], pivot[g, 2]]) for g in range(G)]
-    x0 = np.stack([(com[..., 0] - pivot[:, None, 0]) / scale[:, None], (com[..., 2] - pivot[:, None, 2]) / scale[:, None],
-                   phi], axis=-1).reshape(G, 3 * K)
-    batched = _Planar(K, ja, jb, ra, rb, k_d, np.array(sign), np.array(offset))
+    axis_w = ((world_R[:, parent_i] @ frames[:, drivers, 0]) @ axes[:, drivers][..., None])[..., 0]
+    rate = _dots(angular_velocity[:, child_i] - angular_velocity[:, parent_i], axis_w)
+    x0 = np.stack([(com[..., 0] - pivot[:, :, None, 0]) / scale[..., None],
+                   (com[..., 2] - pivot[:, :, None, 2]) / scale[..., None], phi], axis=-1).reshape(S, G, 3 * K)
+    batched = _Planar(K, ja, jb, ra, rb, k_d, sign, offset)
     closed = x0.copy()
-    ok = np.abs(batched.residual(x0, np.array(q0))).max(axis=-1) < NEWTON_TOLERANCE
-    planars = [_Planar(K, ja, jb, ra[g], rb[g], k_d, sign[g], offset[g]) for g in range(G)]
-    for g in np.nonzero(~ok)[0]:
-        closed[g], ok[g] = planars[g].newton(x0[g], q0[g])
+    ok = np.abs(batched.residual(x0, q0)).max(axis=-1) < NEWTON_TOLERANCE
+    sign_l, offset_l, q0_l = sign.tolist(), offset.tolist(), q0.tolist()
+    planars = [[_Planar(K, ja, jb, ra[s, g], rb[s, g], k_d, sign_l[s][g], offset_l[s][g]) for g in range(G)]
+               for s in range(S)]
+    for s, g in zip(*np.nonzero(~ok)):
+        closed[s, g], ok[s, g] = planars[s][g].newton(x0[s, g], q0_l[s][g])
     moved = closed - x0
-    moved[:, 2::3] = wrap(moved[:, 2::3])
-    if not ok.all() or np.abs(moved).max() > START_TOLERANCE:
-        return None
+    moved[..., 2::3] = wrap(moved[..., 2::3])
+    refused = ~ok.all(axis=1) | (np.abs(moved).max(axis=(1, 2)) > START_TOLERANCE)
+    if refused.any():
+        raise _Refused(refused)
     # the contact shape
-    shape, contact = [None] * G, [None] * G
+    shape = [[None] * G for _ in range(S)]
+    contact = [[None] * G for _ in range(S)]
+    contact_keys = None
     if first.contact is not None:
         k = first.contact[1]
-        items = [shapes[chain.contact[0]] for chain in chains]
+        items = [[spec.shapes[chain.contact[0]] for chain in chains] for spec in specs]
         at = comp[:, k]
-        local = (C[:, k] @ (np.array([item.position for item in items]) - com_local[at])[..., None])[..., 0]
-        angle, half = [0.0] * G, [0.0] * G
-        if items[0].type == ShapeType.CAPSULE:
-            turn = _quat_matrices(np.array([item.orientation for item in items], dtype=float))
-            axis = (C[:, k] @ turn[:, :, 2, None])[..., 0]
-            if (np.abs(axis[:, 1]) > PLANE_TOLERANCE).any():
-                return None
-            angle = [math.atan2(a[2], a[0]) for a in axis.tolist()]
-            half = [float(item.size[1]) for item in items]
-        contact_local = local / scale[:, None]
-        for g, item in enumerate(items):
-            shape[g] = (chains[g].contact[0], float(item.size[0]), half[g], angle[g], math.sqrt(item.friction * ground[1]))
-            contact[g] = (k, contact_local[g])
-        contact_keys = _rounded_rows(contact_local)
+        item_position = np.array([[item.position for item in row] for row in items], dtype=float)
+        local = (C[:, :, k] @ (item_position - com_local[:, at])[..., None])[..., 0]  # (S, G, 3)
+        angle, half = [[0.0] * G for _ in range(S)], [[0.0] * G for _ in range(S)]
+        if items[0][0].type == ShapeType.CAPSULE:
+            turn = _quat_matrices(np.array([[item.orientation for item in row] for row in items], dtype=float))
+            axis = (C[:, :, k] @ turn[..., :, 2, None])[..., 0]
+            refused = (np.abs(axis[..., 1]) > PLANE_TOLERANCE).any(axis=1)
+            if refused.any():
+                raise _Refused(refused)
+            angle = [[math.atan2(a[2], a[0]) for a in row] for row in axis.tolist()]
+            half = [[float(item.size[1]) for item in row] for row in items]
+        contact_local = local / scale[..., None]
+        for s in range(S):
+            mu = grounds[s][1]
+            for g, item in enumerate(items[s]):
+                shape[s][g] = (chains[g].contact[0], float(item.size[0]), half[s][g], angle[s][g],
+                               math.sqrt(item.friction * mu))
+                contact[s][g] = (k, contact_local[s, g])
+        contact_keys = _rounded_rows(contact_local.reshape(S * G, 3))
     pairs = tuple(zip(ja.tolist(), jb.tolist()))
-    ra_keys, rb_keys = _rounded_rows(ra), _rounded_rows(rb)
-    turn_keys = _rounded_rows(np.array([[math.cos(o), math.sin(o)] for o in offset]))
-    link_inertia = C @ inertia[comp] @ C.swapaxes(-1, -2)
-    link_frame = _matrix_quats(C.reshape(-1, 3, 3)).reshape(G, K, 4)
+    ra_keys, rb_keys = _rounded_rows(ra.reshape(S * G, -1)), _rounded_rows(rb.reshape(S * G, -1))
+    turn_keys = _rounded_rows(np.array([[math.cos(o), math.sin(o)] for o in offset.reshape(-1).tolist()]))
+    link_inertia = C @ inertia[:, comp] @ C.swapaxes(-1, -2)
+    link_frame = _matrix_quats(C.reshape(-1, 3, 3)).reshape(S, G, K, 4)
+    masses = [[spec.bodies[i].mass for i in comp.reshape(-1).tolist()] for spec in specs]
+    scale_l, q0_f, rate_l = scale.tolist(), q0.tolist(), rate.tolist()
     out = []
-    for g, chain in enumerate(chains):
-        driver = ends[g]
-        key = (samples, K, pairs, ra_keys[g], rb_keys[g], k_d, sign[g], turn_keys[g],
-               None if contact[g] is None else (contact[g][0], contact_keys[g]))
-        drive = driver.drive
-        fields = dict(joint=chain.driver, bodies=list(chain.comp), scale=float(scale[g]), origin=origin[g],
-                      angle=float(q0[g]), rate=float(rate[g]), link_mass=np.array([bodies[i].mass for i in chain.comp]),
-                      link_inertia=link_inertia[g], link_frame=link_frame[g],
-                      drive=(float(drive.target_velocity), float(drive.damping), float(drive.effort_limit)),
-                      shape=shape[g])
-        out.append((fields, key, planars[g], closed[g], contact[g], f"sub-chain turned by joint '{driver.name}'"))
+    for s, spec in enumerate(specs):
+        mine = []
+        for g, chain in enumerate(chains):
+            item = s * G + g
+            driver = spec.joints[chain.driver]
+            key = (samples, K, pairs, ra_keys[item], rb_keys[item], k_d, sign_l[s][g], turn_keys[item],
+                   None if contact[s][g] is None else (contact[s][g][0], contact_keys[item]))
+            drive = driver.drive
+            fields = dict(joint=chain.driver, bodies=list(chain.comp), scale=scale_l[s][g],
+                          origin=np.array([pivot[s, g, 0], plane_y[s, g], pivot[s, g, 2]]), angle=q0_f[s][g],
+                          rate=rate_l[s][g], link_mass=np.array(masses[s][g * K:(g + 1) * K]),
+                          link_inertia=link_inertia[s, g], link_frame=link_frame[s, g],
+                          drive=(float(drive.target_velocity), float(drive.damping), float(drive.effort_limit)),
+                          shape=shape[s][g])
+            mine.append((fields, key, planars[s][g], closed[s, g], contact[s][g],
+                         f"sub-chain turned by joint '{driver.name}'"))
+        out.append(mine)
     return out
 
 

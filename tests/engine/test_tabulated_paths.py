@@ -5,7 +5,8 @@ of one structure together, structure facts cached); _plain_layout is the analysi
 time, every check in order. For walkers of every topology, a base frame turned off the plane
 normal and a lone four-bar, both must give equal layouts (every number bit for bit, the same table
 objects); a spec the array path does not take as it is (a strided array) or refuses (a joint limit)
-goes through _plain_layout, with its result or its error.
+goes through _plain_layout, with its result or its error. Specs analysed together (tabulated_layouts,
+as engine.pack plans a study's generation) get the layouts each gets alone.
 """
 
 import dataclasses
@@ -16,6 +17,7 @@ import pytest
 
 from engine import Body, MechanismSpec
 from engine.reduced import tabulated_layout as layout_module
+from engine.reduced import tabulated_tables as tables_module
 from engine.reduced.tabulated_layout import _plain_layout, tabulated_layout
 from engine.reduced.tabulated_tables import TABLE_SAMPLES, SubChainTable
 from morphopt.families import load_family
@@ -129,3 +131,79 @@ def test_what_the_array_path_does_not_take_goes_item_by_item():
     with pytest.raises(ValueError, match="has limits") as fast:
         tabulated_layout(limited)
     assert str(fast.value) == str(plain.value)
+
+
+def _with_tables(leaves, layouts):
+    """``leaves`` with every table identity replaced by the table's numbers (bytes)."""
+    tables = {id(chain.table): chain.table for lay in layouts if not isinstance(lay, Exception) for chain in lay.groups}
+    out = []
+    for leaf in leaves:
+        if leaf[1] == "table":
+            table = tables[leaf[2]]
+            leaf = (leaf[0], "table", tuple(np.asarray(getattr(table, f)).tobytes() for f in
+                                            ("links", "links_d1", "links_d2", "contact", "contact_d1", "contact_d2",
+                                             "contact_link", "closure_error")), table.key)
+        out.append(leaf)
+    return out
+
+
+def _outcomes(specs, together: bool) -> list:
+    """Per spec the leaves of its layout (tables by their numbers) or its error, from an empty table
+    cache: analysed together (tabulated_layouts) or one tabulated_layout call per spec."""
+    tables_module._TABLES.clear()
+    if together:
+        made = layout_module.tabulated_layouts(specs)
+    else:
+        made = []
+        for spec in specs:
+            try:
+                made.append(tabulated_layout(spec))
+            except ValueError as exc:
+                made.append(exc)
+    return [f"{type(m).__name__}: {m}" if isinstance(m, Exception) else _with_tables(_leaves(m), made) for m in made]
+
+
+def test_layouts_analysed_together_equal_each_alone():
+    """tabulated_layouts (one array pass per structure, as a study's generation is planned) gives
+    every spec the layout tabulated_layout gives it alone, every number and table to the last bit,
+    the tables made in the same order: for walkers of one topology in other dimensions, and for a
+    mixed batch (both leg families, one to four legs per side, a turned base, a lone four-bar, a
+    spec the array path leaves to the item-by-item analysis and one it refuses, repeated specs)."""
+    rng = np.random.default_rng(8)
+    same = [{**p, "leg_family": "jansen_leg", "legs_per_side": 3} for p in WALKER.space.sample(rng, 12)]
+    same_specs = [WALKER.build_spec(p) for p in same]
+    assert len({layout_module._structure_key(s) for s in same_specs}) == 1
+    assert _outcomes(same_specs, together=True) == _outcomes(same_specs, together=False)
+
+    strided = WALKER.build_spec(same[0])
+    column = np.empty(6)
+    column[::2] = strided.bodies[3].com
+    strided.bodies[3].com = column[::2]
+    limited = WALKER.build_spec(same[1])
+    limited.joints[5].limit_upper = 1.0
+    bent = WALKER.build_spec(same[2])  # taken by the array path's first checks, refused by its plane check
+    bent.joints[4].axis = np.array([0.0, -0.8, 0.6])
+    ragged = WALKER.build_spec(same[3])  # its arrays do not stack with the batch's
+    ragged.bodies[2].orientation = (0.0, 0.0, 1.0)
+    mixed = [WALKER.build_spec(p) for p in _walkers()] + [_turned(WALKER.build_spec(
+        {**WALKER.space.default(), "legs_per_side": 2})), _four_bar(), strided, limited, bent, ragged] + same_specs[:3]
+    mixed.insert(3, mixed[0])  # one spec object twice
+    together, alone = _outcomes(mixed, together=True), _outcomes(mixed, together=False)
+    assert together == alone
+    errors = [o for o in together if isinstance(o, str)]
+    assert len(errors) == 3 and "has limits" in errors[0] and "turns about" in errors[1], errors
+
+
+def test_analysed_together_answers_inside_the_block_only():
+    """Inside analysed_together(specs), tabulated_layout answers with the batch's layouts (and the
+    refused spec's error); after the block it analyses again."""
+    specs = [WALKER.build_spec(p) for p in WALKER.space.sample(np.random.default_rng(3), 4)]
+    limited = WALKER.build_spec(WALKER.space.default())
+    limited.joints[2].limit_lower = -1.0
+    with layout_module.analysed_together(specs + [limited]) as made:
+        assert all(tabulated_layout(s) is m for s, m in zip(specs, made))
+        with pytest.raises(ValueError, match="has limits"):
+            tabulated_layout(limited)
+    assert not layout_module._READY
+    assert tabulated_layout(specs[0]) is not made[0]
+    assert _leaves(tabulated_layout(specs[0])) == _leaves(made[0])

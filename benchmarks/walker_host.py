@@ -1,0 +1,109 @@
+"""Host time of a walker study's generation: build, pack and simulate seconds and designs per second.
+
+    python benchmarks/walker_host.py --designs 256 --repeats 3
+    python benchmarks/walker_host.py --root OTHER_CHECKOUT --designs 256   # an older commit, same script
+    python benchmarks/walker_host.py --designs 256 --profile walker.prof   # cProfile of one timed generation
+
+Evaluates generations of ``--designs`` walkers of studies/walker.toml's family as ``morphopt study
+run`` does (morphopt.evaluate.evaluate_dynamic with the study's duration, dt, crank speed and
+solver settings; the [fixed] parameters applied to designs sampled from the study's space). A
+first generation compiles the kernels and fills the engine's caches, as a study's first
+generation does; each timed generation then draws new designs (a new seed), as a study's later
+generations do. Prints one JSON object: per generation the stage seconds and designs per second,
+and their medians. ``--root`` imports engine and morphopt from another checkout (its own
+studies/walker.toml), so that the commit before a change measures itself with this script.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import statistics
+import subprocess
+import sys
+import time
+
+HERE = pathlib.Path(__file__).resolve().parents[1]
+
+
+def _commit(root: pathlib.Path) -> str:
+    try:
+        out = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                             check=True)
+        return out.stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def _designs(study, family, count: int, seed: int) -> list:
+    """``count`` designs of the study's space (its [fixed] parameters applied), drawn with ``seed``."""
+    import numpy as np
+
+    space = study.design_space(family)
+    return [{**p, **study.fixed} for p in space.sample(np.random.default_rng(seed), count)]
+
+
+def _evaluate(study, family, params):
+    from morphopt.evaluate import evaluate_dynamic
+
+    kwargs = dict(duration=study.duration, dt=study.dt, device=study.device, crank_speed=study.crank_speed,
+                  config=study.solver_config())
+    if getattr(study, "model", None) is not None:  # commits before the engine planned itself
+        kwargs["model"] = study.model
+    return evaluate_dynamic(family, params, **kwargs)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--designs", type=int, default=256)
+    parser.add_argument("--repeats", type=int, default=3, help="timed generations (the median is reported)")
+    parser.add_argument("--root", default=str(HERE), help="the checkout to measure")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--profile", default=None, help="write cProfile stats of the first timed generation here")
+    args = parser.parse_args(argv)
+    root = pathlib.Path(args.root).resolve()
+    sys.path.insert(0, str(root))
+    import warp as wp
+
+    wp.config.quiet = True
+    from morphopt.families import load_family
+    from morphopt.study_spec import load_study_spec
+    from morphopt.warp_setup import quiet_warp
+
+    quiet_warp()
+    study = load_study_spec(root / "studies" / "walker.toml").with_overrides(device=args.device)
+    family = load_family(study.family)
+    warm = _evaluate(study, family, _designs(study, family, args.designs, 1000))
+    runs = []
+    for repeat in range(args.repeats):
+        params = _designs(study, family, args.designs, repeat)
+        profiler = None
+        if args.profile and repeat == 0:
+            import cProfile
+            profiler = cProfile.Profile()
+            profiler.enable()
+        start = time.perf_counter()
+        evaluation = _evaluate(study, family, params)
+        seconds = time.perf_counter() - start
+        if profiler is not None:
+            profiler.disable()
+            profiler.dump_stats(args.profile)
+        runs.append({"seconds": round(seconds, 4), "designs_per_s": round(len(params) / seconds, 2),
+                     "stages": {k: round(v, 4) for k, v in evaluation.timings.items()},
+                     "feasible": int(sum(evaluation.feasible))})
+    stages = sorted({k for run in runs for k in run["stages"]})
+    report = {
+        "commit": _commit(root), "device": args.device, "designs": args.designs, "repeats": args.repeats,
+        "plan": None if getattr(warm, "plan", None) is None else warm.plan.coordinates.value,
+        "designs_per_s": statistics.median(run["designs_per_s"] for run in runs),
+        "stages": {k: round(statistics.median(run["stages"].get(k, 0.0) for run in runs), 4) for k in stages},
+        "runs": runs,
+    }
+    print(json.dumps(report))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
