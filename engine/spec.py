@@ -18,6 +18,7 @@ Frames:
 from __future__ import annotations
 
 import enum
+import itertools
 import math
 from dataclasses import dataclass, field
 
@@ -272,9 +273,14 @@ class Body:
         if not (norm >= 1e-9).all():
             return None
         unit = orientation / norm[:, None]
-        return [_held(cls, name=name, mass=m, inertia=inertia[i], com=com[i], position=position[i], orientation=unit[i],
-                      velocity=velocity[i], angular_velocity=angular_velocity[i])
-                for i, (name, m) in enumerate(zip(names, mass.tolist()))]
+        new, out = object.__new__, []
+        for name, m, I, c, p, q, v, w in zip(names, mass.tolist(), inertia, com, position, unit, velocity,
+                                             angular_velocity):  # _held of each row, written out
+            item = new(cls)
+            item.__dict__.update(name=name, mass=m, inertia=I, com=c, position=p, orientation=q, velocity=v,
+                                 angular_velocity=w)
+            out.append(item)
+        return out
 
 
 @dataclass
@@ -404,7 +410,7 @@ class Joint:
         if any(p == c for p, c in zip(parents, children)):
             return None
         try:
-            types = [JointType[t.upper()] if isinstance(t, str) else JointType(t) for t in types]
+            types = [_JOINT_TYPES.get(t) or (JointType[t.upper()] if isinstance(t, str) else JointType(t)) for t in types]
             defaults = cls.__dataclass_fields__
             default_q, default_axis2 = defaults["parent_orientation"].default, defaults["axis2"].default
             unit = _once(axis, "axis", "axis")
@@ -416,11 +422,16 @@ class Joint:
         except (AttributeError, KeyError, TypeError, ValueError):
             return None
         unit_q, unit_axis2 = _once(default_q, "quaternion", ""), _once(default_axis2, "axis", "")
-        return [_held(cls, name=names[i], type=types[i], parent=parents[i], child=children[i],
-                      parent_position=parent_position[i], parent_orientation=unit_q.copy(),
-                      child_position=child_position[i], child_orientation=unit_q.copy(), axis=unit.copy(),
-                      axis2=unit_axis2.copy(), armature=0.0, damping=0.0, drive=drives[i], limit_lower=-math.inf,
-                      limit_upper=math.inf) for i in range(n)]
+        # every joint its own arrays (rows of one array per field, as Body.batch's rows)
+        parent_q, child_q = np.tile(unit_q, (n, 1)), np.tile(unit_q, (n, 1))
+        axes, axes2 = np.tile(unit, (n, 1)), np.tile(unit_axis2, (n, 1))
+        new, out, same = object.__new__, [], itertools.repeat
+        for row in zip(names, types, parents, children, parent_position, parent_q, child_position, child_q, axes, axes2,
+                       same(0.0), same(0.0), drives, same(-math.inf), same(math.inf)):  # _held of each row
+            item = new(cls)
+            item.__dict__.update(zip(_JOINT_FIELDS, row))
+            out.append(item)
+        return out
 
 
     @property
@@ -432,6 +443,10 @@ class Joint:
     def limit_sides(self) -> list[int]:
         """+1 for a finite lower limit, -1 for a finite upper limit (one unilateral row each)."""
         return [side for side, value in ((1, self.limit_lower), (-1, self.limit_upper)) if math.isfinite(value)]
+
+
+_JOINT_TYPES = {**{t: t for t in JointType}, **{t.name.lower(): t for t in JointType}}  # Joint.batch's fast path
+_JOINT_FIELDS = tuple(Joint.__dataclass_fields__)  # Joint.batch's columns, in field order
 
 
 class ShapeType(enum.IntEnum):
@@ -500,6 +515,44 @@ class Shape:
         if not integral or group < 0:
             raise ValueError(f"{where}: collision_group must be a non-negative integer, got {group!r}")
         self.collision_group = int(group)
+
+    @classmethod
+    def batch(cls, names, types, bodies, size, position, orientation, *, friction=0.8, restitution=0.0,
+              collision_group=0):
+        """Shapes from stacked numbers: names, types (ShapeType each) and body names (N each), size
+        (N, 3) float64 (a shape's sizes, then zeros: a capsule (radius, half length, 0)), position
+        (N, 3), orientation (N, 4), friction and restitution (N,) or one number, one non-negative
+        integer collision_group. The constructor's shapes row by row (its checks on the arrays at
+        once; each shape holds the numbers it would: views of the rows, the orientation normalized
+        as it normalizes), or None when any row fails a check: build those one by one for the
+        constructor's error."""
+        n = len(names)
+        size, position, orientation = _stack(size, (n, 3)), _stack(position, (n, 3)), _stack(orientation, (n, 4))
+        if size is None or position is None or orientation is None or not _finite(size, position, orientation):
+            return None
+        if not (_names(names) and _names(bodies)) or not all(type(t) is ShapeType for t in types):
+            return None
+        friction = np.broadcast_to(np.asarray(friction, dtype=np.float64), (n,))
+        restitution = np.broadcast_to(np.asarray(restitution, dtype=np.float64), (n,))
+        integral = type(collision_group) is int and collision_group >= 0
+        if not (integral and _finite(friction, restitution) and (friction >= 0.0).all() and (restitution >= 0.0).all()
+                and (restitution <= 1.0).all()):
+            return None
+        count = np.array([_SIZES[t] for t in types], dtype=int).reshape(n)
+        used = np.arange(3) < count[:, None]
+        if not ((size > 0.0) | ~used).all() or (size[~used] != 0.0).any():
+            return None
+        norm = np.sqrt((orientation[:, None, :] @ orientation[:, :, None])[:, 0, 0])  # quat @ quat of each
+        if not (norm >= 1e-9).all():
+            return None
+        unit = orientation / norm[:, None]
+        size = size + 0.0  # the constructor's zeros are positive
+        return [_held(cls, name=names[i], type=types[i], body=bodies[i], size=size[i], position=position[i],
+                      orientation=unit[i], friction=f, restitution=r, collision_group=collision_group)
+                for i, (f, r) in enumerate(zip(friction.tolist(), restitution.tolist()))]
+
+
+_SIZES = {ShapeType.SPHERE: 1, ShapeType.CAPSULE: 2, ShapeType.BOX: 3, ShapeType.CYLINDER: 2}  # sizes of a shape
 
 
 @dataclass

@@ -25,14 +25,16 @@ Nothing here knows a mechanism's anatomy: contact slots come from shapes
 from __future__ import annotations
 
 import contextlib
+import gc
 import math
+import operator
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from engine.pack import collision_pairs
 from engine.reduced.tabulated_tables import (NEWTON_TOLERANCE, START_TOLERANCE, TABLE_SAMPLES, SubChainTable, _Planar,
-                                            cached_table, wrap)
+                                            cached, cached_branches, cached_table, wrap)
 from engine.spatial import cross, quat_matrix
 from engine.spec import JointType, MechanismSpec, ShapeType
 
@@ -346,9 +348,10 @@ def _analyse(spec: MechanismSpec) -> _Structure | None:
                       [where_is[i] for i in point_bodies], [where_is[i] for i in range(len(spec.bodies))])
 
 
-def _regular(arrays, shape: tuple, strides: tuple) -> bool:
+def _regular(arrays: list, shape: tuple, strides: tuple) -> bool:
     """Whether every item is a float64 ndarray of ``shape`` laid out C-ordered (strides)."""
-    return all(type(a) is np.ndarray and a.dtype is _F64 and a.shape == shape and a.strides == strides for a in arrays)
+    return (set(map(type, arrays)) <= {np.ndarray} and set(map(id, map(_DTYPE, arrays))) <= {id(_F64)}
+            and set(map(_LAYOUT, arrays)) <= {(shape, strides)})
 
 
 def _quat_matrices(q: np.ndarray) -> np.ndarray:
@@ -460,7 +463,17 @@ def tabulated_layouts(specs, *, samples: int = TABLE_SAMPLES) -> list:
     number by the operations of a spec alone; then, in the order of ``specs``, each spec's tables
     are looked up (or made) and a spec the array path left goes item by item, as one call per spec
     would. Equal to tabulated_layout of each spec in turn, to the last bit."""
-    specs = list(specs)
+    collecting = gc.isenabled()
+    gc.disable()  # thousands of new objects, none of them garbage: the collector would only slow it down
+    try:
+        return _layouts_together(list(specs), samples)
+    finally:
+        if collecting:
+            gc.enable()
+
+
+def _layouts_together(specs: list, samples: int) -> list:
+    """tabulated_layouts' work (the collector off)."""
     groups = {}
     for i, spec in enumerate(specs):
         groups.setdefault(_structure_key(spec), []).append(i)
@@ -471,11 +484,24 @@ def tabulated_layouts(specs, *, samples: int = TABLE_SAMPLES) -> list:
             continue
         for i, numbers in zip(indices, _pending_layouts([specs[i] for i in indices], structure, samples)):
             pending[i], structures[i] = numbers, structure
+    # the tables cached now, for every sub-chain of one key at once (cached_table's first match)
+    by_key = {}
+    for i, numbers in enumerate(pending):
+        for g, (fields, key, _, closed, _, _) in enumerate(numbers["chains"] if numbers else ()):
+            by_key.setdefault(key, []).append((i, g, closed, fields["angle"]))
+    found = {}
+    for key, items in by_key.items():
+        tables = cached_branches(key, np.array([c for _, _, c, _ in items]), np.array([q for _, _, _, q in items]))
+        for (i, g, _, _), table in zip(items, tables):
+            found[i, g] = table
     out = []
     for i, spec in enumerate(specs):
         try:
-            out.append(_plain_layout(spec, samples=samples) if pending[i] is None else
-                       _finish(spec, structures[i], pending[i], samples))
+            if pending[i] is None:
+                out.append(_plain_layout(spec, samples=samples))
+            else:
+                known = [found.get((i, g)) for g in range(len(pending[i]["chains"]))]
+                out.append(_finish(spec, structures[i], pending[i], samples, known))
         except ValueError as exc:
             out.append(exc)
     return out
@@ -520,15 +546,26 @@ class _Refused(Exception):
 def _takes(spec: MechanismSpec) -> bool:
     """Whether the array path takes the spec's values as they are: no joint limit, armature,
     damping or drive stiffness, and every vector the C-ordered float64 array of its shape."""
-    for joint in spec.joints:
-        if joint.has_limits or joint.armature > 0.0 or joint.damping > 0.0 or \
-                (joint.drive is not None and joint.drive.stiffness > 0.0):
-            return False
     bodies, joints = spec.bodies, spec.joints
-    return (_regular([b.com for b in bodies], (3,), (8,)) and _regular([b.inertia for b in bodies], (3, 3), (24, 8))
-            and _regular([j.axis for j in joints], (3,), (8,))
-            and _regular([j.parent_position for j in joints], (3,), (8,))
-            and _regular([j.child_position for j in joints], (3,), (8,)))
+    values = set(map(_JOINT_VALUES, joints))  # (limit_lower, limit_upper, armature, damping) of each
+    if any(math.isfinite(low) or math.isfinite(high) or armature > 0.0 or damping > 0.0
+           for low, high, armature, damping in values):
+        return False
+    if any(drive is not None and drive.stiffness > 0.0 for drive in map(_DRIVE, joints)):
+        return False
+    return (_regular(list(map(_COM, bodies)), (3,), (8,)) and _regular(list(map(_INERTIA, bodies)), (3, 3), (24, 8))
+            and _regular(list(map(_AXIS, joints)), (3,), (8,))
+            and _regular(list(map(_PARENT_POSITION, joints)), (3,), (8,))
+            and _regular(list(map(_CHILD_POSITION, joints)), (3,), (8,)))
+
+
+_JOINT_VALUES = operator.attrgetter("limit_lower", "limit_upper", "armature", "damping")
+_DRIVE, _AXIS = operator.attrgetter("drive"), operator.attrgetter("axis")
+_PARENT_POSITION, _CHILD_POSITION = operator.attrgetter("parent_position"), operator.attrgetter("child_position")
+_COM, _INERTIA = operator.attrgetter("com"), operator.attrgetter("inertia")
+_PARENT_ORIENTATION = operator.attrgetter("parent_orientation")
+_CHILD_ORIENTATION = operator.attrgetter("child_orientation")
+_DTYPE, _LAYOUT = operator.attrgetter("dtype"), operator.attrgetter("shape", "strides")
 
 
 def _pending_layouts(specs: list, st: _Structure, samples: int) -> list:
@@ -554,13 +591,15 @@ def _pending_layouts(specs: list, st: _Structure, samples: int) -> list:
     return out
 
 
-def _finish(spec: MechanismSpec, st: _Structure, numbers: dict, samples: int) -> TabulatedLayout:
-    """The layout of a spec from its array-path numbers: its sub-chains' tables in order (a new
-    one is computed here and may raise ValueError: the linkage jams), base slots and the rest
-    (what _assemble makes, its numbers computed with the batch)."""
+def _finish(spec: MechanismSpec, st: _Structure, numbers: dict, samples: int, known=None) -> TabulatedLayout:
+    """The layout of a spec from its array-path numbers: its sub-chains' tables in order (known:
+    per sub-chain the table cached_branches found, or None; a table no longer cached, or none:
+    cached_table looks it up or computes a new one, which may raise ValueError: the linkage jams), base slots and the rest (what
+    _assemble makes, its numbers computed with the batch)."""
     groups = []
-    for fields, key, planar, closed, contact, what in numbers["chains"]:
-        table = cached_table(key, planar, closed, fields["angle"], samples, contact, what)
+    for g, (fields, key, planar, closed, contact, what) in enumerate(numbers["chains"]):
+        table = known[g] if known is not None and cached(key, known[g]) else \
+            cached_table(key, planar, closed, fields["angle"], samples, contact, what)
         groups.append(SubChain(table=table, **fields))
     base, Q, ground = st.base, numbers["Q"], numbers["ground"]
     base_body = spec.bodies[base]
@@ -584,8 +623,9 @@ def _numbers_of(specs: list, st: _Structure, samples: int) -> list:
         orientation = np.array([[b.orientation for b in spec.bodies] for spec in specs], dtype=float)
         position = np.array([[b.position for b in spec.bodies] for spec in specs], dtype=float)
         angular_velocity = np.array([[b.angular_velocity for b in spec.bodies] for spec in specs], dtype=float)
-        joint_frames = np.array([[(j.parent_orientation, j.child_orientation) for j in spec.joints] for spec in specs],
-                                dtype=float)
+        joint_frames = np.stack([np.array([list(map(_PARENT_ORIENTATION, spec.joints)) for spec in specs], dtype=float),
+                                 np.array([list(map(_CHILD_ORIENTATION, spec.joints)) for spec in specs], dtype=float)],
+                                axis=2)
     except (TypeError, ValueError):
         raise _Refused() from None
     if orientation.shape != (S, B, 4) or position.shape != (S, B, 3) or angular_velocity.shape != (S, B, 3) or \
@@ -724,18 +764,15 @@ def _sub_chain_batch(specs, st, batch, R_state_T, state_R, world_R, R_base, fram
     joint_list = np.array([chain.joints for chain in chains])  # (G, n)
     n = joint_list.shape[1]
     SR = state_R[:, comp]  # (S, G, K, 3, 3)
-    x_axes, z_axes = SR[..., :, 0].tolist(), SR[..., :, 2].tolist()
-    phi0 = []  # _planar_angle of every link, (S, G, K)
-    for spec_x, spec_z in zip(x_axes, z_axes):
-        rows = []
-        for xs, zs in zip(spec_x, spec_z):
-            row = []
-            for x, z in zip(xs, zs):
-                row.append(math.atan2(x[2], x[0]) if math.hypot(x[0], x[2]) > 1e-3 else math.atan2(-z[0], z[2]))
-            rows.append(row)
-        phi0.append(rows)
+    # _planar_angle of every link (math's atan2 and hypot, item by item): its x axis's direction in
+    # (x, z), or its z axis's when x lies along y
+    x0_, x2_ = SR[..., 0, 0].reshape(-1).tolist(), SR[..., 2, 0].reshape(-1).tolist()
+    z0_, z2_ = SR[..., 0, 2].reshape(-1).tolist(), SR[..., 2, 2].reshape(-1).tolist()
+    along_x = [h > 1e-3 for h in map(math.hypot, x0_, x2_)]
+    phi0 = list(map(math.atan2, [a if x else -b for a, b, x in zip(x2_, z0_, along_x)],
+                    [a if x else b for a, b, x in zip(x0_, z2_, along_x)]))
     phi = np.array(phi0).reshape(S, G, K)
-    C = _rot_minus_ys([-p for spec_rows in phi0 for row in spec_rows for p in row]).reshape(S, G, K, 3, 3) @ SR
+    C = _rot_minus_ys([-p for p in phi0]).reshape(S, G, K, 3, 3) @ SR
     com = (R_state_T[:, None, None] @ (com_world[:, comp] - base_com[:, None, None])[..., None])[..., 0]  # (S, G, K, 3)
     drivers = [chain.driver for chain in chains]
     base_side = first.base_side
@@ -845,6 +882,11 @@ def _sub_chain_batch(specs, st, batch, R_state_T, state_R, world_R, R_base, fram
     link_inertia = C @ inertia[:, comp] @ C.swapaxes(-1, -2)
     link_frame = _matrix_quats(C.reshape(-1, 3, 3)).reshape(S, G, K, 4)
     masses = [[spec.bodies[i].mass for i in comp.reshape(-1).tolist()] for spec in specs]
+    if all(type(m) is float for row in masses for m in row):  # Python floats: one array keeps their values
+        link_mass = np.array(masses).reshape(S, G, K)
+    else:  # as _sub_chain makes each, from whatever the spec holds
+        link_mass = [[np.array(row[g * K:(g + 1) * K]) for g in range(G)] for row in masses]
+    origin = np.stack([pivot[..., 0], plane_y, pivot[..., 2]], axis=-1)  # (S, G, 3)
     scale_l, q0_f, rate_l = scale.tolist(), q0.tolist(), rate.tolist()
     out = []
     for s, spec in enumerate(specs):
@@ -856,8 +898,7 @@ def _sub_chain_batch(specs, st, batch, R_state_T, state_R, world_R, R_base, fram
                    None if contact[s][g] is None else (contact[s][g][0], contact_keys[item]))
             drive = driver.drive
             fields = dict(joint=chain.driver, bodies=list(chain.comp), scale=scale_l[s][g],
-                          origin=np.array([pivot[s, g, 0], plane_y[s, g], pivot[s, g, 2]]), angle=q0_f[s][g],
-                          rate=rate_l[s][g], link_mass=np.array(masses[s][g * K:(g + 1) * K]),
+                          origin=origin[s, g], angle=q0_f[s][g], rate=rate_l[s][g], link_mass=link_mass[s][g],
                           link_inertia=link_inertia[s, g], link_frame=link_frame[s, g],
                           drive=(float(drive.target_velocity), float(drive.damping), float(drive.effort_limit)),
                           shape=shape[s][g])

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["SubChainTable", "TABLE_SAMPLES", "cached_table", "tabulate_sub_chain", "wrap"]
+__all__ = ["SubChainTable", "TABLE_SAMPLES", "cached", "cached_branches", "cached_table", "tabulate_sub_chain", "wrap"]
 
 TABLE_SAMPLES = 512  # samples of a turn of the driving coordinate
 START_TOLERANCE = 1e-3  # relative to the scale: how far the spec's start may be from a closed pose
@@ -250,6 +250,47 @@ def tabulate_sub_chain(planar: _Planar, x0: np.ndarray, q0: float, samples: int,
 
 
 _TABLES: dict = {}  # cache key -> list of tables (one per assembly branch met)
+
+
+def cached(key: tuple, table) -> bool:
+    """Whether ``table`` is one of the tables cached under ``key`` now."""
+    return table is not None and any(t is table for t in _TABLES.get(key, ()))
+
+
+def cached_branches(key: tuple, x0: np.ndarray, q0: np.ndarray) -> list:
+    """For sub-chains of one cache key at poses x0 (N, 3 K) and coordinates q0 (N,): the table
+    cached_table would return from the tables cached now (the first branch whose pose at q0 is
+    x0's), or None where none is (cached_table then makes one, or finds one made since). The
+    branches are compared for all sub-chains at once; a sub-chain within 1e-9 of the tolerance
+    is compared as cached_table compares it."""
+    found = [None] * len(x0)
+    open_ = np.arange(len(x0))
+    for table in _TABLES.get(key, []):
+        if not len(open_):
+            break
+        n = table.samples
+        u = (q0[open_] / _TWO_PI * n) % n
+        usable = np.isfinite(u)  # else cached_table decides (and raises)
+        u = np.where(usable, u, 0.0)
+        i0 = np.minimum(u.astype(int), n - 1)
+        f = u - i0
+        a, b = table.links[i0], table.links[(i0 + 1) % n]  # (M, K, 3)
+        step = b - a
+        step[..., 2] = wrap(step[..., 2])
+        diff = (a + f[:, None, None] * step).reshape(len(open_), -1) - x0[open_]
+        diff[:, 2::3] = wrap(diff[:, 2::3])
+        worst = np.where(usable, np.abs(diff).max(axis=1), np.inf)
+        near = np.abs(worst - START_TOLERANCE) < 1e-9
+        for m in np.nonzero(near)[0]:  # at the tolerance: the scalar comparison decides
+            links, _ = table.at(float(q0[open_[m]]))
+            d = links.reshape(-1) - x0[open_[m]]
+            d[2::3] = wrap(d[2::3])
+            worst[m] = 0.0 if np.abs(d).max() < START_TOLERANCE else np.inf
+        hit = worst < START_TOLERANCE
+        for m in np.nonzero(hit)[0]:
+            found[open_[m]] = table
+        open_ = open_[~hit]
+    return found
 
 
 def cached_table(key: tuple, planar: _Planar, x0: np.ndarray, q0: float, samples: int, contact, what: str):

@@ -14,7 +14,8 @@ import pathlib
 
 import numpy as np
 
-from engine import GroundPlane, MechanismSpec, Shape, TrackedPoint
+from engine import Body, GroundPlane, MechanismSpec, Shape, ShapeType, TrackedPoint
+from engine.spatial import cross
 from morphopt.design_space import Choice, DesignSpace, Float, Int
 from morphopt.linkage import BarStyle
 from morphopt.linkage.to_spec import assemble, link_body, linkages_parts
@@ -48,9 +49,13 @@ CRANK_DAMPING = 5.0  # [N m s/rad]: the crank motors' velocity gain
 SHOE_ALONG_X = np.array([0.0, math.sin(math.pi / 4), 0.0, math.cos(math.pi / 4)])  # capsule z -> world x
 
 
-def _quat_mul(a, b):
-    av, aw, bv, bw = np.asarray(a[:3]), a[3], np.asarray(b[:3]), b[3]
-    return np.concatenate([aw * bv + bw * av + np.cross(av, bv), [aw * bw - av @ bv]])
+def _quat_muls(a, b):
+    """Quaternion products (x, y, z, w) of every row of a (N, 4) with b (4,), row by row as for one
+    (vector parts: aw bv + bw av + av x bv; w: aw bw - av . bv, the dot product as matmul takes it,
+    the same as the 1-D ``@``)."""
+    av, aw, bv, bw = a[:, :3], a[:, 3:], np.broadcast_to(b[:3], (len(a), 3)), b[3]
+    dot = (av[:, None, :] @ bv[:, :, None])[:, 0]
+    return np.concatenate([aw * bv + bw * av + cross(av, bv), aw * bw - dot], axis=1)
 
 
 def _quat_conj(q):
@@ -81,51 +86,162 @@ def _sizes(params: dict, crank_speed: float | None) -> dict:
                 half=half, foot_radius=0.004 * scale, places=places, torso_inertia=inertia)
 
 
-def _layout(params: dict, crank_speed: float | None) -> dict:
-    """_sizes plus the legs' linkages, assembled in one batched solve, and the start height."""
-    lay = _sizes(params, crank_speed)
+def _placements(lay: dict) -> list:
+    """Every leg of a walker's _sizes as (name prefix, x, y, its linkage at its crank phase)."""
     scale, speed = lay["scale"], lay["speed"]
     leg_family = LEG_FAMILIES[lay["p"]["leg_family"]]
     leg = {k: v * scale for k, v in leg_family.space.default().items()}
-    placements = [(f"{name}_", x, y, leg_family.generate(leg, crank_speed=speed, phase=phase))
-                  for name, x, y, phase in lay["places"]]
-    solutions = assemble([linkage for _, _, _, linkage in placements])  # every leg in one batched solve
+    return [(f"{name}_", x, y, leg_family.generate(leg, crank_speed=speed, phase=phase))
+            for name, x, y, phase in lay["places"]]
+
+
+def _placed(lay: dict, placements: list, solutions: list) -> dict:
+    """_sizes plus the legs and their assembly (assemble's solutions), the bars' style and the start
+    height; ValueError naming the first leg that cannot be assembled."""
     for (prefix, _, _, _), solution in zip(placements, solutions):
         if not solution.feasible:
             raise ValueError(f"leg '{prefix.rstrip('_')}' cannot be assembled: {solution.reason}")
     lowest = min(solution.nodes["F"][0, 1] for solution in solutions)
-    return dict(lay, style=_style(scale), placements=placements, solutions=solutions,
+    return dict(lay, style=_style(lay["scale"]), placements=placements, solutions=solutions,
                 height=-lowest + lay["foot_radius"] + 0.001)
+
+
+def _layout(params: dict, crank_speed: float | None) -> dict:
+    """_sizes plus the legs' linkages, assembled in one batched solve, and the start height."""
+    lay = _sizes(params, crank_speed)
+    placements = _placements(lay)
+    return _placed(lay, placements, assemble([linkage for _, _, _, linkage in placements]))
 
 
 def build_spec(params: dict, *, crank_speed: float | None = None, effort_limit: float = 20.0) -> MechanismSpec:
     """The walker's MechanismSpec (crank_speed overrides the parameter when given) [rad/s]."""
-    lay = _layout(params, crank_speed)
-    half, height, reach, foot_radius = lay["half"], lay["height"], lay["reach"], lay["foot_radius"]
-    torso = link_body("torso", [np.array([-half[0], 0.0, height]), np.array([half[0], 0.0, height])],
-                      BarStyle(width=2 * half[1], thickness=2 * half[2], density=1.0))
-    torso.mass = lay["p"]["torso_mass"]
-    torso.inertia = lay["torso_inertia"]
-    torso.com = np.array([half[0], 0.0, 0.0])
-    bodies, joints = [torso], []
-    shapes = [Shape("torso", "box", "torso", half, position=(half[0], 0.0, 0.0), collision_group=1)]
-    # torso_up: one torso half-length above the centre, for the torso's tilt (falls are failures)
-    points = [TrackedPoint("torso", "torso", (half[0], 0.0, 0.0)),
-              TrackedPoint("torso_up", "torso", (half[0], 0.0, half[0]))]
-    placements = lay["placements"]  # every leg's numbers computed at once, its objects leg by leg
-    legs = linkages_parts([linkage for _, _, _, linkage in placements], style=lay["style"], crank_damping=CRANK_DAMPING,
-                          effort_limit=effort_limit, start_at_speed=False, base=torso, solutions=lay["solutions"],
-                          origins=[(x, y, height) for _, x, y, _ in placements],
-                          prefixes=[prefix for prefix, _, _, _ in placements])
-    for (prefix, _, _, _), (leg_bodies, leg_joints, leg_points) in zip(placements, legs):
-        bodies += leg_bodies
-        joints += leg_joints
-        points += leg_points
-        foot = next(pt for pt in leg_points if pt.name == prefix + "foot")
-        body = next(b for b in leg_bodies if b.name == foot.body)
-        # a shoe: a capsule along the walking direction (world x at the start), so that two rows of
-        # feet stand without tipping sideways
-        shoe = _quat_mul(_quat_conj(body.orientation), SHOE_ALONG_X)
-        shapes.append(Shape(prefix + "foot", "capsule", foot.body, (foot_radius, 0.25 * reach), position=foot.position,
-                            orientation=shoe, friction=1.0, collision_group=1))
-    return MechanismSpec(bodies, joints, points, shapes=shapes, ground=GroundPlane(friction=1.0), name="walker")
+    made = _specs([_layout(params, crank_speed)], effort_limit)[0]
+    if isinstance(made, ValueError):
+        raise made
+    return made
+
+
+def build_specs(designs: list, *, crank_speed: float | None = None, effort_limit: float = 20.0) -> list:
+    """build_spec of every design, with the work shared across designs (morphopt.build calls it for
+    a generation): every leg of every walker assembled in one batched solve, the torsos and shapes
+    made from arrays. Per design its MechanismSpec, the same to the last bit as build_spec's, or
+    the ValueError build_spec raises for it (returned, not raised)."""
+    out, lays, legs = [None] * len(designs), {}, []
+    for i, params in enumerate(designs):
+        try:
+            lay = _sizes(params, crank_speed)
+            placements = _placements(lay)
+        except ValueError as exc:
+            out[i] = exc
+            continue
+        lays[i] = (lay, placements, len(legs))
+        legs += [linkage for _, _, _, linkage in placements]
+    solutions = assemble(legs) if legs else []
+    placed = {}
+    for i, (lay, placements, first) in lays.items():
+        try:
+            placed[i] = _placed(lay, placements, solutions[first:first + len(placements)])
+        except ValueError as exc:
+            out[i] = exc
+    for i, spec in zip(placed, _specs(list(placed.values()), effort_limit)):
+        out[i] = spec
+    return out
+
+
+_TORSO_ORIENTATION = (0.0, -0.0, 0.0, 1.0)  # link_body's frame of a bar along +x: planar_rotation(0.0)
+
+
+def _torsos(lays: list) -> list:
+    """The torso bodies of placed walkers: link_body's bar along x at the start height, then the
+    box's mass, inertia about its centre and centre (what build_spec sets); made from arrays."""
+    half = np.array([lay["half"][0] for lay in lays])
+    zero = np.zeros(len(lays))
+    position = np.stack([-half, zero, np.array([lay["height"] for lay in lays])], axis=1)
+    bodies = Body.batch(["torso"] * len(lays), np.array([float(lay["p"]["torso_mass"]) for lay in lays]),
+                        np.array([lay["torso_inertia"] for lay in lays]).reshape(-1, 3, 3),
+                        np.stack([half, zero, zero], axis=1), position,
+                        np.array([_TORSO_ORIENTATION] * len(lays)))
+    if bodies is None:  # a check fails: the constructor names it
+        return [Body("torso", lay["p"]["torso_mass"], lay["torso_inertia"], com=(lay["half"][0], 0.0, 0.0),
+                     position=(-lay["half"][0], 0.0, lay["height"]), orientation=_TORSO_ORIENTATION) for lay in lays]
+    return bodies
+
+
+def _specs(lays: list, effort_limit: float) -> list:
+    """The MechanismSpecs of placed walkers (_placed): per walker the spec or the ValueError its
+    parts raise. Legs are made walker by walker (linkages_parts: every leg of one walker at once),
+    torsos and shapes for every walker at once."""
+    parts, feet = [], []
+    for lay, torso in zip(lays, _torsos(lays)):
+        height, placements = lay["height"], lay["placements"]
+        points = [TrackedPoint("torso", "torso", (lay["half"][0], 0.0, 0.0)),
+                  TrackedPoint("torso_up", "torso", (lay["half"][0], 0.0, lay["half"][0]))]
+        bodies, joints, mine = [torso], [], []
+        try:
+            legs = linkages_parts([linkage for _, _, _, linkage in placements], style=lay["style"],
+                                  crank_damping=CRANK_DAMPING, effort_limit=effort_limit, start_at_speed=False,
+                                  base=torso, solutions=lay["solutions"],
+                                  origins=[(x, y, height) for _, x, y, _ in placements],
+                                  prefixes=[prefix for prefix, _, _, _ in placements])
+            for (prefix, _, _, _), (leg_bodies, leg_joints, leg_points) in zip(placements, legs):
+                bodies += leg_bodies
+                joints += leg_joints
+                points += leg_points
+                foot = next(pt for pt in leg_points if pt.name == prefix + "foot")
+                mine.append((prefix + "foot", foot, next(b for b in leg_bodies if b.name == foot.body)))
+        except ValueError as exc:
+            parts.append(exc)
+            continue
+        parts.append((bodies, joints, points))
+        feet.append((lay, mine))
+    shapes = iter(_shapes(feet))
+    out = []
+    for made in parts:
+        if isinstance(made, ValueError):
+            out.append(made)
+            continue
+        try:
+            out.append(MechanismSpec(*made, shapes=next(shapes), ground=GroundPlane(friction=1.0), name="walker"))
+        except ValueError as exc:
+            out.append(exc)
+    return out
+
+
+def _shapes(feet: list) -> list:
+    """Per walker its shapes: the torso's box, then per leg a shoe, a capsule along the walking
+    direction (world x at the start) so that two rows of feet stand without tipping sideways.
+    feet: per walker (its placed layout, per leg (shape name, foot point, foot body))."""
+    names, types, bodies, size, position, orientation, friction, counts = [], [], [], [], [], [], [], []
+    for lay, mine in feet:
+        half, reach, radius = lay["half"], lay["reach"], lay["foot_radius"]
+        names.append("torso")
+        types.append(ShapeType.BOX)
+        bodies.append("torso")
+        size.append(half)
+        position.append((half[0], 0.0, 0.0))
+        orientation.append((0.0, 0.0, 0.0, 1.0))
+        friction.append(0.8)
+        for name, foot, body in mine:
+            names.append(name)
+            types.append(ShapeType.CAPSULE)
+            bodies.append(foot.body)
+            size.append((radius, 0.25 * reach, 0.0))
+            position.append(foot.position)
+            orientation.append(body.orientation)  # the foot body's, turned into its shoe's below
+            friction.append(1.0)
+        counts.append(1 + len(mine))
+    orientation = np.array(orientation, dtype=float).reshape(-1, 4)
+    shoe = np.array([t == ShapeType.CAPSULE for t in types], bool)
+    orientation[shoe] = _quat_muls(_quat_conj(orientation[shoe].T).T, SHOE_ALONG_X)
+    made = Shape.batch(names, types, bodies, np.array(size, dtype=float).reshape(-1, 3),
+                       np.array(position, dtype=float).reshape(-1, 3), orientation, friction=np.array(friction),
+                       collision_group=1) if names else []
+    if made is None:  # a check fails: the constructor names it
+        made = [Shape(n, t, b, s[:2] if t == ShapeType.CAPSULE else s, position=p, orientation=q, friction=f,
+                      collision_group=1)
+                for n, t, b, s, p, q, f in zip(names, types, bodies, size, position, orientation, friction)]
+    out, start = [], 0
+    for count in counts:
+        out.append(made[start:start + count])
+        start += count
+    return out

@@ -304,3 +304,33 @@ def test_linkage_specs_equal_the_reference_bit_for_bit(name):
                     orientation=(0.0, -math.sin(0.2), 0.0, math.cos(0.2)))
         kwargs = dict(style=style, origin=(0.3, -0.1, 1.0), prefix="leg_", base=base, effort_limit=7.0)
         _assert_identical(list(linkage_parts(linkage, **kwargs)), list(_reference_linkage_parts(linkage, **kwargs)))
+
+
+def test_walker_batch_build_equals_building_each_alone():
+    """The walker family's build_specs (a generation's legs assembled in one solve, torsos and shapes
+    from arrays) gives every design build_spec's spec to the last bit, both leg families and one to
+    four legs per side mixed, with a crank speed override; designs that cannot be built keep their
+    reasons in the batch (build_specs here, as evaluate_dynamic builds)."""
+    walker = load_family("walker")
+    designs = _walker_designs(walker) + [{**p, "legs_per_side": 3} for p in
+                                          walker.space.sample(np.random.default_rng(12), 20)]
+    designs.insert(5, {**walker.space.default(), "scale": 1.0e9})  # outside the space
+    designs.insert(9, {**walker.space.default(), "stance": "wide"})  # not a number
+    for crank_speed in (None, 6.5):
+        made = walker.build_specs([walker.space.validate(p) for p in designs if p["scale"] < 10.0 and
+                                   not isinstance(p["stance"], str)], crank_speed=crank_speed, effort_limit=12.0)
+        alone = [walker.build_spec(walker.space.validate(p), crank_speed=crank_speed, effort_limit=12.0)
+                 for p in designs if p["scale"] < 10.0 and not isinstance(p["stance"], str)]
+        assert len(made) == len(alone)
+        for spec, reference in zip(made, alone):
+            _assert_identical(spec, reference)
+        built = build_specs(walker, designs, crank_speed=crank_speed, workers=1)
+        for params, spec in zip(designs, built):
+            expected = _outcome(lambda: walker.build_spec(walker.space.validate(params), crank_speed=crank_speed))
+            if isinstance(expected, str):
+                assert spec == expected
+            else:
+                _assert_identical(spec, expected)
+    assert "'scale'" in built[5] and "'stance'" in built[9]
+    feasible = walker.build_specs([{**walker.space.default(), "scale": 2.0}, {**walker.space.default(), "scale": 0.001}])
+    assert isinstance(feasible[0], MechanismSpec) and isinstance(feasible[1], ValueError)
