@@ -199,6 +199,9 @@ def _stack(value, shape: tuple) -> np.ndarray | None:
     return value if isinstance(value, np.ndarray) and value.dtype == np.float64 and value.shape == shape else None
 
 
+_F64 = np.dtype(np.float64)
+
+
 def _finite(*arrays) -> bool:
     return all(np.isfinite(a).all() for a in arrays)
 
@@ -654,6 +657,17 @@ class MechanismSpec:
             if shape.body not in index:
                 raise ValueError(f"shape '{shape.name}': body '{shape.body}' does not exist")
 
+    def __reduce_ex__(self, protocol):
+        """Pickled as columns: every field of the bodies, joints, tracked points and shapes as one
+        array (numbers) or list (the rest), unpickled into the same items (their arrays rows of one
+        array per field, floats and types as they were): a worker's specs cost a fraction of the
+        item-by-item pickle to send and to receive (morphopt.build). A spec holding anything else
+        (a subclass, an attribute of its own) pickles item by item."""
+        packed = _packed_spec(self) if type(self) is MechanismSpec else None
+        if packed is None:
+            return object.__reduce_ex__(self, protocol)
+        return _unpacked_spec, packed
+
     @property
     def body_index(self) -> dict[str, int]:
         """Body name -> index in ``bodies``."""
@@ -663,6 +677,81 @@ class MechanismSpec:
     def row_count(self) -> int:
         """Number of joint, drive and limit rows of this world (contact rows come on top)."""
         return sum(JOINT_ROW_COUNT[j.type] + sum(joint_dynamics_rows(j)) + len(j.limit_sides) for j in self.joints)
+
+
+_SPEC_FIELDS = tuple(MechanismSpec.__dataclass_fields__)
+_ITEM_KINDS = {"bodies": Body, "joints": Joint, "points": TrackedPoint, "shapes": Shape}
+_FIELDS_OF = {cls: tuple(cls.__dataclass_fields__) for cls in _ITEM_KINDS.values()}
+
+
+def _column(values: list):
+    """One field of a list of items, packed: ("f", float64 array) for Python floats, ("a", array
+    stacked along a new first axis) for C-ordered float64 arrays of one shape, ("e", enum class,
+    int array) for members of one IntEnum, else ("v", the list)."""
+    kinds = set(map(type, values))
+    if kinds == {float}:
+        return "f", np.array(values)
+    if kinds == {np.ndarray}:
+        layouts = {(a.dtype.str, a.shape, a.strides, a.flags.c_contiguous) for a in values}
+        if len(layouts) == 1:
+            dtype, shape, strides, contiguous = layouts.pop()
+            if dtype == "<f8" and contiguous and shape and all(a.dtype is _F64 for a in values):
+                return "a", np.array(values).reshape((len(values),) + shape)
+    if len(kinds) == 1:
+        kind = next(iter(kinds))
+        if isinstance(kind, type) and issubclass(kind, enum.IntEnum):
+            return "e", kind, np.array([int(v) for v in values])
+    return "v", values
+
+
+def _unpacked_column(column) -> list:
+    if column[0] == "f":
+        return column[1].tolist()
+    if column[0] == "a":
+        return list(column[1])  # rows: views of one array
+    if column[0] == "e":
+        return [column[1](v) for v in column[2].tolist()]
+    return column[1]
+
+
+def _packed_spec(spec: MechanismSpec):
+    """(arguments of _unpacked_spec) for a spec whose items are plain Body, Joint, TrackedPoint
+    and Shape instances holding their fields only, in field order; else None."""
+    if tuple(spec.__dict__) != _SPEC_FIELDS:
+        return None
+    lists = []
+    for attr, cls in _ITEM_KINDS.items():
+        items = getattr(spec, attr)
+        fields = _FIELDS_OF[cls]
+        if type(items) is not list or set(map(type, items)) - {cls} or \
+                any(tuple(item.__dict__) != fields for item in items):
+            return None
+        rows = [tuple(item.__dict__.values()) for item in items]
+        lists.append((len(items), [_column(list(values)) for values in zip(*rows)] if items else []))
+    rest = tuple(getattr(spec, f) for f in _SPEC_FIELDS if f not in _ITEM_KINDS)
+    return (rest, *lists)
+
+
+_GRAVITY_AND_REST = tuple(f for f in _SPEC_FIELDS if f not in _ITEM_KINDS)
+
+
+def _unpacked_spec(rest, *lists) -> MechanismSpec:
+    """The MechanismSpec _packed_spec packed (its items rebuilt without their checks: they held
+    these values)."""
+    new = object.__new__
+    made = {}
+    for (attr, cls), (count, columns) in zip(_ITEM_KINDS.items(), lists):
+        fields = _FIELDS_OF[cls]
+        items = []
+        for row in zip(*map(_unpacked_column, columns)) if count else ():
+            item = new(cls)
+            item.__dict__.update(zip(fields, row))
+            items.append(item)
+        made[attr] = items
+    spec = new(MechanismSpec)
+    values = dict(zip(_GRAVITY_AND_REST, rest), **made)
+    spec.__dict__.update((f, values[f]) for f in _SPEC_FIELDS)
+    return spec
 
 
 def joint_dynamics_rows(joint: Joint) -> tuple[bool, bool]:
