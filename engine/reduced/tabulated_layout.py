@@ -543,20 +543,25 @@ class _Refused(Exception):
         self.mask = None if mask is None else np.asarray(mask, bool)
 
 
-def _takes(spec: MechanismSpec) -> bool:
-    """Whether the array path takes the spec's values as they are: no joint limit, armature,
-    damping or drive stiffness, and every vector the C-ordered float64 array of its shape."""
+def _takes(spec: MechanismSpec) -> tuple | None:
+    """The spec's vectors the array path reads (every body's com and inertia, every joint's axis,
+    parent and child position) when it takes the spec's values as they are: no joint limit,
+    armature, damping or drive stiffness, and every vector the C-ordered float64 array of its
+    shape; else None."""
     bodies, joints = spec.bodies, spec.joints
     values = set(map(_JOINT_VALUES, joints))  # (limit_lower, limit_upper, armature, damping) of each
     if any(math.isfinite(low) or math.isfinite(high) or armature > 0.0 or damping > 0.0
            for low, high, armature, damping in values):
-        return False
+        return None
     if any(drive is not None and drive.stiffness > 0.0 for drive in map(_DRIVE, joints)):
-        return False
-    return (_regular(list(map(_COM, bodies)), (3,), (8,)) and _regular(list(map(_INERTIA, bodies)), (3, 3), (24, 8))
-            and _regular(list(map(_AXIS, joints)), (3,), (8,))
-            and _regular(list(map(_PARENT_POSITION, joints)), (3,), (8,))
-            and _regular(list(map(_CHILD_POSITION, joints)), (3,), (8,)))
+        return None
+    vectors = (list(map(_COM, bodies)), list(map(_INERTIA, bodies)), list(map(_AXIS, joints)),
+               list(map(_PARENT_POSITION, joints)), list(map(_CHILD_POSITION, joints)))
+    shapes = ((3,), (3, 3), (3,), (3,), (3,))
+    strides = ((8,), (24, 8), (8,), (8,), (8,))
+    if all(_regular(v, shape, stride) for v, shape, stride in zip(vectors, shapes, strides)):
+        return vectors
+    return None
 
 
 _JOINT_VALUES = operator.attrgetter("limit_lower", "limit_upper", "armature", "damping")
@@ -573,10 +578,11 @@ def _pending_layouts(specs: list, st: _Structure, samples: int) -> list:
     ``st``, computed together (a leading axis of specs on every array; each number by the
     operations of one spec alone); None for a spec whose checks fail (_plain_layout decides)."""
     out = [None] * len(specs)
-    taken = [i for i, spec in enumerate(specs) if _takes(spec)]
+    vectors = [_takes(spec) for spec in specs]
+    taken = [i for i, v in enumerate(vectors) if v is not None]
     while taken:
         try:
-            made = _numbers_of([specs[i] for i in taken], st, samples)
+            made = _numbers_of([specs[i] for i in taken], [vectors[i] for i in taken], st, samples)
         except _Refused as refused:
             if len(taken) == 1:
                 break
@@ -613,9 +619,9 @@ def _finish(spec: MechanismSpec, st: _Structure, numbers: dict, samples: int, kn
                            points, body_frames)
 
 
-def _numbers_of(specs: list, st: _Structure, samples: int) -> list:
-    """_pending_layouts for specs that passed _takes: per spec (sub-chains as _sub_chain_batch
-    gives them, Q, R_state, base centre of mass, ground); raises _Refused for specs a check fails."""
+def _numbers_of(specs: list, vectors: list, st: _Structure, samples: int) -> list:
+    """_pending_layouts for specs that passed _takes (vectors: what it gave for each): per spec
+    the numbers _finish reads; raises _Refused for specs a check fails."""
     S = len(specs)
     bodies0, joints0 = specs[0].bodies, specs[0].joints
     B, J = len(bodies0), len(joints0)
@@ -631,11 +637,9 @@ def _numbers_of(specs: list, st: _Structure, samples: int) -> list:
     if orientation.shape != (S, B, 4) or position.shape != (S, B, 3) or angular_velocity.shape != (S, B, 3) or \
             joint_frames.shape != (S, J, 2, 4):
         raise _Refused()
-    com_local = np.array([[b.com for b in spec.bodies] for spec in specs]).reshape(S, B, 3)
-    inertia = np.array([[b.inertia for b in spec.bodies] for spec in specs]).reshape(S, B, 3, 3)
-    axes = np.array([[j.axis for j in spec.joints] for spec in specs]).reshape(S, J, 3)
-    parent_positions = np.array([[j.parent_position for j in spec.joints] for spec in specs]).reshape(S, J, 3)
-    child_positions = np.array([[j.child_position for j in spec.joints] for spec in specs]).reshape(S, J, 3)
+    com_local, inertia, axes, parent_positions, child_positions = (
+        np.array([v[k] for v in vectors]).reshape((S, n) + shape)
+        for k, (n, shape) in enumerate(((B, (3,)), (B, (3, 3)), (J, (3,)), (J, (3,)), (J, (3,)))))
     base = st.base
     R_base = _quat_matrices(orientation[:, base])  # quat_matrix of each base's orientation
     base_com = position[:, base] + (R_base @ com_local[:, base, :, None])[..., 0]
@@ -657,8 +661,11 @@ def _numbers_of(specs: list, st: _Structure, samples: int) -> list:
             (revolute & (np.sqrt(_dots(tilt, tilt)) > PLANE_TOLERANCE)).any(axis=1)
         if refused.any():
             raise _Refused(refused)
-        for s in range(S):
-            Q[s] = _frame_to(normal[s])
+        frames_to = {}  # _frame_to of each distinct normal (a batch's normals are mostly one)
+        for s, key in enumerate(map(bytes, normal)):
+            if key not in frames_to:
+                frames_to[key] = _frame_to(normal[s])
+            Q[s] = frames_to[key]
     R_state = R_base @ Q
     R_state_T = R_state.swapaxes(-1, -2)
     state_R = R_state_T[:, None] @ world_R
