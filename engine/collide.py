@@ -4,11 +4,11 @@ Pairs are fixed at pack time (engine.pack): every shape against the world's grou
 every two shapes of different bodies of the same world that are not joined by a joint and do not
 share a non-zero collision group. Pair (a, b) has shape a of lower or equal type than shape b
 (sphere < capsule < box < cylinder); b = -1 is the ground plane. Pair p owns candidate slots
-4p .. 4p + 3 (the slot is the contact's key for warm starting); the normal of a contact points from b to a, its distance is negative when the
-shapes overlap [m]. Supported: every primitive against the plane; sphere-sphere, sphere-capsule,
-capsule-capsule, sphere-box, capsule-box, box-box (SAT face normal, corners over the other
-box's face both ways, the 4 deepest kept);
-cylinders collide with the ground plane only.
+4p .. 4p + 3 (the slot is the contact's key for warm starting); a contact's normal points from b
+to a, its distance is negative when the shapes overlap [m]. Supported: every primitive against
+the plane; sphere-sphere, sphere-capsule, capsule-capsule, sphere-box, capsule-box, box-box (SAT
+face normal, corners over the other box's face both ways, the 4 deepest kept); cylinders collide
+with the ground plane only.
 
 compact_contacts then keeps, per world and in slot order (deterministic), the candidates closer
 than the margin, up to the world's contact capacity, and counts the ones it had to drop.
@@ -16,6 +16,7 @@ than the margin, up to the world's contact capacity, and counts the ones it had 
 
 import warp as wp
 
+from engine.model import Candidates, ContactArrays, ShapeArrays
 from engine.spec import ShapeType
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
@@ -33,17 +34,6 @@ PAIR_CONTACTS = {
     (ShapeType.CAPSULE, ShapeType.CAPSULE): 2, (ShapeType.SPHERE, ShapeType.BOX): 1,
     (ShapeType.CAPSULE, ShapeType.BOX): 2, (ShapeType.BOX, ShapeType.BOX): 4,
 }
-
-
-@wp.struct
-class Candidates:
-    """Candidate contacts (W, K): valid flag, points on a and b and normal (world frame), distance."""
-
-    valid: wp.array2d(dtype=wp.int32)
-    point_a: wp.array2d(dtype=wp.vec3)
-    point_b: wp.array2d(dtype=wp.vec3)
-    normal: wp.array2d(dtype=wp.vec3)
-    distance: wp.array2d(dtype=float)
 
 
 @wp.func
@@ -284,43 +274,28 @@ def shape_against_plane(c: Candidates, world: int, base: int, ta: int, Xa: wp.tr
 
 
 @wp.kernel
-def generate_candidates(
-    # model
-    pair_count: wp.array(dtype=wp.int32),
-    pair_shape_a: wp.array2d(dtype=wp.int32),
-    pair_shape_b: wp.array2d(dtype=wp.int32),
-    shape_type: wp.array2d(dtype=wp.int32),
-    shape_body: wp.array2d(dtype=wp.int32),
-    shape_X: wp.array2d(dtype=wp.transform),
-    shape_size: wp.array2d(dtype=wp.vec3),
-    ground_normal: wp.array(dtype=wp.vec3),
-    ground_offset: wp.array(dtype=float),
-    margin: float,
-    # in
-    body_q: wp.array2d(dtype=wp.transform),
-    # out
-    c: Candidates,
-):
+def generate_candidates(shapes: ShapeArrays, margin: float, body_q: wp.array2d(dtype=wp.transform), c: Candidates):
     """Candidate contacts of one shape pair."""
     world, pair = wp.tid()
-    if pair >= pair_count[world]:
+    if pair >= shapes.pair_count[world]:
         return
     base = pair * PAIR_SLOTS
     for k in range(PAIR_SLOTS):
         c.valid[world, base + k] = 0
-    sa = pair_shape_a[world, pair]
-    sb = pair_shape_b[world, pair]
-    ta = shape_type[world, sa]
-    Xa = body_q[world, shape_body[world, sa]] * shape_X[world, sa]
-    size_a = shape_size[world, sa]
+    sa = shapes.pair_shape_a[world, pair]
+    sb = shapes.pair_shape_b[world, pair]
+    ta = shapes.shape_type[world, sa]
+    Xa = body_q[world, shapes.shape_body[world, sa]] * shapes.shape_X[world, sa]
+    size_a = shapes.shape_size[world, sa]
     pa = wp.transform_get_translation(Xa)
     axis_a = wp.quat_rotate(wp.transform_get_rotation(Xa), wp.vec3(0.0, 0.0, 1.0))
     if sb < 0:  # against the ground plane
-        shape_against_plane(c, world, base, ta, Xa, size_a, ground_normal[world], ground_offset[world], margin)
+        shape_against_plane(c, world, base, ta, Xa, size_a, shapes.ground_normal[world], shapes.ground_offset[world],
+                            margin)
         return
-    tb = shape_type[world, sb]
-    Xb = body_q[world, shape_body[world, sb]] * shape_X[world, sb]
-    size_b = shape_size[world, sb]
+    tb = shapes.shape_type[world, sb]
+    Xb = body_q[world, shapes.shape_body[world, sb]] * shapes.shape_X[world, sb]
+    size_b = shapes.shape_size[world, sb]
     pb = wp.transform_get_translation(Xb)
     axis_b = wp.quat_rotate(wp.transform_get_rotation(Xb), wp.vec3(0.0, 0.0, 1.0))
     if ta == SPHERE and tb == SPHERE:
@@ -359,71 +334,46 @@ def generate_candidates(
 
 
 @wp.kernel
-def compact_contacts(
-    # model
-    pair_count: wp.array(dtype=wp.int32),
-    pair_shape_a: wp.array2d(dtype=wp.int32),
-    pair_shape_b: wp.array2d(dtype=wp.int32),
-    contact_row_start: wp.array(dtype=wp.int32),
-    shape_body: wp.array2d(dtype=wp.int32),
-    shape_friction: wp.array2d(dtype=float),
-    shape_restitution: wp.array2d(dtype=float),
-    ground_friction: wp.array(dtype=float),
-    ground_restitution: wp.array(dtype=float),
-    contact_capacity: int,
-    margin: float,
-    c: Candidates,
-    # out
-    row_count_out: wp.array(dtype=wp.int32),
-    contact_count_out: wp.array(dtype=wp.int32),
-    contact_dropped_out: wp.array(dtype=wp.int32),
-    contact_key_out: wp.array2d(dtype=wp.int32),
-    contact_body_a_out: wp.array2d(dtype=wp.int32),
-    contact_body_b_out: wp.array2d(dtype=wp.int32),
-    contact_point_a_out: wp.array2d(dtype=wp.vec3),
-    contact_point_b_out: wp.array2d(dtype=wp.vec3),
-    contact_normal_out: wp.array2d(dtype=wp.vec3),
-    contact_distance_out: wp.array2d(dtype=float),
-    contact_friction_out: wp.array2d(dtype=float),
-    contact_restitution_out: wp.array2d(dtype=float),
-):
-    """Per world, in slot order: keep candidates closer than the margin, up to the capacity."""
+def compact_contacts(shapes: ShapeArrays, contact_row_start: wp.array(dtype=wp.int32), contact_capacity: int,
+                     margin: float, c: Candidates, row_count_out: wp.array(dtype=wp.int32), out: ContactArrays):
+    """Per world, in slot order: keep candidates closer than the margin, up to the capacity, into
+    ``out``; this step's row count into row_count_out."""
     world = wp.tid()
     count = int(0)
     dropped = int(0)
-    for pair in range(pair_count[world]):
+    for pair in range(shapes.pair_count[world]):
         base = pair * PAIR_SLOTS
-        sa = pair_shape_a[world, pair]
-        sb = pair_shape_b[world, pair]
+        sa = shapes.pair_shape_a[world, pair]
+        sb = shapes.pair_shape_b[world, pair]
         mu = float(0.0)
         e = float(0.0)
         body_b = int(-1)
         if sb < 0:
-            mu = wp.sqrt(shape_friction[world, sa] * ground_friction[world])
-            e = wp.max(shape_restitution[world, sa], ground_restitution[world])
+            mu = wp.sqrt(shapes.shape_friction[world, sa] * shapes.ground_friction[world])
+            e = wp.max(shapes.shape_restitution[world, sa], shapes.ground_restitution[world])
         else:
-            mu = wp.sqrt(shape_friction[world, sa] * shape_friction[world, sb])
-            e = wp.max(shape_restitution[world, sa], shape_restitution[world, sb])
-            body_b = shape_body[world, sb]
+            mu = wp.sqrt(shapes.shape_friction[world, sa] * shapes.shape_friction[world, sb])
+            e = wp.max(shapes.shape_restitution[world, sa], shapes.shape_restitution[world, sb])
+            body_b = shapes.shape_body[world, sb]
         for k in range(PAIR_SLOTS):
             slot = base + k
             if c.valid[world, slot] != 0:
                 if c.distance[world, slot] < margin:
                     if count < contact_capacity:
-                        contact_key_out[world, count] = slot
-                        contact_body_a_out[world, count] = shape_body[world, sa]
-                        contact_body_b_out[world, count] = body_b
-                        contact_point_a_out[world, count] = c.point_a[world, slot]
-                        contact_point_b_out[world, count] = c.point_b[world, slot]
-                        contact_normal_out[world, count] = c.normal[world, slot]
-                        contact_distance_out[world, count] = c.distance[world, slot]
-                        contact_friction_out[world, count] = mu
-                        contact_restitution_out[world, count] = e
+                        out.contact_key[world, count] = slot
+                        out.contact_body_a[world, count] = shapes.shape_body[world, sa]
+                        out.contact_body_b[world, count] = body_b
+                        out.contact_point_a[world, count] = c.point_a[world, slot]
+                        out.contact_point_b[world, count] = c.point_b[world, slot]
+                        out.contact_normal[world, count] = c.normal[world, slot]
+                        out.contact_distance[world, count] = c.distance[world, slot]
+                        out.contact_friction[world, count] = mu
+                        out.contact_restitution[world, count] = e
                         count += 1
                     else:
                         dropped += 1
-    contact_count_out[world] = count
-    contact_dropped_out[world] = dropped
+    out.contact_count[world] = count
+    out.contact_dropped[world] = dropped
     row_count_out[world] = contact_row_start[world] + 3 * count
 
 

@@ -15,7 +15,7 @@ restitution by the maximum (engine.collide).
 import warp as wp
 
 from engine.joints import body_twist, normal_basis
-from engine.model import UNBOUNDED
+from engine.model import UNBOUNDED, ContactArrays, ModelArrays, WorkArrays
 from engine.spatial import twist
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
@@ -38,47 +38,20 @@ def body_origin(body_q: wp.array2d(dtype=wp.transform), world: int, body: int):
 
 
 @wp.kernel
-def contact_rows(
-    # model
-    contact_row_start: wp.array(dtype=wp.int32),
-    world_dt: wp.array(dtype=float),
-    stabilization: float,
-    restitution_threshold: float,
-    # in
-    body_q: wp.array2d(dtype=wp.transform),
-    body_qd: wp.array2d(dtype=wp.spatial_vector),
-    contact_count: wp.array(dtype=wp.int32),
-    contact_body_a: wp.array2d(dtype=wp.int32),
-    contact_body_b: wp.array2d(dtype=wp.int32),
-    contact_point_a: wp.array2d(dtype=wp.vec3),
-    contact_point_b: wp.array2d(dtype=wp.vec3),
-    contact_normal: wp.array2d(dtype=wp.vec3),
-    contact_distance: wp.array2d(dtype=float),
-    contact_friction: wp.array2d(dtype=float),
-    contact_restitution: wp.array2d(dtype=float),
-    # out
-    row_body_c_out: wp.array2d(dtype=wp.int32),
-    row_body_p_out: wp.array2d(dtype=wp.int32),
-    row_J_c_out: wp.array2d(dtype=wp.spatial_vector),
-    row_J_p_out: wp.array2d(dtype=wp.spatial_vector),
-    row_bias_out: wp.array2d(dtype=float),
-    row_compliance_out: wp.array2d(dtype=float),
-    row_lo_out: wp.array2d(dtype=float),
-    row_hi_out: wp.array2d(dtype=float),
-    row_friction_out: wp.array2d(dtype=float),
-):
-    """Jacobian, bias and bounds of the three rows of every contact."""
+def contact_rows(m: ModelArrays, w: WorkArrays, c: ContactArrays, stabilization: float, restitution_threshold: float,
+                 body_q: wp.array2d(dtype=wp.transform), body_qd: wp.array2d(dtype=wp.spatial_vector)):
+    """Bodies, Jacobian, bias and bounds of the three rows of every contact of c, into w."""
     world, k = wp.tid()
-    if k >= contact_count[world]:
+    if k >= c.contact_count[world]:
         return
-    a = contact_body_a[world, k]
-    b = contact_body_b[world, k]
-    n = contact_normal[world, k]
-    r_a = contact_point_a[world, k] - body_origin(body_q, world, a)
-    r_b = contact_point_b[world, k] - body_origin(body_q, world, b)
-    dt = world_dt[world]
-    d = contact_distance[world, k]
-    start = contact_row_start[world] + 3 * k
+    a = c.contact_body_a[world, k]
+    b = c.contact_body_b[world, k]
+    n = c.contact_normal[world, k]
+    r_a = c.contact_point_a[world, k] - body_origin(body_q, world, a)
+    r_b = c.contact_point_b[world, k] - body_origin(body_q, world, b)
+    dt = m.world_dt[world]
+    d = c.contact_distance[world, k]
+    start = m.contact_row_start[world] + 3 * k
     for component in range(3):
         direction = contact_direction(n, component)
         J_a = twist(direction, wp.cross(r_a, direction))
@@ -86,12 +59,12 @@ def contact_rows(
         if b < 0:
             J_b = wp.spatial_vector()
         row = start + component
-        row_body_c_out[world, row] = a
-        row_body_p_out[world, row] = b
-        row_J_c_out[world, row] = J_a
-        row_J_p_out[world, row] = J_b
-        row_compliance_out[world, row] = 0.0
-        row_friction_out[world, row] = contact_friction[world, k]
+        w.row_body_c[world, row] = a
+        w.row_body_p[world, row] = b
+        w.row_J_c[world, row] = J_a
+        w.row_J_p[world, row] = J_b
+        w.row_compliance[world, row] = 0.0
+        w.row_friction[world, row] = c.contact_friction[world, k]
         bias = float(0.0)
         lo = -UNBOUNDED
         if component == 0:
@@ -102,66 +75,51 @@ def contact_rows(
             else:
                 bias = stabilization * (-d) / dt
             if approach < -restitution_threshold and d + dt * approach < 0.0:
-                bias = wp.max(bias, -contact_restitution[world, k] * approach)
-        row_bias_out[world, row] = bias
-        row_lo_out[world, row] = lo
-        row_hi_out[world, row] = UNBOUNDED
+                bias = wp.max(bias, -c.contact_restitution[world, k] * approach)
+        w.row_bias[world, row] = bias
+        w.row_lo[world, row] = lo
+        w.row_hi[world, row] = UNBOUNDED
 
 
 @wp.kernel
-def gather_warmstart(
-    contact_row_start: wp.array(dtype=wp.int32),
-    row_count: wp.array(dtype=wp.int32),
-    row_lambda_in: wp.array2d(dtype=float),
-    contact_key: wp.array2d(dtype=wp.int32),
-    contact_normal: wp.array2d(dtype=wp.vec3),
-    previous_count: wp.array(dtype=wp.int32),
-    previous_key: wp.array2d(dtype=wp.int32),
-    previous_impulse: wp.array2d(dtype=wp.vec3),
-    # out
-    warm_out: wp.array2d(dtype=float),
-):
-    """Warm-start impulses: joint rows from the last step; contacts matched by key, projected on
-    this step's normal and tangents; new contacts start at zero."""
+def gather_warmstart(m: ModelArrays, w: WorkArrays, c: ContactArrays, row_lambda_in: wp.array2d(dtype=float),
+                     previous_count: wp.array(dtype=wp.int32), previous_key: wp.array2d(dtype=wp.int32),
+                     previous_impulse: wp.array2d(dtype=wp.vec3)):
+    """Warm-start impulses into w.warm: joint rows from the last step's row_lambda_in; contacts
+    matched by key to the last step's (previous_*), projected on this step's normal and tangents;
+    new contacts start at zero."""
     world, row = wp.tid()
-    start = contact_row_start[world]
+    start = m.contact_row_start[world]
     value = float(0.0)
     if row < start:
         value = row_lambda_in[world, row]
-    elif row < row_count[world]:
+    elif row < w.row_count[world]:
         k = (row - start) // 3
-        key = contact_key[world, k]
+        key = c.contact_key[world, k]
         for p in range(previous_count[world]):
             if previous_key[world, p] == key:
-                value = wp.dot(previous_impulse[world, p], contact_direction(contact_normal[world, k], (row - start) % 3))
-    warm_out[world, row] = value
+                value = wp.dot(previous_impulse[world, p], contact_direction(c.contact_normal[world, k],
+                                                                             (row - start) % 3))
+    w.warm[world, row] = value
 
 
 @wp.kernel
-def store_contacts(
-    contact_row_start: wp.array(dtype=wp.int32),
-    contact_count: wp.array(dtype=wp.int32),
-    contact_key: wp.array2d(dtype=wp.int32),
-    contact_normal: wp.array2d(dtype=wp.vec3),
-    row_lambda: wp.array2d(dtype=float),
-    # out
-    count_out: wp.array(dtype=wp.int32),
-    key_out: wp.array2d(dtype=wp.int32),
-    impulse_out: wp.array2d(dtype=wp.vec3),
-):
+def store_contacts(m: ModelArrays, c: ContactArrays, row_lambda: wp.array2d(dtype=float),
+                   count_out: wp.array(dtype=wp.int32), key_out: wp.array2d(dtype=wp.int32),
+                   impulse_out: wp.array2d(dtype=wp.vec3)):
     """Keep this step's contacts and their world-frame impulses [N s] for the next warm start."""
     world, k = wp.tid()
-    count = contact_count[world]
+    count = c.contact_count[world]
     if k == 0:
         count_out[world] = count
     if k >= count:
         return
-    start = contact_row_start[world] + 3 * k
-    n = contact_normal[world, k]
+    start = m.contact_row_start[world] + 3 * k
+    n = c.contact_normal[world, k]
     impulse = wp.vec3(0.0)
     for component in range(3):
         impulse += row_lambda[world, start + component] * contact_direction(n, component)
-    key_out[world, k] = contact_key[world, k]
+    key_out[world, k] = c.contact_key[world, k]
     impulse_out[world, k] = impulse
 
 

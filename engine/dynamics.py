@@ -9,7 +9,8 @@ x = P^-1 lambda with P = diag(D)^-1/2: matrix P D P (unit diagonal), vector P v_
 import warp as wp
 
 from engine.linalg import sparse
-from engine.model import ROW_CONTACT_NORMAL, ROW_CONTACT_TANGENT, UNBOUNDED
+from engine.joints import body_twist
+from engine.model import ROW_CONTACT_NORMAL, ROW_CONTACT_TANGENT, UNBOUNDED, ModelArrays, WorkArrays
 from engine.spatial import gyroscopic_implicit_midpoint, twist, two_sum, world_inertia_inverse
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
@@ -24,69 +25,41 @@ def body_term(body_of_row: int, J: wp.spatial_vector, other_body: int, MJ_other:
 
 
 @wp.func
-def free_velocity_of(
-    world: int, b: int,
-    # model
-    body_count: wp.array(dtype=wp.int32),
-    body_inv_mass: wp.array2d(dtype=float),
-    body_inertia: wp.array2d(dtype=wp.mat33),
-    body_inv_inertia: wp.array2d(dtype=wp.mat33),
-    world_gravity: wp.array(dtype=wp.vec3),
-    world_dt: wp.array(dtype=float),
-    # in
-    body_q: wp.array2d(dtype=wp.transform),
-    body_qd: wp.array2d(dtype=wp.spatial_vector),
-    body_qd_low: wp.array2d(dtype=wp.spatial_vector),
-    body_f: wp.array2d(dtype=wp.spatial_vector),
-    compensated: int,
-    # out
-    body_qd_free_out: wp.array2d(dtype=wp.spatial_vector),
-    body_qd_low_out: wp.array2d(dtype=wp.spatial_vector),
-):
-    """u_free = u + dt M^-1 (m g + f) with the gyroscopic torque integrated by the implicit midpoint
-    rule; ``compensated``: summed with compensation, u + body_qd_low is the twist and the free
-    twist's rounding error goes to body_qd_low_out (engine.State); else a float32 sum."""
-    dt = world_dt[world]
+def free_velocity_of(world: int, b: int, m: ModelArrays, w: WorkArrays, body_q: wp.array2d(dtype=wp.transform),
+                     body_qd: wp.array2d(dtype=wp.spatial_vector), body_qd_low: wp.array2d(dtype=wp.spatial_vector),
+                     body_f: wp.array2d(dtype=wp.spatial_vector), compensated: int,
+                     body_qd_low_out: wp.array2d(dtype=wp.spatial_vector)):
+    """u_free = u + dt M^-1 (m g + f) into w.body_qd_free, with the gyroscopic torque integrated by
+    the implicit midpoint rule; ``compensated``: summed with compensation, u + body_qd_low is the
+    twist and the free twist's rounding error goes to body_qd_low_out (engine.State); else a
+    float32 sum."""
+    dt = m.world_dt[world]
     q = wp.transform_get_rotation(body_q[world, b])
     u = body_qd[world, b]
     f = body_f[world, b]
-    dv = dt * (world_gravity[world] + body_inv_mass[world, b] * wp.spatial_top(f))
-    w = wp.spatial_bottom(u)
-    change = gyroscopic_implicit_midpoint(wp.quat_rotate_inv(q, w), body_inertia[world, b], dt)
-    dw = wp.quat_rotate(q, change) + dt * (world_inertia_inverse(q, body_inv_inertia[world, b]) * wp.spatial_bottom(f))
+    dv = dt * (m.world_gravity[world] + m.body_inv_mass[world, b] * wp.spatial_top(f))
+    omega = wp.spatial_bottom(u)
+    change = gyroscopic_implicit_midpoint(wp.quat_rotate_inv(q, omega), m.body_inertia[world, b], dt)
+    dw = wp.quat_rotate(q, change) + dt * (world_inertia_inverse(q, m.body_inv_inertia[world, b])
+                                           * wp.spatial_bottom(f))
     if compensated == 0:
-        body_qd_free_out[world, b] = u + twist(dv, dw)
+        w.body_qd_free[world, b] = u + twist(dv, dw)
         return
     free, low = two_sum(u, body_qd_low[world, b] + twist(dv, dw))
-    body_qd_free_out[world, b] = free
+    w.body_qd_free[world, b] = free
     body_qd_low_out[world, b] = low
 
 
 @wp.kernel
-def free_velocity(
-    # model
-    body_count: wp.array(dtype=wp.int32),
-    body_inv_mass: wp.array2d(dtype=float),
-    body_inertia: wp.array2d(dtype=wp.mat33),
-    body_inv_inertia: wp.array2d(dtype=wp.mat33),
-    world_gravity: wp.array(dtype=wp.vec3),
-    world_dt: wp.array(dtype=float),
-    # in
-    body_q: wp.array2d(dtype=wp.transform),
-    body_qd: wp.array2d(dtype=wp.spatial_vector),
-    body_qd_low: wp.array2d(dtype=wp.spatial_vector),
-    body_f: wp.array2d(dtype=wp.spatial_vector),
-    compensated: int,
-    # out
-    body_qd_free_out: wp.array2d(dtype=wp.spatial_vector),
-    body_qd_low_out: wp.array2d(dtype=wp.spatial_vector),
-):
+def free_velocity(m: ModelArrays, w: WorkArrays, body_q: wp.array2d(dtype=wp.transform),
+                  body_qd: wp.array2d(dtype=wp.spatial_vector), body_qd_low: wp.array2d(dtype=wp.spatial_vector),
+                  body_f: wp.array2d(dtype=wp.spatial_vector), compensated: int,
+                  body_qd_low_out: wp.array2d(dtype=wp.spatial_vector)):
     """u_free = u + dt M^-1 (m g + f) (free_velocity_of)."""
     world, b = wp.tid()
-    if b >= body_count[world]:
+    if b >= m.body_count[world]:
         return
-    free_velocity_of(world, b, body_count, body_inv_mass, body_inertia, body_inv_inertia, world_gravity, world_dt,
-                     body_q, body_qd, body_qd_low, body_f, compensated, body_qd_free_out, body_qd_low_out)
+    free_velocity_of(world, b, m, w, body_q, body_qd, body_qd_low, body_f, compensated, body_qd_low_out)
 
 
 @wp.func
@@ -98,128 +71,61 @@ def mass_weighted(body: int, J: wp.spatial_vector, inv_mass: float, inv_inertia_
 
 
 @wp.func
-def body_twist_or_zero(body_qd: wp.array2d(dtype=wp.spatial_vector), world: int, body: int):
-    """The body's twist; zero for the ground (body < 0)."""
-    if body < 0:
-        return wp.spatial_vector()
-    return body_qd[world, body]
-
-
-@wp.func
-def row_mass_weighted(world: int, i: int, row_body_c: wp.array2d(dtype=wp.int32),
-                      row_body_p: wp.array2d(dtype=wp.int32), row_J_c: wp.array2d(dtype=wp.spatial_vector),
-                      row_J_p: wp.array2d(dtype=wp.spatial_vector), body_inv_mass: wp.array2d(dtype=float),
-                      body_inv_inertia: wp.array2d(dtype=wp.mat33), body_q: wp.array2d(dtype=wp.transform)):
+def row_mass_weighted(world: int, i: int, m: ModelArrays, w: WorkArrays, body_q: wp.array2d(dtype=wp.transform)):
     """M^-1 J^T of a row for its child and parent body, and the diagonal J M^-1 J^T."""
-    c = row_body_c[world, i]
-    p = row_body_p[world, i]
+    c = w.row_body_c[world, i]
+    p = w.row_body_p[world, i]
     MJ_c = wp.spatial_vector()
     MJ_p = wp.spatial_vector()
     if c >= 0:
-        MJ_c = mass_weighted(c, row_J_c[world, i], body_inv_mass[world, c], world_inertia_inverse(
-            wp.transform_get_rotation(body_q[world, c]), body_inv_inertia[world, c]))
+        MJ_c = mass_weighted(c, w.row_J_c[world, i], m.body_inv_mass[world, c], world_inertia_inverse(
+            wp.transform_get_rotation(body_q[world, c]), m.body_inv_inertia[world, c]))
     if p >= 0:
-        MJ_p = mass_weighted(p, row_J_p[world, i], body_inv_mass[world, p], world_inertia_inverse(
-            wp.transform_get_rotation(body_q[world, p]), body_inv_inertia[world, p]))
-    return MJ_c, MJ_p, wp.dot(row_J_c[world, i], MJ_c) + wp.dot(row_J_p[world, i], MJ_p)
+        MJ_p = mass_weighted(p, w.row_J_p[world, i], m.body_inv_mass[world, p], world_inertia_inverse(
+            wp.transform_get_rotation(body_q[world, p]), m.body_inv_inertia[world, p]))
+    return MJ_c, MJ_p, wp.dot(w.row_J_c[world, i], MJ_c) + wp.dot(w.row_J_p[world, i], MJ_p)
 
 
 @wp.func
-def row_operator_of(
-    world: int, i: int,
-    # model
-    row_kind: wp.array2d(dtype=wp.int32),
-    contact_row_start: wp.array(dtype=wp.int32),
-    body_inv_mass: wp.array2d(dtype=float),
-    body_inv_inertia: wp.array2d(dtype=wp.mat33),
-    # in
-    row_count: wp.array(dtype=wp.int32),
-    row_body_p: wp.array2d(dtype=wp.int32),
-    row_body_c: wp.array2d(dtype=wp.int32),
-    body_q: wp.array2d(dtype=wp.transform),
-    body_qd_free: wp.array2d(dtype=wp.spatial_vector),
-    row_J_c: wp.array2d(dtype=wp.spatial_vector),
-    row_J_p: wp.array2d(dtype=wp.spatial_vector),
-    row_bias: wp.array2d(dtype=float),
-    row_compliance: wp.array2d(dtype=float),
-    row_lo: wp.array2d(dtype=float),
-    row_hi: wp.array2d(dtype=float),
-    # out
-    row_MJ_c_out: wp.array2d(dtype=wp.spatial_vector),
-    row_MJ_p_out: wp.array2d(dtype=wp.spatial_vector),
-    row_precond_out: wp.array2d(dtype=float),
-    v_f_out: wp.array2d(dtype=float),
-    lo_out: wp.array2d(dtype=float),
-    hi_out: wp.array2d(dtype=float),
-):
-    """Per row: M^-1 J^T, the Jacobi preconditioner P (one value per contact triplet, so the
-    friction cone keeps its shape), and the preconditioned v_f and bounds."""
-    if i >= row_count[world]:
-        row_precond_out[world, i] = 1.0
-        v_f_out[world, i] = 0.0
-        lo_out[world, i] = 0.0
-        hi_out[world, i] = 0.0
+def row_operator_of(world: int, i: int, m: ModelArrays, w: WorkArrays, body_q: wp.array2d(dtype=wp.transform)):
+    """Row i's M^-1 J^T at the poses body_q, its Jacobi preconditioner P (one value per contact
+    triplet, so the friction cone keeps its shape), and its preconditioned v_f and bounds."""
+    if i >= w.row_count[world]:
+        w.row_precond[world, i] = 1.0
+        w.v_f[world, i] = 0.0
+        w.lo[world, i] = 0.0
+        w.hi[world, i] = 0.0
         return
-    MJ_c, MJ_p, diagonal = row_mass_weighted(world, i, row_body_c, row_body_p, row_J_c, row_J_p, body_inv_mass,
-                                             body_inv_inertia, body_q)
-    diagonal += row_compliance[world, i]
-    kind = row_kind[world, i]
+    MJ_c, MJ_p, diagonal = row_mass_weighted(world, i, m, w, body_q)
+    diagonal += w.row_compliance[world, i]
+    kind = m.row_kind[world, i]
     if kind == ROW_CONTACT_NORMAL or kind == ROW_CONTACT_TANGENT:
-        first = contact_row_start[world] + 3 * ((i - contact_row_start[world]) // 3)
+        first = m.contact_row_start[world] + 3 * ((i - m.contact_row_start[world]) // 3)
         for k in range(3):
-            _a, _b, other = row_mass_weighted(world, first + k, row_body_c, row_body_p, row_J_c, row_J_p,
-                                              body_inv_mass, body_inv_inertia, body_q)
-            diagonal = wp.max(diagonal, other + row_compliance[world, first + k])
-    row_MJ_c_out[world, i] = MJ_c
-    row_MJ_p_out[world, i] = MJ_p
-    v_free = wp.dot(row_J_c[world, i], body_twist_or_zero(body_qd_free, world, row_body_c[world, i]))
-    v_free += wp.dot(row_J_p[world, i], body_twist_or_zero(body_qd_free, world, row_body_p[world, i]))
+            _a, _b, other = row_mass_weighted(world, first + k, m, w, body_q)
+            diagonal = wp.max(diagonal, other + w.row_compliance[world, first + k])
+    w.row_MJ_c[world, i] = MJ_c
+    w.row_MJ_p[world, i] = MJ_p
+    v_free = wp.dot(w.row_J_c[world, i], body_twist(w.body_qd_free, world, w.row_body_c[world, i]))
+    v_free += wp.dot(w.row_J_p[world, i], body_twist(w.body_qd_free, world, w.row_body_p[world, i]))
     precond = 1.0 / wp.sqrt(wp.max(diagonal, 1.0e-20))
-    row_precond_out[world, i] = precond
-    v_f_out[world, i] = precond * (v_free - row_bias[world, i])
-    lo = row_lo[world, i]
-    hi = row_hi[world, i]
+    w.row_precond[world, i] = precond
+    w.v_f[world, i] = precond * (v_free - w.row_bias[world, i])
+    lo = w.row_lo[world, i]
+    hi = w.row_hi[world, i]
     if lo > -UNBOUNDED:
         lo = lo / precond
     if hi < UNBOUNDED:
         hi = hi / precond
-    lo_out[world, i] = lo
-    hi_out[world, i] = hi
+    w.lo[world, i] = lo
+    w.hi[world, i] = hi
 
 
 @wp.kernel
-def row_operators(
-    # model
-    row_kind: wp.array2d(dtype=wp.int32),
-    contact_row_start: wp.array(dtype=wp.int32),
-    body_inv_mass: wp.array2d(dtype=float),
-    body_inv_inertia: wp.array2d(dtype=wp.mat33),
-    # in
-    row_count: wp.array(dtype=wp.int32),
-    row_body_p: wp.array2d(dtype=wp.int32),
-    row_body_c: wp.array2d(dtype=wp.int32),
-    body_q: wp.array2d(dtype=wp.transform),
-    body_qd_free: wp.array2d(dtype=wp.spatial_vector),
-    row_J_c: wp.array2d(dtype=wp.spatial_vector),
-    row_J_p: wp.array2d(dtype=wp.spatial_vector),
-    row_bias: wp.array2d(dtype=float),
-    row_compliance: wp.array2d(dtype=float),
-    row_lo: wp.array2d(dtype=float),
-    row_hi: wp.array2d(dtype=float),
-    # out
-    row_MJ_c_out: wp.array2d(dtype=wp.spatial_vector),
-    row_MJ_p_out: wp.array2d(dtype=wp.spatial_vector),
-    row_precond_out: wp.array2d(dtype=float),
-    v_f_out: wp.array2d(dtype=float),
-    lo_out: wp.array2d(dtype=float),
-    hi_out: wp.array2d(dtype=float),
-):
-    """Per row: M^-1 J^T, the Jacobi preconditioner P (one value per contact triplet, so the
-    friction cone keeps its shape), and the preconditioned v_f and bounds."""
+def row_operators(m: ModelArrays, w: WorkArrays, body_q: wp.array2d(dtype=wp.transform)):
+    """Every row's operators (row_operator_of)."""
     world, i = wp.tid()
-    row_operator_of(world, i, row_kind, contact_row_start, body_inv_mass, body_inv_inertia, row_count, row_body_p,
-        row_body_c, body_q, body_qd_free, row_J_c, row_J_p, row_bias, row_compliance, row_lo, row_hi, row_MJ_c_out,
-        row_MJ_p_out, row_precond_out, v_f_out, lo_out, hi_out)
+    row_operator_of(world, i, m, w, body_q)
 
 
 @wp.func
@@ -267,8 +173,8 @@ def delassus(
             value = 1.0
         delassus_out[world, i, j] = value
         return
-    delassus_out[world, i, j] = delassus_entry(world, i, j, row_body_p, row_body_c, row_J_c, row_J_p, row_MJ_c, row_MJ_p,
-                                               row_compliance, row_precond)
+    delassus_out[world, i, j] = delassus_entry(world, i, j, row_body_p, row_body_c, row_J_c, row_J_p, row_MJ_c,
+                                               row_MJ_p, row_compliance, row_precond)
 
 
 def build_dual_problem(model, body_q, body_qd, body_qd_low, body_f, body_qd_low_out,
@@ -277,19 +183,13 @@ def build_dual_problem(model, body_q, body_qd, body_qd_low, body_f, body_qd_low_
     world; body_qd_low: the twists' low parts, body_qd_low_out: the free twists' (engine.State).
     free_velocities=False: work.body_qd_free (and body_qd_low_out) are already this step's
     (engine.integrate.midpoint_free_velocity)."""
-    work = model.work
+    work, m, w = model.work, model.arrays, model.work.arrays
     W, device = model.num_worlds, model.device
     if free_velocities:
         wp.launch(free_velocity, dim=(W, model.max_bodies), device=device,
-                  inputs=[model.body_count, model.body_inv_mass, model.body_inertia, model.body_inv_inertia,
-                          model.world_gravity, model.world_dt, body_q, body_qd, body_qd_low, body_f,
-                          int(model.config.tuning.compensated_state)],
-                  outputs=[work.body_qd_free, body_qd_low_out])
-    wp.launch(row_operators, dim=(W, model.max_rows), device=device,
-              inputs=[model.row_kind, model.contact_row_start, model.body_inv_mass, model.body_inv_inertia,
-                      work.row_count, work.row_body_p, work.row_body_c, body_q, work.body_qd_free, work.row_J_c,
-                      work.row_J_p, work.row_bias, work.row_compliance, work.row_lo, work.row_hi],
-              outputs=[work.row_MJ_c, work.row_MJ_p, work.row_precond, work.v_f, work.lo, work.hi])
+                  inputs=[m, w, body_q, body_qd, body_qd_low, body_f, int(model.config.tuning.compensated_state),
+                          body_qd_low_out])
+    wp.launch(row_operators, dim=(W, model.max_rows), device=device, inputs=[m, w, body_q])
     if model.linear_solver == "sparse":
         sparse.roots(model, body_q)
     if model.linear_solver != "dense":

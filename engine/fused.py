@@ -45,7 +45,7 @@ from engine.integrate import (
 from engine.joints import JOINT_PARTS, joint_residuals_of, joint_rows_of
 from engine.linalg.dense import cholesky_lanes, cholesky_solve_lanes, inverse_solve_lanes, triangular_inverse_lanes
 from engine.linalg.lanes import block_max, block_sum, block_sync, clock, group_sum, lane_max2, lane_reduce6, tile_set
-from engine.model import ROW_ANGULAR, ROW_LINEAR
+from engine.model import ROW_ANGULAR, ROW_LINEAR, ModelArrays, WorkArrays
 from engine.padmm import (
     padmm_accelerate_of,
     padmm_decide,
@@ -85,103 +85,6 @@ def warp_lanes(block: int) -> bool:
     return 1 < block <= 32 and block & (block - 1) == 0
 
 
-@wp.struct
-class StepModel:
-    """The model arrays the fused step reads."""
-
-    body_count: wp.array(dtype=wp.int32)
-    body_inv_mass: wp.array2d(dtype=float)
-    body_inertia: wp.array2d(dtype=wp.mat33)
-    body_inv_inertia: wp.array2d(dtype=wp.mat33)
-    world_gravity: wp.array(dtype=wp.vec3)
-    world_dt: wp.array(dtype=float)
-    joint_count: wp.array(dtype=wp.int32)
-    joint_type: wp.array2d(dtype=wp.int32)
-    joint_parent: wp.array2d(dtype=wp.int32)
-    joint_child: wp.array2d(dtype=wp.int32)
-    joint_X_p: wp.array2d(dtype=wp.transform)
-    joint_X_c: wp.array2d(dtype=wp.transform)
-    joint_axis: wp.array2d(dtype=wp.vec3)
-    joint_axis2: wp.array2d(dtype=wp.vec3)
-    joint_row_start: wp.array2d(dtype=wp.int32)
-    joint_inertia_row: wp.array2d(dtype=wp.int32)
-    joint_drive_row: wp.array2d(dtype=wp.int32)
-    joint_armature: wp.array2d(dtype=float)
-    joint_damping: wp.array2d(dtype=float)
-    joint_stiffness: wp.array2d(dtype=float)
-    joint_drive_damping: wp.array2d(dtype=float)
-    joint_effort_limit: wp.array2d(dtype=float)
-    joint_limit_lower: wp.array2d(dtype=float)
-    joint_limit_upper: wp.array2d(dtype=float)
-    joint_limit_lower_row: wp.array2d(dtype=wp.int32)
-    joint_limit_upper_row: wp.array2d(dtype=wp.int32)
-    row_kind: wp.array2d(dtype=wp.int32)
-    contact_row_start: wp.array(dtype=wp.int32)
-    padmm_eta: wp.array(dtype=float)
-    padmm_rho_init: wp.array(dtype=float)
-    padmm_rho_free: wp.array(dtype=float)
-    padmm_tolerance: wp.array(dtype=float)
-    bilateral_row_count: wp.array(dtype=wp.int32)
-
-
-@wp.struct
-class StepWork:
-    """The workspace arrays the fused step writes (those of engine.model.Workspace)."""
-
-    body_qd_free: wp.array2d(dtype=wp.spatial_vector)
-    body_q_mid: wp.array2d(dtype=wp.transform)
-    body_q_mid_low: wp.array2d(dtype=wp.transform)
-    no_low: wp.array2d(dtype=wp.transform)
-    row_count: wp.array(dtype=wp.int32)
-    row_body_c: wp.array2d(dtype=wp.int32)
-    row_body_p: wp.array2d(dtype=wp.int32)
-    row_J_c: wp.array2d(dtype=wp.spatial_vector)
-    row_J_p: wp.array2d(dtype=wp.spatial_vector)
-    row_MJ_c: wp.array2d(dtype=wp.spatial_vector)
-    row_MJ_p: wp.array2d(dtype=wp.spatial_vector)
-    row_bias: wp.array2d(dtype=float)
-    row_compliance: wp.array2d(dtype=float)
-    row_lo: wp.array2d(dtype=float)
-    row_hi: wp.array2d(dtype=float)
-    row_residual: wp.array2d(dtype=float)
-    row_precond: wp.array2d(dtype=float)
-    row_friction: wp.array2d(dtype=float)
-    row_free: wp.array2d(dtype=wp.int32)
-    v_f: wp.array2d(dtype=float)
-    lo: wp.array2d(dtype=float)
-    hi: wp.array2d(dtype=float)
-    x: wp.array2d(dtype=float)
-    x_prev: wp.array2d(dtype=float)
-    y: wp.array2d(dtype=float)
-    y_prev: wp.array2d(dtype=float)
-    y_hat: wp.array2d(dtype=float)
-    z: wp.array2d(dtype=float)
-    z_prev: wp.array2d(dtype=float)
-    z_hat: wp.array2d(dtype=float)
-    rhs: wp.array2d(dtype=float)
-    delta: wp.array2d(dtype=float)
-    delassus: wp.array3d(dtype=float)
-    factor: wp.array3d(dtype=float)
-    rho: wp.array(dtype=float)
-    residual_primal: wp.array(dtype=float)
-    residual_dual: wp.array(dtype=float)
-    residual_complementarity: wp.array(dtype=float)
-    momentum: wp.array(dtype=float)
-    momentum_beta: wp.array(dtype=float)
-    merit: wp.array(dtype=float)
-    iterations: wp.array(dtype=wp.int32)
-    converged: wp.array(dtype=wp.int32)
-    valid: wp.array(dtype=wp.int32)
-    project: wp.array(dtype=wp.int32)
-    projection_mask: wp.array(dtype=wp.int32)
-    active: wp.array(dtype=wp.int32)
-    needs_factor: wp.array(dtype=wp.int32)
-    demote: wp.array(dtype=wp.int32)
-    stall_reference: wp.array(dtype=float)
-    diverged: wp.array(dtype=wp.int32)
-    halted: wp.array(dtype=wp.int32)
-
-
 TILE_ROWS = 16  # the shared matrices are sized in steps of this many rows (one kernel per size; the sizes of
 # engine.linalg.lanes.tile_set)
 
@@ -200,31 +103,27 @@ def fused_inverse(device, max_rows: int) -> bool:
 
 
 @wp.func
-def delassus_lower_of(world: int, i: int, row_body_p: wp.array2d(dtype=wp.int32),
-                      row_body_c: wp.array2d(dtype=wp.int32), row_J_c: wp.array2d(dtype=wp.spatial_vector),
-                      row_J_p: wp.array2d(dtype=wp.spatial_vector), row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
-                      row_MJ_p: wp.array2d(dtype=wp.spatial_vector), row_compliance: wp.array2d(dtype=float),
-                      row_precond: wp.array2d(dtype=float), matrix: Any):
+def delassus_lower_of(world: int, i: int, w: WorkArrays, matrix: Any):
     """Row i of P D P left of the diagonal, mirrored, into the world's shared matrix tile:
     engine.dynamics.delassus_entry's arithmetic with row i loaded once and the pairs of rows
     without a common body skipped (their entry is 0)."""
-    ci = row_body_c[world, i]
-    pi = row_body_p[world, i]
-    Jci = row_J_c[world, i]
-    Jpi = row_J_p[world, i]
-    precond_i = row_precond[world, i]
+    ci = w.row_body_c[world, i]
+    pi = w.row_body_p[world, i]
+    Jci = w.row_J_c[world, i]
+    Jpi = w.row_J_p[world, i]
+    precond_i = w.row_precond[world, i]
     for j in range(i + 1):
-        cj = row_body_c[world, j]
-        pj = row_body_p[world, j]
+        cj = w.row_body_c[world, j]
+        pj = w.row_body_p[world, j]
         d = float(0.0)
         if (ci >= 0 and (ci == cj or ci == pj)) or (pi >= 0 and (pi == cj or pi == pj)):
-            MJ_c = row_MJ_c[world, j]
-            MJ_p = row_MJ_p[world, j]
+            MJ_c = w.row_MJ_c[world, j]
+            MJ_p = w.row_MJ_p[world, j]
             d = body_term(ci, Jci, cj, MJ_c) + body_term(ci, Jci, pj, MJ_p)
             d += body_term(pi, Jpi, cj, MJ_c) + body_term(pi, Jpi, pj, MJ_p)
         if i == j:
-            d += row_compliance[world, i]
-        value = precond_i * d * row_precond[world, j]
+            d += w.row_compliance[world, i]
+        value = precond_i * d * w.row_precond[world, j]
         tile_set(matrix, i, j, value)
         tile_set(matrix, j, i, value)
 
@@ -290,10 +189,8 @@ def body_group(nb: int, lanes: int):
 
 
 @wp.func
-def body_row_sum(world: int, t: int, g: int, nb: int, n: int, row_body_c: wp.array2d(dtype=wp.int32),
-                 row_body_p: wp.array2d(dtype=wp.int32), row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
-                 row_MJ_p: wp.array2d(dtype=wp.spatial_vector), weight: wp.array2d(dtype=float),
-                 row_precond: wp.array2d(dtype=float), scale_by_precond: int):
+def body_row_sum(world: int, t: int, g: int, nb: int, n: int, w: WorkArrays, weight: wp.array2d(dtype=float),
+                 scale_by_precond: int):
     """The sum over the rows touching body t // g of (M^-1 J^T)_b weight (times P when asked;
     engine.integrate.row_sum_listed), shared by the aligned group of g lanes
     t, t + 1, ..: each sums the rows t % g, t % g + g, .. (whose loads are then in flight on g
@@ -304,8 +201,8 @@ def body_row_sum(world: int, t: int, g: int, nb: int, n: int, row_body_c: wp.arr
     total = wp.spatial_vector()
     if b < nb:
         for i in range(t % g, n, g):
-            total = add_row_share(total, world, b, i, row_body_c, row_body_p, row_MJ_c, row_MJ_p, weight, row_precond,
-                                  scale_by_precond)
+            total = add_row_share(total, world, b, i, w.row_body_c, w.row_body_p, w.row_MJ_c, w.row_MJ_p, weight,
+                                  w.row_precond, scale_by_precond)
     if g > 1:
         total = wp.spatial_vector(group_sum(total[0], g), group_sum(total[1], g), group_sum(total[2], g),
                                   group_sum(total[3], g), group_sum(total[4], g), group_sum(total[5], g))
@@ -344,8 +241,8 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
 
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=max_registers)
     def fused_step_kernel(
-        m: StepModel,
-        w: StepWork,
+        m: ModelArrays,
+        w: WorkArrays,
         moreau: int,
         baumgarte: float,
         limit_margin: float,
@@ -405,8 +302,8 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         # 1. configuration of the dynamics: the midpoint (Moreau-Jean) or the start of the step
         for b in range(lane, nb, lanes):
             if moreau != 0:
-                midpoint_pose_of(world, b, m.world_dt, body_q_in, body_q_offset_in, body_qd_in, body_q_low_in,
-                                 body_q_next_in, comp, w.body_q_mid, w.body_q_mid_low)
+                midpoint_pose_of(world, b, m, w, body_q_in, body_q_offset_in, body_qd_in, body_q_low_in, body_q_next_in,
+                                 comp)
             else:
                 w.body_q_mid[world, b] = body_q_in[world, b]
                 if wp.static(compensated):
@@ -421,33 +318,21 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
             joint_tasks = nj * JOINT_PARTS
         for t in range(lane, joint_tasks, lanes):
             j, part = joint_task(t, nj, split)
-            joint_rows_of(world, j, part, m.joint_count, m.joint_type, m.joint_parent, m.joint_child, m.joint_X_p,
-                          m.joint_X_c, m.joint_axis, m.joint_axis2, m.joint_row_start, m.joint_inertia_row,
-                          m.joint_drive_row, m.joint_armature, m.joint_damping, m.joint_stiffness,
-                          m.joint_drive_damping, m.joint_effort_limit, m.joint_limit_lower, m.joint_limit_upper,
-                          m.joint_limit_lower_row, m.joint_limit_upper_row, m.world_dt, baumgarte, limit_margin,
-                          limit_stabilization, w.body_q_mid, w.body_q_mid_low, body_qd_in, joint_target_position,
-                          joint_target_velocity, joint_effort, w.row_J_c, w.row_J_p, w.row_bias, w.row_compliance,
-                          w.row_lo, w.row_hi, w.row_residual)
+            joint_rows_of(world, j, part, m, w, baumgarte, limit_margin, limit_stabilization, w.body_q_mid,
+                          w.body_q_mid_low, body_qd_in, joint_target_position, joint_target_velocity, joint_effort)
         # 2. the dual problem
         n = w.row_count[world]
         max_rows = row_lambda_out.shape[1]
         for b in range(lane, nb, lanes):
-            free_velocity_of(world, b, m.body_count, m.body_inv_mass, m.body_inertia, m.body_inv_inertia,
-                             m.world_gravity, m.world_dt, w.body_q_mid, body_qd_in, body_qd_low_in, body_f, comp,
-                             w.body_qd_free, body_qd_low_out)
+            free_velocity_of(world, b, m, w, w.body_q_mid, body_qd_in, body_qd_low_in, body_f, comp, body_qd_low_out)
         block_sync()
         for i in range(lane, max_rows, lanes):
-            row_operator_of(world, i, m.row_kind, m.contact_row_start, m.body_inv_mass, m.body_inv_inertia, w.row_count,
-                            w.row_body_p, w.row_body_c, w.body_q_mid, w.body_qd_free, w.row_J_c, w.row_J_p, w.row_bias,
-                            w.row_compliance, w.row_lo, w.row_hi, w.row_MJ_c, w.row_MJ_p, w.row_precond, w.v_f, w.lo,
-                            w.hi)
+            row_operator_of(world, i, m, w, w.body_q_mid)
         block_sync()
         if wp.static(timed):
             last = tick(stamps, world, wp.static(_STAGE["rows"]), lane, last)
         for i in range(lane, n, lanes):
-            delassus_lower_of(world, i, w.row_body_p, w.row_body_c, w.row_J_c, w.row_J_p, w.row_MJ_c, w.row_MJ_p,
-                              w.row_compliance, w.row_precond, D)
+            delassus_lower_of(world, i, w, D)
         # 3. PADMM (as engine.padmm's padmm_start, then iterations until this world stops)
         eta = m.padmm_eta[world]
         active = int(0)
@@ -476,8 +361,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         block_sync()
         if active != 0:
             for i in range(lane, n, lanes):
-                padmm_warmstart_of(world, i, warmstart_scale, row_lambda_in, w.row_precond, w.active, w.lo, w.hi,
-                                   m.row_kind, w.x, w.y, w.y_hat, w.z, w.z_hat, w.row_free)
+                padmm_warmstart_of(world, i, warmstart_scale, m, w, row_lambda_in)
             block_sync()  # the factor reads every row's free flag
             factor_world(world, lane, lanes, n, sigma, eta + row_penalty(1, rho, cap), 0, m.row_kind, w.row_free,
                          D, F, G)
@@ -485,8 +369,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
             last = tick(stamps, world, wp.static(_STAGE["factor"]), lane, last)
         while active != 0:
             for i in range(lane, n, lanes):
-                padmm_rhs_of(world, i, m.padmm_eta, m.padmm_rho_free, m.row_kind, w.row_free, w.rho, w.active,
-                             w.row_friction, w.v_f, w.x, w.y_hat, w.z_hat, w.x_prev, w.rhs)
+                padmm_rhs_of(world, i, m, w)
             block_sync()
             if wp.static(timed):
                 last = tick(stamps, world, wp.static(_STAGE["padmm_rhs"]), lane, last)
@@ -501,11 +384,8 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
             change = float(0.0)
             scale = float(0.0)
             for i in range(lane, n, lanes):
-                padmm_project_of(world, i, m.padmm_rho_free, m.row_kind, w.row_free, w.row_count, w.row_friction, w.rho,
-                                 w.active, w.lo, w.hi, w.x, w.z_hat, w.y, w.z, w.y_prev, w.z_prev, w.row_free,
-                                 w.demote)
-                s_i, p_i, d_i, c_i, m_i, b_i = row_residuals(world, i, eta, r, cap, m.row_kind, w.row_free, w.x,
-                                                             w.x_prev, w.y, w.y_hat, w.z, w.z_hat)
+                padmm_project_of(world, i, m, w)
+                s_i, p_i, d_i, c_i, m_i, b_i = row_residuals(world, i, eta, r, cap, m, w)
                 scale = wp.max(scale, s_i)
                 r_p = wp.max(r_p, p_i)
                 r_d = wp.max(r_d, d_i)
@@ -541,8 +421,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
             active = w.active[world]
             if active != 0:
                 for i in range(lane, n, lanes):
-                    padmm_accelerate_of(world, i, w.active, w.momentum_beta, w.y, w.y_prev, w.z, w.z_prev, w.y_hat,
-                                        w.z_hat)
+                    padmm_accelerate_of(world, i, w)
                 if w.needs_factor[world] != 0:
                     for i in range(lane, n, lanes):
                         if w.row_free[world, i] == 2:  # a drive that met its bound: the world's penalty
@@ -558,7 +437,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                     last = tick(stamps, world, wp.static(_STAGE["padmm_accelerate_refactor"]), lane, last)
 
         for i in range(lane, max_rows, lanes):
-            padmm_output_of(world, i, w.row_count, w.row_precond, w.y, w.diverged, w.halted, row_lambda_out)
+            padmm_output_of(world, i, w, row_lambda_out)
         block_sync()
         # 4. velocity update and poses (engine.integrate.apply_impulses, each body's rows summed
         # by a group of lanes)
@@ -567,8 +446,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
             group = body_group(nb, lanes)
         body_tasks = (nb * group + lanes - 1) // lanes * lanes  # whole blocks: the shuffles take every lane
         for t in range(lane, body_tasks, lanes):
-            du = body_row_sum(world, t, group, nb, n, w.row_body_c, w.row_body_p, w.row_MJ_c, w.row_MJ_p,
-                              row_lambda_out, w.row_precond, 0)
+            du = body_row_sum(world, t, group, nb, n, w, row_lambda_out, 0)
             b = t // group
             if b < nb and t % group == 0:
                 add_impulse_of(world, b, du, w.body_qd_free, comp, body_qd_out, body_qd_low_out)
@@ -608,21 +486,14 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                     for b in range(lane, nb, lanes):
                         if wp.static(compensated):
                             body_q_next_out[world, b] = body_q_out[world, b]
-                        integrate_pose_of(world, b, m.body_count, m.world_dt, 0.5, w.body_q_mid, body_qd_out,
-                                          body_q_out)
+                        integrate_pose_of(world, b, m.world_dt, 0.5, w.body_q_mid, body_qd_out, body_q_out)
                     block_sync()
                 for t in range(lane, joint_tasks, lanes):
                     j, part = joint_task(t, nj, split)
                     if output:  # the end of the step: float32 poses only
-                        joint_residuals_of(world, j, part, m.joint_count, m.joint_type, m.joint_parent,
-                                           m.joint_child, m.joint_X_p, m.joint_X_c, m.joint_axis, m.joint_axis2,
-                                           m.joint_row_start, m.joint_inertia_row, m.joint_drive_row, body_q_out,
-                                           w.no_low, 0, w.row_residual)
+                        joint_residuals_of(world, j, part, m, body_q_out, w.no_low, 0, w.row_residual)
                     else:
-                        joint_residuals_of(world, j, part, m.joint_count, m.joint_type, m.joint_parent,
-                                           m.joint_child, m.joint_X_p, m.joint_X_c, m.joint_axis, m.joint_axis2,
-                                           m.joint_row_start, m.joint_inertia_row, m.joint_drive_row, body_q_out,
-                                           body_q_low_out, comp, w.row_residual)
+                        joint_residuals_of(world, j, part, m, body_q_out, body_q_low_out, comp, w.row_residual)
                 block_sync()
                 if wp.static(timed):
                     last = tick(stamps, world, wp.static(_STAGE["projection_residuals"]), lane, last)
@@ -661,8 +532,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
                 if wp.static(timed):
                     last = tick(stamps, world, wp.static(_STAGE["projection_solve"]), lane, last)
                 for t in range(lane, body_tasks, lanes):  # engine.integrate.apply_projection
-                    dx = body_row_sum(world, t, group, nb, n, w.row_body_c, w.row_body_p, w.row_MJ_c, w.row_MJ_p,
-                                      w.delta, w.row_precond, 1)
+                    dx = body_row_sum(world, t, group, nb, n, w, w.delta, 1)
                     b = t // group
                     if b < nb and t % group == 0:
                         move_body_of(world, b, dx, m.world_dt, update, wp.where(output, 1, 0), comp, body_q_out,
@@ -675,13 +545,13 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
             for b in range(lane, nb, lanes):
                 if wp.static(compensated):
                     body_q_next_out[world, b] = body_q_out[world, b]
-                integrate_pose_of(world, b, m.body_count, m.world_dt, 0.5, w.body_q_mid, body_qd_out, body_q_out)
+                integrate_pose_of(world, b, m.world_dt, 0.5, w.body_q_mid, body_qd_out, body_q_out)
         # 6. divergence guard
         block_sync()
         if lane == 0:
-            guard_divergence_of(world, m.body_count, body_q_in, body_qd_in, body_q_offset_in, body_q_low_in,
-                                body_qd_low_in, body_q_next_in, w.halted, max_speed, body_q_out, body_qd_out,
-                                body_q_offset_out, body_q_low_out, body_qd_low_out, body_q_next_out, w.diverged)
+            guard_divergence_of(world, m, w, max_speed, body_q_in, body_qd_in, body_q_offset_in, body_q_low_in,
+                                body_qd_low_in, body_q_next_in, body_q_out, body_qd_out, body_q_offset_out,
+                                body_q_low_out, body_qd_low_out, body_q_next_out)
         if wp.static(timed):
             block_sync()
             last = tick(stamps, world, wp.static(_STAGE["end_of_step"]), lane, last)
@@ -702,21 +572,10 @@ def fused_kernel(max_rows: int, max_registers: int = FUSED_REGISTERS, timed: boo
     return _KERNELS[key]
 
 
-def _filled(struct_type, source):
-    """An instance of a Warp struct whose fields are the same-named arrays of ``source``."""
-    instance = struct_type()
-    for name in struct_type.vars:
-        setattr(instance, name, getattr(source, name))
-    return instance
-
-
 def fused_step(model, state_in, state_out, control, stamps=None, project_output: bool = True) -> None:
     """Advance every world of a fused batch (engine.pack chose it) by one step in one launch; with
     ``stamps`` (int64, (num_worlds, len(STAGES))) the timed kernel records the cycle counter at
     the end of each stage (fused_profile); ``project_output`` as engine.step's."""
-    if model._fused_structs is None:
-        model._fused_structs = (_filled(StepModel, model), _filled(StepWork, model.work))
-    m, w = model._fused_structs
     cfg, tuning = model.config, model.config.tuning
     if model.fused_block is None:
         model.fused_block = fused_block(model.device)
@@ -731,20 +590,21 @@ def fused_step(model, state_in, state_out, control, stamps=None, project_output:
     shuffled = warp_lanes(model.fused_block) and wp.get_device(model.device).is_cuda
     kernel = fused_kernel(model.max_rows, model.fused_registers, timed, inverse, tuning.compensated_state, shuffled)
     wp.launch_tiled(kernel, dim=[model.num_worlds], block_dim=model.fused_block, device=model.device,
-              inputs=[m, w, int(cfg.integrator.value == "moreau"), float(cfg.baumgarte), float(cfg.limit_margin),
-                      float(cfg.limit_stabilization), (1.0 - tuning.warmstart_decay) if tuning.warmstart else 0.0,
-                      cfg.max_iterations, float(cfg.relative_tolerance), tuning.rho_update_interval,
-                      int(tuning.adaptive_rho), int(tuning.acceleration), float(tuning.stall_ratio),
-                      cfg.position_iterations if model.has_bilateral_rows else 0,
-                      int(model.has_unilateral_or_drive_rows), int(tuning.projection_velocity_update),
-                      float(tuning.projection_velocity_floor), float(tuning.projection_skip_floor),
-                      float(tuning.projection_skip_floor_angular), float(cfg.max_speed),
-                      int(sharing), int(project_output), state_in.body_q, state_in.body_qd, state_in.body_q_offset,
-                      state_in.body_q_low, state_in.body_qd_low, state_in.body_q_next, state_in.row_lambda,
-                      control.joint_target_position,
-                      control.joint_target_velocity, control.joint_effort, control.body_f],
-              outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_offset, state_out.body_q_low,
-                       state_out.body_qd_low, state_out.body_q_next, state_out.row_lambda, stamps])
+                    inputs=[model.arrays, model.work.arrays, int(cfg.integrator.value == "moreau"),
+                            float(cfg.baumgarte), float(cfg.limit_margin), float(cfg.limit_stabilization),
+                            (1.0 - tuning.warmstart_decay) if tuning.warmstart else 0.0, cfg.max_iterations,
+                            float(cfg.relative_tolerance), tuning.rho_update_interval, int(tuning.adaptive_rho),
+                            int(tuning.acceleration), float(tuning.stall_ratio),
+                            cfg.position_iterations if model.has_bilateral_rows else 0,
+                            int(model.has_unilateral_or_drive_rows), int(tuning.projection_velocity_update),
+                            float(tuning.projection_velocity_floor), float(tuning.projection_skip_floor),
+                            float(tuning.projection_skip_floor_angular), float(cfg.max_speed), int(sharing),
+                            int(project_output), state_in.body_q, state_in.body_qd, state_in.body_q_offset,
+                            state_in.body_q_low, state_in.body_qd_low, state_in.body_q_next, state_in.row_lambda,
+                            control.joint_target_position, control.joint_target_velocity, control.joint_effort,
+                            control.body_f],
+                    outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_offset, state_out.body_q_low,
+                             state_out.body_qd_low, state_out.body_q_next, state_out.row_lambda, stamps])
 
 
 def fused_profile(model, state, control, steps: int = 20) -> dict:

@@ -22,8 +22,8 @@ import warp as wp
 from engine.linalg import dense, sparse
 from engine.linalg.lanes import block_max, block_sync
 from engine.dynamics import free_velocity_of
-from engine.joints import joint_model_inputs, joint_residuals_of
-from engine.model import ROW_ANGULAR, ROW_LINEAR
+from engine.joints import joint_residuals_of
+from engine.model import ROW_ANGULAR, ROW_LINEAR, ModelArrays, WorkArrays
 from engine.spatial import advance_pose, pose_step, two_sum
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
@@ -55,8 +55,7 @@ def row_sum_listed(world: int, b: int, n: int, contact_row_start: wp.array(dtype
                    row_precond: wp.array2d(dtype=float), scale_by_precond: int):
     """sum over rows touching body b of (M^-1 J^T)_b * weight (times P when asked), in row order:
     the body's joint, drive and limit rows through its list (engine.pack.body_row_lists), then this
-    step's contact rows by a scan. A scan of all rows per body cost O(bodies x rows) loads: DR Legs
-    (31 bodies, 186 rows) spent more on it than on its factor."""
+    step's contact rows by a scan (a scan of every row per body costs O(bodies x rows) loads)."""
     total = wp.spatial_vector()
     for k in range(body_row_begin[world, b], body_row_end[world, b]):
         code = body_row[world, k]
@@ -75,35 +74,23 @@ def row_sum_listed(world: int, b: int, n: int, contact_row_start: wp.array(dtype
 
 
 @wp.kernel
-def apply_impulses(
-    # model
-    body_count: wp.array(dtype=wp.int32),
-    row_count: wp.array(dtype=wp.int32),
-    contact_row_start: wp.array(dtype=wp.int32),
-    body_row_begin: wp.array2d(dtype=wp.int32),
-    body_row_end: wp.array2d(dtype=wp.int32),
-    body_row: wp.array2d(dtype=wp.int32),
-    row_body_c: wp.array2d(dtype=wp.int32),
-    row_body_p: wp.array2d(dtype=wp.int32),
-    world_dt: wp.array(dtype=float),
-    # in
-    row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
-    row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
-    row_lambda: wp.array2d(dtype=float),
-    row_precond: wp.array2d(dtype=float),
-    body_qd_free: wp.array2d(dtype=wp.spatial_vector),
-    compensated: int,
-    body_q: wp.array2d(dtype=wp.transform),
-    body_q_low_in: wp.array2d(dtype=wp.transform),
-    # out
-    body_qd_out: wp.array2d(dtype=wp.spatial_vector),
-    body_q_out: wp.array2d(dtype=wp.transform),
-    body_q_low_out: wp.array2d(dtype=wp.transform),
-    # in/out
-    body_qd_low: wp.array2d(dtype=wp.spatial_vector),
-):
+def apply_impulses(body_count: wp.array(dtype=wp.int32), row_count: wp.array(dtype=wp.int32),
+                   contact_row_start: wp.array(dtype=wp.int32), body_row_begin: wp.array2d(dtype=wp.int32),
+                   body_row_end: wp.array2d(dtype=wp.int32), body_row: wp.array2d(dtype=wp.int32),
+                   row_body_c: wp.array2d(dtype=wp.int32), row_body_p: wp.array2d(dtype=wp.int32),
+                   world_dt: wp.array(dtype=float), row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
+                   row_MJ_p: wp.array2d(dtype=wp.spatial_vector), row_lambda: wp.array2d(dtype=float),
+                   row_precond: wp.array2d(dtype=float), body_qd_free: wp.array2d(dtype=wp.spatial_vector),
+                   compensated: int, body_q: wp.array2d(dtype=wp.transform),
+                   body_q_low_in: wp.array2d(dtype=wp.transform),
+                   # out
+                   body_qd_out: wp.array2d(dtype=wp.spatial_vector), body_q_out: wp.array2d(dtype=wp.transform),
+                   body_q_low_out: wp.array2d(dtype=wp.transform),
+                   # in/out
+                   body_qd_low: wp.array2d(dtype=wp.spatial_vector)):
     """u+ = u_free + M^-1 J^T lambda (add_impulse_of), then a whole pose step from body_q with u+
-    (advance_pose_of): one pass over the bodies instead of two."""
+    (advance_pose_of): one pass over the bodies instead of two. Takes bare arrays, so that a test
+    can feed its own impulses and free twists."""
     world, b = wp.tid()
     if b >= body_count[world]:
         return
@@ -129,16 +116,9 @@ def add_impulse_of(world: int, b: int, du: wp.spatial_vector, body_qd_free: wp.a
 
 
 @wp.func
-def integrate_pose_of(
-    world: int, b: int,
-    body_count: wp.array(dtype=wp.int32),
-    world_dt: wp.array(dtype=float),
-    fraction: float,
-    body_q: wp.array2d(dtype=wp.transform),
-    body_qd: wp.array2d(dtype=wp.spatial_vector),
-    # out
-    body_q_out: wp.array2d(dtype=wp.transform),
-):
+def integrate_pose_of(world: int, b: int, world_dt: wp.array(dtype=float), fraction: float,
+                      body_q: wp.array2d(dtype=wp.transform), body_qd: wp.array2d(dtype=wp.spatial_vector),
+                      body_q_out: wp.array2d(dtype=wp.transform)):
     """x+ = x + h v, q+ = exp(h w) q with h = fraction * dt."""
     body_q_out[world, b] = pose_step(body_q[world, b], body_qd[world, b], fraction * world_dt[world])
 
@@ -153,29 +133,21 @@ MIDPOINT_MATCH = wp.constant(1.0e-5)  # relative: the float32 roundings of the p
 
 
 @wp.func
-def midpoint_pose_of(
-    world: int, b: int,
-    world_dt: wp.array(dtype=float),
-    body_q: wp.array2d(dtype=wp.transform),
-    body_q_offset: wp.array2d(dtype=wp.spatial_vector),
-    body_qd: wp.array2d(dtype=wp.spatial_vector),
-    body_q_low: wp.array2d(dtype=wp.transform),
-    body_q_next: wp.array2d(dtype=wp.transform),
-    compensated: int,
-    # out
-    body_q_mid: wp.array2d(dtype=wp.transform),
-    body_q_mid_low: wp.array2d(dtype=wp.transform),
-):
-    """Moreau-Jean's midpoint: undo the last step's output projection (body_q_offset: translation
-    [m] and rotation vector [rad] it moved the body by), then half a pose step with the twist.
-    ``compensated``: the last step left the next midpoint as the pair body_q_next + body_q_low
-    (State). Where the midpoint found from the state matches body_q_next to within the roundings
-    of these pose steps (MIDPOINT_MATCH), the step continues from that pair exactly, so the motion
-    does not depend on whether the output was projected; otherwise (poses or twists set by hand,
-    a new State) from the midpoint found, plus body_q_low (at most that much off)."""
-    mid = midpoint_of(body_q[world, b], body_q_offset[world, b], body_qd[world, b], 0.5 * world_dt[world])
+def midpoint_pose_of(world: int, b: int, m: ModelArrays, w: WorkArrays, body_q: wp.array2d(dtype=wp.transform),
+                     body_q_offset: wp.array2d(dtype=wp.spatial_vector), body_qd: wp.array2d(dtype=wp.spatial_vector),
+                     body_q_low: wp.array2d(dtype=wp.transform), body_q_next: wp.array2d(dtype=wp.transform),
+                     compensated: int):
+    """Moreau-Jean's midpoint into w.body_q_mid (and w.body_q_mid_low): undo the last step's output
+    projection (body_q_offset: translation [m] and rotation vector [rad] it moved the body by),
+    then half a pose step with the twist. ``compensated``: the last step left the next midpoint as
+    the pair body_q_next + body_q_low (State). Where the midpoint found from the state matches
+    body_q_next to within the roundings of these pose steps (MIDPOINT_MATCH), the step continues
+    from that pair exactly, so the motion does not depend on whether the output was projected;
+    otherwise (poses or twists set by hand, a new State) from the midpoint found, plus body_q_low
+    (at most that much off)."""
+    mid = midpoint_of(body_q[world, b], body_q_offset[world, b], body_qd[world, b], 0.5 * m.world_dt[world])
     if compensated == 0:
-        body_q_mid[world, b] = mid
+        w.body_q_mid[world, b] = mid
         return
     low = body_q_low[world, b]
     nxt = body_q_next[world, b]
@@ -187,27 +159,20 @@ def midpoint_pose_of(
     same = wp.max(wp.abs(dp[0]), wp.max(wp.abs(dp[1]), wp.abs(dp[2]))) <= reach
     same = same and wp.max(wp.max(wp.abs(dr[0]), wp.abs(dr[1])), wp.max(wp.abs(dr[2]), wp.abs(dr[3]))) <= MIDPOINT_MATCH
     if same:
-        body_q_mid[world, b] = nxt
-        body_q_mid_low[world, b] = low
+        w.body_q_mid[world, b] = nxt
+        w.body_q_mid_low[world, b] = low
         return
     t, t_low = two_sum(t, wp.transform_get_translation(low))
     r, r_low = two_sum(r, wp.transform_get_rotation(low))
-    body_q_mid[world, b] = wp.transform(t, r)
-    body_q_mid_low[world, b] = wp.transform(t_low, r_low)
+    w.body_q_mid[world, b] = wp.transform(t, r)
+    w.body_q_mid_low[world, b] = wp.transform(t_low, r_low)
 
 
 @wp.func
-def advance_pose_of(
-    world: int, b: int,
-    world_dt: wp.array(dtype=float),
-    body_q: wp.array2d(dtype=wp.transform),
-    body_q_low_in: wp.array2d(dtype=wp.transform),
-    body_qd: wp.array2d(dtype=wp.spatial_vector),
-    compensated: int,
-    # out
-    body_q_out: wp.array2d(dtype=wp.transform),
-    body_q_low_out: wp.array2d(dtype=wp.transform),
-):
+def advance_pose_of(world: int, b: int, world_dt: wp.array(dtype=float), body_q: wp.array2d(dtype=wp.transform),
+                    body_q_low_in: wp.array2d(dtype=wp.transform), body_qd: wp.array2d(dtype=wp.spatial_vector),
+                    compensated: int, body_q_out: wp.array2d(dtype=wp.transform),
+                    body_q_low_out: wp.array2d(dtype=wp.transform)):
     """The next configuration of the dynamics, body_q moved by dt times the twist; ``compensated``:
     body_q + body_q_low_in moved (advance_pose), as a (body_q_out, body_q_low_out) pair."""
     u = body_qd[world, b]
@@ -221,51 +186,27 @@ def advance_pose_of(
 
 
 @wp.kernel
-def midpoint_free_velocity(
-    body_count: wp.array(dtype=wp.int32),
-    world_dt: wp.array(dtype=float),
-    body_inv_mass: wp.array2d(dtype=float),
-    body_inertia: wp.array2d(dtype=wp.mat33),
-    body_inv_inertia: wp.array2d(dtype=wp.mat33),
-    world_gravity: wp.array(dtype=wp.vec3),
-    body_q: wp.array2d(dtype=wp.transform),
-    body_q_offset: wp.array2d(dtype=wp.spatial_vector),
-    body_qd: wp.array2d(dtype=wp.spatial_vector),
-    body_q_low: wp.array2d(dtype=wp.transform),
-    body_q_next: wp.array2d(dtype=wp.transform),
-    body_qd_low: wp.array2d(dtype=wp.spatial_vector),
-    body_f: wp.array2d(dtype=wp.spatial_vector),
-    compensated: int,
-    # out
-    body_q_mid: wp.array2d(dtype=wp.transform),
-    body_q_mid_low: wp.array2d(dtype=wp.transform),
-    body_qd_free: wp.array2d(dtype=wp.spatial_vector),
-    body_qd_free_low: wp.array2d(dtype=wp.spatial_vector),
-):
+def midpoint_free_velocity(m: ModelArrays, w: WorkArrays, body_q: wp.array2d(dtype=wp.transform),
+                           body_q_offset: wp.array2d(dtype=wp.spatial_vector),
+                           body_qd: wp.array2d(dtype=wp.spatial_vector), body_q_low: wp.array2d(dtype=wp.transform),
+                           body_q_next: wp.array2d(dtype=wp.transform),
+                           body_qd_low: wp.array2d(dtype=wp.spatial_vector),
+                           body_f: wp.array2d(dtype=wp.spatial_vector), compensated: int,
+                           body_qd_free_low: wp.array2d(dtype=wp.spatial_vector)):
     """Moreau-Jean's midpoint configuration of every body (midpoint_pose_of), then its free
     velocity there (engine.dynamics.free_velocity_of): one pass over the bodies instead of two."""
     world, b = wp.tid()
-    if b >= body_count[world]:
+    if b >= m.body_count[world]:
         return
-    midpoint_pose_of(world, b, world_dt, body_q, body_q_offset, body_qd, body_q_low, body_q_next, compensated,
-                     body_q_mid, body_q_mid_low)
-    free_velocity_of(world, b, body_count, body_inv_mass, body_inertia, body_inv_inertia, world_gravity, world_dt,
-                     body_q_mid, body_qd, body_qd_low, body_f, compensated, body_qd_free, body_qd_free_low)
+    midpoint_pose_of(world, b, m, w, body_q, body_q_offset, body_qd, body_q_low, body_q_next, compensated)
+    free_velocity_of(world, b, m, w, w.body_q_mid, body_qd, body_qd_low, body_f, compensated, body_qd_free_low)
 
 
 @wp.kernel
-def integrate_poses(
-    body_count: wp.array(dtype=wp.int32),
-    world_dt: wp.array(dtype=float),
-    fraction: float,
-    body_q: wp.array2d(dtype=wp.transform),
-    body_qd: wp.array2d(dtype=wp.spatial_vector),
-    keep: int,
-    # out
-    body_q_out: wp.array2d(dtype=wp.transform),
-    body_q_kept: wp.array2d(dtype=wp.transform),
-    body_q_offset: wp.array2d(dtype=wp.spatial_vector),
-):
+def integrate_poses(m: ModelArrays, fraction: float, body_q: wp.array2d(dtype=wp.transform),
+                    body_qd: wp.array2d(dtype=wp.spatial_vector), keep: int,
+                    body_q_out: wp.array2d(dtype=wp.transform), body_q_kept: wp.array2d(dtype=wp.transform),
+                    body_q_offset: wp.array2d(dtype=wp.spatial_vector)):
     """x+ = x + h v, q+ = exp(h w) q with h = fraction * dt into body_q_out; first, for every body
     slot (padding included), body_q_kept = body_q_out's pose before it (where ``keep``) and
     body_q_offset = 0: Moreau-Jean's end of a step (engine.step), one launch instead of a copy, a
@@ -274,19 +215,18 @@ def integrate_poses(
     if keep != 0:
         body_q_kept[world, b] = body_q_out[world, b]
     body_q_offset[world, b] = wp.spatial_vector()
-    if b >= body_count[world]:
+    if b >= m.body_count[world]:
         return
-    integrate_pose_of(world, b, body_count, world_dt, fraction, body_q, body_qd, body_q_out)
+    integrate_pose_of(world, b, m.world_dt, fraction, body_q, body_qd, body_q_out)
 
 
 @wp.func
-def bilateral_residual_of(world: int, i: int, row_count: wp.array(dtype=wp.int32),
-                          row_kind: wp.array2d(dtype=wp.int32), row_residual: wp.array2d(dtype=float)):
+def bilateral_residual_of(world: int, i: int, m: ModelArrays, w: WorkArrays):
     """phi_i of a bilateral joint row [m]/[rad], the row the projection corrects; 0 on drive,
     limit, contact and padded rows."""
-    kind = row_kind[world, i]
-    if i < row_count[world] and (kind == ROW_LINEAR or kind == ROW_ANGULAR):
-        return row_residual[world, i]
+    kind = m.row_kind[world, i]
+    if i < w.row_count[world] and (kind == ROW_LINEAR or kind == ROW_ANGULAR):
+        return w.row_residual[world, i]
     return 0.0
 
 
@@ -321,44 +261,22 @@ def move_body_of(world: int, b: int, dx: wp.spatial_vector, world_dt: wp.array(d
 
 
 @wp.kernel
-def apply_projection(
-    body_count: wp.array(dtype=wp.int32),
-    row_count: wp.array(dtype=wp.int32),
-    contact_row_start: wp.array(dtype=wp.int32),
-    body_row_begin: wp.array2d(dtype=wp.int32),
-    body_row_end: wp.array2d(dtype=wp.int32),
-    body_row: wp.array2d(dtype=wp.int32),
-    row_body_c: wp.array2d(dtype=wp.int32),
-    row_body_p: wp.array2d(dtype=wp.int32),
-    valid: wp.array(dtype=wp.int32),
-    world_dt: wp.array(dtype=float),
-    velocity_update: int,
-    gate: wp.array(dtype=wp.int32),
-    row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
-    row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
-    row_precond: wp.array2d(dtype=float),
-    delta: wp.array2d(dtype=float),
-    record_offset: int,
-    compensated: int,
-    # in/out
-    body_q: wp.array2d(dtype=wp.transform),
-    body_qd: wp.array2d(dtype=wp.spatial_vector),
-    body_q_offset: wp.array2d(dtype=wp.spatial_vector),
-    body_q_low: wp.array2d(dtype=wp.transform),
-    body_qd_low: wp.array2d(dtype=wp.spatial_vector),
-):
-    """Move each body by M^-1 J^T (P delta): translation [m] and rotation vector [rad]; with
-    velocity_update, and where the world's gate is open (its joint error is above the rounding
-    floor), add the same displacement / dt to the twist (SHAKE: the step stays symplectic); with
-    record_offset, add the displacement to body_q_offset (an output projection the next
-    Moreau-Jean midpoint undoes)."""
+def apply_projection(m: ModelArrays, w: WorkArrays, velocity_update: int, record_offset: int, compensated: int,
+                     body_q: wp.array2d(dtype=wp.transform), body_qd: wp.array2d(dtype=wp.spatial_vector),
+                     body_q_offset: wp.array2d(dtype=wp.spatial_vector), body_q_low: wp.array2d(dtype=wp.transform),
+                     body_qd_low: wp.array2d(dtype=wp.spatial_vector)):
+    """In the worlds of w.projection_mask, move each body by M^-1 J^T (P w.delta): translation [m]
+    and rotation vector [rad]; with velocity_update, and where the world's gate is open (its joint
+    error is above the rounding floor), add the same displacement / dt to the twist (SHAKE: the
+    step stays symplectic); with record_offset, add the displacement to body_q_offset (an output
+    projection the next Moreau-Jean midpoint undoes)."""
     world, b = wp.tid()
-    if b >= body_count[world] or valid[world] == 0:
+    if b >= m.body_count[world] or w.projection_mask[world] == 0:
         return
-    dx = row_sum_listed(world, b, row_count[world], contact_row_start, body_row_begin, body_row_end, body_row,
-                        row_body_c, row_body_p, row_MJ_c, row_MJ_p, delta, row_precond, 1)
-    move_body_of(world, b, dx, world_dt, velocity_update * gate[world], record_offset, compensated, body_q, body_qd,
-                 body_q_offset, body_q_low, body_qd_low)
+    dx = row_sum_listed(world, b, w.row_count[world], m.contact_row_start, m.body_row_begin, m.body_row_end,
+                        m.body_row, w.row_body_c, w.row_body_p, w.row_MJ_c, w.row_MJ_p, w.delta, w.row_precond, 1)
+    move_body_of(world, b, dx, m.world_dt, velocity_update * w.projection_gate[world], record_offset, compensated,
+                 body_q, body_qd, body_q_offset, body_q_low, body_qd_low)
 
 
 @wp.func
@@ -390,65 +308,35 @@ def projection_gates(world: int, lane: int, stride: int, row_count: wp.array(dty
 
 
 @wp.kernel
-def projection_pass(
-    # model
-    row_count: wp.array(dtype=wp.int32),
-    row_kind: wp.array2d(dtype=wp.int32),
-    # model: joints (engine.joints.joint_model_inputs)
-    joint_count: wp.array(dtype=wp.int32),
-    joint_type: wp.array2d(dtype=wp.int32),
-    joint_parent: wp.array2d(dtype=wp.int32),
-    joint_child: wp.array2d(dtype=wp.int32),
-    joint_X_p: wp.array2d(dtype=wp.transform),
-    joint_X_c: wp.array2d(dtype=wp.transform),
-    joint_axis: wp.array2d(dtype=wp.vec3),
-    joint_axis2: wp.array2d(dtype=wp.vec3),
-    joint_row_start: wp.array2d(dtype=wp.int32),
-    joint_inertia_row: wp.array2d(dtype=wp.int32),
-    joint_drive_row: wp.array2d(dtype=wp.int32),
-    # in
-    body_q: wp.array2d(dtype=wp.transform),
-    body_q_low: wp.array2d(dtype=wp.transform),
-    exact: int,
-    row_precond: wp.array2d(dtype=float),
-    project: wp.array(dtype=wp.int32),
-    floor: float,
-    skip_floor: float,
-    skip_floor_angular: float,
-    # out
-    row_residual: wp.array2d(dtype=float),
-    gate: wp.array(dtype=wp.int32),
-    mask: wp.array(dtype=wp.int32),
-    rhs_out: wp.array2d(dtype=float),
-):
+def projection_pass(m: ModelArrays, w: WorkArrays, body_q: wp.array2d(dtype=wp.transform),
+                    body_q_low: wp.array2d(dtype=wp.transform), exact: int, floor: float, skip_floor: float,
+                    skip_floor_angular: float):
     """The start of a Gauss-Newton iteration of project_positions for one world (a thread block per
-    world, its joints and rows spread over the threads): the joint residuals at body_q
-    (engine.joints.joint_residuals_of; exact: the float64 sums), the world's gate and mask
-    (projection_gates) and, where the mask is set, the solve's right-hand side -P phi on the
-    bilateral joint rows (0 on drive, limit, contact and padded rows). One launch instead of three."""
+    world, its joints and rows spread over the threads): the joint residuals at body_q into
+    w.row_residual (engine.joints.joint_residuals_of; exact: the float64 sums), the world's gate
+    and mask (projection_gates) into w.projection_gate and w.projection_mask and, where the mask is
+    set, the solve's right-hand side -P phi on the bilateral joint rows into w.rhs (0 on drive,
+    limit, contact and padded rows). One launch instead of three."""
     world, lane = wp.tid()
     stride = wp.block_dim()
-    nj = joint_count[world]
+    nj = m.joint_count[world]
     for k in range((nj + stride - 1) // stride):
         j = lane + k * stride
         if j < nj:
-            joint_residuals_of(world, j, -1, joint_count, joint_type, joint_parent, joint_child, joint_X_p, joint_X_c,
-                               joint_axis, joint_axis2, joint_row_start, joint_inertia_row, joint_drive_row, body_q,
-                               body_q_low, exact, row_residual)
+            joint_residuals_of(world, j, -1, m, body_q, body_q_low, exact, w.row_residual)
     block_sync()
-    opened, move = projection_gates(world, lane, stride, row_count, row_kind, row_residual, project, floor, skip_floor,
-                                    skip_floor_angular)
+    opened, move = projection_gates(world, lane, stride, w.row_count, m.row_kind, w.row_residual, w.project, floor,
+                                    skip_floor, skip_floor_angular)
     if lane == 0:
-        gate[world] = opened
-        mask[world] = move
+        w.projection_gate[world] = opened
+        w.projection_mask[world] = move
     if move == 0:
         return
-    rows = rhs_out.shape[1]
+    rows = w.rhs.shape[1]
     for k in range((rows + stride - 1) // stride):
         i = lane + k * stride
         if i < rows:
-            rhs_out[world, i] = -row_precond[world, i] * bilateral_residual_of(world, i, row_count, row_kind,
-                                                                               row_residual)
+            w.rhs[world, i] = -w.row_precond[world, i] * bilateral_residual_of(world, i, m, w)
 
 
 @wp.func
@@ -472,31 +360,23 @@ def twist_finite(u: wp.spatial_vector):
 
 
 @wp.func
-def guard_divergence_of(
-    world: int,
-    body_count: wp.array(dtype=wp.int32),
-    body_q_in: wp.array2d(dtype=wp.transform),
-    body_qd_in: wp.array2d(dtype=wp.spatial_vector),
-    body_q_offset_in: wp.array2d(dtype=wp.spatial_vector),
-    body_q_low_in: wp.array2d(dtype=wp.transform),
-    body_qd_low_in: wp.array2d(dtype=wp.spatial_vector),
-    body_q_next_in: wp.array2d(dtype=wp.transform),
-    halted: wp.array(dtype=wp.int32),
-    max_speed: float,
-    # in/out
-    body_q_out: wp.array2d(dtype=wp.transform),
-    body_qd_out: wp.array2d(dtype=wp.spatial_vector),
-    body_q_offset_out: wp.array2d(dtype=wp.spatial_vector),
-    body_q_low_out: wp.array2d(dtype=wp.transform),
-    body_qd_low_out: wp.array2d(dtype=wp.spatial_vector),
-    body_q_next_out: wp.array2d(dtype=wp.transform),
-    diverged: wp.array(dtype=wp.int32),
-):
-    """Flag a world whose new state is not finite, or in which a body's centre of mass moves
-    faster than max_speed [m/s], and freeze it at its last state; a halted world (engine.rollout's
-    halt) stays frozen as well, without the flag."""
-    n = body_count[world]
-    bad = diverged[world] != 0
+def guard_divergence_of(world: int, m: ModelArrays, w: WorkArrays, max_speed: float,
+                        body_q_in: wp.array2d(dtype=wp.transform), body_qd_in: wp.array2d(dtype=wp.spatial_vector),
+                        body_q_offset_in: wp.array2d(dtype=wp.spatial_vector),
+                        body_q_low_in: wp.array2d(dtype=wp.transform),
+                        body_qd_low_in: wp.array2d(dtype=wp.spatial_vector),
+                        body_q_next_in: wp.array2d(dtype=wp.transform), body_q_out: wp.array2d(dtype=wp.transform),
+                        body_qd_out: wp.array2d(dtype=wp.spatial_vector),
+                        body_q_offset_out: wp.array2d(dtype=wp.spatial_vector),
+                        body_q_low_out: wp.array2d(dtype=wp.transform),
+                        body_qd_low_out: wp.array2d(dtype=wp.spatial_vector),
+                        body_q_next_out: wp.array2d(dtype=wp.transform)):
+    """Flag a world (w.diverged) whose new state (the _out arrays) is not finite, or in which a
+    body's centre of mass moves faster than max_speed [m/s], and freeze it at its last state (the
+    _in arrays); a halted world (w.halted: engine.rollout's halt) stays frozen as well, without the
+    flag."""
+    n = m.body_count[world]
+    bad = w.diverged[world] != 0
     for b in range(n):
         u = body_qd_out[world, b]
         if not (transform_finite(body_q_out[world, b]) and twist_finite(u)):
@@ -504,8 +384,8 @@ def guard_divergence_of(
         elif wp.length(wp.spatial_top(u)) > max_speed:
             bad = True
     if bad:
-        diverged[world] = 1
-    if bad or halted[world] != 0:
+        w.diverged[world] = 1
+    if bad or w.halted[world] != 0:
         for b in range(n):
             body_q_out[world, b] = body_q_in[world, b]
             body_qd_out[world, b] = body_qd_in[world, b]
@@ -516,32 +396,22 @@ def guard_divergence_of(
 
 
 @wp.kernel
-def guard_divergence(
-    body_count: wp.array(dtype=wp.int32),
-    body_q_in: wp.array2d(dtype=wp.transform),
-    body_qd_in: wp.array2d(dtype=wp.spatial_vector),
-    body_q_offset_in: wp.array2d(dtype=wp.spatial_vector),
-    body_q_low_in: wp.array2d(dtype=wp.transform),
-    body_qd_low_in: wp.array2d(dtype=wp.spatial_vector),
-    body_q_next_in: wp.array2d(dtype=wp.transform),
-    halted: wp.array(dtype=wp.int32),
-    max_speed: float,
-    # in/out
-    body_q_out: wp.array2d(dtype=wp.transform),
-    body_qd_out: wp.array2d(dtype=wp.spatial_vector),
-    body_q_offset_out: wp.array2d(dtype=wp.spatial_vector),
-    body_q_low_out: wp.array2d(dtype=wp.transform),
-    body_qd_low_out: wp.array2d(dtype=wp.spatial_vector),
-    body_q_next_out: wp.array2d(dtype=wp.transform),
-    diverged: wp.array(dtype=wp.int32),
-):
-    """Flag a world whose new state is not finite, or in which a body's centre of mass moves
-    faster than max_speed [m/s], and freeze it at its last state; a halted world (engine.rollout's
-    halt) stays frozen as well, without the flag."""
+def guard_divergence(m: ModelArrays, w: WorkArrays, max_speed: float, body_q_in: wp.array2d(dtype=wp.transform),
+                     body_qd_in: wp.array2d(dtype=wp.spatial_vector),
+                     body_q_offset_in: wp.array2d(dtype=wp.spatial_vector),
+                     body_q_low_in: wp.array2d(dtype=wp.transform),
+                     body_qd_low_in: wp.array2d(dtype=wp.spatial_vector),
+                     body_q_next_in: wp.array2d(dtype=wp.transform), body_q_out: wp.array2d(dtype=wp.transform),
+                     body_qd_out: wp.array2d(dtype=wp.spatial_vector),
+                     body_q_offset_out: wp.array2d(dtype=wp.spatial_vector),
+                     body_q_low_out: wp.array2d(dtype=wp.transform),
+                     body_qd_low_out: wp.array2d(dtype=wp.spatial_vector),
+                     body_q_next_out: wp.array2d(dtype=wp.transform)):
+    """The divergence guard of every world (guard_divergence_of)."""
     world = wp.tid()
-    guard_divergence_of(world, body_count, body_q_in, body_qd_in, body_q_offset_in, body_q_low_in, body_qd_low_in,
-                        body_q_next_in, halted, max_speed, body_q_out, body_qd_out, body_q_offset_out, body_q_low_out,
-                        body_qd_low_out, body_q_next_out, diverged)
+    guard_divergence_of(world, m, w, max_speed, body_q_in, body_qd_in, body_q_offset_in, body_q_low_in,
+                        body_qd_low_in, body_q_next_in, body_q_out, body_qd_out, body_q_offset_out, body_q_low_out,
+                        body_qd_low_out, body_q_next_out)
 
 
 @wp.kernel
@@ -570,25 +440,22 @@ def projection_penalty(rho_init: float, rho_free: float):
 
 
 @wp.kernel
-def projection_shift(padmm_eta: wp.array(dtype=float), padmm_rho_init: wp.array(dtype=float),
-                     padmm_rho_free: wp.array(dtype=float),
-                     bilateral_row_count: wp.array(dtype=wp.int32), valid: wp.array(dtype=wp.int32),
-                     needs_factor: wp.array(dtype=wp.int32), project_out: wp.array(dtype=wp.int32),
-                     row_shift_out: wp.array2d(dtype=float)):
-    """Worlds to project: valid ones with bilateral joint rows; flag them for a factor of the
-    projection's own, with the shift eta + rho_free (Tuning.free_rho; rho_init with
-    cap_joint_penalty off) on every row: for batches with drive, limit or contact rows, or no factor
-    to reuse (project_positions; otherwise the PADMM's factor serves, its joint rows shifted by
-    eta + rho_free too: engine.padmm.row_penalty, with cap_joint_penalty off eta + the world's rho).
-    One thread per row; row 0 writes the world's flags."""
+def projection_shift(m: ModelArrays, w: WorkArrays):
+    """Worlds to project: valid ones with bilateral joint rows; flag them (w.project,
+    w.needs_factor) for a factor of the projection's own, with the shift eta + rho_free
+    (Tuning.free_rho; rho_init with cap_joint_penalty off) on every row (w.row_shift): for batches
+    with drive, limit or contact rows, or no factor to reuse (project_positions; otherwise the
+    PADMM's factor serves, its joint rows shifted alike: engine.padmm.row_penalty). One thread per
+    row; row 0 writes the world's flags."""
     world, i = wp.tid()
     project = int(0)
-    if valid[world] != 0 and bilateral_row_count[world] > 0:
+    if w.valid[world] != 0 and m.bilateral_row_count[world] > 0:
         project = 1
-        row_shift_out[world, i] = padmm_eta[world] + projection_penalty(padmm_rho_init[world], padmm_rho_free[world])
+        w.row_shift[world, i] = m.padmm_eta[world] + projection_penalty(m.padmm_rho_init[world],
+                                                                        m.padmm_rho_free[world])
     if i == 0:
-        needs_factor[world] = project
-        project_out[world] = project
+        w.needs_factor[world] = project
+        w.project[world] = project
 
 
 def project_positions(model, body_q, body_qd, *, iterations=None,
@@ -603,8 +470,7 @@ def project_positions(model, body_q, body_qd, *, iterations=None,
     body_qd_low (their low parts) are required.
     prepare=False reuses the factor of an earlier call this step.
     """
-    work, device = model.work, model.device
-    grid_rows = (model.num_worlds, model.max_rows)
+    work, device, m, w = model.work, model.device, model.arrays, model.work.arrays
     iterations = model.config.position_iterations if iterations is None else iterations
     if velocity_update is None:
         velocity_update = model.config.tuning.projection_velocity_update
@@ -624,10 +490,7 @@ def project_positions(model, body_q, body_qd, *, iterations=None,
             wp.launch(bilateral_block, dim=(model.num_worlds, model.max_rows, model.max_rows), device=device,
                       inputs=[model.row_kind, work.row_count, work.delassus])
         if model.has_unilateral_or_drive_rows:  # a factor of the projection's own
-            wp.launch(projection_shift, dim=grid_rows, device=device,
-                      inputs=[model.padmm_eta, model.padmm_rho_init, model.padmm_rho_free,
-                              model.bilateral_row_count, work.valid],
-                      outputs=[work.needs_factor, work.project, work.row_shift])
+            wp.launch(projection_shift, dim=(model.num_worlds, model.max_rows), device=device, inputs=[m, w])
         # else the PADMM's factor serves: engine.padmm.padmm_start set the worlds to project, and every
         # flag for a new factor is clear once the PADMM's loop has ended
         if dense_solver:
@@ -649,24 +512,19 @@ def project_positions(model, body_q, body_qd, *, iterations=None,
     tuning = model.config.tuning
     # the worlds whose joint error is above tuning.projection_skip_floor (angular: projection_skip_floor_angular)
     mask = work.projection_mask
-    joints = joint_model_inputs(model)
     for k in range(iterations):
         # the residuals (float64 sums where the dynamics move on), the gate and mask, the rhs
         wp.launch_tiled(projection_pass, dim=[model.num_worlds], block_dim=GATE_BLOCK, device=device,
-                        inputs=[work.row_count, model.row_kind, *joints, body_q, q_low, int(compensated and not record),
-                                work.row_precond, work.project, float(tuning.projection_velocity_floor),
-                                float(tuning.projection_skip_floor), float(tuning.projection_skip_floor_angular)],
-                        outputs=[work.row_residual, work.projection_gate, mask, work.rhs])
+                        inputs=[m, w, body_q, q_low, int(compensated and not record),
+                                float(tuning.projection_velocity_floor), float(tuning.projection_skip_floor),
+                                float(tuning.projection_skip_floor_angular)])
         if dense_solver:
             dense.solve(work.factor, work.rhs, mask, work.delta)
         else:
             sparse.solve(model, work.rhs, mask, work.delta, system=own_pattern)
         wp.launch(apply_projection, dim=(model.num_worlds, model.max_bodies), device=device,
-                  inputs=[model.body_count, work.row_count, model.contact_row_start, model.body_row_begin,
-                          model.body_row_end, model.body_row, work.row_body_c, work.row_body_p, mask,
-                          model.world_dt, int(velocity_update), work.projection_gate, work.row_MJ_c,
-                          work.row_MJ_p, work.row_precond, work.delta, int(record), int(compensated), body_q, body_qd,
-                          offset, q_low, qd_low])
+                  inputs=[m, w, int(velocity_update), int(record), int(compensated), body_q, body_qd, offset, q_low,
+                          qd_low])
 
 
 __all__ = ["add_impulse_of", "advance_pose_of", "apply_impulses", "guard_divergence",

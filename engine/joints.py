@@ -19,7 +19,7 @@ clamped (the rotor inertia and joint friction act beside it).
 
 import warp as wp
 
-from engine.model import UNBOUNDED
+from engine.model import UNBOUNDED, ModelArrays, WorkArrays
 from engine.spatial import relative_rotation, twist, wrap_angle
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
@@ -93,11 +93,10 @@ def joint_frames(body_q: wp.array2d(dtype=wp.transform), body_q_low: wp.array2d(
     child anchor minus the parent anchor [m], the joint's position error, from the compensated
     poses (body_q + body_q_low: engine.State; body_q_low zeros where there are none): COM
     difference (exact for nearby COMs), low parts, lever arms. With ``exact`` d is summed in
-    float64 and rounded once, so the residuals the position projection corrects stay below
-    float32 rounding of the positions and lever arms, which near a singular configuration the
-    projection would amplify into motion (a float32 anchor 40 m out is off by up to 1.9e-6 m; the
-    IFToMM N = 40 four-bar lost 1e-4 of its energy at each flat pass). The float32 sum serves the
-    rows of the dynamics, whose residuals only feed Baumgarte's bias."""
+    float64 and rounded once, so the residuals the position projection corrects stay below the
+    float32 rounding of positions and lever arms, which near a singular configuration the
+    projection would amplify into motion. The float32 sum serves the rows of the dynamics, whose
+    residuals only feed Baumgarte's bias."""
     X_wp = X_p
     r_p = wp.vec3(0.0)
     C = body_q[world, child]
@@ -199,334 +198,184 @@ def body_twist(body_qd: wp.array2d(dtype=wp.spatial_vector), world: int, body: i
 
 @wp.func
 def write_row(world: int, row: int, J_c: wp.spatial_vector, J_p: wp.spatial_vector, bias: float, compliance: float,
-              lo: float, hi: float, row_J_c_out: wp.array2d(dtype=wp.spatial_vector),
-              row_J_p_out: wp.array2d(dtype=wp.spatial_vector), row_bias_out: wp.array2d(dtype=float),
-              row_compliance_out: wp.array2d(dtype=float), row_lo_out: wp.array2d(dtype=float),
-              row_hi_out: wp.array2d(dtype=float), row_residual_out: wp.array2d(dtype=float)):
+              lo: float, hi: float, w: WorkArrays):
     """Store one row; dynamics rows have no position residual."""
-    row_J_c_out[world, row] = J_c
-    row_J_p_out[world, row] = J_p
-    row_bias_out[world, row] = bias
-    row_compliance_out[world, row] = compliance
-    row_lo_out[world, row] = lo
-    row_hi_out[world, row] = hi
-    row_residual_out[world, row] = 0.0
+    w.row_J_c[world, row] = J_c
+    w.row_J_p[world, row] = J_p
+    w.row_bias[world, row] = bias
+    w.row_compliance[world, row] = compliance
+    w.row_lo[world, row] = lo
+    w.row_hi[world, row] = hi
+    w.row_residual[world, row] = 0.0
 
 
 @wp.func
 def limit_row(world: int, row: int, side: float, gap: float, gap_rate: float, J_c: wp.spatial_vector,
-              J_p: wp.spatial_vector, dt: float, margin: float, stabilization: float,
-              row_J_c_out: wp.array2d(dtype=wp.spatial_vector), row_J_p_out: wp.array2d(dtype=wp.spatial_vector),
-              row_bias_out: wp.array2d(dtype=float), row_compliance_out: wp.array2d(dtype=float),
-              row_lo_out: wp.array2d(dtype=float), row_hi_out: wp.array2d(dtype=float),
-              row_residual_out: wp.array2d(dtype=float)):
+              J_p: wp.spatial_vector, dt: float, margin: float, stabilization: float, w: WorkArrays):
     """Unilateral limit row on gap = side (q - limit) >= 0, active within margin (+ one step of
     approach); separated: the gap may close, no more; violated: pushed back by stabilization."""
     if gap < margin + dt * wp.max(-gap_rate, 0.0):
         bias = -gap / dt
         if gap < 0.0:
             bias = stabilization * (-gap) / dt
-        write_row(world, row, side * J_c, side * J_p, bias, 0.0, 0.0, UNBOUNDED, row_J_c_out, row_J_p_out,
-                  row_bias_out, row_compliance_out, row_lo_out, row_hi_out, row_residual_out)
+        write_row(world, row, side * J_c, side * J_p, bias, 0.0, 0.0, UNBOUNDED, w)
     else:  # inert row: no coupling, impulse fixed at zero
         zero = wp.spatial_vector()
-        write_row(world, row, zero, zero, 0.0, 1.0, 0.0, 0.0, row_J_c_out, row_J_p_out, row_bias_out,
-                  row_compliance_out, row_lo_out, row_hi_out, row_residual_out)
+        write_row(world, row, zero, zero, 0.0, 1.0, 0.0, 0.0, w)
 
 
 @wp.func
-def joint_rows_of(
-    world: int, j: int, part: int,
-    # model
-    joint_count: wp.array(dtype=wp.int32),
-    joint_type: wp.array2d(dtype=wp.int32),
-    joint_parent: wp.array2d(dtype=wp.int32),
-    joint_child: wp.array2d(dtype=wp.int32),
-    joint_X_p: wp.array2d(dtype=wp.transform),
-    joint_X_c: wp.array2d(dtype=wp.transform),
-    joint_axis: wp.array2d(dtype=wp.vec3),
-    joint_axis2: wp.array2d(dtype=wp.vec3),
-    joint_row_start: wp.array2d(dtype=wp.int32),
-    joint_inertia_row: wp.array2d(dtype=wp.int32),
-    joint_drive_row: wp.array2d(dtype=wp.int32),
-    joint_armature: wp.array2d(dtype=float),
-    joint_damping: wp.array2d(dtype=float),
-    joint_stiffness: wp.array2d(dtype=float),
-    joint_drive_damping: wp.array2d(dtype=float),
-    joint_effort_limit: wp.array2d(dtype=float),
-    joint_limit_lower: wp.array2d(dtype=float),
-    joint_limit_upper: wp.array2d(dtype=float),
-    joint_limit_lower_row: wp.array2d(dtype=wp.int32),
-    joint_limit_upper_row: wp.array2d(dtype=wp.int32),
-    world_dt: wp.array(dtype=float),
-    baumgarte: float,
-    limit_margin: float,
-    limit_stabilization: float,
-    # in
-    body_q: wp.array2d(dtype=wp.transform),
-    body_q_low: wp.array2d(dtype=wp.transform),
-    body_qd: wp.array2d(dtype=wp.spatial_vector),
-    joint_target_position: wp.array2d(dtype=float),
-    joint_target_velocity: wp.array2d(dtype=float),
-    joint_effort: wp.array2d(dtype=float),
-    # out
-    row_J_c_out: wp.array2d(dtype=wp.spatial_vector),
-    row_J_p_out: wp.array2d(dtype=wp.spatial_vector),
-    row_bias_out: wp.array2d(dtype=float),
-    row_compliance_out: wp.array2d(dtype=float),
-    row_lo_out: wp.array2d(dtype=float),
-    row_hi_out: wp.array2d(dtype=float),
-    row_residual_out: wp.array2d(dtype=float),
-):
-    """Rows of joint j: J, bias c, compliance R and bounds, so that J u+ + R lambda = c; all of them
-    (part < 0) or one part (JOINT_PARTS)."""
-    jtype = joint_type[world, j]
+def joint_rows_of(world: int, j: int, part: int, m: ModelArrays, w: WorkArrays, baumgarte: float,
+                  limit_margin: float, limit_stabilization: float, body_q: wp.array2d(dtype=wp.transform),
+                  body_q_low: wp.array2d(dtype=wp.transform), body_qd: wp.array2d(dtype=wp.spatial_vector),
+                  joint_target_position: wp.array2d(dtype=float), joint_target_velocity: wp.array2d(dtype=float),
+                  joint_effort: wp.array2d(dtype=float)):
+    """Rows of joint j at the poses body_q (+ body_q_low) into w: J, bias c, compliance R and
+    bounds, so that J u+ + R lambda = c; all of them (part < 0) or one part (JOINT_PARTS)."""
+    jtype = m.joint_type[world, j]
     begin, end, coordinate = part_rows(jtype, part)
-    inertia_row = joint_inertia_row[world, j]
-    drive_row = joint_drive_row[world, j]
-    lower_row = joint_limit_lower_row[world, j]
-    upper_row = joint_limit_upper_row[world, j]
+    inertia_row = m.joint_inertia_row[world, j]
+    drive_row = m.joint_drive_row[world, j]
+    lower_row = m.joint_limit_lower_row[world, j]
+    upper_row = m.joint_limit_upper_row[world, j]
     if inertia_row < 0 and drive_row < 0 and lower_row < 0 and upper_row < 0:
         coordinate = False
     if begin >= end and not coordinate:
         return
-    parent = joint_parent[world, j]
-    child = joint_child[world, j]
-    X_wp, X_wc, r_p, r_c, d = joint_frames(body_q, body_q_low, world, parent, child, joint_X_p[world, j],
-                                           joint_X_c[world, j], 0)
-    dt = world_dt[world]
-    start = joint_row_start[world, j]
+    parent = m.joint_parent[world, j]
+    child = m.joint_child[world, j]
+    X_wp, X_wc, r_p, r_c, d = joint_frames(body_q, body_q_low, world, parent, child, m.joint_X_p[world, j],
+                                           m.joint_X_c[world, j], 0)
+    dt = m.world_dt[world]
+    start = m.joint_row_start[world, j]
     for k in range(begin, end):
-        J_c, J_p, phi = bilateral_row(jtype, k, X_wp, X_wc, r_p, r_c, d, joint_axis[world, j], joint_axis2[world, j])
+        J_c, J_p, phi = bilateral_row(jtype, k, X_wp, X_wc, r_p, r_c, d, m.joint_axis[world, j],
+                                      m.joint_axis2[world, j])
         row = start + k
-        row_J_c_out[world, row] = J_c
-        row_J_p_out[world, row] = J_p
-        row_bias_out[world, row] = -baumgarte / dt * phi
-        row_compliance_out[world, row] = 0.0
-        row_lo_out[world, row] = -UNBOUNDED
-        row_hi_out[world, row] = UNBOUNDED
-        row_residual_out[world, row] = phi
+        w.row_J_c[world, row] = J_c
+        w.row_J_p[world, row] = J_p
+        w.row_bias[world, row] = -baumgarte / dt * phi
+        w.row_compliance[world, row] = 0.0
+        w.row_lo[world, row] = -UNBOUNDED
+        w.row_hi[world, row] = UNBOUNDED
+        w.row_residual[world, row] = phi
     if not coordinate:
         return
-    J_c, J_p, q = joint_coordinate_row(jtype, X_wp, X_wc, r_p, r_c, d, joint_axis[world, j])
+    J_c, J_p, q = joint_coordinate_row(jtype, X_wp, X_wc, r_p, r_c, d, m.joint_axis[world, j])
     dq = wp.dot(J_c, body_twist(body_qd, world, child)) + wp.dot(J_p, body_twist(body_qd, world, parent))
     if lower_row >= 0:
-        limit_row(world, lower_row, 1.0, q - joint_limit_lower[world, j], dq, J_c, J_p, dt, limit_margin,
-                  limit_stabilization, row_J_c_out, row_J_p_out, row_bias_out, row_compliance_out, row_lo_out,
-                  row_hi_out, row_residual_out)
+        limit_row(world, lower_row, 1.0, q - m.joint_limit_lower[world, j], dq, J_c, J_p, dt, limit_margin,
+                  limit_stabilization, w)
     if upper_row >= 0:
-        limit_row(world, upper_row, -1.0, joint_limit_upper[world, j] - q, -dq, J_c, J_p, dt, limit_margin,
-                  limit_stabilization, row_J_c_out, row_J_p_out, row_bias_out, row_compliance_out, row_lo_out,
-                  row_hi_out, row_residual_out)
+        limit_row(world, upper_row, -1.0, m.joint_limit_upper[world, j] - q, -dq, J_c, J_p, dt, limit_margin,
+                  limit_stabilization, w)
     if inertia_row >= 0:
         # armature a and damping b: lambda = a dq - (a + dt b) dq+
-        armature = joint_armature[world, j]
-        m_a = armature + dt * joint_damping[world, j]
-        write_row(world, inertia_row, J_c, J_p, armature * dq / m_a, 1.0 / m_a, -UNBOUNDED, UNBOUNDED,
-                  row_J_c_out, row_J_p_out, row_bias_out, row_compliance_out, row_lo_out, row_hi_out, row_residual_out)
+        armature = m.joint_armature[world, j]
+        m_a = armature + dt * m.joint_damping[world, j]
+        write_row(world, inertia_row, J_c, J_p, armature * dq / m_a, 1.0 / m_a, -UNBOUNDED, UNBOUNDED, w)
     if drive_row >= 0:
         # implicit PD: lambda = dt (kp (q_t - q) + kd dq_t + tau) - (dt kd + dt^2 kp) dq+, |lambda| <= dt effort
-        kp = joint_stiffness[world, j]
-        kd = joint_drive_damping[world, j]
+        kp = m.joint_stiffness[world, j]
+        kd = m.joint_drive_damping[world, j]
         error = joint_target_position[world, j] - q
         if jtype == JOINT_REVOLUTE:
             error = wrap_angle(error)
         m_d = dt * kd + dt * dt * kp
         impulse = dt * (kp * error + kd * joint_target_velocity[world, j] + joint_effort[world, j])
-        bound = dt * joint_effort_limit[world, j]
+        bound = dt * m.joint_effort_limit[world, j]
         if m_d > 0.0:
-            write_row(world, drive_row, J_c, J_p, impulse / m_d, 1.0 / m_d, -bound, bound,
-                      row_J_c_out, row_J_p_out, row_bias_out, row_compliance_out, row_lo_out, row_hi_out,
-                      row_residual_out)
+            write_row(world, drive_row, J_c, J_p, impulse / m_d, 1.0 / m_d, -bound, bound, w)
         else:  # pure feed-forward effort: a fixed impulse
             fixed = wp.clamp(impulse, -bound, bound)
-            write_row(world, drive_row, J_c, J_p, 0.0, 1.0, fixed, fixed, row_J_c_out, row_J_p_out, row_bias_out,
-                      row_compliance_out, row_lo_out, row_hi_out, row_residual_out)
+            write_row(world, drive_row, J_c, J_p, 0.0, 1.0, fixed, fixed, w)
 
 
 @wp.func
 def joint_thread(t: int, parts: int):
     """Joint and part (-1: all of it) of thread t of the joint kernels: a joint's parts on
     consecutive threads, so that a warp's stores of their rows (consecutive in a world) are
-    contiguous (measured: benchmarks/results/README.md, "Engine design notes", engine.joints)."""
+    contiguous."""
     if parts > 1:
         return t // parts, t % parts
     return t, -1
 
 
 def joint_parts(device) -> int:
-    """Threads per joint of the staged joint_rows kernel: JOINT_PARTS on a GPU (benchmarks/results/README.md,
-    "Engine design notes (moved from the code)"), one on the CPU (its threads run one after the
-    other, and the parts would repeat each joint's frames)."""
+    """Threads per joint of the staged joint_rows kernel: JOINT_PARTS on a GPU (measured:
+    benchmarks/results/README.md), one on the CPU (its threads run one after the other, and the
+    parts would repeat each joint's frames)."""
     return int(JOINT_PARTS) if wp.get_device(device).is_cuda else 1
 
 
 @wp.kernel
-def joint_rows(
-    parts: int,
-    # model
-    joint_count: wp.array(dtype=wp.int32),
-    joint_type: wp.array2d(dtype=wp.int32),
-    joint_parent: wp.array2d(dtype=wp.int32),
-    joint_child: wp.array2d(dtype=wp.int32),
-    joint_X_p: wp.array2d(dtype=wp.transform),
-    joint_X_c: wp.array2d(dtype=wp.transform),
-    joint_axis: wp.array2d(dtype=wp.vec3),
-    joint_axis2: wp.array2d(dtype=wp.vec3),
-    joint_row_start: wp.array2d(dtype=wp.int32),
-    joint_inertia_row: wp.array2d(dtype=wp.int32),
-    joint_drive_row: wp.array2d(dtype=wp.int32),
-    joint_armature: wp.array2d(dtype=float),
-    joint_damping: wp.array2d(dtype=float),
-    joint_stiffness: wp.array2d(dtype=float),
-    joint_drive_damping: wp.array2d(dtype=float),
-    joint_effort_limit: wp.array2d(dtype=float),
-    joint_limit_lower: wp.array2d(dtype=float),
-    joint_limit_upper: wp.array2d(dtype=float),
-    joint_limit_lower_row: wp.array2d(dtype=wp.int32),
-    joint_limit_upper_row: wp.array2d(dtype=wp.int32),
-    world_dt: wp.array(dtype=float),
-    baumgarte: float,
-    limit_margin: float,
-    limit_stabilization: float,
-    # in
-    body_q: wp.array2d(dtype=wp.transform),
-    body_q_low: wp.array2d(dtype=wp.transform),
-    body_qd: wp.array2d(dtype=wp.spatial_vector),
-    joint_target_position: wp.array2d(dtype=float),
-    joint_target_velocity: wp.array2d(dtype=float),
-    joint_effort: wp.array2d(dtype=float),
-    # out
-    row_J_c_out: wp.array2d(dtype=wp.spatial_vector),
-    row_J_p_out: wp.array2d(dtype=wp.spatial_vector),
-    row_bias_out: wp.array2d(dtype=float),
-    row_compliance_out: wp.array2d(dtype=float),
-    row_lo_out: wp.array2d(dtype=float),
-    row_hi_out: wp.array2d(dtype=float),
-    row_residual_out: wp.array2d(dtype=float),
-):
-    """Rows of every joint: J, bias c, compliance R and bounds, so that J u+ + R lambda = c; a
-    thread per joint, or with parts > 1 per part of a joint (thread t: part t % parts of joint t // parts)."""
+def joint_rows(parts: int, m: ModelArrays, w: WorkArrays, baumgarte: float, limit_margin: float,
+               limit_stabilization: float, body_q: wp.array2d(dtype=wp.transform),
+               body_q_low: wp.array2d(dtype=wp.transform), body_qd: wp.array2d(dtype=wp.spatial_vector),
+               joint_target_position: wp.array2d(dtype=float), joint_target_velocity: wp.array2d(dtype=float),
+               joint_effort: wp.array2d(dtype=float)):
+    """Rows of every joint (joint_rows_of): a thread per joint, or with parts > 1 per part of a
+    joint (thread t: part t % parts of joint t // parts)."""
     world, t = wp.tid()
     j, part = joint_thread(t, parts)
-    if j >= joint_count[world]:
+    if j >= m.joint_count[world]:
         return
-    joint_rows_of(world, j, part, joint_count, joint_type, joint_parent, joint_child, joint_X_p, joint_X_c, joint_axis,
-        joint_axis2, joint_row_start, joint_inertia_row, joint_drive_row, joint_armature, joint_damping,
-        joint_stiffness, joint_drive_damping, joint_effort_limit, joint_limit_lower, joint_limit_upper,
-        joint_limit_lower_row, joint_limit_upper_row, world_dt, baumgarte, limit_margin, limit_stabilization,
-        body_q, body_q_low, body_qd, joint_target_position, joint_target_velocity, joint_effort, row_J_c_out,
-        row_J_p_out,
-        row_bias_out, row_compliance_out, row_lo_out, row_hi_out, row_residual_out)
+    joint_rows_of(world, j, part, m, w, baumgarte, limit_margin, limit_stabilization, body_q, body_q_low, body_qd,
+                  joint_target_position, joint_target_velocity, joint_effort)
 
 
 @wp.func
-def joint_residuals_of(
-    world: int, j: int, part: int,
-    # model
-    joint_count: wp.array(dtype=wp.int32),
-    joint_type: wp.array2d(dtype=wp.int32),
-    joint_parent: wp.array2d(dtype=wp.int32),
-    joint_child: wp.array2d(dtype=wp.int32),
-    joint_X_p: wp.array2d(dtype=wp.transform),
-    joint_X_c: wp.array2d(dtype=wp.transform),
-    joint_axis: wp.array2d(dtype=wp.vec3),
-    joint_axis2: wp.array2d(dtype=wp.vec3),
-    joint_row_start: wp.array2d(dtype=wp.int32),
-    joint_inertia_row: wp.array2d(dtype=wp.int32),
-    joint_drive_row: wp.array2d(dtype=wp.int32),
-    # in
-    body_q: wp.array2d(dtype=wp.transform),
-    body_q_low: wp.array2d(dtype=wp.transform),
-    exact: int,
-    # out
-    row_residual_out: wp.array2d(dtype=float),
-):
+def joint_residuals_of(world: int, j: int, part: int, m: ModelArrays, body_q: wp.array2d(dtype=wp.transform),
+                       body_q_low: wp.array2d(dtype=wp.transform), exact: int,
+                       row_residual_out: wp.array2d(dtype=float)):
     """Position-level residuals of joint j's rows at body_q (0 for dynamics rows): all of them
     (part < 0) or one part (JOINT_PARTS); exact: joint_frames' float64 sum."""
-    jtype = joint_type[world, j]
+    jtype = m.joint_type[world, j]
     begin, end, coordinate = part_rows(jtype, part)
     if begin < end:
-        X_wp, X_wc, r_p, r_c, d = joint_frames(body_q, body_q_low, world, joint_parent[world, j],
-                                               joint_child[world, j], joint_X_p[world, j], joint_X_c[world, j],
-                                               exact)
-        start = joint_row_start[world, j]
+        X_wp, X_wc, r_p, r_c, d = joint_frames(body_q, body_q_low, world, m.joint_parent[world, j],
+                                               m.joint_child[world, j], m.joint_X_p[world, j],
+                                               m.joint_X_c[world, j], exact)
+        start = m.joint_row_start[world, j]
         for k in range(begin, end):
-            J_c, J_p, phi = bilateral_row(jtype, k, X_wp, X_wc, r_p, r_c, d, joint_axis[world, j],
-                                          joint_axis2[world, j])
+            J_c, J_p, phi = bilateral_row(jtype, k, X_wp, X_wc, r_p, r_c, d, m.joint_axis[world, j],
+                                          m.joint_axis2[world, j])
             row_residual_out[world, start + k] = phi
     if not coordinate:
         return
-    if joint_inertia_row[world, j] >= 0:
-        row_residual_out[world, joint_inertia_row[world, j]] = 0.0
-    if joint_drive_row[world, j] >= 0:
-        row_residual_out[world, joint_drive_row[world, j]] = 0.0
+    if m.joint_inertia_row[world, j] >= 0:
+        row_residual_out[world, m.joint_inertia_row[world, j]] = 0.0
+    if m.joint_drive_row[world, j] >= 0:
+        row_residual_out[world, m.joint_drive_row[world, j]] = 0.0
 
 
 @wp.kernel
-def joint_residuals(
-    # model
-    joint_count: wp.array(dtype=wp.int32),
-    joint_type: wp.array2d(dtype=wp.int32),
-    joint_parent: wp.array2d(dtype=wp.int32),
-    joint_child: wp.array2d(dtype=wp.int32),
-    joint_X_p: wp.array2d(dtype=wp.transform),
-    joint_X_c: wp.array2d(dtype=wp.transform),
-    joint_axis: wp.array2d(dtype=wp.vec3),
-    joint_axis2: wp.array2d(dtype=wp.vec3),
-    joint_row_start: wp.array2d(dtype=wp.int32),
-    joint_inertia_row: wp.array2d(dtype=wp.int32),
-    joint_drive_row: wp.array2d(dtype=wp.int32),
-    # in
-    body_q: wp.array2d(dtype=wp.transform),
-    body_q_low: wp.array2d(dtype=wp.transform),
-    exact: int,
-    # out
-    row_residual_out: wp.array2d(dtype=float),
-):
-    """Position-level residuals of every joint's rows at body_q (0 for dynamics rows), a thread per
-    joint (by part, each repeating the joint's frames for one cheap residual, was slower)."""
+def joint_residuals(m: ModelArrays, body_q: wp.array2d(dtype=wp.transform), body_q_low: wp.array2d(dtype=wp.transform),
+                    exact: int, row_residual_out: wp.array2d(dtype=float)):
+    """Position-level residuals of every joint's rows at body_q (joint_residuals_of), a thread per
+    joint."""
     world, j = wp.tid()
-    if j >= joint_count[world]:
+    if j >= m.joint_count[world]:
         return
-    joint_residuals_of(world, j, -1, joint_count, joint_type, joint_parent, joint_child, joint_X_p, joint_X_c,
-        joint_axis, joint_axis2, joint_row_start, joint_inertia_row, joint_drive_row, body_q, body_q_low, exact,
-        row_residual_out)
-
-
-def joint_model_inputs(model):
-    """The model arrays joint kernels take, in their order."""
-    return [model.joint_count, model.joint_type, model.joint_parent, model.joint_child, model.joint_X_p,
-            model.joint_X_c, model.joint_axis, model.joint_axis2, model.joint_row_start, model.joint_inertia_row,
-            model.joint_drive_row]
+    joint_residuals_of(world, j, -1, m, body_q, body_q_low, exact, row_residual_out)
 
 
 def compute_joint_rows(model, body_q, body_qd, control, body_q_low=None):
     """Launch joint_rows for the batch into model.work; body_q_low: the poses' low parts
     (engine.State), None for none."""
-    work = model.work
-    if body_q_low is None:
-        body_q_low = work.no_low
-    parts = joint_parts(model.device)
+    cfg, parts = model.config, joint_parts(model.device)
     wp.launch(joint_rows, dim=(model.num_worlds, model.max_joints * parts), device=model.device,
-              inputs=[parts, *joint_model_inputs(model), model.joint_armature, model.joint_damping,
-                      model.joint_stiffness, model.joint_drive_damping, model.joint_effort_limit,
-                      model.joint_limit_lower, model.joint_limit_upper, model.joint_limit_lower_row,
-                      model.joint_limit_upper_row, model.world_dt, float(model.config.baumgarte),
-                      float(model.config.limit_margin), float(model.config.limit_stabilization), body_q, body_q_low,
-                      body_qd,
-                      control.joint_target_position, control.joint_target_velocity, control.joint_effort],
-              outputs=[work.row_J_c, work.row_J_p, work.row_bias, work.row_compliance, work.row_lo,
-                       work.row_hi, work.row_residual])
+              inputs=[parts, model.arrays, model.work.arrays, float(cfg.baumgarte), float(cfg.limit_margin),
+                      float(cfg.limit_stabilization), body_q, model.work.no_low if body_q_low is None else body_q_low,
+                      body_qd, control.joint_target_position, control.joint_target_velocity, control.joint_effort])
 
 
 def compute_joint_residuals(model, body_q, residual_out, body_q_low=None, exact=False):
     """Launch joint_residuals for the batch; body_q_low: the poses' low parts (engine.State), None
     for none; exact: sum the position errors in float64 (joint_frames)."""
     wp.launch(joint_residuals, dim=(model.num_worlds, model.max_joints), device=model.device,
-              inputs=[*joint_model_inputs(model), body_q, model.work.no_low if body_q_low is None else body_q_low,
-                      int(exact)],
-              outputs=[residual_out])
+              inputs=[model.arrays, body_q, model.work.no_low if body_q_low is None else body_q_low, int(exact),
+                      residual_out])
 
 
 __all__ = ["JOINT_CYLINDRICAL", "JOINT_FIXED", "JOINT_INLINE", "JOINT_PARTS", "JOINT_PRISMATIC", "JOINT_REVOLUTE",

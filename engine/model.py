@@ -12,9 +12,9 @@ Conventions, used by every module of the engine:
   once past a world's count.
 - Constraint rows: each joint owns a fixed block of rows starting at ``joint_row_start``: its
   bilateral rows (kind LINEAR [m] or ANGULAR [rad]) then DYNAMICS rows along its free
-  coordinate: one for armature and viscous damping, one for the drive (bounded by its effort). A row couples a child body and a parent body (-1 = world); its
-  velocity is J_c . u_c + J_p . u_p. The padded row count ``max_rows`` is the tile size of the
-  per-world dense Delassus matrix.
+  coordinate: one for armature and viscous damping, one for the drive (bounded by its effort). A
+  row couples a child body and a parent body (-1 = world); its velocity is J_c . u_c + J_p . u_p.
+  The padded row count ``max_rows`` is the tile size of the per-world dense Delassus matrix.
 - A world's dual problem (engine.padmm): D lambda + v_f in the normal cone of the row bounds, with
   D = J M^-1 J^T + R and v_f = J u_free - c, solved by PADMM in Jacobi-preconditioned variables
   x = P^-1 lambda, P = diag(D)^-1/2.
@@ -25,10 +25,10 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from engine.collide import Candidates
 from engine.config import Integrator, SolverConfig  # re-exported: engine.model was their home
 
-__all__ = ["Control", "Integrator", "Model", "SolverConfig", "State", "Workspace"]
+__all__ = ["Candidates", "ContactArrays", "Control", "Integrator", "Model", "ModelArrays", "ShapeArrays",
+           "SolverConfig", "State", "WorkArrays", "Workspace"]
 
 ROW_LINEAR = wp.constant(0)
 ROW_ANGULAR = wp.constant(1)
@@ -39,13 +39,188 @@ ROW_CONTACT_TANGENT = wp.constant(5)
 UNBOUNDED = wp.constant(1.0e30)
 
 
-class Model:
+@wp.struct
+class ModelArrays:
+    """The Model's arrays that the step's kernels read, as one kernel argument (fields: the same
+    array objects as the Model's attributes of the same names, documented there)."""
+
+    body_count: wp.array(dtype=wp.int32)
+    body_mass: wp.array2d(dtype=float)
+    body_inv_mass: wp.array2d(dtype=float)
+    body_inertia: wp.array2d(dtype=wp.mat33)
+    body_inv_inertia: wp.array2d(dtype=wp.mat33)
+    world_gravity: wp.array(dtype=wp.vec3)
+    world_dt: wp.array(dtype=float)
+    joint_count: wp.array(dtype=wp.int32)
+    joint_type: wp.array2d(dtype=wp.int32)
+    joint_parent: wp.array2d(dtype=wp.int32)
+    joint_child: wp.array2d(dtype=wp.int32)
+    joint_X_p: wp.array2d(dtype=wp.transform)
+    joint_X_c: wp.array2d(dtype=wp.transform)
+    joint_axis: wp.array2d(dtype=wp.vec3)
+    joint_axis2: wp.array2d(dtype=wp.vec3)
+    joint_row_start: wp.array2d(dtype=wp.int32)
+    joint_inertia_row: wp.array2d(dtype=wp.int32)
+    joint_drive_row: wp.array2d(dtype=wp.int32)
+    joint_armature: wp.array2d(dtype=float)
+    joint_damping: wp.array2d(dtype=float)
+    joint_stiffness: wp.array2d(dtype=float)
+    joint_drive_damping: wp.array2d(dtype=float)
+    joint_effort_limit: wp.array2d(dtype=float)
+    joint_limit_lower: wp.array2d(dtype=float)
+    joint_limit_upper: wp.array2d(dtype=float)
+    joint_limit_lower_row: wp.array2d(dtype=wp.int32)
+    joint_limit_upper_row: wp.array2d(dtype=wp.int32)
+    row_count: wp.array(dtype=wp.int32)  # as packed (joint rows); this step's: WorkArrays.row_count
+    row_kind: wp.array2d(dtype=wp.int32)
+    contact_row_start: wp.array(dtype=wp.int32)
+    bilateral_row_count: wp.array(dtype=wp.int32)
+    body_row_begin: wp.array2d(dtype=wp.int32)
+    body_row_end: wp.array2d(dtype=wp.int32)
+    body_row: wp.array2d(dtype=wp.int32)
+    padmm_eta: wp.array(dtype=float)
+    padmm_rho_init: wp.array(dtype=float)
+    padmm_rho_free: wp.array(dtype=float)
+    padmm_tolerance: wp.array(dtype=float)
+
+
+@wp.struct
+class ShapeArrays:
+    """The Model's collision arrays (shapes, ground planes, shape pairs), for engine.collide."""
+
+    shape_type: wp.array2d(dtype=wp.int32)
+    shape_body: wp.array2d(dtype=wp.int32)
+    shape_X: wp.array2d(dtype=wp.transform)
+    shape_size: wp.array2d(dtype=wp.vec3)
+    shape_friction: wp.array2d(dtype=float)
+    shape_restitution: wp.array2d(dtype=float)
+    ground_normal: wp.array(dtype=wp.vec3)
+    ground_offset: wp.array(dtype=float)
+    ground_friction: wp.array(dtype=float)
+    ground_restitution: wp.array(dtype=float)
+    pair_count: wp.array(dtype=wp.int32)
+    pair_shape_a: wp.array2d(dtype=wp.int32)
+    pair_shape_b: wp.array2d(dtype=wp.int32)
+
+
+@wp.struct
+class WorkArrays:
+    """The Workspace's per-step arrays of bodies, rows, the PADMM and the per-world diagnostics
+    (the dense matrices and the contacts apart), as one kernel argument."""
+
+    body_qd_free: wp.array2d(dtype=wp.spatial_vector)
+    body_q_mid: wp.array2d(dtype=wp.transform)
+    body_q_mid_low: wp.array2d(dtype=wp.transform)
+    no_low: wp.array2d(dtype=wp.transform)
+    row_count: wp.array(dtype=wp.int32)
+    row_body_c: wp.array2d(dtype=wp.int32)
+    row_body_p: wp.array2d(dtype=wp.int32)
+    row_J_c: wp.array2d(dtype=wp.spatial_vector)
+    row_J_p: wp.array2d(dtype=wp.spatial_vector)
+    row_MJ_c: wp.array2d(dtype=wp.spatial_vector)
+    row_MJ_p: wp.array2d(dtype=wp.spatial_vector)
+    row_bias: wp.array2d(dtype=float)
+    row_compliance: wp.array2d(dtype=float)
+    row_lo: wp.array2d(dtype=float)
+    row_hi: wp.array2d(dtype=float)
+    row_residual: wp.array2d(dtype=float)
+    row_precond: wp.array2d(dtype=float)
+    row_friction: wp.array2d(dtype=float)
+    row_free: wp.array2d(dtype=wp.int32)
+    row_shift: wp.array2d(dtype=float)
+    warm: wp.array2d(dtype=float)
+    v_f: wp.array2d(dtype=float)
+    lo: wp.array2d(dtype=float)
+    hi: wp.array2d(dtype=float)
+    x: wp.array2d(dtype=float)
+    x_prev: wp.array2d(dtype=float)
+    y: wp.array2d(dtype=float)
+    y_prev: wp.array2d(dtype=float)
+    y_hat: wp.array2d(dtype=float)
+    z: wp.array2d(dtype=float)
+    z_prev: wp.array2d(dtype=float)
+    z_hat: wp.array2d(dtype=float)
+    rhs: wp.array2d(dtype=float)
+    delta: wp.array2d(dtype=float)
+    rho: wp.array(dtype=float)
+    residual_primal: wp.array(dtype=float)
+    residual_dual: wp.array(dtype=float)
+    residual_complementarity: wp.array(dtype=float)
+    momentum: wp.array(dtype=float)
+    momentum_beta: wp.array(dtype=float)
+    merit: wp.array(dtype=float)
+    stall_reference: wp.array(dtype=float)
+    iterations: wp.array(dtype=wp.int32)
+    converged: wp.array(dtype=wp.int32)
+    valid: wp.array(dtype=wp.int32)
+    project: wp.array(dtype=wp.int32)
+    projection_gate: wp.array(dtype=wp.int32)
+    projection_mask: wp.array(dtype=wp.int32)
+    active: wp.array(dtype=wp.int32)
+    needs_factor: wp.array(dtype=wp.int32)
+    demote: wp.array(dtype=wp.int32)
+    diverged: wp.array(dtype=wp.int32)
+    halted: wp.array(dtype=wp.int32)
+    active_count: wp.array(dtype=wp.int32)
+    violation_linear: wp.array(dtype=float)
+    violation_angular: wp.array(dtype=float)
+    energy: wp.array(dtype=float)
+
+
+@wp.struct
+class ContactArrays:
+    """The Workspace's contacts of this step (engine.collide.compact_contacts), as one kernel argument."""
+
+    contact_count: wp.array(dtype=wp.int32)
+    contact_dropped: wp.array(dtype=wp.int32)
+    contact_key: wp.array2d(dtype=wp.int32)
+    contact_body_a: wp.array2d(dtype=wp.int32)
+    contact_body_b: wp.array2d(dtype=wp.int32)
+    contact_point_a: wp.array2d(dtype=wp.vec3)
+    contact_point_b: wp.array2d(dtype=wp.vec3)
+    contact_normal: wp.array2d(dtype=wp.vec3)
+    contact_distance: wp.array2d(dtype=float)
+    contact_friction: wp.array2d(dtype=float)
+    contact_restitution: wp.array2d(dtype=float)
+
+
+@wp.struct
+class Candidates:
+    """Candidate contacts (W, K): valid flag, points on a and b and normal (world frame), distance."""
+
+    valid: wp.array2d(dtype=wp.int32)
+    point_a: wp.array2d(dtype=wp.vec3)
+    point_b: wp.array2d(dtype=wp.vec3)
+    normal: wp.array2d(dtype=wp.vec3)
+    distance: wp.array2d(dtype=float)
+
+
+class _Grouped:
+    """Holds struct groups of its arrays (``_groups``: attribute name -> struct type), built once
+    and kept in step: assigning an attribute that a group has as a field sets the field too, so a
+    kernel given the group always sees the arrays the attributes hold."""
+
+    _groups: dict = {}
+
+    def __init__(self):
+        for group, struct in self._groups.items():
+            object.__setattr__(self, group, struct())
+
+    def __setattr__(self, name, value):
+        object.__setattr__(self, name, value)
+        for group, struct in self._groups.items():
+            if name in struct.vars:
+                setattr(self.__dict__[group], name, value)
+
+
+class Model(_Grouped):
     """A padded batch of worlds on one device (built by engine.pack_worlds).
 
     Host attributes: device, config, specs, num_worlds, max_bodies, max_joints, max_rows,
     max_points, body_names / joint_names / point_names (lists per world).
 
-    Device arrays (shape, units, frame):
+    Device arrays (shape, units, frame), grouped for the kernels in ``arrays`` (ModelArrays) and
+    ``shape_arrays`` (ShapeArrays):
         body_count, joint_count, row_count, point_count (W,) int32
         body_mass, body_inv_mass (W, B) [kg], [1/kg]
         body_inertia, body_inv_inertia (W, B) mat33, about the COM, body-frame axes [kg m^2]
@@ -83,7 +258,10 @@ class Model:
     Tuning.sparse_projection_pattern).
     """
 
+    _groups = {"arrays": ModelArrays, "shape_arrays": ShapeArrays}
+
     def __init__(self):
+        super().__init__()
         self.work: Workspace | None = None
         self._dt_host: np.ndarray | None = None
 
@@ -173,35 +351,38 @@ class Control:
     body_f: wp.array
 
 
-class Workspace:
-    """Preallocated per-step scratch and per-world diagnostics (no allocation after pack_worlds).
+class Workspace(_Grouped):
+    """Preallocated per-step scratch and per-world diagnostics (no allocation after pack_worlds);
+    ``arrays`` (WorkArrays) and ``contact_arrays`` (ContactArrays) group them for the kernels.
 
-    Rows (W, R): row_J_c, row_J_p, row_MJ_c, row_MJ_p (spatial_vector; MJ = M^-1 J^T),
-    row_bias (c), row_compliance (R), row_lo, row_hi (physical impulse bounds), row_residual
-    (position-level residual [m]/[rad]), row_precond (P).
-    Matrices (W, R, R), dense solver only: delassus (P D P), factor (its Cholesky factor with
-    (eta + rho) I added). Sparse solver: its matrices and factors live in Model.sparse_system (the
-    PADMM's) and Model.sparse_projection (engine.linalg.sparse_analysis.SparseSystem); sparse_root
-    (W, B) the body nodes' square roots of the inverse inertias.
+    Rows (W, R): row_body_c, row_body_p (this step's: contact rows change them), row_J_c, row_J_p,
+    row_MJ_c, row_MJ_p (spatial_vector; MJ = M^-1 J^T), row_bias (c), row_compliance (R), row_lo,
+    row_hi (physical impulse bounds), row_residual (position-level residual [m]/[rad]), row_precond
+    (P), row_friction (friction coefficient on contact normal rows), warm (warm-start impulses).
+    Matrices (W, R, R), dense solver only: delassus (P D P), factor (its Cholesky factor with the
+    shift added). Sparse solver: its matrices and factors live in Model.sparse_system (the PADMM's)
+    and Model.sparse_projection (engine.linalg.sparse_analysis.SparseSystem); sparse_root (W, B)
+    the body nodes' square roots of the inverse inertias.
     PADMM vectors (W, R): v_f, lo, hi (preconditioned), x, x_prev, y, y_prev, y_hat, z, z_prev,
-    z_hat, rhs, delta; row_shift (W, R): the factored matrix's diagonal shift per row (eta + the
-    row's penalty: engine.padmm.row_penalty); row_free (W, R) int32: the rows on
-    the free rows' penalty (Tuning.free_rho) this step (engine.padmm.row_is_free; 2: a drive that met its bound, to take
-    the world's penalty at the next penalty update, flagged in demote (W,)). Per world (W,): rho, valid,
-
-    iterations, residual_primal, residual_dual, converged,
-
-    active, needs_factor, momentum, momentum_beta, merit, diverged (non-finite state: frozen),
-    halted (stopped by engine.rollout's halt: frozen, not flagged as diverged); active_count (1,).
+    z_hat, rhs, delta; row_shift: the factored matrix's diagonal shift per row (eta + the row's
+    penalty: engine.padmm.row_penalty); row_free (int32): the rows on the free rows' penalty this
+    step (engine.padmm.row_is_free; 2: a drive that met its bound, to take the world's penalty at
+    the next penalty update, flagged in demote (W,)). Per world (W,): rho, valid, iterations,
+    residual_primal, residual_dual, residual_complementarity, converged, active, needs_factor,
+    momentum, momentum_beta, merit, stall_reference, project, projection_gate, projection_mask,
+    diverged (non-finite state: frozen), halted (stopped by engine.rollout's halt: frozen, not
+    flagged as diverged); active_count (1,).
     Metrics (W,): violation_linear [m], violation_angular [rad], energy [J].
-    Contacts: row_count (W,) rows of this step; candidates (collide.Candidates, (W, 4 max_pairs));
+    Contacts: row_count (W,) rows of this step; candidates (Candidates, (W, 4 max_pairs));
     contact_* (W, C): bodies, points, normal (from b to a), distance [m], friction, restitution,
-    key; contact_count, contact_dropped (W,): kept and dropped (over capacity) contacts; warm
-    (W, R) warm-start impulses; row_friction (W, R) friction coefficient on contact normal rows.
+    key; contact_count, contact_dropped (W,): kept and dropped (over capacity) contacts.
     """
+
+    _groups = {"arrays": WorkArrays, "contact_arrays": ContactArrays}
 
     def __init__(self, num_worlds: int, max_bodies: int, max_rows: int, device, *, max_pairs: int = 0,
                  contact_capacity: int = 0, dense: bool = True):
+        super().__init__()
         w, b, r = num_worlds, max_bodies, max_rows
 
         def zeros(shape, dtype=float):
@@ -222,8 +403,8 @@ class Workspace:
         self.row_free = zeros((w, r), wp.int32)  # rows on the free rows' penalty this step (engine.padmm)
         self.delassus = zeros((w, r, r) if dense else (w, 1, 1))
         self.factor = zeros((w, r, r) if dense else (w, 1, 1))
-        for name in ("rho", "residual_primal", "residual_dual", "residual_complementarity", "momentum", "momentum_beta", "merit",
-                     "stall_reference", "violation_linear", "violation_angular", "energy"):
+        for name in ("rho", "residual_primal", "residual_dual", "residual_complementarity", "momentum", "momentum_beta",
+                     "merit", "stall_reference", "violation_linear", "violation_angular", "energy"):
             setattr(self, name, zeros(w))
         for name in ("iterations", "converged", "valid", "project", "projection_gate", "projection_mask", "active",
                      "needs_factor", "demote", "diverged", "halted"):

@@ -2,19 +2,20 @@
 
 In preconditioned variables (engine.dynamics), with proximal weight eta, penalty rho_i per row
 (row_penalty: the world's rho, except on the free rows of this step, those whose bounds are out
-of play, which keep Tuning.free_rho) and the factor L L^T = P D P + diag(eta + rho_i), each iteration of
-an active world does (rho standing for each row's rho_i; the functions of each line)
+of play, which keep Tuning.free_rho) and the factor L L^T = P D P + diag(eta + rho_i), each
+iteration of an active world does (rho standing for each row's rho_i; the functions of each line)
     padmm_rhs_of:     rhs = -v_f - s + eta x + rho y_hat + z_hat, with the De Saxce correction
                       s = mu |z_hat_t| on contact normal rows
     solve:            x = (L L^T)^-1 rhs (engine.linalg.dense or engine.linalg.sparse)
     padmm_project_of: y = Pi(x - z_hat / rho): clamp to [lo, hi] (bilateral, drive, limit rows),
                       Coulomb cone per contact triplet;  z = z_hat - rho (x - y)
-    row_residuals, padmm_decide: residuals r_p = |x - y|_inf, r_d = |eta (x - x_prev) + rho (y - y_hat)|_inf,
-                      complementarity r_c = max |y . z| over limit rows and contact triplets;
-                      stop when r_p, r_d <= tolerance + relative_tolerance * |y|_inf and
-                      r_c <= that times |y|_inf, or at the iteration cap; Nesterov momentum with restart;
-                      penalty update (which asks for a new factor), balancing r_p against the dual
-                      residual of the rows whose penalty is the world's rho (not the free rows)
+    row_residuals, padmm_decide: residuals r_p = |x - y|_inf,
+                      r_d = |eta (x - x_prev) + rho (y - y_hat)|_inf, complementarity
+                      r_c = max |y . z| over limit rows and contact triplets; stop when r_p, r_d
+                      <= tolerance + relative_tolerance * |y|_inf and r_c <= that times |y|_inf,
+                      or at the iteration cap; Nesterov momentum with restart; penalty update
+                      (which asks for a new factor), balancing r_p against the dual residual of
+                      the rows whose penalty is the world's rho (not the free rows)
     padmm_accelerate_of: y_hat = y + beta (y - y_prev), z_hat = z + beta (z - z_prev)
     factor:           only for worlds whose penalty changed (rho_update), or in which a free drive
                       row met its bound (it takes the world's rho from then on)
@@ -22,9 +23,9 @@ Kernels: padmm_start (the world's state, the warm start, the shifts of the first
 first right-hand side), then per iteration the solve and padmm_update (everything after the
 solve up to the next iteration's right-hand side, a thread block per world; a world that stops
 writes its impulses lambda = P y there), then the factors it asked for: two or three launches an
-iteration instead of five to eight (measured: benchmarks/results/README.md, "Maximal path: design
-notes"). The fused step (engine.fused) calls the same per-row functions, padmm_decide (with the
-penalty rule rho_update) and project_cone inside its one kernel.
+iteration (measurements: benchmarks/results/README.md, "Maximal path: design notes"). The fused
+step (engine.fused) calls the same per-row functions, padmm_decide (with the penalty rule
+rho_update) and project_cone inside its one kernel.
 The loop runs under wp.capture_while on a device counter of active worlds, so it can be
 captured into a CUDA graph; converged, capped and diverged worlds do no more work.
 """
@@ -33,7 +34,8 @@ import warp as wp
 
 from engine.linalg import dense, sparse
 from engine.linalg.lanes import block_max, block_sum, block_sync
-from engine.model import ROW_ANGULAR, ROW_CONTACT_NORMAL, ROW_CONTACT_TANGENT, ROW_DYNAMICS, ROW_LIMIT, ROW_LINEAR
+from engine.model import (ROW_ANGULAR, ROW_CONTACT_NORMAL, ROW_CONTACT_TANGENT, ROW_DYNAMICS, ROW_LIMIT, ROW_LINEAR,
+                          ModelArrays, WorkArrays)
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
@@ -50,14 +52,12 @@ def row_penalty(free: int, rho: float, rho_free: float):
     """The ADMM penalty of one row: the world's rho, except on free rows (padmm_warmstart_of's row_free:
     bilateral joint rows, and drive rows whose warm start lies well inside their effort limits),
     whose projection is the identity (y = x, z = 0): they need only the proximal pull, so they keep
-    rho_free (Tuning.free_rho; 0 with cap_joint_penalty off: the world's rho).
-    Above it, the large rho that contacts and saturated drives ask for would turn them into a slow
-    proximal-point iteration, whose soft modes (eigenvalue lambda of the Delassus matrix) shrink
-    only by rho / (lambda + rho) per iteration. Below it, the factor of a mechanism with redundant
-    joint rows (A singular, shifted by eta + rho only) loses float32 digits in proportion to
-    1 / (eta + rho): the penalty update lowers rho whenever the primal residual is zero, which it
-    is on free rows, and at rho = RHO_MIN the rounding of DR Legs' over-constrained loops moved its
-    trajectory 1e-2 m within 40 ms (tolerance 1e-9, engine.padmm tests)."""
+    rho_free (Tuning.free_rho; 0 with cap_joint_penalty off: the world's rho). Above it, the large
+    rho that contacts and saturated drives ask for would turn them into a slow proximal-point
+    iteration (a soft mode of eigenvalue lambda shrinks only by rho / (lambda + rho) per
+    iteration); below it, the factor of a mechanism with redundant joint rows (singular, shifted by
+    eta + rho only) loses float32 digits in proportion to 1 / (eta + rho), and the penalty update
+    would drive rho down on free rows, whose primal residual is zero."""
     if free != 0 and rho_free > 0.0:
         return rho_free
     return rho
@@ -87,151 +87,75 @@ def row_is_free(kind: int, x: float, lo: float, hi: float):
     return 0
 
 
+@wp.func
+def padmm_warmstart_of(world: int, i: int, warmstart_scale: float, m: ModelArrays, w: WorkArrays,
+                       row_lambda: wp.array2d(dtype=float)):
+    """Start row i from the last step's impulses row_lambda, in this step's preconditioned
+    variables (x = y = y_hat, z = z_hat = 0), and mark whether it is free this step (row_is_free);
+    returns x and the flag."""
+    x = wp.clamp(warmstart_scale * row_lambda[world, i] / w.row_precond[world, i], w.lo[world, i], w.hi[world, i])
+    free = row_is_free(m.row_kind[world, i], x, w.lo[world, i], w.hi[world, i])
+    w.row_free[world, i] = free
+    w.x[world, i] = x
+    w.y[world, i] = x
+    w.y_hat[world, i] = x
+    w.z[world, i] = 0.0
+    w.z_hat[world, i] = 0.0
+    return x, free
+
+
 @wp.kernel
-def padmm_start(
-    warmstart_scale: float,
-    # model
-    row_count: wp.array(dtype=wp.int32),
-    row_kind: wp.array2d(dtype=wp.int32),
-    padmm_rho_init: wp.array(dtype=float),
-    padmm_eta: wp.array(dtype=float),
-    padmm_rho_free: wp.array(dtype=float),
-    bilateral_row_count: wp.array(dtype=wp.int32),
-    # in
-    diverged: wp.array(dtype=wp.int32),
-    halted: wp.array(dtype=wp.int32),
-    row_lambda: wp.array2d(dtype=float),
-    row_precond: wp.array2d(dtype=float),
-    lo: wp.array2d(dtype=float),
-    hi: wp.array2d(dtype=float),
-    v_f: wp.array2d(dtype=float),
-    # out: per world
-    rho_out: wp.array(dtype=float),
-    valid_out: wp.array(dtype=wp.int32),
-    active_out: wp.array(dtype=wp.int32),
-    converged_out: wp.array(dtype=wp.int32),
-    iterations_out: wp.array(dtype=wp.int32),
-    momentum_out: wp.array(dtype=float),
-    momentum_beta_out: wp.array(dtype=float),
-    merit_out: wp.array(dtype=float),
-    needs_factor_out: wp.array(dtype=wp.int32),
-    demote_out: wp.array(dtype=wp.int32),
-    active_count_out: wp.array(dtype=wp.int32),
-    project_out: wp.array(dtype=wp.int32),
-    # out: per row
-    x_out: wp.array2d(dtype=float),
-    x_prev_out: wp.array2d(dtype=float),
-    y_out: wp.array2d(dtype=float),
-    y_hat_out: wp.array2d(dtype=float),
-    z_out: wp.array2d(dtype=float),
-    z_hat_out: wp.array2d(dtype=float),
-    row_free_out: wp.array2d(dtype=wp.int32),
-    row_shift_out: wp.array2d(dtype=float),
-    rhs_out: wp.array2d(dtype=float),
-    row_lambda_out: wp.array2d(dtype=float),
-):
+def padmm_start(warmstart_scale: float, m: ModelArrays, w: WorkArrays, row_lambda: wp.array2d(dtype=float),
+                row_lambda_out: wp.array2d(dtype=float)):
     """Start every world's PADMM (a thread per row; row 0 writes the world's state): activate
     worlds with rows that have neither diverged nor been halted, keeping the last penalty; warm
-    start from the last step's impulses (padmm_warmstart_of), mark the free rows, set each row's
-    shift eta + rho_i for the factor (all active worlds are flagged for one) and the first
-    iteration's right-hand side (padmm_rhs_of, with z_hat = 0). A world that does not iterate
-    outputs zero impulses here (the others in padmm_update, when they stop). Also the worlds the
-    step's projection moves: the active ones with bilateral joint rows (project_out)."""
+    start from the last step's impulses row_lambda (padmm_warmstart_of), set each row's shift
+    eta + rho_i for the factor (all active worlds are flagged for one) and the first iteration's
+    right-hand side (padmm_rhs_of, with z_hat = 0). A world that does not iterate outputs zero
+    impulses here (the others in padmm_update, when they stop). Also the worlds the step's
+    projection moves: the active ones with bilateral joint rows (w.project)."""
     world, i = wp.tid()
     active = int(0)
-    if row_count[world] > 0 and diverged[world] == 0 and halted[world] == 0:
+    if w.row_count[world] > 0 and w.diverged[world] == 0 and w.halted[world] == 0:
         active = 1
-    r = rho_out[world]
+    r = w.rho[world]
     if r <= 0.0:
-        r = padmm_rho_init[world]
+        r = m.padmm_rho_init[world]
     if i == 0:
         if active != 0:
-            wp.atomic_add(active_count_out, 0, 1)
-        active_out[world] = active
-        valid_out[world] = active
-        needs_factor_out[world] = active
-        demote_out[world] = 0
-        converged_out[world] = 0
-        iterations_out[world] = 0
-        rho_out[world] = r
-        momentum_out[world] = 1.0
-        momentum_beta_out[world] = 0.0
-        merit_out[world] = 1.0e30
-        project_out[world] = wp.where(active != 0 and bilateral_row_count[world] > 0, 1, 0)
+            wp.atomic_add(w.active_count, 0, 1)
+        w.active[world] = active
+        w.valid[world] = active
+        w.needs_factor[world] = active
+        w.demote[world] = 0
+        w.converged[world] = 0
+        w.iterations[world] = 0
+        w.rho[world] = r
+        w.momentum[world] = 1.0
+        w.momentum_beta[world] = 0.0
+        w.merit[world] = 1.0e30
+        w.project[world] = wp.where(active != 0 and m.bilateral_row_count[world] > 0, 1, 0)
     if active == 0:
         row_lambda_out[world, i] = 0.0
         return
-    x = wp.clamp(warmstart_scale * row_lambda[world, i] / row_precond[world, i], lo[world, i], hi[world, i])
-    free = row_is_free(row_kind[world, i], x, lo[world, i], hi[world, i])
-    row_free_out[world, i] = free
-    x_out[world, i] = x
-    x_prev_out[world, i] = x
-    y_out[world, i] = x
-    y_hat_out[world, i] = x
-    z_out[world, i] = 0.0
-    z_hat_out[world, i] = 0.0
-    eta = padmm_eta[world]
-    r_i = row_penalty(free, r, padmm_rho_free[world])
-    row_shift_out[world, i] = eta + r_i
-    rhs_out[world, i] = -v_f[world, i] + eta * x + r_i * x  # padmm_rhs_of's sum with y_hat = x, z_hat = 0
+    x, free = padmm_warmstart_of(world, i, warmstart_scale, m, w, row_lambda)
+    w.x_prev[world, i] = x
+    eta = m.padmm_eta[world]
+    r_i = row_penalty(free, r, m.padmm_rho_free[world])
+    w.row_shift[world, i] = eta + r_i
+    w.rhs[world, i] = -w.v_f[world, i] + eta * x + r_i * x  # padmm_rhs_of's sum with y_hat = x, z_hat = 0
 
 
 @wp.func
-def padmm_warmstart_of(
-    world: int, i: int,
-    warmstart_scale: float,
-    # in
-    row_lambda: wp.array2d(dtype=float),
-    row_precond: wp.array2d(dtype=float),
-    active: wp.array(dtype=wp.int32),
-    lo: wp.array2d(dtype=float),
-    hi: wp.array2d(dtype=float),
-    row_kind: wp.array2d(dtype=wp.int32),
-    # out
-    x_out: wp.array2d(dtype=float),
-    y_out: wp.array2d(dtype=float),
-    y_hat_out: wp.array2d(dtype=float),
-    z_out: wp.array2d(dtype=float),
-    z_hat_out: wp.array2d(dtype=float),
-    row_free_out: wp.array2d(dtype=wp.int32),
-):
-    """Start from the last step's impulses, in this step's preconditioned variables; mark the rows
-    that are free this step (row_is_free)."""
-    x = wp.clamp(warmstart_scale * row_lambda[world, i] / row_precond[world, i], lo[world, i], hi[world, i])
-    row_free_out[world, i] = row_is_free(row_kind[world, i], x, lo[world, i], hi[world, i])
-    x_out[world, i] = x
-    y_out[world, i] = x
-    y_hat_out[world, i] = x
-    z_out[world, i] = 0.0
-    z_hat_out[world, i] = 0.0
-
-
-@wp.func
-def padmm_rhs_of(
-    world: int, i: int,
-    padmm_eta: wp.array(dtype=float),
-    padmm_rho_free: wp.array(dtype=float),
-    row_kind: wp.array2d(dtype=wp.int32),
-    row_free: wp.array2d(dtype=wp.int32),
-    rho: wp.array(dtype=float),
-    active: wp.array(dtype=wp.int32),
-    row_friction: wp.array2d(dtype=float),
-    v_f: wp.array2d(dtype=float),
-    x: wp.array2d(dtype=float),
-    y_hat: wp.array2d(dtype=float),
-    z_hat: wp.array2d(dtype=float),
-    # out
-    x_prev_out: wp.array2d(dtype=float),
-    rhs_out: wp.array2d(dtype=float),
-):
+def padmm_rhs_of(world: int, i: int, m: ModelArrays, w: WorkArrays):
     """rhs = -v_f + eta x + rho_i y_hat + z_hat with the row's penalty rho_i (and remember x)."""
-    xi = x[world, i]
-    x_prev_out[world, i] = xi
+    xi = w.x[world, i]
+    w.x_prev[world, i] = xi
     de_saxce = float(0.0)
-    if row_kind[world, i] == ROW_CONTACT_NORMAL and i + 2 < row_friction.shape[1]:
-        de_saxce = row_friction[world, i] * wp.length(wp.vec2(z_hat[world, i + 1], z_hat[world, i + 2]))
-    r = row_penalty(row_free[world, i], rho[world], padmm_rho_free[world])
-    rhs_out[world, i] = -v_f[world, i] - de_saxce + padmm_eta[world] * xi + r * y_hat[world, i] + z_hat[world, i]
+    if m.row_kind[world, i] == ROW_CONTACT_NORMAL and i + 2 < w.row_friction.shape[1]:
+        de_saxce = w.row_friction[world, i] * wp.length(wp.vec2(w.z_hat[world, i + 1], w.z_hat[world, i + 2]))
+    r = row_penalty(w.row_free[world, i], w.rho[world], m.padmm_rho_free[world])
+    w.rhs[world, i] = -w.v_f[world, i] - de_saxce + m.padmm_eta[world] * xi + r * w.y_hat[world, i] + w.z_hat[world, i]
 
 
 @wp.func
@@ -248,86 +172,64 @@ def project_cone(normal: float, t1: float, t2: float, mu: float):
 
 
 @wp.func
-def padmm_project_of(
-    world: int, i: int,
-    padmm_rho_free: wp.array(dtype=float),
-    row_kind: wp.array2d(dtype=wp.int32),
-    row_free: wp.array2d(dtype=wp.int32),
-    row_count: wp.array(dtype=wp.int32),
-    row_friction: wp.array2d(dtype=float),
-    rho: wp.array(dtype=float),
-    active: wp.array(dtype=wp.int32),
-    lo: wp.array2d(dtype=float),
-    hi: wp.array2d(dtype=float),
-    x: wp.array2d(dtype=float),
-    z_hat: wp.array2d(dtype=float),
-    # in/out
-    y: wp.array2d(dtype=float),
-    z: wp.array2d(dtype=float),
-    y_prev_out: wp.array2d(dtype=float),
-    z_prev_out: wp.array2d(dtype=float),
-    row_free_out: wp.array2d(dtype=wp.int32),
-    demote_out: wp.array(dtype=wp.int32),
-):
-    """y = projection of x - z_hat / rho_i onto the row's set; z = z_hat - rho_i (x - y). The thread
-    of a contact normal row projects its whole triplet onto the friction cone. A free drive row
-    whose bound comes into play is marked (row_free 2, demote) to lose its own penalty at the
-    next penalty update, which refactors (padmm_decide; padmm_update's new shifts)."""
-    kind = row_kind[world, i]
-    if kind == ROW_CONTACT_TANGENT and i < row_count[world]:
+def padmm_project_of(world: int, i: int, m: ModelArrays, w: WorkArrays):
+    """y = projection of x - z_hat / rho_i onto the row's set; z = z_hat - rho_i (x - y) (the last
+    y and z into y_prev, z_prev). The thread of a contact normal row projects its whole triplet
+    onto the friction cone. A free drive row whose bound comes into play is marked (row_free 2,
+    demote) to lose its own penalty at the next penalty update, which refactors (padmm_decide;
+    padmm_update's new shifts)."""
+    kind = m.row_kind[world, i]
+    if kind == ROW_CONTACT_TANGENT and i < w.row_count[world]:
         return
-    r = rho[world]
-    if kind == ROW_CONTACT_NORMAL and i < row_count[world]:
+    r = w.rho[world]
+    if kind == ROW_CONTACT_NORMAL and i < w.row_count[world]:
         v = wp.vec3(0.0)
         for k in range(3):
-            v[k] = x[world, i + k] - z_hat[world, i + k] / r
-        proj = project_cone(v[0], v[1], v[2], row_friction[world, i])
+            v[k] = w.x[world, i + k] - w.z_hat[world, i + k] / r
+        proj = project_cone(v[0], v[1], v[2], w.row_friction[world, i])
         for k in range(3):
-            y_prev_out[world, i + k] = y[world, i + k]
-            z_prev_out[world, i + k] = z[world, i + k]
-            y[world, i + k] = proj[k]
-            z[world, i + k] = z_hat[world, i + k] - r * (x[world, i + k] - proj[k])
+            w.y_prev[world, i + k] = w.y[world, i + k]
+            w.z_prev[world, i + k] = w.z[world, i + k]
+            w.y[world, i + k] = proj[k]
+            w.z[world, i + k] = w.z_hat[world, i + k] - r * (w.x[world, i + k] - proj[k])
         return
-    free = row_free[world, i]
-    r = row_penalty(free, r, padmm_rho_free[world])
-    xi = x[world, i]
-    zh = z_hat[world, i]
-    yi = wp.clamp(xi - zh / r, lo[world, i], hi[world, i])
-    if free == 1 and r != rho[world] and yi != xi - zh / r:
-        row_free_out[world, i] = 2
-        demote_out[world] = 1
-    y_prev_out[world, i] = y[world, i]
-    z_prev_out[world, i] = z[world, i]
-    y[world, i] = yi
-    z[world, i] = zh - r * (xi - yi)
+    free = w.row_free[world, i]
+    r = row_penalty(free, r, m.padmm_rho_free[world])
+    xi = w.x[world, i]
+    zh = w.z_hat[world, i]
+    yi = wp.clamp(xi - zh / r, w.lo[world, i], w.hi[world, i])
+    if free == 1 and r != w.rho[world] and yi != xi - zh / r:
+        w.row_free[world, i] = 2
+        w.demote[world] = 1
+    w.y_prev[world, i] = w.y[world, i]
+    w.z_prev[world, i] = w.z[world, i]
+    w.y[world, i] = yi
+    w.z[world, i] = zh - r * (xi - yi)
 
 
 @wp.func
-def row_residuals(world: int, i: int, eta: float, rho: float, rho_free: float,
-                  row_kind: wp.array2d(dtype=wp.int32), row_free: wp.array2d(dtype=wp.int32),
-                  x: wp.array2d(dtype=float), x_prev: wp.array2d(dtype=float), y: wp.array2d(dtype=float),
-                  y_hat: wp.array2d(dtype=float), z: wp.array2d(dtype=float), z_hat: wp.array2d(dtype=float)):
+def row_residuals(world: int, i: int, eta: float, rho: float, rho_free: float, m: ModelArrays, w: WorkArrays):
     """Row i's share of a world's PADMM residuals: |y|, primal |x - y|, dual, complementarity, the
     merit increment (rho_i |dy|^2 + |dz|^2 / rho_i), with the row's penalty rho_i, and the dual
     residual again where rho_i is the world's rho, else 0 (the penalty update balances the rows it
     rescales: a free row keeps its penalty, and its primal residual is zero)."""
-    kind = row_kind[world, i]
-    r = row_penalty(row_free[world, i], rho, rho_free)
-    dy = y[world, i] - y_hat[world, i]
-    dz = z[world, i] - z_hat[world, i]
-    r_p = wp.abs(x[world, i] - y[world, i])
-    r_d = wp.abs(eta * (x[world, i] - x_prev[world, i]) + r * dy)
+    kind = m.row_kind[world, i]
+    r = row_penalty(w.row_free[world, i], rho, rho_free)
+    dy = w.y[world, i] - w.y_hat[world, i]
+    dz = w.z[world, i] - w.z_hat[world, i]
+    r_p = wp.abs(w.x[world, i] - w.y[world, i])
+    r_d = wp.abs(eta * (w.x[world, i] - w.x_prev[world, i]) + r * dy)
     r_c = float(0.0)
     if kind == ROW_LIMIT:
-
-        r_c = wp.abs(y[world, i] * z[world, i])
+        r_c = wp.abs(w.y[world, i] * w.z[world, i])
     elif kind == ROW_CONTACT_NORMAL:
-        gap = y[world, i] * z[world, i] + y[world, i + 1] * z[world, i + 1] + y[world, i + 2] * z[world, i + 2]
+        gap = (w.y[world, i] * w.z[world, i] + w.y[world, i + 1] * w.z[world, i + 1]
+               + w.y[world, i + 2] * w.z[world, i + 2])
         r_c = wp.abs(gap)
     r_b = r_d
-    if row_free[world, i] != 0 and rho_free > 0.0:
+    if w.row_free[world, i] != 0 and rho_free > 0.0:
         r_b = 0.0
-    return wp.abs(y[world, i]), r_p, r_d, r_c, r * dy * dy + dz * dz / r, r_b
+    return wp.abs(w.y[world, i]), r_p, r_d, r_c, r * dy * dy + dz * dz / r, r_b
 
 
 @wp.func
@@ -413,57 +315,9 @@ def padmm_decide(
 
 
 @wp.kernel
-def padmm_update(
-    max_iterations: int,
-    relative_tolerance: float,
-    rho_update_interval: int,
-    adaptive_rho: int,
-    acceleration: int,
-    reshift: int,
-    stall_ratio: float,
-    # model
-    row_kind: wp.array2d(dtype=wp.int32),
-    padmm_eta: wp.array(dtype=float),
-    padmm_rho_free: wp.array(dtype=float),
-    padmm_tolerance: wp.array(dtype=float),
-    # in
-    row_count: wp.array(dtype=wp.int32),
-    row_friction: wp.array2d(dtype=float),
-    row_precond: wp.array2d(dtype=float),
-    lo: wp.array2d(dtype=float),
-    hi: wp.array2d(dtype=float),
-    v_f: wp.array2d(dtype=float),
-    diverged: wp.array(dtype=wp.int32),
-    halted: wp.array(dtype=wp.int32),
-    x: wp.array2d(dtype=float),
-    # in/out
-    x_prev: wp.array2d(dtype=float),
-    y: wp.array2d(dtype=float),
-    y_hat: wp.array2d(dtype=float),
-    y_prev: wp.array2d(dtype=float),
-    z: wp.array2d(dtype=float),
-    z_hat: wp.array2d(dtype=float),
-    z_prev: wp.array2d(dtype=float),
-    row_free: wp.array2d(dtype=wp.int32),
-    rho: wp.array(dtype=float),
-    active: wp.array(dtype=wp.int32),
-    converged: wp.array(dtype=wp.int32),
-    iterations: wp.array(dtype=wp.int32),
-    momentum: wp.array(dtype=float),
-    momentum_beta: wp.array(dtype=float),
-    merit: wp.array(dtype=float),
-    needs_factor: wp.array(dtype=wp.int32),
-    residual_primal: wp.array(dtype=float),
-    residual_dual: wp.array(dtype=float),
-    residual_complementarity: wp.array(dtype=float),
-    demote: wp.array(dtype=wp.int32),
-    stall_reference: wp.array(dtype=float),
-    active_count: wp.array(dtype=wp.int32),
-    row_shift: wp.array2d(dtype=float),
-    rhs: wp.array2d(dtype=float),
-    # out
-    row_lambda_out: wp.array2d(dtype=float),
-):
+def padmm_update(max_iterations: int, relative_tolerance: float, rho_update_interval: int, adaptive_rho: int,
+                 acceleration: int, reshift: int, stall_ratio: float, m: ModelArrays, w: WorkArrays,
+                 row_lambda_out: wp.array2d(dtype=float)):
     """The rest of a PADMM iteration of one world once its solve has given x (one thread block per
     world, its rows spread over the threads), in the order of the module's docstring: the
     projection (padmm_project_of); the residuals, the stop test, the momentum and the penalty
@@ -472,22 +326,21 @@ def padmm_update(
     (``reshift``: refactors; the caller factors those worlds next) and the next iteration's
     right-hand side (padmm_rhs_of). One launch instead of five."""
     world, lane = wp.tid()
-    if active[world] == 0:
+    if w.active[world] == 0:
         return
     stride = wp.block_dim()
-    rows = y.shape[1]
+    rows = w.y.shape[1]
     sweeps = (rows + stride - 1) // stride
-    n = row_count[world]
-    r = rho[world]
-    eta = padmm_eta[world]
-    cap = padmm_rho_free[world]
+    n = w.row_count[world]
+    r = w.rho[world]
+    eta = m.padmm_eta[world]
+    cap = m.padmm_rho_free[world]
     if lane == 0:
-        needs_factor[world] = 0  # the last iteration's factor is done
+        w.needs_factor[world] = 0  # the last iteration's factor is done
     for k in range(sweeps):
         i = lane + k * stride
         if i < rows:
-            padmm_project_of(world, i, padmm_rho_free, row_kind, row_free, row_count, row_friction, rho, active, lo,
-                             hi, x, z_hat, y, z, y_prev, z_prev, row_free, demote)
+            padmm_project_of(world, i, m, w)
     block_sync()  # a contact triplet's rows are projected by its normal row's thread
     r_p = float(0.0)
     r_d = float(0.0)
@@ -498,8 +351,7 @@ def padmm_update(
     for k in range((n + stride - 1) // stride):
         i = lane + k * stride
         if i < n:
-            s_i, p_i, d_i, c_i, m_i, b_i = row_residuals(world, i, eta, r, cap, row_kind, row_free, x, x_prev, y, y_hat,
-                                                         z, z_hat)
+            s_i, p_i, d_i, c_i, m_i, b_i = row_residuals(world, i, eta, r, cap, m, w)
             scale = wp.max(scale, s_i)
             r_p = wp.max(r_p, p_i)
             r_d = wp.max(r_d, d_i)
@@ -514,72 +366,52 @@ def padmm_update(
     change = block_sum(change)
     if lane == 0:
         if padmm_decide(world, r_p, r_d, r_c, r_b, scale, change, max_iterations, relative_tolerance,
-                        rho_update_interval, adaptive_rho, acceleration, padmm_tolerance, rho, active, converged,
-                        iterations, momentum, momentum_beta, merit, needs_factor, residual_primal, residual_dual,
-                        residual_complementarity, demote, stall_ratio, stall_reference) != 0:
-            wp.atomic_sub(active_count, 0, 1)
+                        rho_update_interval, adaptive_rho, acceleration, m.padmm_tolerance, w.rho, w.active,
+                        w.converged, w.iterations, w.momentum, w.momentum_beta, w.merit, w.needs_factor,
+                        w.residual_primal, w.residual_dual, w.residual_complementarity, w.demote, stall_ratio,
+                        w.stall_reference) != 0:
+            wp.atomic_sub(w.active_count, 0, 1)
     block_sync()  # the decision, the momentum and the penalty reach every thread
-    if active[world] == 0:
+    if w.active[world] == 0:
         for k in range(sweeps):
             i = lane + k * stride
             if i < rows:
-                padmm_output_of(world, i, row_count, row_precond, y, diverged, halted, row_lambda_out)
+                padmm_output_of(world, i, w, row_lambda_out)
         return
-    new_shifts = reshift != 0 and needs_factor[world] != 0
-    r = rho[world]
+    new_shifts = reshift != 0 and w.needs_factor[world] != 0
+    r = w.rho[world]
     for k in range(sweeps):
         i = lane + k * stride
         if i < rows:
-            padmm_accelerate_of(world, i, active, momentum_beta, y, y_prev, z, z_prev, y_hat, z_hat)
+            padmm_accelerate_of(world, i, w)
             if new_shifts:
-                if row_free[world, i] == 2:  # a drive that met its bound: the world's penalty from now on
-                    row_free[world, i] = 0
-                row_shift[world, i] = eta + row_penalty(row_free[world, i], r, cap)
+                if w.row_free[world, i] == 2:  # a drive that met its bound: the world's penalty from now on
+                    w.row_free[world, i] = 0
+                w.row_shift[world, i] = eta + row_penalty(w.row_free[world, i], r, cap)
     block_sync()  # the De Saxce term reads the triplet's other rows
     for k in range(sweeps):
         i = lane + k * stride
         if i < rows:
-            padmm_rhs_of(world, i, padmm_eta, padmm_rho_free, row_kind, row_free, rho, active, row_friction, v_f, x,
-                         y_hat, z_hat, x_prev, rhs)
+            padmm_rhs_of(world, i, m, w)
 
 
 UPDATE_BLOCK = 64  # padmm_update's threads per world on a GPU (rows spread over them); one on the CPU
 
 
 @wp.func
-def padmm_accelerate_of(
-    world: int, i: int,
-    active: wp.array(dtype=wp.int32),
-    momentum_beta: wp.array(dtype=float),
-    y: wp.array2d(dtype=float),
-    y_prev: wp.array2d(dtype=float),
-    z: wp.array2d(dtype=float),
-    z_prev: wp.array2d(dtype=float),
-    # out
-    y_hat_out: wp.array2d(dtype=float),
-    z_hat_out: wp.array2d(dtype=float),
-):
+def padmm_accelerate_of(world: int, i: int, w: WorkArrays):
     """y_hat = y + beta (y - y_prev), z_hat = z + beta (z - z_prev)."""
-    beta = momentum_beta[world]
-    y_hat_out[world, i] = y[world, i] + beta * (y[world, i] - y_prev[world, i])
-    z_hat_out[world, i] = z[world, i] + beta * (z[world, i] - z_prev[world, i])
+    beta = w.momentum_beta[world]
+    w.y_hat[world, i] = w.y[world, i] + beta * (w.y[world, i] - w.y_prev[world, i])
+    w.z_hat[world, i] = w.z[world, i] + beta * (w.z[world, i] - w.z_prev[world, i])
 
 
 @wp.func
-def padmm_output_of(
-    world: int, i: int,
-    row_count: wp.array(dtype=wp.int32),
-    row_precond: wp.array2d(dtype=float),
-    y: wp.array2d(dtype=float),
-    diverged: wp.array(dtype=wp.int32),
-    halted: wp.array(dtype=wp.int32),
-    # out
-    row_lambda_out: wp.array2d(dtype=float),
-):
+def padmm_output_of(world: int, i: int, w: WorkArrays, row_lambda_out: wp.array2d(dtype=float)):
     """Impulses lambda = P y [N s]/[N m s]; zero on padded rows and in frozen worlds."""
     value = 0.0
-    if i < row_count[world] and diverged[world] == 0 and halted[world] == 0:
-        value = row_precond[world, i] * y[world, i]
+    if i < w.row_count[world] and w.diverged[world] == 0 and w.halted[world] == 0:
+        value = w.row_precond[world, i] * w.y[world, i]
     row_lambda_out[world, i] = value
 
 
@@ -609,24 +441,16 @@ def padmm_iteration(model, row_lambda_out):
     """One PADMM iteration of every active world (the body of the captured loop): the solve with
     the right-hand side the last launch left, padmm_update (which writes a stopping world's
     impulses into row_lambda_out (W, R)), and the new factors it asks for."""
-    work, cfg, device = model.work, model.config, model.device
+    work, cfg = model.work, model.config
     if model.linear_solver == "dense":
         dense.solve(work.factor, work.rhs, work.active, work.x)
     else:
         sparse.solve(model, work.rhs, work.active, work.x)
     again = refactors(model)  # the new shifts and the factors that follow them
-    wp.launch_tiled(padmm_update, dim=[model.num_worlds], block_dim=UPDATE_BLOCK, device=device,
+    wp.launch_tiled(padmm_update, dim=[model.num_worlds], block_dim=UPDATE_BLOCK, device=model.device,
                     inputs=[cfg.max_iterations, float(cfg.relative_tolerance), cfg.tuning.rho_update_interval,
-                            int(cfg.tuning.adaptive_rho), int(cfg.tuning.acceleration),
-                            int(again), float(cfg.tuning.stall_ratio),
-                            model.row_kind, model.padmm_eta, model.padmm_rho_free, model.padmm_tolerance,
-                            work.row_count, work.row_friction, work.row_precond, work.lo, work.hi, work.v_f,
-                            work.diverged, work.halted, work.x, work.x_prev, work.y, work.y_hat, work.y_prev, work.z,
-                            work.z_hat, work.z_prev, work.row_free, work.rho, work.active, work.converged,
-                            work.iterations, work.momentum, work.momentum_beta, work.merit, work.needs_factor,
-                            work.residual_primal, work.residual_dual, work.residual_complementarity, work.demote,
-                            work.stall_reference, work.active_count, work.row_shift, work.rhs],
-                    outputs=[row_lambda_out])
+                            int(cfg.tuning.adaptive_rho), int(cfg.tuning.acceleration), int(again),
+                            float(cfg.tuning.stall_ratio), model.arrays, work.arrays, row_lambda_out])
     if again:
         factor_flagged(model)
 
@@ -635,17 +459,11 @@ def solve_padmm(model, row_lambda_warm, row_lambda_out):
     """Solve every world's dual problem (built by engine.dynamics) into row_lambda_out, starting
     from the impulses row_lambda_warm (W, R): padmm_start, the factor of every active world, then
     padmm_iteration until every world has stopped (captured as a conditional loop)."""
-    work, cfg, device = model.work, model.config, model.device
+    work, tuning = model.work, model.config.tuning
     work.active_count.zero_()
-    wp.launch(padmm_start, dim=(model.num_worlds, model.max_rows), device=device,
-              inputs=[(1.0 - cfg.tuning.warmstart_decay) if cfg.tuning.warmstart else 0.0, work.row_count,
-                      model.row_kind, model.padmm_rho_init, model.padmm_eta, model.padmm_rho_free, model.bilateral_row_count,
-                      work.diverged, work.halted, row_lambda_warm, work.row_precond, work.lo, work.hi, work.v_f],
-              outputs=[work.rho, work.valid, work.active, work.converged, work.iterations, work.momentum,
-                       work.momentum_beta, work.merit, work.needs_factor, work.demote, work.active_count,
-                       work.project, work.x,
-                       work.x_prev, work.y, work.y_hat, work.z, work.z_hat, work.row_free, work.row_shift, work.rhs,
-                       row_lambda_out])
+    wp.launch(padmm_start, dim=(model.num_worlds, model.max_rows), device=model.device,
+              inputs=[(1.0 - tuning.warmstart_decay) if tuning.warmstart else 0.0, model.arrays, work.arrays,
+                      row_lambda_warm, row_lambda_out])
     if model.linear_solver == "sparse":
         sparse.prepare(model)
     factor_flagged(model)

@@ -15,7 +15,7 @@ import warp as wp
 from engine.health import Health, check_joints, note_residual
 from engine.joints import body_twist, joint_coordinate_row, joint_frames
 from engine.metrics import compute_metrics
-from engine.model import Control, Model, State
+from engine.model import ContactArrays, Control, Model, ModelArrays, State, WorkArrays
 from engine.grouped import GroupedModel, GroupedState, rollout_groups
 from engine.reduced.model import ReducedModel
 from engine.step import step
@@ -27,15 +27,8 @@ __all__ = ["Stepper", "Trace", "rollout"]
 
 @wp.kernel
 def accumulate_step_stats(
-    iterations: wp.array(dtype=wp.int32),
-    converged: wp.array(dtype=wp.int32),
-    valid: wp.array(dtype=wp.int32),
-    residual_complementarity: wp.array(dtype=float),
-    residual_primal: wp.array(dtype=float),
-    residual_dual: wp.array(dtype=float),
-    contact_count: wp.array(dtype=wp.int32),
-    contact_dropped: wp.array(dtype=wp.int32),
-    contact_distance: wp.array2d(dtype=float),
+    w: WorkArrays,
+    c: ContactArrays,
     residual_threshold: float,
     # in/out
     iteration_sum: wp.array(dtype=wp.int32),
@@ -55,23 +48,23 @@ def accumulate_step_stats(
     dropped contacts), deepest penetration [m] and largest complementarity residual; an
     unconverged stop's residual and engine.health's UNCONVERGED flag."""
     world = wp.tid()
-    count = contact_count[world]
+    count = c.contact_count[world]
     contact_sum[world] = contact_sum[world] + count
     contact_max[world] = wp.max(contact_max[world], count)
-    if contact_dropped[world] > 0:
+    if c.contact_dropped[world] > 0:
         overflow_steps[world] = overflow_steps[world] + 1
     for k in range(count):
-        penetration_max[world] = wp.max(penetration_max[world], -contact_distance[world, k])
-    if valid[world] == 0:
+        penetration_max[world] = wp.max(penetration_max[world], -c.contact_distance[world, k])
+    if w.valid[world] == 0:
         return
-    complementarity_max[world] = wp.max(complementarity_max[world], residual_complementarity[world])
-    its = iterations[world]
+    complementarity_max[world] = wp.max(complementarity_max[world], w.residual_complementarity[world])
+    its = w.iterations[world]
     iteration_sum[world] = iteration_sum[world] + its
     iteration_max[world] = wp.max(iteration_max[world], its)
     solved_steps[world] = solved_steps[world] + 1
-    if converged[world] == 0:
+    if w.converged[world] == 0:
         unconverged_steps[world] = unconverged_steps[world] + 1
-    note_residual(world, converged[world], its, wp.max(residual_primal[world], residual_dual[world]),
+    note_residual(world, w.converged[world], its, wp.max(w.residual_primal[world], w.residual_dual[world]),
                   residual_threshold, health, residual_max, residual_iterations)
 
 
@@ -143,11 +136,8 @@ class Stepper:
             dst = self._buffers[(start + k + 1) % 2]
             # the end of a step is projected for output only: only the chunk's last state is read
             step(model, src, dst, self.control, project_output=k == self.chunk - 1)
-            work = model.work
             wp.launch(accumulate_step_stats, dim=model.num_worlds, device=model.device,
-                      inputs=[work.iterations, work.converged, work.valid, work.residual_complementarity,
-                              work.residual_primal, work.residual_dual, work.contact_count, work.contact_dropped,
-                              work.contact_distance, float(model.config.health_residual)],
+                      inputs=[model.work.arrays, model.work.contact_arrays, float(model.config.health_residual)],
                       outputs=[self.iteration_sum, self.iteration_max, self.unconverged_steps, self.solved_steps,
                                self.contact_sum, self.contact_max, self.overflow_steps, self.penetration_max,
                                self.complementarity_max, self.health, self.residual_max, self.residual_iterations])
@@ -230,14 +220,10 @@ class Trace:
 
 
 @wp.kernel
-def tracked_points(
-    point_count: wp.array(dtype=wp.int32),
-    point_body: wp.array2d(dtype=wp.int32),
-    point_local: wp.array2d(dtype=wp.vec3),
-    body_q: wp.array2d(dtype=wp.transform),
-    points_out: wp.array2d(dtype=wp.vec3),
-):
-    """World positions of the tracked points [m]."""
+def tracked_points(point_count: wp.array(dtype=wp.int32), point_body: wp.array2d(dtype=wp.int32),
+                   point_local: wp.array2d(dtype=wp.vec3), body_q: wp.array2d(dtype=wp.transform),
+                   points_out: wp.array2d(dtype=wp.vec3)):
+    """World positions of the tracked points [m] (bare arrays: engine.reduced's gauge calls it too)."""
     world, p = wp.tid()
     if p >= point_count[world]:
         return
@@ -245,37 +231,24 @@ def tracked_points(
 
 
 @wp.kernel
-def drive_torques(
-    joint_count: wp.array(dtype=wp.int32),
-    joint_drive_row: wp.array2d(dtype=wp.int32),
-    world_dt: wp.array(dtype=float),
-    row_lambda: wp.array2d(dtype=float),
-    torque_out: wp.array2d(dtype=float),
-):
+def drive_torques(m: ModelArrays, row_lambda: wp.array2d(dtype=float), torque_out: wp.array2d(dtype=float)):
     """Drive torque [N m] = drive row impulse / dt; 0 for joints without a drive."""
     world, j = wp.tid()
     value = 0.0
-    if j < joint_count[world] and joint_drive_row[world, j] >= 0:
-        value = row_lambda[world, joint_drive_row[world, j]] / world_dt[world]
+    if j < m.joint_count[world] and m.joint_drive_row[world, j] >= 0:
+        value = row_lambda[world, m.joint_drive_row[world, j]] / m.world_dt[world]
     torque_out[world, j] = value
 
 
 @wp.kernel
-def drive_speeds(
-    joint_count: wp.array(dtype=wp.int32),
-    joint_type: wp.array2d(dtype=wp.int32),
-    joint_parent: wp.array2d(dtype=wp.int32),
-    joint_child: wp.array2d(dtype=wp.int32),
-    joint_X_p: wp.array2d(dtype=wp.transform),
-    joint_X_c: wp.array2d(dtype=wp.transform),
-    joint_axis: wp.array2d(dtype=wp.vec3),
-    joint_drive_row: wp.array2d(dtype=wp.int32),
-    body_q: wp.array2d(dtype=wp.transform),
-    body_q_low: wp.array2d(dtype=wp.transform),
-    body_qd: wp.array2d(dtype=wp.spatial_vector),
-    speed_out: wp.array2d(dtype=float),
-):
-    """Speed [rad/s] or [m/s] of every driven joint's coordinate; 0 for joints without a drive."""
+def drive_speeds(joint_count: wp.array(dtype=wp.int32), joint_type: wp.array2d(dtype=wp.int32),
+                 joint_parent: wp.array2d(dtype=wp.int32), joint_child: wp.array2d(dtype=wp.int32),
+                 joint_X_p: wp.array2d(dtype=wp.transform), joint_X_c: wp.array2d(dtype=wp.transform),
+                 joint_axis: wp.array2d(dtype=wp.vec3), joint_drive_row: wp.array2d(dtype=wp.int32),
+                 body_q: wp.array2d(dtype=wp.transform), body_q_low: wp.array2d(dtype=wp.transform),
+                 body_qd: wp.array2d(dtype=wp.spatial_vector), speed_out: wp.array2d(dtype=float)):
+    """Speed [rad/s] or [m/s] of every driven joint's coordinate; 0 for joints without a drive
+    (bare arrays: engine.reduced's gauge calls it too)."""
     world, j = wp.tid()
     value = 0.0
     if j < joint_count[world] and joint_drive_row[world, j] >= 0:
@@ -293,10 +266,10 @@ def rollout(model: Model, state: State, control: Control, steps: int, *, dt: flo
     """Run ``steps`` steps, recording tracked points and metrics every ``record_every`` steps.
 
     halt: optional callable(points, start) -> bool array (W,), called after every record with the
-    tracked points of that record and of record 0 (each (W, P, 3)); the worlds it marks are frozen from then on (they cost no
-    solver work and keep their last state, like diverged worlds, but are not flagged as diverged):
-    an evaluation that already knows a world's outcome (a walker that fell) stops simulating it.
-    The other worlds are unaffected.
+    tracked points of that record and of record 0 (each (W, P, 3)); the worlds it marks are frozen
+    from then on (they cost no solver work and keep their last state, like diverged worlds, but
+    are not flagged as diverged): an evaluation that already knows a world's outcome (a walker
+    that fell) stops simulating it. The other worlds are unaffected.
 
     Returns the Trace (record 0 is the initial state) and the final State.
     """
@@ -328,8 +301,7 @@ def rollout(model: Model, state: State, control: Control, steps: int, *, dt: flo
                   inputs=[model.point_count, model.point_body, model.point_local, current.body_q], outputs=[points])
         records["points"].append(points.numpy().copy())
         wp.launch(drive_torques, dim=(model.num_worlds, model.max_joints), device=model.device,
-                  inputs=[model.joint_count, model.joint_drive_row, model.world_dt, current.row_lambda],
-                  outputs=[torques])
+                  inputs=[model.arrays, current.row_lambda, torques])
         records["drive_torque"].append(torques.numpy().copy())
         wp.launch(drive_speeds, dim=(model.num_worlds, model.max_joints), device=model.device,
                   inputs=[model.joint_count, model.joint_type, model.joint_parent, model.joint_child, model.joint_X_p,

@@ -49,24 +49,13 @@ def detect_contacts(model: Model, body_q, body_qd) -> None:
     """Candidates per shape pair, compaction per world, and the contact rows."""
     work, device, cfg = model.work, model.device, model.config
     wp.launch(generate_candidates, dim=(model.num_worlds, model.max_pairs), device=device,
-              inputs=[model.pair_count, model.pair_shape_a, model.pair_shape_b, model.shape_type, model.shape_body,
-                      model.shape_X, model.shape_size, model.ground_normal, model.ground_offset,
-                      float(cfg.contact_margin), body_q],
-              outputs=[work.candidates])
+              inputs=[model.shape_arrays, float(cfg.contact_margin), body_q, work.candidates])
     wp.launch(compact_contacts, dim=model.num_worlds, device=device,
-              inputs=[model.pair_count, model.pair_shape_a, model.pair_shape_b, model.contact_row_start,
-                      model.shape_body, model.shape_friction, model.shape_restitution, model.ground_friction,
-                      model.ground_restitution, model.contact_capacity, float(cfg.contact_margin), work.candidates],
-              outputs=[work.row_count, work.contact_count, work.contact_dropped, work.contact_key, work.contact_body_a,
-                       work.contact_body_b, work.contact_point_a, work.contact_point_b, work.contact_normal,
-                       work.contact_distance, work.contact_friction, work.contact_restitution])
+              inputs=[model.shape_arrays, model.contact_row_start, model.contact_capacity, float(cfg.contact_margin),
+                      work.candidates, work.row_count, work.contact_arrays])
     wp.launch(contact_rows, dim=(model.num_worlds, model.contact_capacity), device=device,
-              inputs=[model.contact_row_start, model.world_dt, float(cfg.contact_stabilization),
-                      float(cfg.restitution_threshold), body_q, body_qd, work.contact_count, work.contact_body_a,
-                      work.contact_body_b, work.contact_point_a, work.contact_point_b, work.contact_normal,
-                      work.contact_distance, work.contact_friction, work.contact_restitution],
-              outputs=[work.row_body_c, work.row_body_p, work.row_J_c, work.row_J_p, work.row_bias,
-                       work.row_compliance, work.row_lo, work.row_hi, work.row_friction])
+              inputs=[model.arrays, work.arrays, work.contact_arrays, float(cfg.contact_stabilization),
+                      float(cfg.restitution_threshold), body_q, body_qd])
 
 
 class StageTimer:
@@ -150,18 +139,16 @@ def step(model: Model, state_in: State, state_out: State, control: Control | Non
         fused_step(model, state_in, state_out, control, project_output=project_output)
         mark("fused")
         return
-    work, device = model.work, model.device
+    work, device, m, w = model.work, model.device, model.arrays, model.work.arrays
     bodies = (model.num_worlds, model.max_bodies)
     moreau = model.config.integrator is Integrator.MOREAU_JEAN
     compensated = int(model.config.tuning.compensated_state)
     body_q, body_q_low = state_in.body_q, state_in.body_q_low
     if moreau:  # the midpoint, and the free velocities there (stage 3's first part)
         wp.launch(midpoint_free_velocity, dim=bodies, device=device,
-                  inputs=[model.body_count, model.world_dt, model.body_inv_mass, model.body_inertia,
-                          model.body_inv_inertia, model.world_gravity, state_in.body_q, state_in.body_q_offset,
-                          state_in.body_qd, state_in.body_q_low, state_in.body_q_next, state_in.body_qd_low,
-                          control.body_f, compensated],
-                  outputs=[work.body_q_mid, work.body_q_mid_low, work.body_qd_free, state_out.body_qd_low])
+                  inputs=[m, w, state_in.body_q, state_in.body_q_offset, state_in.body_qd, state_in.body_q_low,
+                          state_in.body_q_next, state_in.body_qd_low, control.body_f, compensated,
+                          state_out.body_qd_low])
         body_q, body_q_low = work.body_q_mid, work.body_q_mid_low
     compute_joint_rows(model, body_q, state_in.body_qd, control, body_q_low)
     mark("kinematics")
@@ -171,9 +158,8 @@ def step(model: Model, state_in: State, state_out: State, control: Control | Non
     warm = state_in.row_lambda  # without contacts every row's warm start is its last impulse (zero on padding)
     if model.has_contacts:
         wp.launch(gather_warmstart, dim=(model.num_worlds, model.max_rows), device=device,
-                  inputs=[model.contact_row_start, work.row_count, state_in.row_lambda, work.contact_key,
-                          work.contact_normal, state_in.contact_count, state_in.contact_key, state_in.contact_impulse],
-                  outputs=[work.warm])
+                  inputs=[m, w, work.contact_arrays, state_in.row_lambda, state_in.contact_count,
+                          state_in.contact_key, state_in.contact_impulse])
         warm = work.warm
     build_dual_problem(model, body_q, state_in.body_qd, state_in.body_qd_low, control.body_f, state_out.body_qd_low,
                        free_velocities=not moreau)
@@ -181,9 +167,8 @@ def step(model: Model, state_in: State, state_out: State, control: Control | Non
     solve_padmm(model, warm, state_out.row_lambda)
     if model.has_contacts:
         wp.launch(store_contacts, dim=(model.num_worlds, model.contact_capacity), device=device,
-                  inputs=[model.contact_row_start, work.contact_count, work.contact_key, work.contact_normal,
-                          state_out.row_lambda],
-                  outputs=[state_out.contact_count, state_out.contact_key, state_out.contact_impulse])
+                  inputs=[m, work.contact_arrays, state_out.row_lambda, state_out.contact_count,
+                          state_out.contact_key, state_out.contact_impulse])
     mark("padmm")
     # u+, then a whole step from the configuration of the dynamics (compensated where configured): the next
     # step's (Moreau-Jean: the next midpoint), projected onto the joints with SHAKE's velocity update
@@ -196,20 +181,18 @@ def step(model: Model, state_in: State, state_out: State, control: Control | Non
     mark("integrate")
     project_positions(model, state_out.body_q, state_out.body_qd,
                       body_q_low=state_out.body_q_low, body_qd_low=state_out.body_qd_low)
-    if moreau:  # the end of the step: half-way to the next midpoint, projected for output only, as
-        # often as the midpoint (one output iteration: DR Legs hanging's loops at 9.5e-7 instead of
-        # 8.2e-8 m; one iteration each for both projections is the benchmark's variant)
-        # (body_q_next: the compensated end of the dynamics' step, which the next midpoint starts from)
+    if moreau:  # the end of the step: half-way to the next midpoint, projected for output only, with as many
+        # iterations as the midpoint's (body_q_next: the compensated end of the dynamics' step, which the
+        # next midpoint starts from)
         wp.launch(integrate_poses, dim=bodies, device=device,
-                  inputs=[model.body_count, model.world_dt, 0.5, body_q, state_out.body_qd, compensated],
-                  outputs=[state_out.body_q, state_out.body_q_next, state_out.body_q_offset])
+                  inputs=[m, 0.5, body_q, state_out.body_qd, compensated, state_out.body_q, state_out.body_q_next,
+                          state_out.body_q_offset])
         if project_output:
             project_positions(model, state_out.body_q, state_out.body_qd,
                               velocity_update=False, body_q_offset=state_out.body_q_offset, prepare=False)
     wp.launch(guard_divergence, dim=model.num_worlds, device=device,
-              inputs=[model.body_count, state_in.body_q, state_in.body_qd, state_in.body_q_offset,
-                      state_in.body_q_low, state_in.body_qd_low, state_in.body_q_next, work.halted,
-                      float(model.config.max_speed)],
-              outputs=[state_out.body_q, state_out.body_qd, state_out.body_q_offset, state_out.body_q_low,
-                       state_out.body_qd_low, state_out.body_q_next, work.diverged])
+              inputs=[m, w, float(model.config.max_speed), state_in.body_q, state_in.body_qd, state_in.body_q_offset,
+                      state_in.body_q_low, state_in.body_qd_low, state_in.body_q_next, state_out.body_q,
+                      state_out.body_qd, state_out.body_q_offset, state_out.body_q_low, state_out.body_qd_low,
+                      state_out.body_q_next])
     mark("projection")
