@@ -311,8 +311,8 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         block_sync()
         joint_tasks = nj
         split = int(0)
-        # split where one pass of the lanes takes every part (more passes were slower: six-bar,
-        # chain); a one-thread block (the CPU) runs the parts one after the other, when asked
+        # split where one pass of the lanes takes every part (more passes were slower); a one-thread
+        # block (the CPU) runs the parts one after the other, when asked
         if (sharing & SHARE_JOINT_PARTS) != 0 and (nj * JOINT_PARTS <= lanes or lanes == 1):
             split = 1
             joint_tasks = nj * JOINT_PARTS

@@ -13,9 +13,8 @@ The stages, in order (each a module of the engine):
    then reports the end of the step half-way to that next midpoint, projected onto the joints
    for output only: the offset is kept in the State and undone when the next step finds its
    midpoint, so the dynamics always run on projected midpoints. (Projecting the end of the step
-   itself and recovering the midpoint by half a step leaves a neutral period-two oscillation in
-   the joint-normal direction that the velocity update feeds: it drained a parallelogram's energy
-   through every flat pass.)
+   itself and recovering the midpoint by half a step leaves a neutral period-two oscillation
+   along the joint normals that the velocity update feeds, draining energy.)
 6. divergence guard: a world with a non-finite state is flagged and frozen (engine.integrate)
 Everything that varies between steps lives in device arrays; nothing is allocated, so the whole
 step can be captured once (wp.ScopedCapture) and replayed.

@@ -895,8 +895,6 @@ def shared_solve_kernel(size: int, worlds: int, blob_size: int):
     return sparse_solve_shared
 
 
-
-
 def factor(model, shift, mask, bilateral_only: bool = False, system: SparseSystem | None = None) -> None:
     """Factor P D P + diag(shift) (shift (W, R) per row; or the bilateral joint block) of every
     masked world into the system's L (system: the model's PADMM system when None)."""
