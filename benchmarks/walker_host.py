@@ -9,8 +9,9 @@ run`` does (morphopt.evaluate.evaluate_dynamic with the study's duration, dt, cr
 solver settings; the [fixed] parameters applied to designs sampled from the study's space). A
 first generation compiles the kernels and fills the engine's caches, as a study's first
 generation does; each timed generation then draws new designs (a new seed), as a study's later
-generations do. Prints one JSON object: per generation the stage seconds and designs per second,
-and their medians. ``--root`` imports engine and morphopt from another checkout (its own
+generations do. Prints one JSON object: per generation the stage seconds (wall), designs per
+second and per CPU second of this process (the evaluation runs on one core: on a shared machine
+the CPU time moves less with the load than the wall time), and their medians. ``--root`` imports engine and morphopt from another checkout (its own
 studies/walker.toml), so that the commit before a change measures itself with this script.
 """
 
@@ -84,13 +85,14 @@ def main(argv=None) -> int:
             import cProfile
             profiler = cProfile.Profile()
             profiler.enable()
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         evaluation = _evaluate(study, family, params)
-        seconds = time.perf_counter() - start
+        seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
         if profiler is not None:
             profiler.disable()
             profiler.dump_stats(args.profile)
         runs.append({"seconds": round(seconds, 4), "designs_per_s": round(len(params) / seconds, 2),
+                     "cpu_seconds": round(cpu, 4), "designs_per_cpu_s": round(len(params) / cpu, 2),
                      "stages": {k: round(v, 4) for k, v in evaluation.timings.items()},
                      "feasible": int(sum(evaluation.feasible))})
     stages = sorted({k for run in runs for k in run["stages"]})
@@ -98,6 +100,7 @@ def main(argv=None) -> int:
         "commit": _commit(root), "device": args.device, "designs": args.designs, "repeats": args.repeats,
         "plan": None if getattr(warm, "plan", None) is None else warm.plan.coordinates.value,
         "designs_per_s": statistics.median(run["designs_per_s"] for run in runs),
+        "designs_per_cpu_s": statistics.median(run["designs_per_cpu_s"] for run in runs),
         "stages": {k: round(statistics.median(run["stages"].get(k, 0.0) for run in runs), 4) for k in stages},
         "runs": runs,
     }

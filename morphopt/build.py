@@ -1,10 +1,11 @@
 """Designs to MechanismSpecs, in this process or spread over a pool of worker processes.
 
 Building a walker's spec is Python and small NumPy operations (assembly, bars' mass and inertia,
-validation of every body and joint): 10 to 20 ms per walker on one core, over a minute for a
-generation of 4096 on the GPU machine, as long as simulating it. ``build_specs`` hands large
-batches to worker processes (one per core but one), which load the family from its file and send
-the specs back pickled; the specs are the same to the last bit as the ones built here.
+validation of every body and joint): about 1 ms per walker on one core of the 2-core CPU when the
+family builds a batch at once (a family's optional build_specs: the walker assembles every leg of
+a generation in one solve). ``build_specs`` hands large batches to worker processes (one per core
+but one), which load the family from its file and send the specs back pickled (a MechanismSpec
+pickles as columns); the specs are the same to the last bit as the ones built here.
 
 Workers start through a fork server that preloads this module (never by forking a process that may
 hold a CUDA context, and never re-running the user's script); the pool is made on first use and
