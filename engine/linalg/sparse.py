@@ -29,7 +29,7 @@ from typing import Any
 
 import warp as wp
 
-from engine.linalg.lanes import block_sync, group_sum, warp_sync
+from engine.linalg.lanes import block_sync, group_sum, tile_set, warp_sync
 from engine.linalg.sparse_analysis import (
     BACKWARD,
     BLOCK_LEVEL,
@@ -121,17 +121,6 @@ def _used(world: int, i: int, n: int, bilateral_only: int, row_kind: wp.array2d(
 def group_width(mode: int, phase: int, lanes: int):
     """Lanes that share each item of this level and phase (at most the block's)."""
     return wp.min(1 << ((mode >> (PHASE_BITS * phase)) & 7), lanes)
-
-
-@functools.cache
-def _vector_setter(size: int):
-    """Element writes into a shared vector tile of one size without the block barrier of Warp's
-    tile element assignment (lanes write different elements in divergent code)."""
-
-    @wp.func_native("t.data(wp::tile_coord(i)) = value;")
-    def tile_store_at(t: wp.tile(dtype=float, shape=(size,), storage="shared"), i: int, value: float): ...
-
-    return tile_store_at
 
 
 # Raw addresses and the inner sums of the factor and the solves in native code. Warp's array
@@ -574,7 +563,6 @@ def staged_matrix_kernel(size: int):
     that an entry between two rows reads shared memory instead of looking its rows up and loading
     their spatial vectors. Entries with body nodes follow sparse_matrix."""
     staged = STAGE_FLOATS * size
-    stage_set = _vector_setter(staged)
     stage_address = _tile_address(staged, float)
 
     @wp.kernel(enable_backward=False, module="unique")
@@ -608,12 +596,12 @@ def staged_matrix_kernel(size: int):
                 Mc = row_MJ_c[world, r] * scale
                 Mp = row_MJ_p[world, r] * scale
                 for c in range(6):
-                    stage_set(stage, c * size + k, Jc[c])
-                    stage_set(stage, (6 + c) * size + k, Jp[c])
-                    stage_set(stage, (12 + c) * size + k, Mc[c])
-                    stage_set(stage, (18 + c) * size + k, Mp[c])
-                stage_set(stage, 24 * size + k, scale * row_compliance[world, r] * scale)
-                stage_set(stage, 25 * size + k, 1.0)
+                    tile_set(stage, c * size + k, Jc[c])
+                    tile_set(stage, (6 + c) * size + k, Jp[c])
+                    tile_set(stage, (12 + c) * size + k, Mc[c])
+                    tile_set(stage, (18 + c) * size + k, Mp[c])
+                tile_set(stage, 24 * size + k, scale * row_compliance[world, r] * scale)
+                tile_set(stage, 25 * size + k, 1.0)
             k += lanes
         block_sync()
         at = stage_address(stage, 0)
@@ -760,7 +748,6 @@ def solve_kernel(size: int):
     """Solve kernel with the world's vector in a shared tile of ``size`` rows and its schedule read
     from global memory (the factor stays in global memory: copying it into shared memory for each
     solve was slower: benchmarks/results/README.md)."""
-    vector_set = _vector_setter(size)
     vector_address = _tile_address(size, float)
 
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=SPARSE_REGISTERS)
@@ -790,7 +777,7 @@ def solve_kernel(size: int):
         rows = pat.perm.shape[1]
         k = lane
         while k < rows:
-            vector_set(v, k, _rhs_of(pat, p, k, world, real, rhs))
+            tile_set(v, k, _rhs_of(pat, p, k, world, real, rhs))
             k += lanes
         block_sync()
         _substitute_all(pat, p, int_address(pat.solve_blob, p * pat.blob_size), row_address(L, world),
@@ -846,7 +833,6 @@ def shared_solve_kernel(size: int, worlds: int, blob_size: int):
     bounds, the positions' records and the column and row indices are then shared-memory loads,
     and a level's chain of dependent steps keeps one global load (the factor's values)."""
     vector_size = size * worlds
-    vector_set = _vector_setter(vector_size)
     vector_address = _tile_address(vector_size, float)
     blob_address = _tile_address(blob_size, wp.int32)
 
@@ -882,7 +868,7 @@ def shared_solve_kernel(size: int, worlds: int, blob_size: int):
         rows = pat.perm.shape[1]
         k = lane
         while k < rows:
-            vector_set(v, vb + k, _rhs_of(pat, p, k, world, real, rhs))
+            tile_set(v, vb + k, _rhs_of(pat, p, k, world, real, rhs))
             k += lanes
         warp_sync()
         schedule_at = int_address(pat.solve_blob, p * blob_size)
