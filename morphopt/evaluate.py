@@ -165,14 +165,16 @@ def _batch_world_metrics(trace, turn: np.ndarray, torso: np.ndarray, up: np.ndar
         points[..., 0].reshape(T, W * P), points[..., 2].reshape(T, W * P), first, closed=False))
     tilts, heights = _torso_tilt_height(points, points[0], torso, up)
     needed = max(2, int(np.ceil(stall_time / record_dt)))
-    torque = np.abs(trace.drive_torque[1:, :, :effort.shape[1]])
-    dtype = torque.dtype  # compare in the records' precision, as _jam does
-    speed = trace.drive_speed[1:, :, :effort.shape[1]] * np.sign(target).astype(dtype)
     driven = (target != 0.0) & np.isfinite(effort)
+    columns = np.nonzero(driven.any(axis=0))[0]  # the joints driven in some world (the others never stall)
+    effort, target, driven = effort[:, columns], target[:, columns], driven[:, columns]
+    torque = np.abs(trace.drive_torque[1:][:, :, columns])
+    dtype = torque.dtype  # compare in the records' precision, as _jam does
+    speed = trace.drive_speed[1:][:, :, columns] * np.sign(target).astype(dtype)
     stalled = driven & (torque >= (0.95 * effort).astype(dtype)) & (speed < (0.5 * np.abs(target)).astype(dtype))
-    runs = np.zeros((W, effort.shape[1]), bool)
+    runs = np.zeros((W, len(columns)), bool)
     if stalled.shape[0] >= needed:
-        counts = np.concatenate([np.zeros((1, W, effort.shape[1]), int), np.cumsum(stalled, axis=0)])
+        counts = np.concatenate([np.zeros((1, W, len(columns)), int), np.cumsum(stalled, axis=0)])
         runs = ((counts[needed:] - counts[:-needed]) >= needed).any(axis=0)
     return {"stride": stride, "stride_full": full, "height": height, "tilt": tilts.max(axis=0),
             "lowest": heights.min(axis=0),
