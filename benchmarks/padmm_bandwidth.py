@@ -57,15 +57,29 @@ def measure_bandwidth(device: str, nbytes: int, repeats: int = 5) -> float:
     return 2.0 * n * 16 / float(np.median(times))
 
 
-def _array_bytes(value, seen: set) -> int:
-    """Bytes of the arrays in a launch argument (a struct's array fields included), each once."""
+def _indexed_fields(kernel) -> set[str]:
+    """Names indexed as ``.name[`` in the source of the kernel's module and the engine's modules it
+    calls into: a struct field counts only if some kernel code reads or writes it."""
+    import inspect
+    import re
+
+    texts = [inspect.getsource(inspect.getmodule(kernel.func))]
+    texts += [inspect.getsource(module) for module in (padmm_module, sys.modules["engine.linalg.dense"],
+                                                        sys.modules["engine.linalg.sparse"])]
+    return set(re.findall(r"\.(\w+)\[", "\n".join(texts)))
+
+
+def _array_bytes(value, seen: set, fields: set | None = None) -> int:
+    """Bytes of the arrays in a launch argument, each once; of a struct, the array fields in
+    ``fields`` (those the kernels index)."""
     if isinstance(value, wp.array):
         if id(value) in seen:
             return 0
         seen.add(id(value))
         return int(value.size * wp.types.type_size_in_bytes(value.dtype))
     if hasattr(getattr(value, "_cls", None), "vars"):  # a wp.struct instance
-        return sum(_array_bytes(getattr(value, name), seen) for name in value._cls.vars)
+        return sum(_array_bytes(getattr(value, name), seen) for name in value._cls.vars
+                   if fields is None or name in fields)
     return 0
 
 
@@ -94,7 +108,8 @@ def launch_bytes(kernel, args, kwargs) -> int:
     """Bytes of the arrays a launch takes (positional after dim, inputs, outputs), each once."""
     arrays = list(args[1:]) + list(kwargs.get("inputs") or []) + list(kwargs.get("outputs") or [])
     seen: set = set()
-    return sum(_array_bytes(a, seen) for a in arrays)
+    fields = _indexed_fields(kernel)
+    return sum(_array_bytes(a, seen, fields) for a in arrays)
 
 
 def timed_launches(device: str, model, state_a, state_b, steps: int) -> list[tuple[str, float]]:

@@ -472,7 +472,6 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
                          f"step_kernel='auto' or 'staged' (engine.Tuning)")
     fused = tuning.step_kernel == "fused" or (tuning.step_kernel == "auto" and fits)
     model.step_kernel = "fused" if fused else "staged"
-    model._fused_structs = None  # built on the first fused step
     # the untimed fused kernel's (unused) cycle stamps: allocated here, as steps may be captured
     model._fused_no_stamps = wp.zeros((1, 1), dtype=wp.int64, device=device)
     # the fused step's knobs (engine.Tuning.fused_*), read by engine.fused at each step
