@@ -210,11 +210,17 @@ class TabulatedModel:
             for _ in range(steps):
                 wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=self.lanes, inputs=inputs, device=self.device)
             return
-        # one thread per world: the set-up and the solve as two kernels, their arguments packed
-        # once per call and the launches replayed step by step (the packing cost as much host time
-        # as a walker's step on the CPU)
-        setup, solve = (wp.launch(step_kernel(False, part), dim=self.num_worlds, inputs=inputs, device=self.device,
-                                  record_cmd=True) for part in ("setup", "solve"))
+        # one thread per world: the set-up and the solve as two kernels; on the CPU their arguments
+        # are packed once per call and the launches replayed step by step (the packing cost as much
+        # host time as a walker's step); on a GPU rollout_tabulated captures the steps in a graph
+        setup, solve = step_kernel(False, "setup"), step_kernel(False, "solve")
+        if self.device.is_cuda:
+            for _ in range(steps):
+                wp.launch(setup, dim=self.num_worlds, inputs=inputs, device=self.device)
+                wp.launch(solve, dim=self.num_worlds, inputs=inputs, device=self.device)
+            return
+        setup, solve = (wp.launch(kernel, dim=self.num_worlds, inputs=inputs, device=self.device, record_cmd=True)
+                        for kernel in (setup, solve))
         for _ in range(steps):
             setup.launch()
             solve.launch()
