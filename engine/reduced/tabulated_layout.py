@@ -348,10 +348,12 @@ def _analyse(spec: MechanismSpec) -> _Structure | None:
                       [where_is[i] for i in point_bodies], [where_is[i] for i in range(len(spec.bodies))])
 
 
-def _regular(arrays: list, shape: tuple, strides: tuple) -> bool:
-    """Whether every item is a float64 ndarray of ``shape`` laid out C-ordered (strides)."""
+def _regular(arrays: list, shape: tuple) -> bool:
+    """Whether every item is a float64 ndarray of ``shape`` (its dimensions, first length and size;
+    C order is checked where _joined copies the items)."""
     return (set(map(type, arrays)) <= {np.ndarray} and set(map(id, map(_DTYPE, arrays))) <= {id(_F64)}
-            and set(map(_LAYOUT, arrays)) <= {(shape, strides)})
+            and set(map(_NDIM, arrays)) <= {len(shape)} and set(map(len, arrays)) <= {shape[0]}
+            and set(map(_SIZE, arrays)) <= {math.prod(shape)})
 
 
 def _quat_matrices(q: np.ndarray) -> np.ndarray:
@@ -546,8 +548,8 @@ class _Refused(Exception):
 def _takes(spec: MechanismSpec) -> tuple | None:
     """The spec's vectors the array path reads (every body's com and inertia, every joint's axis,
     parent and child position) when it takes the spec's values as they are: no joint limit,
-    armature, damping or drive stiffness, and every vector the C-ordered float64 array of its
-    shape; else None."""
+    armature, damping or drive stiffness, and every vector a float64 array of its shape (_regular;
+    _joined refuses one that is not C-ordered); else None."""
     bodies, joints = spec.bodies, spec.joints
     values = set(map(_JOINT_VALUES, joints))  # (limit_lower, limit_upper, armature, damping) of each
     if any(math.isfinite(low) or math.isfinite(high) or armature > 0.0 or damping > 0.0
@@ -557,9 +559,7 @@ def _takes(spec: MechanismSpec) -> tuple | None:
         return None
     vectors = (list(map(_COM, bodies)), list(map(_INERTIA, bodies)), list(map(_AXIS, joints)),
                list(map(_PARENT_POSITION, joints)), list(map(_CHILD_POSITION, joints)))
-    shapes = ((3,), (3, 3), (3,), (3,), (3,))
-    strides = ((8,), (24, 8), (8,), (8,), (8,))
-    if all(_regular(v, shape, stride) for v, shape, stride in zip(vectors, shapes, strides)):
+    if all(_regular(v, shape) for v, shape in zip(vectors, ((3,), (3, 3), (3,), (3,), (3,)))):
         return vectors
     return None
 
@@ -568,9 +568,24 @@ _JOINT_VALUES = operator.attrgetter("limit_lower", "limit_upper", "armature", "d
 _DRIVE, _AXIS = operator.attrgetter("drive"), operator.attrgetter("axis")
 _PARENT_POSITION, _CHILD_POSITION = operator.attrgetter("parent_position"), operator.attrgetter("child_position")
 _COM, _INERTIA = operator.attrgetter("com"), operator.attrgetter("inertia")
+_ORIENTATION, _POSITION = operator.attrgetter("orientation"), operator.attrgetter("position")
+_ANGULAR_VELOCITY = operator.attrgetter("angular_velocity")
 _PARENT_ORIENTATION = operator.attrgetter("parent_orientation")
 _CHILD_ORIENTATION = operator.attrgetter("child_orientation")
-_DTYPE, _LAYOUT = operator.attrgetter("dtype"), operator.attrgetter("shape", "strides")
+_DTYPE, _NDIM, _SIZE = operator.attrgetter("dtype"), operator.attrgetter("ndim"), operator.attrgetter("size")
+
+
+def _joined(arrays: list, shape: tuple) -> np.ndarray:
+    """Float64 arrays (checked by _regular) stacked into one array of ``shape`` by copying their
+    bytes (the same numbers as np.array of the list, at a third of its cost); raises _Refused when
+    one is not C-ordered or the bytes do not fill ``shape`` (an item of other lengths)."""
+    try:
+        data = bytearray(b"".join(arrays))  # a strided array has no bytes-like form: TypeError
+    except TypeError:
+        raise _Refused() from None
+    if len(data) != 8 * math.prod(shape):
+        raise _Refused()
+    return np.frombuffer(data, dtype=np.float64).reshape(shape) if data else np.zeros(shape)
 
 
 def _pending_layouts(specs: list, st: _Structure, samples: int) -> list:
@@ -625,20 +640,23 @@ def _numbers_of(specs: list, vectors: list, st: _Structure, samples: int) -> lis
     S = len(specs)
     bodies0, joints0 = specs[0].bodies, specs[0].joints
     B, J = len(bodies0), len(joints0)
-    try:
-        orientation = np.array([[b.orientation for b in spec.bodies] for spec in specs], dtype=float)
-        position = np.array([[b.position for b in spec.bodies] for spec in specs], dtype=float)
-        angular_velocity = np.array([[b.angular_velocity for b in spec.bodies] for spec in specs], dtype=float)
-        joint_frames = np.stack([np.array([list(map(_PARENT_ORIENTATION, spec.joints)) for spec in specs], dtype=float),
-                                 np.array([list(map(_CHILD_ORIENTATION, spec.joints)) for spec in specs], dtype=float)],
-                                axis=2)
-    except (TypeError, ValueError):
-        raise _Refused() from None
-    if orientation.shape != (S, B, 4) or position.shape != (S, B, 3) or angular_velocity.shape != (S, B, 3) or \
-            joint_frames.shape != (S, J, 2, 4):
-        raise _Refused()
+    gathered = []
+    for getter, items, shape in ((_ORIENTATION, "bodies", (4,)), (_POSITION, "bodies", (3,)),
+                                 (_ANGULAR_VELOCITY, "bodies", (3,)), (_PARENT_ORIENTATION, "joints", (4,)),
+                                 (_CHILD_ORIENTATION, "joints", (4,))):
+        flat = [a for spec in specs for a in map(getter, getattr(spec, items))]
+        count = B if items == "bodies" else J
+        try:  # whatever numbers they are, as _plain_layout reads them
+            array = np.array(flat, dtype=float)
+        except (TypeError, ValueError):
+            raise _Refused() from None
+        if array.shape != (S * count,) + shape:
+            raise _Refused()
+        gathered.append(array.reshape((S, count) + shape))
+    orientation, position, angular_velocity, parent_frames, child_frames = gathered
+    joint_frames = np.stack([parent_frames, child_frames], axis=2)
     com_local, inertia, axes, parent_positions, child_positions = (
-        np.array([v[k] for v in vectors]).reshape((S, n) + shape)
+        _joined([a for v in vectors for a in v[k]], (S, n) + shape)
         for k, (n, shape) in enumerate(((B, (3,)), (B, (3, 3)), (J, (3,)), (J, (3,)), (J, (3,)))))
     base = st.base
     R_base = _quat_matrices(orientation[:, base])  # quat_matrix of each base's orientation
