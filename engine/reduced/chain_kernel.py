@@ -15,12 +15,13 @@ import warp as wp
 from engine.contacts import contact_direction
 from engine.linalg.lanes import block_sync, tile_set
 from engine.padmm import project_cone, rho_update
-from engine.reduced.chain_layout import MAX_PREFIX, TILE_STEP, _tile_size
+from engine.reduced.chain_layout import KIND_REVOLUTE, KIND_ROOT, MAX_PREFIX, TILE_STEP, _tile_size
 from engine.reduced.chain_stages import (DIVERGED, DYNAMICS, EFFORT_LIMIT, VELOCITIES, ChainArrays, ChainWork,
-                                         add_children, advance, candidates_within, contact_factor, contact_residuals,
-                                         factor_lanes, kinematics, loop_errors, loop_rows_of, own_terms,
-                                         plane_candidates, project, solve_column, solve_lanes, stamp, tree_factor,
-                                         tree_solves)
+                                         add_children, advance, angle_low, candidates_within, contact_factor,
+                                         contact_residuals, factor_lanes, keep_angle_low, kinematics, left_here,
+                                         loop_errors, loop_row_bias, loop_rows_of, own_terms, plane_candidates, project,
+                                         solve_column, solve_lanes, stamp, tree_factor, tree_solves)
+from engine.spatial import two_sum
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
@@ -58,9 +59,16 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
     PADMM (engine.padmm's method) warm-started from each slot's last impulse and the world's last
     penalty; (7) q += h u and Gauss-Newton projections onto the loops, skipped below the rounding
     floors; (8) body poses and velocities, and the divergence guard. Each stage in full:
-    benchmarks/results/README.md, "Engine design notes (moved from the code)". The midpoint step
-    evaluates the velocity-product and gyroscopic terms with the step's initial rates and the
-    drives' terms backward (stable for stiff drives): first order in dt wherever those matter."""
+    benchmarks/results/README.md, "Engine design notes (moved from the code)".
+
+    The midpoint step is second order on passive mechanisms (benchmarks/convergence.py): its
+    velocity-product and gyroscopic terms take the midpoint's rates, extrapolated from the last
+    step's change (u + (u - u_last) / 2; the step's own rates on a trajectory's first step, after
+    contact impulses and where the state was set between steps, see left_here), and the loops' rows
+    ask G(q_mid) u+ = -dt/2 d/dt(G) u (loop_row_bias), the rates tangent to the loops where the step
+    ends rather than at its midpoint (which lost energy steadily and was first order). The angles
+    are summed compensated across steps (angle_low). The drives' and damping terms stay backward
+    (stable for stiff drives): first order in dt wherever those matter, as is semi-implicit Euler."""
 
     per_contact = _tile_size(contacts // 3)  # the tiles of one entry per contact
     tree_solve_column, tree_solve_vector = tree_solves(unroll)
@@ -95,11 +103,19 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
         par = wp.tile_zeros(shape=coords, dtype=wp.int32, storage="shared")
         lvl = wp.tile_zeros(shape=coords, dtype=wp.int32, storage="shared")  # ancestors (of the entry)
         rstart = wp.tile_zeros(shape=coords, dtype=wp.int32, storage="shared")  # packed M~'s row starts
+        moved = wp.tile_zeros(shape=1, dtype=wp.int32, storage="shared")  # 1: not where the last step left it
+        low = wp.tile_zeros(shape=coords, dtype=float, storage="shared")  # the angles' low parts (Moreau-Jean)
+        if wp.static(contacts > 0):  # per entry: the contacts' rate change (its next extrapolation leaves it out)
+            jolt = wp.tile_zeros(shape=coords, dtype=float, storage="shared")
+        if wp.static(handover == 1):  # u_start as the last step left it, put back for the kernel taking over
+            history = wp.tile_zeros(shape=coords, dtype=float, storage="shared")
         n = m.tree_count[world]
         for i in range(lane, n, lanes):
             tile_set(par, i, m.parent[world, i])
             tile_set(lvl, i, m.level[world, i])
             tile_set(rstart, i, m.row_start[world, i])
+            if midpoint != 0 and not left_here(m, w, world, i, q, root):
+                tile_set(moved, 0, 1)
         R = m.row_count[world]
         chain_prefix = int(0)
         if wp.static(unroll > 0):
@@ -113,20 +129,33 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
         if wp.static(stages):
             stamp(w, world, lane, 0)
         lead = dt  # q+ = q_eval + lead u+
+        carried = int(0)  # Moreau-Jean continuing its own last step: the angles' low parts carry over
+        extrapolate = float(0.0)  # the velocity-product terms' rates: u + extrapolate (u - u_last)
         if midpoint != 0:
             lead = 0.5 * dt
+            if moved[0] == 0:  # (every lane alike)
+                carried = 1
+                extrapolate = 0.5  # the midpoint's rates, to second order, from the last step's change
         if frozen == 0:
             for i in range(lane, n, lanes):  # kept for a step that diverges; Moreau-Jean: to the midpoint
+                if carried != 0:
+                    tile_set(low, i, angle_low(m, w, world, i))
                 w.q_start[world, i] = q[world, i]
-                w.u_start[world, i] = u[world, i]
-                w.root_start[world, i] = root[world, i]
+                ui = u[world, i]  # u_start: the midpoint's rates until own_terms is done with them
+                last = w.u_start[world, i]
+                if wp.static(handover == 1):
+                    tile_set(history, i, last)
+                w.u_start[world, i] = ui + extrapolate * (ui - last)
+                if m.kind[world, i] == KIND_ROOT:  # (an angle's entry keeps its low part there)
+                    w.root_start[world, i] = root[world, i]
                 if midpoint != 0:
                     advance(m, world, i, q, root, u, lead)
             block_sync()
-            kinematics(m, w, world, lane, lanes, q, u, root, DYNAMICS)
+            kinematics(m, w, world, lane, lanes, q, w.u_start, root, DYNAMICS)
             g = m.gravity[world]
             for k in range(lane, n, lanes):
                 own_terms(m, w, world, k, g)
+                w.u_start[world, k] = u[world, k]  # the step's initial rates again (a frozen world's restore)
             block_sync()
             if wp.static(stages):
                 stamp(w, world, lane, 1)
@@ -167,8 +196,10 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                     j = par[j]
                     e -= 1
             for r in range(lane, R, lanes):  # G along the two bodies' ancestors, and G^T into X
-                tile_set(rhs, r, loop_rows_of(m, w, world, par, r, Gt, Xt, u,  # (G u, for the right-hand side)
-                                              wp.static(int(inline))))
+                rate = loop_rows_of(m, w, world, par, r, Gt, Xt, u, wp.static(int(inline)))  # (G u, for the rhs)
+                if midpoint != 0 and m.row_part[world, r] < 5:  # a kept row: rates tangent where the step ends
+                    rate += lead * loop_row_bias(m, w, world, r, wp.static(int(inline)))
+                tile_set(rhs, r, rate)
             block_sync()
             if record != 0:
                 for e in range(lane, R * n, lanes):
@@ -196,18 +227,18 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                 stamp(w, world, lane, 6)
             for r in range(lane, R, lanes):  # the right-hand side: -(G u_f) - baumgarte phi / dt (+ keep G u)
                 start = rhs[r]  # G u (u_f = u + du, du in vec; a soft row's armature keeps a share of G u)
-                acc = start
+                acc = start  # (a kept row's: G u + dt/2 its bias, loop_row_bias; its keep is 0)
                 for j in range(n):
                     acc += Gt[r, j] * vec[j]
                 tile_set(rhs, r, -acc + m.row_keep[world, r] * start
                          - baumgarte / dt * w.phi[world, 6 * m.row_loop[world, r] + m.row_part[world, r]])
             factor_lanes(lane, lanes, R, At, diag_a, REGULARIZATION)  # (At keeps A's factor to the step's end)
             solve_lanes(lane, lanes, R, At, diag_a, rhs)
-            for i in range(lane, n, lanes):  # u = u_f + X A^-1 rhs
-                acc = u[world, i] + vec[i]
+            for i in range(lane, n, lanes):  # u = u_f + X A^-1 rhs (the change summed first: one rounding of u)
+                acc = vec[i]
                 for r in range(R):
                     acc += Xt[i, r] * rhs[r]
-                u[world, i] = acc
+                u[world, i] = u[world, i] + acc
             block_sync()
             if wp.static(stages):
                 stamp(w, world, lane, 7)
@@ -269,7 +300,9 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                         for i in range(lane, n, lanes):
                             q[world, i] = w.q_start[world, i]
                             u[world, i] = w.u_start[world, i]
-                            root[world, i] = w.root_start[world, i]
+                            w.u_start[world, i] = history[i]
+                            if m.kind[world, i] == KIND_ROOT:
+                                root[world, i] = w.root_start[world, i]
                         return
                 if wp.static(stages):
                     stamp(w, world, lane, 8)
@@ -429,6 +462,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                         for r in range(m3):
                             acc += Yt[i, r] * pre[r] * ys[r]
                         u[world, i] = u[world, i] + acc
+                        tile_set(jolt, i, acc)
                     block_sync()
                     if wp.static(stages):
                         stamp(w, world, lane, 13)
@@ -438,7 +472,12 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                 effort += m.kd[world, i] * (m.v_target[world, i] - ui)
                 if wp.abs(effort) > m.effort[world, i]:
                     w.diverged[world] = EFFORT_LIMIT
-                advance(m, world, i, q, root, u, lead)
+                if midpoint != 0 and m.kind[world, i] == KIND_REVOLUTE:  # an angle: from the step's start, compensated
+                    angle, rest = two_sum(w.q_start[world, i], low[i] + lead * (w.u_start[world, i] + ui))
+                    q[world, i] = angle
+                    tile_set(low, i, rest)
+                else:
+                    advance(m, world, i, q, root, u, lead)
             block_sync()
             if wp.static(stages):
                 stamp(w, world, lane, 14)
@@ -471,7 +510,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                     break
                 solve_lanes(lane, lanes, R, At, diag_a, rhs)
                 for i in range(lane, n, lanes):
-                    project(m, world, i, q, root, Xt, rhs, R)
+                    project(m, world, i, q, root, Xt, rhs, R, low, midpoint)
                 applied += 1
                 block_sync()
             if lane == 0:
@@ -489,6 +528,14 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                 stamp(w, world, lane, 15)
             if w.diverged[world] == 0:
                 for k in range(lane, n, lanes):
+                    w.q_start[world, k] = q[world, k]  # where this step leaves the state (left_here)
+                    if m.kind[world, k] == KIND_ROOT:
+                        w.root_start[world, k] = root[world, k]
+                    elif midpoint != 0:
+                        keep_angle_low(m, w, world, k, low[k])
+                    if wp.static(contacts > 0):
+                        if jolt[k] != 0.0:  # a contact impulse moved it: no extrapolation from this step
+                            w.u_start[world, k] = u[world, k]
                     b = m.body_out[world, k]
                     if b >= 0:
                         body_q[world, b] = wp.transform(w.centre[world, k], wp.transform_get_rotation(w.pose[world, k]))
@@ -497,7 +544,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                 for i in range(lane, n, lanes):
                     q[world, i] = w.q_start[world, i]
                     u[world, i] = w.u_start[world, i]
-                    root[world, i] = w.root_start[world, i]
+                    if m.kind[world, i] == KIND_ROOT:
+                        root[world, i] = w.root_start[world, i]
             if wp.static(stages):
                 stamp(w, world, lane, 16)
 

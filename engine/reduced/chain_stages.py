@@ -14,6 +14,7 @@ import warp as wp
 from engine.collide import plane_point, plane_point_count
 from engine.linalg.lanes import block_sync, clock, tile_set
 from engine.reduced.chain_layout import KIND_LINEAR, KIND_REVOLUTE, KIND_ROOT
+from engine.spatial import two_sum
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
@@ -96,9 +97,14 @@ class ChainWork:
     phi: wp.array2d(dtype=float)  # every loop's six errors (W, 6 L; the sixth, its rate row's, is 0)
     dirs: wp.array2d(dtype=wp.vec3)  # and directions
     ends: wp.array2d(dtype=wp.vec3)  # anchor points, 2 per loop
-    q_start: wp.array2d(dtype=float)  # the step's initial angles and rates
+    # during a step its initial angles, rates and floating roots' centre-of-mass frames (restored
+    # where it diverges); between Moreau-Jean steps the angles and root frames the last step left
+    # (left_here), the rates it started from (the next midpoint's extrapolation; an entry a contact
+    # impulse moved: its final rate) and, in root_start's x of an angle's entry, the angle's low part
+    # (angle_low)
+    q_start: wp.array2d(dtype=float)
     u_start: wp.array2d(dtype=float)
-    root_start: wp.array2d(dtype=wp.transform)  # floating roots' centre-of-mass frames at the step's start
+    root_start: wp.array2d(dtype=wp.transform)
     diverged: wp.array(dtype=wp.int32)  # 0 running, DIVERGED or EFFORT_LIMIT (frozen)
     contact_count: wp.array(dtype=wp.int32)
     contact_slot: wp.array2d(dtype=wp.int32)  # candidate slot of each active contact
@@ -240,6 +246,45 @@ def advance(m: ChainArrays, world: int, k: int, q: wp.array2d(dtype=float), root
 
 
 @wp.func
+def left_here(m: ChainArrays, w: ChainWork, world: int, k: int, q: wp.array2d(dtype=float),
+              root: wp.array2d(dtype=wp.transform)):
+    """Whether entry k is bit for bit where the last Moreau-Jean step left it (ChainWork's q_start
+    and root_start between steps): then u_start holds the rates that step started from and
+    angle_low the angle's low part. A state reset (ChainModel.state) or set in between differs in
+    its angles or frames, as does the first step after packing (root_start all 0)."""
+    same = q[world, k] == w.q_start[world, k]
+    kind = m.kind[world, k]
+    b = w.root_start[world, k]
+    if kind == KIND_ROOT:
+        a = root[world, k]
+        for c in range(7):
+            if a[c] != b[c]:
+                same = False
+    elif kind == KIND_REVOLUTE and b[6] != 1.0:  # (keep_angle_low's identity rotation)
+        same = False
+    return same
+
+
+@wp.func
+def angle_low(m: ChainArrays, w: ChainWork, world: int, k: int):
+    """Between Moreau-Jean steps: the part of entry k's angle that float32 q could not hold (the
+    rounding error of its compensated sums; 0 for an entry that is no angle)."""
+    if m.kind[world, k] == KIND_REVOLUTE:
+        return w.root_start[world, k][0]
+    return 0.0
+
+
+@wp.func
+def keep_angle_low(m: ChainArrays, w: ChainWork, world: int, k: int, low: float):
+    """At a Moreau-Jean step's end: entry k's angle's low part into root_start (which only a root
+    entry's frame uses), x of a frame with the identity rotation. Why: the angles' float32
+    increments round at every step, a random walk (1e-5 rad over 2 s at 0.5 ms on the four-bar)
+    larger than the midpoint step's own error below 1 ms."""
+    if m.kind[world, k] == KIND_REVOLUTE:
+        w.root_start[world, k] = wp.transform(wp.vec3(low, 0.0, 0.0), wp.quat_identity())
+
+
+@wp.func
 def correction(X: Any, lam: Any, i: int, R: int):
     """Row i of X applied to lam = A^-1 phi (the kept rows' errors): coordinate i's Gauss-Newton
     correction (X A^-1 phi)_i."""
@@ -251,12 +296,18 @@ def correction(X: Any, lam: Any, i: int, R: int):
 
 @wp.func
 def project(m: ChainArrays, world: int, k: int, q: wp.array2d(dtype=float),
-            root: wp.array2d(dtype=wp.transform), X: Any, lam: Any, R: int):
+            root: wp.array2d(dtype=wp.transform), X: Any, lam: Any, R: int, low: Any, compensated: int):
     """Entry k's coordinate moved by its Gauss-Newton correction -X A^-1 phi (lam = A^-1 phi; a
-    floating root's six at once, on its root entry)."""
+    floating root's six at once, on its root entry). compensated: an angle's sum keeps its rounding
+    error in the shared vector low (the kernel's angles' low parts)."""
     kind = m.kind[world, k]
     if kind == KIND_REVOLUTE:
-        q[world, k] = q[world, k] - correction(X, lam, k, R)
+        if compensated != 0:
+            angle, rest = two_sum(q[world, k], low[k] - correction(X, lam, k, R))
+            q[world, k] = angle
+            tile_set(low, k, rest)
+        else:
+            q[world, k] = q[world, k] - correction(X, lam, k, R)
     elif kind == KIND_ROOT:
         dc = wp.vec3(correction(X, lam, k - 5, R), correction(X, lam, k - 4, R),
                      correction(X, lam, k - 3, R))
@@ -345,6 +396,55 @@ def loop_rows_of(m: ChainArrays, w: ChainWork, world: int, par: Any, r: int, G: 
             rate += value * u[world, j]
             j = par[j]
     return rate
+
+
+@wp.func
+def point_motion(w: ChainWork, world: int, b: int, x: wp.vec3):
+    """Velocity and velocity-product acceleration of body b's point at x (kinematics' DYNAMICS
+    pass; b < 0: the world, at rest)."""
+    if b < 0:
+        return wp.vec3(), wp.vec3()
+    r = x - w.centre[world, b]
+    om = w.omega[world, b]
+    return w.vel[world, b] + wp.cross(om, r), w.acc[world, b] + wp.cross(w.alpha[world, b], r) + wp.cross(
+        om, wp.cross(om, r))
+
+
+@wp.func
+def loop_row_bias(m: ChainArrays, w: ChainWork, world: int, r: int, inline: int):
+    """Kept row r's velocity-product term: d/dt (G_r(q) u) at fixed rates, from kinematics' DYNAMICS
+    pass (its rates). Moreau-Jean asks G_r(q_mid) u+ = -dt/2 of it, so that u+ is tangent to the
+    loops where the step ends (G_r(q+) u+ = 0 to second order) instead of at the midpoint. Position
+    rows d . (v_b(x_b) - v_a(x_a)) with d turning with body a; angular rows d . (w_b - w_a); an
+    inline loop's rows take both bodies at its second anchor (loop_rows_of), which moves with b."""
+    li = m.row_loop[world, r]
+    part = m.row_part[world, r]
+    d = w.dirs[world, 6 * li + part]
+    a = m.loop_body[world, li, 0]
+    b = m.loop_body[world, li, 1]
+    wa = wp.vec3()
+    wb = wp.vec3()
+    alpha_a = wp.vec3()
+    alpha_b = wp.vec3()
+    if a >= 0:
+        wa = w.omega[world, a]
+        alpha_a = w.alpha[world, a]
+    if b >= 0:
+        wb = w.omega[world, b]
+        alpha_b = w.alpha[world, b]
+    turn = wp.cross(wa, d)  # d's rate
+    if part >= 3:
+        return wp.dot(turn, wb - wa) + wp.dot(d, alpha_b - alpha_a)
+    xb = w.ends[world, 2 * li + 1]
+    xa = w.ends[world, 2 * li]
+    twice = float(1.0)
+    if inline != 0:
+        if m.loop_inline[world, li] != 0:  # body a's velocity at x_b, which moves with body b: w_a x (v_b - v_a) more
+            xa = xb
+            twice = 2.0
+    vb, acc_b = point_motion(w, world, b, xb)
+    va, acc_a = point_motion(w, world, a, xa)
+    return twice * wp.dot(turn, vb - va) + wp.dot(d, acc_b - acc_a)
 
 
 @wp.func
