@@ -129,52 +129,34 @@ def row_operators(m: ModelArrays, w: WorkArrays, body_q: wp.array2d(dtype=wp.tra
 
 
 @wp.func
-def delassus_entry(world: int, i: int, j: int, row_body_p: wp.array2d(dtype=wp.int32),
-                   row_body_c: wp.array2d(dtype=wp.int32), row_J_c: wp.array2d(dtype=wp.spatial_vector),
-                   row_J_p: wp.array2d(dtype=wp.spatial_vector), row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
-                   row_MJ_p: wp.array2d(dtype=wp.spatial_vector), row_compliance: wp.array2d(dtype=float),
-                   row_precond: wp.array2d(dtype=float)):
+def delassus_entry(world: int, i: int, j: int, w: WorkArrays):
     """Entry (i, j) of P (J M^-1 J^T + R) P for two rows of a world (the sparse solver's matrix
     follows engine.linalg.sparse_analysis.matrix_recipe instead)."""
-    ci = row_body_c[world, i]
-    pi = row_body_p[world, i]
-    cj = row_body_c[world, j]
-    pj = row_body_p[world, j]
-    Jci = row_J_c[world, i]
-    Jpi = row_J_p[world, i]
-    d = body_term(ci, Jci, cj, row_MJ_c[world, j]) + body_term(ci, Jci, pj, row_MJ_p[world, j])
-    d += body_term(pi, Jpi, cj, row_MJ_c[world, j]) + body_term(pi, Jpi, pj, row_MJ_p[world, j])
+    ci = w.row_body_c[world, i]
+    pi = w.row_body_p[world, i]
+    cj = w.row_body_c[world, j]
+    pj = w.row_body_p[world, j]
+    Jci = w.row_J_c[world, i]
+    Jpi = w.row_J_p[world, i]
+    d = body_term(ci, Jci, cj, w.row_MJ_c[world, j]) + body_term(ci, Jci, pj, w.row_MJ_p[world, j])
+    d += body_term(pi, Jpi, cj, w.row_MJ_c[world, j]) + body_term(pi, Jpi, pj, w.row_MJ_p[world, j])
     if i == j:
-        d += row_compliance[world, i]
-    return row_precond[world, i] * d * row_precond[world, j]
+        d += w.row_compliance[world, i]
+    return w.row_precond[world, i] * d * w.row_precond[world, j]
 
 
 @wp.kernel
-def delassus(
-    # in
-    row_count: wp.array(dtype=wp.int32),
-    row_body_p: wp.array2d(dtype=wp.int32),
-    row_body_c: wp.array2d(dtype=wp.int32),
-    row_J_c: wp.array2d(dtype=wp.spatial_vector),
-    row_J_p: wp.array2d(dtype=wp.spatial_vector),
-    row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
-    row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
-    row_compliance: wp.array2d(dtype=float),
-    row_precond: wp.array2d(dtype=float),
-    # out
-    delassus_out: wp.array3d(dtype=float),
-):
+def delassus(w: WorkArrays, delassus_out: wp.array3d(dtype=float)):
     """Preconditioned Delassus matrix P (J M^-1 J^T + R) P; identity on padded rows."""
     world, i, j = wp.tid()
-    n = row_count[world]
+    n = w.row_count[world]
     if i >= n or j >= n:
         value = 0.0
         if i == j:
             value = 1.0
         delassus_out[world, i, j] = value
         return
-    delassus_out[world, i, j] = delassus_entry(world, i, j, row_body_p, row_body_c, row_J_c, row_J_p, row_MJ_c,
-                                               row_MJ_p, row_compliance, row_precond)
+    delassus_out[world, i, j] = delassus_entry(world, i, j, w)
 
 
 def build_dual_problem(model, body_q, body_qd, body_qd_low, body_f, body_qd_low_out,
@@ -194,10 +176,7 @@ def build_dual_problem(model, body_q, body_qd, body_qd_low, body_f, body_qd_low_
         sparse.roots(model, body_q)
     if model.linear_solver != "dense":
         return  # the sparse factor (engine.linalg.sparse) builds its matrix from row_J and row_MJ
-    wp.launch(delassus, dim=(W, model.max_rows, model.max_rows), device=device,
-              inputs=[work.row_count, work.row_body_p, work.row_body_c, work.row_J_c, work.row_J_p,
-                      work.row_MJ_c, work.row_MJ_p, work.row_compliance, work.row_precond],
-              outputs=[work.delassus])
+    wp.launch(delassus, dim=(W, model.max_rows, model.max_rows), device=device, inputs=[w, work.delassus])
 
 
 __all__ = ["build_dual_problem"]

@@ -47,58 +47,42 @@ def add_row_share(total: wp.spatial_vector, world: int, b: int, i: int, row_body
 
 
 @wp.func
-def row_sum_listed(world: int, b: int, n: int, contact_row_start: wp.array(dtype=wp.int32),
-                   body_row_begin: wp.array2d(dtype=wp.int32), body_row_end: wp.array2d(dtype=wp.int32),
-                   body_row: wp.array2d(dtype=wp.int32), row_body_c: wp.array2d(dtype=wp.int32),
-                   row_body_p: wp.array2d(dtype=wp.int32), row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
-                   row_MJ_p: wp.array2d(dtype=wp.spatial_vector), weight: wp.array2d(dtype=float),
-                   row_precond: wp.array2d(dtype=float), scale_by_precond: int):
-    """sum over rows touching body b of (M^-1 J^T)_b * weight (times P when asked), in row order:
-    the body's joint, drive and limit rows through its list (engine.pack.body_row_lists), then this
-    step's contact rows by a scan (a scan of every row per body costs O(bodies x rows) loads)."""
+def row_sum_listed(world: int, b: int, m: ModelArrays, w: WorkArrays, weight: wp.array2d(dtype=float),
+                   scale_by_precond: int):
+    """sum over this step's rows touching body b of (M^-1 J^T)_b * weight (times P when asked), in
+    row order: the body's joint, drive and limit rows through its list (engine.pack.body_row_lists),
+    then the contact rows by a scan (a scan of every row per body costs O(bodies x rows) loads)."""
     total = wp.spatial_vector()
-    for k in range(body_row_begin[world, b], body_row_end[world, b]):
-        code = body_row[world, k]
+    for k in range(m.body_row_begin[world, b], m.body_row_end[world, b]):
+        code = m.body_row[world, k]
         i = code >> 1
         s = weight[world, i]
         if scale_by_precond != 0:
-            s = s * row_precond[world, i]
+            s = s * w.row_precond[world, i]
         if (code & 1) == 0:
-            total += s * row_MJ_c[world, i]
+            total += s * w.row_MJ_c[world, i]
         else:
-            total += s * row_MJ_p[world, i]
-    for i in range(contact_row_start[world], n):
-        total = add_row_share(total, world, b, i, row_body_c, row_body_p, row_MJ_c, row_MJ_p, weight, row_precond,
-                              scale_by_precond)
+            total += s * w.row_MJ_p[world, i]
+    for i in range(m.contact_row_start[world], w.row_count[world]):
+        total = add_row_share(total, world, b, i, w.row_body_c, w.row_body_p, w.row_MJ_c, w.row_MJ_p, weight,
+                              w.row_precond, scale_by_precond)
     return total
 
 
 @wp.kernel
-def apply_impulses(body_count: wp.array(dtype=wp.int32), row_count: wp.array(dtype=wp.int32),
-                   contact_row_start: wp.array(dtype=wp.int32), body_row_begin: wp.array2d(dtype=wp.int32),
-                   body_row_end: wp.array2d(dtype=wp.int32), body_row: wp.array2d(dtype=wp.int32),
-                   row_body_c: wp.array2d(dtype=wp.int32), row_body_p: wp.array2d(dtype=wp.int32),
-                   world_dt: wp.array(dtype=float), row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
-                   row_MJ_p: wp.array2d(dtype=wp.spatial_vector), row_lambda: wp.array2d(dtype=float),
-                   row_precond: wp.array2d(dtype=float), body_qd_free: wp.array2d(dtype=wp.spatial_vector),
-                   compensated: int, body_q: wp.array2d(dtype=wp.transform),
-                   body_q_low_in: wp.array2d(dtype=wp.transform),
-                   # out
+def apply_impulses(m: ModelArrays, w: WorkArrays, row_lambda: wp.array2d(dtype=float), compensated: int,
+                   body_q: wp.array2d(dtype=wp.transform), body_q_low_in: wp.array2d(dtype=wp.transform),
                    body_qd_out: wp.array2d(dtype=wp.spatial_vector), body_q_out: wp.array2d(dtype=wp.transform),
-                   body_q_low_out: wp.array2d(dtype=wp.transform),
-                   # in/out
-                   body_qd_low: wp.array2d(dtype=wp.spatial_vector)):
-    """u+ = u_free + M^-1 J^T lambda (add_impulse_of), then a whole pose step from body_q with u+
-    (advance_pose_of): one pass over the bodies instead of two. Takes bare arrays, so that a test
-    can feed its own impulses and free twists."""
+                   body_q_low_out: wp.array2d(dtype=wp.transform), body_qd_low: wp.array2d(dtype=wp.spatial_vector)):
+    """u+ = w.body_qd_free + M^-1 J^T lambda (add_impulse_of), then a whole pose step from body_q
+    with u+ (advance_pose_of): one pass over the bodies instead of two. body_qd_low: in, the free
+    twists' low parts; out, the new twists'."""
     world, b = wp.tid()
-    if b >= body_count[world]:
+    if b >= m.body_count[world]:
         return
-    add_impulse_of(world, b, row_sum_listed(world, b, row_count[world], contact_row_start, body_row_begin,
-                                            body_row_end, body_row, row_body_c, row_body_p, row_MJ_c, row_MJ_p,
-                                            row_lambda, row_precond, 0),
-                   body_qd_free, compensated, body_qd_out, body_qd_low)
-    advance_pose_of(world, b, world_dt, body_q, body_q_low_in, body_qd_out, compensated, body_q_out, body_q_low_out)
+    add_impulse_of(world, b, row_sum_listed(world, b, m, w, row_lambda, 0), w.body_qd_free, compensated, body_qd_out,
+                   body_qd_low)
+    advance_pose_of(world, b, m.world_dt, body_q, body_q_low_in, body_qd_out, compensated, body_q_out, body_q_low_out)
 
 
 @wp.func
@@ -273,37 +257,35 @@ def apply_projection(m: ModelArrays, w: WorkArrays, velocity_update: int, record
     world, b = wp.tid()
     if b >= m.body_count[world] or w.projection_mask[world] == 0:
         return
-    dx = row_sum_listed(world, b, w.row_count[world], m.contact_row_start, m.body_row_begin, m.body_row_end,
-                        m.body_row, w.row_body_c, w.row_body_p, w.row_MJ_c, w.row_MJ_p, w.delta, w.row_precond, 1)
+    dx = row_sum_listed(world, b, m, w, w.delta, 1)
     move_body_of(world, b, dx, m.world_dt, velocity_update * w.projection_gate[world], record_offset, compensated,
                  body_q, body_qd, body_q_offset, body_q_low, body_qd_low)
 
 
 @wp.func
-def projection_gates(world: int, lane: int, stride: int, row_count: wp.array(dtype=wp.int32),
-                     row_kind: wp.array2d(dtype=wp.int32), row_residual: wp.array2d(dtype=float),
-                     project: wp.array(dtype=wp.int32), floor: float, skip_floor: float, skip_floor_angular: float):
-    """A world's gate and mask from its largest bilateral joint errors (the thread block's rows
-    spread over its threads; every thread must call it, and every thread gets both): gate 1 where
-    the largest error exceeds floor (the projection iteration may update the velocities), else 0
-    (the correction is mostly rounding); mask ``project[world]`` where the largest linear error
-    exceeds skip_floor or the largest angular one skip_floor_angular, else 0 (the iteration is
-    skipped). Drive, limit, contact and padded rows do not count."""
-    n = row_count[world]
+def projection_gates(world: int, lane: int, stride: int, m: ModelArrays, w: WorkArrays, floor: float,
+                     skip_floor: float, skip_floor_angular: float):
+    """A world's gate and mask from its largest bilateral joint errors (w.row_residual; the thread
+    block's rows spread over its threads; every thread must call it, and every thread gets both):
+    gate 1 where the largest error exceeds floor (the projection iteration may update the
+    velocities), else 0 (the correction is mostly rounding); mask ``w.project[world]`` where the
+    largest linear error exceeds skip_floor or the largest angular one skip_floor_angular, else 0
+    (the iteration is skipped). Drive, limit, contact and padded rows do not count."""
+    n = w.row_count[world]
     error_linear = float(0.0)
     error_angular = float(0.0)
     for k in range((n + stride - 1) // stride):
         i = lane + k * stride
         if i < n:
-            kind = row_kind[world, i]
+            kind = m.row_kind[world, i]
             if kind == ROW_LINEAR:
-                error_linear = wp.max(error_linear, wp.abs(row_residual[world, i]))
+                error_linear = wp.max(error_linear, wp.abs(w.row_residual[world, i]))
             elif kind == ROW_ANGULAR:
-                error_angular = wp.max(error_angular, wp.abs(row_residual[world, i]))
+                error_angular = wp.max(error_angular, wp.abs(w.row_residual[world, i]))
     error_linear = block_max(error_linear)
     error_angular = block_max(error_angular)
     opened = wp.where(wp.max(error_linear, error_angular) > floor, 1, 0)
-    move = wp.where(error_linear > skip_floor or error_angular > skip_floor_angular, project[world], 0)
+    move = wp.where(error_linear > skip_floor or error_angular > skip_floor_angular, w.project[world], 0)
     return opened, move
 
 
@@ -325,8 +307,7 @@ def projection_pass(m: ModelArrays, w: WorkArrays, body_q: wp.array2d(dtype=wp.t
         if j < nj:
             joint_residuals_of(world, j, -1, m, body_q, body_q_low, exact, w.row_residual)
     block_sync()
-    opened, move = projection_gates(world, lane, stride, w.row_count, m.row_kind, w.row_residual, w.project, floor,
-                                    skip_floor, skip_floor_angular)
+    opened, move = projection_gates(world, lane, stride, m, w, floor, skip_floor, skip_floor_angular)
     if lane == 0:
         w.projection_gate[world] = opened
         w.projection_mask[world] = move
@@ -415,14 +396,13 @@ def guard_divergence(m: ModelArrays, w: WorkArrays, max_speed: float, body_q_in:
 
 
 @wp.kernel
-def bilateral_block(row_kind: wp.array2d(dtype=wp.int32), row_count: wp.array(dtype=wp.int32),
-                    delassus: wp.array3d(dtype=float)):
+def bilateral_block(m: ModelArrays, w: WorkArrays, delassus: wp.array3d(dtype=float)):
     """Keep the bilateral joint block of P D P; other rows and columns become the identity."""
     world, i, j = wp.tid()
-    ki = row_kind[world, i]
-    kj = row_kind[world, j]
-    keep_i = i < row_count[world] and (ki == ROW_LINEAR or ki == ROW_ANGULAR)
-    keep_j = j < row_count[world] and (kj == ROW_LINEAR or kj == ROW_ANGULAR)
+    ki = m.row_kind[world, i]
+    kj = m.row_kind[world, j]
+    keep_i = i < w.row_count[world] and (ki == ROW_LINEAR or ki == ROW_ANGULAR)
+    keep_j = j < w.row_count[world] and (kj == ROW_LINEAR or kj == ROW_ANGULAR)
     if not (keep_i and keep_j):
         value = 0.0
         if i == j:
@@ -488,7 +468,7 @@ def project_positions(model, body_q, body_qd, *, iterations=None,
         # now: the next step rebuilds both, and the projection's own system may share their buffers).
         if dense_solver and model.has_unilateral_or_drive_rows:
             wp.launch(bilateral_block, dim=(model.num_worlds, model.max_rows, model.max_rows), device=device,
-                      inputs=[model.row_kind, work.row_count, work.delassus])
+                      inputs=[m, w, work.delassus])
         if model.has_unilateral_or_drive_rows:  # a factor of the projection's own
             wp.launch(projection_shift, dim=(model.num_worlds, model.max_rows), device=device, inputs=[m, w])
         # else the PADMM's factor serves: engine.padmm.padmm_start set the worlds to project, and every

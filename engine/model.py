@@ -165,6 +165,7 @@ class WorkArrays:
     violation_linear: wp.array(dtype=float)
     violation_angular: wp.array(dtype=float)
     energy: wp.array(dtype=float)
+    sparse_root: wp.array2d(dtype=wp.mat33)  # the sparse solver's alone (set by engine.pack)
 
 
 @wp.struct

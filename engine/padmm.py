@@ -233,41 +233,22 @@ def row_residuals(world: int, i: int, eta: float, rho: float, rho_free: float, m
 
 
 @wp.func
-def padmm_decide(
-    world: int,
-    r_p: float,
-    r_d: float,
-    r_c: float,
-    r_b: float,
-    scale: float,
-    change: float,
-    max_iterations: int,
-    relative_tolerance: float,
-    rho_update_interval: int,
-    adaptive_rho: int,
-    acceleration: int,
-    padmm_tolerance: wp.array(dtype=float),
-    rho: wp.array(dtype=float),
-    active: wp.array(dtype=wp.int32),
-    converged: wp.array(dtype=wp.int32),
-    iterations: wp.array(dtype=wp.int32),
-    momentum: wp.array(dtype=float),
-    momentum_beta: wp.array(dtype=float),
-    merit: wp.array(dtype=float),
-    needs_factor: wp.array(dtype=wp.int32),
-    residual_primal: wp.array(dtype=float),
-    residual_dual: wp.array(dtype=float),
-    residual_complementarity: wp.array(dtype=float),
-    demote: wp.array(dtype=wp.int32),
-    stall_ratio: float,
-    stall_reference: wp.array(dtype=float),
-):
+def padmm_decide(world: int, r_p: float, r_d: float, r_c: float, r_b: float, scale: float, change: float,
+                 max_iterations: int, relative_tolerance: float, rho_update_interval: int, adaptive_rho: int,
+                 acceleration: int, padmm_tolerance: wp.array(dtype=float), rho: wp.array(dtype=float),
+                 active: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
+                 iterations: wp.array(dtype=wp.int32), momentum: wp.array(dtype=float),
+                 momentum_beta: wp.array(dtype=float), merit: wp.array(dtype=float),
+                 needs_factor: wp.array(dtype=wp.int32), residual_primal: wp.array(dtype=float),
+                 residual_dual: wp.array(dtype=float), residual_complementarity: wp.array(dtype=float),
+                 demote: wp.array(dtype=wp.int32), stall_ratio: float, stall_reference: wp.array(dtype=float)):
     """End of a PADMM iteration of one world from its residuals: count it, stop (returns 1) when
     converged, capped or stalled (stall_ratio > 0: the largest residual not below stall_ratio times
     its value STALL_WINDOW iterations earlier, kept in stall_reference), else set the momentum for
     padmm_accelerate_of and update the penalty from r_p against r_b, the dual residual of the rows
     whose penalty it sets (row_residuals; zero where all rows are free: no update), and at the same
-    iterations give the world's penalty to drive rows that met their bounds."""
+    iterations give the world's penalty to drive rows that met their bounds (the arrays: WorkArrays'
+    and ModelArrays' of the same names)."""
     r = rho[world]
     its = iterations[world] + 1
     iterations[world] = its

@@ -172,11 +172,8 @@ def step(model: Model, state_in: State, state_out: State, control: Control | Non
     # u+, then a whole step from the configuration of the dynamics (compensated where configured): the next
     # step's (Moreau-Jean: the next midpoint), projected onto the joints with SHAKE's velocity update
     wp.launch(apply_impulses, dim=bodies, device=device,
-              inputs=[model.body_count, work.row_count, model.contact_row_start, model.body_row_begin,
-                      model.body_row_end, model.body_row, work.row_body_c, work.row_body_p, model.world_dt,
-                      work.row_MJ_c, work.row_MJ_p, state_out.row_lambda, work.row_precond, work.body_qd_free,
-                      compensated, body_q, body_q_low],
-              outputs=[state_out.body_qd, state_out.body_q, state_out.body_q_low, state_out.body_qd_low])
+              inputs=[m, w, state_out.row_lambda, compensated, body_q, body_q_low, state_out.body_qd, state_out.body_q,
+                      state_out.body_q_low, state_out.body_qd_low])
     mark("integrate")
     project_positions(model, state_out.body_q, state_out.body_qd,
                       body_q_low=state_out.body_q_low, body_qd_low=state_out.body_qd_low)

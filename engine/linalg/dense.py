@@ -71,7 +71,6 @@ def factor(matrix, shift, mask, factor_out):
     (W,), (W, R, R))."""
     size = matrix.shape[1]
     wp.launch_tiled(cholesky_factor_kernel(size), dim=[matrix.shape[0]], inputs=[matrix, shift, mask],
-
                     outputs=[factor_out], block_dim=BLOCK_DIM, device=matrix.device)
 
 

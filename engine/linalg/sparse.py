@@ -12,16 +12,14 @@ block, in parallel, then a lane per block substitutes the block's triangle. The 
 vector in shared memory; the factor stays in global memory.
 
 Both kernels are bound by the latency of their chain of dependent steps and by their issued
-instructions, so: the sums load four products per pass; a position carries its row's and column's
-ranges in one record; the forward substitution reads a row-major copy of the factor
-(SparseSystem.L_rows) and multiplies by the reciprocal diagonal (SparseSystem.L_inv); with enough
-worlds of one topology a block of 32 worlds shares the solve's schedule in shared memory
-(shared_solve_kernel); the inner sums are native code on raw addresses (entry_products,
-substitute_level, factor_level_blocks); an entry's value is loaded before its sum, and the lanes
-take a level's entries in order of their number of products. The matrix build stages a world's
-rows in shared memory (staged_matrix_kernel). Per step: roots (body nodes), prepare (the row map
-and the matrix), factor and solve. The measurements behind each choice:
-benchmarks/results/README.md, "Maximal path: design notes".
+instructions: the inner sums are native code on raw addresses that load four products per pass
+(entry_products, substitute_level, factor_level_blocks); the forward substitution reads a
+row-major copy of the factor (SparseSystem.L_rows) and multiplies by the reciprocal diagonal
+(SparseSystem.L_inv); with enough worlds of one topology a block of 32 worlds shares the solve's
+schedule in shared memory (shared_solve_kernel). The matrix build stages a world's rows in shared
+memory (staged_matrix_kernel). Per step: roots (body nodes), prepare (the row map and the matrix),
+factor and solve. The kernels take the system's buffers as one SystemArrays argument. The
+measurements behind each choice: benchmarks/results/README.md, "Maximal path: design notes".
 """
 
 import functools
@@ -45,24 +43,25 @@ from engine.linalg.sparse_analysis import (
     TOGETHER_BIT,
     SparsePatterns,
     SparseSystem,
+    SystemArrays,
 )
-from engine.model import ROW_ANGULAR, ROW_LINEAR
+from engine.model import ROW_ANGULAR, ROW_LINEAR, ModelArrays, WorkArrays
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
 __all__ = ["factor", "matrix", "matrix_block", "prepare", "roots", "shared_solve_kernel", "solve", "sparse_block",
-           "sparse_factor", "sparse_matrix", "staged_matrix_kernel"]
-
+           "sparse_factor", "sparse_matrix", "staged_matrix_kernel", "vector_size"]
 
 # Register cap per thread of the factor and solve kernels: at most 64 lets 32 one-warp blocks (the
-# hardware's limit) stay on each multiprocessor (measured against other caps: benchmarks/results/README.md).
+# hardware's limit) stay on each multiprocessor.
 SPARSE_REGISTERS = 64
 VECTOR_STEP = 64  # shared tiles are sized in steps of this many elements (one kernel per size)
+MATRIX_BLOCK = 256  # threads per world (a block) of the matrix build on a GPU
 
 
-# Threads per world of the matrix build on a GPU (a block per world; against a thread per entry and
-# other block sizes: benchmarks/results/README.md).
-MATRIX_BLOCK = 256
+def vector_size(system: SparseSystem) -> int:
+    """Elements of a world's shared vector or stage: its positions rounded up to VECTOR_STEP."""
+    return -(-system.nodes // VECTOR_STEP) * VECTOR_STEP
 
 
 def matrix_block(device) -> int:
@@ -99,22 +98,21 @@ def map_contact_rows(contact_row_start: wp.array(dtype=wp.int32), contact_count:
 
 
 @wp.func
-def _node_row(pat: SparsePatterns, p: int, pos: int, world: int, real: wp.array2d(dtype=wp.int32)):
+def _node_row(pat: SparsePatterns, s: SystemArrays, p: int, pos: int, world: int):
     """This step's row of the factor's position pos (-1: unused, a body node or padding)."""
     r = pat.perm[p, pos]
     if r < 0:
         return -1
-    return real[world, r]
+    return s.real[world, r]
 
 
 @wp.func
-def _used(world: int, i: int, n: int, bilateral_only: int, row_kind: wp.array2d(dtype=wp.int32)):
+def _bilateral(world: int, i: int, n: int, row_kind: wp.array2d(dtype=wp.int32)):
+    """Whether row i (-1: none) is a bilateral joint row in use this step (n rows)."""
     if i < 0 or i >= n:
         return False
-    if bilateral_only != 0:
-        kind = row_kind[world, i]
-        return kind == ROW_LINEAR or kind == ROW_ANGULAR
-    return True
+    kind = row_kind[world, i]
+    return kind == ROW_LINEAR or kind == ROW_ANGULAR
 
 
 @wp.func
@@ -123,11 +121,10 @@ def group_width(mode: int, phase: int, lanes: int):
     return wp.min(1 << ((mode >> (PHASE_BITS * phase)) & 7), lanes)
 
 
-# Raw addresses and the inner sums of the factor and the solves in native code. Warp's array
-# indexing wraps negative indices and scales each index by the array's runtime stride in 64 bits
-# (about eight integer instructions per load); both kernels are bound by their issued
-# instructions, and these sums are most of them. The arrays passed are contiguous (allocated by
-# engine.linalg.sparse_analysis.make_system and build_patterns).
+# Raw addresses and the inner sums of the factor and the solves in native code: Warp's array
+# indexing wraps negative indices and scales each index by the array's runtime stride, and these
+# sums are most of the kernels' issued instructions. The arrays passed are contiguous (allocated
+# by engine.linalg.sparse_analysis.make_system and build_patterns).
 @functools.cache
 def _row_address(dtype):
     """Address of a row of a 2-d array of one type."""
@@ -404,13 +401,8 @@ def factor_level_blocks(schedule: wp.uint64, blob_diag: int, blob_block: int, bl
 
 
 @wp.kernel
-def body_roots(
-    body_count: wp.array(dtype=wp.int32),
-    body_inv_inertia: wp.array2d(dtype=wp.mat33),
-    body_q: wp.array2d(dtype=wp.transform),
-    # out
-    root: wp.array2d(dtype=wp.mat33),
-):
+def body_roots(body_count: wp.array(dtype=wp.int32), body_inv_inertia: wp.array2d(dtype=wp.mat33),
+               body_q: wp.array2d(dtype=wp.transform), root: wp.array2d(dtype=wp.mat33)):
     """R_q C with C C^T the body-frame inverse inertia (Cholesky; zero columns where it is
     singular): a square root of the world-frame inverse inertia, for the body nodes."""
     world, b = wp.tid()
@@ -433,13 +425,13 @@ def body_roots(
 
 
 @wp.func
-def _matrix_entry(pat: SparsePatterns, p: int, eb: int, e: int, world: int,
+def _matrix_entry(pat: SparsePatterns, s: SystemArrays, p: int, eb: int, e: int, world: int,
                   row_J_c: wp.array2d(dtype=wp.spatial_vector), row_J_p: wp.array2d(dtype=wp.spatial_vector),
                   row_MJ_c: wp.array2d(dtype=wp.spatial_vector), row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
                   row_compliance: wp.array2d(dtype=float), row_precond: wp.array2d(dtype=float),
-                  body_inv_mass: wp.array2d(dtype=float), root: wp.array2d(dtype=wp.mat33),
-                  real: wp.array2d(dtype=wp.int32)):
-    """Entry e of a world's matrix on the factor's pattern, following its matrix_recipe."""
+                  body_inv_mass: wp.array2d(dtype=float), root: wp.array2d(dtype=wp.mat33)):
+    """Entry e of a world's matrix on the factor's pattern, following its matrix_recipe (the rows'
+    and bodies' arrays: WorkArrays' and ModelArrays' of the same names, root: WorkArrays.sparse_root)."""
     code = pat.entry_recipe[eb + e]
     kind = code & 3
     value = float(0.0)
@@ -448,8 +440,8 @@ def _matrix_entry(pat: SparsePatterns, p: int, eb: int, e: int, world: int,
     elif kind == RECIPE_ROWS:
         pi = pat.entry_i[eb + e]
         pj = pat.entry_j[eb + e]
-        i = _node_row(pat, p, pi, world, real)
-        j = _node_row(pat, p, pj, world, real)
+        i = _node_row(pat, s, p, pi, world)
+        j = _node_row(pat, s, p, pj, world)
         if i >= 0 and j >= 0:  # both rows in use this step
             d = float(0.0)
             if code & 4 != 0:
@@ -469,7 +461,7 @@ def _matrix_entry(pat: SparsePatterns, p: int, eb: int, e: int, world: int,
         position = pat.entry_i[eb + e]
         if code & 4 != 0:
             position = pat.entry_j[eb + e]
-        i = _node_row(pat, p, position, world, real)
+        i = _node_row(pat, s, p, position, world)
         if i >= 0:
             J = row_J_c[world, i]
             if code & 8 != 0:
@@ -486,27 +478,13 @@ def _matrix_entry(pat: SparsePatterns, p: int, eb: int, e: int, world: int,
 
 
 @wp.kernel
-def sparse_matrix(
-    pat: SparsePatterns,
-    row_J_c: wp.array2d(dtype=wp.spatial_vector),
-    row_J_p: wp.array2d(dtype=wp.spatial_vector),
-    row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
-    row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
-    row_compliance: wp.array2d(dtype=float),
-    row_precond: wp.array2d(dtype=float),
-    body_inv_mass: wp.array2d(dtype=float),
-    root: wp.array2d(dtype=wp.mat33),
-    real: wp.array2d(dtype=wp.int32),
-    # out
-    A: wp.array2d(dtype=float),
-):
-    """This step's matrix on the factor's pattern (once per step; every factor of the step starts
-    from it): P D P between rows (without the body nodes' share), U between rows and body nodes,
-    -I on body nodes; zero off the matrix's own pattern, the identity on unused rows and padding.
-    Each entry follows its matrix_recipe: only the Jacobians of the bodies its rows share are
-    loaded. One thread block per world (matrix_block threads), so that a world's Jacobians are
-    loaded into one multiprocessor's cache: with a thread per entry, a world's entries went to
-    blocks on many multiprocessors, each of which loaded all its rows."""
+def sparse_matrix(pat: SparsePatterns, s: SystemArrays, m: ModelArrays, w: WorkArrays):
+    """This step's matrix on the factor's pattern into s.A (once per step; every factor of the step
+    starts from it): P D P between rows (without the body nodes' share), U between rows and body
+    nodes, -I on body nodes; zero off the matrix's own pattern, the identity on unused rows and
+    padding. Each entry follows its matrix_recipe: only the Jacobians of the bodies its rows share
+    are loaded. One thread block per world (matrix_block threads), so that a world's Jacobians are
+    loaded into one multiprocessor's cache."""
     world, lane = wp.tid()
     lanes = wp.block_dim()
     p = pat.world_pattern[world]
@@ -514,15 +492,15 @@ def sparse_matrix(
     entries = pat.entry_base[p + 1] - eb
     e = lane
     while e < entries:
-        A[world, e] = _matrix_entry(pat, p, eb, e, world, row_J_c, row_J_p, row_MJ_c, row_MJ_p, row_compliance,
-                                    row_precond, body_inv_mass, root, real)
+        s.A[world, e] = _matrix_entry(pat, s, p, eb, e, world, w.row_J_c, w.row_J_p, w.row_MJ_c, w.row_MJ_p,
+                                      w.row_compliance, w.row_precond, m.body_inv_mass, w.sparse_root)
         e += lanes
 
 
 # The matrix build with the rows staged in shared memory (staged_matrix_kernel): per position of the
 # factor STAGE_FLOATS floats, component by component (structure of arrays): J_c, J_p, M^-1 J_c,
 # M^-1 J_p scaled by the row's preconditioner (24), the diagonal's compliance term, 1 where the
-# position stands for a row this step (staged against sparse_matrix: benchmarks/results/README.md).
+# position stands for a row this step.
 STAGE_FLOATS = 26
 STAGE_MATRIX = True  # the staged build where it fits (False: sparse_matrix always; read at each build)
 STAGE_BYTES = 64 * 1024  # larger stages keep sparse_matrix
@@ -566,29 +544,18 @@ def staged_matrix_kernel(size: int):
     stage_address = _tile_address(staged, float)
 
     @wp.kernel(enable_backward=False, module="unique")
-    def sparse_matrix_staged(
-        pat: SparsePatterns,
-        row_J_c: wp.array2d(dtype=wp.spatial_vector),
-        row_J_p: wp.array2d(dtype=wp.spatial_vector),
-        row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
-        row_MJ_p: wp.array2d(dtype=wp.spatial_vector),
-        row_compliance: wp.array2d(dtype=float),
-        row_precond: wp.array2d(dtype=float),
-        body_inv_mass: wp.array2d(dtype=float),
-        root: wp.array2d(dtype=wp.mat33),
-        real: wp.array2d(dtype=wp.int32),
-        # out
-        A: wp.array2d(dtype=float),
-    ):
-        """This step's matrix on the factor's pattern, as sparse_matrix, from rows staged in
-        shared memory."""
+    def sparse_matrix_staged(pat: SparsePatterns, s: SystemArrays, m: ModelArrays, w: WorkArrays):
+        """This step's matrix on the factor's pattern into s.A, as sparse_matrix, from rows staged
+        in shared memory."""
         world, lane = wp.tid()
         lanes = wp.block_dim()
         stage = wp.tile_zeros(shape=staged, dtype=float, storage="shared")
         p = pat.world_pattern[world]
+        row_J_c, row_J_p, row_MJ_c, row_MJ_p = w.row_J_c, w.row_J_p, w.row_MJ_c, w.row_MJ_p
+        row_compliance, row_precond = w.row_compliance, w.row_precond
         k = lane
         while k < pat.perm.shape[1]:
-            r = _node_row(pat, p, k, world, real)
+            r = _node_row(pat, s, p, k, world)
             if r >= 0:
                 scale = row_precond[world, r]
                 Jc = row_J_c[world, r] * scale
@@ -614,40 +581,27 @@ def staged_matrix_kernel(size: int):
             if code & 3 == RECIPE_ROWS:
                 value = staged_rows_entry(at, size, code, pat.entry_i[eb + e], pat.entry_j[eb + e])
             elif code & 3 != RECIPE_ZERO:
-                value = _matrix_entry(pat, p, eb, e, world, row_J_c, row_J_p, row_MJ_c, row_MJ_p, row_compliance,
-                                      row_precond, body_inv_mass, root, real)
-            A[world, e] = value
+                value = _matrix_entry(pat, s, p, eb, e, world, row_J_c, row_J_p, row_MJ_c, row_MJ_p, row_compliance,
+                                      row_precond, m.body_inv_mass, w.sparse_root)
+            s.A[world, e] = value
             e += lanes
 
     return sparse_matrix_staged
 
 
 @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=SPARSE_REGISTERS)
-def sparse_factor(
-    pat: SparsePatterns,
-    mask: wp.array(dtype=wp.int32),
-    shift: wp.array2d(dtype=float),
-    bilateral_only: int,
-    row_count: wp.array(dtype=wp.int32),
-    row_kind: wp.array2d(dtype=wp.int32),
-    real: wp.array2d(dtype=wp.int32),
-    A: wp.array2d(dtype=float),
-    # out
-    L: wp.array2d(dtype=float),
-    L_rows: wp.array2d(dtype=float),
-    L_inv: wp.array2d(dtype=float),
-):
-    """L S L^T = A + diag(shift) for worlds with mask != 0 (shift per row of this step; rows of the
-    pattern that stand for no row get shift[world, 0], body nodes none), A from sparse_matrix
-    (with bilateral_only: its bilateral joint block and the body nodes, the identity elsewhere).
-    S is -1 on body nodes, +1 elsewhere; a diagonal entry holds s_j L_jj. Level of supernode
-    blocks by level (factor_blocks): the products with earlier blocks, then the blocks' triangles
-    and the rows below them (factor_level_blocks). Then L_rows: the entries
-    left of each diagonal row by row (in row_entry's order), so that the forward substitution reads
-    them without an index load in between, and L_inv: 1 / |L_jj| by position, so that a
-    substitution multiplies instead of dividing. The factor stays in global memory:
-    keeping it in shared memory while it is computed was slower, as fewer worlds then fit on each
-    multiprocessor at once (benchmarks/results/README.md)."""
+def sparse_factor(pat: SparsePatterns, s: SystemArrays, mask: wp.array(dtype=wp.int32),
+                  shift: wp.array2d(dtype=float), bilateral_only: int, row_count: wp.array(dtype=wp.int32),
+                  row_kind: wp.array2d(dtype=wp.int32)):
+    """L S L^T = A + diag(shift) into s.L for worlds with mask != 0 (shift per row of this step;
+    rows of the pattern that stand for no row get shift[world, 0], body nodes none), A = s.A from
+    sparse_matrix (with bilateral_only: its bilateral joint block and the body nodes, the identity
+    elsewhere). S is -1 on body nodes, +1 elsewhere; a diagonal entry holds s_j L_jj. Level of
+    supernode blocks by level (factor_blocks): the products with earlier blocks, then the blocks'
+    triangles and the rows below them (factor_level_blocks). Then s.L_rows: the entries left of
+    each diagonal row by row (in row_entry's order), so that the forward substitution reads them
+    without an index load in between, and s.L_inv: 1 / |L_jj| by position, so that a substitution
+    multiplies instead of dividing. The factor stays in global memory (benchmarks/results/README.md)."""
     world, lane = wp.tid()
     lanes = wp.block_dim()
     if mask[world] == 0:
@@ -657,25 +611,25 @@ def sparse_factor(
     ub = pat.update_base[p]
     entries = pat.entry_base[p + 1] - eb
     n = row_count[world]
-    Lw = L[world]
-    Lp = row_address(L, world)
+    Lw = s.L[world]
+    Lp = row_address(s.L, world)
     pairs = pair_address(pat.update_ab, ub)
     e = lane
     while e < entries:
-        value = A[world, e]
+        value = s.A[world, e]
         shifted = pat.entry_shifted[eb + e]  # a row's diagonal: its position
         if bilateral_only != 0:
             pi = pat.entry_i[eb + e]
             pj = pat.entry_j[eb + e]
-            i = _node_row(pat, p, pi, world, real)
-            j = _node_row(pat, p, pj, world, real)
-            if not ((pat.node_body[p, pi] >= 0 or _used(world, i, n, 1, row_kind))
-                    and (pat.node_body[p, pj] >= 0 or _used(world, j, n, 1, row_kind))):
+            i = _node_row(pat, s, p, pi, world)
+            j = _node_row(pat, s, p, pj, world)
+            if not ((pat.node_body[p, pi] >= 0 or _bilateral(world, i, n, row_kind))
+                    and (pat.node_body[p, pj] >= 0 or _bilateral(world, j, n, row_kind))):
                 value = 0.0
                 if pi == pj:
                     value = 1.0
         if shifted >= 0:
-            row = _node_row(pat, p, shifted, world, real)
+            row = _node_row(pat, s, p, shifted, world)
             if row < 0 or row >= n:
                 row = 0
             value += shift[world, row]
@@ -712,28 +666,33 @@ def sparse_factor(
                             lane, lanes)
         block_sync()
     rb = pat.row_base[p]
-    gather_copy(row_address(L_rows, world), Lp, int_address(pat.row_entry, rb), pat.row_base[p + 1] - rb, 0, lane,
+    gather_copy(row_address(s.L_rows, world), Lp, int_address(pat.row_entry, rb), pat.row_base[p + 1] - rb, 0, lane,
                 lanes)
-    gather_copy(row_address(L_inv, world), Lp, int_row_address(pat.diag, p), pat.perm.shape[1], 1, lane, lanes)
+    gather_copy(row_address(s.L_inv, world), Lp, int_row_address(pat.diag, p), pat.perm.shape[1], 1, lane, lanes)
 
 
 @wp.func
-def _rhs_of(pat: SparsePatterns, p: int, k: int, world: int, real: wp.array2d(dtype=wp.int32),
-            rhs: wp.array2d(dtype=float)):
-    """The right-hand side at the factor's position k (0 where it stands for no row this step)."""
-    r = _node_row(pat, p, k, world, real)
-    if r >= 0:
-        return rhs[world, r]
-    return 0.0
+def _gather_rhs(v: Any, vb: int, pat: SparsePatterns, s: SystemArrays, p: int, world: int,
+                rhs: wp.array2d(dtype=float), lane: int, lanes: int):
+    """The right-hand side by the factor's positions into v from offset vb (0 at a position that
+    stands for no row this step); the caller places the barrier."""
+    k = lane
+    while k < pat.perm.shape[1]:
+        r = _node_row(pat, s, p, k, world)
+        value = float(0.0)
+        if r >= 0:
+            value = rhs[world, r]
+        tile_set(v, vb + k, value)
+        k += lanes
 
 
 @wp.func
-def _scatter_solution(v: Any, vb: int, pat: SparsePatterns, p: int, world: int, real: wp.array2d(dtype=wp.int32),
+def _scatter_solution(v: Any, vb: int, pat: SparsePatterns, s: SystemArrays, p: int, world: int,
                       row_count: wp.array(dtype=wp.int32), lane: int, lanes: int, x_out: wp.array2d(dtype=float)):
     """x_out from the solved vector (at offset vb of v), zero on the rows not in use this step."""
     k = lane
     while k < pat.perm.shape[1]:
-        r = _node_row(pat, p, k, world, real)
+        r = _node_row(pat, s, p, k, world)
         if r >= 0:
             x_out[world, r] = v[vb + k]
         k += lanes
@@ -746,23 +705,12 @@ def _scatter_solution(v: Any, vb: int, pat: SparsePatterns, p: int, world: int, 
 @functools.cache
 def solve_kernel(size: int):
     """Solve kernel with the world's vector in a shared tile of ``size`` rows and its schedule read
-    from global memory (the factor stays in global memory: copying it into shared memory for each
-    solve was slower: benchmarks/results/README.md)."""
+    from global memory (the factor stays in global memory: benchmarks/results/README.md)."""
     vector_address = _tile_address(size, float)
 
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=SPARSE_REGISTERS)
-    def sparse_solve(
-        pat: SparsePatterns,
-        mask: wp.array(dtype=wp.int32),
-        L: wp.array2d(dtype=float),
-        L_rows: wp.array2d(dtype=float),
-        L_inv: wp.array2d(dtype=float),
-        rhs: wp.array2d(dtype=float),
-        real: wp.array2d(dtype=wp.int32),
-        row_count: wp.array(dtype=wp.int32),
-        # out
-        x_out: wp.array2d(dtype=float),
-    ):
+    def sparse_solve(pat: SparsePatterns, s: SystemArrays, mask: wp.array(dtype=wp.int32),
+                     rhs: wp.array2d(dtype=float), row_count: wp.array(dtype=wp.int32), x_out: wp.array2d(dtype=float)):
         """x = (L S L^T)^-1 rhs for worlds with mask != 0: forward substitution level of supernode
         blocks by level (rows gather their entries left of their block, then a lane per block
         substitutes its triangle), the signs S (body nodes), backward in reverse (columns gather
@@ -774,15 +722,11 @@ def solve_kernel(size: int):
         if mask[world] == 0:
             return
         p = pat.world_pattern[world]
-        rows = pat.perm.shape[1]
-        k = lane
-        while k < rows:
-            tile_set(v, k, _rhs_of(pat, p, k, world, real, rhs))
-            k += lanes
+        _gather_rhs(v, 0, pat, s, p, world, rhs, lane, lanes)
         block_sync()
-        _substitute_all(pat, p, int_address(pat.solve_blob, p * pat.blob_size), row_address(L, world),
-                        row_address(L_rows, world), row_address(L_inv, world), vector_address(v, 0), lane, lanes)
-        _scatter_solution(v, 0, pat, p, world, real, row_count, lane, lanes, x_out)
+        _substitute_all(pat, s, p, world, int_address(pat.solve_blob, p * pat.blob_size), vector_address(v, 0), lane,
+                        lanes)
+        _scatter_solution(v, 0, pat, s, p, world, row_count, lane, lanes, x_out)
 
     return sparse_solve
 
@@ -793,11 +737,14 @@ def _negate_at(vector: wp.uint64, k: int):
 
 
 @wp.func
-def _substitute_all(pat: SparsePatterns, p: int, schedule: wp.uint64, factor: wp.uint64, rows: wp.uint64,
-                    inverse: wp.uint64, vector: wp.uint64, lane: int, lanes: int):
+def _substitute_all(pat: SparsePatterns, s: SystemArrays, p: int, world: int, schedule: wp.uint64, vector: wp.uint64,
+                    lane: int, lanes: int):
     """Forward substitution, the body nodes' signs, backward substitution of one world (one warp;
-    one thread on the CPU) from its schedule, level of supernode blocks by level with warp
-    barriers."""
+    one thread on the CPU) with its factor in s, from its schedule, level of supernode blocks by
+    level with warp barriers."""
+    factor = row_address(s.L, world)
+    rows = row_address(s.L_rows, world)
+    inverse = row_address(s.L_inv, world)
     levels = pat.solve_levels[p]
     for level in range(levels):
         substitute_level(schedule, level, FORWARD, pat.blob_diag, pat.blob_block, pat.blob_row, pat.blob_entry, factor,
@@ -818,7 +765,7 @@ def _substitute_all(pat: SparsePatterns, p: int, schedule: wp.uint64, factor: wp
 
 # The solve with its schedule in shared memory (shared_solve_kernel), on GPUs for batches of one
 # topology large enough to give at least half of the multiprocessors a block of 32 worlds (one warp
-# each); the others keep the global kernel (benchmarks/results/README.md, "Maximal path: design notes").
+# each); the others keep the global kernel.
 SOLVE_WORLDS_PER_BLOCK = 32
 SOLVE_SHARED = True  # the shared-schedule solve where it fits (False: the global kernel; read at each solve)
 SOLVE_SHARED_BYTES = 160 * 1024  # larger schedules and vectors keep the global kernel (a block holds at most 227 KiB)
@@ -837,19 +784,9 @@ def shared_solve_kernel(size: int, worlds: int, blob_size: int):
     blob_address = _tile_address(blob_size, wp.int32)
 
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=SPARSE_REGISTERS)
-    def sparse_solve_shared(
-        pat: SparsePatterns,
-        mask: wp.array(dtype=wp.int32),
-        L: wp.array2d(dtype=float),
-        L_rows: wp.array2d(dtype=float),
-        L_inv: wp.array2d(dtype=float),
-        rhs: wp.array2d(dtype=float),
-        real: wp.array2d(dtype=wp.int32),
-        row_count: wp.array(dtype=wp.int32),
-        num_worlds: int,
-        # out
-        x_out: wp.array2d(dtype=float),
-    ):
+    def sparse_solve_shared(pat: SparsePatterns, s: SystemArrays, mask: wp.array(dtype=wp.int32),
+                            rhs: wp.array2d(dtype=float), row_count: wp.array(dtype=wp.int32), num_worlds: int,
+                            x_out: wp.array2d(dtype=float)):
         """x = (L S L^T)^-1 rhs for worlds with mask != 0 (as solve_kernel's sparse_solve)."""
         block, t = wp.tid()
         lanes = wp.block_dim() // worlds
@@ -865,18 +802,13 @@ def shared_solve_kernel(size: int, worlds: int, blob_size: int):
             return
         p = pat.world_pattern[world]
         vb = slot * size
-        rows = pat.perm.shape[1]
-        k = lane
-        while k < rows:
-            tile_set(v, vb + k, _rhs_of(pat, p, k, world, real, rhs))
-            k += lanes
+        _gather_rhs(v, vb, pat, s, p, world, rhs, lane, lanes)
         warp_sync()
         schedule_at = int_address(pat.solve_blob, p * blob_size)
         if p == p0:
             schedule_at = blob_address(schedule, 0)
-        _substitute_all(pat, p, schedule_at, row_address(L, world), row_address(L_rows, world),
-                        row_address(L_inv, world), vector_address(v, vb), lane, lanes)
-        _scatter_solution(v, vb, pat, p, world, real, row_count, lane, lanes, x_out)
+        _substitute_all(pat, s, p, world, schedule_at, vector_address(v, vb), lane, lanes)
+        _scatter_solution(v, vb, pat, s, p, world, row_count, lane, lanes, x_out)
 
     return sparse_solve_shared
 
@@ -885,11 +817,9 @@ def factor(model, shift, mask, bilateral_only: bool = False, system: SparseSyste
     """Factor P D P + diag(shift) (shift (W, R) per row; or the bilateral joint block) of every
     masked world into the system's L (system: the model's PADMM system when None)."""
     system = model.sparse_system if system is None else system
-    work = model.work
     wp.launch_tiled(sparse_factor, dim=[model.num_worlds], block_dim=sparse_block(model.device), device=model.device,
-                    inputs=[system.pat, mask, shift, int(bilateral_only), work.row_count, model.row_kind,
-                            system.real, system.A],
-                    outputs=[system.L, system.L_rows, system.L_inv])
+                    inputs=[system.pat, system.arrays, mask, shift, int(bilateral_only), model.work.row_count,
+                            model.row_kind])
 
 
 def solve(model, rhs, mask, x_out, shared: bool | None = None, system: SparseSystem | None = None) -> None:
@@ -898,39 +828,27 @@ def solve(model, rhs, mask, x_out, shared: bool | None = None, system: SparseSys
     the schedule in shared memory (shared_solve_kernel; None: SOLVE_SHARED on GPUs for batches
     of one topology). system: the model's PADMM system when None."""
     system = model.sparse_system if system is None else system
-    work = model.work
-    size = -(-system.nodes // VECTOR_STEP) * VECTOR_STEP
-    device = wp.get_device(model.device)
+    size, device, lanes = vector_size(system), wp.get_device(model.device), sparse_block(model.device)
     if shared is None:
         shared = (SOLVE_SHARED and device.is_cuda and len(system.analyses) == 1
                   and model.num_worlds >= SOLVE_WORLDS_PER_BLOCK * device.sm_count // 2
                   and 4 * (system.pat.blob_size + SOLVE_WORLDS_PER_BLOCK * size) <= SOLVE_SHARED_BYTES)
+    arguments = [system.pat, system.arrays, mask, rhs, model.work.row_count]
     if shared:
         worlds = SOLVE_WORLDS_PER_BLOCK if device.is_cuda else 1
-        blocks = -(-model.num_worlds // worlds)
-        wp.launch_tiled(shared_solve_kernel(size, worlds, system.pat.blob_size), dim=[blocks],
-                        block_dim=sparse_block(model.device) * worlds, device=model.device,
-                        inputs=[system.pat, mask, system.L, system.L_rows, system.L_inv, rhs, system.real,
-                                work.row_count, model.num_worlds],
-                        outputs=[x_out])
-        return
-    wp.launch_tiled(solve_kernel(size), dim=[model.num_worlds], block_dim=sparse_block(model.device),
-                    device=model.device, inputs=[system.pat, mask, system.L, system.L_rows, system.L_inv, rhs,
-                                                 system.real, work.row_count],
-                    outputs=[x_out])
+        wp.launch_tiled(shared_solve_kernel(size, worlds, system.pat.blob_size), dim=[-(-model.num_worlds // worlds)],
+                        block_dim=lanes * worlds, device=device, inputs=[*arguments, model.num_worlds, x_out])
+    else:
+        wp.launch_tiled(solve_kernel(size), dim=[model.num_worlds], block_dim=lanes, device=device,
+                        inputs=[*arguments, x_out])
 
 
 def matrix(model, system: SparseSystem) -> None:
     """This step's P D P on the system's pattern (system.A), from the rows built by engine.dynamics."""
-    work = model.work
-    size = -(-system.nodes // VECTOR_STEP) * VECTOR_STEP
-    kernel = sparse_matrix
-    if STAGE_MATRIX and 4 * STAGE_FLOATS * size <= STAGE_BYTES:
-        kernel = staged_matrix_kernel(size)
+    size = vector_size(system)
+    kernel = staged_matrix_kernel(size) if STAGE_MATRIX and 4 * STAGE_FLOATS * size <= STAGE_BYTES else sparse_matrix
     wp.launch_tiled(kernel, dim=[model.num_worlds], block_dim=matrix_block(model.device), device=model.device,
-                    inputs=[system.pat, work.row_J_c, work.row_J_p, work.row_MJ_c, work.row_MJ_p,
-                            work.row_compliance, work.row_precond, model.body_inv_mass, work.sparse_root, system.real],
-                    outputs=[system.A])
+                    inputs=[system.pat, system.arrays, model.arrays, model.work.arrays])
 
 
 def prepare(model) -> None:

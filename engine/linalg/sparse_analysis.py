@@ -34,9 +34,10 @@ import warp as wp
 
 from engine.model import ROW_ANGULAR, ROW_LINEAR
 
-__all__ = ["Analysis", "SparsePatterns", "SparseSystem", "analyze", "batch_schedule_cost", "bilateral_factor_rows",
-           "build_patterns", "choose_body_nodes", "factor_blocks", "make_system", "matrix_recipe", "minimum_degree",
-           "schedule_cost", "shallowest", "solve_blocks", "solve_schedule", "supernodes"]
+__all__ = ["Analysis", "SparsePatterns", "SparseSystem", "SystemArrays", "analyze", "batch_schedule_cost",
+           "bilateral_factor_rows", "build_patterns", "choose_body_nodes", "factor_blocks", "make_system",
+           "matrix_recipe", "minimum_degree", "schedule_cost", "shallowest", "solve_blocks", "solve_schedule",
+           "supernodes"]
 
 
 def minimum_degree(neighbours: list[set[int]], height_weight: float = 0.0) -> list[int]:
@@ -701,6 +702,17 @@ def build_patterns(row_body_c: np.ndarray, row_body_p: np.ndarray, device, body_
     return s, analyses, entries
 
 
+@wp.struct
+class SystemArrays:
+    """A SparseSystem's per-world buffers (documented there), as one kernel argument."""
+
+    real: wp.array2d(dtype=wp.int32)
+    A: wp.array2d(dtype=float)
+    L: wp.array2d(dtype=float)
+    L_rows: wp.array2d(dtype=float)
+    L_inv: wp.array2d(dtype=float)
+
+
 @dataclasses.dataclass
 class SparseSystem:
     """A batch's factor schedules (one per topology) and the per-world buffers of one factor:
@@ -708,10 +720,11 @@ class SparseSystem:
     world), A and L (W, entries) the matrix on the pattern and its factor, L_rows (W, entries left
     of the diagonals) the factor's rows for the forward substitution, L_inv (W, nodes) the
     reciprocals 1 / |L_jj| of its diagonal by position, real (W, rows) the row of this step each
-    factor row stands for (-1: unused). A model has the PADMM's system (all rows, contact slots
-    included: real rewritten every step where the batch has contacts, else fixed at packing) and,
-    where Tuning.sparse_projection_pattern chooses it, the projection's (the bilateral joint rows
-    alone, real fixed at packing; it uses the PADMM's buffers where they are wide enough)."""
+    factor row stands for (-1: unused); ``arrays`` (SystemArrays) groups the buffers for the
+    kernels. A model has the PADMM's system (all rows, contact slots included: real rewritten every
+    step where the batch has contacts, else fixed at packing) and, where
+    Tuning.sparse_projection_pattern chooses it, the projection's (the bilateral joint rows alone,
+    real fixed at packing; it uses the PADMM's buffers where they are wide enough)."""
 
     pat: SparsePatterns
     analyses: list
@@ -722,6 +735,12 @@ class SparseSystem:
     L_rows: Any
     L_inv: Any
     real: Any
+    arrays: SystemArrays = dataclasses.field(init=False, repr=False)
+
+    def __post_init__(self):
+        self.arrays = SystemArrays()
+        for name in SystemArrays.vars:
+            setattr(self.arrays, name, getattr(self, name))
 
     @property
     def body_nodes(self) -> bool:

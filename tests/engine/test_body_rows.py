@@ -6,6 +6,7 @@ import warp as wp
 
 from engine import pack_worlds, step
 from engine.integrate import add_row_share, apply_impulses, row_sum_listed
+from engine.model import ModelArrays, WorkArrays
 from engine.scenes import fourbar, pendulum, sixbar
 from engine.scenes_contact import CONTACT_SCENES
 
@@ -51,12 +52,9 @@ def test_impulse_sums_through_the_lists_match_a_dense_sum_with_contact_rows():
     low = wp.array(low_in, dtype=wp.spatial_vector, device="cpu")
     poses = wp.zeros((len(specs), model.max_bodies), dtype=wp.transform, device="cpu")  # its pose step's outputs
     poses_low = wp.zeros_like(poses)
+    work.body_qd_free = qd_free  # the kernel reads the free twists from the workspace (work.arrays follows)
     wp.launch(apply_impulses, dim=(len(specs), model.max_bodies), device="cpu",
-              inputs=[model.body_count, work.row_count, model.contact_row_start, model.body_row_begin,
-                      model.body_row_end, model.body_row, work.row_body_c, work.row_body_p, model.world_dt,
-                      work.row_MJ_c, work.row_MJ_p, lam, work.row_precond, qd_free, 1, state.body_q,
-                      state.body_q_low],
-              outputs=[out, poses, poses_low, low])
+              inputs=[model.arrays, work.arrays, lam, 1, state.body_q, state.body_q_low, out, poses, poses_low, low])
     MJ_c, MJ_p = work.row_MJ_c.numpy().astype(np.float64), work.row_MJ_p.numpy().astype(np.float64)
     body_c, body_p = work.row_body_c.numpy(), work.row_body_p.numpy()
     got = out.numpy().astype(np.float64) + low.numpy()
@@ -70,22 +68,16 @@ def test_impulse_sums_through_the_lists_match_a_dense_sum_with_contact_rows():
 
 
 @wp.kernel
-def scanned_and_listed(n_rows: wp.array(dtype=wp.int32), contact_row_start: wp.array(dtype=wp.int32),
-                       body_row_begin: wp.array2d(dtype=wp.int32), body_row_end: wp.array2d(dtype=wp.int32),
-                       body_row: wp.array2d(dtype=wp.int32), row_body_c: wp.array2d(dtype=wp.int32),
-                       row_body_p: wp.array2d(dtype=wp.int32), row_MJ_c: wp.array2d(dtype=wp.spatial_vector),
-                       row_MJ_p: wp.array2d(dtype=wp.spatial_vector), weight: wp.array2d(dtype=float),
-                       row_precond: wp.array2d(dtype=float), scale: int,
+def scanned_and_listed(m: ModelArrays, w: WorkArrays, weight: wp.array2d(dtype=float), scale: int,
                        scanned: wp.array2d(dtype=wp.spatial_vector), listed: wp.array2d(dtype=wp.spatial_vector)):
     """Each body's sum by a scan of every row (what the lists replace) and through its list."""
     world, b = wp.tid()
     total = wp.spatial_vector()
-    for i in range(n_rows[world]):
-        total = add_row_share(total, world, b, i, row_body_c, row_body_p, row_MJ_c, row_MJ_p, weight, row_precond,
-                              scale)
+    for i in range(w.row_count[world]):
+        total = add_row_share(total, world, b, i, w.row_body_c, w.row_body_p, w.row_MJ_c, w.row_MJ_p, weight,
+                              w.row_precond, scale)
     scanned[world, b] = total
-    listed[world, b] = row_sum_listed(world, b, n_rows[world], contact_row_start, body_row_begin, body_row_end,
-                                      body_row, row_body_c, row_body_p, row_MJ_c, row_MJ_p, weight, row_precond, scale)
+    listed[world, b] = row_sum_listed(world, b, m, w, weight, scale)
 
 
 def test_listed_sums_are_bit_identical_to_a_scan_of_every_row():
@@ -105,9 +97,6 @@ def test_listed_sums_are_bit_identical_to_a_scan_of_every_row():
         scanned = wp.zeros((len(specs), model.max_bodies), dtype=wp.spatial_vector, device="cpu")
         listed = wp.zeros_like(scanned)
         wp.launch(scanned_and_listed, dim=(len(specs), model.max_bodies), device="cpu",
-                  inputs=[work.row_count, model.contact_row_start, model.body_row_begin, model.body_row_end,
-                          model.body_row, work.row_body_c, work.row_body_p, work.row_MJ_c, work.row_MJ_p, weight,
-                          work.row_precond, scale],
-                  outputs=[scanned, listed])
+                  inputs=[model.arrays, work.arrays, weight, scale], outputs=[scanned, listed])
         assert np.abs(scanned.numpy()).max() > 0
         np.testing.assert_array_equal(listed.numpy(), scanned.numpy())

@@ -84,16 +84,13 @@ def test_projection_gate_weighs_linear_and_angular_errors_by_their_own_floors():
     import warp as wp
 
     from engine.integrate import projection_gates
-    from engine.model import ROW_ANGULAR, ROW_DYNAMICS, ROW_LINEAR
+    from engine.model import ROW_ANGULAR, ROW_DYNAMICS, ROW_LINEAR, ModelArrays, WorkArrays
 
     @wp.kernel
-    def gates(row_count: wp.array(dtype=wp.int32), row_kind: wp.array2d(dtype=wp.int32),
-              row_residual: wp.array2d(dtype=float), project: wp.array(dtype=wp.int32), floor: float,
-              skip_floor: float, skip_floor_angular: float, gate: wp.array(dtype=wp.int32),
-              mask: wp.array(dtype=wp.int32)):
+    def gates(m: ModelArrays, w: WorkArrays, floor: float, skip_floor: float, skip_floor_angular: float,
+              gate: wp.array(dtype=wp.int32), mask: wp.array(dtype=wp.int32)):
         world, lane = wp.tid()
-        opened, move = projection_gates(world, lane, wp.block_dim(), row_count, row_kind, row_residual, project, floor,
-                                        skip_floor, skip_floor_angular)
+        opened, move = projection_gates(world, lane, wp.block_dim(), m, w, floor, skip_floor, skip_floor_angular)
         if lane == 0:
             gate[world] = opened
             mask[world] = move
@@ -108,10 +105,11 @@ def test_projection_gate_weighs_linear_and_angular_errors_by_their_own_floors():
     cpu = "cpu"
     project = wp.array([1, 1, 1, 0, 1], dtype=wp.int32, device=cpu)
     gate, mask = wp.zeros(W, dtype=wp.int32, device=cpu), wp.zeros(W, dtype=wp.int32, device=cpu)
-    wp.launch_tiled(gates, dim=[W], block_dim=1, device=cpu,
-                    inputs=[wp.full(W, 3, dtype=wp.int32, device=cpu), wp.array(kind, dtype=wp.int32, device=cpu),
-                            wp.array(residual, dtype=float, device=cpu), project, 1e-7, 1e-7, 1e-6],
-                    outputs=[gate, mask])
+    m, w = ModelArrays(), WorkArrays()  # only the arrays projection_gates reads
+    m.row_kind = wp.array(kind, dtype=wp.int32, device=cpu)
+    w.row_count, w.project = wp.full(W, 3, dtype=wp.int32, device=cpu), project
+    w.row_residual = wp.array(residual, dtype=float, device=cpu)
+    wp.launch_tiled(gates, dim=[W], block_dim=1, device=cpu, inputs=[m, w, 1e-7, 1e-7, 1e-6], outputs=[gate, mask])
     assert mask.numpy().tolist() == [0, 1, 1, 0, 0]
     assert gate.numpy().tolist() == [1, 1, 1, 1, 0]
 

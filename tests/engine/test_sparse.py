@@ -13,6 +13,7 @@ from engine import SolverConfig, Tuning, pack_worlds
 from engine.dynamics import delassus
 from engine.integrate import bilateral_block
 from engine.linalg import sparse, sparse_analysis
+from engine.model import ModelArrays, WorkArrays
 from engine.pack import MAX_DENSE_ROWS
 from engine.rollout import Stepper, rollout
 from engine.scenes import make_scene
@@ -49,9 +50,7 @@ def standing_delassus(model, device):
     work, W, R = model.work, model.num_worlds, model.max_rows
     assert work.contact_count.numpy().min() > 0
     matrix = wp.zeros((W, R, R), dtype=float, device=device)
-    wp.launch(delassus, dim=(W, R, R), device=device,
-              inputs=[work.row_count, work.row_body_p, work.row_body_c, work.row_J_c, work.row_J_p, work.row_MJ_c,
-                      work.row_MJ_p, work.row_compliance, work.row_precond], outputs=[matrix])
+    wp.launch(delassus, dim=(W, R, R), device=device, inputs=[work.arrays], outputs=[matrix])
     return matrix
 
 
@@ -76,7 +75,7 @@ def test_factor_and_solve_match_numpy(device, bilateral_only, body_nodes, orderi
     work, W, R = model.work, model.num_worlds, model.max_rows
     matrix = standing_delassus(model, device)
     if bilateral_only:
-        wp.launch(bilateral_block, dim=(W, R, R), inputs=[model.row_kind, work.row_count, matrix], device=device)
+        wp.launch(bilateral_block, dim=(W, R, R), inputs=[model.arrays, work.arrays, matrix], device=device)
     # a shift per row (the PADMM factor caps the joint rows' penalty): 1e-3 to 1e-1, world by world
     shifts = (np.array([1e-3, 1e-2, 1e-1][:W], np.float32)[:, None]
               * np.random.default_rng(1).uniform(0.3, 1.0, (W, R))).astype(np.float32)
@@ -456,11 +455,14 @@ def test_factor_kernel_with_body_node_blocks(device, monkeypatch, together, cap)
     expected = np.where(a.entry_i == a.entry_j, np.where(negative[a.entry_j], -1.0, 1.0), 1.0) * L[a.entry_i, a.entry_j]
     A = wp.array(Kp[a.entry_i, a.entry_j][None].astype(np.float32), device=device)
     out = [wp.zeros((1, width), dtype=float, device=device) for width in (entries, max(1, len(a.row_entry)), n)]
+    buffers = sparse_analysis.SystemArrays()
+    buffers.real, buffers.A = wp.array(np.arange(rows, dtype=np.int32)[None], device=device), A
+    buffers.L, buffers.L_rows, buffers.L_inv = out
     wp.launch_tiled(sparse.sparse_factor, dim=[1], block_dim=sparse.sparse_block(device), device=device,
-                    inputs=[pat, wp.ones(1, dtype=wp.int32, device=device), wp.zeros((1, rows), dtype=float,
-                            device=device), 0, wp.array([rows], dtype=wp.int32, device=device),
-                            wp.zeros((1, rows), dtype=wp.int32, device=device),
-                            wp.array(np.arange(rows, dtype=np.int32)[None], device=device), A], outputs=out)
+                    inputs=[pat, buffers, wp.ones(1, dtype=wp.int32, device=device),
+                            wp.zeros((1, rows), dtype=float, device=device), 0,
+                            wp.array([rows], dtype=wp.int32, device=device),
+                            wp.zeros((1, rows), dtype=wp.int32, device=device)])
     L_out = out[0].numpy()[0, :a.entries]
     np.testing.assert_allclose(L_out, expected, rtol=1e-4, atol=1e-4)
     np.testing.assert_array_equal(out[1].numpy()[0, :len(a.row_entry)], L_out[a.row_entry])
@@ -640,11 +642,12 @@ def test_matrix_recipe_builds_the_augmented_matrix_of_numpy(staged):
     A = wp.zeros((1, entries), dtype=float, device="cpu")
     size = -(-analysis.nodes // sparse.VECTOR_STEP) * sparse.VECTOR_STEP
     kernel = sparse.staged_matrix_kernel(size) if staged else sparse.sparse_matrix
-    wp.launch_tiled(kernel, dim=[1], block_dim=1, device="cpu",
-                    inputs=[pat, arr(J_c, wp.spatial_vector), arr(J_p, wp.spatial_vector),
-                            arr(MJ_c, wp.spatial_vector), arr(MJ_p, wp.spatial_vector), arr(compliance), arr(precond),
-                            arr(inv_mass), arr(root, wp.mat33), wp.array(real, dtype=wp.int32, device="cpu")],
-                    outputs=[A])
+    buffers, m, w = sparse_analysis.SystemArrays(), ModelArrays(), WorkArrays()  # only the arrays the kernel reads
+    buffers.real, buffers.A = wp.array(real, dtype=wp.int32, device="cpu"), A
+    w.row_J_c, w.row_J_p, w.row_MJ_c, w.row_MJ_p = (arr(x, wp.spatial_vector) for x in (J_c, J_p, MJ_c, MJ_p))
+    w.row_compliance, w.row_precond, w.sparse_root = arr(compliance), arr(precond), arr(root, wp.mat33)
+    m.body_inv_mass = arr(inv_mass)
+    wp.launch_tiled(kernel, dim=[1], block_dim=1, device="cpu", inputs=[pat, buffers, m, w])
     node_row = analysis.node_row()
     node_body, node_comp = analysis.node_body()
     nodes = set(analysis.body_nodes)
