@@ -151,8 +151,9 @@ def test_passive_linkages_converge_to_the_maximal_engine(name):
 def test_an_inline_joint_between_turning_bodies_converges_to_the_maximal_engine():
     """inline_between (the anchors slide apart along a skew axis whose body turns about others):
     every body within 5e-4 m of the maximal engine's (dt 0.1 ms, converged to 3e-7 m) after 0.3 s
-    at dt 0.5 ms, and at least 3x closer with each 4x smaller step (measured 3.4e-4, 8.5e-5,
-    2.2e-5 m; rows without their directions' turn stalled at 5.5e-5 m); loop closed to 1e-6 m."""
+    at dt 0.5 ms, and at least 3x closer with each 4x smaller step unless within 2e-6 m already
+    (measured 1.4e-6, 5.1e-7 m: the reference's floor; 3.4e-4, 8.5e-5, 2.2e-5 m at first order;
+    rows without their directions' turn stalled at 5.5e-5 m); loop closed to 1e-6 m."""
     spec = inline_between()
     reference = _maximal_reference(spec, 0.3)
     errors = []
@@ -166,7 +167,7 @@ def test_an_inline_joint_between_turning_bodies_converges_to_the_maximal_engine(
         compute_metrics(gauge, state)
         assert gauge.work.violation_linear.numpy()[0] < 1e-6
     assert np.linalg.norm(reference - np.array([b.position for b in spec.bodies]), axis=1).max() > 0.1
-    assert errors[0] < 5e-4 and errors[1] < errors[0] / 3 and errors[2] < errors[1] / 3
+    assert errors[0] < 5e-4 and errors[1] < max(errors[0] / 3, 2e-6) and errors[2] < max(errors[1] / 3, 2e-6)
 
 
 def walker(legs_per_side: int, leg: str = "jansen_leg"):
