@@ -18,7 +18,8 @@ import pytest
 from engine import Body, MechanismSpec
 from engine.reduced import tabulated_layout as layout_module
 from engine.reduced import tabulated_tables as tables_module
-from engine.reduced.tabulated_layout import _plain_layout, tabulated_layout
+from engine.reduced.tabulated_layout import tabulated_layout
+from engine.reduced.tabulated_plain import _plain_layout
 from engine.reduced.tabulated_tables import TABLE_SAMPLES, SubChainTable
 from morphopt.families import load_family
 from morphopt.linkage import Crank, Dyad, Link, Linkage
