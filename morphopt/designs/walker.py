@@ -167,22 +167,45 @@ def _torsos(lays: list) -> list:
     return bodies
 
 
+def _legs(lays: list, torsos: list, effort_limit: float, together: bool):
+    """Per placed walker an iterator of its legs' (bodies, joints, points) on its torso. together:
+    every leg of every walker in one linkages_parts call (one style and base per leg), or None when
+    any leg raises (then call again walker by walker, which raises it for its own walker only)."""
+    args = []  # per walker: linkages_parts's per-leg arguments
+    for lay, torso in zip(lays, torsos):
+        placements = lay["placements"]
+        args.append(dict(linkages=[linkage for _, _, _, linkage in placements], solutions=list(lay["solutions"]),
+                         origins=[(x, y, lay["height"]) for _, x, y, _ in placements],
+                         prefixes=[prefix for prefix, _, _, _ in placements],
+                         styles=[lay["style"]] * len(placements), bases=[torso] * len(placements)))
+    common = dict(crank_damping=CRANK_DAMPING, effort_limit=effort_limit, start_at_speed=False)
+    if not together:
+        return [linkages_parts(**mine, **common) for mine in args]
+    every = {k: [v for mine in args for v in mine[k]] for k in args[0]} if args else {}
+    try:
+        made = list(linkages_parts(**every, **common)) if args else []
+    except ValueError:
+        return None
+    out, start = [], 0
+    for mine in args:
+        out.append(iter(made[start:start + len(mine["linkages"])]))
+        start += len(mine["linkages"])
+    return out
+
+
 def _specs(lays: list, effort_limit: float) -> list:
     """The MechanismSpecs of placed walkers (_placed): per walker the spec or the ValueError its
-    parts raise. Legs are made walker by walker (linkages_parts: every leg of one walker at once),
-    torsos and shapes for every walker at once."""
+    parts raise. Legs are made for every walker at once (_legs; walker by walker when a leg
+    raises), torsos and shapes for every walker at once."""
     parts, feet = [], []
-    for lay, torso in zip(lays, _torsos(lays)):
-        height, placements = lay["height"], lay["placements"]
+    torsos = _torsos(lays)
+    legs_of = _legs(lays, torsos, effort_limit, together=True) or _legs(lays, torsos, effort_limit, together=False)
+    for lay, torso, legs in zip(lays, torsos, legs_of):
+        placements = lay["placements"]
         points = [TrackedPoint("torso", "torso", (lay["half"][0], 0.0, 0.0)),
                   TrackedPoint("torso_up", "torso", (lay["half"][0], 0.0, lay["half"][0]))]
         bodies, joints, mine = [torso], [], []
         try:
-            legs = linkages_parts([linkage for _, _, _, linkage in placements], style=lay["style"],
-                                  crank_damping=CRANK_DAMPING, effort_limit=effort_limit, start_at_speed=False,
-                                  base=torso, solutions=lay["solutions"],
-                                  origins=[(x, y, height) for _, x, y, _ in placements],
-                                  prefixes=[prefix for prefix, _, _, _ in placements])
             for (prefix, _, _, _), (leg_bodies, leg_joints, leg_points) in zip(placements, legs):
                 bodies += leg_bodies
                 joints += leg_joints

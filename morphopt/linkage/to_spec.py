@@ -245,10 +245,12 @@ def _sums(terms: np.ndarray, slots) -> np.ndarray:
     return out
 
 
-def _numbers(layout: _Layout, linkages: list, solutions: list, origins: list, style: BarStyle,
-             start_at_speed: bool, base: Body | None) -> dict:
+def _numbers(layout: _Layout, linkages: list, solutions: list, origins: list, styles: list,
+             start_at_speed: bool, bases: list) -> dict:
     """Every number linkage_parts computes for linkages of one layout, as arrays over (linkage, ...)
-    (each entry computed by the same operations as linkage_parts's own, one item at a time)."""
+    (each entry computed by the same operations as linkage_parts's own, one item at a time).
+    styles, bases: one per linkage (a style's numbers enter as per-linkage columns, the same
+    products element by element as its scalars)."""
     h = ASSEMBLY_STEP
     paths = np.array([[solution.nodes[name][:2] for name in layout.nodes] for solution in solutions])  # (L, N, 2, 2)
     speed = np.array([linkage.crank.speed if start_at_speed else 0.0 for linkage in linkages])
@@ -262,13 +264,15 @@ def _numbers(layout: _Layout, linkages: list, solutions: list, origins: list, st
     start, end = place[:, layout.bar_start], place[:, layout.bar_end]
     axis = end - start
     length = np.sqrt(_dots(axis))
-    mass = style.density * style.width * style.thickness * length
+    mass = np.array([style.density * style.width * style.thickness for style in styles])[:, None] * length
     u = axis / length[..., None]
     v = np.stack([u[..., 2], np.zeros_like(length), -u[..., 0]], axis=-1)
     squared = np.array([x**2 for x in length.ravel().tolist()]).reshape(length.shape)  # Python's float power
     inertia = (mass / 12.0)[..., None, None] * ((squared[..., None, None] * (_EYE - u[..., :, None] * u[..., None, :])
-                                                 + style.width**2 * (_EYE - v[..., :, None] * v[..., None, :]))
-                                                + style.thickness**2 * _ACROSS_THICKNESS)
+                                                 + np.array([style.width**2 for style in styles])[:, None, None, None]
+                                                 * (_EYE - v[..., :, None] * v[..., None, :]))
+                                                + np.array([style.thickness**2 for style in styles])[:, None, None, None]
+                                                * _ACROSS_THICKNESS)
     centre = 0.5 * (start + end)
     bar_mass = mass.tolist()
     link_mass = [[sum(row[b] for b in bars) for bars in layout.link_bars] for row in bar_mass]
@@ -298,10 +302,12 @@ def _numbers(layout: _Layout, linkages: list, solutions: list, origins: list, st
     anchor = place[:, layout.joint_node]
     link = layout.joint_link
     local = (M[:, link].swapaxes(-1, -2) @ (anchor - p0[:, link])[..., None])[..., 0]
-    if base is not None:
-        on_base = layout.joint_base
-        base_local = (_matrix(base.orientation).T @ (anchor[:, on_base] - base.position)[..., None])[..., 0]
-        local[:, on_base] = base_local
+    on_base = [n for n, base in enumerate(bases) if base is not None]
+    if on_base:  # _matrix(base.orientation).T @ (anchor - base.position) of every linkage on a base
+        rows, ends = np.array(on_base)[:, None], layout.joint_base
+        turn = _matrices(np.array([bases[n].orientation for n in on_base], dtype=float)).swapaxes(-1, -2)
+        offset = anchor[rows, ends] - np.array([bases[n].position for n in on_base], dtype=float)[:, None, :]
+        local[rows, ends] = (turn[:, None] @ offset[..., None])[..., 0]
     return dict(place=place, link_mass=link_mass, mass=np.array(link_mass), body_inertia=body_inertia,
                 body_com=body_com, p0=p0, rotation=rotation, rotation_array=q, velocity=body_velocity,
                 angular_velocity=angular_velocity, anchor=anchor, local=local)
@@ -329,28 +335,33 @@ def _closing(ends: list) -> set:
     return closing
 
 
-def _parts(layout: _Layout, numbers: dict, linkages: list, prefixes: list, base: Body | None, style_args: tuple):
+def _parts(layout: _Layout, numbers: dict, linkages: list, prefixes: list, bases: list, style_args: tuple):
     """linkage_parts's objects for every entry of ``numbers`` (the group's linkages, prefixes), made
     by the engine's batch constructors (their checks on the arrays of the whole group at once):
     a list of (bodies, joints, points) per linkage, or None when a constructor's check fails or a
     driven joint closes a loop (then _parts_one_by_one, per linkage, raises the constructors'
     errors in linkage_parts's order)."""
     crank_damping, effort_limit = style_args
-    base_name = None if base is None else base.name
     count, K, P = len(layout.joints), len(layout.links), len(layout.points)
     names, joint_names, parents, children, kinds, drives = [], [], [], [], [], []
-    for linkage, prefix in zip(linkages, prefixes):
+    closings = {}  # _closing sees only which names are equal: per (world, links named like the base) once
+    for linkage, prefix, base in zip(linkages, prefixes, bases):
+        base_name = None if base is None else base.name
         mine = [prefix + name for name, _ in layout.links]
         ends = [(base_name if parent < 0 else mine[parent], mine[child], driven)
                 for _, _, parent, child, driven in layout.joints]
-        closing = _closing(ends)
+        key = (base_name is None, tuple(k for k, name in enumerate(mine) if name == base_name))
+        if key not in closings:
+            closing = _closing(ends)
+            closings[key] = (closing, ["inline" if j in closing else "revolute" for j in range(count)])
+        closing, kind = closings[key]
         if any(ends[j][2] for j in closing):  # as close_loops_in_plane makes it (and Joint refuses it)
             return None
         names += mine
         joint_names += [prefix + suffix for suffix, *_ in layout.joints]
         parents += [e[0] for e in ends]
         children += [e[1] for e in ends]
-        kinds += ["inline" if j in closing else "revolute" for j in range(count)]
+        kinds += kind
         drives += [JointDrive(damping=crank_damping, target_velocity=linkage.crank.speed, effort_limit=effort_limit)
                    if driven else None for _, _, driven in ends]
     L = len(linkages)
@@ -359,8 +370,9 @@ def _parts(layout: _Layout, numbers: dict, linkages: list, prefixes: list, base:
                         numbers["rotation_array"].reshape(-1, 4), numbers["velocity"].reshape(-1, 3),
                         numbers["angular_velocity"].reshape(-1, 3))
     anchor, local = numbers["anchor"], numbers["local"]
-    world = np.array([parent < 0 and base is None for _, _, parent, _, _ in layout.joints])
-    parent_position = np.where(world[:, None], anchor[:, 0:2 * count:2], local[:, 0:2 * count:2]).reshape(-1, 3)
+    world = np.array([[parent < 0 and base is None for _, _, parent, _, _ in layout.joints] for base in bases])
+    parent_position = np.where(world.reshape(L, count, 1), anchor[:, 0:2 * count:2],
+                               local[:, 0:2 * count:2]).reshape(-1, 3)
     joints = Joint.batch(joint_names, kinds, parents, children, parent_position,
                          local[:, 1:2 * count:2].reshape(-1, 3), AXIS, drives)
     points = TrackedPoint.batch([prefix + name for prefix in prefixes for name, _, _ in layout.points],
@@ -410,16 +422,19 @@ def _parts_one_by_one(layout: _Layout, numbers: dict, index: int, linkage: Linka
 
 def linkages_parts(linkages: list, *, style: BarStyle = BarStyle(), crank_damping: float = 50.0,
                    effort_limit: float = 50.0, start_at_speed: bool = True, origins=None, prefixes=None,
-                   base: Body | None = None, solutions=None):
+                   base: Body | None = None, solutions=None, styles=None, bases=None):
     """linkage_parts of every linkage in turn, their numbers computed together (one NumPy operation
     per step for all links of the linkages of one topology, such as a walker's legs): yields each
     linkage's (bodies, joints, points), equal to linkage_parts's to the last bit, and builds them
     (or raises linkage_parts's ValueError) when that linkage's turn comes. origins, prefixes: one
     per linkage (default: the world origin, no prefix); solutions: their entries of assemble()
-    (else they are solved here, together)."""
+    (else they are solved here, together); styles, bases: one per linkage in place of style and
+    base (a generation's legs, each walker's on its own torso and at its own scale, in one call)."""
     linkages = list(linkages)
     origins = [(0.0, 0.0, 0.0)] * len(linkages) if origins is None else list(origins)
     prefixes = [""] * len(linkages) if prefixes is None else list(prefixes)
+    styles = [style] * len(linkages) if styles is None else list(styles)
+    bases = [base] * len(linkages) if bases is None else list(bases)
     solutions = (assemble(linkages) if linkages else []) if solutions is None else list(solutions)
     ready = next((i for i, s in enumerate(solutions) if not s.feasible), len(linkages))
     groups = {}
@@ -429,16 +444,17 @@ def linkages_parts(linkages: list, *, style: BarStyle = BarStyle(), crank_dampin
     for indices in groups.values():
         layout = _layout_of(linkages[indices[0]])
         numbers = _numbers(layout, [linkages[i] for i in indices], [solutions[i] for i in indices],
-                           [origins[i] for i in indices], style, start_at_speed, base)
-        made = _parts(layout, numbers, [linkages[i] for i in indices], [prefixes[i] for i in indices], base,
-                      (crank_damping, effort_limit))
+                           [origins[i] for i in indices], [styles[i] for i in indices], start_at_speed,
+                           [bases[i] for i in indices])
+        made = _parts(layout, numbers, [linkages[i] for i in indices], [prefixes[i] for i in indices],
+                      [bases[i] for i in indices], (crank_damping, effort_limit))
         for n, i in enumerate(indices):
             where[i] = (layout, numbers, n, None if made is None else made[n])
     for i, linkage in enumerate(linkages):
         if i == ready:
             raise ValueError(f"linkage '{linkage.name}' cannot be assembled: {solutions[i].reason}")
         layout, numbers, n, made = where[i]
-        yield made if made is not None else _parts_one_by_one(layout, numbers, n, linkage, prefixes[i], base,
+        yield made if made is not None else _parts_one_by_one(layout, numbers, n, linkage, prefixes[i], bases[i],
                                                                (crank_damping, effort_limit))
 
 

@@ -334,3 +334,53 @@ def test_walker_batch_build_equals_building_each_alone():
     assert "'scale'" in built[5] and "'stance'" in built[9]
     feasible = walker.build_specs([{**walker.space.default(), "scale": 2.0}, {**walker.space.default(), "scale": 0.001}])
     assert isinstance(feasible[0], MechanismSpec) and isinstance(feasible[1], ValueError)
+
+
+def test_linkages_parts_with_a_style_and_base_per_linkage_equals_each_alone():
+    """linkages_parts over linkages of two topologies, each with its own style, base (or none),
+    origin and prefix, gives every linkage linkage_parts's parts alone to the last bit (the walker
+    converts a generation's legs in this one call)."""
+    from morphopt.linkage.to_spec import linkages_parts
+
+    linkages, styles, bases, origins, prefixes = [], [], [], [], []
+    for k, (name, seed) in enumerate([("jansen_leg", 5), ("klann_leg", 6), ("jansen_leg", 7)]):
+        family = load_family(name)
+        for j, params in enumerate([family.space.default()] + family.space.sample(np.random.default_rng(seed), 3)):
+            linkages.append(family.generate(family.space.validate(params), crank_speed=1.5 + j))
+            styles.append(BarStyle(width=0.01 + 0.003 * j, thickness=0.002 + 0.001 * k, density=800.0 + 100 * j))
+            angle = 0.1 * (j + 3 * k)
+            bases.append(None if j == 2 else Body(f"base{k}", 1.0 + j, np.diag([0.1, 0.2, 0.3]),
+                                                  position=(0.1 * j, -0.2, 0.3 * k),
+                                                  orientation=(0.0, -math.sin(angle), 0.0, math.cos(angle))))
+            origins.append((0.2 * j, 0.1 * k, 1.0))
+            prefixes.append(f"leg{k}{j}_")
+    solutions = assemble(linkages)
+    keep = [i for i, s in enumerate(solutions) if s.feasible]
+    assert len(keep) > 6
+    pick = lambda items: [items[i] for i in keep]  # noqa: E731
+    together = list(linkages_parts(pick(linkages), styles=pick(styles), bases=pick(bases), origins=pick(origins),
+                                   prefixes=pick(prefixes), effort_limit=9.0, start_at_speed=True))
+    for n, i in enumerate(keep):
+        alone = linkage_parts(linkages[i], style=styles[i], base=bases[i], origin=origins[i], prefix=prefixes[i],
+                              effort_limit=9.0, start_at_speed=True)
+        _assert_identical(list(together[n]), list(alone))
+
+
+def test_walker_legs_fall_back_walker_by_walker_when_the_generation_call_raises(monkeypatch):
+    """When the one call over a generation's legs raises, the walker makes its legs walker by walker:
+    the same specs as each alone."""
+    walker = load_family("walker")
+    designs = [walker.space.validate(p) for p in _walker_designs(walker)]
+    alone = [walker.build_spec(p) for p in designs]
+    real, refused = walker.linkages_parts, []
+
+    def refuse_generations(linkages, **kwargs):
+        if len(set(kwargs["prefixes"])) < len(kwargs["prefixes"]):  # legs of several walkers
+            refused.append(len(linkages))
+            raise ValueError("refused")
+        return real(linkages, **kwargs)
+
+    monkeypatch.setattr(walker, "linkages_parts", refuse_generations)
+    for spec, reference in zip(walker.build_specs(designs), alone):
+        _assert_identical(spec, reference)
+    assert refused
