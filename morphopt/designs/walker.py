@@ -8,6 +8,8 @@ and phases spread evenly along a side (the right side ``side_phase`` behind the 
 phase offsets of a common crankshaft while the effort limit is not reached.
 """
 
+import copy
+import dataclasses
 import importlib.util
 import math
 import pathlib
@@ -87,12 +89,29 @@ def _sizes(params: dict, crank_speed: float | None) -> dict:
 
 
 def _placements(lay: dict) -> list:
-    """Every leg of a walker's _sizes as (name prefix, x, y, its linkage at its crank phase)."""
+    """Every leg of a walker's _sizes as (name prefix, x, y, its linkage at its crank phase). The
+    legs differ in their crank phase only (a leg family's generate puts the phase into the crank
+    alone): the first is generated, the others are copies with their phase (_at_phase)."""
     scale, speed = lay["scale"], lay["speed"]
     leg_family = LEG_FAMILIES[lay["p"]["leg_family"]]
     leg = {k: v * scale for k, v in leg_family.space.default().items()}
-    return [(f"{name}_", x, y, leg_family.generate(leg, crank_speed=speed, phase=phase))
-            for name, x, y, phase in lay["places"]]
+    out, first = [], None
+    for name, x, y, phase in lay["places"]:
+        if first is None:
+            first = leg_family.generate(leg, crank_speed=speed, phase=phase)
+            out.append((f"{name}_", x, y, first))
+        else:
+            out.append((f"{name}_", x, y, _at_phase(first, phase)))
+    return out
+
+
+def _at_phase(linkage, phase: float):
+    """A copy of a leg with its crank at ``phase`` (the plain float Linkage would keep): what
+    generate makes for that phase, without checking the same graph again. The copies share the
+    leg's graph containers, which nothing changes after a Linkage is made."""
+    leg = copy.copy(linkage)
+    leg.crank = dataclasses.replace(linkage.crank, phase=float(phase))
+    return leg
 
 
 def _placed(lay: dict, placements: list, solutions: list) -> dict:

@@ -61,3 +61,20 @@ def test_a_walker_without_feet_falls_and_fails_with_the_reason():
                     evaluation.failures[0]), evaluation.failures[0]
     assert evaluation.failures[1] == "", evaluation.failures[1]
     assert evaluation.metrics[1]["torso_height_min"] > 0.8
+
+
+def test_walker_legs_copied_at_their_phase_equal_generated_legs():
+    """_placements generates a walker's first leg and copies it at the other crank phases: every
+    leg equals its family's generate at its phase (the same numbers and graph)."""
+    walker = load_family("walker")
+    designs = [walker.space.default(), {**walker.space.default(), "leg_family": "klann_leg", "side_phase": 1.3}]
+    for params in designs + walker.space.sample(np.random.default_rng(5), 6):
+        lay = walker._sizes(params, None)
+        family = walker.LEG_FAMILIES[lay["p"]["leg_family"]]
+        leg = {k: v * lay["scale"] for k, v in family.space.default().items()}
+        placed = walker._placements(lay)
+        assert len(placed) == len(lay["places"])
+        for (prefix, x, y, linkage), (name, px, py, phase) in zip(placed, lay["places"]):
+            expected = family.generate(leg, crank_speed=lay["speed"], phase=phase)
+            assert (prefix, x, y) == (f"{name}_", px, py)
+            assert linkage == expected and type(linkage.crank.phase) is type(expected.crank.phase)
