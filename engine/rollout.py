@@ -16,7 +16,7 @@ from engine.health import Health, check_joints, note_residual
 from engine.joints import body_twist, joint_coordinate_row, joint_frames
 from engine.metrics import compute_metrics
 from engine.model import ContactArrays, Control, Model, ModelArrays, State, WorkArrays
-from engine.grouped import GroupedModel, GroupedState, rollout_groups
+from engine.grouped import GroupedModel, GroupedState, _scatter, rollout_groups
 from engine.reduced.model import ReducedModel
 from engine.step import step
 
@@ -228,6 +228,28 @@ def tracked_points(point_count: wp.array(dtype=wp.int32), point_body: wp.array2d
     if p >= point_count[world]:
         return
     points_out[world, p] = wp.transform_point(body_q[world, point_body[world, p]], point_local[world, p])
+
+
+def point_positions(model, state) -> np.ndarray:
+    """World positions [m] of every world's tracked points at ``state``, (W, P, 3) NumPy, P the
+    batch's most points (a world's rows past its own count are zero), in the order of
+    ``model.point_names``. Any plan: the positions come from the State's body poses (for a reduced
+    plan the bodies its step wrote; for a grouped batch each group's, in world order). One kernel
+    launch and a copy to the host."""
+    if isinstance(model, GroupedModel):
+        parts = [point_positions(part, part_state) for (_, part), part_state in zip(model.groups, state.parts)]
+        return _scatter(parts, model.groups, model.num_worlds, 0)
+    if isinstance(model, ReducedModel):
+        return model.points(state)
+    return points_of(model, state.body_q)
+
+
+def points_of(model: Model, body_q: wp.array) -> np.ndarray:
+    """The tracked points of ``model``'s specs on the body poses ``body_q`` (W, B), (W, P, 3) NumPy."""
+    points = wp.zeros((model.num_worlds, model.max_points), dtype=wp.vec3, device=model.device)
+    wp.launch(tracked_points, dim=(model.num_worlds, model.max_points), device=model.device,
+              inputs=[model.point_count, model.point_body, model.point_local, body_q], outputs=[points])
+    return points.numpy().reshape(model.num_worlds, model.max_points, 3)
 
 
 @wp.kernel

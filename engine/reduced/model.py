@@ -130,6 +130,12 @@ class ReducedModel(abc.ABC):
         """Per world stopped at a drive's effort limit, which drive (the health reason names it)."""
         return [""] * self.num_worlds
 
+    def points(self, state: ReducedState) -> np.ndarray:
+        """The tracked points at ``state`` (W, P, 3) [m] (engine.rollout.point_positions)."""
+        from engine.rollout import points_of
+
+        return points_of(self.gauge, state.body_q)
+
     def step(self, state_in: ReducedState, state_out: ReducedState) -> None:
         """One step from state_in into state_out (in place when they are one State)."""
         if state_out is not state_in:
@@ -139,20 +145,18 @@ class ReducedModel(abc.ABC):
     def measure(self, state: ReducedState) -> dict:
         """One record of ``state``: points (W, P, 3), violation_linear/angular (W,), energy (W,),
         drive_speed and drive_torque (W, J), iterations (W,), as NumPy."""
-        from engine.rollout import drive_speeds, tracked_points
+        from engine.rollout import drive_speeds
 
         g = self.gauge
         body_q, body_qd = state.body_q, state.body_qd
         compute_metrics(g, _Bodies(body_q, body_qd))
-        points = wp.zeros((self.num_worlds, g.max_points), dtype=wp.vec3, device=self.device)
-        wp.launch(tracked_points, dim=(self.num_worlds, g.max_points), device=self.device,
-                  inputs=[g.point_count, g.point_body, g.point_local, body_q], outputs=[points])
+        points = self.points(state)
         speeds = wp.zeros((self.num_worlds, g.max_joints), dtype=float, device=self.device)
         wp.launch(drive_speeds, dim=(self.num_worlds, g.max_joints), device=self.device,
                   inputs=[g.joint_count, g.joint_type, g.joint_parent, g.joint_child, g.joint_X_p, g.joint_X_c,
                           g.joint_axis, g.joint_drive_row, body_q, g.work.no_low, body_qd],
                   outputs=[speeds])
-        return {"points": points.numpy(), "violation_linear": g.work.violation_linear.numpy().copy(),
+        return {"points": points, "violation_linear": g.work.violation_linear.numpy().copy(),
                 "violation_angular": g.work.violation_angular.numpy().copy(), "energy": g.work.energy.numpy().copy(),
                 "drive_speed": speeds.numpy(), "drive_torque": self.drive_torque(state),
                 "iterations": self.iterations()}
@@ -288,6 +292,11 @@ class TabulatedPlanModel(ReducedModel):
 
     def set_halted(self, halted: np.ndarray) -> None:
         self.inner.halt(halted)
+
+    def points(self, state: ReducedState) -> np.ndarray:
+        """The tracked points [m] (W, P, 3) of the plan's state (the tabulated step keeps one state,
+        which ``state`` stands for), from the path's own kernel."""
+        return self.inner.record()[0].copy()
 
     def measure(self, state: ReducedState) -> dict:
         """One record from the path's own kernel (points, energy, drive torques and speeds by spec
