@@ -100,8 +100,9 @@ def mujoco_crank(times, dt: float = 1e-5) -> np.ndarray | None:
     return np.arctan2(-offset[:, 2], offset[:, 0])
 
 
-def crank_run(coordinates: str, dt: float, duration: float, record: float = 0.02):
-    """engine.rollout of the four-bar: (crank angles, relative energy drifts) at every record."""
+def crank_run(coordinates: str, dt: float, duration: float, record: float = 0.02, config=None):
+    """engine.rollout of the four-bar: (crank angles, relative energy drifts) at every record
+    (``config``: an engine.SolverConfig, None for the default)."""
     import engine
     from engine.scenes import fourbar
     from engine.spec import TrackedPoint
@@ -109,7 +110,7 @@ def crank_run(coordinates: str, dt: float, duration: float, record: float = 0.02
     scene = fourbar(**FOURBAR)
     spec = dataclasses.replace(scene.spec, points=list(scene.spec.points)
                                + [TrackedPoint("crank_tip", "crank", (FOURBAR["crank"], 0.0, 0.0))])
-    model = engine.pack([spec], "cpu", dt=dt, coordinates=coordinates)
+    model = engine.pack([spec], "cpu", dt=dt, coordinates=coordinates, config=config)
     every = round(record / dt)
     control = model.control() if coordinates == "maximal" else None
     trace, _ = engine.rollout(model, model.state(), control, every * round(duration / record), record_every=every)
