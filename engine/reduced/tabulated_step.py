@@ -45,6 +45,208 @@ wp.set_module_options({"enable_backward": False})  # no gradients are taken: com
 __all__ = ["step_kernel"]
 
 
+@wp.func
+def extrapolated(a1: wp.vec4, a2: wp.vec4, f0: wp.vec4, beta: float, eta: float):
+    """A row's extrapolated y^ = y + beta (y - y_before), z^ likewise, and the right-hand side
+    b = -v_f + eta x + penalty y^ - z^ of its PADMM step (a1, a2: its state; f0: its first fields)."""
+    yh = a2[0] + beta * (a2[0] - a2[2])
+    zh = a2[1] + beta * (a2[1] - a2[3])
+    return wp.vec3(yh, zh, -f0[0] + eta * a1[0] + f0[2] * yh - zh)
+
+
+@wp.func
+def unit_rows(unit: int, L: int):
+    """A unit's first row and its row count: drive row unit (1), or contact triplet unit - L (3)."""
+    if unit < L:
+        return unit, 1
+    return L + 3 * (unit - L), 3
+
+
+@wp.func
+def rhs_pass(Jc: wp.array2d(dtype=wp.vec4), rows: wp.array2d(dtype=wp.vec4), s1: wp.array2d(dtype=wp.vec4),
+             s2: wp.array2d(dtype=wp.vec4), w: int, L: int, units: int, beta: float, eta: float, lane: int,
+             lanes: int):
+    """A PADMM iteration's first pass over this lane's units (drive rows, contact triplets): each
+    row's right-hand side b at the extrapolated (y, z), with the De Saxce shift from the velocity
+    at the last iterate, t = S^-1 b, and the lane's share of J^T t (returned)."""
+    gl = vecnv()
+    unit = lane
+    while unit < units:
+        if unit < L:
+            i = unit
+            a1 = s1[w, i]
+            a2 = s2[w, i]
+            f0 = rows[w, ROW_VECS * i]  # v_f, mu, penalty, 1 / S
+            bi = extrapolated(a1, a2, f0, beta, eta)[2]
+            gl = row_add(Jc, w, i, False, 6 + i, bi * f0[3], gl)  # drive row i turns sub-chain i
+        else:
+            r0 = L + 3 * (unit - L)
+            col = int(rows[w, ROW_VECS * r0 + 1][2])
+            mu = float(0.0)
+            bs = wp.vec3()
+            vts = wp.vec3()
+            invs = wp.vec3()
+            for c in range(3):
+                i = r0 + c
+                a1 = s1[w, i]
+                a2 = s2[w, i]
+                f0 = rows[w, ROW_VECS * i]
+                if c == 0:
+                    mu = f0[1]
+                bs[c] = extrapolated(a1, a2, f0, beta, eta)[2]
+                vts[c] = a1[2]  # the velocity at the last iterate
+                invs[c] = f0[3]
+            bs[0] = bs[0] - mu * wp.sqrt(vts[1] * vts[1] + vts[2] * vts[2])
+            for c in range(3):
+                gl = row_add(Jc, w, r0 + c, True, col, bs[c] * invs[c], gl)
+        unit += lanes
+    return gl
+
+
+@wp.func
+def woodbury_apply(Kinv: wp.array2d(dtype=wp.vec4), w: int, n: int, gsum: vecnv, lane: int, lanes: int):
+    """(M + J^T S^-1 J)^-1 J^T t from the factored inverse (its rows and columns past n are zero):
+    a lane per entry when the block has NV lanes (they share the entries through one tile), else
+    one lane reading the symmetric inverse's lower triangle once."""
+    yv = vecnv()
+    if lanes >= NV:
+        # a lane per entry: lane k takes row k of the inverse (four entries per load), the
+        # lanes share the entries through one tile
+        yk = float(0.0)
+        if lane < n:
+            for kv in range(KINV_VECS):
+                kq = Kinv[w, lane * KINV_VECS + kv]
+                for t in range(4):
+                    if 4 * kv + t < NV:
+                        yk += kq[t] * gsum[4 * kv + t]
+        entries = wp.tile(yk)
+        for k in range(NV):
+            yv[k] = wp.tile_extract(entries, k)
+    else:
+        # one lane (the CPU, or a thread per world): the symmetric inverse's lower triangle
+        # read once
+        for k in range(NV):
+            if k < n:
+                for kv in range(KINV_VECS):
+                    if 4 * kv <= k:
+                        kq = Kinv[w, k * KINV_VECS + kv]
+                        for t in range(4):
+                            j = 4 * kv + t
+                            if j < k:
+                                yv[k] += kq[t] * gsum[j]
+                                yv[j] += kq[t] * gsum[k]
+                            elif j == k:
+                                yv[k] += kq[t] * gsum[k]
+    return yv
+
+
+@wp.func
+def update_pass(Jc: wp.array2d(dtype=wp.vec4), rows: wp.array2d(dtype=wp.vec4), s1: wp.array2d(dtype=wp.vec4),
+                s2: wp.array2d(dtype=wp.vec4), w: int, L: int, units: int, beta: float, eta: float, yv: vecnv,
+                lane: int, lanes: int):
+    """A PADMM iteration's second pass over this lane's units: x = t - S^-1 J yv, y (the
+    projection), z and the row state stored once; returns the lane's residuals and merit
+    (vecstats: primal, dual, natural, largest |y|, change)."""
+    rp = float(0.0)
+    rd = float(0.0)
+    rn = float(0.0)
+    ymax = float(0.0)
+    change = float(0.0)
+    unit = lane
+    while unit < units:
+        # b and t again as in the first pass (the state is not written there), x, the
+        # projection of x + z / rho, the velocities at the new x, D x + v_f =
+        # b - (eta + rho) x + v_f, the natural residual x - Pi(x - v^) (v^ with the De Saxce
+        # shift: in the dual cone at a solution), then y, z and the residuals
+        if unit < L:
+            i = unit
+            a1 = s1[w, i]
+            a2 = s2[w, i]
+            f0 = rows[w, ROW_VECS * i]
+            f1 = rows[w, ROW_VECS * i + 1]
+            pen = f0[2]
+            e = extrapolated(a1, a2, f0, beta, eta)
+            yh = e[0]
+            zh = e[1]
+            bi = e[2]
+            tv = bi * f0[3]
+            xr = tv - row_dot(Jc, w, i, False, 6 + i, yv) * f0[3]
+            yn = wp.clamp(xr + zh / pen, f1[0], f1[1])
+            vd = bi - (eta + pen) * xr + f0[0]
+            rn = wp.max(rn, wp.abs(xr - wp.clamp(xr - vd, f1[0], f1[1])))
+            zn = zh + pen * (xr - yn)
+            dy = yn - yh
+            dz = zn - zh
+            rp = wp.max(rp, wp.abs(xr - yn))
+            rd = wp.max(rd, wp.abs(eta * (xr - a1[0]) + pen * dy))
+            change += pen * dy * dy + dz * dz / pen
+            s2[w, i] = wp.vec4(yn, zn, a2[0], a2[1])
+            s1[w, i] = wp.vec4(xr, a1[0], vd, tv)
+            ymax = wp.max(ymax, wp.abs(yn))
+        else:
+            r0 = L + 3 * (unit - L)
+            col = int(rows[w, ROW_VECS * r0 + 1][2])
+            mu = float(0.0)
+            pen = float(0.0)
+            xs = wp.vec3()
+            xps = wp.vec3()
+            bs = wp.vec3()
+            ts = wp.vec3()
+            yo = wp.vec3()
+            zo = wp.vec3()
+            yhs = wp.vec3()
+            zhs = wp.vec3()
+            rhs = wp.vec3()
+            vts = wp.vec3()
+            invs = wp.vec3()
+            for c in range(3):
+                i = r0 + c
+                a1 = s1[w, i]
+                a2 = s2[w, i]
+                f0 = rows[w, ROW_VECS * i]
+                if c == 0:
+                    mu = f0[1]
+                    pen = f0[2]
+                e = extrapolated(a1, a2, f0, beta, eta)
+                yh = e[0]
+                zh = e[1]
+                bs[c] = e[2]
+                vts[c] = a1[2]
+                invs[c] = f0[3]
+                rhs[c] = f0[0]
+                xps[c] = a1[0]
+                yo[c] = a2[0]
+                zo[c] = a2[1]
+                yhs[c] = yh
+                zhs[c] = zh
+            bs[0] = bs[0] - mu * wp.sqrt(vts[1] * vts[1] + vts[2] * vts[2])
+            for c in range(3):
+                ts[c] = bs[c] * invs[c]
+                xs[c] = ts[c] - row_dot(Jc, w, r0 + c, True, col, yv) * invs[c]
+            pj = project_cone(mu, xs[0] + zhs[0] / pen, xs[1] + zhs[1] / pen, xs[2] + zhs[2] / pen)
+            vel = wp.vec3()
+            for c in range(3):
+                vel[c] = bs[c] - (eta + pen) * xs[c] + rhs[c]
+            vels3 = wp.vec3(vel[0], vel[1], vel[2])  # kept for the next iteration's De Saxce shift
+            vel[0] = vel[0] + mu * wp.sqrt(vel[1] * vel[1] + vel[2] * vel[2])
+            nat = xs - project_cone(mu, xs[0] - vel[0], xs[1] - vel[1], xs[2] - vel[2])
+            rn = wp.max(rn, wp.max(wp.abs(nat[0]), wp.max(wp.abs(nat[1]), wp.abs(nat[2]))))
+            for c in range(3):
+                yn = pj[c]
+                xr = xs[c]
+                zn = zhs[c] + pen * (xr - yn)
+                dy = yn - yhs[c]
+                dz = zn - zhs[c]
+                rp = wp.max(rp, wp.abs(xr - yn))
+                rd = wp.max(rd, wp.abs(eta * (xr - xps[c]) + pen * dy))
+                change += pen * dy * dy + dz * dz / pen
+                s2[w, r0 + c] = wp.vec4(yn, zn, yo[c], zo[c])
+                s1[w, r0 + c] = wp.vec4(xr, xps[c], vels3[c], ts[c])
+                ymax = wp.max(ymax, wp.abs(yn))
+        unit += lanes
+    return vecstats(rp, rd, rn, ymax, change)
+
+
 @functools.cache
 def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
     """The step kernel: tiled (launch_tiled, one block of lanes per world, lanes sharing the
@@ -516,169 +718,10 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
             # vec4, (x, x before, its velocity at x, t) and (y, z, y and z before), its fields
             # read from two (drive rows) or one: each loaded once per pass, stored once (second
             # pass only, which computes b and t again rather than read them back)
-            gl = vecnv()
-            unit = lane
-            while unit < units:
-                if unit < L:
-                    i = unit
-                    a1 = s1[w, i]
-                    a2 = s2[w, i]
-                    f0 = rows[w, ROW_VECS * i]  # v_f, mu, penalty, 1 / S
-                    yh = a2[0] + beta * (a2[0] - a2[2])
-                    zh = a2[1] + beta * (a2[1] - a2[3])
-                    bi = -f0[0] + eta * a1[0] + f0[2] * yh - zh
-                    gl = row_add(Jc, w, i, False, 6 + i, bi * f0[3], gl)  # drive row i turns sub-chain i
-                else:
-                    r0 = L + 3 * (unit - L)
-                    col = int(rows[w, ROW_VECS * r0 + 1][2])
-                    mu = float(0.0)
-                    bs = wp.vec3()
-                    vts = wp.vec3()
-                    invs = wp.vec3()
-                    for c in range(3):
-                        i = r0 + c
-                        a1 = s1[w, i]
-                        a2 = s2[w, i]
-                        f0 = rows[w, ROW_VECS * i]
-                        if c == 0:
-                            mu = f0[1]
-                        yh = a2[0] + beta * (a2[0] - a2[2])
-                        zh = a2[1] + beta * (a2[1] - a2[3])
-                        bs[c] = -f0[0] + eta * a1[0] + f0[2] * yh - zh
-                        vts[c] = a1[2]  # the velocity at the last iterate
-                        invs[c] = f0[3]
-                    bs[0] = bs[0] - mu * wp.sqrt(vts[1] * vts[1] + vts[2] * vts[2])
-                    for c in range(3):
-                        gl = row_add(Jc, w, r0 + c, True, col, bs[c] * invs[c], gl)
-                unit += lanes
-            # Woodbury: x = t - S^-1 J (M + J^T S^-1 J)^-1 J^T t, the small inverse applied to the sum
-            # (its rows and columns past n are zero)
-            gsum = reduce_vector(gl)
-            yv = vecnv()
-            if lanes >= NV:
-                # a lane per entry: lane k takes row k of the inverse (four entries per load), the
-                # lanes share the entries through one tile
-                yk = float(0.0)
-                if lane < n:
-                    for kv in range(KINV_VECS):
-                        kq = Kinv[w, lane * KINV_VECS + kv]
-                        for t in range(4):
-                            if 4 * kv + t < NV:
-                                yk += kq[t] * gsum[4 * kv + t]
-                entries = wp.tile(yk)
-                for k in range(NV):
-                    yv[k] = wp.tile_extract(entries, k)
-            else:
-                # one lane (the CPU, or a thread per world): the symmetric inverse's lower triangle
-                # read once
-                for k in range(NV):
-                    if k < n:
-                        for kv in range(KINV_VECS):
-                            if 4 * kv <= k:
-                                kq = Kinv[w, k * KINV_VECS + kv]
-                                for t in range(4):
-                                    j = 4 * kv + t
-                                    if j < k:
-                                        yv[k] += kq[t] * gsum[j]
-                                        yv[j] += kq[t] * gsum[k]
-                                    elif j == k:
-                                        yv[k] += kq[t] * gsum[k]
-            rp = float(0.0)
-            rd = float(0.0)
-            rn = float(0.0)
-            ymax = float(0.0)
-            change = float(0.0)
-            unit = lane
-            while unit < units:
-                # b and t again as in the first pass (the state is not written there), x, the
-                # projection of x + z / rho, the velocities at the new x, D x + v_f =
-                # b - (eta + rho) x + v_f, the natural residual x - Pi(x - v^) (v^ with the De Saxce
-                # shift: in the dual cone at a solution), then y, z and the residuals
-                if unit < L:
-                    i = unit
-                    a1 = s1[w, i]
-                    a2 = s2[w, i]
-                    f0 = rows[w, ROW_VECS * i]
-                    f1 = rows[w, ROW_VECS * i + 1]
-                    pen = f0[2]
-                    yh = a2[0] + beta * (a2[0] - a2[2])
-                    zh = a2[1] + beta * (a2[1] - a2[3])
-                    bi = -f0[0] + eta * a1[0] + pen * yh - zh
-                    tv = bi * f0[3]
-                    xr = tv - row_dot(Jc, w, i, False, 6 + i, yv) * f0[3]
-                    yn = wp.clamp(xr + zh / pen, f1[0], f1[1])
-                    vd = bi - (eta + pen) * xr + f0[0]
-                    rn = wp.max(rn, wp.abs(xr - wp.clamp(xr - vd, f1[0], f1[1])))
-                    zn = zh + pen * (xr - yn)
-                    dy = yn - yh
-                    dz = zn - zh
-                    rp = wp.max(rp, wp.abs(xr - yn))
-                    rd = wp.max(rd, wp.abs(eta * (xr - a1[0]) + pen * dy))
-                    change += pen * dy * dy + dz * dz / pen
-                    s2[w, i] = wp.vec4(yn, zn, a2[0], a2[1])
-                    s1[w, i] = wp.vec4(xr, a1[0], vd, tv)
-                    ymax = wp.max(ymax, wp.abs(yn))
-                else:
-                    r0 = L + 3 * (unit - L)
-                    col = int(rows[w, ROW_VECS * r0 + 1][2])
-                    mu = float(0.0)
-                    pen = float(0.0)
-                    xs = wp.vec3()
-                    xps = wp.vec3()
-                    bs = wp.vec3()
-                    ts = wp.vec3()
-                    yo = wp.vec3()
-                    zo = wp.vec3()
-                    yhs = wp.vec3()
-                    zhs = wp.vec3()
-                    rhs = wp.vec3()
-                    vts = wp.vec3()
-                    invs = wp.vec3()
-                    for c in range(3):
-                        i = r0 + c
-                        a1 = s1[w, i]
-                        a2 = s2[w, i]
-                        f0 = rows[w, ROW_VECS * i]
-                        if c == 0:
-                            mu = f0[1]
-                            pen = f0[2]
-                        yh = a2[0] + beta * (a2[0] - a2[2])
-                        zh = a2[1] + beta * (a2[1] - a2[3])
-                        bs[c] = -f0[0] + eta * a1[0] + f0[2] * yh - zh
-                        vts[c] = a1[2]
-                        invs[c] = f0[3]
-                        rhs[c] = f0[0]
-                        xps[c] = a1[0]
-                        yo[c] = a2[0]
-                        zo[c] = a2[1]
-                        yhs[c] = yh
-                        zhs[c] = zh
-                    bs[0] = bs[0] - mu * wp.sqrt(vts[1] * vts[1] + vts[2] * vts[2])
-                    for c in range(3):
-                        ts[c] = bs[c] * invs[c]
-                        xs[c] = ts[c] - row_dot(Jc, w, r0 + c, True, col, yv) * invs[c]
-                    pj = project_cone(mu, xs[0] + zhs[0] / pen, xs[1] + zhs[1] / pen, xs[2] + zhs[2] / pen)
-                    vel = wp.vec3()
-                    for c in range(3):
-                        vel[c] = bs[c] - (eta + pen) * xs[c] + rhs[c]
-                    vels3 = wp.vec3(vel[0], vel[1], vel[2])  # kept for the next iteration's De Saxce shift
-                    vel[0] = vel[0] + mu * wp.sqrt(vel[1] * vel[1] + vel[2] * vel[2])
-                    nat = xs - project_cone(mu, xs[0] - vel[0], xs[1] - vel[1], xs[2] - vel[2])
-                    rn = wp.max(rn, wp.max(wp.abs(nat[0]), wp.max(wp.abs(nat[1]), wp.abs(nat[2]))))
-                    for c in range(3):
-                        yn = pj[c]
-                        xr = xs[c]
-                        zn = zhs[c] + pen * (xr - yn)
-                        dy = yn - yhs[c]
-                        dz = zn - zhs[c]
-                        rp = wp.max(rp, wp.abs(xr - yn))
-                        rd = wp.max(rd, wp.abs(eta * (xr - xps[c]) + pen * dy))
-                        change += pen * dy * dy + dz * dz / pen
-                        s2[w, r0 + c] = wp.vec4(yn, zn, yo[c], zo[c])
-                        s1[w, r0 + c] = wp.vec4(xr, xps[c], vels3[c], ts[c])
-                        ymax = wp.max(ymax, wp.abs(yn))
-                unit += lanes
-            stats = reduce_stats(vecstats(rp, rd, rn, ymax, change))
+            gl = rhs_pass(Jc, rows, s1, s2, w, L, units, beta, eta, lane, lanes)
+            # Woodbury: x = t - S^-1 J (M + J^T S^-1 J)^-1 J^T t
+            yv = woodbury_apply(Kinv, w, n, reduce_vector(gl), lane, lanes)
+            stats = reduce_stats(update_pass(Jc, rows, s1, s2, w, L, units, beta, eta, yv, lane, lanes))
             rp = stats[0]
             rd = stats[1]
             rn = stats[2]
