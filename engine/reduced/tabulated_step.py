@@ -247,6 +247,167 @@ def update_pass(Jc: wp.array2d(dtype=wp.vec4), rows: wp.array2d(dtype=wp.vec4), 
     return vecstats(rp, rd, rn, ymax, change)
 
 
+@wp.func
+def chain_columns(worlds: TabulatedWorlds, state: TabulatedState, M: wp.array2d(dtype=float), w: int, L: int,
+                  R: wp.mat33, axis: wp.vec3, om: wp.vec3, g: wp.vec3, lane: int, lanes: int):
+    """This lane's sub-chains' columns of M (written) and their shares of the base blocks and bias
+    forces, packed as a vecsetup to be summed over the lanes in one reduction: sum m_k, sum m_k d_k,
+    the angular block, the base's bias force and torque, and each sub-chain's bias force."""
+    m_part = float(0.0)  # this lane's sub-chains: sum of m_k
+    md_part = wp.vec3()  # sum of m_k d_k
+    rot_part = wp.mat33()  # angular block
+    f_part = wp.vec3()  # bias force on the base
+    t_part = wp.vec3()  # bias torque on the base
+    h_groups = vecgroups()  # each sub-chain's bias force (its own lane's entry)
+    for gi in range(lane, L, lanes):
+        t = worlds.group_table[w, gi]
+        s = worlds.group_scale[w, gi]
+        ang = state.coord[w, gi]
+        rate = state.coord_rate[w, gi]
+        ix = table_index(ang, worlds.samples)
+        i0 = int(ix[0])
+        i1 = int(ix[1])
+        f = ix[2]
+        col = 6 + gi
+        o = worlds.group_origin[w, gi]
+        me_sum = wp.vec3()  # the sub-chain's column: linear part
+        mw_sum = wp.vec3()  # angular part
+        mjj = float(0.0)
+        hj = float(0.0)
+        for k in range(worlds.table_links[t]):
+            c0 = link_read(worlds.links0, t, i0, i1, f, k)
+            c1 = table_read(worlds.links1, t, i0, i1, f, k)
+            c2 = table_read(worlds.links2, t, i0, i1, f, k)
+            mk = worlds.link_mass[w, gi * MAX_LINKS + k]
+            d = R * (o + wp.vec3(s * c0[0], 0.0, s * c0[1]))
+            e = plane(R, c1) * s
+            e2 = plane(R, c2) * s
+            Rk = R * rot_minus_y(c0[2])
+            Ik = Rk * worlds.link_inertia[w, gi * MAX_LINKS + k] * wp.transpose(Rk)
+            ax = axis * c1[2]
+            m_part += mk
+            md_part += mk * d
+            rot_part += Ik + mk * (wp.dot(d, d) * wp.identity(n=3, dtype=float) - wp.outer(d, d))
+            me_sum += mk * e
+            mw_sum += mk * wp.cross(d, e) + Ik * ax
+            mjj += mk * wp.dot(e, e) + wp.dot(ax, Ik * ax)
+            wk = om + ax * rate
+            acc = wp.cross(om, wp.cross(om, d)) + 2.0 * rate * wp.cross(om, e) + e2 * (rate * rate)
+            alpha = rate * wp.cross(om, ax) + axis * (c2[2] * rate * rate)
+            f_lin = mk * (g - acc)
+            f_ang = -(Ik * alpha) - wp.cross(wk, Ik * wk)
+            f_part += f_lin
+            t_part += wp.cross(d, f_lin) + f_ang
+            hj += wp.dot(e, f_lin) + wp.dot(ax, f_ang)
+        for c in range(MAX_GROUPS):  # a select over constant indices keeps h_groups in registers
+            if c == gi:
+                h_groups[c] = hj
+        for i in range(3):
+            M[w, i * NV + col] = me_sum[i]
+            M[w, col * NV + i] = me_sum[i]
+            M[w, (3 + i) * NV + col] = mw_sum[i]
+            M[w, col * NV + 3 + i] = mw_sum[i]
+        M[w, col * NV + col] = mjj
+    part = vecsetup()
+    part[0] = m_part
+    for i in range(3):
+        part[1 + i] = md_part[i]
+        part[13 + i] = f_part[i]
+        part[16 + i] = t_part[i]
+        for j in range(3):
+            part[4 + 3 * i + j] = rot_part[i, j]
+    for c in range(MAX_GROUPS):
+        part[19 + c] = h_groups[c]
+    return part
+
+
+@wp.func
+def slot_point(worlds: TabulatedWorlds, state: TabulatedState, w: int, k: int, R: wp.mat33, p: wp.vec3,
+               axis: wp.vec3):
+    """Contact slot k's point below the ground's normal: its arm from the base's origin, its
+    velocity per unit driving rate (a sub-chain's shape; zero on the base), its sub-chain (-1: the
+    base), friction and height above the ground (1e30: an empty slot, never within the margin)."""
+    ground = worlds.base[w][2]
+    arm = wp.vec3()
+    lin = wp.vec3()  # the point's velocity per unit driving rate (a sub-chain's shape)
+    grp = int(-1)
+    mu = float(0.0)
+    dist = float(1.0e30)  # an empty slot: never within the margin
+    if k < BASE_SLOTS:
+        # a base point (a box corner, a sphere's or capsule end's centre) and the radius below it
+        sp = worlds.base_slot[w, k]
+        if sp[3] >= 0.0:
+            arm = R * wp.vec3(sp[0], sp[1], sp[2]) + wp.vec3(0.0, 0.0, -sp[3])
+            dist = p[2] + arm[2] - ground
+            mu = worlds.base_slot_mu[w, k]
+    else:
+        grp = (k - BASE_SLOTS) / 2
+        end = float(1.0)
+        if (k - BASE_SLOTS) % 2 == 1:
+            end = -1.0
+        sh = worlds.group_shape[w, grp]
+        # none (radius < 0), or a sphere's second slot (half length 0): empty
+        if sh[0] >= 0.0 and (end > 0.0 or sh[1] > 0.0):
+            t = worlds.group_table[w, grp]
+            s = worlds.group_scale[w, grp]
+            ix = table_index(state.coord[w, grp], worlds.samples)
+            i0 = int(ix[0])
+            i1 = int(ix[1])
+            f = ix[2]
+            fl = worlds.table_contact_link[t]
+            phi = link_read(worlds.links0, t, i0, i1, f, fl)
+            phi1 = table_read(worlds.links1, t, i0, i1, f, fl)
+            beta = phi[2] + sh[2]
+            dirn = wp.vec3(wp.cos(beta), wp.sin(beta), 0.0)
+            perp = wp.vec3(-wp.sin(beta), wp.cos(beta), 0.0)
+            fp = contact_read(worlds.contact0, t, i0, i1, f) * s + dirn * (end * sh[1])
+            fv = contact_read(worlds.contact1, t, i0, i1, f) * s + perp * (end * sh[1] * phi1[2])
+            # the contact point: on the shape's surface, one radius below its end's centre; it moves
+            # with its link (turning at axis * phi' per unit driving rate about the end's centre)
+            down = wp.vec3(0.0, 0.0, -sh[0])
+            arm = R * worlds.group_origin[w, grp] + plane3(R, fp) + down
+            lin = plane(R, fv) + wp.cross(axis * phi1[2], down)
+            dist = p[2] + arm[2] - ground
+            mu = sh[3]
+    return arm, lin, grp, mu, dist
+
+
+@wp.func
+def integrate(state: TabulatedState, w: int, L: int, un: vecnv, dt: float, max_speed: float,
+              diverged: wp.array(dtype=wp.int32), frozen: wp.array(dtype=wp.int32)):
+    """The base's position, its orientation (exponential map) and the driving coordinates (wrapped to
+    [0, 2 pi)) integrated with the new velocities un; a non-finite world is flagged and left at its
+    last finite state, a too fast one flagged after the step; both are frozen."""
+    p = state.position[w]
+    q = state.orientation[w]
+    v = wp.vec3(un[0], un[1], un[2])
+    om = wp.vec3(un[3], un[4], un[5])
+    p = p + dt * v
+    spin = wp.length(om)
+    if spin > 1.0e-12:
+        q = wp.normalize(wp.quat_from_axis_angle(om / spin, spin * dt) * q)
+    ok = wp.isfinite(p) and wp.isfinite(v) and wp.isfinite(om) and wp.isfinite(q)
+    for gi in range(L):
+        if not wp.isfinite(un[6 + gi]):
+            ok = False
+    if not ok:  # frozen at its last finite state (the tables are never read at a non-finite angle)
+        diverged[w] = DIVERGED_NONFINITE
+        frozen[w] = 1
+    else:
+        for gi in range(L):
+            rate = un[6 + gi]
+            ang = state.coord[w, gi] + dt * rate
+            state.coord[w, gi] = ang - TWO_PI * wp.floor(ang / TWO_PI)
+            state.coord_rate[w, gi] = rate
+        state.position[w] = p
+        state.orientation[w] = q
+        state.velocity[w] = v
+        state.angular_velocity[w] = om
+        if wp.length(v) >= max_speed:
+            diverged[w] = DIVERGED_FAST
+            frozen[w] = 1
+
+
 @functools.cache
 def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
     """The step kernel: tiled (launch_tiled, one block of lanes per world, lanes sharing the
@@ -367,120 +528,29 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
             lanes = 1
         if frozen[w] != 0:
             return
-        samples = worlds.samples
-        table_links = worlds.table_links
-        table_contact_link = worlds.table_contact_link
-        links0 = worlds.links0
-        links1 = worlds.links1
-        links2 = worlds.links2
-        contact0 = worlds.contact0
-        contact1 = worlds.contact1
-        group_count = worlds.group_count
-        group_table = worlds.group_table
-        group_scale = worlds.group_scale
-        group_origin = worlds.group_origin
-        link_mass = worlds.link_mass
-        link_inertia = worlds.link_inertia
-        drive = worlds.drive
-        group_shape = worlds.group_shape
-        base = worlds.base
-        base_inertia = worlds.base_inertia
-        base_slot = worlds.base_slot
-        base_slot_mu = worlds.base_slot_mu
-        gravity = worlds.gravity
-        position = state.position
-        orientation = state.orientation
-        velocity = state.velocity
-        angular_velocity = state.angular_velocity
-        coord = state.coord
-        coord_rate = state.coord_rate
-        L = group_count[w]
+        L = worlds.group_count[w]
         n = 6 + L
         if wp.static(phase != "solve"):
             # set-up: every sub-chain's column of M and its share of the base blocks and bias forces, one
             # sub-chain per lane (summed over the lanes as one vector); then on lane 0 the base blocks, the
             # factor of M, the free velocity and the rows
-            p = position[w]
-            q = orientation[w]
-            v = velocity[w]
-            om = angular_velocity[w]
+            p = state.position[w]
+            q = state.orientation[w]
+            v = state.velocity[w]
+            om = state.angular_velocity[w]
             R = wp.quat_to_matrix(q)
             axis = -(R * wp.vec3(0.0, 1.0, 0.0))
-            g = gravity[w]
-            mb = base[w][0]
+            g = worlds.gravity[w]
+            mb = worlds.base[w][0]
             for i in range(lane, NV * NV, lanes):
                 M[w, i] = 0.0
             sync()
-            m_part = float(0.0)  # this lane's sub-chains: sum of m_k
-            md_part = wp.vec3()  # sum of m_k d_k
-            rot_part = wp.mat33()  # angular block
-            f_part = wp.vec3()  # bias force on the base
-            t_part = wp.vec3()  # bias torque on the base
-            h_groups = vecgroups()  # each sub-chain's bias force (its own lane's entry)
-            for gi in range(lane, L, lanes):
-                t = group_table[w, gi]
-                s = group_scale[w, gi]
-                ang = coord[w, gi]
-                rate = coord_rate[w, gi]
-                ix = table_index(ang, samples)
-                i0 = int(ix[0])
-                i1 = int(ix[1])
-                f = ix[2]
-                col = 6 + gi
-                o = group_origin[w, gi]
-                me_sum = wp.vec3()  # the sub-chain's column: linear part
-                mw_sum = wp.vec3()  # angular part
-                mjj = float(0.0)
-                hj = float(0.0)
-                for k in range(table_links[t]):
-                    c0 = link_read(links0, t, i0, i1, f, k)
-                    c1 = table_read(links1, t, i0, i1, f, k)
-                    c2 = table_read(links2, t, i0, i1, f, k)
-                    mk = link_mass[w, gi * MAX_LINKS + k]
-                    d = R * (o + wp.vec3(s * c0[0], 0.0, s * c0[1]))
-                    e = plane(R, c1) * s
-                    e2 = plane(R, c2) * s
-                    Rk = R * rot_minus_y(c0[2])
-                    Ik = Rk * link_inertia[w, gi * MAX_LINKS + k] * wp.transpose(Rk)
-                    ax = axis * c1[2]
-                    m_part += mk
-                    md_part += mk * d
-                    rot_part += Ik + mk * (wp.dot(d, d) * wp.identity(n=3, dtype=float) - wp.outer(d, d))
-                    me_sum += mk * e
-                    mw_sum += mk * wp.cross(d, e) + Ik * ax
-                    mjj += mk * wp.dot(e, e) + wp.dot(ax, Ik * ax)
-                    wk = om + ax * rate
-                    acc = wp.cross(om, wp.cross(om, d)) + 2.0 * rate * wp.cross(om, e) + e2 * (rate * rate)
-                    alpha = rate * wp.cross(om, ax) + axis * (c2[2] * rate * rate)
-                    f_lin = mk * (g - acc)
-                    f_ang = -(Ik * alpha) - wp.cross(wk, Ik * wk)
-                    f_part += f_lin
-                    t_part += wp.cross(d, f_lin) + f_ang
-                    hj += wp.dot(e, f_lin) + wp.dot(ax, f_ang)
-                for c in range(MAX_GROUPS):  # a select over constant indices keeps h_groups in registers
-                    if c == gi:
-                        h_groups[c] = hj
-                for i in range(3):
-                    M[w, i * NV + col] = me_sum[i]
-                    M[w, col * NV + i] = me_sum[i]
-                    M[w, (3 + i) * NV + col] = mw_sum[i]
-                    M[w, col * NV + 3 + i] = mw_sum[i]
-                M[w, col * NV + col] = mjj
-            part = vecsetup()
-            part[0] = m_part
-            for i in range(3):
-                part[1 + i] = md_part[i]
-                part[13 + i] = f_part[i]
-                part[16 + i] = t_part[i]
-                for j in range(3):
-                    part[4 + 3 * i + j] = rot_part[i, j]
-            for c in range(MAX_GROUPS):
-                part[19 + c] = h_groups[c]
+            part = chain_columns(worlds, state, M, w, L, R, axis, om, g, lane, lanes)
             total = reduce_vector(part)
             sync()  # every lane's sub-chain columns are in M
             if lane == 0:
                 h = vecnv()
-                It = R * base_inertia[w] * wp.transpose(R)
+                It = R * worlds.base_inertia[w] * wp.transpose(R)
                 gyro = -wp.cross(om, It * om)
                 for i in range(3):
                     h[i] = mb * g[i] + total[13 + i]
@@ -505,13 +575,13 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
                     uu[i] = v[i]
                     uu[3 + i] = om[i]
                 for gi in range(L):
-                    uu[6 + gi] = coord_rate[w, gi]
+                    uu[6 + gi] = state.coord_rate[w, gi]
                 acc_free = chol_solve(LM, w, n, h)
                 uf = uu + dt * acc_free
                 # rows: drives, then contacts within the margin
                 m = int(0)
                 for gi in range(L):
-                    dr = drive[w, gi]
+                    dr = worlds.drive[w, gi]
                     for c in range(NV):
                         J[w, m * NV + c] = 0.0
                     J[w, m * NV + 6 + gi] = 1.0
@@ -529,52 +599,9 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
                     slot_of[w, m] = gi
                     m += 1
                 count = int(0)
-                if base[w][1] > 0.0:
-                    ground = base[w][2]
+                if worlds.base[w][1] > 0.0:
                     for k in range(BASE_SLOTS + 2 * L):
-                        arm = wp.vec3()
-                        lin = wp.vec3()  # the point's velocity per unit driving rate (a sub-chain's shape)
-                        grp = int(-1)
-                        mu = float(0.0)
-                        dist = float(1.0e30)  # an empty slot: never within the margin
-                        if k < BASE_SLOTS:
-                            # a base point (a box corner, a sphere's or capsule end's centre) and the
-                            # radius below it
-                            sp = base_slot[w, k]
-                            if sp[3] >= 0.0:
-                                arm = R * wp.vec3(sp[0], sp[1], sp[2]) + wp.vec3(0.0, 0.0, -sp[3])
-                                dist = p[2] + arm[2] - ground
-                                mu = base_slot_mu[w, k]
-                        else:
-                            grp = (k - BASE_SLOTS) / 2
-                            end = float(1.0)
-                            if (k - BASE_SLOTS) % 2 == 1:
-                                end = -1.0
-                            sh = group_shape[w, grp]
-                            # none (radius < 0), or a sphere's second slot (half length 0): empty
-                            if sh[0] >= 0.0 and (end > 0.0 or sh[1] > 0.0):
-                                t = group_table[w, grp]
-                                s = group_scale[w, grp]
-                                ix = table_index(coord[w, grp], samples)
-                                i0 = int(ix[0])
-                                i1 = int(ix[1])
-                                f = ix[2]
-                                fl = table_contact_link[t]
-                                phi = link_read(links0, t, i0, i1, f, fl)
-                                phi1 = table_read(links1, t, i0, i1, f, fl)
-                                beta = phi[2] + sh[2]
-                                dirn = wp.vec3(wp.cos(beta), wp.sin(beta), 0.0)
-                                perp = wp.vec3(-wp.sin(beta), wp.cos(beta), 0.0)
-                                fp = contact_read(contact0, t, i0, i1, f) * s + dirn * (end * sh[1])
-                                fv = contact_read(contact1, t, i0, i1, f) * s + perp * (end * sh[1] * phi1[2])
-                                # the contact point: on the shape's surface, one radius below its end's
-                                # centre; it moves with its link (turning at axis * phi' per unit
-                                # driving rate about the end's centre)
-                                down = wp.vec3(0.0, 0.0, -sh[0])
-                                arm = R * group_origin[w, grp] + plane3(R, fp) + down
-                                lin = plane(R, fv) + wp.cross(axis * phi1[2], down)
-                                dist = p[2] + arm[2] - ground
-                                mu = sh[3]
+                        arm, lin, grp, mu, dist = slot_point(worlds, state, w, k, R, p, axis)
                         if dist < margin:
                             count += 1
                             for comp in range(3):
@@ -779,36 +806,9 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
         for c in range(NV):
             uf[c] = ufree[w, c]
         un = uf + chol_solve(LM, w, n, jl)
-        p = position[w]
-        q = orientation[w]
         for gi in range(L):
             drive_torque[w, gi] = impulse[w, gi] / dt
-        v = wp.vec3(un[0], un[1], un[2])
-        om = wp.vec3(un[3], un[4], un[5])
-        p = p + dt * v
-        spin = wp.length(om)
-        if spin > 1.0e-12:
-            q = wp.normalize(wp.quat_from_axis_angle(om / spin, spin * dt) * q)
-        ok = wp.isfinite(p) and wp.isfinite(v) and wp.isfinite(om) and wp.isfinite(q)
-        for gi in range(L):
-            if not wp.isfinite(un[6 + gi]):
-                ok = False
-        if not ok:  # frozen at its last finite state (the tables are never read at a non-finite angle)
-            diverged[w] = DIVERGED_NONFINITE
-            frozen[w] = 1
-            return
-        for gi in range(L):
-            rate = un[6 + gi]
-            ang = coord[w, gi] + dt * rate
-            coord[w, gi] = ang - TWO_PI * wp.floor(ang / TWO_PI)
-            coord_rate[w, gi] = rate
-        position[w] = p
-        orientation[w] = q
-        velocity[w] = v
-        angular_velocity[w] = om
-        if wp.length(v) >= max_speed:
-            diverged[w] = DIVERGED_FAST
-            frozen[w] = 1
+        integrate(state, w, L, un, dt, max_speed, diverged, frozen)
 
     return tabulated_step
 
