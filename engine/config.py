@@ -84,6 +84,9 @@ class Tuning:
             joint error it corrects exceeds this [m]/[rad]; 0: always.
         projection_skip_floor: a projection iteration is skipped in a world whose linear joint errors
             are all at or below this [m] (and angular ones at or below the next); 0 with it: no skip.
+            The defaults sit at float32 rounding: keep them. At 0 the maximal plan applies
+            rounding-sized corrections every step and, through the velocity update, lost 300x
+            accuracy on the four-bar (benchmarks/results/cpu/skip_floors_fourbar.json).
         projection_skip_floor_angular: the angular rows' share of that test [rad].
         linear_solver: "auto" (dense where the padded rows fit engine.pack.MAX_DENSE_ROWS, else
             sparse), "dense" (per-world Cholesky tile) or "sparse" (Cholesky on the matrix's pattern).
@@ -230,6 +233,12 @@ class SolverConfig:
         tuning: the method's internal knobs (engine.Tuning; a mapping of its fields is read as one);
             change them when benchmarking or testing the method: they change speed and rounding,
             not what is simulated.
+
+    Accuracy: with Moreau-Jean both the maximal and the tree plan are second order in dt on
+    passive mechanisms (benchmarks/convergence.py), so halving dt is the way to a more accurate
+    run, down to the float32 floor (about 1e-6 rad on a four-bar's crank, reached near dt 0.25 ms).
+    Lower tolerance / relative_tolerance (and raise max_iterations) where contacts or limits leave
+    worlds unconverged (Trace.health says so); mechanisms with only joint rows are solved directly.
     """
 
     integrator: Integrator = Integrator.MOREAU_JEAN
