@@ -408,6 +408,130 @@ def integrate(state: TabulatedState, w: int, L: int, un: vecnv, dt: float, max_s
             frozen[w] = 1
 
 
+@wp.func
+def contact_rows(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=wp.vec4), slot_of: wp.array2d(dtype=wp.int32),
+                 w: int, m: int, n: int, k: int, arm: wp.vec3, lin: wp.vec3, grp: int, mu: float, dist: float,
+                 uf: vecnv, dt: float, stabilization: float):
+    """Slot k's contact triplet (normal, then the tangents x and y) as rows m, m + 1, m + 2: their J,
+    free velocity (the normal's with the gap closed over the step, or the stabilization's share of
+    the penetration) and fields; returns the next row."""
+    for comp in range(3):
+        nrm = wp.vec3(0.0, 0.0, 1.0)
+        if comp == 1:
+            nrm = wp.vec3(1.0, 0.0, 0.0)
+        if comp == 2:
+            nrm = wp.vec3(0.0, 1.0, 0.0)
+        rxn = wp.cross(arm, nrm)
+        for c in range(NV):
+            J[w, m * NV + c] = 0.0
+        for i in range(3):
+            J[w, m * NV + i] = nrm[i]
+            J[w, m * NV + 3 + i] = rxn[i]
+        if grp >= 0:
+            J[w, m * NV + 6 + grp] = wp.dot(nrm, lin)
+        vrow = jrow_dot(J, w, m, n, uf)
+        if comp == 0:
+            if dist > 0.0:
+                vrow += dist / dt
+            else:
+                vrow += stabilization * dist / dt
+        set_row(rows, w, m, F_R, 0.0)
+        set_row(rows, w, m, F_RHS, vrow)
+        set_row(rows, w, m, F_MU, mu)
+        set_row(rows, w, m, F_COL, float(6 + grp))  # -1 + 6 < 6 for a base slot
+        slot_of[w, m] = MAX_GROUPS + 3 * k + comp
+        m += 1
+    return m
+
+
+@wp.func
+def precondition_pass(J: wp.array2d(dtype=float), Jc: wp.array2d(dtype=wp.vec4), rows: wp.array2d(dtype=wp.vec4),
+                      s1: wp.array2d(dtype=wp.vec4), s2: wp.array2d(dtype=wp.vec4), LM: wp.array2d(dtype=float),
+                      impulse: wp.array2d(dtype=float), slot_of: wp.array2d(dtype=wp.int32), w: int, n: int,
+                      L: int, units: int, rho0: float, lane: int, lanes: int):
+    """This lane's units: the Jacobi preconditioner P = diag(J M^-1 J^T + R)^-1/2 (one value per
+    contact triplet; LM holds the factor of M), the compact copy of the preconditioned rows, and the
+    warm start y from the last step's impulses by slot; returns the lane's share of J^T y. A drive
+    row whose warm start lies within half its bounds is flagged free (F_FREE): its penalty stays at
+    or below rho0 (its projection is then the identity, and a large penalty only slows it)."""
+    gyl = vecnv()
+    unit = lane
+    while unit < units:
+        r, span = unit_rows(unit, L)
+        dsum = float(0.0)
+        for rr in range(r, r + span):
+            jr = vecnv()
+            for c in range(NV):
+                jr[c] = J[w, rr * NV + c]
+            first = int(0)  # a drive row: zero before its sub-chain column
+            if row_at(rows, w, rr, F_MU) < 0.0:
+                first = int(row_at(rows, w, rr, F_COL))
+            dsum += forward_norm2(LM, w, n, jr, first) + row_at(rows, w, rr, F_R)
+        pr = 1.0 / wp.sqrt(wp.max(dsum / float(span), 1.0e-12))
+        xs = wp.vec3()
+        for c in range(span):
+            rr = r + c
+            set_row(rows, w, rr, F_P, pr)
+            set_row(rows, w, rr, F_RHS, pr * row_at(rows, w, rr, F_RHS))
+            set_row(rows, w, rr, F_LO, row_at(rows, w, rr, F_LO) / pr)
+            set_row(rows, w, rr, F_HI, row_at(rows, w, rr, F_HI) / pr)
+            set_row(rows, w, rr, F_PEN, rho0)
+            for k in range(NV):
+                J[w, rr * NV + k] = pr * J[w, rr * NV + k]
+            col = int(row_at(rows, w, rr, F_COL))
+            driving = float(0.0)
+            for k in range(6, NV):
+                if k == col:
+                    driving = J[w, rr * NV + k]
+            row0 = rr * NV
+            Jc[w, 2 * rr] = wp.vec4(J[w, row0], J[w, row0 + 1], J[w, row0 + 2], J[w, row0 + 3])
+            Jc[w, 2 * rr + 1] = wp.vec4(J[w, row0 + 4], J[w, row0 + 5], driving, 0.0)
+            xs[c] = impulse[w, slot_of[w, rr]] / pr
+        pj = project_row(rows, w, r, xs[0], xs[1], xs[2])
+        for c in range(span):
+            s1[w, r + c] = wp.vec4(xs[c], xs[c], 0.0, 0.0)
+            s2[w, r + c] = wp.vec4(pj[c], 0.0, pj[c], 0.0)  # y and its last value; z below
+            for k in range(NV):
+                gyl[k] += J[w, (r + c) * NV + k] * pj[c]
+        free = float(0.0)
+        if span == 1 and wp.abs(xs[0]) < 0.5 * row_at(rows, w, r, F_HI):
+            free = 1.0
+        set_row(rows, w, r, F_FREE, free)
+        unit += lanes
+    return gyl
+
+
+@wp.func
+def warm_dual_pass(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=wp.vec4), s1: wp.array2d(dtype=wp.vec4),
+                   s2: wp.array2d(dtype=wp.vec4), w: int, n: int, L: int, units: int, my: vecnv, lane: int,
+                   lanes: int):
+    """This lane's units: the dual variable from the warm start, z = -(D y + v_f + s), the (De Saxce
+    shifted) velocity it gives (my = M^-1 J^T y), so that an unchanged contact set starts at its
+    fixed point."""
+    unit = lane
+    while unit < units:
+        r, span = unit_rows(unit, L)
+        vels = wp.vec3()
+        for c in range(span):
+            i = r + c
+            pr = row_at(rows, w, i, F_P)
+            vc = (jrow_dot(J, w, i, n, my) + pr * pr * row_at(rows, w, i, F_R) * s2[w, i][0]
+                  + row_at(rows, w, i, F_RHS))
+            prior = s1[w, i]
+            s1[w, i] = wp.vec4(prior[0], prior[1], vc, prior[3])
+            vels[c] = vc
+        shift = float(0.0)
+        if span == 3:
+            shift = row_at(rows, w, r, F_MU) * wp.sqrt(vels[1] * vels[1] + vels[2] * vels[2])
+        for c in range(span):
+            zc = -vels[c]
+            if c == 0:
+                zc -= shift
+            prior = s2[w, r + c]
+            s2[w, r + c] = wp.vec4(prior[0], zc, prior[2], zc)
+        unit += lanes
+
+
 @functools.cache
 def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
     """The step kernel: tiled (launch_tiled, one block of lanes per world, lanes sharing the
@@ -604,32 +728,8 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
                         arm, lin, grp, mu, dist = slot_point(worlds, state, w, k, R, p, axis)
                         if dist < margin:
                             count += 1
-                            for comp in range(3):
-                                nrm = wp.vec3(0.0, 0.0, 1.0)
-                                if comp == 1:
-                                    nrm = wp.vec3(1.0, 0.0, 0.0)
-                                if comp == 2:
-                                    nrm = wp.vec3(0.0, 1.0, 0.0)
-                                rxn = wp.cross(arm, nrm)
-                                for c in range(NV):
-                                    J[w, m * NV + c] = 0.0
-                                for i in range(3):
-                                    J[w, m * NV + i] = nrm[i]
-                                    J[w, m * NV + 3 + i] = rxn[i]
-                                if grp >= 0:
-                                    J[w, m * NV + 6 + grp] = wp.dot(nrm, lin)
-                                vrow = jrow_dot(J, w, m, n, uf)
-                                if comp == 0:
-                                    if dist > 0.0:
-                                        vrow += dist / dt
-                                    else:
-                                        vrow += stabilization * dist / dt
-                                set_row(rows, w, m, F_R, 0.0)
-                                set_row(rows, w, m, F_RHS, vrow)
-                                set_row(rows, w, m, F_MU, mu)
-                                set_row(rows, w, m, F_COL, float(6 + grp))  # -1 + 6 < 6 for a base slot
-                                slot_of[w, m] = MAX_GROUPS + 3 * k + comp
-                                m += 1
+                            m = contact_rows(J, rows, slot_of, w, m, n, k, arm, lin, grp, mu, dist, uf, dt,
+                                             stabilization)
                 contacts_out[w] = count
                 for c in range(NV):
                     ufree[w, c] = uf[c]
@@ -637,90 +737,11 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
             sync()
             m = row_count[w]
             units = L + (m - L) / 3
-            # Jacobi preconditioner P = diag(J M^-1 J^T + R)^-1/2 (one value per contact triplet), the
-            # compact copy of the preconditioned rows, and the warm start from the last step's impulses
-            # by slot, unit by unit over the lanes (LM holds the factor of M). A drive row whose warm
-            # start lies within half its bounds keeps the penalty at or below rho0 (its projection is
-            # then the identity, and a large penalty only slows it).
-            rho = rho0
-            gyl = vecnv()
-            unit = lane
-            while unit < units:
-                r = unit
-                span = int(1)
-                if unit >= L:
-                    r = L + 3 * (unit - L)
-                    span = 3
-                dsum = float(0.0)
-                for rr in range(r, r + span):
-                    jr = vecnv()
-                    for c in range(NV):
-                        jr[c] = J[w, rr * NV + c]
-                    first = int(0)  # a drive row: zero before its sub-chain column
-                    if row_at(rows, w, rr, F_MU) < 0.0:
-                        first = int(row_at(rows, w, rr, F_COL))
-                    dsum += forward_norm2(LM, w, n, jr, first) + row_at(rows, w, rr, F_R)
-                pr = 1.0 / wp.sqrt(wp.max(dsum / float(span), 1.0e-12))
-                xs = wp.vec3()
-                for c in range(span):
-                    rr = r + c
-                    set_row(rows, w, rr, F_P, pr)
-                    set_row(rows, w, rr, F_RHS, pr * row_at(rows, w, rr, F_RHS))
-                    set_row(rows, w, rr, F_LO, row_at(rows, w, rr, F_LO) / pr)
-                    set_row(rows, w, rr, F_HI, row_at(rows, w, rr, F_HI) / pr)
-                    set_row(rows, w, rr, F_PEN, rho0)
-                    for k in range(NV):
-                        J[w, rr * NV + k] = pr * J[w, rr * NV + k]
-                    col = int(row_at(rows, w, rr, F_COL))
-                    driving = float(0.0)
-                    for k in range(6, NV):
-                        if k == col:
-                            driving = J[w, rr * NV + k]
-                    row0 = rr * NV
-                    Jc[w, 2 * rr] = wp.vec4(J[w, row0], J[w, row0 + 1], J[w, row0 + 2], J[w, row0 + 3])
-                    Jc[w, 2 * rr + 1] = wp.vec4(J[w, row0 + 4], J[w, row0 + 5], driving, 0.0)
-                    xs[c] = impulse[w, slot_of[w, rr]] / pr
-                pj = project_row(rows, w, r, xs[0], xs[1], xs[2])
-                for c in range(span):
-                    s1[w, r + c] = wp.vec4(xs[c], xs[c], 0.0, 0.0)
-                    s2[w, r + c] = wp.vec4(pj[c], 0.0, pj[c], 0.0)  # y and its last value; z below
-                    for k in range(NV):
-                        gyl[k] += J[w, (r + c) * NV + k] * pj[c]
-                free = float(0.0)
-                if span == 1 and wp.abs(xs[0]) < 0.5 * row_at(rows, w, r, F_HI):
-                    free = 1.0
-                set_row(rows, w, r, F_FREE, free)
-                unit += lanes
-            # the dual variable from the warm start: z = -(D y + v_f + s), the (shifted) velocity it
-            # gives, so that an unchanged contact set starts at its fixed point
-            gy = reduce_vector(gyl)
+            # the preconditioner and the warm start (y, then z), unit by unit over the lanes
+            gy = reduce_vector(precondition_pass(J, Jc, rows, s1, s2, LM, impulse, slot_of, w, n, L, units, rho0,
+                                                 lane, lanes))
             my = chol_solve(LM, w, n, gy)
-            unit = lane
-            while unit < units:
-                r = unit
-                span = int(1)
-                if unit >= L:
-                    r = L + 3 * (unit - L)
-                    span = 3
-                vels = wp.vec3()
-                for c in range(span):
-                    i = r + c
-                    pr = row_at(rows, w, i, F_P)
-                    vc = (jrow_dot(J, w, i, n, my) + pr * pr * row_at(rows, w, i, F_R) * s2[w, i][0]
-                          + row_at(rows, w, i, F_RHS))
-                    prior = s1[w, i]
-                    s1[w, i] = wp.vec4(prior[0], prior[1], vc, prior[3])
-                    vels[c] = vc
-                shift = float(0.0)
-                if span == 3:
-                    shift = row_at(rows, w, r, F_MU) * wp.sqrt(vels[1] * vels[1] + vels[2] * vels[2])
-                for c in range(span):
-                    zc = -vels[c]
-                    if c == 0:
-                        zc -= shift
-                    prior = s2[w, r + c]
-                    s2[w, r + c] = wp.vec4(prior[0], zc, prior[2], zc)
-                unit += lanes
+            warm_dual_pass(J, rows, s1, s2, w, n, L, units, my, lane, lanes)
         if wp.static(phase == "setup"):
             return
         m = row_count[w]  # (again, for the solve phase's kernel)
@@ -739,12 +760,9 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
                 sync()  # every lane is done with the rows (their set-up or the new penalties)
                 woodbury_factor(J, rows, M, K, Kinv, w, m, n, eta, tmp, lane, lanes)
                 refactor = 0
-            # each lane takes units (a drive row or a contact triplet) lane, lane + lanes, ...: the
-            # right-hand side b at the extrapolated (y, z) with the De Saxce shift from the velocity
-            # at the last iterate, t = S^-1 b and its share of J^T t. A row's PADMM state is two
-            # vec4, (x, x before, its velocity at x, t) and (y, z, y and z before), its fields
-            # read from two (drive rows) or one: each loaded once per pass, stored once (second
-            # pass only, which computes b and t again rather than read them back)
+            # each lane takes units (a drive row or a contact triplet) lane, lane + lanes, ...; a row's
+            # PADMM state is two vec4, (x, x before, its velocity at x, t) and (y, z, y and z before),
+            # loaded once per pass and stored once (by the second pass, which recomputes b and t)
             gl = rhs_pass(Jc, rows, s1, s2, w, L, units, beta, eta, lane, lanes)
             # Woodbury: x = t - S^-1 J (M + J^T S^-1 J)^-1 J^T t
             yv = woodbury_apply(Kinv, w, n, reduce_vector(gl), lane, lanes)
