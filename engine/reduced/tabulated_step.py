@@ -1,29 +1,16 @@
-"""The step of the tabulated path: one kernel per (tiled, phase, register cap), built on demand.
+"""The tabulated path's step: one kernel per (tiled, phase, register cap), built on demand and
+composed of named stages: chain_columns (M(q) and the bias forces h(q, u), link by link), the
+free velocity u_f = u + dt M^-1 h, the drive rows and contact_rows (slot_point: slot k < BASE_SLOTS
+is the base's point k, slot BASE_SLOTS + 2 g + e end e of sub-chain g's shape), precondition_pass
+and warm_dual_pass (Jacobi preconditioner, warm start by slot), PADMM iterations (rhs_pass,
+woodbury_apply, update_pass; the linear solves by the Woodbury identity
+(D + S)^-1 = S^-1 - S^-1 J (M + J^T S^-1 J)^-1 J^T S^-1, a (6 + L)-square factor), then
+u+ = u_f + M^-1 J^T lambda and integrate.
 
-On the layout of engine.reduced.tabulated_kernel: mass matrix M(q) = sum_k J_k^T diag(m_k, I_k)
-J_k and bias forces h(q, u) (gravity, the velocity-product terms from c_k'' and phi_k'', the
-gyroscopic torques) summed link by link; semi-implicit Euler: u_f = u + dt M^-1 h, then the dual
-problem over the rows (the driving coordinates' velocity drives with the implicit damping law and
-effort bounds; contact triplets with the engine's stabilization and Coulomb cones with the De
-Saxce correction) by PADMM with a Jacobi preconditioner, whose linear solves use the Woodbury
-identity (D + S)^-1 = S^-1 - S^-1 J (M + J^T S^-1 J)^-1 J^T S^-1 (a factor of the (6 + L)-square
-matrix, never of the rows' Delassus matrix); then u+ = u_f + M^-1 J^T lambda, and the positions,
-the base's orientation (exponential map) and the driving coordinates integrated with u+.
-
-Contact slots (their warm-start keys): slot k < BASE_SLOTS is the base's point k (a box corner, a
-sphere's or a capsule end's centre with its radius), slot BASE_SLOTS + 2 g + e end e of sub-chain
-g's contact shape (a capsule's two ends, a sphere's centre in e = 0), each against the ground
-plane z = offset within SolverConfig.contact_margin.
-
-On a GPU a batch of up to tiled_max_worlds worlds steps one block of lanes per world (the lanes
-share the sub-chains of the set-up, the rows of the preconditioner, the warm start and every
-PADMM iteration, the Woodbury factor's entries and its inverse's rows, the impulses); larger
-batches and the CPU step one thread per world as two kernels (set-up through the warm start;
-factor, iterations, integration). Both compute the same step. The tiled step is held to
-TILED_REGISTERS registers per thread so that an SM holds 32 worlds; the Woodbury factor has one
-call site (instruction cache); a row's PADMM state and fields are vec4s, each loaded and stored
-once per iteration. Why, with the measurements: benchmarks/results/README.md, "Tabulated
-sub-chains: design notes".
+Tiled (a GPU batch up to tiled_max_worlds): one block of lanes per world sharing sub-chains, rows and
+the factor, held to TILED_REGISTERS; otherwise one thread per world as two kernels (set-up; solve).
+Both compute the same step. Why the layout (vec4 row state, one call site for the factor), with the
+measurements: benchmarks/results/README.md, "Tabulated sub-chains: design notes".
 """
 
 import functools
@@ -605,38 +592,18 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
 
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=registers)
     def tabulated_step(
-        dt: float,
-        eta: float,
-        rho0: float,
-        tolerance: float,
-        relative_tolerance: float,
-        max_iterations: int,
-        rho_update_interval: int,
-        margin: float,
-        stabilization: float,
-        max_speed: float,
-        worlds: TabulatedWorlds,
-        state: TabulatedState,
-        impulse: wp.array2d(dtype=float),
-        frozen: wp.array(dtype=wp.int32),
-        diverged: wp.array(dtype=wp.int32),
+        dt: float, eta: float, rho0: float, tolerance: float, relative_tolerance: float, max_iterations: int,
+        rho_update_interval: int, margin: float, stabilization: float, max_speed: float,
+        worlds: TabulatedWorlds, state: TabulatedState, impulse: wp.array2d(dtype=float),
+        frozen: wp.array(dtype=wp.int32), diverged: wp.array(dtype=wp.int32),
         # out
-        iterations_out: wp.array(dtype=wp.int32),
-        contacts_out: wp.array(dtype=wp.int32),
+        iterations_out: wp.array(dtype=wp.int32), contacts_out: wp.array(dtype=wp.int32),
         drive_torque: wp.array2d(dtype=float),
         # scratch
-        J: wp.array2d(dtype=float),
-        Jc: wp.array2d(dtype=wp.vec4),
-        rows: wp.array2d(dtype=wp.vec4),
-        M: wp.array2d(dtype=float),
-        LM: wp.array2d(dtype=float),
-        K: wp.array2d(dtype=float),
-        s1: wp.array2d(dtype=wp.vec4),
-        s2: wp.array2d(dtype=wp.vec4),
-        tmp: wp.array2d(dtype=float),
-        slot_of: wp.array2d(dtype=wp.int32),
-        row_count: wp.array(dtype=wp.int32),
-        ufree: wp.array2d(dtype=float),
+        J: wp.array2d(dtype=float), Jc: wp.array2d(dtype=wp.vec4), rows: wp.array2d(dtype=wp.vec4),
+        M: wp.array2d(dtype=float), LM: wp.array2d(dtype=float), K: wp.array2d(dtype=float),
+        s1: wp.array2d(dtype=wp.vec4), s2: wp.array2d(dtype=wp.vec4), tmp: wp.array2d(dtype=float),
+        slot_of: wp.array2d(dtype=wp.int32), row_count: wp.array(dtype=wp.int32), ufree: wp.array2d(dtype=float),
         Kinv: wp.array2d(dtype=wp.vec4),
     ):
         """One step of every world (a block of lanes or one thread per world): mass matrix and bias
