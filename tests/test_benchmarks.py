@@ -576,3 +576,15 @@ def test_runner_takes_the_batch_sizes_asked_for(tmp_path, capsys):
         with pytest.raises(SystemExit):
             main(["--device", "cpu", "--only", "fourbar", *argv])
         assert message in capsys.readouterr().err
+
+
+def test_walker_agreement_compares_the_same_walkers_in_both_plans(tmp_path, capsys):
+    from benchmarks import walker_agreement
+
+    result = walker_agreement.main(["--designs", "3", "--device", "cpu", "--out", str(tmp_path)])
+    assert result == json.loads((tmp_path / "walker_agreement_cpu.json").read_text())
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == result
+    assert result["feasible_both"] + result["failed_tabulated_only"] + result["failed_maximal_only"] <= 3
+    if result["feasible_both"]:
+        assert 0.0 <= result["speed_diff_median_m_s"] <= result["speed_diff_p90_m_s"] < 1.0
+    assert result["seconds"]["tabulated"] > 0.0 and result["seconds"]["maximal"] > 0.0
