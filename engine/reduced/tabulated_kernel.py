@@ -171,8 +171,8 @@ def rot_minus_y(angle: float):
 
 @wp.func
 def table_index(ang: float, samples: int):
-    """Sample pair and weight of a driving coordinate: (i0, i1, f) packed as a vec3 (a non-finite
-    one reads sample 0, never outside the table)."""
+    """Sample pair and weight of a driving coordinate: i0, i1, f (a non-finite one reads sample 0,
+    never outside the table)."""
     u = ang * float(samples) / TWO_PI
     u = u - float(samples) * wp.floor(u / float(samples))
     if not (u >= 0.0 and u < float(samples)):
@@ -183,7 +183,7 @@ def table_index(ang: float, samples: int):
     i1 = i0 + 1
     if i1 >= samples:
         i1 = 0
-    return wp.vec3(float(i0), float(i1), u - float(i0))
+    return i0, i1, u - float(i0)
 
 
 @wp.func
@@ -350,10 +350,7 @@ def link_pose(worlds: TabulatedWorlds, state: TabulatedState, w: int, gi: int, k
     driving rate, unused) as a vec3 each."""
     t = worlds.group_table[w, gi]
     s = worlds.group_scale[w, gi]
-    ix = table_index(state.coord[w, gi], worlds.samples)
-    i0 = int(ix[0])
-    i1 = int(ix[1])
-    f = ix[2]
+    i0, i1, f = table_index(state.coord[w, gi], worlds.samples)
     c0 = link_read(worlds.links0, t, i0, i1, f, k)
     c1 = table_read(worlds.links1, t, i0, i1, f, k)
     d = R * (worlds.group_origin[w, gi] + wp.vec3(s * c0[0], 0.0, s * c0[1]))

@@ -251,10 +251,7 @@ def chain_columns(worlds: TabulatedWorlds, state: TabulatedState, M: wp.array2d(
         s = worlds.group_scale[w, gi]
         ang = state.coord[w, gi]
         rate = state.coord_rate[w, gi]
-        ix = table_index(ang, worlds.samples)
-        i0 = int(ix[0])
-        i1 = int(ix[1])
-        f = ix[2]
+        i0, i1, f = table_index(ang, worlds.samples)
         col = 6 + gi
         o = worlds.group_origin[w, gi]
         me_sum = wp.vec3()  # the sub-chain's column: linear part
@@ -337,10 +334,7 @@ def slot_point(worlds: TabulatedWorlds, state: TabulatedState, w: int, k: int, R
         if sh[0] >= 0.0 and (end > 0.0 or sh[1] > 0.0):
             t = worlds.group_table[w, grp]
             s = worlds.group_scale[w, grp]
-            ix = table_index(state.coord[w, grp], worlds.samples)
-            i0 = int(ix[0])
-            i1 = int(ix[1])
-            f = ix[2]
+            i0, i1, f = table_index(state.coord[w, grp], worlds.samples)
             fl = worlds.table_contact_link[t]
             phi = link_read(worlds.links0, t, i0, i1, f, fl)
             phi1 = table_read(worlds.links1, t, i0, i1, f, fl)
