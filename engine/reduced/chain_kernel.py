@@ -17,7 +17,7 @@ from engine.linalg.lanes import block_sync, tile_set
 from engine.padmm import project_cone, rho_update
 from engine.reduced.chain_layout import KIND_REVOLUTE, KIND_ROOT, MAX_PREFIX, TILE_STEP, _tile_size
 from engine.reduced.chain_stages import (DIVERGED, DYNAMICS, EFFORT_LIMIT, VELOCITIES, ChainArrays, ChainWork,
-                                         add_children, advance, angle_low, candidates_within, contact_factor,
+                                         add_children, advance, angle_low, body_out, candidates_within, contact_factor,
                                          contact_residuals, factor_lanes, keep_angle_low, kinematics, left_here,
                                          loop_errors, loop_row_bias, loop_rows_of, own_terms, plane_candidates, project,
                                          solve_column, solve_lanes, stamp, tree_factor, tree_solves)
@@ -536,10 +536,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                     if wp.static(contacts > 0):
                         if jolt[k] != 0.0:  # a contact impulse moved it: no extrapolation from this step
                             w.u_start[world, k] = u[world, k]
-                    b = m.body_out[world, k]
-                    if b >= 0:
-                        body_q[world, b] = wp.transform(w.centre[world, k], wp.transform_get_rotation(w.pose[world, k]))
-                        body_qd[world, b] = wp.spatial_vector(w.vel[world, k], w.omega[world, k])
+                    body_out(m, w, world, k, body_q, body_qd)
             else:  # frozen at the last good step: its coordinates, rates and bodies
                 for i in range(lane, n, lanes):
                     q[world, i] = w.q_start[world, i]

@@ -223,6 +223,17 @@ def kinematics(m: ChainArrays, w: ChainWork, world: int, lane: int, lanes: int, 
 
 
 @wp.func
+def body_out(m: ChainArrays, w: ChainWork, world: int, k: int, body_q: wp.array2d(dtype=wp.transform),
+             body_qd: wp.array2d(dtype=wp.spatial_vector)):
+    """Entry k's spec body (if it has one) into body_q, body_qd: its centre-of-mass pose and twist
+    from kinematics (VELOCITIES)."""
+    b = m.body_out[world, k]
+    if b >= 0:
+        body_q[world, b] = wp.transform(w.centre[world, k], wp.transform_get_rotation(w.pose[world, k]))
+        body_qd[world, b] = wp.spatial_vector(w.vel[world, k], w.omega[world, k])
+
+
+@wp.func
 def turned(X: wp.transform, dc: wp.vec3, r: wp.vec3):
     """The frame X moved by dc and turned by the rotation vector r (world frame)."""
     rot = wp.transform_get_rotation(X)

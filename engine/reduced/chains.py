@@ -24,8 +24,8 @@ from engine.reduced.chain_kernel import CHAIN_BLOCK, MAX_REGISTERS, chain_step_k
 from engine.reduced.chain_layout import (KIND_ANGULAR, KIND_LINEAR, KIND_REVOLUTE, KIND_ROOT, MAX_CONTACTS, MAX_PREFIX,
                                          MAX_ROWS, ChainLayout, _capacity, _packed_rows, _packed_tile, _prefix, _tile_size,
                                          _transform, chain_layout)
-from engine.reduced.chain_stages import (STAGES, VELOCITIES, ChainArrays, ChainWork, candidates_within, kinematics,
-                                         plane_candidates)
+from engine.reduced.chain_stages import (STAGES, VELOCITIES, ChainArrays, ChainWork, body_out, candidates_within,
+                                         kinematics, plane_candidates)
 from engine.spatial import quat_matrix
 from engine.spec import MechanismSpec
 
@@ -388,8 +388,5 @@ def initial_bodies_kernel(m: ChainArrays, w: ChainWork, q: wp.array2d(dtype=floa
     world, lane = wp.tid()
     kinematics(m, w, world, 0, 1, q, u, root, VELOCITIES)
     for k in range(m.tree_count[world]):
-        b = m.body_out[world, k]
-        if b >= 0:
-            body_q[world, b] = wp.transform(w.centre[world, k], wp.transform_get_rotation(w.pose[world, k]))
-            body_qd[world, b] = wp.spatial_vector(w.vel[world, k], w.omega[world, k])
+        body_out(m, w, world, k, body_q, body_qd)
 
