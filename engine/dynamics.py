@@ -4,14 +4,32 @@ With u_free = u + dt M^-1 h (gravity, external wrenches, gyroscopic terms) the r
 J u+ + R lambda = c with u+ = u_free + M^-1 J^T lambda, i.e. D lambda + v_f = 0 (bilateral rows)
 with D = J M^-1 J^T + R and v_f = J u_free - c. The solver works in preconditioned variables
 x = P^-1 lambda with P = diag(D)^-1/2: matrix P D P (unit diagonal), vector P v_f, bounds lo / P.
+
+Force elements (engine.forces) and Control.joint_effort on undriven joints enter h as body
+wrenches (force_wrench_of), evaluated explicitly at the poses and twists the free velocities are
+computed from: Moreau-Jean's midpoint poses and the step's starting twists, semi-implicit Euler's
+starting poses and twists. Each body sums the slots acting on it in slot order (no atomics), so
+the staged kernel (forced_free_velocity) and the fused step add them in the same order.
 """
 
 import warp as wp
 
 from engine.linalg import sparse
-from engine.joints import body_twist
-from engine.model import ROW_CONTACT_NORMAL, ROW_CONTACT_TANGENT, UNBOUNDED, ModelArrays, WorkArrays
-from engine.spatial import gyroscopic_implicit_midpoint, twist, two_sum, world_inertia_inverse
+from engine.joints import JOINT_REVOLUTE, body_twist, joint_coordinate_row, joint_frames
+from engine.model import (
+    FORCE_BODY_WRENCH,
+    FORCE_JOINT_EFFORT,
+    FORCE_JOINT_SPRING,
+    FORCE_JOINT_TORQUE,
+    FORCE_LINEAR_SPRING,
+    ROW_CONTACT_NORMAL,
+    ROW_CONTACT_TANGENT,
+    UNBOUNDED,
+    ForceArrays,
+    ModelArrays,
+    WorkArrays,
+)
+from engine.spatial import gyroscopic_implicit_midpoint, twist, two_sum, world_inertia_inverse, wrap_angle
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
@@ -48,6 +66,127 @@ def free_velocity_of(world: int, b: int, m: ModelArrays, w: WorkArrays, body_q: 
     free, low = two_sum(u, body_qd_low[world, b] + twist(dv, dw))
     w.body_qd_free[world, b] = free
     body_qd_low_out[world, b] = low
+
+
+@wp.func
+def body_pose(body_q: wp.array2d(dtype=wp.transform), world: int, body: int):
+    """Pose of a body, the identity for the world (-1)."""
+    if body < 0:
+        return wp.transform_identity()
+    return body_q[world, body]
+
+
+@wp.func
+def spring_wrench_of(world: int, k: int, b: int, fa: ForceArrays, body_q: wp.array2d(dtype=wp.transform),
+                     body_qd: wp.array2d(dtype=wp.spatial_vector)):
+    """Wrench (force, torque about the COM; world frame) of linear spring k on body b (one of its
+    two bodies): tension T = k (L - L0) + c dL/dt along the points' line, pulling a towards b;
+    tension-only: none while L < L0 and never a push."""
+    a = fa.force_body_a[world, k]
+    c = fa.force_body_b[world, k]
+    X_a = body_pose(body_q, world, a)
+    X_c = body_pose(body_q, world, c)
+    r_a = wp.quat_rotate(wp.transform_get_rotation(X_a), fa.force_point_a[world, k])
+    r_c = wp.quat_rotate(wp.transform_get_rotation(X_c), fa.force_point_b[world, k])
+    gap = (wp.transform_get_translation(X_c) - wp.transform_get_translation(X_a)) + (r_c - r_a)
+    length = wp.length(gap)
+    zero = wp.spatial_vector()
+    if length < 1.0e-9:
+        return zero  # no direction
+    stretch = length - fa.force_rest[world, k]
+    tension_only = fa.force_tension_only[world, k] != 0
+    if tension_only and stretch < 0.0:
+        return zero
+    n = gap / length
+    u_a = body_twist(body_qd, world, a)
+    u_c = body_twist(body_qd, world, c)
+    rate = wp.dot(n, (wp.spatial_top(u_c) + wp.cross(wp.spatial_bottom(u_c), r_c))
+                  - (wp.spatial_top(u_a) + wp.cross(wp.spatial_bottom(u_a), r_a)))
+    tension = fa.force_stiffness[world, k] * stretch + fa.force_damping[world, k] * rate
+    if tension_only:
+        tension = wp.max(tension, 0.0)
+    if b == a:
+        f = tension * n
+        return twist(f, wp.cross(r_a, f))
+    f = -tension * n
+    return twist(f, wp.cross(r_c, f))
+
+
+@wp.func
+def joint_force_wrench_of(world: int, k: int, b: int, kind: int, m: ModelArrays, fa: ForceArrays,
+                          body_q: wp.array2d(dtype=wp.transform), body_qd: wp.array2d(dtype=wp.spatial_vector),
+                          no_low: wp.array2d(dtype=wp.transform), joint_effort: wp.array2d(dtype=float)):
+    """Wrench on body b (the joint's child or parent) of joint slot k: generalized force tau on
+    the joint coordinate (spring: -k (q - q0) - c dq; torque: its effort; Control.joint_effort),
+    mapped by the coordinate's Jacobian: J_c^T tau on the child, J_p^T tau on the parent (equal
+    and opposite torques about the axis of a revolute joint, forces along a prismatic one's)."""
+    j = fa.force_joint[world, k]
+    jtype = m.joint_type[world, j]
+    child = m.joint_child[world, j]
+    parent = m.joint_parent[world, j]
+    tau = float(0.0)
+    if kind == FORCE_JOINT_TORQUE:
+        tau = fa.force_effort[world, k]
+    elif kind == FORCE_JOINT_EFFORT:
+        tau = joint_effort[world, j]
+    X_wp, X_wc, r_p, r_c, d = joint_frames(body_q, no_low, world, parent, child, m.joint_X_p[world, j],
+                                           m.joint_X_c[world, j], 0)
+    J_c, J_p, q = joint_coordinate_row(jtype, X_wp, X_wc, r_p, r_c, d, m.joint_axis[world, j])
+    if kind == FORCE_JOINT_SPRING:
+        error = q - fa.force_rest[world, k]
+        if jtype == JOINT_REVOLUTE:
+            error = wrap_angle(error)
+        dq = wp.dot(J_c, body_twist(body_qd, world, child)) + wp.dot(J_p, body_twist(body_qd, world, parent))
+        tau = -fa.force_stiffness[world, k] * error - fa.force_damping[world, k] * dq
+    if b == child:
+        return tau * J_c
+    return tau * J_p
+
+
+@wp.func
+def force_wrench_of(world: int, b: int, m: ModelArrays, fa: ForceArrays, body_q: wp.array2d(dtype=wp.transform),
+                    body_qd: wp.array2d(dtype=wp.spatial_vector), no_low: wp.array2d(dtype=wp.transform),
+                    joint_effort: wp.array2d(dtype=float)):
+    """Sum of the wrenches of world's force slots on body b (force, torque about the COM; world
+    frame) at the poses body_q and twists body_qd, in slot order."""
+    total = wp.spatial_vector()
+    for k in range(fa.force_count[world]):
+        if fa.force_body_a[world, k] != b and fa.force_body_b[world, k] != b:
+            continue
+        kind = fa.force_kind[world, k]
+        if kind == FORCE_LINEAR_SPRING:
+            total += spring_wrench_of(world, k, b, fa, body_q, body_qd)
+        elif kind == FORCE_BODY_WRENCH:
+            total += twist(fa.force_force[world, k], fa.force_torque[world, k])
+        else:
+            total += joint_force_wrench_of(world, k, b, kind, m, fa, body_q, body_qd, no_low, joint_effort)
+    return total
+
+
+@wp.func
+def forced_free_velocity_of(world: int, b: int, m: ModelArrays, fa: ForceArrays, w: WorkArrays,
+                            body_q: wp.array2d(dtype=wp.transform), body_qd: wp.array2d(dtype=wp.spatial_vector),
+                            body_qd_low: wp.array2d(dtype=wp.spatial_vector),
+                            body_f: wp.array2d(dtype=wp.spatial_vector), joint_effort: wp.array2d(dtype=float),
+                            compensated: int, body_qd_low_out: wp.array2d(dtype=wp.spatial_vector)):
+    """w.body_f_total = body_f + the force slots' wrenches (force_wrench_of), then the free
+    velocity under it (free_velocity_of). Reads every body's pose: call it once all are set."""
+    w.body_f_total[world, b] = body_f[world, b] + force_wrench_of(world, b, m, fa, body_q, body_qd, w.no_low,
+                                                                  joint_effort)
+    free_velocity_of(world, b, m, w, body_q, body_qd, body_qd_low, w.body_f_total, compensated, body_qd_low_out)
+
+
+@wp.kernel
+def forced_free_velocity(m: ModelArrays, fa: ForceArrays, w: WorkArrays, body_q: wp.array2d(dtype=wp.transform),
+                         body_qd: wp.array2d(dtype=wp.spatial_vector), body_qd_low: wp.array2d(dtype=wp.spatial_vector),
+                         body_f: wp.array2d(dtype=wp.spatial_vector), joint_effort: wp.array2d(dtype=float),
+                         compensated: int, body_qd_low_out: wp.array2d(dtype=wp.spatial_vector)):
+    """u_free = u + dt M^-1 (m g + f + force slots) (forced_free_velocity_of), a thread per body."""
+    world, b = wp.tid()
+    if b >= m.body_count[world]:
+        return
+    forced_free_velocity_of(world, b, m, fa, w, body_q, body_qd, body_qd_low, body_f, joint_effort, compensated,
+                            body_qd_low_out)
 
 
 @wp.kernel
@@ -179,4 +318,13 @@ def build_dual_problem(model, body_q, body_qd, body_qd_low, body_f, body_qd_low_
     wp.launch(delassus, dim=(W, model.max_rows, model.max_rows), device=device, inputs=[w, work.delassus])
 
 
-__all__ = ["build_dual_problem"]
+def forced_free_velocities(model, body_q, body_qd, body_qd_low, control, body_qd_low_out) -> None:
+    """Launch forced_free_velocity for the batch (a model with force slots): the free velocities
+    under Control.body_f plus the force slots, at the poses body_q and twists body_qd."""
+    wp.launch(forced_free_velocity, dim=(model.num_worlds, model.max_bodies), device=model.device,
+              inputs=[model.arrays, model.force_arrays, model.work.arrays, body_q, body_qd, body_qd_low,
+                      control.body_f, control.joint_effort, int(model.config.tuning.compensated_state),
+                      body_qd_low_out])
+
+
+__all__ = ["build_dual_problem", "force_wrench_of", "forced_free_velocities"]

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from engine.dynamics import body_term, free_velocity_of, row_operator_of
+from engine.dynamics import body_term, forced_free_velocity_of, free_velocity_of, row_operator_of
 from engine.integrate import (
     add_impulse_of,
     add_row_share,
@@ -45,7 +45,7 @@ from engine.integrate import (
 from engine.joints import JOINT_PARTS, joint_residuals_of, joint_rows_of
 from engine.linalg.dense import cholesky_lanes, cholesky_solve_lanes, inverse_solve_lanes, triangular_inverse_lanes
 from engine.linalg.lanes import block_max, block_sum, block_sync, clock, group_sum, lane_max2, lane_reduce6, tile_set
-from engine.model import ROW_ANGULAR, ROW_LINEAR, ModelArrays, WorkArrays
+from engine.model import ROW_ANGULAR, ROW_LINEAR, ForceArrays, ModelArrays, WorkArrays
 from engine.padmm import (
     padmm_accelerate_of,
     padmm_decide,
@@ -210,14 +210,16 @@ def body_row_sum(world: int, t: int, g: int, nb: int, n: int, w: WorkArrays, wei
 
 
 def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_inverse: bool = False,
-                 compensated: bool = True, shuffled: bool = False):
+                 compensated: bool = True, shuffled: bool = False, forced: bool = False):
     """The fused step for worlds of at most tile_rows rows: the world's matrix and factor live in
     shared-memory tiles of that size (the loads of a factor or substitution never leave the SM).
     With ``timed`` lane 0 adds each stage's cycles (STAGES) into stamps. With ``with_inverse`` the
     solves multiply by G = L^-1, formed once per factor, instead of substituting. ``compensated``:
     Tuning.compensated_state (without it the low parts are neither read nor written).
     ``shuffled``: the block is one warp's first lanes (warp_lanes), whose sums and maxima over the
-    world's rows take warp shuffles (lane_reduce6, lane_max2) instead of tile reductions."""
+    world's rows take warp shuffles (lane_reduce6, lane_max2) instead of tile reductions.
+    ``forced``: the batch has force slots, whose wrenches join body_f in the free velocities
+    (engine.dynamics.forced_free_velocity_of, as the staged step: midpoint poses, starting twists)."""
     inverse_rows = tile_rows if with_inverse else 1
     comp = 1 if compensated else 0
 
@@ -242,6 +244,7 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=max_registers)
     def fused_step_kernel(
         m: ModelArrays,
+        fa: ForceArrays,
         w: WorkArrays,
         moreau: int,
         baumgarte: float,
@@ -323,8 +326,13 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
         # 2. the dual problem
         n = w.row_count[world]
         max_rows = row_lambda_out.shape[1]
-        for b in range(lane, nb, lanes):
-            free_velocity_of(world, b, m, w, w.body_q_mid, body_qd_in, body_qd_low_in, body_f, comp, body_qd_low_out)
+        for b in range(lane, nb, lanes):  # (every midpoint pose is set: block_sync after stage 1)
+            if wp.static(forced):
+                forced_free_velocity_of(world, b, m, fa, w, w.body_q_mid, body_qd_in, body_qd_low_in, body_f,
+                                        joint_effort, comp, body_qd_low_out)
+            else:
+                free_velocity_of(world, b, m, w, w.body_q_mid, body_qd_in, body_qd_low_in, body_f, comp,
+                                 body_qd_low_out)
         block_sync()
         for i in range(lane, max_rows, lanes):
             row_operator_of(world, i, m, w, w.body_q_mid)
@@ -560,13 +568,13 @@ def _make_kernel(tile_rows: int, max_registers: int, timed: bool = False, with_i
 
 
 def fused_kernel(max_rows: int, max_registers: int = FUSED_REGISTERS, timed: bool = False, inverse: bool = False,
-                 compensated: bool = True, shuffled: bool = False):
+                 compensated: bool = True, shuffled: bool = False, forced: bool = False):
     """The fused step kernel for a padded row count (cached per tile size, register cap, timing,
-    solve form, compensated state and reductions by warp shuffles)."""
+    solve form, compensated state, reductions by warp shuffles and force slots)."""
     tile_rows = max(TILE_ROWS, -(-max_rows // TILE_ROWS) * TILE_ROWS)
     if tile_rows > FUSED_MAX_ROWS:
         raise ValueError(f"the fused step takes at most {FUSED_MAX_ROWS} rows per world, not {max_rows}")
-    key = (tile_rows, max_registers, timed, inverse, compensated, shuffled)
+    key = (tile_rows, max_registers, timed, inverse, compensated, shuffled, forced)
     if key not in _KERNELS:
         _KERNELS[key] = _make_kernel(*key)
     return _KERNELS[key]
@@ -588,9 +596,11 @@ def fused_step(model, state_in, state_out, control, stamps=None, project_output:
         stamps = model._fused_no_stamps
     # warp shuffles on a GPU only (Warp's CPU blocks of several threads, wp.config.enable_cpu_blocks, are not warps)
     shuffled = warp_lanes(model.fused_block) and wp.get_device(model.device).is_cuda
-    kernel = fused_kernel(model.max_rows, model.fused_registers, timed, inverse, tuning.compensated_state, shuffled)
+    forced = bool(getattr(model, "has_forces", False))
+    kernel = fused_kernel(model.max_rows, model.fused_registers, timed, inverse, tuning.compensated_state, shuffled,
+                          forced)
     wp.launch_tiled(kernel, dim=[model.num_worlds], block_dim=model.fused_block, device=model.device,
-                    inputs=[model.arrays, model.work.arrays, int(cfg.integrator.value == "moreau"),
+                    inputs=[model.arrays, model.force_arrays, model.work.arrays, int(cfg.integrator.value == "moreau"),
                             float(cfg.baumgarte), float(cfg.limit_margin), float(cfg.limit_stabilization),
                             (1.0 - tuning.warmstart_decay) if tuning.warmstart else 0.0, cfg.max_iterations,
                             float(cfg.relative_tolerance), tuning.rho_update_interval, int(tuning.adaptive_rho),

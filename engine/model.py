@@ -27,8 +27,8 @@ import warp as wp
 
 from engine.config import Integrator, SolverConfig  # re-exported: engine.model was their home
 
-__all__ = ["Candidates", "ContactArrays", "Control", "Integrator", "Model", "ModelArrays", "ShapeArrays",
-           "SolverConfig", "State", "WorkArrays", "Workspace"]
+__all__ = ["Candidates", "ContactArrays", "Control", "ForceArrays", "Integrator", "Model", "ModelArrays",
+           "ShapeArrays", "SolverConfig", "State", "WorkArrays", "Workspace"]
 
 ROW_LINEAR = wp.constant(0)
 ROW_ANGULAR = wp.constant(1)
@@ -37,6 +37,13 @@ ROW_LIMIT = wp.constant(3)
 ROW_CONTACT_NORMAL = wp.constant(4)
 ROW_CONTACT_TANGENT = wp.constant(5)
 UNBOUNDED = wp.constant(1.0e30)
+# force slots (ForceArrays.force_kind): the spec's force elements (engine.forces), then one slot per
+# undriven revolute or prismatic joint for Control.joint_effort (a drive takes it in its row)
+FORCE_LINEAR_SPRING = wp.constant(0)
+FORCE_JOINT_SPRING = wp.constant(1)
+FORCE_BODY_WRENCH = wp.constant(2)
+FORCE_JOINT_TORQUE = wp.constant(3)
+FORCE_JOINT_EFFORT = wp.constant(4)
 
 
 @wp.struct
@@ -85,6 +92,32 @@ class ModelArrays:
 
 
 @wp.struct
+class ForceArrays:
+    """The Model's force slots, as one kernel argument (engine.dynamics.force_wrench_of), padded to
+    max_forces per world. force_kind (FORCE_*); force_body_a, force_body_b: the bodies it acts on
+    (-1: the world; joint slots: the joint's child and parent); force_joint: the joint of a joint
+    slot; force_point_a, force_point_b: a spring's points in the COM frames of its bodies (point_b
+    in the world frame when body_b is -1) [m]; force_stiffness, force_damping, force_rest (spring
+    and joint spring), force_tension_only (int32); force_force [N] and force_torque [N m] (body
+    wrench, world frame); force_effort (joint torque) [N m] or [N]."""
+
+    force_count: wp.array(dtype=wp.int32)
+    force_kind: wp.array2d(dtype=wp.int32)
+    force_body_a: wp.array2d(dtype=wp.int32)
+    force_body_b: wp.array2d(dtype=wp.int32)
+    force_joint: wp.array2d(dtype=wp.int32)
+    force_point_a: wp.array2d(dtype=wp.vec3)
+    force_point_b: wp.array2d(dtype=wp.vec3)
+    force_stiffness: wp.array2d(dtype=float)
+    force_damping: wp.array2d(dtype=float)
+    force_rest: wp.array2d(dtype=float)
+    force_tension_only: wp.array2d(dtype=wp.int32)
+    force_force: wp.array2d(dtype=wp.vec3)
+    force_torque: wp.array2d(dtype=wp.vec3)
+    force_effort: wp.array2d(dtype=float)
+
+
+@wp.struct
 class ShapeArrays:
     """The Model's collision arrays (shapes, ground planes, shape pairs), for engine.collide."""
 
@@ -109,6 +142,7 @@ class WorkArrays:
     (the dense matrices and the contacts apart), as one kernel argument."""
 
     body_qd_free: wp.array2d(dtype=wp.spatial_vector)
+    body_f_total: wp.array2d(dtype=wp.spatial_vector)
     body_q_mid: wp.array2d(dtype=wp.transform)
     body_q_mid_low: wp.array2d(dtype=wp.transform)
     no_low: wp.array2d(dtype=wp.transform)
@@ -248,6 +282,9 @@ class Model(_Grouped):
         body_row_begin, body_row_end (W, B) int32 into body_row (W, K) int32: each body's rows below
         contact_row_start in row order, coded 2 i + side (0: child, 1: parent; engine.pack.body_row_lists)
         bilateral_row_count (W,) int32: joint rows the position projection works on
+    Force slots (``force_arrays``, ForceArrays; engine.forces): force_count (W,) int32 and the
+    per-slot arrays (W, max_forces); has_forces: whether any world has a slot (the step then adds
+    their wrenches to body_f); force_summary: the spec elements counted by kind, for the plan.
     Host: world_extent (W,) the largest coordinate magnitude of a body's centre of mass or a world
     anchor when packed [m]; world_mass_ratio (W,) the largest mass ratio of two jointed bodies;
     health_init (W,) int32: engine.health's FAR flag of each world, set when packed;
@@ -259,7 +296,7 @@ class Model(_Grouped):
     Tuning.sparse_projection_pattern).
     """
 
-    _groups = {"arrays": ModelArrays, "shape_arrays": ShapeArrays}
+    _groups = {"arrays": ModelArrays, "shape_arrays": ShapeArrays, "force_arrays": ForceArrays}
 
     def __init__(self):
         super().__init__()
@@ -342,7 +379,9 @@ class Control:
     """Inputs set between steps.
 
     joint_target_position (W, J) [rad]/[m]; joint_target_velocity (W, J) [rad/s]/[m/s];
-    joint_effort (W, J) feed-forward joint torque/force [N m]/[N]; body_f (W, B) external
+    joint_effort (W, J) feed-forward joint torque/force [N m]/[N] (a drive's row takes it within
+    its effort limit; on an undriven revolute or prismatic joint it is applied as a force slot,
+    engine.dynamics.force_wrench_of); body_f (W, B) external
     wrench (force [N], torque [N m]) at the COM, world frame.
     """
 
@@ -374,6 +413,7 @@ class Workspace(_Grouped):
     diverged (non-finite state: frozen), halted (stopped by engine.rollout's halt: frozen, not
     flagged as diverged); active_count (1,).
     Metrics (W,): violation_linear [m], violation_angular [rad], energy [J].
+    body_f_total (W, B): Control.body_f plus the force slots' wrenches of this step.
     Contacts: row_count (W,) rows of this step; candidates (Candidates, (W, 4 max_pairs));
     contact_* (W, C): bodies, points, normal (from b to a), distance [m], friction, restitution,
     key; contact_count, contact_dropped (W,): kept and dropped (over capacity) contacts.
@@ -390,6 +430,7 @@ class Workspace(_Grouped):
             return wp.zeros(shape, dtype=dtype, device=device)
 
         self.body_qd_free = zeros((w, b), wp.spatial_vector)
+        self.body_f_total = zeros((w, b), wp.spatial_vector)  # body_f plus the force slots' wrenches
         self.body_q_mid = zeros((w, b), wp.transform)
         self.body_q_mid_low = zeros((w, b), wp.transform)  # the midpoint's low part (engine.integrate)
         self.no_low = zeros((w, b), wp.transform)  # low parts of poses that have none: zeros, never written

@@ -16,6 +16,7 @@ from engine.model import Model, Workspace
 from engine.plan import ORDER, Coordinates, Plan, choose, fastest
 from engine.linalg.sparse_analysis import batch_schedule_cost, bilateral_factor_rows, build_patterns, make_system
 from engine.spatial import rotate
+from engine.forces import BodyWrench, JointSpring, JointTorque, LinearSpring
 from engine.spec import JOINT_ROW_COUNT, JointType, MechanismSpec, joint_dynamics_rows
 
 __all__ = ["MAX_DENSE_ROWS", "dense_rows_needed", "pack", "pack_worlds"]
@@ -181,6 +182,84 @@ def _pack_joints(h: dict, w: int, joints: list, index: dict, coms: list) -> int:
     h["row_body_p"][w, :row] = bodies_p
     h["row_body_c"][w, :row] = bodies_c
     return row
+
+
+FORCE_KINDS = {LinearSpring: 0, JointSpring: 1, BodyWrench: 2, JointTorque: 3}  # engine.model FORCE_*
+FORCE_JOINT_EFFORT_SLOT = 4
+
+
+def pack_forces(specs: Sequence[MechanismSpec]) -> dict:
+    """Host arrays of the force slots (engine.model.ForceArrays) of every world: its spec's force
+    elements in order, then a FORCE_JOINT_EFFORT slot per undriven revolute or prismatic joint
+    (Control.joint_effort there; a drive's row takes it on a driven joint). Points in COM frames."""
+    slots = []
+    for spec in specs:
+        undriven = [j for j, joint in enumerate(spec.joints) if joint.drive is None and
+                    joint.type in (JointType.REVOLUTE, JointType.PRISMATIC)]
+        slots.append(len(spec.forces) + len(undriven))
+    W, F = len(specs), max(1, max(slots))
+    f32 = np.float32
+    h = {"force_count": np.array(slots, np.int32), "force_kind": np.zeros((W, F), np.int32),
+         "force_body_a": np.full((W, F), -1, np.int32), "force_body_b": np.full((W, F), -1, np.int32),
+         "force_joint": np.zeros((W, F), np.int32), "force_point_a": np.zeros((W, F, 3), f32),
+         "force_point_b": np.zeros((W, F, 3), f32), "force_stiffness": np.zeros((W, F), f32),
+         "force_damping": np.zeros((W, F), f32), "force_rest": np.zeros((W, F), f32),
+         "force_tension_only": np.zeros((W, F), np.int32), "force_force": np.zeros((W, F, 3), f32),
+         "force_torque": np.zeros((W, F, 3), f32), "force_effort": np.zeros((W, F), f32)}
+    for w, spec in enumerate(specs):
+        if not slots[w]:
+            continue
+        index = spec.body_index
+        joint_index = {joint.name: j for j, joint in enumerate(spec.joints)}
+
+        def joint_slot(k, j, kind):
+            joint = spec.joints[j]
+            h["force_kind"][w, k] = kind
+            h["force_joint"][w, k] = j
+            h["force_body_a"][w, k] = index[joint.child]
+            h["force_body_b"][w, k] = -1 if joint.parent is None else index[joint.parent]
+
+        for k, item in enumerate(spec.forces):
+            kind = FORCE_KINDS[type(item)]
+            if isinstance(item, LinearSpring):
+                a = index[item.body_a]
+                b = -1 if item.body_b is None else index[item.body_b]
+                h["force_kind"][w, k] = kind
+                h["force_body_a"][w, k], h["force_body_b"][w, k] = a, b
+                h["force_point_a"][w, k] = item.point_a - spec.bodies[a].com
+                h["force_point_b"][w, k] = item.point_b - (0.0 if b < 0 else spec.bodies[b].com)
+                h["force_stiffness"][w, k], h["force_damping"][w, k] = item.stiffness, item.damping
+                h["force_rest"][w, k] = item.rest_length
+                h["force_tension_only"][w, k] = int(item.tension_only)
+            elif isinstance(item, BodyWrench):
+                h["force_kind"][w, k] = kind
+                h["force_body_a"][w, k] = index[item.body]
+                h["force_force"][w, k], h["force_torque"][w, k] = item.force, item.torque
+            else:
+                joint_slot(k, joint_index[item.joint], kind)
+                if isinstance(item, JointSpring):
+                    h["force_stiffness"][w, k], h["force_damping"][w, k] = item.stiffness, item.damping
+                    h["force_rest"][w, k] = item.rest_position
+                else:
+                    h["force_effort"][w, k] = item.effort
+        k = len(spec.forces)
+        for j, joint in enumerate(spec.joints):
+            if joint.drive is None and joint.type in (JointType.REVOLUTE, JointType.PRISMATIC):
+                joint_slot(k, j, FORCE_JOINT_EFFORT_SLOT)
+                k += 1
+    return h
+
+
+def force_summary(specs: Sequence[MechanismSpec]) -> str:
+    """The batch's force elements counted by kind ("2 spring-dampers, 1 body wrench"), or "none"."""
+    names = {LinearSpring: ("spring-damper", "spring-dampers"), JointSpring: ("joint spring", "joint springs"),
+             BodyWrench: ("body wrench", "body wrenches"), JointTorque: ("joint torque", "joint torques")}
+    counts = dict.fromkeys(names, 0)
+    for spec in specs:
+        for item in spec.forces:
+            counts[type(item)] += 1
+    parts = [f"{n} {names[t][n != 1]}" for t, n in counts.items() if n]
+    return ", ".join(parts) if parts else "none"
 
 
 def pack(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | None = None, dt: float = 1.0e-3,
@@ -451,9 +530,16 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         "joint_axis": wp.vec3, "joint_axis2": wp.vec3, "world_gravity": wp.vec3, "point_local": wp.vec3,
         "shape_X": wp.transform, "shape_size": wp.vec3, "ground_normal": wp.vec3,
     }
-    for name, value in h.items():
+    forces = pack_forces(specs)
+    dtypes.update(force_point_a=wp.vec3, force_point_b=wp.vec3, force_force=wp.vec3, force_torque=wp.vec3)
+    for name, value in (*h.items(), *forces.items()):
         dtype = dtypes.get(name, wp.int32 if value.dtype == np.int32 else float)
         setattr(model, name, wp.array(value, dtype=dtype, device=device))
+    model.max_forces = forces["force_kind"].shape[1]
+    model.has_forces = bool(forces["force_count"].any())
+    model.force_summary = force_summary(specs)
+    model.undriven_effort_joints = int(sum(np.count_nonzero(forces["force_kind"][w, :n] == FORCE_JOINT_EFFORT_SLOT)
+                                           for w, n in enumerate(forces["force_count"])))
     model._dt_host = h["world_dt"].copy()
     model.contact_capacity = capacity
     model.max_pairs = max_pairs

@@ -92,6 +92,8 @@ class Plan:
 
 def _admits(kind: Coordinates, spec):
     """The kind's layout of ``spec`` (raises ValueError with the reason when it does not fit)."""
+    if kind is not Coordinates.MAXIMAL and spec.forces:
+        raise ValueError(f"force elements: the {kind.value} plan does not take them yet")
     if kind is Coordinates.TABULATED:
         from engine.reduced.tabulated_layout import tabulated_layout
         return tabulated_layout(spec)
@@ -233,6 +235,18 @@ def _integrator(config) -> str:
     return "Moreau-Jean midpoint" if config.integrator is Integrator.MOREAU_JEAN else "semi-implicit Euler"
 
 
+def _forces(model) -> str:
+    """The force elements of a maximal batch and where they are evaluated (engine.dynamics)."""
+    text = model.force_summary
+    if model.undriven_effort_joints:
+        text += f"; Control.joint_effort on {model.undriven_effort_joints} undriven joints"
+    if model.has_forces:
+        point = ("midpoint poses, starting twists" if model.config.integrator is Integrator.MOREAU_JEAN
+                 else "starting poses and twists")
+        text += f"; body wrenches beside Control.body_f, at the {point}"
+    return text
+
+
 def describe_maximal(plan: Plan, model) -> Plan:
     """Fill ``plan`` from a packed maximal Model (engine.pack_worlds's choices)."""
     from engine.fused import FUSED_MAX_ROWS, fused_block, fused_inverse, sharing_used
@@ -266,6 +280,7 @@ def describe_maximal(plan: Plan, model) -> Plan:
         "position projection": (cfg.position_iterations > 0 and model.has_bilateral_rows,
                                 f"{cfg.position_iterations} Gauss-Newton iterations" if model.has_bilateral_rows
                                 else "no bilateral joint rows"),
+        "forces": (model.has_forces, _forces(model)),
     }
     plan.integrator = _integrator(cfg)
     plan.control = "engine.Control: drive targets, efforts and body wrenches per step"

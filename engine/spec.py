@@ -24,8 +24,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Body", "GroundPlane", "Joint", "JointDrive", "JointType", "MechanismSpec", "Shape", "ShapeType",
-           "TrackedPoint"]
+from engine.forces import FORCE_TYPES, BodyWrench, JointSpring, JointTorque, LinearSpring
+
+__all__ = ["Body", "BodyWrench", "GroundPlane", "Joint", "JointDrive", "JointSpring", "JointTorque", "JointType",
+           "LinearSpring", "MechanismSpec", "Shape", "ShapeType", "TrackedPoint"]
 
 
 class JointType(enum.IntEnum):
@@ -608,9 +610,11 @@ class TrackedPoint:
 
 @dataclass
 class MechanismSpec:
-    """One world: bodies, joints, tracked points and gravity, validated on creation.
+    """One world: bodies, joints, tracked points, gravity and force elements, validated on creation.
 
-    Raises ValueError naming the body, joint or point and the field when anything is off.
+    forces: force elements (engine.forces: LinearSpring, JointSpring, BodyWrench, JointTorque),
+    names unique; the maximal plan alone takes them for now (engine.plan).
+    Raises ValueError naming the body, joint, point or force element and the field when anything is off.
     """
 
     bodies: list[Body]
@@ -620,6 +624,7 @@ class MechanismSpec:
     name: str = "mechanism"
     shapes: list[Shape] = field(default_factory=list)
     ground: GroundPlane | None = None
+    forces: list = field(default_factory=list)
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not self.name:
@@ -656,6 +661,38 @@ class MechanismSpec:
         for shape in self.shapes:
             if shape.body not in index:
                 raise ValueError(f"shape '{shape.name}': body '{shape.body}' does not exist")
+        self.forces = _items(self.forces, "force", where)
+        if self.forces:
+            self._check_forces(index)
+
+    def _check_forces(self, index: dict) -> None:
+        """Force elements: of a known type, names unique, the bodies and joints they name present
+        (a joint element on a revolute or prismatic joint)."""
+        joints = {joint.name: joint for joint in self.joints}
+        seen = set()
+        for item in self.forces:
+            if not isinstance(item, FORCE_TYPES):
+                raise ValueError(f"mechanism '{self.name}': expected a LinearSpring, JointSpring, BodyWrench or "
+                                 f"JointTorque in the force list, got {type(item).__name__}")
+            what = f"{type(item).__name__} '{item.name}'"
+            if item.name in seen:
+                raise ValueError(f"mechanism '{self.name}': duplicate force element name '{item.name}'")
+            seen.add(item.name)
+            if isinstance(item, LinearSpring):
+                for role in ("body_a", "body_b"):
+                    name = getattr(item, role)
+                    if name is not None and name not in index:
+                        raise ValueError(f"{what}: {role}: body '{name}' does not exist")
+            elif isinstance(item, BodyWrench):
+                if item.body not in index:
+                    raise ValueError(f"{what}: body: body '{item.body}' does not exist")
+            else:
+                joint = joints.get(item.joint)
+                if joint is None:
+                    raise ValueError(f"{what}: joint: joint '{item.joint}' does not exist")
+                if joint.type not in (JointType.REVOLUTE, JointType.PRISMATIC):
+                    raise ValueError(f"{what}: joint: joint '{item.joint}' is {joint.type.name.lower()}; "
+                                     f"joint force elements take revolute and prismatic joints")
 
     def __reduce_ex__(self, protocol):
         """Pickled as columns: every field of the bodies, joints, tracked points and shapes as one

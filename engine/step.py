@@ -6,7 +6,11 @@ The stages, in order (each a module of the engine):
 2. joint rows: Jacobians, biases, compliance and bounds, joint limits (engine.joints)
    collision detection and contact rows, only when the batch has shapes (engine.collide,
    engine.contacts); warm-start impulses gathered (contacts matched by key)
-3. dual problem: free velocities, Delassus matrix, preconditioner (engine.dynamics)
+3. dual problem: free velocities, Delassus matrix, preconditioner (engine.dynamics); with force
+   slots (engine.forces' elements, Control.joint_effort on undriven joints) the free velocities
+   take their wrenches with Control.body_f, evaluated at the midpoint poses and the step's starting
+   twists (Moreau-Jean; the midpoint pass's own free velocities are overwritten) or at the step's
+   start (semi-implicit Euler): engine.dynamics.forced_free_velocities
 4. PADMM on all worlds, per-world early exit, warm-started (engine.padmm)
 5. velocity update; a whole pose step from the configuration of the dynamics, projected onto the
    joint constraints by Gauss-Newton with SHAKE's velocity update (engine.integrate). Moreau-Jean
@@ -26,7 +30,7 @@ import warp as wp
 
 from engine.collide import compact_contacts, generate_candidates
 from engine.contacts import contact_rows, gather_warmstart, store_contacts
-from engine.dynamics import build_dual_problem
+from engine.dynamics import build_dual_problem, forced_free_velocities
 from engine.fused import fused_step
 from engine.integrate import (
     apply_impulses,
@@ -160,8 +164,11 @@ def step(model: Model, state_in: State, state_out: State, control: Control | Non
                   inputs=[m, w, work.contact_arrays, state_in.row_lambda, state_in.contact_count,
                           state_in.contact_key, state_in.contact_impulse])
         warm = work.warm
+    forced = getattr(model, "has_forces", False)
+    if forced:  # the free velocities under body_f and the force slots, at the dynamics' configuration
+        forced_free_velocities(model, body_q, state_in.body_qd, state_in.body_qd_low, control, state_out.body_qd_low)
     build_dual_problem(model, body_q, state_in.body_qd, state_in.body_qd_low, control.body_f, state_out.body_qd_low,
-                       free_velocities=not moreau)
+                       free_velocities=not moreau and not forced)
     mark("dual_problem")
     solve_padmm(model, warm, state_out.row_lambda)
     if model.has_contacts:
