@@ -15,8 +15,8 @@ drives and the contacts (engine.reduced.tabulated_step).
 Of engine.SolverConfig it uses tolerance, relative_tolerance, max_iterations, contact_margin,
 contact_stabilization and max_speed, and of its tuning (engine.Tuning) eta, rho (None:
 engine.config.TABULATED_RHO = 1, the rows' Jacobi-preconditioned scale), rho_update_interval,
-tabulated_tiled and tabulated_registers; it always integrates
-with semi-implicit Euler and has no joint rows, so no projection.
+tabulated_tiled and tabulated_registers; it always integrates with semi-implicit Euler and has
+no joint rows, so no projection.
 """
 
 from __future__ import annotations

@@ -27,13 +27,10 @@ BASE_SLOTS = wp.constant(_BASE_SLOTS)
 MAX_CONTACTS = BASE_SLOTS + 2 * MAX_GROUPS  # slot k < 8: base point k; 8 + 2 g + e: end e of sub-chain g's shape
 MAX_ROWS = wp.constant(MAX_GROUPS + 3 * MAX_CONTACTS)
 TWO_PI = wp.constant(2.0 * math.pi)
-# registers per thread of the tiled step on CUDA (TabulatedModel.max_registers): 64 lets an SM hold
-# 32 worlds (the most blocks it takes); the compiler's choice (255) holds 8 and runs a large batch
-# in rounds. Measured: benchmarks/results/README.md, "Tabulated sub-chains: design notes".
+# the tiled step's registers per thread on CUDA: at 64 an SM holds 32 worlds, at the compiler's 255
+# only 8; a batch past 32 worlds per SM steps a thread per world (tiled_max_worlds). Measured:
+# benchmarks/results/README.md, "Tabulated sub-chains: design notes".
 TILED_REGISTERS = 64
-# worlds per SM the tiled step holds at once (32 blocks, the most an SM takes): a batch of up to
-# this many per SM steps tiled, a larger one a thread per world (tiled_max_worlds), where the
-# tiled step turns throughput-bound (same notes)
 TILED_WORLDS_PER_SM = 32
 
 
