@@ -92,7 +92,7 @@ class Plan:
 
 def _admits(kind: Coordinates, spec):
     """The kind's layout of ``spec`` (raises ValueError with the reason when it does not fit)."""
-    if kind is not Coordinates.MAXIMAL and spec.forces:
+    if kind is Coordinates.TABULATED and spec.forces:
         raise ValueError(f"force elements: the {kind.value} plan does not take them yet")
     if kind is Coordinates.TABULATED:
         from engine.reduced.tabulated_layout import tabulated_layout
@@ -247,6 +247,15 @@ def _forces(model) -> str:
     return text
 
 
+def _tree_forces(specs, cfg) -> str:
+    """The force elements of a tree batch and where the step kernel evaluates them."""
+    from engine.pack import force_summary
+    point = ("midpoint poses and rates extrapolated to the midpoint" if cfg.integrator is Integrator.MOREAU_JEAN
+             else "starting poses and rates")
+    return (f"{force_summary(specs)}; wrenches on the tree's bodies before the subtree sums "
+            f"(chain_stages.apply_forces), at the {point}")
+
+
 def describe_maximal(plan: Plan, model) -> Plan:
     """Fill ``plan`` from a packed maximal Model (engine.pack_worlds's choices)."""
     from engine.fused import FUSED_MAX_ROWS, fused_block, fused_inverse, sharing_used
@@ -312,6 +321,7 @@ def describe_reduced(plan: Plan, model) -> Plan:
             "position projection": (cfg.position_iterations > 0 and rows > 0,
                                     f"{cfg.position_iterations} Gauss-Newton iterations on the loop rows" if rows
                                     else "no loops"),
+            "forces": (inner.forces, _tree_forces(model.specs, cfg) if inner.forces else "none"),
         }
         plan.integrator = _integrator(cfg)
         plan.accuracy = ("loops closed by their rows at every step (velocities exactly, positions projected), "

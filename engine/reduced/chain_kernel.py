@@ -17,10 +17,11 @@ from engine.linalg.lanes import block_sync, tile_set
 from engine.padmm import project_cone, rho_update
 from engine.reduced.chain_layout import KIND_REVOLUTE, KIND_ROOT, MAX_PREFIX, TILE_STEP, _tile_size
 from engine.reduced.chain_stages import (DIVERGED, DYNAMICS, EFFORT_LIMIT, VELOCITIES, ChainArrays, ChainWork,
-                                         add_children, advance, angle_low, body_out, candidates_within, contact_factor,
-                                         contact_residuals, factor_lanes, keep_angle_low, kinematics, left_here,
-                                         loop_errors, loop_row_bias, loop_rows_of, own_terms, plane_candidates, project,
-                                         solve_column, solve_lanes, stamp, tree_factor, tree_solves)
+                                         add_children, advance, angle_low, apply_forces, body_out, candidates_within,
+                                         contact_factor, contact_residuals, factor_lanes, keep_angle_low, kinematics,
+                                         left_here, loop_errors, loop_row_bias, loop_rows_of, own_terms,
+                                         plane_candidates, project, solve_column, solve_lanes, stamp, tree_factor,
+                                         tree_solves)
 from engine.spatial import two_sum
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
@@ -37,7 +38,8 @@ MAX_REGISTERS = 128
 @functools.cache
 def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TILE_STEP,
                       registers: int | None = MAX_REGISTERS, packed_size: int = TILE_STEP,
-                      stages: bool = False, unroll: int = MAX_PREFIX, handover: int = 0, inline: bool = False):
+                      stages: bool = False, unroll: int = MAX_PREFIX, handover: int = 0, inline: bool = False,
+                      forces: bool = False):
     """The step kernel with shared tiles sized by coords (tree coordinates, at least MAX_PREFIX),
     rows (kept loop rows), contacts (contact rows; 0: no contact code), slots (candidate contacts)
     and packed_size (the packed mass matrix), each a multiple of TILE_STEP (coords may be MAX_PREFIX
@@ -48,11 +50,13 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
     handover (ChainModel.contact_working): 0 the only kernel of a step; 1 the first of two, handing a
     world that finds more contacts than its tiles hold to 2, the second, which steps only those
     (the code of each role compiled only into its kernel). inline: some world has an inline loop
-    (loop_rows_of; without, its code is compiled out).
+    (loop_rows_of; without, its code is compiled out). forces: some world has force elements
+    (apply_forces; without, their code is compiled out).
 
     The step, one thread block per world (the lanes share each stage, a barrier between stages; on
     the CPU a block is one thread): (1) Moreau-Jean: q += dt/2 u first; (2) kinematics level by
-    level of the tree; (3) composite rigid-body sums up the tree, the mass matrix and generalized
+    level of the tree; (3) composite rigid-body sums up the tree (the force elements' wrenches
+    added to their bodies' first, at the evaluation poses), the mass matrix and generalized
     forces; (4) damping and PD drives implicit, M~ = M + dt C packed and factored along the tree
     (no fill); (5) the loops' rows G, X = M~^-1 G^T, A = G X factored: the loops' velocity
     constraint holds exactly; (6) contacts (compiled only with shapes): rows with the loops held,
@@ -157,6 +161,10 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                 own_terms(m, w, world, k, g)
                 w.u_start[world, k] = u[world, k]  # the step's initial rates again (a frozen world's restore)
             block_sync()
+            if wp.static(forces):  # the force elements onto their bodies' own terms, one lane
+                if lane == 0:
+                    apply_forces(m, w, world)
+                block_sync()
             if wp.static(stages):
                 stamp(w, world, lane, 1)
             for step in range(depths - 1):  # subtree sums, deepest parents first

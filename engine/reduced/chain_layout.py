@@ -75,6 +75,7 @@ class ChainLayout:
     soft: list  # loops whose joint has armature or damping: a soft row on its rate each (after the kept rows)
     inline: list = ()  # loops whose joint is inline: their first anchor frame turned so that its z axis is the
     # joint's axis, their only rows the position rows along its x and y axes (parts 0 and 1)
+    fixed: dict = None  # spec body index -> (R, p), its frame in the world, of each body welded to the world
 
     @property
     def n(self) -> int:
@@ -420,6 +421,7 @@ def chain_layout(spec: MechanismSpec) -> ChainLayout:
                          [li for li, ji in enumerate(loops) if spec.joints[ji].armature > 0.0
                           or spec.joints[ji].damping > 0.0],
                          [li for li, ji in enumerate(loops) if spec.joints[ji].type == JointType.INLINE])
+    layout.fixed = fixed
     layout.rows = _independent_rows(layout)
     if len(layout.rows) + len(layout.soft) > MAX_ROWS:
         raise ValueError(f"{where}: {len(layout.rows)} independent loop rows and {len(layout.soft)} loop joints with "

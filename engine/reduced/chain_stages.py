@@ -14,7 +14,8 @@ import warp as wp
 from engine.collide import plane_point, plane_point_count
 from engine.linalg.lanes import block_sync, clock, tile_set
 from engine.reduced.chain_layout import KIND_LINEAR, KIND_REVOLUTE, KIND_ROOT
-from engine.spatial import two_sum
+from engine.model import FORCE_BODY_WRENCH, FORCE_JOINT_SPRING, FORCE_LINEAR_SPRING
+from engine.spatial import relative_rotation, two_sum, wrap_angle
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
@@ -74,6 +75,18 @@ class ChainArrays:
     contact_capacity: wp.array(dtype=wp.int32)
     prefix: wp.array(dtype=wp.int32)  # leading entries that are a chain all others descend from (<= MAX_PREFIX)
     loop_inline: wp.array2d(dtype=wp.int32)  # 1: an inline loop (its rows' rates at its second anchor)
+    # force elements (apply_forces), F padded slots per world: engine.model's FORCE_* kind; the tree
+    # entries of their two sides (-1: the world or a welded body); each side's frame in its body's
+    # frame (the world's where the entry is -1): a spring's point, a joint's anchor (child, parent);
+    # vectors: a body wrench's force and torque, a joint's axis in the parent anchor frame (first);
+    # coefficients: stiffness, damping, rest length or angle, and a joint torque's effort or a
+    # spring's tension_only (1)
+    force_count: wp.array(dtype=wp.int32)
+    force_kind: wp.array2d(dtype=wp.int32)
+    force_entry: wp.array3d(dtype=wp.int32)  # (W, F, 2)
+    force_frame: wp.array3d(dtype=wp.transform)  # (W, F, 2)
+    force_vec: wp.array3d(dtype=wp.vec3)  # (W, F, 2)
+    force_coef: wp.array2d(dtype=wp.vec4)
 
 
 @wp.struct
@@ -662,6 +675,84 @@ def own_terms(m: ChainArrays, w: ChainWork, world: int, k: int, g: wp.vec3):
     w.sub_mass[world, k] = mk
     w.sub_moment[world, k] = mk * c
     w.sub_inertia[world, k] = inertia + mk * (wp.dot(c, c) * wp.identity(n=3, dtype=float) - wp.outer(c, c))
+
+
+@wp.func
+def side_frame(m: ChainArrays, w: ChainWork, world: int, f: int, side: int):
+    """Force slot f's frame of ``side`` in the world at the kinematics' poses."""
+    e = m.force_entry[world, f, side]
+    X = m.force_frame[world, f, side]
+    if e < 0:
+        return X
+    return wp.transform_multiply(w.pose[world, e], X)
+
+
+@wp.func
+def point_velocity(w: ChainWork, world: int, e: int, x: wp.vec3):
+    """Velocity of the world point x moving with entry e's body (0 for the world, -1)."""
+    if e < 0:
+        return wp.vec3()
+    return w.vel[world, e] + wp.cross(w.omega[world, e], x - w.centre[world, e])
+
+
+@wp.func
+def push(w: ChainWork, world: int, e: int, f: wp.vec3, x: wp.vec3, t: wp.vec3):
+    """Force f at the world point x and torque t onto entry e's wrench (torque about the origin);
+    the world (-1) takes nothing."""
+    if e >= 0:
+        w.wrench_f[world, e] = w.wrench_f[world, e] + f
+        w.wrench_t[world, e] = w.wrench_t[world, e] + wp.cross(x, f) + t
+
+
+@wp.func
+def apply_forces(m: ChainArrays, w: ChainWork, world: int):
+    """The force elements' wrenches added to their bodies' own terms (after own_terms, before the
+    subtree sums; one lane, slot order), at the kinematics' poses and velocities: a spring-damper's
+    tension k (L - L0) + c dL/dt along its points' line (tension_only: never a push), a joint
+    element's torque tau about the joint's world axis on its child and -tau on its parent (spring:
+    tau = -k wrap(angle - rest) - c rate, the angle from the two anchor frames as the maximal plan
+    measures it, so tree and loop joints alike), a body wrench's force at the centre of mass."""
+    for f in range(m.force_count[world]):
+        kind = m.force_kind[world, f]
+        e0 = m.force_entry[world, f, 0]
+        e1 = m.force_entry[world, f, 1]
+        coef = m.force_coef[world, f]
+        zero = wp.vec3()
+        if kind == FORCE_LINEAR_SPRING:
+            xa = wp.transform_get_translation(side_frame(m, w, world, f, 0))
+            xb = wp.transform_get_translation(side_frame(m, w, world, f, 1))
+            gap = xb - xa
+            length = wp.length(gap)
+            stretch = length - coef[2]
+            tension_only = coef[3] != 0.0
+            if length >= 1.0e-9 and not (tension_only and stretch < 0.0):
+                n = gap / length
+                rate = wp.dot(n, point_velocity(w, world, e1, xb) - point_velocity(w, world, e0, xa))
+                tension = coef[0] * stretch + coef[1] * rate
+                if tension_only:
+                    tension = wp.max(tension, 0.0)
+                push(w, world, e0, tension * n, xa, zero)
+                push(w, world, e1, -tension * n, xb, zero)
+        elif kind == FORCE_BODY_WRENCH:
+            if e0 >= 0:
+                push(w, world, e0, m.force_vec[world, f, 0], w.centre[world, e0], m.force_vec[world, f, 1])
+        else:  # a joint spring or torque on a revolute joint
+            rot_c = wp.transform_get_rotation(side_frame(m, w, world, f, 0))
+            rot_p = wp.transform_get_rotation(side_frame(m, w, world, f, 1))
+            axis = m.force_vec[world, f, 0]
+            a_w = wp.quat_rotate(rot_p, axis)
+            tau = coef[3]
+            if kind == FORCE_JOINT_SPRING:
+                q_rel = relative_rotation(rot_p, rot_c)
+                angle = 2.0 * wp.atan2(wp.dot(wp.vec3(q_rel[0], q_rel[1], q_rel[2]), axis), q_rel[3])
+                rate = float(0.0)
+                if e0 >= 0:
+                    rate += wp.dot(a_w, w.omega[world, e0])
+                if e1 >= 0:
+                    rate -= wp.dot(a_w, w.omega[world, e1])
+                tau = -coef[0] * wrap_angle(angle - coef[2]) - coef[1] * rate
+            push(w, world, e0, zero, zero, tau * a_w)
+            push(w, world, e1, zero, zero, -tau * a_w)
 
 
 @wp.func

@@ -20,6 +20,8 @@ import numpy as np
 import warp as wp
 
 from engine.config import Integrator, SolverConfig
+from engine.forces import BodyWrench, JointSpring, LinearSpring
+from engine.model import FORCE_BODY_WRENCH, FORCE_JOINT_SPRING, FORCE_JOINT_TORQUE, FORCE_LINEAR_SPRING
 from engine.reduced.chain_kernel import CHAIN_BLOCK, MAX_REGISTERS, chain_step_kernel
 from engine.reduced.chain_layout import (KIND_ANGULAR, KIND_LINEAR, KIND_REVOLUTE, KIND_ROOT, MAX_CONTACTS, MAX_PREFIX,
                                          MAX_ROWS, ChainLayout, _capacity, _packed_rows, _packed_tile, _prefix, _tile_size,
@@ -41,7 +43,7 @@ CONTACT_RHO = 1.0
 ARRAY_TYPES = {"gravity": wp.vec3, "shape_X": wp.transform, "shape_size": wp.vec3, "ground_normal": wp.vec3,
                "axis": wp.vec3, "com": wp.vec3, "inertia": wp.mat33, "joint_parent": wp.transform,
                "joint_child": wp.transform, "loop_anchor": wp.transform, "loop_axis": wp.vec3, "loop_t1": wp.vec3,
-               "loop_t2": wp.vec3}
+               "loop_t2": wp.vec3, "force_frame": wp.transform, "force_vec": wp.vec3, "force_coef": wp.vec4}
 
 
 class ChainState:
@@ -78,6 +80,7 @@ class ChainModel:
         # the tree solves' unrolled prefix: compiled only where a world has one (a floating root)
         self.unroll = MAX_PREFIX if int(arrays.prefix.numpy().max(initial=0)) > 0 else 0
         self.inline = any(lay.inline for lay in layouts)  # the inline loops' rows compiled in only where needed
+        self.forces = any(lay.spec.forces for lay in layouts)  # the force elements' code compiled in only where needed
 
     def state(self) -> ChainState:
         """A new state at the initial pose (the contacts' warm start, kept in the model's work, is
@@ -109,7 +112,8 @@ class ChainModel:
             passes = [(self.tile_working, 1), (self.tile_contacts, 2)]
         for tile, handover in passes:
             kernel = chain_step_kernel(self.coords, self.tile_rows, tile, self.tile_slots, self.max_registers,
-                                       self.packed_size, bool(stages), self.unroll, handover, self.inline)
+                                       self.packed_size, bool(stages), self.unroll, handover, self.inline,
+                                       self.forces)
             wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
                             inputs=[self.arrays, self.work, float(self.dt), float(c.baumgarte),
                                     int(c.position_iterations), float(c.max_speed),
@@ -226,6 +230,13 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     h["row_part"] = np.zeros((W, MAX_ROWS), dtype=np.int32)
     h["row_compliance"] = np.zeros((W, MAX_ROWS))  # soft rows: 1 / (armature + dt damping)
     h["row_keep"] = np.zeros((W, MAX_ROWS))  # soft rows: armature / (armature + dt damping)
+    F = max(1, max(len(lay.spec.forces) for lay in layouts))  # force slots per world (apply_forces)
+    h["force_count"] = np.zeros(W, dtype=np.int32)
+    h["force_kind"] = np.zeros((W, F), dtype=np.int32)
+    h["force_entry"] = np.full((W, F, 2), -1, dtype=np.int32)
+    h["force_frame"] = np.tile(identity, (W, F, 2, 1))
+    h["force_vec"] = np.zeros((W, F, 2, 3))
+    h["force_coef"] = np.zeros((W, F, 4))
     init = {"q": np.zeros((W, N)), "u": np.zeros((W, N)), "root": np.tile(identity, (W, N, 1)),
             "body_q": np.tile(identity, (W, B, 1)), "body_qd": np.zeros((W, B, 6))}
     for w_, lay in enumerate(layouts):
@@ -285,6 +296,7 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
                 h["v_target"][w_, k] = joint.drive.target_velocity
                 h["effort"][w_, k] = joint.drive.effort_limit
         tree_index = {b: k for k, b in enumerate(lay.tree_body) if lay.kind[k] in (KIND_REVOLUTE, KIND_ROOT)}
+        _pack_forces(h, w_, lay, tree_index)
         h["shape_count"][w_] = len(lay.shapes)
         h["contact_capacity"][w_] = _capacity(lay, contact_capacity)
         h["prefix"][w_] = _prefix(level)
@@ -361,6 +373,51 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         model.tile_working = _tile_size(3 * min(max(1, contact_working), model.contact_capacity))
         model.contact_working = min(model.tile_working // 3, model.contact_capacity)  # (the tiles' room)
     return model
+
+
+def _pack_forces(h: dict, w_: int, lay: ChainLayout, tree_index: dict) -> None:
+    """World w_'s force slots (ChainArrays.force_*, chain_stages.apply_forces) from its spec's force
+    elements: each side's tree entry and frame in that body's frame, or -1 and the frame in the
+    world for the world and bodies welded to it (whose wrenches go nowhere)."""
+    spec = lay.spec
+
+    def side(name, R, p):  # (entry, frame as a transform) of a frame (R, p) in body ``name``'s frame
+        b = None if name is None else spec.body_index[name]
+        if b in tree_index:
+            return tree_index[b], _transform(R, p)
+        if b is not None:  # welded to the world
+            Rf, pf = lay.fixed[b]
+            R, p = Rf @ R, pf + Rf @ p
+        return -1, _transform(R, p)
+
+    eye = np.eye(3)
+    h["force_count"][w_] = len(spec.forces)
+    for f, item in enumerate(spec.forces):
+        if isinstance(item, LinearSpring):
+            kind = FORCE_LINEAR_SPRING
+            sides = [side(item.body_a, eye, item.point_a), side(item.body_b, eye, item.point_b)]
+            coef = (item.stiffness, item.damping, item.rest_length, float(item.tension_only))
+        elif isinstance(item, BodyWrench):
+            kind = FORCE_BODY_WRENCH
+            sides = [side(item.body, eye, np.zeros(3))]
+            h["force_vec"][w_, f] = item.force, item.torque
+            coef = (0.0, 0.0, 0.0, 0.0)
+        else:  # a JointSpring or JointTorque on a revolute joint (the tree takes no other with either)
+            joint = spec.joints[[j.name for j in spec.joints].index(item.joint)]
+            sides = [side(joint.child, quat_matrix(joint.child_orientation), np.asarray(joint.child_position)),
+                     side(joint.parent, quat_matrix(joint.parent_orientation), np.asarray(joint.parent_position))]
+            h["force_vec"][w_, f, 0] = joint.axis
+            if isinstance(item, JointSpring):
+                kind = FORCE_JOINT_SPRING
+                coef = (item.stiffness, item.damping, item.rest_position, 0.0)
+            else:
+                kind = FORCE_JOINT_TORQUE
+                coef = (0.0, 0.0, 0.0, item.effort)
+        h["force_kind"][w_, f] = kind
+        h["force_coef"][w_, f] = coef
+        for s, (entry, frame) in enumerate(sides):
+            h["force_entry"][w_, f, s] = entry
+            h["force_frame"][w_, f, s] = frame
 
 
 @functools.cache

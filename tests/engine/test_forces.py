@@ -240,18 +240,20 @@ def test_specs_with_forces_pickle_round_trip():
     assert pickle.loads(pickle.dumps(fourbar().spec)).forces == []
 
 
-def test_plan_lists_forces_and_reduced_plans_refuse_them():
+def test_plan_lists_forces_and_the_tabulated_plan_refuses_them():
     body = Body("b", 1.0, [0.1, 0.1, 0.1])
     spec = MechanismSpec([body, Body("c", 1.0, [0.1, 0.1, 0.1], position=(1, 0, 0))],
                          [Joint("hinge", "revolute", None, "b", axis=(0, 1, 0))],
                          forces=[LinearSpring("s1", "b", body_b="c", stiffness=1.0),
                                  LinearSpring("s2", "c", stiffness=1.0), BodyWrench("w", "b")])
-    model = engine.pack([spec], device=CPU)
+    model = engine.pack([spec], device=CPU)  # the tree plan takes force elements (tests/engine/test_tree_forces.py)
     text = str(model.plan)
-    assert model.plan.coordinates is engine.Coordinates.MAXIMAL
-    assert "forces: runs (2 spring-dampers, 1 body wrench" in text
-    assert "not tree: world 0 (mechanism): force elements: the tree plan does not take them yet" in text
-    with pytest.raises(ValueError, match="coordinates 'tree' do not fit .*force elements: the tree plan does not"):
-        engine.pack([spec], device=CPU, coordinates="tree")
+    assert model.plan.coordinates is engine.Coordinates.TREE
+    assert "not tabulated: world 0 (mechanism): force elements: the tabulated plan does not take them yet" in text
+    with pytest.raises(ValueError, match="coordinates 'tabulated' do not fit .*force elements: the tabulated plan"):
+        engine.pack([spec], device=CPU, coordinates="tabulated")
+    maximal = engine.pack([spec], device=CPU, coordinates="maximal")
+    assert maximal.plan.coordinates is engine.Coordinates.MAXIMAL
+    assert "forces: runs (2 spring-dampers, 1 body wrench" in str(maximal.plan)
     plain = engine.pack([MechanismSpec([body])], device=CPU, coordinates="maximal")
     assert "forces: skipped (none)" in str(plain.plan)
