@@ -191,9 +191,10 @@ def test_walkers_are_refused_only_where_they_outgrow_the_kernel():
 @pytest.mark.parametrize("leg", ["jansen_leg", "klann_leg"])
 def test_a_small_walker_walks_as_in_the_maximal_engine(leg):
     """One leg a side, dropped on the ground and walking for 1 s at dt 1 ms: the torso and the
-    feet within 3e-3 m of the maximal engine's (measured: torso 4.6e-4 m Jansen, 2.5e-5 m Klann, feet
-    1.0e-3 and 7.8e-5 m, while it falls 0.15-0.33 m and walks 9 cm), loops closed to 1e-6 m, no world
-    stopped. The cranks' effort limits lifted in both engines: started at rest against their 5 rad/s
+    feet within 5e-3 m of the maximal engine's at the same dt (measured with the second-order tree
+    step: 3.1e-3 m Jansen, first order: 1.0e-3; both, and the maximal engine itself, lie 2.2-2.5e-2 m
+    from the maximal engine at dt 0.25 ms: on contact this compares two runs at one dt, not
+    accuracy), while it falls 0.15-0.33 m and walks 9 cm; loops closed to 1e-6 m, no world stopped. The cranks' effort limits lifted in both engines: started at rest against their 5 rad/s
     velocity drives (damping 5), they would need 25 N m, past the 20 N m limit, from the first step,
     and the tree plan, which checks limits without enforcing them, refuses such a world."""
     spec = walker(1, leg)
@@ -207,7 +208,7 @@ def test_a_small_walker_walks_as_in_the_maximal_engine(leg):
     trace, _ = rollout(maximal, maximal.state(), maximal.control(), 1000, record_every=1000)
     ours = tracked(spec, state.body_q.numpy()[0])
     assert np.linalg.norm(trace.points[-1, 0] - trace.points[0, 0], axis=1).max() > 0.05
-    assert np.linalg.norm(ours - trace.points[-1, 0], axis=1).max() < 3e-3
+    assert np.linalg.norm(ours - trace.points[-1, 0], axis=1).max() < 5e-3
     assert model.failure_reasons() == [None]
     gauge = pack_worlds([spec], device="cpu")
     compute_metrics(gauge, state)
