@@ -15,8 +15,10 @@ drives and the contacts (engine.reduced.tabulated_step).
 Of engine.SolverConfig it uses tolerance, relative_tolerance, max_iterations, contact_margin,
 contact_stabilization and max_speed, and of its tuning (engine.Tuning) eta, rho (None:
 engine.config.TABULATED_RHO = 1, the rows' Jacobi-preconditioned scale), rho_update_interval,
-tabulated_tiled and tabulated_registers; it always integrates with semi-implicit Euler and has
-no joint rows, so no projection.
+tabulated_tiled and tabulated_registers, and the integrator: Moreau-Jean (the default: the pose
+and the driving coordinates by half steps, M, the bias forces, the tables and the contacts at the
+midpoint with the rates extrapolated to it) or semi-implicit Euler. It has no joint rows, so no
+projection.
 """
 
 from __future__ import annotations
@@ -24,13 +26,13 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from engine.config import TABULATED_RHO, SolverConfig
+from engine.config import TABULATED_RHO, Integrator, SolverConfig
 from engine.reduced.tabulated_kernel import (BASE_SLOTS, DIVERGED_FAST, DIVERGED_NONFINITE, KINV_VECS, MAX_GROUPS,
                                              MAX_LINKS, MAX_ROWS, NV, ROW_VECS, TILED_REGISTERS, TabulatedState,
                                              TabulatedWorlds, body_poses, freeze_worlds, record_state,
                                              tiled_max_worlds)
 from engine.reduced.tabulated_layout import tabulated_layout
-from engine.reduced.tabulated_step import step_kernel
+from engine.reduced.tabulated_step import HISTORY, step_kernel
 from engine.reduced.tabulated_tables import TABLE_SAMPLES
 from engine.spec import MechanismSpec
 
@@ -158,6 +160,8 @@ class TabulatedModel:
         self.row_count = wp.zeros(W, dtype=wp.int32, device=d)
         self.ufree = wp.zeros((W, NV), dtype=float, device=d)
         self.factor_inverse = wp.zeros((W, NV * KINV_VECS), dtype=wp.vec4, device=d)
+        # Moreau-Jean's history (tabulated_step.HISTORY): the last step's rates and end; NaN: none yet
+        self.history = wp.array(np.full((W, HISTORY), np.nan, np.float32), dtype=float, device=d)
         # outputs of record() and body_poses()
         self.points = wp.zeros((W, P), dtype=wp.vec3, device=d)
         self.energy = wp.zeros(W, dtype=float, device=d)
@@ -199,21 +203,26 @@ class TabulatedModel:
                 c.contact_margin, c.contact_stabilization, c.max_speed, *self._structs(),
                 self.impulse, self.frozen, self.diverged, self.iterations, self.contacts, self.drive_torque,
                 self.rows_J, self.rows_Jc, self.rows, self.mass, self.mass_factor, self.factor, *self.work,
-                self.row_inverse, self.slot_of, self.row_count, self.ufree, self.factor_inverse]
+                self.row_inverse, self.slot_of, self.row_count, self.ufree, self.factor_inverse, self.history]
+
+    @property
+    def midpoint(self) -> bool:
+        """Whether the step is Moreau-Jean's (SolverConfig.integrator), else semi-implicit Euler."""
+        return self.config.integrator is Integrator.MOREAU_JEAN
 
     def step(self, steps: int = 1):
         """Advance every world ``steps`` steps of dt in place (kernel launches only: capturable in a
         CUDA graph). Frozen worlds (diverged or halted) stay as they are."""
         inputs = self._step_inputs()
         if self.tiled:
-            kernel = step_kernel(True, "all", self.max_registers)
+            kernel = step_kernel(True, "all", self.max_registers, self.midpoint)
             for _ in range(steps):
                 wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=self.lanes, inputs=inputs, device=self.device)
             return
         # one thread per world: the set-up and the solve as two kernels; on the CPU their arguments
         # are packed once per call and the launches replayed step by step (the packing cost as much
         # host time as a walker's step); on a GPU rollout_tabulated captures the steps in a graph
-        setup, solve = step_kernel(False, "setup"), step_kernel(False, "solve")
+        setup, solve = step_kernel(False, "setup", None, self.midpoint), step_kernel(False, "solve", None, self.midpoint)
         if self.device.is_cuda:
             for _ in range(steps):
                 wp.launch(setup, dim=self.num_worlds, inputs=inputs, device=self.device)
@@ -330,7 +339,8 @@ def describe(plan, model: TabulatedModel):
         "limit rows": (False, "no joint limits (the layout refuses them)"),
         "position projection": (False, "no loop rows: the tables close the loops"),
     }
-    plan.integrator = "semi-implicit Euler"
+    plan.integrator = ("Moreau-Jean midpoint (pose and driving coordinates by half steps; M, bias forces, tables and "
+                       "contacts at the midpoint, rates extrapolated to it)" if model.midpoint else "semi-implicit Euler")
     plan.accuracy = (f"loops closed by construction, to the tables' closure error (linear interpolation between "
                      f"samples): at most {model.closure_error:.3g} m")
     return plan

@@ -29,7 +29,17 @@ from engine.reduced.tabulated_kernel import (BASE_SLOTS, DIVERGED_FAST, DIVERGED
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
-__all__ = ["step_kernel"]
+__all__ = ["HISTORY", "step_kernel"]
+
+# Moreau-Jean's per-world history (TabulatedModel.history, float (W, HISTORY)): the rates the last
+# step started from (H_PREV, NV; its end's rates where a contact impulse moved them), the rates it
+# ended with (H_END, NV) and the pose it ended at (H_POSE: position 3, orientation 4 (x, y, z, w),
+# driving coordinates MAX_GROUPS; during a step the pose it started from). A step extrapolates the
+# rates to its midpoint only where the state is where the last step left it (NaN at first).
+H_PREV = 0
+H_END = NV
+H_POSE = 2 * NV
+HISTORY = 3 * NV + 1
 
 
 @wp.func
@@ -236,10 +246,13 @@ def update_pass(Jc: wp.array2d(dtype=wp.vec4), rows: wp.array2d(dtype=wp.vec4), 
 
 @wp.func
 def chain_columns(worlds: TabulatedWorlds, state: TabulatedState, M: wp.array2d(dtype=float), w: int, L: int,
-                  R: wp.mat33, axis: wp.vec3, om: wp.vec3, g: wp.vec3, lane: int, lanes: int):
+                  R: wp.mat33, axis: wp.vec3, om: wp.vec3, g: wp.vec3, lane: int, lanes: int, mid: int,
+                  half: float, ext: float, history: wp.array2d(dtype=float)):
     """This lane's sub-chains' columns of M (written) and their shares of the base blocks and bias
     forces, packed as a vecsetup to be summed over the lanes in one reduction: sum m_k, sum m_k d_k,
-    the angular block, the base's bias force and torque, and each sub-chain's bias force."""
+    the angular block, the base's bias force and torque, and each sub-chain's bias force. mid != 0
+    (Moreau-Jean): at the angles advanced by half (dt / 2) times their rates, with the rates
+    extrapolated by ext (u + ext (u - u_last), u_last from history)."""
     m_part = float(0.0)  # this lane's sub-chains: sum of m_k
     md_part = wp.vec3()  # sum of m_k d_k
     rot_part = wp.mat33()  # angular block
@@ -251,6 +264,10 @@ def chain_columns(worlds: TabulatedWorlds, state: TabulatedState, M: wp.array2d(
         s = worlds.group_scale[w, gi]
         ang = state.coord[w, gi]
         rate = state.coord_rate[w, gi]
+        if mid != 0:
+            ang = ang + half * rate
+            if ext != 0.0:  # (the history is NaN before a first step)
+                rate = rate + ext * (rate - history[w, H_PREV + 6 + gi])
         i0, i1, f = table_index(ang, worlds.samples)
         col = 6 + gi
         o = worlds.group_origin[w, gi]
@@ -307,10 +324,12 @@ def chain_columns(worlds: TabulatedWorlds, state: TabulatedState, M: wp.array2d(
 
 @wp.func
 def slot_point(worlds: TabulatedWorlds, state: TabulatedState, w: int, k: int, R: wp.mat33, p: wp.vec3,
-               axis: wp.vec3):
+               axis: wp.vec3, mid: int, half: float):
     """Contact slot k's point below the ground's normal: its arm from the base's origin, its
     velocity per unit driving rate (a sub-chain's shape; zero on the base), its sub-chain (-1: the
-    base), friction and height above the ground (1e30: an empty slot, never within the margin)."""
+    base), friction and height above the ground (1e30: an empty slot, never within the margin).
+    mid != 0: the sub-chains at their angles advanced by half (dt / 2) times their rates (R and p
+    are then the midpoint's)."""
     ground = worlds.base[w][2]
     arm = wp.vec3()
     lin = wp.vec3()  # the point's velocity per unit driving rate (a sub-chain's shape)
@@ -334,7 +353,10 @@ def slot_point(worlds: TabulatedWorlds, state: TabulatedState, w: int, k: int, R
         if sh[0] >= 0.0 and (end > 0.0 or sh[1] > 0.0):
             t = worlds.group_table[w, grp]
             s = worlds.group_scale[w, grp]
-            i0, i1, f = table_index(state.coord[w, grp], worlds.samples)
+            ang = state.coord[w, grp]
+            if mid != 0:
+                ang = ang + half * state.coord_rate[w, grp]
+            i0, i1, f = table_index(ang, worlds.samples)
             fl = worlds.table_contact_link[t]
             phi = link_read(worlds.links0, t, i0, i1, f, fl)
             phi1 = table_read(worlds.links1, t, i0, i1, f, fl)
@@ -384,6 +406,86 @@ def integrate(state: TabulatedState, w: int, L: int, un: vecnv, dt: float, max_s
         state.orientation[w] = q
         state.velocity[w] = v
         state.angular_velocity[w] = om
+        if wp.length(v) >= max_speed:
+            diverged[w] = DIVERGED_FAST
+            frozen[w] = 1
+
+
+@wp.func
+def left_here(state: TabulatedState, history: wp.array2d(dtype=float), w: int, L: int):
+    """Whether world w's state is where its last Moreau-Jean step left it (not set between steps)."""
+    same = True
+    p = state.position[w]
+    q = state.orientation[w]
+    v = state.velocity[w]
+    om = state.angular_velocity[w]
+    for i in range(3):
+        if p[i] != history[w, H_POSE + i] or v[i] != history[w, H_END + i] or om[i] != history[w, H_END + 3 + i]:
+            same = False
+    for i in range(4):
+        if q[i] != history[w, H_POSE + 3 + i]:
+            same = False
+    for gi in range(L):
+        if (state.coord[w, gi] != history[w, H_POSE + 7 + gi]
+                or state.coord_rate[w, gi] != history[w, H_END + 6 + gi]):
+            same = False
+    return same
+
+
+@wp.func
+def integrate_midpoint(state: TabulatedState, history: wp.array2d(dtype=float), w: int, L: int, un: vecnv,
+                       dt: float, max_speed: float, jolt: int, diverged: wp.array(dtype=wp.int32),
+                       frozen: wp.array(dtype=wp.int32)):
+    """Moreau-Jean's second half step: the state holds the midpoint pose (the set-up moved it there),
+    q+ = q_mid + dt/2 u+ (the orientation by the exponential map, the driving coordinates wrapped to
+    [0, 2 pi)); the history keeps the step's end (jolt: a contact impulse moved the rates, so the
+    next step does not extrapolate from this one). A non-finite world is flagged, put back at the
+    pose it started from and frozen; a too fast one flagged after the step and frozen."""
+    half = 0.5 * dt
+    p = state.position[w]
+    q = state.orientation[w]
+    v = wp.vec3(un[0], un[1], un[2])
+    om = wp.vec3(un[3], un[4], un[5])
+    p = p + half * v
+    spin = wp.length(om)
+    if spin > 1.0e-12:
+        q = wp.normalize(wp.quat_from_axis_angle(om / spin, spin * half) * q)
+    ok = wp.isfinite(p) and wp.isfinite(v) and wp.isfinite(om) and wp.isfinite(q)
+    for gi in range(L):
+        if not wp.isfinite(un[6 + gi]):
+            ok = False
+    if not ok:  # frozen at the pose the step started from, with its rates (never moved)
+        diverged[w] = DIVERGED_NONFINITE
+        frozen[w] = 1
+        state.position[w] = wp.vec3(history[w, H_POSE], history[w, H_POSE + 1], history[w, H_POSE + 2])
+        state.orientation[w] = wp.quat(history[w, H_POSE + 3], history[w, H_POSE + 4], history[w, H_POSE + 5],
+                                       history[w, H_POSE + 6])
+        for gi in range(L):
+            state.coord[w, gi] = history[w, H_POSE + 7 + gi]
+    else:
+        for gi in range(L):
+            rate = un[6 + gi]
+            ang = state.coord[w, gi] + half * rate
+            ang = ang - TWO_PI * wp.floor(ang / TWO_PI)
+            state.coord[w, gi] = ang
+            state.coord_rate[w, gi] = rate
+            history[w, H_POSE + 7 + gi] = ang
+            history[w, H_END + 6 + gi] = rate
+            if jolt != 0:
+                history[w, H_PREV + 6 + gi] = rate
+        state.position[w] = p
+        state.orientation[w] = q
+        state.velocity[w] = v
+        state.angular_velocity[w] = om
+        for i in range(3):
+            history[w, H_POSE + i] = p[i]
+            history[w, H_END + i] = v[i]
+            history[w, H_END + 3 + i] = om[i]
+            if jolt != 0:
+                history[w, H_PREV + i] = v[i]
+                history[w, H_PREV + 3 + i] = om[i]
+        for i in range(4):
+            history[w, H_POSE + 3 + i] = q[i]
         if wp.length(v) >= max_speed:
             diverged[w] = DIVERGED_FAST
             frozen[w] = 1
@@ -514,13 +616,18 @@ def warm_dual_pass(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=wp.vec4), 
 
 
 @functools.cache
-def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
+def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None, midpoint: bool = False):
     """The step kernel: tiled (launch_tiled, one block of lanes per world, lanes sharing the
     PADMM rows) or one thread per world (wp.launch; no block operations). phase: the whole step
     ("all"), or its set-up (through the warm start, "setup") and the Woodbury factor, the PADMM
     iterations and the integration ("solve") as two kernels, each with the registers it needs.
     registers: at most this many registers per thread on CUDA (None: the compiler's choice; see
-    TILED_REGISTERS)."""
+    TILED_REGISTERS). midpoint: the Moreau-Jean step (False: semi-implicit Euler): the set-up moves
+    the pose to q_mid = q + dt/2 u (the state holds it until the step's end), evaluates M, the bias
+    forces and the contacts there with the rates extrapolated to the midpoint, u + (u - u_last) / 2
+    (the step's own rates on a trajectory's first step, where the state was set between steps or a
+    contact impulse moved the last step's rates: left_here, history), and the integration ends at
+    q+ = q_mid + dt/2 u+ (integrate_midpoint). No second pass of the dynamics."""
 
     @wp.func
     def sync():
@@ -598,7 +705,7 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
         M: wp.array2d(dtype=float), LM: wp.array2d(dtype=float), K: wp.array2d(dtype=float),
         s1: wp.array2d(dtype=wp.vec4), s2: wp.array2d(dtype=wp.vec4), tmp: wp.array2d(dtype=float),
         slot_of: wp.array2d(dtype=wp.int32), row_count: wp.array(dtype=wp.int32), ufree: wp.array2d(dtype=float),
-        Kinv: wp.array2d(dtype=wp.vec4),
+        Kinv: wp.array2d(dtype=wp.vec4), history: wp.array2d(dtype=float),
     ):
         """One step of every world (a block of lanes or one thread per world): mass matrix and bias
         forces, free velocity, drive and contact rows, preconditioned PADMM with Woodbury solves,
@@ -623,6 +730,19 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
             q = state.orientation[w]
             v = state.velocity[w]
             om = state.angular_velocity[w]
+            half = float(0.0)  # Moreau-Jean: the pose advanced by half the step, rates extrapolated by ext
+            ext = float(0.0)
+            om_e = om  # the base's angular velocity in the gyroscopic terms
+            if wp.static(midpoint):
+                half = 0.5 * dt
+                if left_here(state, history, w, L):  # (every lane alike)
+                    ext = 0.5
+                    om_e = om + ext * (om - wp.vec3(history[w, H_PREV + 3], history[w, H_PREV + 4],
+                                                    history[w, H_PREV + 5]))
+                p = p + half * v
+                spin = wp.length(om)
+                if spin > 1.0e-12:
+                    q = wp.normalize(wp.quat_from_axis_angle(om / spin, spin * half) * q)
             R = wp.quat_to_matrix(q)
             axis = -(R * wp.vec3(0.0, 1.0, 0.0))
             g = worlds.gravity[w]
@@ -630,13 +750,14 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
             for i in range(lane, NV * NV, lanes):
                 M[w, i] = 0.0
             sync()
-            part = chain_columns(worlds, state, M, w, L, R, axis, om, g, lane, lanes)
+            part = chain_columns(worlds, state, M, w, L, R, axis, om_e, g, lane, lanes, wp.static(int(midpoint)),
+                                 half, ext, history)
             total = reduce_vector(part)
             sync()  # every lane's sub-chain columns are in M
             if lane == 0:
                 h = vecnv()
                 It = R * worlds.base_inertia[w] * wp.transpose(R)
-                gyro = -wp.cross(om, It * om)
+                gyro = -wp.cross(om_e, It * om_e)
                 for i in range(3):
                     h[i] = mb * g[i] + total[13 + i]
                     h[3 + i] = gyro[i] + total[16 + i]
@@ -686,7 +807,8 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
                 count = int(0)
                 if worlds.base[w][1] > 0.0:
                     for k in range(BASE_SLOTS + 2 * L):
-                        arm, lin, grp, mu, dist = slot_point(worlds, state, w, k, R, p, axis)
+                        arm, lin, grp, mu, dist = slot_point(worlds, state, w, k, R, p, axis,
+                                                             wp.static(int(midpoint)), half)
                         if dist < margin:
                             count += 1
                             m = contact_rows(J, rows, slot_of, w, m, n, k, arm, lin, grp, mu, dist, uf, dt,
@@ -695,6 +817,23 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
                 for c in range(NV):
                     ufree[w, c] = uf[c]
                 row_count[w] = m
+                if wp.static(midpoint):
+                    # the step's start into the history (the next step's u_last; the pose, for a
+                    # diverged step's restore) and the midpoint pose into the state, to the step's end
+                    for i in range(3):
+                        history[w, H_PREV + i] = v[i]
+                        history[w, H_PREV + 3 + i] = om[i]
+                        history[w, H_POSE + i] = state.position[w][i]
+                    q0 = state.orientation[w]
+                    for i in range(4):
+                        history[w, H_POSE + 3 + i] = q0[i]
+                    for gi in range(L):
+                        rate = state.coord_rate[w, gi]
+                        history[w, H_PREV + 6 + gi] = rate
+                        history[w, H_POSE + 7 + gi] = state.coord[w, gi]
+                        state.coord[w, gi] = state.coord[w, gi] + half * rate
+                    state.position[w] = p
+                    state.orientation[w] = q
             sync()
             m = row_count[w]
             units = L + (m - L) / 3
@@ -787,7 +926,14 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None):
         un = uf + chol_solve(LM, w, n, jl)
         for gi in range(L):
             drive_torque[w, gi] = impulse[w, gi] / dt
-        integrate(state, w, L, un, dt, max_speed, diverged, frozen)
+        if wp.static(midpoint):
+            jolt = int(0)  # a contact impulse moved the rates: the next step does not extrapolate
+            for r in range(L, m):
+                if s2[w, r][0] != 0.0:
+                    jolt = 1
+            integrate_midpoint(state, history, w, L, un, dt, max_speed, jolt, diverged, frozen)
+        else:
+            integrate(state, w, L, un, dt, max_speed, diverged, frozen)
 
     return tabulated_step
 
