@@ -376,23 +376,31 @@ def slot_point(worlds: TabulatedWorlds, state: TabulatedState, w: int, k: int, R
 
 
 @wp.func
+def base_advanced(p: wp.vec3, q: wp.quat, un: vecnv, L: int, h: float):
+    """The base's position and orientation (exponential map) moved by h [s] at the velocities un, and
+    whether they and un are finite: (p, q, ok)."""
+    v = wp.vec3(un[0], un[1], un[2])
+    om = wp.vec3(un[3], un[4], un[5])
+    p = p + h * v
+    spin = wp.length(om)
+    if spin > 1.0e-12:
+        q = wp.normalize(wp.quat_from_axis_angle(om / spin, spin * h) * q)
+    ok = wp.isfinite(p) and wp.isfinite(v) and wp.isfinite(om) and wp.isfinite(q)
+    for gi in range(L):
+        if not wp.isfinite(un[6 + gi]):
+            ok = False
+    return p, q, ok
+
+
+@wp.func
 def integrate(state: TabulatedState, w: int, L: int, un: vecnv, dt: float, max_speed: float,
               diverged: wp.array(dtype=wp.int32), frozen: wp.array(dtype=wp.int32)):
     """The base's position, its orientation (exponential map) and the driving coordinates (wrapped to
     [0, 2 pi)) integrated with the new velocities un; a non-finite world is flagged and left at its
     last finite state, a too fast one flagged after the step; both are frozen."""
-    p = state.position[w]
-    q = state.orientation[w]
     v = wp.vec3(un[0], un[1], un[2])
     om = wp.vec3(un[3], un[4], un[5])
-    p = p + dt * v
-    spin = wp.length(om)
-    if spin > 1.0e-12:
-        q = wp.normalize(wp.quat_from_axis_angle(om / spin, spin * dt) * q)
-    ok = wp.isfinite(p) and wp.isfinite(v) and wp.isfinite(om) and wp.isfinite(q)
-    for gi in range(L):
-        if not wp.isfinite(un[6 + gi]):
-            ok = False
+    p, q, ok = base_advanced(state.position[w], state.orientation[w], un, L, dt)
     if not ok:  # frozen at its last finite state (the tables are never read at a non-finite angle)
         diverged[w] = DIVERGED_NONFINITE
         frozen[w] = 1
@@ -442,18 +450,9 @@ def integrate_midpoint(state: TabulatedState, history: wp.array2d(dtype=float), 
     next step does not extrapolate from this one). A non-finite world is flagged, put back at the
     pose it started from and frozen; a too fast one flagged after the step and frozen."""
     half = 0.5 * dt
-    p = state.position[w]
-    q = state.orientation[w]
     v = wp.vec3(un[0], un[1], un[2])
     om = wp.vec3(un[3], un[4], un[5])
-    p = p + half * v
-    spin = wp.length(om)
-    if spin > 1.0e-12:
-        q = wp.normalize(wp.quat_from_axis_angle(om / spin, spin * half) * q)
-    ok = wp.isfinite(p) and wp.isfinite(v) and wp.isfinite(om) and wp.isfinite(q)
-    for gi in range(L):
-        if not wp.isfinite(un[6 + gi]):
-            ok = False
+    p, q, ok = base_advanced(state.position[w], state.orientation[w], un, L, half)
     if not ok:  # frozen at the pose the step started from, with its rates (never moved)
         diverged[w] = DIVERGED_NONFINITE
         frozen[w] = 1
