@@ -77,6 +77,17 @@ def body_pose(body_q: wp.array2d(dtype=wp.transform), world: int, body: int):
 
 
 @wp.func
+def spring_gap_of(world: int, k: int, fa: ForceArrays, body_q: wp.array2d(dtype=wp.transform)):
+    """Linear spring k's gap from its point on body a to its point on body b (world frame [m]) and
+    the two points' offsets from their bodies' centres of mass: (gap, r_a, r_b)."""
+    X_a = body_pose(body_q, world, fa.force_body_a[world, k])
+    X_c = body_pose(body_q, world, fa.force_body_b[world, k])
+    r_a = wp.quat_rotate(wp.transform_get_rotation(X_a), fa.force_point_a[world, k])
+    r_c = wp.quat_rotate(wp.transform_get_rotation(X_c), fa.force_point_b[world, k])
+    return (wp.transform_get_translation(X_c) - wp.transform_get_translation(X_a)) + (r_c - r_a), r_a, r_c
+
+
+@wp.func
 def spring_wrench_of(world: int, k: int, b: int, fa: ForceArrays, body_q: wp.array2d(dtype=wp.transform),
                      body_qd: wp.array2d(dtype=wp.spatial_vector)):
     """Wrench (force, torque about the COM; world frame) of linear spring k on body b (one of its
@@ -84,11 +95,7 @@ def spring_wrench_of(world: int, k: int, b: int, fa: ForceArrays, body_q: wp.arr
     tension-only: none while L < L0 and never a push."""
     a = fa.force_body_a[world, k]
     c = fa.force_body_b[world, k]
-    X_a = body_pose(body_q, world, a)
-    X_c = body_pose(body_q, world, c)
-    r_a = wp.quat_rotate(wp.transform_get_rotation(X_a), fa.force_point_a[world, k])
-    r_c = wp.quat_rotate(wp.transform_get_rotation(X_c), fa.force_point_b[world, k])
-    gap = (wp.transform_get_translation(X_c) - wp.transform_get_translation(X_a)) + (r_c - r_a)
+    gap, r_a, r_c = spring_gap_of(world, k, fa, body_q)
     length = wp.length(gap)
     zero = wp.spatial_vector()
     if length < 1.0e-9:
@@ -141,6 +148,31 @@ def joint_force_wrench_of(world: int, k: int, b: int, kind: int, m: ModelArrays,
     if b == child:
         return tau * J_c
     return tau * J_p
+
+
+@wp.func
+def spring_potential_of(world: int, k: int, m: ModelArrays, fa: ForceArrays, body_q: wp.array2d(dtype=wp.transform),
+                        no_low: wp.array2d(dtype=wp.transform)):
+    """Potential energy [J] stored in force slot k at the poses body_q: 1/2 k s^2 of a linear spring
+    stretched by s (a tension-only one: only while stretched) or of a joint spring displaced by s
+    from its rest position; 0 for the other slots."""
+    kind = fa.force_kind[world, k]
+    stretch = float(0.0)
+    if kind == FORCE_LINEAR_SPRING:
+        gap, r_a, r_c = spring_gap_of(world, k, fa, body_q)
+        stretch = wp.length(gap) - fa.force_rest[world, k]
+        if fa.force_tension_only[world, k] != 0 and stretch < 0.0:
+            stretch = 0.0
+    elif kind == FORCE_JOINT_SPRING:
+        j = fa.force_joint[world, k]
+        jtype = m.joint_type[world, j]
+        X_wp, X_wc, r_p, r_c, d = joint_frames(body_q, no_low, world, m.joint_parent[world, j],
+                                               m.joint_child[world, j], m.joint_X_p[world, j], m.joint_X_c[world, j], 0)
+        J_c, J_p, q = joint_coordinate_row(jtype, X_wp, X_wc, r_p, r_c, d, m.joint_axis[world, j])
+        stretch = q - fa.force_rest[world, k]
+        if jtype == JOINT_REVOLUTE:
+            stretch = wrap_angle(stretch)
+    return 0.5 * fa.force_stiffness[world, k] * stretch * stretch
 
 
 @wp.func

@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from engine.dynamics import spring_potential_of
 from engine.joints import compute_joint_residuals
-from engine.model import ROW_ANGULAR, ROW_LINEAR, Model, ModelArrays, State, WorkArrays
+from engine.model import ROW_ANGULAR, ROW_LINEAR, ForceArrays, Model, ModelArrays, State, WorkArrays
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
@@ -14,10 +15,11 @@ __all__ = ["compute_metrics", "metrics_numpy"]
 
 
 @wp.kernel
-def world_metrics(m: ModelArrays, w: WorkArrays, body_q: wp.array2d(dtype=wp.transform),
+def world_metrics(m: ModelArrays, fa: ForceArrays, w: WorkArrays, body_q: wp.array2d(dtype=wp.transform),
                   body_qd: wp.array2d(dtype=wp.spatial_vector)):
-    """Max |phi| over linear [m] and angular [rad] joint rows of w.row_residual; kinetic +
-    gravitational energy [J] of body_q, body_qd; into w.violation_linear, violation_angular, energy."""
+    """Max |phi| over linear [m] and angular [rad] joint rows of w.row_residual; kinetic,
+    gravitational and spring energy [J] of body_q, body_qd (engine.forces' springs: their
+    potentials); into w.violation_linear, violation_angular, energy."""
     world = wp.tid()
     lin = float(0.0)
     ang = float(0.0)
@@ -37,6 +39,8 @@ def world_metrics(m: ModelArrays, w: WorkArrays, body_q: wp.array2d(dtype=wp.tra
         w_body = wp.quat_rotate_inv(wp.transform_get_rotation(X), wp.spatial_bottom(u))
         energy += 0.5 * mass * wp.dot(v, v) + 0.5 * wp.dot(w_body, m.body_inertia[world, b] * w_body)
         energy -= mass * wp.dot(g, wp.transform_get_translation(X))
+    for k in range(fa.force_count[world]):
+        energy += spring_potential_of(world, k, m, fa, body_q, w.no_low)
     w.violation_linear[world] = lin
     w.violation_angular[world] = ang
     w.energy[world] = energy
@@ -46,7 +50,7 @@ def compute_metrics(model: Model, state: State) -> None:
     """Fill model.work.violation_linear [m], violation_angular [rad] and energy [J] for state."""
     compute_joint_residuals(model, state.body_q, model.work.row_residual)
     wp.launch(world_metrics, dim=model.num_worlds, device=model.device,
-              inputs=[model.arrays, model.work.arrays, state.body_q, state.body_qd])
+              inputs=[model.arrays, model.force_arrays, model.work.arrays, state.body_q, state.body_qd])
 
 
 def metrics_numpy(model: Model) -> dict[str, np.ndarray]:
