@@ -186,6 +186,9 @@ def force_wrench_of(world: int, b: int, m: ModelArrays, fa: ForceArrays, body_q:
         if fa.force_body_a[world, k] != b and fa.force_body_b[world, k] != b:
             continue
         kind = fa.force_kind[world, k]
+        if kind == FORCE_JOINT_EFFORT:
+            if joint_effort[world, fa.force_joint[world, k]] == 0.0:
+                continue  # an undriven joint's Control slot, unused: no frames to compute
         if kind == FORCE_LINEAR_SPRING:
             total += spring_wrench_of(world, k, b, fa, body_q, body_qd)
         elif kind == FORCE_BODY_WRENCH:
