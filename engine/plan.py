@@ -304,6 +304,8 @@ def describe_reduced(plan: Plan, model) -> Plan:
     plan.control = "the specs' drive targets (no engine.Control)"
     if plan.coordinates is Coordinates.TREE:
         from engine.reduced.chain_kernel import CHAIN_BLOCK
+        plan.control = ("a Control's body_f and joint_effort per step (TreeModel.control; compiled in only when "
+                        "stepped with one), the specs' drive targets")
         coords = max(lay.n for lay in inner.layouts)
         rows = max(len(lay.rows) + len(lay.soft) for lay in inner.layouts)
         plan.analysis.append(f"largest world: {coords} tree coordinates, {rows} independent loop rows")

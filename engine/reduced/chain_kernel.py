@@ -17,11 +17,11 @@ from engine.linalg.lanes import block_sync, tile_set
 from engine.padmm import project_cone, rho_update
 from engine.reduced.chain_layout import KIND_REVOLUTE, KIND_ROOT, MAX_PREFIX, TILE_STEP, _tile_size
 from engine.reduced.chain_stages import (DIVERGED, DYNAMICS, EFFORT_LIMIT, VELOCITIES, ChainArrays, ChainWork,
-                                         add_children, advance, angle_low, apply_forces, body_out, candidates_within,
-                                         contact_factor, contact_residuals, factor_lanes, keep_angle_low, kinematics,
-                                         left_here, loop_errors, loop_row_bias, loop_rows_of, own_terms,
-                                         plane_candidates, project, solve_column, solve_lanes, stamp, tree_factor,
-                                         tree_solves)
+                                         add_children, advance, angle_low, apply_control, apply_forces, body_out,
+                                         candidates_within, contact_factor, contact_residuals, factor_lanes,
+                                         keep_angle_low, kinematics, left_here, loop_errors, loop_row_bias,
+                                         loop_rows_of, own_terms, plane_candidates, project, solve_column, solve_lanes,
+                                         stamp, tree_factor, tree_solves)
 from engine.spatial import two_sum
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
@@ -39,7 +39,7 @@ MAX_REGISTERS = 128
 def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TILE_STEP,
                       registers: int | None = MAX_REGISTERS, packed_size: int = TILE_STEP,
                       stages: bool = False, unroll: int = MAX_PREFIX, handover: int = 0, inline: bool = False,
-                      forces: bool = False):
+                      forces: bool = False, control: bool = False):
     """The step kernel with shared tiles sized by coords (tree coordinates, at least MAX_PREFIX),
     rows (kept loop rows), contacts (contact rows; 0: no contact code), slots (candidate contacts)
     and packed_size (the packed mass matrix), each a multiple of TILE_STEP (coords may be MAX_PREFIX
@@ -51,13 +51,15 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
     world that finds more contacts than its tiles hold to 2, the second, which steps only those
     (the code of each role compiled only into its kernel). inline: some world has an inline loop
     (loop_rows_of; without, its code is compiled out). forces: some world has force elements
-    (apply_forces; without, their code is compiled out).
+    (apply_forces; without, their code is compiled out). control: the step reads a Control's
+    body_f (W, B) and joint_effort (W, J), the kernel's last two inputs, every step (apply_control;
+    without, its code is compiled out and the two inputs are never read).
 
     The step, one thread block per world (the lanes share each stage, a barrier between stages; on
     the CPU a block is one thread): (1) Moreau-Jean: q += dt/2 u first; (2) kinematics level by
-    level of the tree; (3) composite rigid-body sums up the tree (the force elements' wrenches
-    added to their bodies' first, at the evaluation poses), the mass matrix and generalized
-    forces; (4) damping and PD drives implicit, M~ = M + dt C packed and factored along the tree
+    level of the tree; (3) composite rigid-body sums up the tree (the force elements' and the
+    Control's wrenches added to their bodies' first, at the evaluation poses), the mass matrix and
+    generalized forces; (4) damping and PD drives implicit, M~ = M + dt C packed and factored along the tree
     (no fill); (5) the loops' rows G, X = M~^-1 G^T, A = G X factored: the loops' velocity
     constraint holds exactly; (6) contacts (compiled only with shapes): rows with the loops held,
     PADMM (engine.padmm's method) warm-started from each slot's last impulse and the world's last
@@ -86,7 +88,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                         max_iterations: int, skip_floor: float, skip_floor_angular: float, working: int,
                         q: wp.array2d(dtype=float), u: wp.array2d(dtype=float),
                         root: wp.array2d(dtype=wp.transform), body_q: wp.array2d(dtype=wp.transform),
-                        body_qd: wp.array2d(dtype=wp.spatial_vector)):
+                        body_qd: wp.array2d(dtype=wp.spatial_vector),
+                        body_f: wp.array2d(dtype=wp.spatial_vector), joint_effort: wp.array2d(dtype=float)):
         world, lane = wp.tid()
         lanes = wp.block_dim()
         if wp.static(handover == 2):  # the full-capacity kernel steps only the worlds the first one handed over
@@ -164,6 +167,10 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
             if wp.static(forces):  # the force elements onto their bodies' own terms, one lane
                 if lane == 0:
                     apply_forces(m, w, world)
+                block_sync()
+            if wp.static(control):  # a Control's body wrenches and joint efforts, one lane
+                if lane == 0:
+                    apply_control(m, w, world, body_f, joint_effort)
                 block_sync()
             if wp.static(stages):
                 stamp(w, world, lane, 1)

@@ -87,6 +87,14 @@ class ChainArrays:
     force_frame: wp.array3d(dtype=wp.transform)  # (W, F, 2)
     force_vec: wp.array3d(dtype=wp.vec3)  # (W, F, 2)
     force_coef: wp.array2d(dtype=wp.vec4)
+    # a Control's targets (apply_control): the tree entry of each spec body (-1: welded to the world);
+    # each spec joint's two sides' entries (child, parent; -1: the world or a welded body; both -1:
+    # no effort, a joint that is not revolute), its parent anchor frame in the parent's body frame
+    # (the world's where the parent side is -1) and its axis in that frame
+    control_body: wp.array2d(dtype=wp.int32)  # (W, B)
+    control_joint: wp.array3d(dtype=wp.int32)  # (W, J, 2)
+    control_frame: wp.array2d(dtype=wp.transform)  # (W, J)
+    control_axis: wp.array2d(dtype=wp.vec3)  # (W, J)
 
 
 @wp.struct
@@ -753,6 +761,33 @@ def apply_forces(m: ChainArrays, w: ChainWork, world: int):
                 tau = -coef[0] * wrap_angle(angle - coef[2]) - coef[1] * rate
             push(w, world, e0, zero, zero, tau * a_w)
             push(w, world, e1, zero, zero, -tau * a_w)
+
+
+@wp.func
+def apply_control(m: ChainArrays, w: ChainWork, world: int, body_f: wp.array2d(dtype=wp.spatial_vector),
+                  joint_effort: wp.array2d(dtype=float)):
+    """A Control's wrenches added to the bodies' own terms (after own_terms, before the subtree sums;
+    one lane) at the kinematics' poses: body_f[world, b] (force, torque; world frame) at spec body
+    b's centre of mass, and joint_effort[world, j] as the torque tau about spec joint j's world axis
+    (its parent anchor frame's) on its child and -tau on its parent: for a tree joint exactly tau on
+    its coordinate (either direction of the tree), for a loop joint the pair the maximal plan
+    applies. Bodies welded to the world take nothing."""
+    for b in range(m.control_body.shape[1]):
+        e = m.control_body[world, b]
+        if e >= 0:
+            f = body_f[world, b]
+            push(w, world, e, wp.spatial_top(f), w.centre[world, e], wp.spatial_bottom(f))
+    zero = wp.vec3()
+    for j in range(m.control_joint.shape[1]):
+        ec = m.control_joint[world, j, 0]
+        ep = m.control_joint[world, j, 1]
+        if ec >= 0 or ep >= 0:
+            X = m.control_frame[world, j]
+            if ep >= 0:
+                X = wp.transform_multiply(w.pose[world, ep], X)
+            torque = joint_effort[world, j] * wp.quat_rotate(wp.transform_get_rotation(X), m.control_axis[world, j])
+            push(w, world, ec, zero, zero, torque)
+            push(w, world, ep, zero, zero, -torque)
 
 
 @wp.func

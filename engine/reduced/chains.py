@@ -29,11 +29,11 @@ from engine.reduced.chain_layout import (KIND_ANGULAR, KIND_LINEAR, KIND_REVOLUT
 from engine.reduced.chain_stages import (STAGES, VELOCITIES, ChainArrays, ChainWork, body_out, candidates_within,
                                          kinematics, plane_candidates)
 from engine.spatial import quat_matrix
-from engine.spec import MechanismSpec
+from engine.spec import JointType, MechanismSpec
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
-__all__ = ["CONTACT_RHO", "ChainModel", "ChainState", "pack_chains"]
+__all__ = ["CONTACT_RHO", "ChainControl", "ChainModel", "ChainState", "pack_chains"]
 
 # the contacts' initial ADMM penalty (Tuning.rho None), in units of their preconditioned Delassus
 # diagonal; later steps start from their world's last penalty. Why not the maximal plan's 1e-3:
@@ -43,7 +43,8 @@ CONTACT_RHO = 1.0
 ARRAY_TYPES = {"gravity": wp.vec3, "shape_X": wp.transform, "shape_size": wp.vec3, "ground_normal": wp.vec3,
                "axis": wp.vec3, "com": wp.vec3, "inertia": wp.mat33, "joint_parent": wp.transform,
                "joint_child": wp.transform, "loop_anchor": wp.transform, "loop_axis": wp.vec3, "loop_t1": wp.vec3,
-               "loop_t2": wp.vec3, "force_frame": wp.transform, "force_vec": wp.vec3, "force_coef": wp.vec4}
+               "loop_t2": wp.vec3, "force_frame": wp.transform, "force_vec": wp.vec3, "force_coef": wp.vec4,
+               "control_frame": wp.transform, "control_axis": wp.vec3}
 
 
 class ChainState:
@@ -81,6 +82,28 @@ class ChainModel:
         self.unroll = MAX_PREFIX if int(arrays.prefix.numpy().max(initial=0)) > 0 else 0
         self.inline = any(lay.inline for lay in layouts)  # the inline loops' rows compiled in only where needed
         self.forces = any(lay.spec.forces for lay in layouts)  # the force elements' code compiled in only where needed
+        self.max_bodies = max(len(lay.spec.bodies) for lay in layouts)
+        self.max_joints = max(1, max(len(lay.spec.joints) for lay in layouts))
+        # the kernel's Control inputs of a step without one (never read: its code is compiled out)
+        self._no_body_f = wp.zeros((1, 1), dtype=wp.spatial_vector, device=device)
+        self._no_effort = wp.zeros((1, 1), dtype=float, device=device)
+
+    def control(self) -> "ChainControl":
+        """A new ChainControl (zeros): body_f (W, B) and joint_effort (W, J) in spec order."""
+        return ChainControl(wp.zeros((self.num_worlds, self.max_bodies), dtype=wp.spatial_vector, device=self.device),
+                            wp.zeros((self.num_worlds, self.max_joints), dtype=float, device=self.device))
+
+    def check_control(self, control) -> None:
+        """Raise ValueError unless ``control`` has body_f (W, >= B) spatial_vector and joint_effort
+        (W, >= J) float arrays on the model's device (host work: call it once, not per step)."""
+        for name, dtype, count in (("body_f", wp.spatial_vector, self.max_bodies),
+                                   ("joint_effort", wp.float32, self.max_joints)):
+            a = getattr(control, name, None)
+            if not isinstance(a, wp.array) or a.ndim != 2 or a.dtype != dtype or a.shape[0] != self.num_worlds \
+                    or a.shape[1] < count or a.device != wp.get_device(self.device):
+                raise ValueError(f"control: the tree plan reads {name} as a ({self.num_worlds}, {count}) "
+                                 f"{dtype.__name__} array on {self.device} (TreeModel.control() makes one), got "
+                                 f"{getattr(a, 'shape', None) if a is not None else 'none'}")
 
     def state(self) -> ChainState:
         """A new state at the initial pose (the contacts' warm start, kept in the model's work, is
@@ -91,10 +114,12 @@ class ChainModel:
                             (("q", float), ("u", float), ("root", wp.transform), ("body_q", wp.transform),
                              ("body_qd", wp.spatial_vector))))
 
-    def step(self, state: ChainState, record: bool = False, stages: bool = False) -> None:
+    def step(self, state: ChainState, record: bool = False, stages: bool = False, control=None) -> None:
         """Advance state by one step of self.dt (in place). record: also write the step's mass matrix
         M~ into work.matrix (W, coords, coords) and its kept loop rows G into work.rows (W, rows, coords).
-        stages: also time the step's STAGES (a kernel with clock readings; stage_cycles reads them)."""
+        stages: also time the step's STAGES (a kernel with clock readings; stage_cycles reads them).
+        control: a ChainControl (check_control) whose arrays the kernel reads at this step (None:
+        the kernel without the Control's code)."""
         c = self.config
         if record and self.work.matrix.shape != (self.num_worlds, self.coords, self.coords):  # on first use
             self.work.matrix = wp.zeros((self.num_worlds, self.coords, self.coords), dtype=float, device=self.device)
@@ -113,7 +138,7 @@ class ChainModel:
         for tile, handover in passes:
             kernel = chain_step_kernel(self.coords, self.tile_rows, tile, self.tile_slots, self.max_registers,
                                        self.packed_size, bool(stages), self.unroll, handover, self.inline,
-                                       self.forces)
+                                       self.forces, control is not None)
             wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
                             inputs=[self.arrays, self.work, float(self.dt), float(c.baumgarte),
                                     int(c.position_iterations), float(c.max_speed),
@@ -123,7 +148,9 @@ class ChainModel:
                                     float(c.tolerance), float(c.relative_tolerance), int(c.max_iterations),
                                     float(c.tuning.projection_skip_floor), float(c.tuning.projection_skip_floor_angular),
                                     tile // 3, state.q, state.u,
-                                    state.root, state.body_q, state.body_qd])
+                                    state.root, state.body_q, state.body_qd,
+                                    self._no_body_f if control is None else control.body_f,
+                                    self._no_effort if control is None else control.joint_effort])
 
     def stage_cycles(self) -> dict:
         """The last step(stages=True)'s clock cycles per stage (STAGES), the mean over the worlds that
@@ -237,6 +264,11 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     h["force_frame"] = np.tile(identity, (W, F, 2, 1))
     h["force_vec"] = np.zeros((W, F, 2, 3))
     h["force_coef"] = np.zeros((W, F, 4))
+    J = max(1, max(len(lay.spec.joints) for lay in layouts))  # a Control's joints (apply_control)
+    h["control_body"] = np.full((W, B), -1, dtype=np.int32)
+    h["control_joint"] = np.full((W, J, 2), -1, dtype=np.int32)
+    h["control_frame"] = np.tile(identity, (W, J, 1))
+    h["control_axis"] = np.zeros((W, J, 3))
     init = {"q": np.zeros((W, N)), "u": np.zeros((W, N)), "root": np.tile(identity, (W, N, 1)),
             "body_q": np.tile(identity, (W, B, 1)), "body_qd": np.zeros((W, B, 6))}
     for w_, lay in enumerate(layouts):
@@ -297,6 +329,7 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
                 h["effort"][w_, k] = joint.drive.effort_limit
         tree_index = {b: k for k, b in enumerate(lay.tree_body) if lay.kind[k] in (KIND_REVOLUTE, KIND_ROOT)}
         _pack_forces(h, w_, lay, tree_index)
+        _pack_control(h, w_, lay, tree_index)
         h["shape_count"][w_] = len(lay.shapes)
         h["contact_capacity"][w_] = _capacity(lay, contact_capacity)
         h["prefix"][w_] = _prefix(level)
@@ -418,6 +451,39 @@ def _pack_forces(h: dict, w_: int, lay: ChainLayout, tree_index: dict) -> None:
         for s, (entry, frame) in enumerate(sides):
             h["force_entry"][w_, f, s] = entry
             h["force_frame"][w_, f, s] = frame
+
+
+def _pack_control(h: dict, w_: int, lay: ChainLayout, tree_index: dict) -> None:
+    """World w_'s Control targets (ChainArrays.control_*, chain_stages.apply_control): each spec
+    body's tree entry, and each revolute joint's sides (child, parent) with its parent anchor frame
+    and axis, a side welded to the world as -1 with the frame in the world."""
+    spec = lay.spec
+    for b in range(len(spec.bodies)):
+        h["control_body"][w_, b] = tree_index.get(b, -1)
+    for j, joint in enumerate(spec.joints):
+        if joint.type != JointType.REVOLUTE:  # (the tree takes revolute, inline and fixed joints)
+            continue
+        R, p = quat_matrix(joint.parent_orientation), np.asarray(joint.parent_position, float)
+        sides = []
+        for name in (joint.child, joint.parent):
+            b = None if name is None else spec.body_index[name]
+            sides.append(tree_index.get(b, -1) if b is not None else -1)
+        if sides[1] < 0 and joint.parent is not None:  # the parent welded to the world: its anchor in the world
+            Rf, pf = lay.fixed[spec.body_index[joint.parent]]
+            R, p = Rf @ R, pf + Rf @ p
+        h["control_joint"][w_, j] = sides
+        h["control_frame"][w_, j] = _transform(R, p)
+        h["control_axis"][w_, j] = joint.axis
+
+
+class ChainControl:
+    """A Control of the tree plan (ChainModel.control): body_f (W, B) spatial_vector, each spec body's
+    external wrench (force [N], torque [N m]) at its centre of mass, world frame; joint_effort (W, J)
+    float, each revolute spec joint's torque [N m] (on its child, its opposite on its parent). Drive
+    targets come from the specs."""
+
+    def __init__(self, body_f, joint_effort):
+        self.body_f, self.joint_effort = body_f, joint_effort
 
 
 @functools.cache

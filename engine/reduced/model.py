@@ -73,8 +73,9 @@ class ReducedModel(abc.ABC):
         """A State at the specs' initial poses (every world running again)."""
 
     @abc.abstractmethod
-    def advance(self, state: ReducedState, steps: int) -> None:
-        """``steps`` steps of ``state`` in place (capturable: no host work, no allocation)."""
+    def advance(self, state: ReducedState, steps: int, control=None) -> None:
+        """``steps`` steps of ``state`` in place (capturable: no host work, no allocation); control:
+        the plan's Control (only the tree plan takes one)."""
 
     @abc.abstractmethod
     def copy_state(self, source: ReducedState, target: ReducedState) -> None:
@@ -136,11 +137,12 @@ class ReducedModel(abc.ABC):
 
         return points_of(self.gauge, state.body_q)
 
-    def step(self, state_in: ReducedState, state_out: ReducedState) -> None:
-        """One step from state_in into state_out (in place when they are one State)."""
+    def step(self, state_in: ReducedState, state_out: ReducedState, control=None) -> None:
+        """One step from state_in into state_out (in place when they are one State); control: the
+        plan's Control (only the tree plan takes one)."""
         if state_out is not state_in:
             self.copy_state(state_in, state_out)
-        self.advance(state_out, 1)
+        self.advance(state_out, 1, control)
 
     def measure(self, state: ReducedState) -> dict:
         """One record of ``state``: points (W, P, 3), violation_linear/angular (W,), energy (W,),
@@ -170,7 +172,15 @@ class _Bodies:
 
 
 class TreeModel(ReducedModel):
-    """The TREE plan: engine.reduced.chains's ChainModel (one kernel launch per step)."""
+    """The TREE plan: engine.reduced.chains's ChainModel (one kernel launch per step).
+
+    It takes a Control (control(); engine.step, engine.Stepper and engine.rollout pass it on) of
+    body_f (W, B) and joint_effort (W, J), the same arrays in spec order as the maximal plan's
+    engine.Control: the step kernel reads them at every step (no host work; captured graphs read
+    the arrays' current values). Its drive targets come from the specs: the tree Control has no
+    joint_target_* arrays, and those of a maximal Control are not read. joint_effort acts on
+    revolute joints, tree and loop-closing alike, driven or not (on a driven joint it adds to the
+    drive's torque, outside the drive's effort check)."""
 
     HALTED = 3  # a code of the chains kernel's stop flag that freezes a world without a failure
 
@@ -188,10 +198,21 @@ class TreeModel(ReducedModel):
         self.inner.work.diverged.zero_()  # a new trajectory: every world runs again
         return ReducedState(self, self.inner.state())
 
-    def advance(self, state: ReducedState, steps: int) -> None:
+    def control(self):
+        """A new Control of the plan (zeros): body_f (W, B) spatial_vector, each spec body's wrench
+        (force [N], torque [N m]) at its centre of mass, world frame (a body welded to the world
+        takes none); joint_effort (W, J) float, each spec joint's torque [N m] (revolute joints).
+        Drive targets come from the specs."""
+        return self.inner.control()
+
+    def check_control(self, control) -> None:
+        """Raise ValueError unless ``control`` carries body_f and joint_effort arrays this batch reads."""
+        self.inner.check_control(control)
+
+    def advance(self, state: ReducedState, steps: int, control=None) -> None:
         self._last = state.inner
         for _ in range(steps):
-            self.inner.step(state.inner)
+            self.inner.step(state.inner, control=control)
 
     def copy_state(self, source: ReducedState, target: ReducedState) -> None:
         """Copy the coordinates, rates, roots and body poses of ``source`` into ``target``."""
@@ -266,7 +287,10 @@ class TabulatedPlanModel(ReducedModel):
             wp.copy(getattr(self.inner, name), value)
         return ReducedState(self, None)
 
-    def advance(self, state: ReducedState, steps: int) -> None:
+    def advance(self, state: ReducedState, steps: int, control=None) -> None:
+        if control is not None:
+            raise ValueError("step: the tabulated plan takes its drive targets from the specs and has no Control; "
+                             "pack with coordinates='maximal' or 'tree' to drive it from one")
         self.inner.step(steps)
 
     def copy_state(self, source: ReducedState, target: ReducedState) -> None:

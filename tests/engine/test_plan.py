@@ -78,13 +78,22 @@ def test_forcing_a_plan_that_does_not_fit_names_the_world_and_the_reason():
         pack([fourbar], coordinates="reduced")
 
 
-def test_reduced_plans_take_no_control_and_keep_their_dt():
+def test_reduced_plans_keep_their_dt_and_only_the_tree_plan_takes_a_control():
     model = pack([make_scene("fourbar").spec])
     state = model.state()
-    with pytest.raises(ValueError, match="drive targets from the specs"):
+    assert model.plan.coordinates is Coordinates.TREE
+    engine.step(model, state, state, control=model.control())  # body_f and joint_effort (test_tree_control)
+    with pytest.raises(ValueError, match="body_f"):
         engine.step(model, state, state, control=object())
     with pytest.raises(ValueError, match="dt it was packed with"):
         rollout(model, state, None, 10, dt=0.5 * model.dt)
+    walker = load_family("walker")
+    tabulated = pack([walker.build_spec(walker.space.default())])
+    assert tabulated.plan.coordinates is Coordinates.TABULATED
+    with pytest.raises(ValueError, match="drive targets from the specs"):
+        engine.step(tabulated, tabulated.state(), tabulated.state(), control=object())
+    with pytest.raises(ValueError, match="has no Control"):
+        engine.Stepper(tabulated, tabulated.state(), object())
 
 
 @pytest.mark.parametrize("name", ["four_bar", "jansen_leg"])
