@@ -95,7 +95,12 @@ class ChainModel:
 
     def check_control(self, control) -> None:
         """Raise ValueError unless ``control`` has body_f (W, >= B) spatial_vector and joint_effort
-        (W, >= J) float arrays on the model's device (host work: call it once, not per step)."""
+        (W, >= J) float arrays on the model's device (host work: call it once, not per step), and
+        refuse a Control with drive targets (the maximal plan's): the tree plan would not read them."""
+        if any(hasattr(control, name) for name in ("joint_target_position", "joint_target_velocity")):
+            raise ValueError("control: the tree plan takes its drive targets from the specs and would not read this "
+                             "Control's joint_target_* arrays; step it with model.control() (body_f, joint_effort), "
+                             "or pack with coordinates='maximal' to drive the targets from a Control")
         for name, dtype, count in (("body_f", wp.spatial_vector, self.max_bodies),
                                    ("joint_effort", wp.float32, self.max_joints)):
             a = getattr(control, name, None)

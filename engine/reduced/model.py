@@ -178,7 +178,7 @@ class TreeModel(ReducedModel):
     body_f (W, B) and joint_effort (W, J), the same arrays in spec order as the maximal plan's
     engine.Control: the step kernel reads them at every step (no host work; captured graphs read
     the arrays' current values). Its drive targets come from the specs: the tree Control has no
-    joint_target_* arrays, and those of a maximal Control are not read. joint_effort acts on
+    joint_target_* arrays, and a maximal Control (which has them) is refused. joint_effort acts on
     revolute joints, tree and loop-closing alike, driven or not (on a driven joint it adds to the
     drive's torque, outside the drive's effort check)."""
 

@@ -145,4 +145,7 @@ def test_rollout_takes_a_control_and_the_tree_control_checks_its_arrays():
         engine.step(model, final, final, control=object())
     assert "body_f and joint_effort" in str(model.plan)
     assert not hasattr(model.control(), "joint_target_position")  # drive targets come from the specs
+    maximal = engine.pack([spec], device=CPU, dt=1.0e-3, coordinates="maximal")
+    with pytest.raises(ValueError, match="drive targets from the specs"):  # its targets would not be read
+        engine.rollout(model, model.state(), maximal.control(), 10, record_every=10)
     assert math.isfinite(float(trace.energy[-1, 0]))
