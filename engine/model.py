@@ -381,8 +381,10 @@ class Control:
     joint_target_position (W, J) [rad]/[m]; joint_target_velocity (W, J) [rad/s]/[m/s];
     joint_effort (W, J) feed-forward joint torque/force [N m]/[N] (a drive's row takes it within
     its effort limit; on an undriven revolute or prismatic joint it is applied as a force slot,
-    engine.dynamics.force_wrench_of); body_f (W, B) external
-    wrench (force [N], torque [N m]) at the COM, world frame.
+    engine.dynamics.force_wrench_of; joints of several degrees of freedom (spherical, universal,
+    cylindrical) and fixed ones have no single coordinate and do not read it: apply body_f
+    instead); body_f (W, B) external wrench (force [N], torque [N m]) at the COM, world frame.
+    The tree plan has a Control of its own (engine.reduced.model.TreeModel: body_f, joint_effort).
     """
 
     joint_target_position: wp.array
