@@ -1,7 +1,7 @@
 """Force elements (engine.forces) in the tree plan (engine.reduced.chain_stages.apply_forces):
 the same physics as test_forces checks on the maximal plan, where the tree applies: a spring-held
 inverted pendulum's static deflection, a wheel spun by a joint torque (on a fixed axle and on a
-free hub), a cable that does not push, a loaded four-bar against the maximal plan (the oracle),
+free hub), a loaded four-bar against the maximal plan (the oracle),
 joint elements on a joint the tree runs backwards and a spring on a welded body, the plan's choice."""
 
 import dataclasses
@@ -45,25 +45,6 @@ def test_joint_torque_spins_an_undriven_wheel_at_tau_over_inertia():
     # equal and opposite on child and parent: the free hub turns back, angular momentum stays zero
     np.testing.assert_allclose(w[2, 0, 2], tau / 0.05 * t, rtol=1.0e-4)
     np.testing.assert_allclose(w[2, 1, 2], -tau / 0.2 * t, rtol=1.0e-4)
-
-
-def test_tension_only_spring_does_not_push_and_pulls_when_stretched():
-    m, k, rest = 1.0, 40.0, 1.0
-    dt, steps = 1.0e-3, 10
-
-    def spec(x0, tension_only):
-        return MechanismSpec([Body("mass", m, [0.01, 0.01, 0.01], position=(x0, 0.0, 0.0))], gravity=(0, 0, 0),
-                             forces=[LinearSpring("cable", "mass", stiffness=k, rest_length=rest,
-                                                  tension_only=tension_only)])
-
-    model = engine.pack([spec(0.6, True), spec(0.6, False), spec(1.2, True)], device=CPU, dt=dt, coordinates="tree")
-    state = run(model, steps)
-    v = state.body_qd.numpy()[:, 0, 0]
-    x = state.body_q.numpy()[:, 0, 0]
-    assert v[0] == 0.0 and x[0] == np.float32(0.6)
-    t = dt * steps
-    np.testing.assert_allclose(v[1], k * 0.4 / m * t, rtol=0.01)
-    np.testing.assert_allclose(v[2], -k * 0.2 / m * t, rtol=0.01)  # stretched: it pulls
 
 
 def test_loaded_fourbar_matches_the_maximal_plan():
