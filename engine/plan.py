@@ -90,13 +90,29 @@ class Plan:
         return "\n".join(lines)
 
 
-def _admits(kind: Coordinates, spec):
-    """The kind's layout of ``spec`` (raises ValueError with the reason when it does not fit)."""
+def _tabulated_ready(specs: list) -> dict:
+    """The tabulated layouts of the batch's distinct specs, analysed together (a generation's
+    walkers share their topology: engine.reduced.tabulated_layout.tabulated_layouts, equal to one
+    analysis per spec): id(spec) -> its TabulatedLayout or the ValueError that refuses it."""
+    from engine.reduced.tabulated_layout import tabulated_layouts
+
+    unique = list({id(s): s for s in specs if not s.forces}.values())
+    return {id(s): made for s, made in zip(unique, tabulated_layouts(unique))}
+
+
+def _admits(kind: Coordinates, spec, ready: dict | None = None):
+    """The kind's layout of ``spec`` (raises ValueError with the reason when it does not fit);
+    ready: the batch's tabulated layouts (_tabulated_ready)."""
     if kind is Coordinates.TABULATED and spec.forces:
         raise ValueError(f"force elements: the {kind.value} plan does not take them yet")
     if kind is Coordinates.TABULATED:
-        from engine.reduced.tabulated_layout import tabulated_layout
-        return tabulated_layout(spec)
+        made = (ready or {}).get(id(spec))
+        if made is None:
+            from engine.reduced.tabulated_layout import tabulated_layout
+            return tabulated_layout(spec)
+        if isinstance(made, ValueError):
+            raise ValueError(str(made))
+        return made
     if kind is Coordinates.TREE:
         from engine.pack import collision_pairs
         from engine.reduced.chain_layout import chain_layout
@@ -180,10 +196,11 @@ def choose(specs: list, device, coordinates=None, contact_capacity: int | None =
         if kind is Coordinates.MAXIMAL:
             return Plan(kind, len(specs), str(device), forced=forced is not None, refused=refused), None
         layouts, seen = [], {}  # a batch often repeats one spec object: its layout is made once
+        ready = _tabulated_ready(specs) if kind is Coordinates.TABULATED else None
         for index, spec in enumerate(specs):
             try:
                 if id(spec) not in seen:
-                    seen[id(spec)] = _admits(kind, spec)
+                    seen[id(spec)] = _admits(kind, spec, ready)
                 layouts.append(seen[id(spec)])
             except ValueError as exc:
                 reason = f"world {index} ({spec.name}): {exc}"
@@ -201,6 +218,7 @@ def fastest(specs: list, contact_capacity: int | None = None) -> tuple[list, lis
     ((kind, 'world i (name): reason'), the first world per kind). A batch repeating one spec
     object analyses it once."""
     kinds, layouts, refused, seen, noted = [], [], [], {}, set()
+    ready = _tabulated_ready(specs) if contact_capacity is None else None
     for index, spec in enumerate(specs):
         if id(spec) not in seen:
             found = None
@@ -214,7 +232,7 @@ def fastest(specs: list, contact_capacity: int | None = None) -> tuple[list, lis
                         refused.append((kind, CAPACITY_NOT_TABULATED))
                     continue
                 try:
-                    found = (kind, _admits(kind, spec))
+                    found = (kind, _admits(kind, spec, ready))
                     break
                 except ValueError as exc:
                     if kind not in noted:

@@ -10,7 +10,6 @@ failed evaluation with a reason; the others in its batch carry on.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import operator
 import time
@@ -364,8 +363,7 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     if not specs:
         return evaluation
     t1 = time.perf_counter()
-    with _analysed_together(specs, coordinates):
-        model = pack(specs, device=device, dt=dt, config=config, coordinates=coordinates)
+    model = pack(specs, device=device, dt=dt, config=config, coordinates=coordinates)
     evaluation.plan = model.plan
     t2 = time.perf_counter()
 
@@ -387,24 +385,6 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
                        fall_tilt, fall_height, stall_time, pre=pre)
     evaluation.timings.update(pack=t2 - t1, simulate=t3 - t2, metrics=time.perf_counter() - t3)
     return evaluation
-
-
-def _analysed_together(specs: list, coordinates):
-    """A block in which the engine's plan reads the batch's tabulated layouts from one joint
-    analysis of all its worlds (engine.reduced.tabulated_layout.analysed_together: a generation's
-    walkers share their topology; the same layouts as world by world), unless the caller forced
-    coordinates other than tabulated."""
-    from engine.plan import Coordinates
-    from engine.reduced.tabulated_layout import analysed_together
-
-    if coordinates is not None:
-        try:
-            forced = Coordinates(getattr(coordinates, "value", coordinates))
-        except ValueError:  # engine.pack words the error
-            forced = None
-        if forced is not Coordinates.TABULATED:
-            return contextlib.nullcontext()
-    return analysed_together(specs)
 
 
 def _reporting(halt: Callable | None, progress: Callable | None, steps: int, record_every: int,

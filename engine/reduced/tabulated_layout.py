@@ -24,7 +24,6 @@ Nothing here knows a mechanism's anatomy: contact slots come from shapes
 
 from __future__ import annotations
 
-import contextlib
 import gc
 import math
 import operator
@@ -38,8 +37,8 @@ from engine.reduced.tabulated_tables import (NEWTON_TOLERANCE, START_TOLERANCE, 
 from engine.spatial import cross, quat_matrix
 from engine.spec import JointType, MechanismSpec, ShapeType
 
-__all__ = ["BASE_SLOTS", "MAX_GROUPS", "MAX_LINKS", "SubChain", "TabulatedLayout", "analysed_together",
-           "tabulated_layout", "tabulated_layouts"]
+__all__ = ["BASE_SLOTS", "MAX_GROUPS", "MAX_LINKS", "SubChain", "TabulatedLayout", "tabulated_layout",
+           "tabulated_layouts"]
 
 MAX_GROUPS = 8  # sub-chains per world (the kernel's generalized velocities: 6 + MAX_GROUPS)
 MAX_LINKS = 8  # bodies per sub-chain
@@ -433,13 +432,8 @@ def tabulated_layout(spec: MechanismSpec, *, samples: int = TABLE_SAMPLES) -> Ta
     driven joints (then the body of the most driven joints, of the most joints, the first).
 
     The analysis runs on arrays (see the array path's notes above); a spec that it does not take
-    as it is goes through _plain_layout, item by item, with the same result. Inside
-    ``analysed_together(specs)`` a spec of that batch answers from their joint analysis."""
-    ready = _READY.get(id(spec))
-    if ready is not None and ready[0] is spec and ready[1] == samples:
-        if isinstance(ready[2], str):
-            raise ValueError(ready[2])
-        return ready[2]
+    as it is goes through _plain_layout, item by item, with the same result (tabulated_layouts
+    analyses a batch together)."""
     structure = _structure(spec)
     layout = None if structure is None else _array_layout(spec, structure, samples)
     return layout if layout is not None else _plain(spec, samples)
@@ -507,28 +501,6 @@ def _layouts_together(specs: list, samples: int) -> list:
         except ValueError as exc:
             out.append(exc)
     return out
-
-
-_READY: dict = {}  # id(spec) -> (spec, samples, layout or its ValueError's message): see analysed_together
-
-
-@contextlib.contextmanager
-def analysed_together(specs, *, samples: int = TABLE_SAMPLES):
-    """A block in which tabulated_layout(spec) of a spec of ``specs`` answers from their joint
-    analysis (tabulated_layouts, run on entry; the block gets its list) instead of analysing the
-    spec alone: for a caller about to pack the batch (engine.pack plans world by world). The specs
-    must not change inside the block; nothing is kept after it."""
-    specs = [s for s in specs if isinstance(s, MechanismSpec)]
-    made = tabulated_layouts(specs, samples=samples)
-    mine = {id(spec): (spec, samples, str(layout) if isinstance(layout, ValueError) else layout)
-            for spec, layout in zip(specs, made)}
-    _READY.update(mine)
-    try:
-        yield made
-    finally:
-        for key, entry in mine.items():
-            if _READY.get(key) is entry:
-                del _READY[key]
 
 
 def _array_layout(spec: MechanismSpec, st: _Structure, samples: int) -> TabulatedLayout | None:

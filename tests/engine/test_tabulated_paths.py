@@ -193,18 +193,3 @@ def test_layouts_analysed_together_equal_each_alone():
     assert together == alone
     errors = [o for o in together if isinstance(o, str)]
     assert len(errors) == 3 and "has limits" in errors[0] and "turns about" in errors[1], errors
-
-
-def test_analysed_together_answers_inside_the_block_only():
-    """Inside analysed_together(specs), tabulated_layout answers with the batch's layouts (and the
-    refused spec's error); after the block it analyses again."""
-    specs = [WALKER.build_spec(p) for p in WALKER.space.sample(np.random.default_rng(3), 4)]
-    limited = WALKER.build_spec(WALKER.space.default())
-    limited.joints[2].limit_lower = -1.0
-    with layout_module.analysed_together(specs + [limited]) as made:
-        assert all(tabulated_layout(s) is m for s, m in zip(specs, made))
-        with pytest.raises(ValueError, match="has limits"):
-            tabulated_layout(limited)
-    assert not layout_module._READY
-    assert tabulated_layout(specs[0]) is not made[0]
-    assert _leaves(tabulated_layout(specs[0])) == _leaves(made[0])
