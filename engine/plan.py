@@ -96,15 +96,13 @@ def _tabulated_ready(specs: list) -> dict:
     analysis per spec): id(spec) -> its TabulatedLayout or the ValueError that refuses it."""
     from engine.reduced.tabulated_layout import tabulated_layouts
 
-    unique = list({id(s): s for s in specs if not s.forces}.values())
+    unique = list({id(s): s for s in specs}.values())
     return {id(s): made for s, made in zip(unique, tabulated_layouts(unique))}
 
 
 def _admits(kind: Coordinates, spec, ready: dict | None = None):
     """The kind's layout of ``spec`` (raises ValueError with the reason when it does not fit);
     ready: the batch's tabulated layouts (_tabulated_ready)."""
-    if kind is Coordinates.TABULATED and spec.forces:
-        raise ValueError(f"force elements: the {kind.value} plan does not take them yet")
     if kind is Coordinates.TABULATED:
         made = (ready or {}).get(id(spec))
         if made is None:

@@ -17,7 +17,7 @@ from engine.joints import body_twist, joint_coordinate_row, joint_frames
 from engine.metrics import compute_metrics
 from engine.model import ContactArrays, Control, Model, ModelArrays, State, WorkArrays
 from engine.grouped import GroupedModel, GroupedState, _scatter, rollout_groups
-from engine.reduced.model import ReducedModel, TreeModel
+from engine.reduced.model import ReducedModel
 from engine.step import step
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
@@ -105,10 +105,6 @@ class Stepper:
         self.capture = device.is_cuda if capture is None else (capture and device.is_cuda)
         if self.reduced:
             if control is not None:
-                if not isinstance(model, TreeModel):
-                    raise ValueError(f"Stepper: the {model.plan.coordinates.value} plan takes its drive targets from "
-                                     f"the specs and has no Control; pack with coordinates='maximal' or 'tree' to "
-                                     f"drive it from one")
                 model.check_control(control)
             return
         if control is None:

@@ -43,7 +43,7 @@ from engine.joints import compute_joint_rows
 from engine.model import Control, Integrator, Model, State
 from engine.padmm import solve_padmm
 from engine.grouped import GroupedModel, step_groups
-from engine.reduced.model import ReducedModel, TreeModel
+from engine.reduced.model import ReducedModel
 
 __all__ = ["StageTimer", "detect_contacts", "step"]
 
@@ -104,9 +104,8 @@ def step(model: Model, state_in: State, state_out: State, control: Control | Non
             reduced plan steps one State in place: state_out may be state_in; when it is not,
             state_in is copied into it first.)
         control: drive targets, feed-forward efforts and external wrenches (maximal plans; None:
-            the specs' targets). The tree plan takes efforts and wrenches (TreeModel.control, or a
-            maximal Control of the same shapes) and its drive targets from the specs; the tabulated
-            plan and a batch planned in groups take no Control.
+            the specs' targets). The reduced plans take efforts and wrenches (model.control()) and
+            their drive targets from the specs; a batch planned in groups takes no Control.
         dt: time step [s] for all worlds; None keeps model.world_dt (per-world device array).
             Changing it writes the device array, so pass None inside a captured graph.
         timer: optional StageTimer collecting the wall time of every stage.
@@ -123,11 +122,9 @@ def step(model: Model, state_in: State, state_out: State, control: Control | Non
         step_groups(model, state_in, state_out, step)
         return
     if isinstance(model, ReducedModel):
-        tree = isinstance(model, TreeModel)
-        if (control is not None and not tree) or dt is not None:
-            raise ValueError(f"step: the {model.plan.coordinates.value} plan takes its drive targets from the specs "
-                             f"and keeps the dt it was packed with; pack with coordinates='maximal' for a Control "
-                             f"or a changing dt" + ("" if tree else " (or 'tree' for a Control)"))
+        if dt is not None:
+            raise ValueError(f"step: the {model.plan.coordinates.value} plan keeps the dt it was packed with; pack "
+                             f"with coordinates='maximal' for a changing dt")
         if control is not None:
             model.check_control(control)
         model.step(state_in, state_out, control)

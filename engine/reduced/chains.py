@@ -94,21 +94,8 @@ class ChainModel:
                             wp.zeros((self.num_worlds, self.max_joints), dtype=float, device=self.device))
 
     def check_control(self, control) -> None:
-        """Raise ValueError unless ``control`` has body_f (W, >= B) spatial_vector and joint_effort
-        (W, >= J) float arrays on the model's device (host work: call it once, not per step), and
-        refuse a Control with drive targets (the maximal plan's): the tree plan would not read them."""
-        if any(hasattr(control, name) for name in ("joint_target_position", "joint_target_velocity")):
-            raise ValueError("control: the tree plan takes its drive targets from the specs and would not read this "
-                             "Control's joint_target_* arrays; step it with model.control() (body_f, joint_effort), "
-                             "or pack with coordinates='maximal' to drive the targets from a Control")
-        for name, dtype, count in (("body_f", wp.spatial_vector, self.max_bodies),
-                                   ("joint_effort", wp.float32, self.max_joints)):
-            a = getattr(control, name, None)
-            if not isinstance(a, wp.array) or a.ndim != 2 or a.dtype != dtype or a.shape[0] != self.num_worlds \
-                    or a.shape[1] < count or a.device != wp.get_device(self.device):
-                raise ValueError(f"control: the tree plan reads {name} as a ({self.num_worlds}, {count}) "
-                                 f"{dtype.__name__} array on {self.device} (TreeModel.control() makes one), got "
-                                 f"{getattr(a, 'shape', None) if a is not None else 'none'}")
+        """check_control_arrays for this batch (host work: call it once, not per step)."""
+        check_control_arrays(control, "tree", self.num_worlds, self.max_bodies, self.max_joints, self.device)
 
     def state(self) -> ChainState:
         """A new state at the initial pose (the contacts' warm start, kept in the model's work, is
@@ -414,13 +401,12 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
 
 
 def _pack_forces(h: dict, w_: int, lay: ChainLayout, tree_index: dict) -> None:
-    """World w_'s force slots (ChainArrays.force_*, chain_stages.apply_forces) from its spec's force
-    elements: each side's tree entry and frame in that body's frame, or -1 and the frame in the
-    world for the world and bodies welded to it (whose wrenches go nowhere)."""
-    spec = lay.spec
+    """World w_'s force slots (ChainArrays.force_*, chain_stages.apply_forces): each side's tree entry
+    and frame in that body's frame, or -1 and the frame in the world for the world and bodies
+    welded to it (whose wrenches go nowhere)."""
 
     def side(name, R, p):  # (entry, frame as a transform) of a frame (R, p) in body ``name``'s frame
-        b = None if name is None else spec.body_index[name]
+        b = None if name is None else lay.spec.body_index[name]
         if b in tree_index:
             return tree_index[b], _transform(R, p)
         if b is not None:  # welded to the world
@@ -428,6 +414,17 @@ def _pack_forces(h: dict, w_: int, lay: ChainLayout, tree_index: dict) -> None:
             R, p = Rf @ R, pf + Rf @ p
         return -1, _transform(R, p)
 
+    pack_force_slots(h, w_, lay.spec, side)
+
+
+def pack_force_slots(h: dict, w_: int, spec: MechanismSpec, side) -> None:
+    """World w_'s force slots in h's force_count, force_kind, force_entry (W, F, 2), force_frame
+    (W, F, 2, 7), force_vec (W, F, 2, 3) and force_coef (W, F, 4) from ``spec``'s force elements, for
+    a reduced plan whose ``side(body name or None, R, p)`` gives the entry a frame (R, p) in that
+    body's frame moves with and the frame as a transform relative to it: a spring-damper's points
+    (coef: stiffness, damping, rest length, tension only), a body wrench's body (vec: force,
+    torque), a joint element's child then parent anchor frames (vec: the axis; coef: stiffness,
+    damping, rest position, or the effort last)."""
     eye = np.eye(3)
     h["force_count"][w_] = len(spec.forces)
     for f, item in enumerate(spec.forces):
@@ -440,7 +437,7 @@ def _pack_forces(h: dict, w_: int, lay: ChainLayout, tree_index: dict) -> None:
             sides = [side(item.body, eye, np.zeros(3))]
             h["force_vec"][w_, f] = item.force, item.torque
             coef = (0.0, 0.0, 0.0, 0.0)
-        else:  # a JointSpring or JointTorque on a revolute joint (the tree takes no other with either)
+        else:  # a JointSpring or JointTorque on a revolute joint (the reduced plans take no other with either)
             joint = spec.joints[[j.name for j in spec.joints].index(item.joint)]
             sides = [side(joint.child, quat_matrix(joint.child_orientation), np.asarray(joint.child_position)),
                      side(joint.parent, quat_matrix(joint.parent_orientation), np.asarray(joint.parent_position))]
@@ -456,6 +453,23 @@ def _pack_forces(h: dict, w_: int, lay: ChainLayout, tree_index: dict) -> None:
         for s, (entry, frame) in enumerate(sides):
             h["force_entry"][w_, f, s] = entry
             h["force_frame"][w_, f, s] = frame
+
+
+def check_control_arrays(control, plan: str, num_worlds: int, max_bodies: int, max_joints: int, device) -> None:
+    """Raise ValueError unless ``control`` has body_f (W, >= B) spatial_vector and joint_effort
+    (W, >= J) float arrays on ``device``, and refuse a Control with drive targets (the maximal
+    plan's): a reduced plan takes its targets from the specs and would not read them."""
+    if any(hasattr(control, name) for name in ("joint_target_position", "joint_target_velocity")):
+        raise ValueError(f"control: the {plan} plan takes its drive targets from the specs and would not read this "
+                         f"Control's joint_target_* arrays; step it with model.control() (body_f, joint_effort), "
+                         f"or pack with coordinates='maximal' to drive the targets from a Control")
+    for name, dtype, count in (("body_f", wp.spatial_vector, max_bodies), ("joint_effort", wp.float32, max_joints)):
+        a = getattr(control, name, None)
+        if not isinstance(a, wp.array) or a.ndim != 2 or a.dtype != dtype or a.shape[0] != num_worlds \
+                or a.shape[1] < count or a.device != wp.get_device(device):
+            raise ValueError(f"control: the {plan} plan reads {name} as a ({num_worlds}, {count}) "
+                             f"{dtype.__name__} array on {device} (model.control() makes one), got "
+                             f"{getattr(a, 'shape', None) if a is not None else 'none'}")
 
 
 def _pack_control(h: dict, w_: int, lay: ChainLayout, tree_index: dict) -> None:
@@ -482,7 +496,7 @@ def _pack_control(h: dict, w_: int, lay: ChainLayout, tree_index: dict) -> None:
 
 
 class ChainControl:
-    """A Control of the tree plan (ChainModel.control): body_f (W, B) spatial_vector, each spec body's
+    """A Control of the reduced plans (ChainModel.control, TabulatedModel.control): body_f (W, B) spatial_vector, each spec body's
     external wrench (force [N], torque [N m]) at its centre of mass, world frame; joint_effort (W, J)
     float, each revolute spec joint's torque [N m] (on its child, its opposite on its parent). Drive
     targets come from the specs."""

@@ -67,6 +67,17 @@ class ReducedModel(abc.ABC):
             self._gauge = pack_worlds(self.specs, device=self.device, dt=self.dt, measure_only=True)
         return self._gauge
 
+    def control(self):
+        """A new Control of the plan (zeros): body_f (W, B) spatial_vector, each spec body's wrench
+        (force [N], torque [N m]) at its centre of mass, world frame (a body welded to the world
+        takes none); joint_effort (W, J) float, each revolute spec joint's torque [N m] on its child
+        and the opposite on its parent. Drive targets come from the specs."""
+        return self.inner.control()
+
+    def check_control(self, control) -> None:
+        """Raise ValueError unless ``control`` carries body_f and joint_effort arrays this batch reads."""
+        self.inner.check_control(control)
+
     # -- what a plan implements ------------------------------------------------------------------
     @abc.abstractmethod
     def state(self) -> ReducedState:
@@ -75,7 +86,7 @@ class ReducedModel(abc.ABC):
     @abc.abstractmethod
     def advance(self, state: ReducedState, steps: int, control=None) -> None:
         """``steps`` steps of ``state`` in place (capturable: no host work, no allocation); control:
-        the plan's Control (only the tree plan takes one)."""
+        the plan's Control (control()) or None."""
 
     @abc.abstractmethod
     def copy_state(self, source: ReducedState, target: ReducedState) -> None:
@@ -139,7 +150,7 @@ class ReducedModel(abc.ABC):
 
     def step(self, state_in: ReducedState, state_out: ReducedState, control=None) -> None:
         """One step from state_in into state_out (in place when they are one State); control: the
-        plan's Control (only the tree plan takes one)."""
+        plan's Control (control()) or None."""
         if state_out is not state_in:
             self.copy_state(state_in, state_out)
         self.advance(state_out, 1, control)
@@ -197,17 +208,6 @@ class TreeModel(ReducedModel):
         """A new ChainState at the initial poses, every world running again."""
         self.inner.work.diverged.zero_()  # a new trajectory: every world runs again
         return ReducedState(self, self.inner.state())
-
-    def control(self):
-        """A new Control of the plan (zeros): body_f (W, B) spatial_vector, each spec body's wrench
-        (force [N], torque [N m]) at its centre of mass, world frame (a body welded to the world
-        takes none); joint_effort (W, J) float, each spec joint's torque [N m] (revolute joints).
-        Drive targets come from the specs."""
-        return self.inner.control()
-
-    def check_control(self, control) -> None:
-        """Raise ValueError unless ``control`` carries body_f and joint_effort arrays this batch reads."""
-        self.inner.check_control(control)
 
     def advance(self, state: ReducedState, steps: int, control=None) -> None:
         self._last = state.inner
@@ -288,10 +288,7 @@ class TabulatedPlanModel(ReducedModel):
         return ReducedState(self, None)
 
     def advance(self, state: ReducedState, steps: int, control=None) -> None:
-        if control is not None:
-            raise ValueError("step: the tabulated plan takes its drive targets from the specs and has no Control; "
-                             "pack with coordinates='maximal' or 'tree' to drive it from one")
-        self.inner.step(steps)
+        self.inner.step(steps, control)
 
     def copy_state(self, source: ReducedState, target: ReducedState) -> None:
         """Refused: the plan's one state lives in the model."""

@@ -21,16 +21,16 @@ midpoint with the rates extrapolated to it) or semi-implicit Euler. It has no jo
 projection.
 """
 
-from __future__ import annotations
-
 import numpy as np
 import warp as wp
 
 from engine.config import TABULATED_RHO, Integrator, SolverConfig
 from engine.reduced.tabulated_kernel import (BASE_SLOTS, DIVERGED_FAST, DIVERGED_NONFINITE, KINV_VECS, MAX_GROUPS,
                                              MAX_LINKS, MAX_ROWS, NV, ROW_VECS, TILED_REGISTERS, TabulatedState,
-                                             TabulatedWorlds, body_poses, freeze_worlds, record_state,
+                                             TabulatedWorlds, body_poses, freeze_worlds, link_pose, rot_minus_y,
                                              tiled_max_worlds)
+from engine.reduced.chains import ChainControl, check_control_arrays
+from engine.reduced.tabulated_forces import TabulatedForces, pack_forces, spring_energy
 from engine.reduced.tabulated_layout import tabulated_layout
 from engine.reduced.tabulated_step import HISTORY, step_kernel
 from engine.reduced.tabulated_tables import TABLE_SAMPLES
@@ -39,6 +39,65 @@ from engine.spec import MechanismSpec
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
 __all__ = ["TabulatedModel", "describe", "pack_tabulated", "rollout_tabulated"]
+
+
+@wp.kernel
+def record_state(
+    worlds: TabulatedWorlds,
+    state: TabulatedState,
+    point_count: wp.array(dtype=wp.int32),
+    point_group: wp.array2d(dtype=wp.int32),
+    point_link: wp.array2d(dtype=wp.int32),
+    point_local: wp.array2d(dtype=wp.vec3),
+    group_joint: wp.array2d(dtype=wp.int32),
+    drive_torque: wp.array2d(dtype=float),
+    fo: TabulatedForces,
+    # out
+    points: wp.array2d(dtype=wp.vec3),
+    energy: wp.array(dtype=float),
+    joint_torque: wp.array2d(dtype=float),
+    joint_speed: wp.array2d(dtype=float),
+):
+    """Tracked points [m] (on the base: an offset from its centre in the state frame; on a link: from
+    the link's centre in its table frame), the mechanical energy [J] (every link's own kinetic energy
+    plus the potential of gravity and of the springs) and the drives' torques [N m] and speeds [rad/s]
+    by spec joint."""
+    w = wp.tid()
+    p = state.position[w]
+    R = wp.quat_to_matrix(state.orientation[w])
+    v = state.velocity[w]
+    om = state.angular_velocity[w]
+    axis = -(R * wp.vec3(0.0, 1.0, 0.0))
+    g = worlds.gravity[w]
+    mb = worlds.base[w][0]
+    Ib = R * worlds.base_inertia[w] * wp.transpose(R)
+    e = 0.5 * mb * wp.dot(v, v) + 0.5 * wp.dot(om, Ib * om) - mb * wp.dot(g, p)
+    for i in range(point_count[w]):
+        gi = point_group[w, i]
+        local = point_local[w, i]
+        if gi < 0:
+            points[w, i] = p + R * local
+        else:
+            d, e1, ang = link_pose(worlds, state, w, gi, point_link[w, i], R)
+            points[w, i] = p + d + R * (rot_minus_y(ang[0]) * local)
+    for j in range(joint_torque.shape[1]):
+        joint_torque[w, j] = 0.0
+        joint_speed[w, j] = 0.0
+    for gi in range(worlds.group_count[w]):
+        rate = state.coord_rate[w, gi]
+        joint_torque[w, group_joint[w, gi]] = drive_torque[w, gi]
+        joint_speed[w, group_joint[w, gi]] = rate
+        t = worlds.group_table[w, gi]
+        for k in range(worlds.table_links[t]):
+            d, e1, ang = link_pose(worlds, state, w, gi, k, R)
+            mk = worlds.link_mass[w, gi * MAX_LINKS + k]
+            vk = v + wp.cross(om, d) + e1 * rate
+            wk = om + axis * (ang[1] * rate)
+            Rk = R * rot_minus_y(ang[0])
+            Ik = Rk * worlds.link_inertia[w, gi * MAX_LINKS + k] * wp.transpose(Rk)
+            e += 0.5 * mk * wp.dot(vk, vk) + 0.5 * wp.dot(wk, Ik * wk) - mk * wp.dot(g, p + d)
+    energy[w] = e + spring_energy(worlds, state, fo, w)
+
 
 
 class TabulatedModel:
@@ -175,6 +234,23 @@ class TabulatedModel:
         self.tiled = self.device.is_cuda and W <= tiled_max_worlds(self.device)
         self.lanes = 32 if self.device.is_cuda else 1  # per world, when tiled (a block is one thread on the CPU)
         self.max_registers = TILED_REGISTERS  # per thread of the tiled step on CUDA (None: the compiler's choice)
+        self.max_bodies = B
+        # force elements and a Control (tabulated_forces), compiled into the step only where used
+        self.force_arrays = pack_forces(layouts, B, J, d)
+        self.forces = any(lay.spec.forces for lay in layouts)
+        self._no_body_f = wp.zeros((1, 1), dtype=wp.spatial_vector, device=d)
+        self._no_effort = wp.zeros((1, 1), dtype=float, device=d)
+
+    def control(self) -> ChainControl:
+        """A new Control (zeros): body_f (W, B) each spec body's wrench (force [N], torque [N m]; world
+        frame) at its centre of mass, joint_effort (W, J) each revolute spec joint's torque [N m] on
+        its child (the opposite on its parent), driven or not."""
+        return ChainControl(wp.zeros((self.num_worlds, self.max_bodies), dtype=wp.spatial_vector, device=self.device),
+                            wp.zeros((self.num_worlds, self.max_joints), dtype=float, device=self.device))
+
+    def check_control(self, control) -> None:
+        """chains.check_control_arrays for this batch (host work: once, not per step)."""
+        check_control_arrays(control, "tabulated", self.num_worlds, self.max_bodies, self.max_joints, self.device)
 
     @property
     def point_names(self) -> list:
@@ -210,19 +286,24 @@ class TabulatedModel:
         """Whether the step is Moreau-Jean's (SolverConfig.integrator), else semi-implicit Euler."""
         return self.config.integrator is Integrator.MOREAU_JEAN
 
-    def step(self, steps: int = 1):
+    def step(self, steps: int = 1, control=None):
         """Advance every world ``steps`` steps of dt in place (kernel launches only: capturable in a
-        CUDA graph). Frozen worlds (diverged or halted) stay as they are."""
+        CUDA graph). Frozen worlds (diverged or halted) stay as they are. control: a Control (control();
+        check_control) whose arrays the step reads, or None."""
         inputs = self._step_inputs()
+        inputs += [self.force_arrays, self._no_body_f if control is None else control.body_f,
+                   self._no_effort if control is None else control.joint_effort]
+        extra = (self.forces, control is not None)
         if self.tiled:
-            kernel = step_kernel(True, "all", self.max_registers, self.midpoint)
+            kernel = step_kernel(True, "all", self.max_registers, self.midpoint, *extra)
             for _ in range(steps):
                 wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=self.lanes, inputs=inputs, device=self.device)
             return
         # one thread per world: the set-up and the solve as two kernels; on the CPU their arguments
         # are packed once per call and the launches replayed step by step (the packing cost as much
         # host time as a walker's step); on a GPU rollout_tabulated captures the steps in a graph
-        setup, solve = step_kernel(False, "setup", None, self.midpoint), step_kernel(False, "solve", None, self.midpoint)
+        setup, solve = step_kernel(False, "setup", None, self.midpoint, *extra), step_kernel(False, "solve", None,
+                                                                                              self.midpoint)
         if self.device.is_cuda:
             for _ in range(steps):
                 wp.launch(setup, dim=self.num_worlds, inputs=inputs, device=self.device)
@@ -241,7 +322,7 @@ class TabulatedModel:
         numpy=False: the device arrays (points (W, P) vec3), without a copy or a synchronization."""
         wp.launch(record_state, dim=self.num_worlds, device=self.device,
                   inputs=[*self._structs(), self.point_count, self.point_group, self.point_link, self.point_local,
-                          self.group_joint, self.drive_torque],
+                          self.group_joint, self.drive_torque, self.force_arrays],
                   outputs=[self.points, self.energy, self.joint_torque, self.joint_speed])
         if not numpy:
             return self.points, self.energy, self.joint_torque, self.joint_speed
@@ -338,12 +419,23 @@ def describe(plan, model: TabulatedModel):
         "PADMM iterations": (True, "the drive rows and the contact triplets"),
         "limit rows": (False, "no joint limits (the layout refuses them)"),
         "position projection": (False, "no loop rows: the tables close the loops"),
+        "forces": (model.forces, _forces(model) if model.forces else "none"),
     }
+    plan.control = ("a Control's body_f and joint_effort per step (model.control; compiled in only when stepped "
+                    "with one), the specs' drive targets")
     plan.integrator = ("Moreau-Jean midpoint (pose and driving coordinates by half steps; M, bias forces, tables and "
                        "contacts at the midpoint, rates extrapolated to it)" if model.midpoint else "semi-implicit Euler")
     plan.accuracy = (f"loops closed by construction, to the tables' closure error (linear interpolation between "
                      f"samples): at most {model.closure_error:.3g} m")
     return plan
+
+
+def _forces(model: TabulatedModel) -> str:
+    """The batch's force elements and where the step evaluates them."""
+    from engine.pack import force_summary
+    point = "midpoint pose, rates extrapolated to it" if model.midpoint else "starting pose and rates"
+    return (f"{force_summary(model.specs)}; generalized forces of the wrenches on the base and the links beside "
+            f"the bias forces (tabulated_forces.applied_forces), at the {point}")
 
 
 def rollout_tabulated(model: TabulatedModel, steps: int, record_every: int = 10, halt=None):

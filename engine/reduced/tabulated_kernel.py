@@ -355,62 +355,6 @@ def link_pose(worlds: TabulatedWorlds, state: TabulatedState, w: int, gi: int, k
 
 
 @wp.kernel
-def record_state(
-    worlds: TabulatedWorlds,
-    state: TabulatedState,
-    point_count: wp.array(dtype=wp.int32),
-    point_group: wp.array2d(dtype=wp.int32),
-    point_link: wp.array2d(dtype=wp.int32),
-    point_local: wp.array2d(dtype=wp.vec3),
-    group_joint: wp.array2d(dtype=wp.int32),
-    drive_torque: wp.array2d(dtype=float),
-    # out
-    points: wp.array2d(dtype=wp.vec3),
-    energy: wp.array(dtype=float),
-    joint_torque: wp.array2d(dtype=float),
-    joint_speed: wp.array2d(dtype=float),
-):
-    """Tracked points [m] (on the base: an offset from its centre in the state frame; on a link: from
-    the link's centre in its table frame), the mechanical energy [J] (every link's own kinetic energy
-    plus the potential of gravity) and the drives' torques [N m] and speeds [rad/s] by spec joint."""
-    w = wp.tid()
-    p = state.position[w]
-    R = wp.quat_to_matrix(state.orientation[w])
-    v = state.velocity[w]
-    om = state.angular_velocity[w]
-    axis = -(R * wp.vec3(0.0, 1.0, 0.0))
-    g = worlds.gravity[w]
-    mb = worlds.base[w][0]
-    Ib = R * worlds.base_inertia[w] * wp.transpose(R)
-    e = 0.5 * mb * wp.dot(v, v) + 0.5 * wp.dot(om, Ib * om) - mb * wp.dot(g, p)
-    for i in range(point_count[w]):
-        gi = point_group[w, i]
-        local = point_local[w, i]
-        if gi < 0:
-            points[w, i] = p + R * local
-        else:
-            d, e1, ang = link_pose(worlds, state, w, gi, point_link[w, i], R)
-            points[w, i] = p + d + R * (rot_minus_y(ang[0]) * local)
-    for j in range(joint_torque.shape[1]):
-        joint_torque[w, j] = 0.0
-        joint_speed[w, j] = 0.0
-    for gi in range(worlds.group_count[w]):
-        rate = state.coord_rate[w, gi]
-        joint_torque[w, group_joint[w, gi]] = drive_torque[w, gi]
-        joint_speed[w, group_joint[w, gi]] = rate
-        t = worlds.group_table[w, gi]
-        for k in range(worlds.table_links[t]):
-            d, e1, ang = link_pose(worlds, state, w, gi, k, R)
-            mk = worlds.link_mass[w, gi * MAX_LINKS + k]
-            vk = v + wp.cross(om, d) + e1 * rate
-            wk = om + axis * (ang[1] * rate)
-            Rk = R * rot_minus_y(ang[0])
-            Ik = Rk * worlds.link_inertia[w, gi * MAX_LINKS + k] * wp.transpose(Rk)
-            e += 0.5 * mk * wp.dot(vk, vk) + 0.5 * wp.dot(wk, Ik * wk) - mk * wp.dot(g, p + d)
-    energy[w] = e
-
-
-@wp.kernel
 def body_poses(
     worlds: TabulatedWorlds,
     state: TabulatedState,

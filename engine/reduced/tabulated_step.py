@@ -19,6 +19,7 @@ from typing import Any
 import warp as wp
 
 from engine.linalg.lanes import block_sync
+from engine.reduced.tabulated_forces import TabulatedForces, applied_forces
 from engine.reduced.tabulated_kernel import (BASE_SLOTS, DIVERGED_FAST, DIVERGED_NONFINITE, F_COL, F_FREE, F_HI,
                                              F_INV, F_LO, F_MU, F_P, F_PEN, F_R, F_RHS, KINV_VECS, MAX_GROUPS,
                                              MAX_LINKS, MAX_ROWS, NV, ROW_VECS, TWO_PI, TabulatedState,
@@ -615,7 +616,8 @@ def warm_dual_pass(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=wp.vec4), 
 
 
 @functools.cache
-def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None, midpoint: bool = False):
+def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None, midpoint: bool = False,
+                forces: bool = False, controlled: bool = False):
     """The step kernel: tiled (launch_tiled, one block of lanes per world, lanes sharing the
     PADMM rows) or one thread per world (wp.launch; no block operations). phase: the whole step
     ("all"), or its set-up (through the warm start, "setup") and the Woodbury factor, the PADMM
@@ -626,7 +628,9 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None, m
     forces and the contacts there with the rates extrapolated to the midpoint, u + (u - u_last) / 2
     (the step's own rates on a trajectory's first step, where the state was set between steps or a
     contact impulse moved the last step's rates: left_here, history), and the integration ends at
-    q+ = q_mid + dt/2 u+ (integrate_midpoint). No second pass of the dynamics."""
+    q+ = q_mid + dt/2 u+ (integrate_midpoint). No second pass of the dynamics. forces, controlled:
+    the force elements' and a Control's generalized forces (tabulated_forces.applied_forces) join the
+    bias forces there, compiled in only where the batch has them."""
 
     @wp.func
     def sync():
@@ -705,6 +709,8 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None, m
         s1: wp.array2d(dtype=wp.vec4), s2: wp.array2d(dtype=wp.vec4), tmp: wp.array2d(dtype=float),
         slot_of: wp.array2d(dtype=wp.int32), row_count: wp.array(dtype=wp.int32), ufree: wp.array2d(dtype=float),
         Kinv: wp.array2d(dtype=wp.vec4), history: wp.array2d(dtype=float),
+        # force elements and a Control (read only where compiled in: forces, controlled)
+        fo: TabulatedForces, body_f: wp.array2d(dtype=wp.spatial_vector), joint_effort: wp.array2d(dtype=float),
     ):
         """One step of every world (a block of lanes or one thread per world): mass matrix and bias
         forces, free velocity, drive and contact rows, preconditioned PADMM with Woodbury solves,
@@ -762,6 +768,20 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None, m
                     h[3 + i] = gyro[i] + total[16 + i]
                 for c in range(MAX_GROUPS):
                     h[6 + c] = total[19 + c]
+                if wp.static(forces or controlled):  # at the pose and rates of the velocity products
+                    ue = vecnv()
+                    for i in range(3):
+                        ue[i] = v[i]
+                        ue[3 + i] = om_e[i]
+                        if ext != 0.0:
+                            ue[i] = v[i] + ext * (v[i] - history[w, H_PREV + i])
+                    for gi in range(L):
+                        rate = state.coord_rate[w, gi]
+                        ue[6 + gi] = rate
+                        if ext != 0.0:
+                            ue[6 + gi] = rate + ext * (rate - history[w, H_PREV + 6 + gi])
+                    h = h + applied_forces(worlds, state, fo, w, p, q, ue, half, wp.static(int(forces)),
+                                           wp.static(int(controlled)), body_f, joint_effort)
                 m_sum = mb + total[0]
                 md_sum = wp.vec3(total[1], total[2], total[3])
                 rot_sum = It + wp.mat33(total[4], total[5], total[6], total[7], total[8], total[9], total[10],

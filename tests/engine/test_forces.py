@@ -12,6 +12,7 @@ import pytest
 from scipy.optimize import brentq
 
 import engine
+from engine.reduced.model import ReducedModel
 from engine import (Body, BodyWrench, Joint, JointSpring, JointTorque, LinearSpring, MechanismSpec, SolverConfig,
                     Tuning, step)
 from engine.scenes import fourbar
@@ -20,8 +21,10 @@ CPU = "cpu"
 
 
 def run(model, steps, control=None, record=None):
-    """Step ``steps`` times; record(state) after every step when given. Returns the last state."""
-    a, b = model.state(), model.state()
+    """Step ``steps`` times; record(state) after every step when given. Returns the last state (a
+    reduced plan steps one state in place)."""
+    a = model.state()
+    b = a if isinstance(model, ReducedModel) else model.state()
     for _ in range(steps):
         step(model, a, b, control)
         a, b = b, a
@@ -30,12 +33,13 @@ def run(model, steps, control=None, record=None):
     return a
 
 
-def test_mass_on_a_spring_oscillates_at_its_analytic_period():
+@pytest.mark.parametrize("coordinates", ["maximal", "tree", "tabulated"])
+def test_mass_on_a_spring_oscillates_at_its_analytic_period(coordinates):
     m, k, rest, x0 = 2.0, 50.0, 0.5, 0.8
     spec = MechanismSpec([Body("mass", m, [0.01, 0.01, 0.01], position=(x0, 0.0, 0.0))], gravity=(0.0, 0.0, 0.0),
                          forces=[LinearSpring("spring", "mass", body_b=None, stiffness=k, rest_length=rest)])
     dt = 1.0e-3
-    model = engine.pack([spec], device=CPU, dt=dt)
+    model = engine.pack([spec], device=CPU, dt=dt, coordinates=coordinates)
     xs = []
     run(model, 5000, record=lambda s: xs.append(s.body_q.numpy()[0, 0, :3].copy()))
     xs = np.array(xs)
@@ -242,7 +246,7 @@ def test_specs_with_forces_pickle_round_trip():
     assert pickle.loads(pickle.dumps(fourbar().spec)).forces == []
 
 
-def test_plan_lists_forces_and_the_tabulated_plan_refuses_them():
+def test_plan_lists_forces_in_every_plan():
     body = Body("b", 1.0, [0.1, 0.1, 0.1])
     spec = MechanismSpec([body, Body("c", 1.0, [0.1, 0.1, 0.1], position=(1, 0, 0))],
                          [Joint("hinge", "revolute", None, "b", axis=(0, 1, 0))],
@@ -251,9 +255,9 @@ def test_plan_lists_forces_and_the_tabulated_plan_refuses_them():
     model = engine.pack([spec], device=CPU)  # the tree plan takes force elements (tests/engine/test_tree_forces.py)
     text = str(model.plan)
     assert model.plan.coordinates is engine.Coordinates.TREE
-    assert "not tabulated: world 0 (mechanism): force elements: the tabulated plan does not take them yet" in text
-    with pytest.raises(ValueError, match="coordinates 'tabulated' do not fit .*force elements: the tabulated plan"):
-        engine.pack([spec], device=CPU, coordinates="tabulated")
+    # not tabulated for its joint to the world, not for its forces (tests/engine/test_tabulated_forces.py)
+    assert "not tabulated: world 0 (mechanism): joint 'hinge' holds body 'b' to the world" in text
+    assert "force" not in text.split("not tabulated:")[1].splitlines()[0]
     maximal = engine.pack([spec], device=CPU, coordinates="maximal")
     assert maximal.plan.coordinates is engine.Coordinates.MAXIMAL
     assert "forces: runs (2 spring-dampers, 1 body wrench" in str(maximal.plan)

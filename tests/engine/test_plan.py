@@ -78,7 +78,7 @@ def test_forcing_a_plan_that_does_not_fit_names_the_world_and_the_reason():
         pack([fourbar], coordinates="reduced")
 
 
-def test_reduced_plans_keep_their_dt_and_only_the_tree_plan_takes_a_control():
+def test_reduced_plans_keep_their_dt_and_check_a_control():
     model = pack([make_scene("fourbar").spec])
     state = model.state()
     assert model.plan.coordinates is Coordinates.TREE
@@ -90,10 +90,13 @@ def test_reduced_plans_keep_their_dt_and_only_the_tree_plan_takes_a_control():
     walker = load_family("walker")
     tabulated = pack([walker.build_spec(walker.space.default())])
     assert tabulated.plan.coordinates is Coordinates.TABULATED
+    one = tabulated.state()  # (the tabulated plan steps its one state in place)
+    engine.step(tabulated, one, one, control=tabulated.control())
+    with pytest.raises(ValueError, match="the tabulated plan reads body_f"):
+        engine.step(tabulated, one, one, control=object())
     with pytest.raises(ValueError, match="drive targets from the specs"):
-        engine.step(tabulated, tabulated.state(), tabulated.state(), control=object())
-    with pytest.raises(ValueError, match="has no Control"):
-        engine.Stepper(tabulated, tabulated.state(), object())
+        engine.Stepper(tabulated, tabulated.state(), pack([walker.build_spec(walker.space.default())],
+                                                          coordinates="maximal").control())
 
 
 @pytest.mark.parametrize("name", ["four_bar", "jansen_leg"])

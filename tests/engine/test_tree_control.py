@@ -2,7 +2,7 @@
 undriven wheel against tau / I and the maximal plan (also on a joint the tree runs backwards),
 joint_effort on a four-bar's loop-closing and tree joints with body_f on its coupler against the
 maximal plan, a free body under body_f against F t^2 / (2 m), and a None Control bit-identical to
-the plain step; the tabulated plan still refuses a Control."""
+the plain step (the tabulated plan's Control: test_tabulated_forces)."""
 
 import math
 
