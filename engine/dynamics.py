@@ -29,7 +29,8 @@ from engine.model import (
     ModelArrays,
     WorkArrays,
 )
-from engine.spatial import gyroscopic_implicit_midpoint, twist, two_sum, world_inertia_inverse, wrap_angle
+from engine.spatial import (gyroscopic_implicit_midpoint, spring_tension, twist, two_sum, world_inertia_inverse,
+                            wrap_angle)
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
@@ -96,22 +97,12 @@ def spring_wrench_of(world: int, k: int, b: int, fa: ForceArrays, body_q: wp.arr
     a = fa.force_body_a[world, k]
     c = fa.force_body_b[world, k]
     gap, r_a, r_c = spring_gap_of(world, k, fa, body_q)
-    length = wp.length(gap)
-    zero = wp.spatial_vector()
-    if length < 1.0e-9:
-        return zero  # no direction
-    stretch = length - fa.force_rest[world, k]
-    tension_only = fa.force_tension_only[world, k] != 0
-    if tension_only and stretch < 0.0:
-        return zero
-    n = gap / length
     u_a = body_twist(body_qd, world, a)
     u_c = body_twist(body_qd, world, c)
-    rate = wp.dot(n, (wp.spatial_top(u_c) + wp.cross(wp.spatial_bottom(u_c), r_c))
-                  - (wp.spatial_top(u_a) + wp.cross(wp.spatial_bottom(u_a), r_a)))
-    tension = fa.force_stiffness[world, k] * stretch + fa.force_damping[world, k] * rate
-    if tension_only:
-        tension = wp.max(tension, 0.0)
+    coef = wp.vec4(fa.force_stiffness[world, k], fa.force_damping[world, k], fa.force_rest[world, k],
+                   float(fa.force_tension_only[world, k]))
+    n, tension = spring_tension(coef, gap, (wp.spatial_top(u_c) + wp.cross(wp.spatial_bottom(u_c), r_c))
+                                - (wp.spatial_top(u_a) + wp.cross(wp.spatial_bottom(u_a), r_a)))
     if b == a:
         f = tension * n
         return twist(f, wp.cross(r_a, f))

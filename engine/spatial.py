@@ -120,6 +120,31 @@ def relative_rotation(q_parent: wp.quat, q_child: wp.quat):
 
 
 @wp.func
+def hinge_angle(q_parent: wp.quat, q_child: wp.quat, axis: wp.vec3):
+    """The angle [rad] of the child frame about ``axis`` (in the parent frame) relative to the parent."""
+    q_rel = relative_rotation(q_parent, q_child)
+    return 2.0 * wp.atan2(wp.dot(wp.vec3(q_rel[0], q_rel[1], q_rel[2]), axis), q_rel[3])
+
+
+@wp.func
+def spring_tension(coef: wp.vec4, gap: wp.vec3, relative_velocity: wp.vec3):
+    """A spring-damper's unit direction n from its first point to its second (gap: second - first)
+    and its tension T = k (L - L0) + c dL/dt (coef: k, c, L0, tension only), positive pulling the
+    points together; T = 0 without a direction (L < 1e-9 m) and, tension-only, while slack or
+    pushing."""
+    length = wp.length(gap)
+    stretch = length - coef[2]
+    tension_only = coef[3] != 0.0
+    if length < 1.0e-9 or (tension_only and stretch < 0.0):
+        return wp.vec3(), 0.0
+    n = gap / length
+    tension = coef[0] * stretch + coef[1] * wp.dot(n, relative_velocity)
+    if tension_only:
+        tension = wp.max(tension, 0.0)
+    return n, tension
+
+
+@wp.func
 def wrap_angle(a: float):
     """Map an angle [rad] to (-pi, pi]."""
     return wp.atan2(wp.sin(a), wp.cos(a))

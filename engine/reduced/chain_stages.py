@@ -15,7 +15,7 @@ from engine.collide import plane_point, plane_point_count
 from engine.linalg.lanes import block_sync, clock, tile_set
 from engine.reduced.chain_layout import KIND_LINEAR, KIND_REVOLUTE, KIND_ROOT
 from engine.model import FORCE_BODY_WRENCH, FORCE_JOINT_SPRING, FORCE_LINEAR_SPRING
-from engine.spatial import relative_rotation, two_sum, wrap_angle
+from engine.spatial import hinge_angle, spring_tension, two_sum, wrap_angle
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken: compile the forward code only
 
@@ -729,18 +729,10 @@ def apply_forces(m: ChainArrays, w: ChainWork, world: int):
         if kind == FORCE_LINEAR_SPRING:
             xa = wp.transform_get_translation(side_frame(m, w, world, f, 0))
             xb = wp.transform_get_translation(side_frame(m, w, world, f, 1))
-            gap = xb - xa
-            length = wp.length(gap)
-            stretch = length - coef[2]
-            tension_only = coef[3] != 0.0
-            if length >= 1.0e-9 and not (tension_only and stretch < 0.0):
-                n = gap / length
-                rate = wp.dot(n, point_velocity(w, world, e1, xb) - point_velocity(w, world, e0, xa))
-                tension = coef[0] * stretch + coef[1] * rate
-                if tension_only:
-                    tension = wp.max(tension, 0.0)
-                push(w, world, e0, tension * n, xa, zero)
-                push(w, world, e1, -tension * n, xb, zero)
+            n, tension = spring_tension(coef, xb - xa,
+                                        point_velocity(w, world, e1, xb) - point_velocity(w, world, e0, xa))
+            push(w, world, e0, tension * n, xa, zero)
+            push(w, world, e1, -tension * n, xb, zero)
         elif kind == FORCE_BODY_WRENCH:
             if e0 >= 0:
                 push(w, world, e0, m.force_vec[world, f, 0], w.centre[world, e0], m.force_vec[world, f, 1])
@@ -751,8 +743,7 @@ def apply_forces(m: ChainArrays, w: ChainWork, world: int):
             a_w = wp.quat_rotate(rot_p, axis)
             tau = coef[3]
             if kind == FORCE_JOINT_SPRING:
-                q_rel = relative_rotation(rot_p, rot_c)
-                angle = 2.0 * wp.atan2(wp.dot(wp.vec3(q_rel[0], q_rel[1], q_rel[2]), axis), q_rel[3])
+                angle = hinge_angle(rot_p, rot_c, axis)
                 rate = float(0.0)
                 if e0 >= 0:
                     rate += wp.dot(a_w, w.omega[world, e0])

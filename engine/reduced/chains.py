@@ -496,10 +496,10 @@ def _pack_control(h: dict, w_: int, lay: ChainLayout, tree_index: dict) -> None:
 
 
 class ChainControl:
-    """A Control of the reduced plans (ChainModel.control, TabulatedModel.control): body_f (W, B) spatial_vector, each spec body's
-    external wrench (force [N], torque [N m]) at its centre of mass, world frame; joint_effort (W, J)
-    float, each revolute spec joint's torque [N m] (on its child, its opposite on its parent). Drive
-    targets come from the specs."""
+    """A Control of the reduced plans (ChainModel.control, TabulatedModel.control): body_f (W, B)
+    spatial_vector, each spec body's external wrench (force [N], torque [N m]) at its centre of
+    mass, world frame; joint_effort (W, J) float, each revolute spec joint's torque [N m] (on its
+    child, its opposite on its parent). Drive targets come from the specs."""
 
     def __init__(self, body_f, joint_effort):
         self.body_f, self.joint_effort = body_f, joint_effort

@@ -19,7 +19,7 @@ from engine.reduced.chain_layout import _transform
 from engine.reduced.chains import pack_force_slots
 from engine.reduced.tabulated_kernel import (MAX_LINKS, TabulatedState, TabulatedWorlds, link_read, plane,
                                              table_index, table_read, vecnv)
-from engine.spatial import quat_matrix, relative_rotation, wrap_angle
+from engine.spatial import hinge_angle, quat_matrix, spring_tension, wrap_angle
 from engine.spec import JointType
 
 __all__ = ["TabulatedForces", "applied_forces", "pack_forces", "spring_energy"]
@@ -74,7 +74,8 @@ def pack_forces(layouts: list, max_bodies: int, max_joints: int, device) -> Tabu
             h["control_body"][w, b] = entity(b)[0]
         for j, joint in enumerate(spec.joints):
             if joint.type == JointType.REVOLUTE:
-                h["control_joint"][w, j] = [side(name, np.eye(3), np.zeros(3))[0] for name in (joint.child, joint.parent)]
+                h["control_joint"][w, j] = [side(name, np.eye(3), np.zeros(3))[0]
+                                            for name in (joint.child, joint.parent)]
                 h["control_frame"][w, j] = side(joint.parent, quat_matrix(joint.parent_orientation),
                                                 joint.parent_position)[1]
                 h["control_axis"][w, j] = joint.axis
@@ -92,9 +93,9 @@ def pack_forces(layouts: list, max_bodies: int, max_joints: int, device) -> Tabu
 def entity_at(worlds: TabulatedWorlds, state: TabulatedState, w: int, e: int, p: wp.vec3, q: wp.quat, R: wp.mat33,
               axis: wp.vec3, u: vecnv, half: float):
     """Entity e's centre of mass, orientation (its table frame), velocity and angular velocity at the
-    base pose (p, q; R its matrix) and velocities u, with the sub-chains' angles advanced by half
-    times their rates in the state (as chain_columns advances them); and per unit driving rate its velocity e1 and angular velocity w1 (the
-    world: at rest at the origin)."""
+    base pose (p, q; R its matrix) and velocities u, the sub-chains' angles advanced by half times
+    their rates in the state (as chain_columns advances them); and its velocity e1 and angular
+    velocity w1 per unit driving rate (the world: at rest at the origin)."""
     v = wp.vec3(u[0], u[1], u[2])
     om = wp.vec3(u[3], u[4], u[5])
     if e < 0:  # the world: at rest
@@ -167,27 +168,17 @@ def applied_forces(worlds: TabulatedWorlds, state: TabulatedState, fo: Tabulated
             if kind == FORCE_LINEAR_SPRING:
                 xa = wp.transform_get_translation(Xa)
                 xb = wp.transform_get_translation(Xb)
-                gap = xb - xa
-                length = wp.length(gap)
-                stretch = length - coef[2]
-                tension_only = coef[3] != 0.0
-                if length >= 1.0e-9 and not (tension_only and stretch < 0.0):
-                    n = gap / length
-                    rate = wp.dot(n, (vb + wp.cross(ob, xb - cb)) - (va + wp.cross(oa, xa - ca)))
-                    tension = coef[0] * stretch + coef[1] * rate
-                    if tension_only:
-                        tension = wp.max(tension, 0.0)
-                    gen = push(gen, ea, p, ca, a1, aw, tension * n, xa, zero)
-                    gen = push(gen, eb, p, cb, b1, bw, -tension * n, xb, zero)
+                n, tension = spring_tension(coef, xb - xa, (vb + wp.cross(ob, xb - cb)) - (va + wp.cross(oa, xa - ca)))
+                gen = push(gen, ea, p, ca, a1, aw, tension * n, xa, zero)
+                gen = push(gen, eb, p, cb, b1, bw, -tension * n, xb, zero)
             elif kind == FORCE_BODY_WRENCH:
                 gen = push(gen, ea, p, ca, a1, aw, fo.force_vec[w, f, 0], ca, fo.force_vec[w, f, 1])
             else:  # a joint spring or torque: child (a) and parent (b) anchor frames
                 a_w = wp.quat_rotate(wp.transform_get_rotation(Xb), fo.force_vec[w, f, 0])
                 tau = coef[3]
                 if kind == FORCE_JOINT_SPRING:
-                    q_rel = relative_rotation(wp.transform_get_rotation(Xb), wp.transform_get_rotation(Xa))
-                    angle = 2.0 * wp.atan2(wp.dot(wp.vec3(q_rel[0], q_rel[1], q_rel[2]), fo.force_vec[w, f, 0]),
-                                           q_rel[3])
+                    angle = hinge_angle(wp.transform_get_rotation(Xb), wp.transform_get_rotation(Xa),
+                                        fo.force_vec[w, f, 0])
                     rate = wp.dot(a_w, oa - ob)
                     tau = -coef[0] * wrap_angle(angle - coef[2]) - coef[1] * rate
                 gen = push(gen, ea, p, ca, a1, aw, zero, ca, tau * a_w)
@@ -239,8 +230,7 @@ def spring_energy(worlds: TabulatedWorlds, state: TabulatedState, fo: TabulatedF
                 if coef[3] != 0.0 and stretch < 0.0:
                     stretch = 0.0
             else:
-                q_rel = relative_rotation(wp.transform_get_rotation(Xb), wp.transform_get_rotation(Xa))
-                angle = 2.0 * wp.atan2(wp.dot(wp.vec3(q_rel[0], q_rel[1], q_rel[2]), fo.force_vec[w, f, 0]), q_rel[3])
+                angle = hinge_angle(wp.transform_get_rotation(Xb), wp.transform_get_rotation(Xa), fo.force_vec[w, f, 0])
                 stretch = wrap_angle(angle - coef[2])
             energy += 0.5 * coef[0] * stretch * stretch
     return energy
