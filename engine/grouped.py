@@ -11,12 +11,47 @@ from __future__ import annotations
 
 import dataclasses
 
+from typing import Any
+
 import numpy as np
+import warp as wp
 
 from engine.health import Health
 from engine.plan import Coordinates, Plan
 
-__all__ = ["GroupedModel", "GroupedState"]
+__all__ = ["GroupedControl", "GroupedModel", "GroupedState"]
+
+
+@wp.kernel
+def gather_rows(source: wp.array2d(dtype=Any), worlds: wp.array(dtype=wp.int32), target: wp.array2d(dtype=Any)):
+    """target[i, j] = source[worlds[i], j]: a group's rows of a batch array."""
+    i, j = wp.tid()
+    target[i, j] = source[worlds[i], j]
+
+
+class GroupedControl:
+    """A Control of a grouped batch: body_f (W, B) spatial_vector and joint_effort (W, J) float in the
+    batch's world order and spec order (as every plan's), and per group its own plan's Control
+    (``parts``), into which gather() copies the group's rows before the group steps. The groups'
+    drive targets come from their specs."""
+
+    def __init__(self, model: "GroupedModel"):
+        W, device = model.num_worlds, model.device
+        self.body_f = wp.zeros((W, max(len(s.bodies) for s in model.specs)), dtype=wp.spatial_vector, device=device)
+        self.joint_effort = wp.zeros((W, max(1, max(len(s.joints) for s in model.specs))), dtype=float,
+                                     device=device)
+        self.parts = [part.control() for _, part in model.groups]
+        self._worlds = [wp.array(np.asarray(indices, np.int32), dtype=wp.int32, device=device)
+                        for indices, _ in model.groups]
+
+    def gather(self, k: int):
+        """Group k's Control with the group's rows of body_f and joint_effort (kernel launches only)."""
+        part, worlds = self.parts[k], self._worlds[k]
+        for name in ("body_f", "joint_effort"):
+            target = getattr(part, name)
+            wp.launch(gather_rows, dim=(target.shape[0], min(target.shape[1], getattr(self, name).shape[1])),
+                      inputs=[getattr(self, name), worlds], outputs=[target], device=target.device)
+        return part
 
 
 class GroupedState:
@@ -41,15 +76,22 @@ class GroupedModel:
         """A State per group at the specs' initial poses."""
         return GroupedState([model.state() for _, model in self.groups])
 
-    def control(self):
-        """None: a grouped batch takes its drive targets from the specs (like a reduced plan)."""
-        return None
+    def control(self) -> GroupedControl:
+        """A new GroupedControl (zeros): body_f and joint_effort for the whole batch."""
+        return GroupedControl(self)
+
+    def check_control(self, control) -> None:
+        """Raise ValueError unless ``control`` is this batch's GroupedControl (control())."""
+        if not isinstance(control, GroupedControl) or control.body_f.shape[0] != self.num_worlds \
+                or len(control.parts) != len(self.groups):
+            raise ValueError("control: a batch planned in groups reads a GroupedControl of its own (model.control(): "
+                             "body_f and joint_effort in world order; drive targets come from the specs)")
 
 
-def step_groups(model: GroupedModel, state_in: GroupedState, state_out: GroupedState, step) -> None:
-    """engine.step for each group (``step`` is engine.step)."""
-    for (_, part), a, b in zip(model.groups, state_in.parts, state_out.parts):
-        step(part, a, b, None)
+def step_groups(model: GroupedModel, state_in: GroupedState, state_out: GroupedState, step, control=None) -> None:
+    """engine.step for each group (``step`` is engine.step), with its rows of ``control``."""
+    for k, ((_, part), a, b) in enumerate(zip(model.groups, state_in.parts, state_out.parts)):
+        step(part, a, b, None if control is None else control.gather(k))
 
 
 def _scatter(arrays: list, groups: list, worlds: int, axis: int) -> np.ndarray:
@@ -66,12 +108,14 @@ def _scatter(arrays: list, groups: list, worlds: int, axis: int) -> np.ndarray:
     return out
 
 
-def rollout_groups(model: GroupedModel, state: GroupedState, steps: int, record_every: int, halt, rollout) -> tuple:
-    """engine.rollout of every group (``rollout`` is engine.rollout), merged in world order. halt
-    sees the whole batch's points, each group's worlds filled in and the others at their start."""
+def rollout_groups(model: GroupedModel, state: GroupedState, steps: int, record_every: int, halt, rollout,
+                   control=None) -> tuple:
+    """engine.rollout of every group (``rollout`` is engine.rollout) with its rows of ``control``,
+    merged in world order. halt sees the whole batch's points, each group's worlds filled in and the
+    others at their start."""
     traces, finals = [], []
     starts = None
-    for (indices, part), part_state in zip(model.groups, state.parts):
+    for k, ((indices, part), part_state) in enumerate(zip(model.groups, state.parts)):
         group_halt = None
         if halt is not None:
             def group_halt(points, start, indices=indices):
@@ -80,7 +124,8 @@ def rollout_groups(model: GroupedModel, state: GroupedState, steps: int, record_
                 full = full_start.copy()
                 full[indices, :points.shape[1]] = points
                 return np.asarray(halt(full, full_start), bool).reshape(model.num_worlds)[indices]
-        trace, final = rollout(part, part_state, None, steps, record_every=record_every, halt=group_halt)
+        part_control = None if control is None else control.gather(k)
+        trace, final = rollout(part, part_state, part_control, steps, record_every=record_every, halt=group_halt)
         if halt is not None:
             starts = _padded_points(starts, trace.points[0], indices, model.num_worlds)
         traces.append(trace)

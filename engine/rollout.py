@@ -90,10 +90,10 @@ class Stepper:
         self.grouped = isinstance(model, GroupedModel)  # a Stepper per group (engine.grouped)
         if self.grouped:
             if control is not None:
-                raise ValueError("Stepper: a batch planned in groups takes its drive targets from the specs and "
-                                 "has no Control; pack with coordinates='maximal' to drive it from one")
-            self._parts = [Stepper(part, part_state, None, chunk, capture=capture)
-                           for (_, part), part_state in zip(model.groups, state.parts)]
+                model.check_control(control)
+            self._parts = [Stepper(part, part_state, None if control is None else control.parts[k], chunk,
+                                   capture=capture)
+                           for k, ((_, part), part_state) in enumerate(zip(model.groups, state.parts))]
             self.steps_done = 0
             return
         self.reduced = isinstance(model, ReducedModel)  # steps one State in place (engine.reduced.model)
@@ -168,7 +168,9 @@ class Stepper:
     def advance(self) -> None:
         """Run one chunk of steps."""
         if self.grouped:
-            for part in self._parts:
+            for k, part in enumerate(self._parts):
+                if self.control is not None:
+                    self.control.gather(k)  # the group's rows into its part's Control, then its chunk
                 part.advance()
             self.steps_done += self.chunk
             return
@@ -302,9 +304,8 @@ def rollout(model: Model, state: State, control: Control, steps: int, *, dt: flo
                              f"with ({model.dt:g} s); pack again for dt {dt:g} s")
         if isinstance(model, GroupedModel):
             if control is not None:
-                raise ValueError("rollout: a batch planned in groups takes its drive targets from the specs; pack "
-                                 "with coordinates='maximal' to drive it from a Control")
-            return rollout_groups(model, state, steps, record_every, halt, rollout)
+                model.check_control(control)
+            return rollout_groups(model, state, steps, record_every, halt, rollout, control)
         return _rollout_reduced(model, state, control, steps, record_every, halt)
     if dt is not None:
         model.set_dt(dt)

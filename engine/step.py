@@ -105,7 +105,8 @@ def step(model: Model, state_in: State, state_out: State, control: Control | Non
             state_in is copied into it first.)
         control: drive targets, feed-forward efforts and external wrenches (maximal plans; None:
             the specs' targets). The reduced plans take efforts and wrenches (model.control()) and
-            their drive targets from the specs; a batch planned in groups takes no Control.
+            their drive targets from the specs, and so does a batch planned in groups (its
+            GroupedControl gathers each group's rows).
         dt: time step [s] for all worlds; None keeps model.world_dt (per-world device array).
             Changing it writes the device array, so pass None inside a captured graph.
         timer: optional StageTimer collecting the wall time of every stage.
@@ -116,10 +117,12 @@ def step(model: Model, state_in: State, state_out: State, control: Control | Non
             the joints of an unprojected state_out are open by the drift of half a step.
     """
     if isinstance(model, GroupedModel):
-        if control is not None or dt is not None:
-            raise ValueError("step: a batch planned in groups takes its drive targets from the specs and keeps the "
-                             "dt it was packed with; pack with coordinates='maximal' for a Control or a changing dt")
-        step_groups(model, state_in, state_out, step)
+        if dt is not None:
+            raise ValueError("step: a batch planned in groups keeps the dt it was packed with; pack with "
+                             "coordinates='maximal' for a changing dt")
+        if control is not None:
+            model.check_control(control)
+        step_groups(model, state_in, state_out, step, control)
         return
     if isinstance(model, ReducedModel):
         if dt is not None:

@@ -257,3 +257,39 @@ def test_worlds_that_admit_different_coordinates_run_in_groups_each_as_alone():
         np.testing.assert_array_equal(part.body_q.numpy(), ours.body_q.numpy())
     with pytest.raises(ValueError, match="coordinates 'mixed' is what the plan chooses"):
         pack(specs, coordinates="mixed")
+
+
+def test_a_grouped_batch_takes_one_control_in_world_order():
+    """A GroupedControl (body_f and joint_effort for the whole batch, world order) gives each world of
+    a walker, four-bar and box-stack batch what its own plan gives it alone under the same rows:
+    rollout, step and Stepper alike; the Control moves every world."""
+    walker = load_family("walker")
+    specs = [make_scene("fourbar").spec, walker.build_spec(walker.space.default()),
+             CONTACT_SCENES["box_stack"]().spec]
+    model = pack(specs, dt=2e-3)
+    assert model.plan.coordinates is Coordinates.MIXED
+    control = model.control()
+    rows = np.zeros((*control.body_f.shape, 6), np.float32)
+    rows[:, 1] = (0.5, 0.0, 1.0, 0.0, 0.02, 0.0)  # each world's second body
+    efforts = np.zeros(control.joint_effort.shape, np.float32)
+    efforts[0, 1] = 0.05
+    control.body_f.assign(rows)
+    control.joint_effort.assign(efforts)
+    trace, final = rollout(model, model.state(), control, 40, record_every=10)
+    plain, _ = rollout(model, model.state(), None, 40, record_every=10)
+    for w, spec in enumerate(specs):
+        alone = pack([spec], dt=2e-3)
+        own = alone.control()
+        own.body_f.assign(rows[w:w + 1, :own.body_f.shape[1]])
+        own.joint_effort.assign(efforts[w:w + 1, :own.joint_effort.shape[1]])
+        ref, _ = rollout(alone, alone.state(), own, 40, record_every=10)
+        P = len(spec.points)
+        np.testing.assert_array_equal(trace.points[:, w, :P], ref.points[:, 0, :P])
+        assert np.abs(trace.points[-1, w, :P] - plain.points[-1, w, :P]).max() > 1e-4, w
+    stepper = engine.Stepper(model, model.state(), control, chunk=10)
+    for _ in range(4):
+        stepper.advance()
+    for part, ours in zip(stepper.state.parts, final.parts):
+        np.testing.assert_array_equal(part.body_q.numpy(), ours.body_q.numpy())
+    with pytest.raises(ValueError, match="GroupedControl"):
+        rollout(model, model.state(), object(), 10, record_every=10)
