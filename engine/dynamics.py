@@ -173,9 +173,8 @@ def force_wrench_of(world: int, b: int, m: ModelArrays, fa: ForceArrays, body_q:
     """Sum of the wrenches of world's force slots on body b (force, torque about the COM; world
     frame) at the poses body_q and twists body_qd, in slot order."""
     total = wp.spatial_vector()
-    for k in range(fa.force_count[world]):
-        if fa.force_body_a[world, k] != b and fa.force_body_b[world, k] != b:
-            continue
+    for i in range(fa.force_body_start[world, b], fa.force_body_start[world, b + 1]):  # the slots on body b
+        k = fa.force_body_slot[world, i]
         kind = fa.force_kind[world, k]
         if kind == FORCE_JOINT_EFFORT:
             if joint_effort[world, fa.force_joint[world, k]] == 0.0:

@@ -115,6 +115,9 @@ class ForceArrays:
     force_force: wp.array2d(dtype=wp.vec3)
     force_torque: wp.array2d(dtype=wp.vec3)
     force_effort: wp.array2d(dtype=float)
+    # each body's slots (W, B + 1) and (W, 2 max_forces): force_body_slot[w, start[w, b]:start[w, b + 1]]
+    force_body_start: wp.array2d(dtype=wp.int32)
+    force_body_slot: wp.array2d(dtype=wp.int32)
 
 
 @wp.struct

@@ -247,6 +247,18 @@ def pack_forces(specs: Sequence[MechanismSpec]) -> dict:
             if joint.drive is None and joint.type in (JointType.REVOLUTE, JointType.PRISMATIC):
                 joint_slot(k, j, FORCE_JOINT_EFFORT_SLOT)
                 k += 1
+    # each body's slots, as lists: force_body_slot[w, force_body_start[w, b]:force_body_start[w, b + 1]]
+    B = max(len(spec.bodies) for spec in specs)
+    h["force_body_start"] = np.zeros((W, B + 1), np.int32)
+    h["force_body_slot"] = np.zeros((W, 2 * F), np.int32)
+    for w in range(W):
+        n = slots[w]
+        sides = np.concatenate([h["force_body_a"][w, :n], h["force_body_b"][w, :n]])
+        slot = np.arange(2 * n) % max(n, 1)
+        order = np.lexsort((slot, sides))  # by body, then in slot order
+        on_body = order[sides[order] >= 0]
+        h["force_body_slot"][w, :len(on_body)] = slot[on_body]
+        h["force_body_start"][w] = np.searchsorted(sides[on_body], np.arange(B + 1))
     return h
 
 

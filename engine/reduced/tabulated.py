@@ -236,7 +236,8 @@ class TabulatedModel:
         self.max_registers = TILED_REGISTERS  # per thread of the tiled step on CUDA (None: the compiler's choice)
         self.max_bodies = B
         # force elements and a Control (tabulated_forces), compiled into the step only where used
-        self.force_arrays = pack_forces(layouts, B, J, d)
+        self.force_arrays = pack_forces(layouts, B, J, d)  # (where a Control acts: on its first use)
+        self._control_ready = False
         self.forces = any(lay.spec.forces for lay in layouts)
         self._no_body_f = wp.zeros((1, 1), dtype=wp.spatial_vector, device=d)
         self._no_effort = wp.zeros((1, 1), dtype=float, device=d)
@@ -245,12 +246,20 @@ class TabulatedModel:
         """A new Control (zeros): body_f (W, B) each spec body's wrench (force [N], torque [N m]; world
         frame) at its centre of mass, joint_effort (W, J) each revolute spec joint's torque [N m] on
         its child (the opposite on its parent), driven or not."""
+        self._prepare_control()
         return ChainControl(wp.zeros((self.num_worlds, self.max_bodies), dtype=wp.spatial_vector, device=self.device),
                             wp.zeros((self.num_worlds, self.max_joints), dtype=float, device=self.device))
 
     def check_control(self, control) -> None:
         """chains.check_control_arrays for this batch (host work: once, not per step)."""
         check_control_arrays(control, "tabulated", self.num_worlds, self.max_bodies, self.max_joints, self.device)
+        self._prepare_control()
+
+    def _prepare_control(self) -> None:
+        """Where a Control acts (TabulatedForces.control_*), packed on first use (host work)."""
+        if not self._control_ready:
+            self.force_arrays = pack_forces(self.layouts, self.max_bodies, self.max_joints, self.device, control=True)
+            self._control_ready = True
 
     @property
     def point_names(self) -> list:
@@ -290,6 +299,8 @@ class TabulatedModel:
         """Advance every world ``steps`` steps of dt in place (kernel launches only: capturable in a
         CUDA graph). Frozen worlds (diverged or halted) stay as they are. control: a Control (control();
         check_control) whose arrays the step reads, or None."""
+        if control is not None:
+            self._prepare_control()  # (done already by control() or check_control(): no host work here)
         inputs = self._step_inputs()
         inputs += [self.force_arrays, self._no_body_f if control is None else control.body_f,
                    self._no_effort if control is None else control.joint_effort]

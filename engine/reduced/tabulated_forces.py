@@ -45,19 +45,24 @@ class TabulatedForces:
     control_axis: wp.array2d(dtype=wp.vec3)
 
 
-def pack_forces(layouts: list, max_bodies: int, max_joints: int, device) -> TabulatedForces:
-    """The batch's TabulatedForces from its TabulatedLayouts."""
+def pack_forces(layouts: list, max_bodies: int, max_joints: int, device, control: bool = False) -> TabulatedForces:
+    """The batch's TabulatedForces from its TabulatedLayouts: the force slots of the specs that have
+    any, and where a Control acts only when ``control`` (else 1 x 1 placeholders: a walker study's
+    batch, which steps without a Control, spends no host time on its joints' frames)."""
     W = len(layouts)
     F = max(1, max(len(lay.spec.forces) for lay in layouts))
+    B, J = (max_bodies, max_joints) if control else (1, 1)
     identity = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
     h = {"force_count": np.zeros(W, np.int32), "force_kind": np.zeros((W, F), np.int32),
          "force_entry": np.full((W, F, 2), -1, np.int32), "force_frame": np.tile(identity, (W, F, 2, 1)),
          "force_vec": np.zeros((W, F, 2, 3)), "force_coef": np.zeros((W, F, 4)),
-         "control_body": np.full((W, max_bodies), -1, np.int32),
-         "control_joint": np.full((W, max_joints, 2), -1, np.int32),
-         "control_frame": np.tile(identity, (W, max_joints, 1)), "control_axis": np.zeros((W, max_joints, 3))}
+         "control_body": np.full((W, B), -1, np.int32), "control_joint": np.full((W, J, 2), -1, np.int32),
+         "control_frame": np.tile(identity, (W, J, 1)), "control_axis": np.zeros((W, J, 3))}
     for w, lay in enumerate(layouts):
         spec = lay.spec
+        if not spec.forces and not control:
+            continue
+        index = spec.body_index
 
         def entity(b):  # (entity, C: body frame -> its entity's table frame, centre of mass in the body frame)
             g, k, frame = lay.bodies[b]
@@ -66,15 +71,17 @@ def pack_forces(layouts: list, max_bodies: int, max_joints: int, device) -> Tabu
         def side(name, R, p):
             if name is None:
                 return -1, _transform(R, p)
-            e, C, com = entity(spec.body_index[name])
+            e, C, com = entity(index[name])
             return e, _transform(C @ R, C @ (np.asarray(p, float) - com))
 
         pack_force_slots(h, w, spec, side)
-        for b in range(len(spec.bodies)):
-            h["control_body"][w, b] = entity(b)[0]
+        if not control:
+            continue
+        entities = [entity(b) for b in range(len(spec.bodies))]
+        h["control_body"][w, :len(entities)] = [e for e, _, _ in entities]
         for j, joint in enumerate(spec.joints):
             if joint.type == JointType.REVOLUTE:
-                h["control_joint"][w, j] = [side(name, np.eye(3), np.zeros(3))[0]
+                h["control_joint"][w, j] = [-1 if name is None else entities[index[name]][0]
                                             for name in (joint.child, joint.parent)]
                 h["control_frame"][w, j] = side(joint.parent, quat_matrix(joint.parent_orientation),
                                                 joint.parent_position)[1]
