@@ -98,7 +98,7 @@ def _study_spec(args):
 
         command = getattr(args, "study_command", None)
         spec = stored_spec(spec, say=command == "resume" and getattr(args, "generations", None) is None)
-    overrides = {k: getattr(args, k, None) for k in ("device", "worlds", "generations", "seed")}
+    overrides = {k: getattr(args, k, None) for k in ("device", "worlds", "generations", "seed", "cluster", "workers")}
     return spec.with_overrides(**overrides)
 
 
@@ -264,6 +264,11 @@ def build_parser() -> argparse.ArgumentParser:
                              help="a study stored by an earlier morphopt (a pickled checkpoint, never unpickled): "
                                   "rebuild its optimizer from the stored designs")
         if name in ("run", "resume"):
+            sub.add_argument("--cluster", metavar="ADDRESS",
+                             help="evaluate on a Ray cluster: 'local' (started here), 'auto' (the one this machine "
+                                  "belongs to) or host:port (pip install \"morphopt[cluster]\")")
+            sub.add_argument("--workers", type=_positive(int),
+                             help="Ray workers (default: one per GPU of a CUDA study, else one per CPU core)")
             sub.add_argument("--steal", action="store_true",
                              help="take the study over from a writer that is gone (its lease is not yet stale)")
         if name == "show":

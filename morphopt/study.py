@@ -153,7 +153,7 @@ def _check_device(spec: StudySpec) -> None:
 
 
 RUN_OVERRIDES = ("device", "worlds", "generations", "seed")  # what `study run` may override on the command line
-RESUME_CHANGES = ("device", "generations")  # what may differ between a study's runs (a resume extends it)
+RESUME_CHANGES = ("device", "generations", "cluster", "workers", "shard_timeout")  # may differ between runs
 
 
 def study_settings(spec: StudySpec) -> dict:
@@ -396,6 +396,13 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
             archive = storage.archive_name()
     sign = -1.0 if spec.direction == "maximize" else 1.0
     evaluating = outside = compiling = 0.0
+    cluster = None
+    if spec.cluster:
+        from morphopt.cluster import ClusterEvaluator
+
+        cluster = ClusterEvaluator(spec, space, address=spec.cluster, workers=spec.workers,
+                                   shard_timeout=spec.shard_timeout, log=lambda line: tqdm.write(line, file=sys.stderr))
+        tqdm.write(f"{spec.name}: {cluster.workers} Ray workers at {spec.cluster!r}", file=sys.stderr)
     stages = {}
     announce_compile(Kernels.KINEMATIC if spec.mode == "kinematic" else Kernels.DYNAMIC, spec.device)
     bar = tqdm(total=spec.generations, initial=start, desc=spec.name, unit="gen", disable=not progress)
@@ -410,7 +417,12 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
             free = optimizer.ask(spec.worlds)
             params = [{**p, **spec.fixed} for p in free]
             t1 = time.perf_counter()
-            if spec.mode == "kinematic":
+            if cluster is not None:
+                evaluation = cluster.evaluate(params)
+                _say_plan(spec.name, evaluation.plan, generation == start and progress)
+                if is_verbose():
+                    tqdm.write(f"{spec.name}: generation {generation}: {cluster.report()}", file=sys.stderr)
+            elif spec.mode == "kinematic":
                 evaluation = evaluate_kinematic(family, params, samples=spec.samples, device=spec.device,
                                                 keep_paths=any(o.metric == "path_error" for o in spec.objectives))
             else:
@@ -459,6 +471,9 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
     finally:
         steps.close()
         bar.close()
+        if cluster is not None:
+            tqdm.write(f"{spec.name}: {cluster.report()}", file=sys.stderr)
+            cluster.close()
     best = {**optimizer.best_params, **spec.fixed} if optimizer.best_params is not None else None
     value = sign * optimizer.best_value if math.isfinite(optimizer.best_value) else math.nan
     return StudyResult(best, value, optimizer.evaluations, spec.generations, seconds,

@@ -24,6 +24,9 @@
     [space]       per parameter: [low, high] to narrow the family's bounds
     [fixed]       per parameter: a value held fixed
     [constraints] per metric: [low, high]; a design outside fails with the reason (TOML has inf)
+    [cluster]     address (a Ray cluster: "local", "auto" or host:port; morphopt.cluster), workers
+                  (0: one per GPU, or per CPU core), shard_timeout [s] (0: ten times the median
+                  shard, at least 60 s); the results are the same as without a cluster
 
 ``family`` is either the name of a family (a plain identifier such as "four_bar": a module in
 ./designs/ or a built-in one) or an explicit path to a .py file (relative paths are taken from
@@ -86,6 +89,7 @@ SECTIONS = {
     "space": None,
     "fixed": None,
     "constraints": None,
+    "cluster": {"address": str, "workers": int, "shard_timeout": float},
 }
 REQUIRED = {"study": ("name", "family")}
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,199}")  # a study name is also its default file name
@@ -160,6 +164,9 @@ class StudySpec:
     constraints: dict = field(default_factory=dict)
     objectives: tuple = ()
     solver: dict = field(default_factory=dict)
+    cluster: str = ""  # a Ray address ("local", "auto", host:port); "": this process evaluates
+    workers: int = 0  # Ray workers (0: one per GPU of a CUDA study, else one per CPU core)
+    shard_timeout: float = 0.0  # [s] before a worker's shard runs again elsewhere (0: morphopt.cluster's rule)
 
     def __post_init__(self):
         if not self.objectives:
@@ -250,7 +257,8 @@ def load_study_spec(path) -> StudySpec:
         if keys is None:
             continue
         for key, value in _typed(content, keys, section, where).items():
-            target = {("optimizer", "name"): "optimizer", ("objective", "metric"): "metric"}.get((section, key), key)
+            target = {("optimizer", "name"): "optimizer", ("objective", "metric"): "metric",
+                      ("cluster", "address"): "cluster"}.get((section, key), key)
             values[target] = value
     for section, keys in REQUIRED.items():
         for key in keys:
@@ -393,6 +401,11 @@ def _check_values(spec: StudySpec, where: str) -> None:
         ("optimizer.restart_strategy", spec.restart_strategy in ("ipop", "bipop"), "'ipop' or 'bipop'"),
         ("study.generations", spec.generations >= 1, "an integer >= 1"),
         ("study.worlds", spec.worlds >= 2, "an integer >= 2"),
+        ("cluster.workers", 0 <= spec.workers <= 4096, "an integer in 0 .. 4096 (0: one per GPU or CPU core)"),
+        ("cluster.shard_timeout", 0.0 <= spec.shard_timeout <= 86400.0 and math.isfinite(spec.shard_timeout),
+         "0 (the automatic timeout) or seconds up to a day"),
+        ("cluster.address", spec.cluster == "" or spec.cluster.strip() == spec.cluster != "",
+         "'local', 'auto' or a Ray address host:port"),
         ("study.seed", spec.seed <= MAX_SEED,
          f"at most 2**32 - 1 = {MAX_SEED}: the optimizers' random generators take 32-bit seeds"),
         ("study.generations", spec.generations <= MAX_GENERATIONS,

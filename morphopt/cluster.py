@@ -1,0 +1,233 @@
+"""A study's evaluations spread over a Ray cluster (``pip install "morphopt[cluster]"``).
+
+The coordinator (run_study) keeps the optimizer and the storage; ClusterEvaluator keeps one
+long-lived Ray actor per worker (a GPU each on a CUDA study, else a group of CPU cores), so every
+worker compiles its kernels once and keeps them warm between generations. A generation is split
+into one shard per worker, designs grouped by their categorical parameters (their topology) so
+each shard's padded batch stays tight; shards come back in order, so the study is the same
+whatever the number of workers. A worker that dies (its process killed, its node lost) or that
+does not answer within the shard timeout is replaced and its shard runs again on a live worker,
+said in the log; a generation is stored only once all its shards are in.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from morphopt.evaluate import Evaluation
+
+__all__ = ["ClusterEvaluator", "WorkerStats", "shards"]
+
+SHARD_TIMEOUT_MIN = 60.0  # [s] the least a shard is waited for (compiling kernels takes tens of seconds)
+SHARD_TIMEOUT_FACTOR = 10.0  # a shard slower than this many times the generation's median is re-run elsewhere
+
+
+def _ray():
+    try:
+        import ray
+    except ImportError as exc:
+        raise ValueError("a study on a cluster needs Ray: pip install \"morphopt[cluster]\"") from exc
+    return ray
+
+
+def shards(params: list, count: int, categorical: list) -> list:
+    """Indices of ``params`` in ``count`` contiguous shards of near-equal size, after a stable sort by
+    the categorical parameters' values (designs of one topology together)."""
+    key = [tuple(str(p.get(name)) for name in categorical) for p in params]
+    order = sorted(range(len(params)), key=lambda i: key[i])
+    return [list(part) for part in np.array_split(np.asarray(order, dtype=int), max(1, min(count, len(params))))]
+
+
+class _Worker:
+    """A Ray actor's body: the study's family and evaluation settings, loaded once."""
+
+    def __init__(self, family: str, mode: str, kwargs: dict):
+        from morphopt.families import load_family
+        from morphopt.warp_setup import quiet_warp
+
+        quiet_warp()
+        self.family, self.mode, self.kwargs = load_family(family), mode, kwargs
+
+    def pid(self) -> int:
+        return os.getpid()
+
+    def evaluate(self, params: list):
+        """(metrics, failures, timings, plan text) of one shard."""
+        from morphopt.evaluate import evaluate_dynamic, evaluate_kinematic
+
+        if self.mode == "kinematic":
+            result = evaluate_kinematic(self.family, params, **self.kwargs)
+        else:
+            result = evaluate_dynamic(self.family, params, **self.kwargs)
+        return result.metrics, result.failures, result.timings, None if result.plan is None else str(result.plan)
+
+
+@dataclass
+class WorkerStats:
+    """What one worker slot did over the study: designs evaluated, seconds spent, failed designs,
+    and how often it was replaced (died or timed out)."""
+
+    designs: int = 0
+    seconds: float = 0.0
+    failures: int = 0
+    replaced: int = 0
+    history: list = field(default_factory=list)
+
+    @property
+    def rate(self) -> float:
+        return self.designs / self.seconds if self.seconds > 0 else 0.0
+
+
+class ClusterEvaluator:
+    """Evaluates a study's generations on ``workers`` Ray actors. address: "local" (a Ray instance
+    started here, ended by close()), "auto" (the running cluster this machine belongs to) or a Ray
+    address; shard_timeout [s]: 0 chooses max(SHARD_TIMEOUT_MIN, SHARD_TIMEOUT_FACTOR x the
+    generation's median shard time)."""
+
+    def __init__(self, spec, space, *, address: str, workers: int = 0, shard_timeout: float = 0.0, log=None):
+        ray = _ray()
+        self.ray, self.spec, self.log = ray, spec, log or (lambda line: print(line, file=sys.stderr))
+        cuda = spec.device.startswith("cuda")
+        self._started = False
+        if not ray.is_initialized():
+            if address == "local":
+                cpus = max(1, workers or os.cpu_count() or 1)
+                ray.init(num_cpus=cpus, include_dashboard=False, log_to_driver=False, configure_logging=False)
+                self._started = True
+            else:
+                ray.init(address=address, log_to_driver=False, configure_logging=False)
+        resources = ray.cluster_resources()
+        if workers <= 0:
+            workers = int(resources.get("GPU", 0)) if cuda else int(resources.get("CPU", 1))
+        if workers <= 0:
+            raise ValueError(f"{spec.path}: 'study.device' is {spec.device!r} but the Ray cluster at {address!r} "
+                             f"has no GPU")
+        self.workers = workers
+        self.cpus = 0 if cuda else max(1, int(resources.get("CPU", 1)) // workers)
+        if spec.mode == "kinematic":
+            kwargs = dict(samples=spec.samples, device=spec.device,
+                          keep_paths=any(o.metric == "path_error" for o in spec.objectives))
+        else:
+            kwargs = dict(duration=spec.duration, dt=spec.dt, device="cuda" if cuda else spec.device,
+                          crank_speed=spec.crank_speed, config=spec.solver_config())
+        self._args = (spec.family, spec.mode, kwargs)
+        self._actor_class = ray.remote(num_cpus=self.cpus, num_gpus=1 if cuda else 0)(_Worker)
+        self.actors = [self._new_actor() for _ in range(workers)]
+        self.stats = [WorkerStats() for _ in range(workers)]
+        self.shard_timeout = float(shard_timeout)
+        self.generation = 0
+        self.kill_hook = _kill_hook()
+        self.categorical = [n for n, p in space.parameters.items() if not _numeric(p)]
+
+    def _new_actor(self):
+        return self._actor_class.remote(*self._args)
+
+    def _replace(self, slot: int, why: str) -> None:
+        self.log(f"{self.spec.name}: worker {slot} {why}; its shard runs again on a new worker")
+        try:
+            self.ray.kill(self.actors[slot])
+        except Exception:  # noqa: BLE001 - already gone
+            pass
+        self.actors[slot] = self._new_actor()
+        self.stats[slot].replaced += 1
+
+    def evaluate(self, params: list) -> Evaluation:
+        """Every design of ``params`` evaluated on the workers, results in the order of ``params``."""
+        ray = self.ray
+        parts = shards(params, self.workers, self.categorical)
+        pending = {}  # future -> (shard, slot, started)
+        for k, part in enumerate(parts):
+            slot = k % self.workers
+            pending[self.actors[slot].evaluate.remote([params[i] for i in part])] = (k, slot, time.perf_counter())
+        if self.kill_hook and self.kill_hook[0] == self.generation:  # tests: a worker's process killed mid-shard
+            victim = self.kill_hook[1] % self.workers
+            os.kill(ray.get(self.actors[victim].pid.remote()), signal.SIGKILL)
+        done, durations = {}, []
+        while pending:
+            timeout = self._timeout(durations)
+            ready, _ = ray.wait(list(pending), num_returns=1, timeout=timeout)
+            if not ready:  # the slowest shards: re-run elsewhere, their workers replaced
+                now = time.perf_counter()
+                for future, (k, slot, started) in list(pending.items()):
+                    if now - started >= timeout:
+                        del pending[future]
+                        self._replace(slot, f"did not return shard {k} within {timeout:.0f} s")
+                        pending[self._resubmit(parts[k], params, slot)] = (k, slot, time.perf_counter())
+                continue
+            future = ready[0]
+            k, slot, started = pending.pop(future)
+            try:
+                done[k] = ray.get(future)
+            except (ray.exceptions.RayActorError, ray.exceptions.WorkerCrashedError) as exc:
+                self._replace(slot, f"died during shard {k} ({type(exc).__name__})")
+                pending[self._resubmit(parts[k], params, slot)] = (k, slot, time.perf_counter())
+                continue
+            spent = time.perf_counter() - started
+            durations.append(spent)
+            stats = self.stats[slot]
+            stats.designs += len(parts[k])
+            stats.seconds += spent
+            stats.failures += sum(1 for reason in done[k][1] if reason)
+        self.generation += 1
+        return _gathered(params, parts, done)
+
+    def _resubmit(self, part, params, slot):
+        return self.actors[slot].evaluate.remote([params[i] for i in part])
+
+    def _timeout(self, durations: list) -> float:
+        if self.shard_timeout > 0:
+            return self.shard_timeout
+        if not durations:
+            return 10 * SHARD_TIMEOUT_MIN  # the first shards compile the kernels
+        return max(SHARD_TIMEOUT_MIN, SHARD_TIMEOUT_FACTOR * float(np.median(durations)))
+
+    def report(self) -> str:
+        """One line per worker: designs, designs/s, failed designs, replacements."""
+        return "; ".join(f"worker {k}: {s.designs} designs, {s.rate:,.1f} designs/s, {s.failures} failed"
+                         + (f", replaced {s.replaced}x" if s.replaced else "") for k, s in enumerate(self.stats))
+
+    def close(self) -> None:
+        for actor in self.actors:
+            try:
+                self.ray.kill(actor)
+            except Exception:  # noqa: BLE001
+                pass
+        if self._started:
+            self.ray.shutdown()
+
+
+def _numeric(parameter) -> bool:
+    from morphopt.design_space import Float, Int
+
+    return isinstance(parameter, (Float, Int))
+
+
+def _gathered(params: list, parts: list, done: dict) -> Evaluation:
+    """The shards' results in the order of ``params``: metrics and failures by index, the stages'
+    seconds summed over the shards (worker time), the first shard's plan."""
+    metrics, failures = [None] * len(params), [""] * len(params)
+    timings = {}
+    plan = None
+    for k, part in enumerate(parts):
+        shard_metrics, shard_failures, shard_timings, shard_plan = done[k]
+        for i, m, f in zip(part, shard_metrics, shard_failures):
+            metrics[i], failures[i] = m, f
+        for stage, spent in shard_timings.items():
+            timings[stage] = timings.get(stage, 0.0) + spent
+        plan = plan or shard_plan
+    return Evaluation(list(params), metrics, failures, timings, plan)
+
+
+def _kill_hook():
+    """MORPHOPT_TEST_KILL_WORKER="G:K" (tests): kill worker K's process during generation G."""
+    value = os.environ.get("MORPHOPT_TEST_KILL_WORKER", "")
+    if not value:
+        return None
+    generation, worker = value.split(":")
+    return int(generation), int(worker)
