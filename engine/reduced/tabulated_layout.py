@@ -43,7 +43,7 @@ __all__ = ["BASE_SLOTS", "MAX_GROUPS", "MAX_LINKS", "SubChain", "TabulatedLayout
 MAX_GROUPS = 8  # sub-chains per world (the kernel's generalized velocities: 6 + MAX_GROUPS)
 MAX_LINKS = 8  # bodies per sub-chain
 BASE_SLOTS = 8  # contact slots of the base's shapes (a box's corners, sphere centres, capsule ends)
-KEY_DIGITS = 6  # normalized geometry is rounded to this many decimals in a table's cache key
+KEY_DIGITS = 12  # normalized geometry is rounded to this many decimals in a table's cache key (and a new table made from it)
 PLANE_TOLERANCE = 1e-6  # relative to a sub-chain's scale: off-plane offsets and axis mismatches it accepts
 
 _Y = np.array([0.0, 1.0, 0.0])

@@ -293,8 +293,34 @@ def cached_branches(key: tuple, x0: np.ndarray, q0: np.ndarray) -> list:
     return found
 
 
+def canonical(key: tuple, x0: np.ndarray, q0: float, what: str) -> tuple:
+    """The problem a new table of ``key`` is made from, whichever sub-chain asks first: the geometry
+    the key holds (anchors, the driving angle's offset and the contact centre, rounded), and the
+    pose of x0's assembly branch at q = 0 with angles in (-pi, pi], rounded to 1e-9 (Newton's
+    solutions from different starts differ in their last bits, which a chaotic walk would
+    amplify). So a table depends on its key alone: a study's results do not depend on which design
+    made a table, on the order of a batch or on what a process packed before (morphopt.cluster).
+    Returns (planar, x0 at q = 0, contact)."""
+    _, K, pairs, ra, rb, drive, sign, turn, contact = key
+    ja, jb = (np.array([p[i] for p in pairs], dtype=int) for i in (0, 1))
+    planar = _Planar(K, ja, jb, np.array(ra).reshape(-1, 2), np.array(rb).reshape(-1, 2), drive, sign,
+                     math.atan2(turn[1], turn[0]))
+    x, ok = planar.newton(np.asarray(x0, float)[None], np.array([q0]))
+    ts, xs = _continue_turn(planar, x[0], q0, what)
+    i = int(np.argmin(np.abs(ts - (-q0) % _TWO_PI)))
+    guess = xs[i].copy()
+    guess[2::3] = wrap(guess[2::3])
+    guess[3 * drive + 2] = planar.offset
+    x, ok = planar.newton(guess[None], np.array([0.0]))
+    start = np.round(x[0], 9)
+    start[2::3] = wrap(start[2::3])
+    start[3 * drive + 2] = planar.offset
+    return planar, start, None if contact is None else (contact[0], np.array(contact[1], float))
+
+
 def cached_table(key: tuple, planar: _Planar, x0: np.ndarray, q0: float, samples: int, contact, what: str):
-    """The table of ``key`` whose pose at q0 is x0 (another assembly branch gets its own table)."""
+    """The table of ``key`` whose pose at q0 is x0 (another assembly branch gets its own table), made
+    from the key's canonical problem (canonical) when none is cached."""
     branches = _TABLES.get(key, [])
     for table in branches:
         links, _ = table.at(q0)
@@ -302,7 +328,8 @@ def cached_table(key: tuple, planar: _Planar, x0: np.ndarray, q0: float, samples
         diff[2::3] = wrap(diff[2::3])
         if np.abs(diff).max() < START_TOLERANCE:
             return table
-    table = tabulate_sub_chain(planar, x0, q0, samples, contact, what, key)
+    planar, x0, contact = canonical(key, x0, q0, what)
+    table = tabulate_sub_chain(planar, x0, 0.0, samples, contact, what, key)
     if key not in _TABLES and len(_TABLES) >= TABLE_CACHE:
         _TABLES.pop(next(iter(_TABLES)))
     _TABLES.setdefault(key, []).append(table)

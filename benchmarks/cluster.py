@@ -1,0 +1,113 @@
+"""The cluster path's cost: designs/s of a study run in this process and on a local Ray cluster of 1
+and 2 workers, same study and seed (the stored designs are checked equal).
+
+    python -m benchmarks.cluster [--device cpu] [--generations 6] [--out DIR]
+
+Runs a kinematic study (quickstart's Jansen leg, 256 designs a generation) and a small dynamic one
+(walkers, 64 a generation, 1.3 s simulated) each way, on one Ray instance started first; the
+first generation (kernel compilation, the workers' start) is excluded from the rate. Prints one
+JSON line per study and writes cluster_<device>.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import platform
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+from benchmarks.run import RESULTS, device_tag
+from morphopt.storage import read_designs
+from morphopt.study import run_study
+from morphopt.study_spec import load_study_spec
+
+STUDIES = {
+    "kinematic": """[study]
+name = "{name}"
+family = "jansen_leg"
+mode = "kinematic"
+seed = 0
+generations = {generations}
+worlds = 256
+device = "{device}"
+[objective]
+metric = "foot_stride"
+direction = "maximize"
+[simulation]
+samples = 180
+[fixed]
+m = 0.015
+""",
+    "dynamic": """[study]
+name = "{name}"
+family = "walker"
+mode = "dynamic"
+seed = 0
+generations = {generations}
+worlds = 64
+device = "{device}"
+[objective]
+metric = "walking_speed"
+direction = "maximize"
+[simulation]
+duration = 1.3
+dt = 0.005
+[fixed]
+legs_per_side = 3
+""",
+}
+
+
+def measure(folder: pathlib.Path, kind: str, device: str, generations: int, workers: int) -> dict:
+    """Designs/s of generations 2 .. ``generations``: a run of 1 generation and a run of all, each
+    from scratch with the same seed, the difference of their times (the workers' start and the
+    kernels' compilation cancel)."""
+    seconds, values = [], None
+    for count in (1, generations):
+        name = f"{kind}_{workers}_{count}"
+        path = folder / f"{name}.toml"
+        path.write_text(STUDIES[kind].format(name=name, generations=count, device=device))
+        spec = load_study_spec(path)
+        if workers:
+            spec = spec.with_overrides(cluster="local", workers=workers)
+        t = time.perf_counter()
+        run_study(spec, progress=False)
+        seconds.append(time.perf_counter() - t)
+        values = read_designs(spec.storage_url, spec.name)["value"].to_numpy()
+    designs = (generations - 1) * spec.worlds
+    return {"workers": workers, "designs_per_s": designs / (seconds[1] - seconds[0]), "first_generation_s": seconds[0],
+            "values": values}
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--generations", type=int, default=6)
+    parser.add_argument("--out", default=None)
+    args = parser.parse_args(argv)
+    out = {"device": device_tag(args.device), "machine": platform.processor() or platform.machine(),
+           "command": "python -m benchmarks.cluster " + " ".join(sys.argv[1:]), "studies": {}}
+    import ray
+
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)  # one for all runs
+    with tempfile.TemporaryDirectory() as folder:
+        for kind in STUDIES:
+            rows = [measure(pathlib.Path(folder), kind, args.device, args.generations, w) for w in (0, 1, 2)]
+            same = all(np.array_equal(r["values"], rows[0]["values"], equal_nan=True) for r in rows)
+            base = rows[0]["designs_per_s"]
+            out["studies"][kind] = {"same_results": bool(same), "runs": [
+                {k: v for k, v in r.items() if k != "values"} | {"over_single_process": r["designs_per_s"] / base}
+                for r in rows]}
+            print(json.dumps({kind: out["studies"][kind]}), flush=True)
+    folder = pathlib.Path(args.out) if args.out else RESULTS / out["device"]
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / f"cluster_{out['device']}.json").write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
