@@ -57,6 +57,10 @@ class _Worker:
     def pid(self) -> int:
         return os.getpid()
 
+    def stall(self, seconds: float) -> None:
+        """Tests: keep this worker busy (a hung GPU, a swapping node)."""
+        time.sleep(seconds)
+
     def evaluate(self, params: list):
         """(metrics, failures, timings, plan text) of one shard."""
         from morphopt.evaluate import evaluate_dynamic, evaluate_kinematic
@@ -122,7 +126,7 @@ class ClusterEvaluator:
         self.stats = [WorkerStats() for _ in range(workers)]
         self.shard_timeout = float(shard_timeout)
         self.generation = 0
-        self.kill_hook = _kill_hook()
+        self.kill_hook = _test_hook("MORPHOPT_TEST_KILL_WORKER")
         self.categorical = [n for n, p in space.parameters.items() if not _numeric(p)]
 
     def _new_actor(self):
@@ -142,6 +146,9 @@ class ClusterEvaluator:
         ray = self.ray
         parts = shards(params, self.workers, self.categorical)
         pending = {}  # future -> (shard, slot, started)
+        stall = _test_hook("MORPHOPT_TEST_STALL_WORKER")
+        if stall and stall[0] == self.generation:  # tests: a worker that hangs before its shard
+            self.actors[stall[1] % self.workers].stall.remote(3600.0)
         for k, part in enumerate(parts):
             slot = k % self.workers
             pending[self.actors[slot].evaluate.remote([params[i] for i in part])] = (k, slot, time.perf_counter())
@@ -224,9 +231,10 @@ def _gathered(params: list, parts: list, done: dict) -> Evaluation:
     return Evaluation(list(params), metrics, failures, timings, plan)
 
 
-def _kill_hook():
-    """MORPHOPT_TEST_KILL_WORKER="G:K" (tests): kill worker K's process during generation G."""
-    value = os.environ.get("MORPHOPT_TEST_KILL_WORKER", "")
+def _test_hook(name: str):
+    """(G, K) of a test hook "G:K": MORPHOPT_TEST_KILL_WORKER kills worker K's process during
+    generation G, MORPHOPT_TEST_STALL_WORKER keeps it busy then; None when not set."""
+    value = os.environ.get(name, "")
     if not value:
         return None
     generation, worker = value.split(":")

@@ -127,6 +127,17 @@ def test_a_worker_killed_mid_generation_leaves_the_study_complete_and_identical(
     assert "worker 0 died during shard" in err and "replaced 1x" in err
 
 
+def test_a_stalled_worker_is_replaced_after_the_shard_timeout(tmp_path, monkeypatch, capfd):
+    alone = study(tmp_path, KINEMATIC, "alone")
+    run_study(alone, progress=False)
+    monkeypatch.setenv("MORPHOPT_TEST_STALL_WORKER", "1:1")
+    spread = study(tmp_path, KINEMATIC, "spread", cluster="local", workers=2, shard_timeout=4.0)
+    run_study(spread, progress=False)
+    assert_same_study(alone, spread)
+    err = capfd.readouterr().err
+    assert "worker 1 did not return shard 1 within 4 s" in err and "replaced 1x" in err
+
+
 def _stored_generations(spec) -> int:
     try:
         return StudyStorage(spec.storage_url, spec.name).info()["generations"]
