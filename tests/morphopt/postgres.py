@@ -4,6 +4,7 @@ Run as root, the server runs as the 'postgres' user (initdb refuses root). Witho
 psycopg the tests that need it skip, unless MORPHOPT_REQUIRE_POSTGRES=1 (.ci/run) makes that a
 failure."""
 
+import contextlib
 import os
 import pathlib
 import pwd
@@ -37,33 +38,48 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-@pytest.fixture(scope="module")
-def postgres_url():
-    """An SQLAlchemy URL (postgresql+psycopg://) of a fresh, empty PostgreSQL server."""
+@contextlib.contextmanager
+def throwaway_postgres():
+    """An SQLAlchemy URL (postgresql+psycopg://) of a fresh, empty PostgreSQL server, removed on exit;
+    RuntimeError naming what is missing (psycopg, the server binaries, a user to run them as root)."""
     try:
         import psycopg  # noqa: F401
-    except ImportError:
-        _missing("psycopg is not installed (pip install \"morphopt[cluster]\")")
+    except ImportError as exc:
+        raise RuntimeError("psycopg is not installed (pip install \"morphopt[cluster]\")") from exc
     initdb, pg_ctl = _binary("initdb"), _binary("pg_ctl")
     if not (initdb and pg_ctl):
-        _missing("the PostgreSQL server binaries (initdb, pg_ctl) are not installed")
-    folder = pathlib.Path(tempfile.mkdtemp(prefix="morphopt-pg-"))
+        raise RuntimeError("the PostgreSQL server binaries (initdb, pg_ctl) are not installed")
     run_as = []
+    folder = pathlib.Path(tempfile.mkdtemp(prefix="morphopt-pg-"))
     if os.geteuid() == 0:
         try:
             user = pwd.getpwnam("postgres")
-        except KeyError:
-            _missing("running as root and no 'postgres' user to run the server as")
+        except KeyError as exc:
+            raise RuntimeError("running as root and no 'postgres' user to run the server as") from exc
         os.chown(folder, user.pw_uid, user.pw_gid)
         run_as = ["runuser", "-u", "postgres", "--"]
     port = _free_port()
     data = folder / "data"
-    subprocess.run([*run_as, initdb, "-D", str(data), "-A", "trust", "-U", "test"], check=True,
-                   capture_output=True)
-    subprocess.run([*run_as, pg_ctl, "-D", str(data), "-l", str(folder / "log"), "-w", "start", "-o",
-                    f"-p {port} -k {folder} -c listen_addresses=127.0.0.1"], check=True, capture_output=True)
     try:
+        subprocess.run([*run_as, initdb, "-D", str(data), "-A", "trust", "-U", "test"], check=True,
+                       capture_output=True)
+        subprocess.run([*run_as, pg_ctl, "-D", str(data), "-l", str(folder / "log"), "-w", "start", "-o",
+                        f"-p {port} -k {folder} -c listen_addresses=127.0.0.1"], check=True, capture_output=True)
         yield f"postgresql+psycopg://test@127.0.0.1:{port}/postgres"
     finally:
         subprocess.run([*run_as, pg_ctl, "-D", str(data), "-m", "immediate", "stop"], capture_output=True)
         shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def postgres_url():
+    """throwaway_postgres() for a test module (skipped where it cannot run; see the module docstring)."""
+    try:
+        server = throwaway_postgres()
+        url = server.__enter__()
+    except RuntimeError as exc:
+        _missing(str(exc))
+    try:
+        yield url
+    finally:
+        server.__exit__(None, None, None)
