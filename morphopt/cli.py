@@ -142,6 +142,17 @@ def _study_show(args) -> int:
     if frame is None:
         return 1
     print(study_report(frame, spec, load_family(spec.family).space, args.top))
+    from morphopt.storage import read_workers
+
+    workers = read_workers(spec.storage_url, spec.name)
+    if len(workers):
+        print("workers (Ray cluster):")
+        for worker, rows in workers.groupby("worker"):
+            designs, seconds = int(rows.designs.sum()), float(rows.seconds.sum())
+            replaced = int(rows.replaced.sum())
+            print(f"  worker {worker}: {designs} designs in {len(rows)} generations, "
+                  f"{designs / max(seconds, 1e-9):,.1f} designs/s, {int(rows.failures.sum())} failed"
+                  + (f", replaced {replaced}x" if replaced else ""))
     return 0
 
 

@@ -156,6 +156,7 @@ class ClusterEvaluator:
             victim = self.kill_hook[1] % self.workers
             os.kill(ray.get(self.actors[victim].pid.remote()), signal.SIGKILL)
         done, durations = {}, []
+        before = [(s.designs, s.seconds, s.failures, s.replaced) for s in self.stats]
         while pending:
             timeout = self._timeout(durations)
             ready, _ = ray.wait(list(pending), num_returns=1, timeout=timeout)
@@ -182,6 +183,8 @@ class ClusterEvaluator:
             stats.seconds += spent
             stats.failures += sum(1 for reason in done[k][1] if reason)
         self.generation += 1
+        self.last = [(k, s.designs - b[0], s.seconds - b[1], s.failures - b[2], s.replaced - b[3])
+                     for k, (s, b) in enumerate(zip(self.stats, before))]  # this generation's, per worker
         return _gathered(params, parts, done)
 
     def _resubmit(self, part, params, slot):

@@ -41,7 +41,7 @@ import numpy as np
 import pandas as pd
 import sqlalchemy as sa
 
-__all__ = ["LEASE_SECONDS", "StudyStorage", "export_to_optuna", "read_designs", "storage_exists"]
+__all__ = ["LEASE_SECONDS", "StudyStorage", "export_to_optuna", "read_designs", "read_workers", "storage_exists"]
 
 METADATA = sa.MetaData()
 DESIGNS = sa.Table(
@@ -73,6 +73,12 @@ OPTIMIZER_LOG = sa.Table(  # per generation: what the optimizer asked for (a dig
     "optimizer_log", METADATA,
     sa.Column("study", sa.String(255), primary_key=True), sa.Column("generation", sa.Integer, primary_key=True),
     sa.Column("asked", sa.String(64)), sa.Column("width", sa.Integer), sa.Column("told", sa.LargeBinary),
+)
+WORKERS = sa.Table(  # per generation of a study on a cluster (morphopt.cluster): what each worker did
+    "workers", METADATA,
+    sa.Column("study", sa.String(255), index=True), sa.Column("generation", sa.Integer),
+    sa.Column("worker", sa.Integer), sa.Column("designs", sa.Integer), sa.Column("seconds", sa.Float),
+    sa.Column("failures", sa.Integer), sa.Column("replaced", sa.Integer),
 )
 LEASE_SECONDS = 120.0  # a lease whose heartbeat is older than this is stale (the heartbeat runs every 15 s)
 HEARTBEAT_SECONDS = 15.0
@@ -523,13 +529,14 @@ class StudyStorage:
 
     def write_generation(self, generation: int, params: list, values, metrics: list, failures: list,
                          state: bytes, seconds: float, *, asked: str = "", told=None, settings: dict | None = None,
-                         archive: str | None = None, backfill: list | None = None) -> None:
+                         archive: str | None = None, backfill: list | None = None, workers: list | None = None) -> None:
         """Append one generation, its optimizer log row and the new checkpoint in one transaction
         that first checks (and renews) this writer's lease. ``archive``: move the study's earlier
         results (designs, log, checkpoint, settings) to that study name first, in the same
         transaction; ``settings``: store these as the study's settings; ``backfill``: optimizer log
         rows (generation, digest, told) of earlier generations stored without one. ``metrics``: dicts
-        whose scalar values are stored (others, such as paths, are not); ``told``: (designs, k) float64."""
+        whose scalar values are stored (others, such as paths, are not); ``told``: (designs, k) float64;
+        ``workers``: a cluster's per-worker rows (worker, designs, seconds, failures, replaced)."""
         if self.owner is None:
             raise ValueError(f"{self.where}: writing needs the study's lease (StudyStorage.acquire)")
         param_layout, param_matrix, extras = encode_params(params)
@@ -558,6 +565,10 @@ class StudyStorage:
                 connection.execute(OPTIMIZER_LOG.insert(), [
                     {"study": self.name, "generation": g, "asked": digest, "width": array.shape[1],
                      "told": np.ascontiguousarray(array, "<f8").tobytes()} for g, digest, array in log])
+                if workers:
+                    connection.execute(WORKERS.insert(), [
+                        {"study": self.name, "generation": generation, "worker": w, "designs": d, "seconds": s,
+                         "failures": f, "replaced": r} for w, d, s, f, r in workers])
                 connection.execute(CHECKPOINTS.delete().where(CHECKPOINTS.c.study == self.name))
                 connection.execute(CHECKPOINTS.insert(), [{"study": self.name, "generation": generation,
                                                            "state": state, "seconds": seconds}])
@@ -572,7 +583,7 @@ class StudyStorage:
 
     def _move(self, connection, archive: str) -> None:
         """Rename the study's stored rows to ``archive`` (and copy its settings row there, unleased)."""
-        for table in (DESIGNS, COLUMNS, CHECKPOINTS, OPTIMIZER_LOG):
+        for table in (DESIGNS, COLUMNS, CHECKPOINTS, OPTIMIZER_LOG, WORKERS):
             connection.execute(table.update().where(table.c.study == self.name).values(study=archive))
         row = connection.execute(sa.select(STUDIES).where(STUDIES.c.name == self.name)).first()
         connection.execute(STUDIES.insert().values(name=archive, settings=row.settings, created=row.created,
@@ -694,6 +705,22 @@ class StudyStorage:
             metrics = pd.DataFrame(_matrix([r.metrics for r in rows], len(layout["metrics"])),
                                    columns=layout["metrics"])
         return pd.concat([params, metrics.add_prefix("metric_")], axis=1)
+
+
+def read_workers(url: str, name: str) -> pd.DataFrame:
+    """A cluster study's workers per generation (worker, designs, seconds, failures, replaced), empty
+    for a study run in one process or stored before workers were recorded."""
+    engine = sa.create_engine(url)
+    try:
+        if "workers" not in sa.inspect(engine).get_table_names():
+            return pd.DataFrame(columns=["generation", "worker", "designs", "seconds", "failures", "replaced"])
+        with engine.connect() as connection:
+            rows = connection.execute(sa.select(WORKERS).where(WORKERS.c.study == name)
+                                      .order_by(WORKERS.c.generation, WORKERS.c.worker)).all()
+    finally:
+        engine.dispose()
+    return pd.DataFrame([tuple(r)[1:] for r in rows],
+                        columns=["generation", "worker", "designs", "seconds", "failures", "replaced"])
 
 
 def read_designs(url: str, name: str) -> pd.DataFrame:

@@ -447,7 +447,8 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
                                      _checkpoint_blob(spec, space, optimizer, generation),
                                      seconds + time.perf_counter() - t0, asked=checkpoint.designs_digest(free), told=told,
                                      settings=settings if first else None, archive=archive if first else None,
-                                     backfill=backfill if first else None)
+                                     backfill=backfill if first else None,
+                                     workers=cluster.last if cluster is not None else None)
             if first and archive:
                 print(f"{spec.name}: the earlier results were moved aside as study '{archive}' in {spec.storage_url}",
                       file=sys.stderr)

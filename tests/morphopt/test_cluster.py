@@ -17,7 +17,7 @@ import pytest
 pytest.importorskip("ray")
 
 from morphopt.cluster import shards  # noqa: E402
-from morphopt.storage import StudyStorage, read_designs  # noqa: E402
+from morphopt.storage import StudyStorage, read_designs, read_workers  # noqa: E402
 from morphopt.study import run_study  # noqa: E402
 from morphopt.study_spec import load_study_spec  # noqa: E402
 from tests.morphopt.postgres import postgres_url  # noqa: E402,F401
@@ -125,6 +125,12 @@ def test_a_worker_killed_mid_generation_leaves_the_study_complete_and_identical(
     assert_same_study(alone, spread)
     err = capfd.readouterr().err
     assert "worker 0 died during shard" in err and "replaced 1x" in err
+    workers = read_workers(spread.storage_url, spread.name)  # what study show reports per worker
+    assert len(workers) == 2 * spread.generations and workers.designs.sum() == spread.generations * spread.worlds
+    assert workers.replaced.sum() == 1 and workers[workers.replaced == 1].worker.tolist() == [0]
+    from morphopt.cli import main
+    assert main(["study", "show", str(spread.path)]) == 0
+    assert "worker 0: 72 designs in 3 generations" in capfd.readouterr().out
 
 
 def test_a_stalled_worker_is_replaced_after_the_shard_timeout(tmp_path, monkeypatch, capfd):
