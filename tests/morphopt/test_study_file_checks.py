@@ -329,3 +329,22 @@ def test_dynamic_metric_names_are_what_the_evaluation_produces():
             assert metrics == derived(walker, "dynamic", params), coordinates
     assert "torso_tilt_max" in point_metrics(["torso", "torso_up"], "dynamic")
     assert "torso_tilt_max" not in point_metrics(["torso"], "dynamic")
+
+
+@pytest.mark.parametrize("table, error", [
+    ('[cluster]\naddress = "local"\nworkers = 2\nshard_timeout = 30.0\n', None),
+    ('[cluster]\nworkers = -1\n', "'cluster.workers' must be an integer in 0 .. 4096"),
+    ('[cluster]\nshard_timeout = -5.0\n', "'cluster.shard_timeout' must be 0"),
+    ('[cluster]\naddress = " auto"\n', "'cluster.address' must be 'local', 'auto' or a Ray address"),
+    ('[cluster]\nnodes = 3\n', "unknown key 'cluster.nodes'"),
+])
+def test_the_cluster_table_is_read_and_checked(tmp_path, table, error):
+    text = (ROOT / "studies" / "quickstart.toml").read_text() + "\n" + table
+    path = tmp_path / "q.toml"
+    path.write_text(text)
+    if error is None:
+        spec = load_study_spec(path)
+        assert (spec.cluster, spec.workers, spec.shard_timeout) == ("local", 2, 30.0)
+        return
+    with pytest.raises(ValueError, match=error.replace(".", r"\.").replace("(", r"\(")):
+        load_study_spec(path)
