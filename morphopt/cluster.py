@@ -85,6 +85,7 @@ class WorkerStats:
 
     @property
     def rate(self) -> float:
+        """Designs a second over the seconds its shards took."""
         return self.designs / self.seconds if self.seconds > 0 else 0.0
 
 
@@ -203,6 +204,7 @@ class ClusterEvaluator:
                          + (f", replaced {s.replaced}x" if s.replaced else "") for k, s in enumerate(self.stats))
 
     def close(self) -> None:
+        """End the workers, and the Ray instance where this evaluator started it."""
         for actor in self.actors:
             try:
                 self.ray.kill(actor)
