@@ -30,6 +30,7 @@ from morphopt.evaluate import evaluate_dynamic, evaluate_kinematic
 from morphopt.families import load_family
 from morphopt.metrics import path_error
 from morphopt.optimizers import CMAES, OptunaSampler, RandomSearch
+from morphopt.robust import robust_evaluation
 from morphopt import checkpoint
 from morphopt.storage import StudyStorage, storage_exists
 from morphopt.study_spec import StudySpec, check_family_contract
@@ -383,6 +384,26 @@ def _plan(spec, space, storage, resume: bool, fresh: bool, trust: bool, family_s
     return info
 
 
+def _world_values(spec: StudySpec, evaluation) -> np.ndarray:
+    """Each world's minimized objective after the study's constraints (a robust batch's worlds)."""
+    apply_constraints(spec, evaluation)
+    return objective_values(spec, evaluation)
+
+
+def _batch_evaluator(spec: StudySpec, family, steps):
+    """evaluate(params, hooks): one batch of a robust study, each world with its own spec hook."""
+    def evaluate(params, hooks):
+        if spec.mode == "kinematic":
+            return evaluate_kinematic(family, params, samples=spec.samples, device=spec.device,
+                                      keep_paths=any(o.metric == "path_error" for o in spec.objectives))
+        by_world = {id(p): h for p, h in zip(params, hooks) if h is not None}
+        return evaluate_dynamic(family, params, duration=spec.duration, dt=spec.dt, device=spec.device,
+                                crank_speed=spec.crank_speed, config=spec.solver_config(),
+                                spec_hook=lambda s, p: by_world[id(p)](s, p) if id(p) in by_world else s,
+                                progress=steps.report if steps.shown else None)
+    return evaluate
+
+
 def _generations(spec, family, space, storage, info, settings, progress) -> StudyResult:
     """The ask -> evaluate -> tell -> store loop of run_study, under the study's lease."""
     archive = backfill = None
@@ -396,6 +417,7 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
             archive = storage.archive_name()
     sign = -1.0 if spec.direction == "maximize" else 1.0
     evaluating = outside = compiling = 0.0
+    robust = spec.robust(family)
     cluster = None
     if spec.cluster:
         from morphopt.cluster import ClusterEvaluator
@@ -407,6 +429,7 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
     announce_compile(Kernels.KINEMATIC if spec.mode == "kinematic" else Kernels.DYNAMIC, spec.device)
     bar = tqdm(total=spec.generations, initial=start, desc=spec.name, unit="gen", disable=not progress)
     steps = _SimulationBar(spec.mode == "dynamic" and progress)
+    batch = _batch_evaluator(spec, family, steps) if robust is not None else None
     try:  # the bar ends its line before any error is printed
         for generation in range(start, spec.generations):
             if storage.lease_lost:  # the heartbeat found another writer: compute nothing it cannot store
@@ -417,7 +440,10 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
             free = optimizer.ask(spec.worlds)
             params = [{**p, **spec.fixed} for p in free]
             t1 = time.perf_counter()
-            if cluster is not None:
+            if robust is not None:
+                evaluation = robust_evaluation(spec, robust, space, params, generation, batch,
+                                               lambda ev: _world_values(spec, ev))
+            elif cluster is not None:
                 evaluation = cluster.evaluate(params)
                 _say_plan(spec.name, evaluation.plan, generation == start and progress)
                 if is_verbose():
@@ -433,6 +459,9 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
             t_objectives = time.perf_counter()
             apply_constraints(spec, evaluation)
             values = objective_values(spec, evaluation)
+            if robust is not None:  # the scenarios' aggregate (morphopt.robust), the nominal metrics stored beside
+                values = np.array([m["robust_value"] if not f else math.inf
+                                   for m, f in zip(evaluation.metrics, evaluation.failures)])
             told = values[:, None]
             t2 = time.perf_counter()
             if spec.pareto:

@@ -90,6 +90,7 @@ SECTIONS = {
     "fixed": None,
     "constraints": None,
     "cluster": {"address": str, "workers": int, "shard_timeout": float},
+    "robustness": None,
 }
 REQUIRED = {"study": ("name", "family")}
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,199}")  # a study name is also its default file name
@@ -167,6 +168,7 @@ class StudySpec:
     cluster: str = ""  # a Ray address ("local", "auto", host:port); "": this process evaluates
     workers: int = 0  # Ray workers (0: one per GPU of a CUDA study, else one per CPU core)
     shard_timeout: float = 0.0  # [s] before a worker's shard runs again elsewhere (0: morphopt.cluster's rule)
+    robustness: dict = field(default_factory=dict)  # the [robustness] table as written (morphopt.robust)
 
     def __post_init__(self):
         if not self.objectives:
@@ -215,6 +217,15 @@ class StudySpec:
         from engine import SolverConfig
 
         return SolverConfig(**self.solver)
+
+    def robust(self, family, where: str | None = None):
+        """The [robustness] table as a morphopt.robust.Robustness (None without one)."""
+        if not self.robustness:
+            return None
+        from morphopt.robust import robustness_from_table
+
+        return robustness_from_table(self.robustness, where or str(self.path), set(self.design_space(family).names),
+                                     self.mode == "dynamic")
 
     def design_space(self, family) -> DesignSpace:
 
@@ -281,7 +292,7 @@ def load_study_spec(path) -> StudySpec:
             raise ValueError(f"{where}: 'constraints.{name}' must be [low, high] with low <= high, got {bounds!r}")
     solver = dict(data.get("solver", {}))  # checked by _check_values, after everything that needs no engine
     spec = StudySpec(path=path, space_overrides=dict(data.get("space", {})), fixed=dict(data.get("fixed", {})),
-                     constraints=constraints, solver=solver, **values)
+                     constraints=constraints, solver=solver, robustness=dict(data.get("robustness", {})), **values)
     _check_values(spec, where)
     return spec
 
@@ -508,6 +519,11 @@ def check_family_contract(spec: StudySpec, family, where: str | None = None) -> 
     a crank turn and a dt that records a turn fewer than 8 times. ValueError naming the file
     (``where``, default the spec's path) and the key."""
     where = where or str(spec.path)
+    if spec.robustness:
+        spec.robust(family, where)  # its keys, distributions and parameter names
+        if spec.multi_objective or spec.cluster:
+            raise ValueError(f"{where}: 'robustness' takes one objective and no [cluster] (yet): its aggregate is the "
+                             f"study's value, and its scenarios' spec hooks run in this process")
     try:
         given = family_metrics(family, spec.design_space(family), spec.fixed, spec.mode, spec.crank_speed)
     except ValueError as exc:

@@ -1,0 +1,157 @@
+"""Robust design (morphopt.robust): scenarios reproducible by seed, different from each other and
+common to every design of a generation; aggregates against NumPy; a four-bar near its Grashof limit
+fails more often than a sturdy one under the same tolerance; the world perturbations applied to a
+walker's spec; a kinematic robust study end to end and the [robustness] table's checks."""
+
+import math
+
+import numpy as np
+import pytest
+
+from morphopt.evaluate import evaluate_kinematic
+from morphopt.families import load_family
+from morphopt.robust import (Aggregate, Distribution, Robustness, aggregate, draw, expand, robust_evaluation,
+                             scenario_hook)
+from morphopt.storage import read_designs
+from morphopt.study import objective_values, run_study
+from morphopt.study_spec import load_study_spec
+
+FOUR_BAR = load_family("four_bar")
+TOLERANCE = Robustness(samples=16, parameters={n: Distribution("normal", 0.0, 1e-3)
+                                               for n in ("ground", "crank", "coupler", "rocker")})
+
+
+def test_scenarios_are_reproducible_different_and_common_to_every_design():
+    a, b = draw(TOLERANCE, seed=7, generation=3), draw(TOLERANCE, seed=7, generation=3)
+    assert a == b
+    assert draw(TOLERANCE, seed=8, generation=3) != a and draw(TOLERANCE, seed=7, generation=4) != a
+    offsets = np.array([[s["offsets"][n] for n in ("ground", "crank")] for s in a])
+    assert len(np.unique(offsets[:, 0])) == 16 and 0.5e-3 < offsets.std() < 2e-3
+    designs = [FOUR_BAR.space.default(), {**FOUR_BAR.space.default(), "ground": 0.35}]
+    batch = expand(designs, a, FOUR_BAR.space)
+    assert len(batch) == 2 * 17 and batch[0] is designs[0] and batch[17] is designs[1]
+    for k in range(16):  # the same offsets for both designs
+        for name in ("ground", "crank", "coupler", "rocker"):
+            assert batch[1 + k][name] - designs[0][name] == pytest.approx(batch[18 + k][name] - designs[1][name])
+
+
+def test_aggregates_against_numpy():
+    rng = np.random.default_rng(0)
+    values = rng.normal(size=40)
+    failed = np.zeros(40, bool)
+    failed[[3, 17]] = True
+    kept = np.sort(values[~failed])
+    assert aggregate(values, failed, Aggregate.MEAN, 0.9) == pytest.approx(kept.mean())
+    assert aggregate(values, failed, Aggregate.STD, 0.9) == pytest.approx(kept.std())
+    assert aggregate(values, failed, Aggregate.WORST, 0.9) == kept[-1]
+    assert aggregate(values, failed, Aggregate.QUANTILE, 0.75) == pytest.approx(np.quantile(kept, 0.75))
+    # CVaR at 0.9 of 38 values: the mean of the worst ceil(3.8) = 4
+    assert aggregate(values, failed, Aggregate.CVAR, 0.9) == pytest.approx(kept[-4:].mean())
+    assert aggregate(values, failed, Aggregate.FAILURE_SHARE, 0.9) == pytest.approx(2 / 40)
+    assert aggregate(values, np.ones(40, bool), Aggregate.MEAN, 0.9) == math.inf
+
+
+def test_a_four_bar_near_its_grashof_limit_fails_more_often_than_a_sturdy_one(tmp_path):
+    """Tolerances of 1 mm on every length: a crank-rocker 1 mm inside Grashof's s + l <= p + q
+    fails to turn in the scenarios that leave it (about a third), one 150 mm inside in none; the
+    failure shares equal Grashof's condition evaluated on each scenario's lengths."""
+    sturdy = {**FOUR_BAR.space.default()}  # 0.1 + 0.3 against 0.3 + 0.25
+    fragile = {**sturdy, "ground": 0.399, "coupler": 0.3, "rocker": 0.2}  # 0.1 + 0.399 against 0.5
+    path = tmp_path / "s.toml"
+    path.write_text('[study]\nname = "s"\nfamily = "four_bar"\nmode = "kinematic"\n[objective]\n'
+                    'metric = "transmission_angle_min"\ndirection = "maximize"\n[simulation]\nsamples = 90\n')
+    spec = load_study_spec(path)
+    result = robust_evaluation(spec, TOLERANCE, FOUR_BAR.space, [sturdy, fragile], 0,
+                               lambda params, hooks: evaluate_kinematic(FOUR_BAR, params, samples=90),
+                               lambda ev: objective_values(spec, ev))
+    shares = [m["failure_share"] for m in result.metrics]
+    # the oracle: Grashof's condition (the crank shortest, s + l <= p + q) for each scenario's lengths
+    predicted = []
+    for design in (sturdy, fragile):
+        turns = []
+        for scenario in draw(TOLERANCE, spec.seed, 0):
+            n = {k: design[k] + scenario["offsets"][k] for k in ("ground", "crank", "coupler", "rocker")}
+            lengths = sorted(n.values())
+            turns.append(n["crank"] == lengths[0] and lengths[0] + lengths[3] <= lengths[1] + lengths[2])
+        predicted.append(1.0 - np.mean(turns))
+    print(f"failure share: sturdy {shares[0]:.3f}, fragile {shares[1]:.3f} (Grashof: {predicted})")
+    assert shares == predicted
+    assert shares[0] == 0.0 and shares[1] >= 0.1
+    assert result.failures[0] == "" and "scenarios failed" in result.failures[1]
+
+
+def test_world_perturbations_change_the_walkers_spec_as_documented():
+    walker = load_family("walker")
+    spec = walker.build_spec({**walker.space.default(), "legs_per_side": 3})
+    torso = {p.name: p.body for p in spec.points}["torso"]
+    scenario = {"offsets": {}, "friction": 0.5, "payload": 0.3, "slope": 5.0, "speed": 1.2}
+    changed = scenario_hook(scenario)(spec, {})
+    mass = {b.name: b.mass for b in spec.bodies}
+    assert {b.name: b.mass for b in changed.bodies}[torso] == pytest.approx(1.3 * mass[torso])
+    assert sum(b.mass for b in changed.bodies) == pytest.approx(sum(mass.values()) + 0.3 * mass[torso])
+    g = np.linalg.norm(spec.gravity)
+    np.testing.assert_allclose(changed.gravity, [-g * math.sin(math.radians(5)), 0, -g * math.cos(math.radians(5))],
+                               atol=1e-12)
+    assert changed.ground.friction == pytest.approx(0.5 * spec.ground.friction)
+    speeds = [(a.drive.target_velocity, b.drive.target_velocity) for a, b in zip(spec.joints, changed.joints)
+              if a.drive is not None]
+    assert speeds and all(b == pytest.approx(1.2 * a) for a, b in speeds)
+    assert spec.gravity[0] == 0.0  # the original is untouched
+
+
+ROBUST = """[study]
+name = "robust"
+family = "jansen_leg"
+mode = "kinematic"
+seed = 0
+generations = 2
+worlds = 8
+device = "cpu"
+[objective]
+metric = "foot_stride"
+direction = "maximize"
+[simulation]
+samples = 90
+[fixed]
+m = 0.015
+[robustness]
+samples = 3
+aggregate = "{aggregate}"
+level = 0.5
+max_failure_share = 1.0
+store_scenarios = true
+[robustness.parameters]
+a = {{ normal = [0.0, 0.0002] }}
+"""
+
+
+def test_a_kinematic_robust_study_stores_the_aggregate_and_the_nominal_metrics(tmp_path):
+    path = tmp_path / "robust.toml"
+    path.write_text(ROBUST.format(aggregate="worst"))
+    spec = load_study_spec(path)
+    run_study(spec, progress=False)
+    frame = read_designs(spec.storage_url, spec.name)
+    assert len(frame) == 16
+    ok = frame[frame.failure == ""]
+    assert len(ok)
+    scenarios = ok[[f"metric_foot_stride_s{k}" for k in range(3)]].to_numpy()
+    worst = np.nanmin(scenarios, axis=1)  # the least stride of the scenarios that turned
+    np.testing.assert_allclose(ok["metric_foot_stride_worst"].to_numpy(), worst)
+    np.testing.assert_allclose(ok["value"].to_numpy(), worst)  # the stored value is the aggregate (natural sign)
+    assert ok["metric_foot_stride"].notna().all()  # and the nominal metric beside it
+
+
+@pytest.mark.parametrize("table, error", [
+    ("[robustness]\nsamples = 0\n", "'robustness.samples' must be an integer in 1 .. 1024"),
+    ("[robustness]\nsamples = 4\naggregate = \"median\"\n", "'robustness.aggregate' must be one of"),
+    ("[robustness]\nsamples = 4\n[robustness.parameters]\nzz = { normal = [0, 1] }\n",
+     "'robustness.parameters.zz' is not a design parameter"),
+    ("[robustness]\nsamples = 4\nslope = { uniform = [-5.0, 5.0] }\n", "perturbs the simulated world"),
+    ("[robustness]\nsamples = 4\n[robustness.parameters]\na = { normal = [0, -1] }\n", "std >= 0"),
+    ("[robustness]\nsamples = 4\nlevel = 1.5\n", "'robustness.level' must be in"),
+])
+def test_the_robustness_table_is_checked_before_any_work(tmp_path, table, error):
+    path = tmp_path / "q.toml"
+    path.write_text(ROBUST.split("[robustness]")[0].format() + table)
+    with pytest.raises(ValueError, match=error.replace("(", r"\(").replace(".", r"\.")):
+        load_study_spec(path)
