@@ -61,14 +61,17 @@ class _Worker:
         """Tests: keep this worker busy (a hung GPU, a swapping node)."""
         time.sleep(seconds)
 
-    def evaluate(self, params: list):
-        """(metrics, failures, timings, plan text) of one shard."""
+    def evaluate(self, params: list, scenarios: list | None = None):
+        """(metrics, failures, timings, plan text) of one shard; scenarios: per design a robust
+        study's scenario (morphopt.robust) or None."""
         from morphopt.evaluate import evaluate_dynamic, evaluate_kinematic
+        from morphopt.robust import scenario_hooks
 
         if self.mode == "kinematic":
             result = evaluate_kinematic(self.family, params, **self.kwargs)
         else:
-            result = evaluate_dynamic(self.family, params, **self.kwargs)
+            hook = scenario_hooks(params, scenarios) if scenarios is not None else None
+            result = evaluate_dynamic(self.family, params, spec_hook=hook, **self.kwargs)
         return result.metrics, result.failures, result.timings, None if result.plan is None else str(result.plan)
 
 
@@ -128,6 +131,7 @@ class ClusterEvaluator:
         self.shard_timeout = float(shard_timeout)
         self.generation = 0
         self.kill_hook = _test_hook("MORPHOPT_TEST_KILL_WORKER")
+        self._scenarios = None  # the generation's per-design robust scenarios (evaluate)
         self.categorical = [n for n, p in space.parameters.items() if not _numeric(p)]
 
     def _new_actor(self):
@@ -142,17 +146,19 @@ class ClusterEvaluator:
         self.actors[slot] = self._new_actor()
         self.stats[slot].replaced += 1
 
-    def evaluate(self, params: list) -> Evaluation:
-        """Every design of ``params`` evaluated on the workers, results in the order of ``params``."""
+    def evaluate(self, params: list, scenarios: list | None = None) -> Evaluation:
+        """Every design of ``params`` evaluated on the workers, results in the order of ``params``;
+        scenarios: per design a robust study's scenario or None (morphopt.robust)."""
         ray = self.ray
         parts = shards(params, self.workers, self.categorical)
         pending = {}  # future -> (shard, slot, started)
         stall = _test_hook("MORPHOPT_TEST_STALL_WORKER")
         if stall and stall[0] == self.generation:  # tests: a worker that hangs before its shard
             self.actors[stall[1] % self.workers].stall.remote(3600.0)
+        self._scenarios = scenarios
         for k, part in enumerate(parts):
             slot = k % self.workers
-            pending[self.actors[slot].evaluate.remote([params[i] for i in part])] = (k, slot, time.perf_counter())
+            pending[self._resubmit(part, params, slot)] = (k, slot, time.perf_counter())
         if self.kill_hook and self.kill_hook[0] == self.generation:  # tests: a worker's process killed mid-shard
             victim = self.kill_hook[1] % self.workers
             os.kill(ray.get(self.actors[victim].pid.remote()), signal.SIGKILL)
@@ -189,7 +195,8 @@ class ClusterEvaluator:
         return _gathered(params, parts, done)
 
     def _resubmit(self, part, params, slot):
-        return self.actors[slot].evaluate.remote([params[i] for i in part])
+        scenarios = None if self._scenarios is None else [self._scenarios[i] for i in part]
+        return self.actors[slot].evaluate.remote([params[i] for i in part], scenarios)
 
     def _timeout(self, durations: list) -> float:
         if self.shard_timeout > 0:

@@ -7,7 +7,8 @@ bounds), and for dynamic studies a multiplier of the ground's friction coefficie
 coefficient is the geometric mean of its shape's and the ground's), a payload (the fraction of the
 mass added to the body of the tracked point "torso", or of the first body), a ground slope (the
 gravity turned about y: positive is uphill towards +x) and a multiplier of every drive's target
-speed. The batch holds each design's nominal world and its K scenarios next to each other; the
+speed. The batch holds each design's nominal world and its K scenarios next to each other (on a
+cluster, shards of it: the scenarios travel as data and each worker applies its own); the
 study's value is an aggregate of the objective over the scenarios that did not fail (mean, std,
 quantile, CVaR, worst), a design fails when more than max_failure_share of its scenarios fail,
 and the nominal metrics are stored with the aggregates (per-scenario values on request).
@@ -23,7 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Aggregate", "Distribution", "Robustness", "aggregate", "draw", "expand", "robust_evaluation"]
+__all__ = ["Aggregate", "Distribution", "Robustness", "aggregate", "draw", "expand", "robust_evaluation", "scenario_hook",
+           "scenario_hooks"]
 
 
 class Aggregate(enum.Enum):
@@ -100,6 +102,13 @@ def expand(params: list, scenarios: list, space) -> list:
     return out
 
 
+def scenario_hooks(params: list, scenarios: list):
+    """One spec_hook for a batch: each world's scenario (scenarios[i] for params[i]; None: nominal)
+    applied to its spec, found by the identity of its params dict."""
+    by_world = {id(p): scenario_hook(s) for p, s in zip(params, scenarios) if s is not None}
+    return lambda spec, p: by_world[id(p)](spec, p) if id(p) in by_world else spec
+
+
 def scenario_hook(scenario: dict):
     """spec_hook(spec, params) applying a scenario's world perturbations to a built MechanismSpec."""
     def hook(spec, params):
@@ -145,8 +154,9 @@ def aggregate(values: np.ndarray, failed: np.ndarray, kind: Aggregate, level: fl
 
 
 def robust_evaluation(spec, robust: Robustness, space, params: list, generation: int, evaluate, values_of):
-    """Evaluate every design of ``params`` over its scenarios: evaluate(params, hooks) runs one batch
-    (hooks: per params entry a spec_hook or None) and values_of(evaluation) gives the minimized
+    """Evaluate every design of ``params`` over its scenarios: evaluate(params, scenarios) runs one
+    batch (scenarios: per params entry its scenario dict, or None for a nominal world; scenario_hook
+    applies one to a built spec) and values_of(evaluation) gives the minimized
     objective per world. Returns an Evaluation of the designs: the nominal world's metrics plus
     <metric>_<aggregate>, failure_share (and <metric>_s<k> per scenario where store_scenarios), the
     aggregate under "robust_value", and the failures (a design whose nominal world fails, or more
@@ -156,8 +166,8 @@ def robust_evaluation(spec, robust: Robustness, space, params: list, generation:
     scenarios = draw(robust, spec.seed, generation)
     K = len(scenarios)
     batch = expand(params, scenarios, space)
-    hooks = [None if k == 0 else scenario_hook(scenarios[k - 1]) for _ in params for k in range(K + 1)]
-    evaluation = evaluate(batch, hooks)
+    per_world = [None if k == 0 else scenarios[k - 1] for _ in params for k in range(K + 1)]
+    evaluation = evaluate(batch, per_world)
     values = np.asarray(values_of(evaluation), float).reshape(len(params), K + 1)
     failures = np.asarray(evaluation.failures, dtype=object).reshape(len(params), K + 1)
     metrics, reasons = [], []

@@ -30,7 +30,7 @@ from morphopt.evaluate import evaluate_dynamic, evaluate_kinematic
 from morphopt.families import load_family
 from morphopt.metrics import path_error
 from morphopt.optimizers import CMAES, OptunaSampler, RandomSearch
-from morphopt.robust import robust_evaluation
+from morphopt.robust import robust_evaluation, scenario_hooks
 from morphopt import checkpoint
 from morphopt.storage import StudyStorage, storage_exists
 from morphopt.study_spec import StudySpec, check_family_contract
@@ -390,16 +390,18 @@ def _world_values(spec: StudySpec, evaluation) -> np.ndarray:
     return objective_values(spec, evaluation)
 
 
-def _batch_evaluator(spec: StudySpec, family, steps):
-    """evaluate(params, hooks): one batch of a robust study, each world with its own spec hook."""
-    def evaluate(params, hooks):
+def _batch_evaluator(spec: StudySpec, family, steps, cluster):
+    """evaluate(params, scenarios): one batch of a robust study, each world with its scenario (or
+    None), here or on the cluster."""
+    def evaluate(params, scenarios):
+        if cluster is not None:
+            return cluster.evaluate(params, scenarios)
         if spec.mode == "kinematic":
             return evaluate_kinematic(family, params, samples=spec.samples, device=spec.device,
                                       keep_paths=any(o.metric == "path_error" for o in spec.objectives))
-        by_world = {id(p): h for p, h in zip(params, hooks) if h is not None}
         return evaluate_dynamic(family, params, duration=spec.duration, dt=spec.dt, device=spec.device,
                                 crank_speed=spec.crank_speed, config=spec.solver_config(),
-                                spec_hook=lambda s, p: by_world[id(p)](s, p) if id(p) in by_world else s,
+                                spec_hook=scenario_hooks(params, scenarios),
                                 progress=steps.report if steps.shown else None)
     return evaluate
 
@@ -429,7 +431,7 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
     announce_compile(Kernels.KINEMATIC if spec.mode == "kinematic" else Kernels.DYNAMIC, spec.device)
     bar = tqdm(total=spec.generations, initial=start, desc=spec.name, unit="gen", disable=not progress)
     steps = _SimulationBar(spec.mode == "dynamic" and progress)
-    batch = _batch_evaluator(spec, family, steps) if robust is not None else None
+    batch = _batch_evaluator(spec, family, steps, cluster) if robust is not None else None
     try:  # the bar ends its line before any error is printed
         for generation in range(start, spec.generations):
             if storage.lease_lost:  # the heartbeat found another writer: compute nothing it cannot store

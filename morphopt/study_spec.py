@@ -521,9 +521,8 @@ def check_family_contract(spec: StudySpec, family, where: str | None = None) -> 
     where = where or str(spec.path)
     if spec.robustness:
         spec.robust(family, where)  # its keys, distributions and parameter names
-        if spec.multi_objective or spec.cluster:
-            raise ValueError(f"{where}: 'robustness' takes one objective and no [cluster] (yet): its aggregate is the "
-                             f"study's value, and its scenarios' spec hooks run in this process")
+        if spec.multi_objective:
+            raise ValueError(f"{where}: 'robustness' takes one objective: its aggregate is the study's value")
     try:
         given = family_metrics(family, spec.design_space(family), spec.fixed, spec.mode, spec.crank_speed)
     except ValueError as exc:

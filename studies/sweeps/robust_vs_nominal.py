@@ -33,7 +33,7 @@ import numpy as np
 from morphopt.evaluate import evaluate_dynamic, evaluate_kinematic
 from morphopt.families import load_family
 from morphopt.metrics import path_error
-from morphopt.robust import Distribution, Robustness, draw, expand, scenario_hook
+from morphopt.robust import Distribution, Robustness, draw, expand, scenario_hooks
 from morphopt.study import run_study
 from morphopt.study_spec import load_study_spec
 
@@ -149,9 +149,8 @@ judge = Robustness(samples=JUDGE, slope=Distribution("uniform", low=-5.0, high=5
                    friction=Distribution("uniform", low=0.7, high=1.2))
 scenarios = draw(judge, seed=2024, generation=0)
 batch = expand([walker_nominal, walker_robust], scenarios, walker.space)
-hooks = {id(p): scenario_hook(s) for p, s in zip(batch, [None, *scenarios] * 2) if s is not None}
 evaluation = evaluate_dynamic(walker, batch, duration=seconds, dt=0.005, device=DEVICE,
-                              spec_hook=lambda spec, p: hooks[id(p)](spec, p) if id(p) in hooks else spec)
+                              spec_hook=scenario_hooks(batch, [None, *scenarios] * 2))
 speeds = np.array([m.get("walking_speed", np.nan) if not f else np.nan
                    for m, f in zip(evaluation.metrics, evaluation.failures)]).reshape(2, JUDGE + 1)
 fig, ax = plt.subplots(figsize=(6, 4))

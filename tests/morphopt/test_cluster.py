@@ -116,6 +116,24 @@ def test_two_workers_store_the_single_process_study(tmp_path, text, capfd):
     assert "worker 1:" in capfd.readouterr().err
 
 
+def test_a_robust_dynamic_study_on_two_workers_stores_the_single_process_study(tmp_path):
+    """Scenarios travel to the workers as data (morphopt.robust.scenario_hooks there): the same
+    aggregates and failures as in one process."""
+    robust = DYNAMIC + """[robustness]
+samples = 2
+aggregate = "worst"
+max_failure_share = 0.5
+slope = {{ uniform = [-5.0, 5.0] }}
+payload = {{ uniform = [0.0, 0.3] }}
+"""
+    alone = study(tmp_path, robust, "alone", generations=2)
+    run_study(alone, progress=False)
+    spread = study(tmp_path, robust, "spread", generations=2, cluster="local", workers=2)
+    run_study(spread, progress=False)
+    assert_same_study(alone, spread)
+    assert "metric_walking_speed_worst" in stored(spread).columns
+
+
 def test_a_worker_killed_mid_generation_leaves_the_study_complete_and_identical(tmp_path, monkeypatch, capfd):
     alone = study(tmp_path, KINEMATIC, "alone")
     run_study(alone, progress=False)
