@@ -26,6 +26,7 @@ __all__ = ["ClusterEvaluator", "WorkerStats", "shards"]
 
 SHARD_TIMEOUT_MIN = 60.0  # [s] the least a shard is waited for (compiling kernels takes tens of seconds)
 SHARD_TIMEOUT_FACTOR = 10.0  # a shard slower than this many times the generation's median is re-run elsewhere
+SHARD_ATTEMPTS = 3  # a shard whose worker died or stalled this many times stops the study (a design that kills it)
 
 
 def _ray():
@@ -103,6 +104,14 @@ class ClusterEvaluator:
         self.ray, self.spec, self.log = ray, spec, log or (lambda line: print(line, file=sys.stderr))
         cuda = spec.device.startswith("cuda")
         self._started = False
+        try:
+            self._start(ray, spec, space, address, workers, shard_timeout, cuda)
+        except BaseException:
+            if self._started:  # a Ray instance this evaluator started does not outlive its failure
+                ray.shutdown()
+            raise
+
+    def _start(self, ray, spec, space, address, workers, shard_timeout, cuda) -> None:
         if not ray.is_initialized():
             if address == "local":
                 cpus = max(1, workers or os.cpu_count() or 1)
@@ -116,10 +125,14 @@ class ClusterEvaluator:
         if workers <= 0:
             raise ValueError(f"{spec.path}: 'study.device' is {spec.device!r} but the Ray cluster at {address!r} "
                              f"has no GPU")
+        have = int(resources.get("GPU", 0)) if cuda else int(resources.get("CPU", 1))
+        if workers > have:  # an actor that can never be placed would time out and be replaced forever
+            raise ValueError(f"{spec.path}: {workers} workers asked for, the Ray cluster at {address!r} has "
+                             f"{have} {'GPUs' if cuda else 'CPUs'}")
         self.workers = workers
-        self.cpus = 0 if cuda else max(1, int(resources.get("CPU", 1)) // workers)
-        if spec.mode == "kinematic":
-            kwargs = dict(samples=spec.samples, device=spec.device,
+        self.cpus = 0 if cuda else max(1, have // workers)
+        if spec.mode == "kinematic":  # (an actor sees its one GPU as cuda:0)
+            kwargs = dict(samples=spec.samples, device="cuda" if cuda else spec.device,
                           keep_paths=any(o.metric == "path_error" for o in spec.objectives))
         else:
             kwargs = dict(duration=spec.duration, dt=spec.dt, device="cuda" if cuda else spec.device,
@@ -131,7 +144,11 @@ class ClusterEvaluator:
         self.shard_timeout = float(shard_timeout)
         self.generation = 0
         self.kill_hook = _test_hook("MORPHOPT_TEST_KILL_WORKER")
+        # the actors' process ids, read while they are idle (tests: the kill hook kills mid-shard)
+        self._pids = ray.get([a.pid.remote() for a in self.actors]) if self.kill_hook else []
         self._scenarios = None  # the generation's per-design robust scenarios (evaluate)
+        self.last = None  # the last generation's per-worker rows (worker, designs, seconds, failures, replaced)
+        self._fresh = set(range(workers))  # slots whose actor has not returned a shard yet (compiling)
         self.categorical = [n for n, p in space.parameters.items() if not _numeric(p)]
 
     def _new_actor(self):
@@ -145,6 +162,7 @@ class ClusterEvaluator:
             pass
         self.actors[slot] = self._new_actor()
         self.stats[slot].replaced += 1
+        self._fresh.add(slot)
 
     def evaluate(self, params: list, scenarios: list | None = None) -> Evaluation:
         """Every design of ``params`` evaluated on the workers, results in the order of ``params``;
@@ -161,18 +179,24 @@ class ClusterEvaluator:
             pending[self._resubmit(part, params, slot)] = (k, slot, time.perf_counter())
         if self.kill_hook and self.kill_hook[0] == self.generation:  # tests: a worker's process killed mid-shard
             victim = self.kill_hook[1] % self.workers
-            os.kill(ray.get(self.actors[victim].pid.remote()), signal.SIGKILL)
+            os.kill(self._pids[victim], signal.SIGKILL)
         done, durations = {}, []
+        attempts = [1] * len(parts)
         before = [(s.designs, s.seconds, s.failures, s.replaced) for s in self.stats]
         while pending:
-            timeout = self._timeout(durations)
-            ready, _ = ray.wait(list(pending), num_returns=1, timeout=timeout)
-            if not ready:  # the slowest shards: re-run elsewhere, their workers replaced
+            warm = self._timeout(durations)
+            limits = {f: (10 * SHARD_TIMEOUT_MIN if slot in self._fresh and self.shard_timeout <= 0 else warm)
+                      for f, (_, slot, _) in pending.items()}  # a fresh worker compiles first
+            now = time.perf_counter()
+            wait = max(0.0, min(started + limits[f] - now for f, (_, _, started) in pending.items()))
+            ready, _ = ray.wait(list(pending), num_returns=1, timeout=wait)
+            if not ready:  # the shards past their time: re-run elsewhere, their workers replaced
                 now = time.perf_counter()
                 for future, (k, slot, started) in list(pending.items()):
-                    if now - started >= timeout:
+                    if now - started >= limits[future]:
                         del pending[future]
-                        self._replace(slot, f"did not return shard {k} within {timeout:.0f} s")
+                        self._again(k, attempts, f"did not return shard {k} within {limits[future]:.0f} s")
+                        self._replace(slot, f"did not return shard {k} within {limits[future]:.0f} s")
                         pending[self._resubmit(parts[k], params, slot)] = (k, slot, time.perf_counter())
                 continue
             future = ready[0]
@@ -180,11 +204,14 @@ class ClusterEvaluator:
             try:
                 done[k] = ray.get(future)
             except (ray.exceptions.RayActorError, ray.exceptions.WorkerCrashedError) as exc:
+                self._again(k, attempts, f"died during shard {k} ({type(exc).__name__})")
                 self._replace(slot, f"died during shard {k} ({type(exc).__name__})")
                 pending[self._resubmit(parts[k], params, slot)] = (k, slot, time.perf_counter())
                 continue
             spent = time.perf_counter() - started
-            durations.append(spent)
+            if slot not in self._fresh:
+                durations.append(spent)  # (a fresh worker's shard includes its compilation)
+            self._fresh.discard(slot)
             stats = self.stats[slot]
             stats.designs += len(parts[k])
             stats.seconds += spent
@@ -194,6 +221,13 @@ class ClusterEvaluator:
                      for k, (s, b) in enumerate(zip(self.stats, before))]  # this generation's, per worker
         return _gathered(params, parts, done)
 
+    def _again(self, k: int, attempts: list, why: str) -> None:
+        """Count another attempt of shard k; ValueError once it has had SHARD_ATTEMPTS."""
+        if attempts[k] >= SHARD_ATTEMPTS:
+            raise ValueError(f"{self.spec.name}: shard {k} failed {attempts[k]} times on fresh workers (last: {why}); "
+                             f"a design in it may crash its worker: run the generation in one process to see which")
+        attempts[k] += 1
+
     def _resubmit(self, part, params, slot):
         scenarios = None if self._scenarios is None else [self._scenarios[i] for i in part]
         return self.actors[slot].evaluate.remote([params[i] for i in part], scenarios)
@@ -202,7 +236,7 @@ class ClusterEvaluator:
         if self.shard_timeout > 0:
             return self.shard_timeout
         if not durations:
-            return 10 * SHARD_TIMEOUT_MIN  # the first shards compile the kernels
+            return 10 * SHARD_TIMEOUT_MIN  # no warm shard measured yet
         return max(SHARD_TIMEOUT_MIN, SHARD_TIMEOUT_FACTOR * float(np.median(durations)))
 
     def report(self) -> str:
@@ -229,7 +263,8 @@ def _numeric(parameter) -> bool:
 
 def _gathered(params: list, parts: list, done: dict) -> Evaluation:
     """The shards' results in the order of ``params``: metrics and failures by index, the stages'
-    seconds summed over the shards (worker time), the first shard's plan."""
+    seconds summed over the shards (worker-seconds, more than the generation's wall time when the
+    workers run at once), the first shard's plan."""
     metrics, failures = [None] * len(params), [""] * len(params)
     timings = {}
     plan = None

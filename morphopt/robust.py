@@ -186,7 +186,7 @@ def robust_evaluation(spec, robust: Robustness, space, params: list, generation:
             for k in range(K):
                 m[f"{name}_s{k}"] = sign * values[d, 1 + k] if not failed[k] else math.nan
         reason = failures[d, 0]
-        if not reason and share > robust.max_failure_share:
+        if not reason and (share > robust.max_failure_share or share == 1.0):
             first = next(f for f in failures[d, 1:] if f)
             reason = f"{int(failed.sum())} of {K} scenarios failed (more than {robust.max_failure_share:g}): {first}"
         metrics.append(m)
@@ -251,8 +251,8 @@ def robustness_from_table(table: dict, where: str, parameter_names, dynamic: boo
         raise ValueError(f"{where}: 'robustness.parameters' must be a table of design parameters")
     for name in parameters:
         if name not in parameter_names:
-            raise ValueError(f"{where}: 'robustness.parameters.{name}' is not a design parameter of the study; "
-                             f"expected one of {sorted(parameter_names)}")
+            raise ValueError(f"{where}: 'robustness.parameters.{name}' is not a numeric design parameter of the "
+                             f"study (a tolerance is added to it); expected one of {sorted(parameter_names)}")
     world = {key: _distribution(table[key], key, where) for key in WORLD if key in table}
     if world and not dynamic:
         raise ValueError(f"{where}: 'robustness.{sorted(world)[0]}' perturbs the simulated world: a dynamic study's "

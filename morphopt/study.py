@@ -418,8 +418,10 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
         if info["designs"] or info["checkpoint"]:
             archive = storage.archive_name()
     sign = -1.0 if spec.direction == "maximize" else 1.0
-    evaluating = outside = compiling = 0.0
     robust = spec.robust(family)
+    if robust is not None and robust.aggregate.value in ("std", "failure_share"):
+        sign = 1.0  # a spread or a share is minimized and stored as it is, whatever the metric's direction
+    evaluating = outside = compiling = 0.0
     cluster = None
     if spec.cluster:
         from morphopt.cluster import ClusterEvaluator

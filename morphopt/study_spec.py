@@ -224,8 +224,10 @@ class StudySpec:
             return None
         from morphopt.robust import robustness_from_table
 
-        return robustness_from_table(self.robustness, where or str(self.path), set(self.design_space(family).names),
-                                     self.mode == "dynamic")
+        from morphopt.design_space import Float
+
+        numeric = {n for n, p in self.design_space(family).parameters.items() if isinstance(p, (Float, Int))}
+        return robustness_from_table(self.robustness, where or str(self.path), numeric, self.mode == "dynamic")
 
     def design_space(self, family) -> DesignSpace:
 
@@ -494,8 +496,11 @@ def _check_work(spec: StudySpec, where: str) -> None:
     if spec.generations * spec.worlds > MAX_DESIGNS:
         raise ValueError(f"{where}: 'study.generations' x 'study.worlds' ({spec.generations} x {spec.worlds}) must be at "
                          f"most {MAX_DESIGNS:.0e} designs: every design is a row of the study database")
-    if spec.mode == "kinematic" and spec.worlds * spec.samples > MAX_SAMPLED:
-        raise ValueError(f"{where}: 'simulation.samples' x 'study.worlds' ({spec.samples} x {spec.worlds}) must be at "
+    # a robust study's batch holds every design's nominal world and its scenarios
+    scenarios = spec.robustness.get("samples", 0) if isinstance(spec.robustness.get("samples"), int) else 0
+    worlds = spec.worlds * (1 + max(0, scenarios))
+    if spec.mode == "kinematic" and worlds * spec.samples > MAX_SAMPLED:
+        raise ValueError(f"{where}: 'simulation.samples' x 'study.worlds' ({spec.samples} x {worlds}) must be at "
                          f"most {MAX_SAMPLED:.0e}: every sample of a generation's crank turns is held in memory "
                          f"(28 bytes, and 16 per tracked point)")
     if spec.mode == "dynamic":
@@ -504,9 +509,10 @@ def _check_work(spec: StudySpec, where: str) -> None:
             raise ValueError(f"{where}: 'simulation.duration' / 'simulation.dt' ({spec.duration:g} s / {spec.dt:g} s = "
                              f"{steps:.3g} steps) must be at most {MAX_STEPS:.0e} steps: every world of a generation "
                              f"takes them all")
-        records = steps / RECORD_EVERY * spec.worlds
+        records = steps / RECORD_EVERY * worlds
         if records > MAX_RECORDS:
-            raise ValueError(f"{where}: 'simulation.duration' / 'simulation.dt' x 'study.worlds' / {RECORD_EVERY} "
+            raise ValueError(f"{where}: 'simulation.duration' / 'simulation.dt' x 'study.worlds'"
+                             f"{' x (1 + robustness.samples)' if scenarios else ''} / {RECORD_EVERY} "
                              f"({records:.3g} recorded world-steps) must be at most {MAX_RECORDS:.0e}: a generation's "
                              f"records are held in memory (~0.6 KB each for a walker); shorten the run, or use "
                              f"fewer worlds or a larger dt")

@@ -306,12 +306,18 @@ def canonical(key: tuple, x0: np.ndarray, q0: float, what: str) -> tuple:
     planar = _Planar(K, ja, jb, np.array(ra).reshape(-1, 2), np.array(rb).reshape(-1, 2), drive, sign,
                      math.atan2(turn[1], turn[0]))
     x, ok = planar.newton(np.asarray(x0, float)[None], np.array([q0]))
+    if not ok.all():
+        raise ValueError(f"{what}: its start does not close the loop at its table's geometry")
     ts, xs = _continue_turn(planar, x[0], q0, what)
     i = int(np.argmin(np.abs(ts - (-q0) % _TWO_PI)))
     guess = xs[i].copy()
     guess[2::3] = wrap(guess[2::3])
     guess[3 * drive + 2] = planar.offset
     x, ok = planar.newton(guess[None], np.array([0.0]))
+    if not ok.all():
+        raise ValueError(f"{what}: the loop-closure equations do not converge at its coordinate's zero")
+    for _ in range(2):  # to the last bits: starts on one branch then round alike
+        x = x + np.linalg.solve(planar.jacobian(x), -planar.residual(x, np.array([0.0]))[..., None])[..., 0]
     start = np.round(x[0], 9)
     start[2::3] = wrap(start[2::3])
     start[3 * drive + 2] = planar.offset
@@ -328,8 +334,14 @@ def cached_table(key: tuple, planar: _Planar, x0: np.ndarray, q0: float, samples
         diff[2::3] = wrap(diff[2::3])
         if np.abs(diff).max() < START_TOLERANCE:
             return table
-    planar, x0, contact = canonical(key, x0, q0, what)
-    table = tabulate_sub_chain(planar, x0, 0.0, samples, contact, what, key)
+    planar, start, contact = canonical(key, x0, q0, what)
+    table = tabulate_sub_chain(planar, start, 0.0, samples, contact, what, key)
+    links, _ = table.at(q0)
+    diff = links.reshape(-1) - x0
+    diff[2::3] = wrap(diff[2::3])
+    if np.abs(diff).max() >= START_TOLERANCE:  # (never seen: the canonical start is x0's branch)
+        raise ValueError(f"{what}: its table's pose at its start is {np.abs(diff).max():.3g} (unit scale) from the "
+                         f"spec's")
     if key not in _TABLES and len(_TABLES) >= TABLE_CACHE:
         _TABLES.pop(next(iter(_TABLES)))
     _TABLES.setdefault(key, []).append(table)

@@ -145,7 +145,7 @@ def test_a_kinematic_robust_study_stores_the_aggregate_and_the_nominal_metrics(t
     ("[robustness]\nsamples = 0\n", "'robustness.samples' must be an integer in 1 .. 1024"),
     ("[robustness]\nsamples = 4\naggregate = \"median\"\n", "'robustness.aggregate' must be one of"),
     ("[robustness]\nsamples = 4\n[robustness.parameters]\nzz = { normal = [0, 1] }\n",
-     "'robustness.parameters.zz' is not a design parameter"),
+     "'robustness.parameters.zz' is not a numeric design parameter"),
     ("[robustness]\nsamples = 4\nslope = { uniform = [-5.0, 5.0] }\n", "perturbs the simulated world"),
     ("[robustness]\nsamples = 4\n[robustness.parameters]\na = { normal = [0, -1] }\n", "std >= 0"),
     ("[robustness]\nsamples = 4\nlevel = 1.5\n", "'robustness.level' must be in"),
@@ -155,3 +155,41 @@ def test_the_robustness_table_is_checked_before_any_work(tmp_path, table, error)
     path.write_text(ROBUST.split("[robustness]")[0].format() + table)
     with pytest.raises(ValueError, match=error.replace("(", r"\(").replace(".", r"\.")):
         load_study_spec(path)
+
+
+def test_a_categorical_parameter_takes_no_tolerance_and_a_spread_is_stored_as_it_is(tmp_path):
+    """leg_family (a choice) is refused as a tolerance; a maximized study whose aggregate is the
+    scenarios' standard deviation stores and minimizes it as it is (not negated)."""
+    walker = """[study]
+name = "w"
+family = "walker"
+mode = "dynamic"
+seed = 0
+generations = 1
+worlds = 4
+device = "cpu"
+[objective]
+metric = "walking_speed"
+direction = "maximize"
+[simulation]
+duration = 1.3
+dt = 0.005
+[fixed]
+legs_per_side = 3
+[robustness]
+samples = 2
+aggregate = "std"
+max_failure_share = 1.0
+payload = { uniform = [0.0, 0.3] }
+"""
+    path = tmp_path / "w.toml"
+    path.write_text(walker + "[robustness.parameters]\nleg_family = { normal = [0, 1] }\n")
+    with pytest.raises(ValueError, match="'robustness.parameters.leg_family' is not a numeric design parameter"):
+        load_study_spec(path)
+    path.write_text(walker)
+    spec = load_study_spec(path)
+    run_study(spec, progress=False)
+    frame = read_designs(spec.storage_url, spec.name)
+    ok = frame[frame.failure == ""]
+    assert len(ok) and (ok["value"] >= 0.0).all()
+    np.testing.assert_allclose(ok["value"].to_numpy(), ok["metric_walking_speed_std"].to_numpy())
