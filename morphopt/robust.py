@@ -6,13 +6,13 @@ offsets of design parameters (manufacturing tolerances, in the parameters' units
 bounds), and for dynamic studies a multiplier of the ground's friction coefficient (a contact's
 coefficient is the geometric mean of its shape's and the ground's), a payload (the fraction of the
 mass added to the body of the tracked point "torso", or of the first body), a ground slope (the
-gravity turned about y: positive is uphill towards +x) and a multiplier of every drive's target
-speed. The batch holds each design's nominal world and its K scenarios next to each other (on a
+gravity turned about y: positive is uphill towards +x), a multiplier of every drive's target
+speed and radial play in named revolute joints (with_clearance: the clearance-link model). The batch holds each design's nominal world and its K scenarios next to each other (on a
 cluster, shards of it: the scenarios travel as data and each worker applies its own); the
 study's value is an aggregate of the objective over the scenarios that did not fail (mean, std,
 quantile, CVaR, worst), a design fails when more than max_failure_share of its scenarios fail,
 and the nominal metrics are stored with the aggregates (per-scenario values on request).
-Joint clearance and rough ground are not modelled: the engine's grounds are planes.
+Rough ground is not modelled: the engine's grounds are planes.
 """
 
 from __future__ import annotations
@@ -50,6 +50,7 @@ class Distribution:
     high: float = math.inf
 
     def sample(self, rng: np.random.Generator, count: int) -> np.ndarray:
+        """``count`` draws from ``rng``."""
         if self.kind == "uniform":
             return rng.uniform(self.low, self.high, count)
         return np.clip(rng.normal(self.mean, self.std, count), self.low, self.high)
@@ -69,6 +70,7 @@ class Robustness:
     slope: Distribution | None = None  # [deg]
     speed: Distribution | None = None  # multiplier of the drives' target speeds
     store_scenarios: bool = False
+    clearance: tuple | None = None  # (joint names, radius [m]): play in those joints (with_clearance)
 
 
 def draw(robust: Robustness, seed: int, generation: int) -> list[dict]:
@@ -79,8 +81,8 @@ def draw(robust: Robustness, seed: int, generation: int) -> list[dict]:
     offsets = {name: d.sample(rng, K) for name, d in sorted(robust.parameters.items())}
     world = {name: (getattr(robust, name).sample(rng, K) if getattr(robust, name) is not None else np.full(K, base))
              for name, base in (("friction", 1.0), ("payload", 0.0), ("slope", 0.0), ("speed", 1.0))}
-    return [{"offsets": {n: float(v[k]) for n, v in offsets.items()}, **{n: float(v[k]) for n, v in world.items()}}
-            for k in range(K)]
+    return [{"offsets": {n: float(v[k]) for n, v in offsets.items()}, **{n: float(v[k]) for n, v in world.items()},
+             "clearance": robust.clearance} for k in range(K)]
 
 
 def expand(params: list, scenarios: list, space) -> list:
@@ -113,6 +115,10 @@ def scenario_hook(scenario: dict):
     """spec_hook(spec, params) applying a scenario's world perturbations to a built MechanismSpec."""
     def hook(spec, params):
         spec = dataclasses.replace(spec)
+        if scenario.get("clearance"):
+            joints, radius = scenario["clearance"]
+            for joint in joints:
+                spec = with_clearance(spec, joint, radius)
         if scenario["friction"] != 1.0 and spec.ground is not None:
             spec.ground = dataclasses.replace(spec.ground, friction=spec.ground.friction * scenario["friction"])
         if scenario["payload"] != 0.0:
@@ -195,7 +201,7 @@ def robust_evaluation(spec, robust: Robustness, space, params: list, generation:
 
 
 WORLD = ("friction", "payload", "slope", "speed")
-TABLE_KEYS = {"samples", "aggregate", "level", "max_failure_share", "store_scenarios", "parameters", *WORLD}
+TABLE_KEYS = {"samples", "aggregate", "level", "max_failure_share", "store_scenarios", "parameters", "clearance", *WORLD}
 
 
 def _distribution(value, key: str, where: str) -> Distribution:
@@ -254,9 +260,63 @@ def robustness_from_table(table: dict, where: str, parameter_names, dynamic: boo
             raise ValueError(f"{where}: 'robustness.parameters.{name}' is not a numeric design parameter of the "
                              f"study (a tolerance is added to it); expected one of {sorted(parameter_names)}")
     world = {key: _distribution(table[key], key, where) for key in WORLD if key in table}
-    if world and not dynamic:
-        raise ValueError(f"{where}: 'robustness.{sorted(world)[0]}' perturbs the simulated world: a dynamic study's "
+    clearance = None
+    if "clearance" in table:
+        value = table["clearance"]
+        joints, radius = (value.get("joints"), value.get("radius")) if isinstance(value, dict) else (None, None)
+        if not (isinstance(value, dict) and set(value) == {"joints", "radius"} and isinstance(joints, list) and joints
+                and all(isinstance(j, str) and j for j in joints) and isinstance(radius, (int, float))
+                and not isinstance(radius, bool) and 0.0 < radius <= 0.01):
+            raise ValueError(f"{where}: 'robustness.clearance' must be {{joints = [\"name\", ...], radius = R}} with "
+                             f"0 < R <= 0.01 m (play in those undriven revolute joints), got {value!r}")
+        clearance = (tuple(joints), float(radius))
+    perturbs = sorted(world) + (["clearance"] if clearance else [])
+    if perturbs and not dynamic:
+        raise ValueError(f"{where}: 'robustness.{perturbs[0]}' perturbs the simulated world: a dynamic study's "
                          f"(a kinematic one takes 'robustness.parameters' only)")
     return Robustness(samples, kind, float(level), float(share),
                       {n: _distribution(d, f"parameters.{n}", where) for n, d in parameters.items()},
-                      store_scenarios=store, **world)
+                      store_scenarios=store, clearance=clearance, **world)
+
+
+def with_clearance(spec, joint: str, radius: float, mass_fraction: float = 0.01):
+    """``spec`` with radial play of ``radius`` [m] in its undriven revolute joint ``joint``, by the
+    clearance-link model: the pin's centre is held at ``radius`` from the hole's by a light link
+    (mass_fraction of the child's mass) turning freely about the joint axis at both ends, so the
+    pin rides on the hole's wall and crosses to the opposite wall when the load reverses (the
+    contact-mode model of joint clearance: no free flight, no impact). The link starts across the
+    joint, one radius off: the first step closes that gap."""
+    from engine.reduced.tabulated_layout import matrix_quat
+    from engine.spatial import quat_matrix
+
+    found = [j for j in spec.joints if j.name == joint]
+    if not found:
+        raise ValueError(f"clearance: no joint '{joint}' in mechanism '{spec.name}'")
+    j = found[0]
+    if j.type.name != "REVOLUTE" or j.drive is not None:
+        raise ValueError(f"clearance: joint '{joint}' must be an undriven revolute joint (a drive's angle would "
+                         f"straddle the play)")
+    bodies = {b.name: b for b in spec.bodies}
+    child = bodies[j.child]
+    if j.parent is None:
+        R_p, p_p = np.eye(3), np.zeros(3)
+    else:
+        parent = bodies[j.parent]
+        R_p, p_p = quat_matrix(parent.orientation), np.asarray(parent.position, float)
+    R_anchor = R_p @ quat_matrix(j.parent_orientation)
+    anchor = p_p + R_p @ np.asarray(j.parent_position, float)
+    axis = np.asarray(j.axis, float) / np.linalg.norm(j.axis)
+    side = np.cross(axis, [1.0, 0.0, 0.0])
+    if np.linalg.norm(side) < 1e-6:
+        side = np.cross(axis, [0.0, 1.0, 0.0])
+    side /= np.linalg.norm(side)
+    mass = mass_fraction * child.mass
+    play = dataclasses.replace(child, name=f"{joint}_play", mass=mass, inertia=np.eye(3) * mass * max(radius, 0.01)**2,
+                               com=np.zeros(3), position=anchor, orientation=matrix_quat(R_anchor),
+                               velocity=np.zeros(3), angular_velocity=np.zeros(3))
+    hole = dataclasses.replace(j, name=f"{joint}_hole", child=play.name, child_position=np.zeros(3),
+                               child_orientation=(0.0, 0.0, 0.0, 1.0))
+    pin = dataclasses.replace(j, name=f"{joint}_pin", parent=play.name, parent_position=radius * side,
+                              parent_orientation=(0.0, 0.0, 0.0, 1.0))
+    joints = [x for k in spec.joints for x in ((hole, pin) if k is j else (k,))]
+    return dataclasses.replace(spec, bodies=[*spec.bodies, play], joints=joints)

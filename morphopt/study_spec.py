@@ -526,7 +526,17 @@ def check_family_contract(spec: StudySpec, family, where: str | None = None) -> 
     (``where``, default the spec's path) and the key."""
     where = where or str(spec.path)
     if spec.robustness:
-        spec.robust(family, where)  # its keys, distributions and parameter names
+        robust = spec.robust(family, where)  # its keys, distributions and parameter names
+        if robust.clearance:  # the joints named, on the family's default design
+            from morphopt.build import build_specs
+            from morphopt.robust import with_clearance
+
+            built = build_specs(family, [{**spec.design_space(family).default(), **spec.fixed}], workers=1)[0]
+            for joint in ([] if isinstance(built, str) else robust.clearance[0]):
+                try:
+                    with_clearance(built, joint, robust.clearance[1])
+                except ValueError as exc:
+                    raise ValueError(f"{where}: 'robustness.clearance': {exc}") from None
         if spec.multi_objective:
             raise ValueError(f"{where}: 'robustness' takes one objective: its aggregate is the study's value")
     try:

@@ -4,6 +4,8 @@ fails more often than a sturdy one under the same tolerance; the world perturbat
 walker's spec; a kinematic robust study end to end and the [robustness] table's checks."""
 
 import math
+import pathlib
+import tempfile
 
 import numpy as np
 import pytest
@@ -193,3 +195,72 @@ payload = { uniform = [0.0, 0.3] }
     ok = frame[frame.failure == ""]
     assert len(ok) and (ok["value"] >= 0.0).all()
     np.testing.assert_allclose(ok["value"].to_numpy(), ok["metric_walking_speed_std"].to_numpy())
+
+
+def test_joint_clearance_gives_the_backlash_geometry_predicts():
+    """A four-bar with its crank welded and 0.5 mm of radial play in the coupler-rocker pin
+    (with_clearance), its rocker loaded one way then the other: the rocker turns by the backlash
+    of the first-order estimate 2 c / (L_rocker sin mu), mu the angle between coupler and rocker,
+    within 20 % (measured: within 0.1 %); without the play it does not move."""
+    import dataclasses
+
+    import engine
+    from engine import JointSpring, JointType
+    from engine.scenes import fourbar, fourbar_configuration
+    from morphopt.robust import with_clearance
+
+    c, tau = 5e-4, 0.05
+    results = []
+    for play in (True, False):
+        spec = fourbar().spec
+        crank = {b.name: b for b in spec.bodies}["crank"]
+        spec.gravity = np.zeros(3)
+        spec.bodies = [dataclasses.replace(b, velocity=np.zeros(3), angular_velocity=np.zeros(3)) for b in spec.bodies]
+        spec.joints = [dataclasses.replace(j, type=JointType.FIXED, parent_orientation=crank.orientation)
+                       if j.name == "ground_crank" else j for j in spec.joints]
+        spec.forces = [JointSpring("settle", "ground_rocker", damping=0.02)]
+        if play:
+            spec = with_clearance(spec, "coupler_rocker", c)
+            spec.forces = [*spec.forces, JointSpring("settle_pin", "coupler_rocker_hole", damping=1e-5)]
+        model = engine.pack([spec], device="cpu", dt=1e-3, coordinates="maximal")
+        control = model.control()
+        joint = [j.name for j in spec.joints].index("ground_rocker")
+        rocker = [b.name for b in spec.bodies].index("rocker")
+        a, b = model.state(), model.state()
+        angles = []
+        for load in (tau, -tau):
+            effort = np.zeros(control.joint_effort.shape, np.float32)
+            effort[0, joint] = load
+            control.joint_effort.assign(effort)
+            for _ in range(5000):
+                engine.step(model, a, b, control)
+                a, b = b, a
+            q = a.body_q.numpy()[0, rocker, 3:]
+            angles.append(2.0 * math.atan2(q[1], q[3]))
+        results.append(abs(angles[1] - angles[0]))
+    s = fourbar_configuration(0.30, 0.10, 0.30, 0.25, math.radians(45.0), 0.0)
+    cb, cd = s["C"] - s["B"], s["C"] - s["D"]
+    mu = math.acos(abs(cb @ cd) / (np.linalg.norm(cb) * np.linalg.norm(cd)))
+    expected = 2.0 * c / (0.25 * math.sin(mu))
+    print(f"backlash {results[0]:.6f} rad, first-order estimate {expected:.6f} rad; without play {results[1]:.2e}")
+    assert abs(results[0] - expected) < 0.2 * expected
+    assert results[1] < 0.02 * expected
+
+
+def test_the_clearance_key_is_checked_on_the_familys_default_design():
+    """A clearance joint the family's designs do not have is refused before any work, naming it;
+    a radius past 1 cm is refused; a kinematic study takes no clearance."""
+    text = ROBUST.split("[robustness]")[0].format().replace('mode = "kinematic"', 'mode = "dynamic"')
+    text = text.replace("[simulation]\nsamples = 90", "[simulation]\nduration = 1.0\ndt = 0.001")
+    folder = pathlib.Path(tempfile.mkdtemp())
+    for table, error in (('clearance = { joints = ["nope"], radius = 0.0005 }', "clearance: no joint 'nope'"),
+                         ('clearance = { joints = ["nope"], radius = 0.5 }', "0 < R <= 0.01 m")):
+        path = folder / "c.toml"
+        path.write_text(text + "[robustness]\nsamples = 2\n" + table + "\n")
+        with pytest.raises(ValueError, match=error):
+            load_study_spec(path)
+    kinematic = folder / "k.toml"
+    kinematic.write_text(ROBUST.split("[robustness]")[0].format()
+                         + '[robustness]\nsamples = 2\nclearance = { joints = ["x"], radius = 0.0005 }\n')
+    with pytest.raises(ValueError, match="'robustness.clearance' perturbs the simulated world"):
+        load_study_spec(kinematic)
