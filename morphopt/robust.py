@@ -194,7 +194,8 @@ def robust_evaluation(spec, robust: Robustness, space, params: list, generation:
         reason = failures[d, 0]
         if not reason and (share > robust.max_failure_share or share == 1.0):
             first = next(f for f in failures[d, 1:] if f)
-            reason = f"{int(failed.sum())} of {K} scenarios failed (more than {robust.max_failure_share:g}): {first}"
+            limit = "all of them" if share == 1.0 else f"more than {robust.max_failure_share:g}"
+            reason = f"{int(failed.sum())} of {K} scenarios failed ({limit}): {first}"
         metrics.append(m)
         reasons.append(reason or "")
     return Evaluation(list(params), metrics, reasons, evaluation.timings, evaluation.plan)
