@@ -349,8 +349,9 @@ def _analyse(spec: MechanismSpec) -> _Structure | None:
 
 def _regular(arrays: list, shape: tuple) -> bool:
     """Whether every item is a float64 ndarray of ``shape`` (its dimensions, first length and size;
-    C order is checked where _joined copies the items)."""
-    return (set(map(type, arrays)) <= {np.ndarray} and set(map(id, map(_DTYPE, arrays))) <= {id(_F64)}
+    C order is checked where _joined copies the items). Dtypes compare by value: an unpickled
+    array's (a spec built in a worker process) is an equal float64 dtype but another object."""
+    return (set(map(type, arrays)) <= {np.ndarray} and set(map(_DTYPE, arrays)) <= {_F64}
             and set(map(_NDIM, arrays)) <= {len(shape)} and set(map(len, arrays)) <= {shape[0]}
             and set(map(_SIZE, arrays)) <= {math.prod(shape)})
 

@@ -115,6 +115,25 @@ def test_turned_base_and_a_lone_four_bar_equal_the_item_by_item_analysis():
     _assert_same_layout(_four_bar())
 
 
+def test_specs_from_another_process_take_the_array_path(monkeypatch):
+    """A spec unpickled (built in a worker process: morphopt.build's pool) holds float64 arrays whose
+    dtype is an equal but other object: the array path takes it all the same (before, every such
+    spec went item by item, 6 ms each: 4 s for 1,024 walkers built by a pool of 8), and its layout
+    equals the original's."""
+    import pickle
+
+    specs = [WALKER.build_spec({**WALKER.space.default(), "legs_per_side": 3, "scale": sc}) for sc in (2.5, 3.5)]
+    copies = [pickle.loads(pickle.dumps(spec)) for spec in specs]
+    assert copies[0].bodies[1].com.dtype is not np.dtype(np.float64)  # the condition this guards
+    plain = []
+    original = layout_module._plain
+    monkeypatch.setattr(layout_module, "_plain", lambda spec, samples: plain.append(1) or original(spec, samples))
+    made = layout_module.tabulated_layouts(copies)
+    assert plain == []
+    for spec, layout in zip(specs, made):
+        assert _leaves(layout) == _leaves(tabulated_layout(spec))
+
+
 def test_what_the_array_path_does_not_take_goes_item_by_item():
     """A strided array in the spec: the array path steps aside, the layout is _plain_layout's. A
     refused spec: the same error as _plain_layout's."""
