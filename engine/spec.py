@@ -732,7 +732,7 @@ def _column(values: list):
         layouts = {(a.dtype.str, a.shape, a.strides, a.flags.c_contiguous) for a in values}
         if len(layouts) == 1:
             dtype, shape, strides, contiguous = layouts.pop()
-            if dtype == "<f8" and contiguous and shape and all(a.dtype is _F64 for a in values):
+            if dtype == "<f8" and contiguous and shape and all(a.dtype == _F64 for a in values):
                 return "a", np.array(values).reshape((len(values),) + shape)
     if len(kinds) == 1:
         kind = next(iter(kinds))
