@@ -264,3 +264,21 @@ def test_the_clearance_key_is_checked_on_the_familys_default_design():
                          + '[robustness]\nsamples = 2\nclearance = { joints = ["x"], radius = 0.0005 }\n')
     with pytest.raises(ValueError, match="'robustness.clearance' perturbs the simulated world"):
         load_study_spec(kinematic)
+
+
+def test_a_robust_study_resumed_stores_what_an_uninterrupted_one_does(tmp_path):
+    """The scenarios come from the seed and the generation: a resume draws the same ones, and the
+    optimizer replays the stored aggregates."""
+    text = ROBUST.format(aggregate="cvar").replace("generations = 2", "generations = 3")
+    whole, split = tmp_path / "whole.toml", tmp_path / "split.toml"
+    whole.write_text(text.replace('name = "robust"', 'name = "whole"'))
+    split.write_text(text.replace('name = "robust"', 'name = "split"'))
+    run_study(load_study_spec(whole), progress=False)
+    first = load_study_spec(split)
+    run_study(first.with_overrides(generations=2), progress=False)
+    run_study(first, resume=True, progress=False)
+    a = read_designs(load_study_spec(whole).storage_url, "whole")
+    b = read_designs(first.storage_url, "split")
+    assert len(a) == len(b) == 24
+    np.testing.assert_array_equal(a["value"].to_numpy(), b["value"].to_numpy())
+    np.testing.assert_array_equal(a["metric_foot_stride_cvar"].to_numpy(), b["metric_foot_stride_cvar"].to_numpy())
