@@ -46,11 +46,13 @@ def _designs(study, family, count: int, seed: int) -> list:
     return [{**p, **study.fixed} for p in space.sample(np.random.default_rng(seed), count)]
 
 
-def _evaluate(study, family, params):
+def _evaluate(study, family, params, workers=None):
     from morphopt.evaluate import evaluate_dynamic
 
     kwargs = dict(duration=study.duration, dt=study.dt, device=study.device, crank_speed=study.crank_speed,
                   config=study.solver_config())
+    if workers is not None:  # build processes (None: evaluate_dynamic's choice, one per core on a GPU machine)
+        kwargs["workers"] = workers
     if getattr(study, "model", None) is not None:  # commits before the engine planned itself
         kwargs["model"] = study.model
     return evaluate_dynamic(family, params, **kwargs)
@@ -63,6 +65,9 @@ def main(argv=None) -> int:
     parser.add_argument("--root", default=str(HERE), help="the checkout to measure")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--profile", default=None, help="write cProfile stats of the first timed generation here")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="processes that build the specs (default: evaluate_dynamic's; a GPU machine's 16 cores "
+                             "use 15, whose specs come back pickled)")
     args = parser.parse_args(argv)
     root = pathlib.Path(args.root).resolve()
     sys.path.insert(0, str(root))
@@ -76,7 +81,7 @@ def main(argv=None) -> int:
     quiet_warp()
     study = load_study_spec(root / "studies" / "walker.toml").with_overrides(device=args.device)
     family = load_family(study.family)
-    warm = _evaluate(study, family, _designs(study, family, args.designs, 1000))
+    warm = _evaluate(study, family, _designs(study, family, args.designs, 1000), args.workers)
     runs = []
     for repeat in range(args.repeats):
         params = _designs(study, family, args.designs, repeat)
@@ -86,7 +91,7 @@ def main(argv=None) -> int:
             profiler = cProfile.Profile()
             profiler.enable()
         start, cpu = time.perf_counter(), time.process_time()
-        evaluation = _evaluate(study, family, params)
+        evaluation = _evaluate(study, family, params, args.workers)
         seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
         if profiler is not None:
             profiler.disable()
@@ -98,6 +103,7 @@ def main(argv=None) -> int:
     stages = sorted({k for run in runs for k in run["stages"]})
     report = {
         "commit": _commit(root), "device": args.device, "designs": args.designs, "repeats": args.repeats,
+        "workers": args.workers,
         "plan": None if getattr(warm, "plan", None) is None else warm.plan.coordinates.value,
         "designs_per_s": statistics.median(run["designs_per_s"] for run in runs),
         "designs_per_cpu_s": statistics.median(run["designs_per_cpu_s"] for run in runs),
