@@ -46,7 +46,8 @@ class StudyResult:
     (wall time of the generations run now and before a resume) and, of this run's time, the share
     spent outside the evaluation (sampling, telling, storage): ``overhead``. ``stages``: this run's
     wall seconds per stage, summed over its generations: "ask", the evaluation's own stages
-    (morphopt.evaluate.Evaluation.timings), "objectives", "tell" and "storage"."""
+    (morphopt.evaluate.Evaluation.timings; on a cluster the workers' seconds summed over the
+    shards, which run at once), "objectives", "tell" and "storage"."""
 
     best_params: dict | None
     best_value: float
