@@ -61,7 +61,7 @@ def main(argv=None) -> None:
                                                                            spec_hook=scenario_hooks(batch, scenarios),
                                                                            **kwargs),
                                  lambda ev: np.array([-m.get("walking_speed", np.nan) if not f else np.inf
-                                                      for m, f in zip(ev.metrics, ev.failures)]))
+                                                      for m, f in zip(ev.metrics, ev.failures)]))[0]
 
     out = {"device": device_tag(args.device), "worlds": worlds, "designs": args.designs, "samples": args.samples,
            "tolerance": args.tolerance, "command": "python -m benchmarks.robust_cost " + " ".join(sys.argv[1:])}

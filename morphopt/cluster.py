@@ -146,7 +146,6 @@ class ClusterEvaluator:
         self.kill_hook = _test_hook("MORPHOPT_TEST_KILL_WORKER")
         # the actors' process ids, read while they are idle (tests: the kill hook kills mid-shard)
         self._pids = ray.get([a.pid.remote() for a in self.actors]) if self.kill_hook else []
-        self._scenarios = None  # the generation's per-design robust scenarios (evaluate)
         self.last = None  # the last generation's per-worker rows (worker, designs, seconds, failures, replaced)
         self._fresh = set(range(workers))  # slots whose actor has not returned a shard yet (compiling)
         self.categorical = [n for n, p in space.parameters.items() if not _numeric(p)]
@@ -173,10 +172,9 @@ class ClusterEvaluator:
         stall = _test_hook("MORPHOPT_TEST_STALL_WORKER")
         if stall and stall[0] == self.generation:  # tests: a worker that hangs before its shard
             self.actors[stall[1] % self.workers].stall.remote(3600.0)
-        self._scenarios = scenarios
         for k, part in enumerate(parts):
             slot = k % self.workers
-            pending[self._resubmit(part, params, slot)] = (k, slot, time.perf_counter())
+            pending[self._submit(part, params, scenarios, slot)] = (k, slot, time.perf_counter())
         if self.kill_hook and self.kill_hook[0] == self.generation:  # tests: a worker's process killed mid-shard
             victim = self.kill_hook[1] % self.workers
             os.kill(self._pids[victim], signal.SIGKILL)
@@ -197,7 +195,7 @@ class ClusterEvaluator:
                         del pending[future]
                         self._again(k, attempts, f"did not return shard {k} within {limits[future]:.0f} s")
                         self._replace(slot, f"did not return shard {k} within {limits[future]:.0f} s")
-                        pending[self._resubmit(parts[k], params, slot)] = (k, slot, time.perf_counter())
+                        pending[self._submit(parts[k], params, scenarios, slot)] = (k, slot, time.perf_counter())
                 continue
             future = ready[0]
             k, slot, started = pending.pop(future)
@@ -206,7 +204,7 @@ class ClusterEvaluator:
             except (ray.exceptions.RayActorError, ray.exceptions.WorkerCrashedError) as exc:
                 self._again(k, attempts, f"died during shard {k} ({type(exc).__name__})")
                 self._replace(slot, f"died during shard {k} ({type(exc).__name__})")
-                pending[self._resubmit(parts[k], params, slot)] = (k, slot, time.perf_counter())
+                pending[self._submit(parts[k], params, scenarios, slot)] = (k, slot, time.perf_counter())
                 continue
             spent = time.perf_counter() - started
             if slot not in self._fresh:
@@ -228,9 +226,10 @@ class ClusterEvaluator:
                              f"a design in it may crash its worker: run the generation in one process to see which")
         attempts[k] += 1
 
-    def _resubmit(self, part, params, slot):
-        scenarios = None if self._scenarios is None else [self._scenarios[i] for i in part]
-        return self.actors[slot].evaluate.remote([params[i] for i in part], scenarios)
+    def _submit(self, part, params, scenarios, slot):
+        """Shard ``part`` (indices of params) to the actor in ``slot``."""
+        return self.actors[slot].evaluate.remote([params[i] for i in part],
+                                                 None if scenarios is None else [scenarios[i] for i in part])
 
     def _timeout(self, durations: list) -> float:
         if self.shard_timeout > 0:

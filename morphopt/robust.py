@@ -163,10 +163,10 @@ def robust_evaluation(spec, robust: Robustness, space, params: list, generation:
     """Evaluate every design of ``params`` over its scenarios: evaluate(params, scenarios) runs one
     batch (scenarios: per params entry its scenario dict, or None for a nominal world; scenario_hook
     applies one to a built spec) and values_of(evaluation) gives the minimized
-    objective per world. Returns an Evaluation of the designs: the nominal world's metrics plus
-    <metric>_<aggregate>, failure_share (and <metric>_s<k> per scenario where store_scenarios), the
-    aggregate under "robust_value", and the failures (a design whose nominal world fails, or more
-    than max_failure_share of its scenarios, fails with the first reason)."""
+    objective per world. Returns (an Evaluation of the designs: the nominal world's metrics plus
+    <metric>_<aggregate>, failure_share (and <metric>_s<k> per scenario where store_scenarios), and
+    the failures (a design whose nominal world fails, or more than max_failure_share of its
+    scenarios, fails with the first reason); the designs' aggregates to minimize, inf where failed)."""
     from morphopt.evaluate import Evaluation
 
     scenarios = draw(robust, spec.seed, generation)
@@ -176,7 +176,7 @@ def robust_evaluation(spec, robust: Robustness, space, params: list, generation:
     evaluation = evaluate(batch, per_world)
     values = np.asarray(values_of(evaluation), float).reshape(len(params), K + 1)
     failures = np.asarray(evaluation.failures, dtype=object).reshape(len(params), K + 1)
-    metrics, reasons = [], []
+    metrics, reasons, aggregates = [], [], []
     name = spec.metric
     sign = -1.0 if spec.direction == "maximize" else 1.0
     for d in range(len(params)):
@@ -187,7 +187,6 @@ def robust_evaluation(spec, robust: Robustness, space, params: list, generation:
         m[f"{name}_{robust.aggregate.value}"] = sign * value if robust.aggregate not in (
             Aggregate.STD, Aggregate.FAILURE_SHARE) else value
         m["failure_share"] = share
-        m["robust_value"] = value
         if robust.store_scenarios:
             for k in range(K):
                 m[f"{name}_s{k}"] = sign * values[d, 1 + k] if not failed[k] else math.nan
@@ -198,7 +197,8 @@ def robust_evaluation(spec, robust: Robustness, space, params: list, generation:
             reason = f"{int(failed.sum())} of {K} scenarios failed ({limit}): {first}"
         metrics.append(m)
         reasons.append(reason or "")
-    return Evaluation(list(params), metrics, reasons, evaluation.timings, evaluation.plan)
+        aggregates.append(math.inf if reason else value)
+    return Evaluation(list(params), metrics, reasons, evaluation.timings, evaluation.plan), np.array(aggregates)
 
 
 WORLD = ("friction", "payload", "slope", "speed")

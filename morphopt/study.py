@@ -445,9 +445,9 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
             free = optimizer.ask(spec.worlds)
             params = [{**p, **spec.fixed} for p in free]
             t1 = time.perf_counter()
-            if robust is not None:
-                evaluation = robust_evaluation(spec, robust, space, params, generation, batch,
-                                               lambda ev: _world_values(spec, ev))
+            if robust is not None:  # the constraints and objective applied to every world inside
+                evaluation, robust_values = robust_evaluation(spec, robust, space, params, generation, batch,
+                                                              lambda ev: _world_values(spec, ev))
             elif cluster is not None:
                 evaluation = cluster.evaluate(params)
                 _say_plan(spec.name, evaluation.plan, generation == start and progress)
@@ -462,11 +462,11 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
                                               progress=steps.report if steps.shown else None)
                 _say_plan(spec.name, evaluation.plan, generation == start and progress)
             t_objectives = time.perf_counter()
-            apply_constraints(spec, evaluation)
-            values = objective_values(spec, evaluation)
             if robust is not None:  # the scenarios' aggregate (morphopt.robust), the nominal metrics stored beside
-                values = np.array([m["robust_value"] if not f else math.inf
-                                   for m, f in zip(evaluation.metrics, evaluation.failures)])
+                values = robust_values
+            else:
+                apply_constraints(spec, evaluation)
+                values = objective_values(spec, evaluation)
             told = values[:, None]
             t2 = time.perf_counter()
             if spec.pareto:

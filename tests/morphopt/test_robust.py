@@ -63,7 +63,7 @@ def test_a_four_bar_near_its_grashof_limit_fails_more_often_than_a_sturdy_one(tm
     path.write_text('[study]\nname = "s"\nfamily = "four_bar"\nmode = "kinematic"\n[objective]\n'
                     'metric = "transmission_angle_min"\ndirection = "maximize"\n[simulation]\nsamples = 90\n')
     spec = load_study_spec(path)
-    result = robust_evaluation(spec, TOLERANCE, FOUR_BAR.space, [sturdy, fragile], 0,
+    result, _ = robust_evaluation(spec, TOLERANCE, FOUR_BAR.space, [sturdy, fragile], 0,
                                lambda params, hooks: evaluate_kinematic(FOUR_BAR, params, samples=90),
                                lambda ev: objective_values(spec, ev))
     shares = [m["failure_share"] for m in result.metrics]
