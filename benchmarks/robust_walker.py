@@ -1,0 +1,137 @@
+"""Nominal against robust walker search, judged under the same scenarios (issue: robust design).
+
+    python -m benchmarks.robust_walker --device cuda [--worlds 512] [--generations 10] [--samples 8]
+    python -m benchmarks.robust_walker --device cpu --worlds 16 --generations 1 --samples 2 --judge 8
+
+Runs two walker studies with the same seed, population and simulation: one on flat ground with the
+nominal torso (nominal optimum), one with a ``[robustness]`` table of ``--samples`` scenarios per
+design (slopes uniform in +-5 degrees, payloads uniform in 0-30 % of the torso's mass) maximizing
+the worst speed among them. Then simulates both optima in one batch under ``--judge`` common
+scenarios drawn from the same distributions with another seed, and reports per optimum the nominal
+speed, the share of scenarios it falls in, and the mean and worst speed. Writes
+robust_walker_<device>.json and .csv (one row per design and scenario), and a histogram PNG when
+matplotlib is installed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import pathlib
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+from benchmarks.run import RESULTS, device_tag
+from morphopt.evaluate import evaluate_dynamic
+from morphopt.families import load_family
+from morphopt.robust import Distribution, Robustness, draw, expand, scenario_hooks
+from morphopt.study import run_study
+from morphopt.study_spec import load_study_spec
+
+SLOPE = Distribution("uniform", low=-5.0, high=5.0)  # degrees
+PAYLOAD = Distribution("uniform", low=0.0, high=0.3)  # share of the torso's mass
+
+
+def study_text(name: str, args, robust: bool) -> str:
+    """The study file of one search."""
+    text = f"""[study]
+name = "{name}"
+family = "walker"
+mode = "dynamic"
+seed = {args.seed}
+generations = {args.generations}
+worlds = {args.worlds}
+device = "{args.device}"
+[objective]
+metric = "walking_speed"
+direction = "maximize"
+[simulation]
+duration = {args.duration}
+dt = 0.005
+[fixed]
+legs_per_side = 3
+"""
+    if robust:
+        text += (f"[robustness]\nsamples = {args.samples}\naggregate = \"worst\"\nmax_failure_share = 0.5\n"
+                 f"slope = {{ uniform = [{SLOPE.low}, {SLOPE.high}] }}\n"
+                 f"payload = {{ uniform = [{PAYLOAD.low}, {PAYLOAD.high}] }}\n")
+    return text
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--worlds", type=int, default=512, help="designs per generation")
+    parser.add_argument("--generations", type=int, default=10)
+    parser.add_argument("--samples", type=int, default=8, help="scenarios per design in the robust search")
+    parser.add_argument("--judge", type=int, default=128, help="common scenarios both optima are judged in")
+    parser.add_argument("--duration", type=float, default=2.0)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default=None)
+    args = parser.parse_args(argv)
+    work = pathlib.Path(tempfile.mkdtemp(prefix="robust_walker_"))  # the two studies' storage
+    out = {"device": device_tag(args.device), "command": "python -m benchmarks.robust_walker " + " ".join(sys.argv[1:]),
+           **{k: getattr(args, k) for k in ("worlds", "generations", "samples", "judge", "duration", "seed")}}
+    optima = {}
+    for label, robust in (("nominal", False), ("robust", True)):
+        path = work / f"walker_{label}.toml"
+        path.write_text(study_text(f"walker_{label}", args, robust))
+        t = time.perf_counter()
+        result = run_study(load_study_spec(path), progress=False)
+        optima[label] = result.best_params
+        out[f"{label}_search"] = {"seconds": time.perf_counter() - t, "best_value": result.best_value,
+                                  "best_params": result.best_params}
+        print(json.dumps({label: out[f"{label}_search"]}), file=sys.stderr, flush=True)
+    walker = load_family("walker")
+    scenarios = draw(Robustness(samples=args.judge, slope=SLOPE, payload=PAYLOAD), seed=2024, generation=0)
+    batch = expand([optima["nominal"], optima["robust"]], scenarios, walker.space)
+    evaluation = evaluate_dynamic(walker, batch, duration=args.duration, dt=0.005, device=args.device,
+                                  spec_hook=scenario_hooks(batch, [None, *scenarios] * 2))
+    speeds = np.array([m.get("walking_speed", np.nan) if not f else np.nan
+                       for m, f in zip(evaluation.metrics, evaluation.failures)]).reshape(2, args.judge + 1)
+    for label, row in zip(("nominal", "robust"), speeds):
+        kept = row[1:][np.isfinite(row[1:])]
+        out[label] = {"nominal_speed": float(row[0]), "fell_share": float(np.mean(~np.isfinite(row[1:]))),
+                      "mean_speed": float(kept.mean()) if len(kept) else None,
+                      "worst_speed": float(kept.min()) if len(kept) else None}
+    worst = [out[k]["worst_speed"] for k in ("nominal", "robust")]
+    out["robust_worst_beats_nominal_worst"] = bool(worst[1] is not None and (worst[0] is None or worst[1] > worst[0]))
+    print(json.dumps(out), flush=True)
+    folder = pathlib.Path(args.out) if args.out else RESULTS / out["device"]
+    folder.mkdir(parents=True, exist_ok=True)
+    stem = f"robust_walker_{out['device']}"
+    (folder / f"{stem}.json").write_text(json.dumps(out, indent=1))
+    with open(folder / f"{stem}.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["optimum", "scenario", "slope_deg", "payload", "walking_speed", "failure"])
+        for d, label in enumerate(("nominal", "robust")):
+            for s in range(args.judge + 1):
+                scenario = None if s == 0 else scenarios[s - 1]
+                k = d * (args.judge + 1) + s
+                writer.writerow([label, s, scenario["slope"] if scenario else 0.0,
+                                 scenario["payload"] if scenario else 0.0,
+                                 speeds[d, s], evaluation.failures[k] or ""])
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for label, row in zip(("nominal optimum", "robust optimum"), speeds):
+        kept = row[1:][np.isfinite(row[1:])]
+        ax.hist(kept, bins=16, alpha=0.6, label=f"{label} ({100 * np.mean(~np.isfinite(row[1:])):.0f} % fell)")
+    ax.set_xlabel(f"walking speed over {args.judge} scenarios (slope +-5 deg, payload 0-30 %) [m/s]")
+    ax.set_ylabel("scenarios")
+    ax.set_title(f"{out['device']}: {args.generations} generations of {args.worlds}, {args.samples} scenarios a design")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(folder / f"{stem}.png", dpi=110)
+
+
+if __name__ == "__main__":
+    main()
