@@ -1,6 +1,7 @@
 """What a study's coordinator spends per generation, at populations of 4 k, 16 k and 65 k walkers:
-CMA-ES ask and tell, gathering the workers' results (Ray's serialization of a shard's metrics),
-and storing the generation (SQLite and PostgreSQL: designs per second sustained).
+CMA-ES ask and tell, gathering the workers' results (Ray's serialization of the shards' metrics
+and their scatter into one table; as arrays, morphopt.metric_table, and as one dict a design, as
+before) and storing the generation (SQLite and PostgreSQL: designs per second sustained).
 
     python -m benchmarks.coordinator [--sizes 4096 16384 65536] [--postgres URL] [--out DIR]
 
@@ -26,6 +27,7 @@ import numpy as np
 from benchmarks.run import RESULTS
 from morphopt.evaluate import evaluate_dynamic
 from morphopt.families import load_family
+from morphopt.metric_table import MetricTable
 from morphopt.optimizers import CMAES
 from morphopt.storage import StudyStorage
 
@@ -57,13 +59,29 @@ def measure(size: int, family, urls: dict) -> dict:
     ask = _time(lambda: CMAES(space, popsize=size, sigma0=0.25, seed=0).ask(size), 1)
     values = np.random.default_rng(1).uniform(-1, 0, size).tolist()
     tell = _time(lambda: _tell_fresh(space, size, free, values), 1)
-    metrics = _metrics(family, size)
+    dicts = _metrics(family, size)
     failures = [""] * size
-    shard = (metrics, failures, {"simulate": 1.0}, None)
-    blob = pickle.dumps(shard, protocol=5)
-    gather = _time(lambda: pickle.loads(pickle.dumps(shard, protocol=5)))
-    row = {"population": size, "ask_s": ask, "tell_s": tell, "gather_serialize_s": gather,
-           "gather_bytes_per_design": len(blob) / size}
+    parts = np.array_split(np.arange(size), 4)  # four workers' shards
+    as_dicts = [([dicts[i] for i in part], [""] * len(part), {"simulate": 1.0}, None) for part in parts]
+    as_arrays = [(MetricTable.from_dicts([dicts[i] for i in part]), np.zeros(len(part), np.int32), [""],
+                  {"simulate": 1.0}, None) for part in parts]
+
+    def gather_dicts():
+        out = [None] * size
+        for part, shard in zip(parts, as_dicts):
+            for i, m in zip(part, pickle.loads(pickle.dumps(shard, protocol=5))[0]):
+                out[i] = m
+        return out
+
+    def gather_arrays():
+        return MetricTable.gather(size, [(part, pickle.loads(pickle.dumps(shard, protocol=5))[0])
+                                         for part, shard in zip(parts, as_arrays)])
+
+    metrics = gather_arrays()
+    row = {"population": size, "ask_s": ask, "tell_s": tell, "gather_dicts_s": _time(gather_dicts),
+           "gather_arrays_s": _time(gather_arrays),
+           "gather_dicts_bytes_per_design": sum(len(pickle.dumps(x, protocol=5)) for x in as_dicts) / size,
+           "gather_arrays_bytes_per_design": sum(len(pickle.dumps(x, protocol=5)) for x in as_arrays) / size}
     params = [{**p, "legs_per_side": 3} for p in free]
     for kind, url in urls.items():
         storage = StudyStorage(url, f"bench_{size}")

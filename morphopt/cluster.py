@@ -4,7 +4,7 @@ The coordinator (run_study) keeps the optimizer and the storage; ClusterEvaluato
 long-lived Ray actor per worker (a GPU each on a CUDA study, else a group of CPU cores), so every
 worker compiles its kernels once and keeps them warm between generations. A generation is split
 into one shard per worker, designs grouped by their categorical parameters (their topology) so
-each shard's padded batch stays tight; shards come back in order, so the study is the same
+each shard's padded batch stays tight; shards come back as arrays (morphopt.metric_table), in order, so the study is the same
 whatever the number of workers. A worker that dies (its process killed, its node lost) or that
 does not answer within the shard timeout is replaced and its shard runs again on a live worker,
 said in the log; a generation is stored only once all its shards are in.
@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from morphopt.evaluate import Evaluation
+from morphopt.metric_table import MetricTable
 
 __all__ = ["ClusterEvaluator", "WorkerStats", "shards"]
 
@@ -63,8 +64,9 @@ class _Worker:
         time.sleep(seconds)
 
     def evaluate(self, params: list, scenarios: list | None = None):
-        """(metrics, failures, timings, plan text) of one shard; scenarios: per design a robust
-        study's scenario (morphopt.robust) or None."""
+        """(MetricTable, failure codes (n,) int32, reasons (code -> text, 0: ""), timings, plan text)
+        of one shard, arrays rather than a dict a design (what Ray moves back); scenarios: per design
+        a robust study's scenario (morphopt.robust) or None."""
         from morphopt.evaluate import evaluate_dynamic, evaluate_kinematic
         from morphopt.robust import scenario_hooks
 
@@ -73,7 +75,11 @@ class _Worker:
         else:
             hook = scenario_hooks(params, scenarios) if scenarios is not None else None
             result = evaluate_dynamic(self.family, params, spec_hook=hook, **self.kwargs)
-        return result.metrics, result.failures, result.timings, None if result.plan is None else str(result.plan)
+        reasons = [""] + sorted({f for f in result.failures if f})
+        code = {reason: k for k, reason in enumerate(reasons)}
+        codes = np.fromiter((code[f] for f in result.failures), np.int32, len(result.failures))
+        return (MetricTable.from_dicts(result.metrics), codes, reasons, result.timings,
+                None if result.plan is None else str(result.plan))
 
 
 @dataclass
@@ -213,7 +219,7 @@ class ClusterEvaluator:
             stats = self.stats[slot]
             stats.designs += len(parts[k])
             stats.seconds += spent
-            stats.failures += sum(1 for reason in done[k][1] if reason)
+            stats.failures += int(np.count_nonzero(done[k][1]))
         self.generation += 1
         self.last = [(k, s.designs - b[0], s.seconds - b[1], s.failures - b[2], s.replaced - b[3])
                      for k, (s, b) in enumerate(zip(self.stats, before))]  # this generation's, per worker
@@ -261,20 +267,20 @@ def _numeric(parameter) -> bool:
 
 
 def _gathered(params: list, parts: list, done: dict) -> Evaluation:
-    """The shards' results in the order of ``params``: metrics and failures by index, the stages'
-    seconds summed over the shards (worker-seconds, more than the generation's wall time when the
-    workers run at once), the first shard's plan."""
-    metrics, failures = [None] * len(params), [""] * len(params)
+    """The shards' results in the order of ``params``: one MetricTable and the failures scattered
+    by index, the stages' seconds summed over the shards (worker-seconds, more than the
+    generation's wall time when the workers run at once), the first shard's plan."""
+    failures = np.full(len(params), "", dtype=object)
     timings = {}
     plan = None
     for k, part in enumerate(parts):
-        shard_metrics, shard_failures, shard_timings, shard_plan = done[k]
-        for i, m, f in zip(part, shard_metrics, shard_failures):
-            metrics[i], failures[i] = m, f
+        _, codes, reasons, shard_timings, shard_plan = done[k]
+        failures[np.asarray(part, dtype=np.int64)] = np.asarray(reasons, dtype=object)[codes]
         for stage, spent in shard_timings.items():
             timings[stage] = timings.get(stage, 0.0) + spent
         plan = plan or shard_plan
-    return Evaluation(list(params), metrics, failures, timings, plan)
+    metrics = MetricTable.gather(len(params), [(part, done[k][0]) for k, part in enumerate(parts)])
+    return Evaluation(list(params), metrics, failures.tolist(), timings, plan)
 
 
 def _test_hook(name: str):

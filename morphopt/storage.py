@@ -41,6 +41,8 @@ import numpy as np
 import pandas as pd
 import sqlalchemy as sa
 
+from morphopt.metric_table import MetricTable
+
 __all__ = ["LEASE_SECONDS", "StudyStorage", "export_to_optuna", "read_designs", "read_workers", "storage_exists"]
 
 METADATA = sa.MetaData()
@@ -256,7 +258,10 @@ def _scalar_or_nan(value) -> float:
 
 def encode_metrics(dicts: list[dict]) -> tuple[list, np.ndarray]:
     """(names, (designs, names) float64) of the scalar metrics (numbers, not bools) of a
-    generation's metric dicts; a design without a metric, or with a non-finite one, has NaN."""
+    generation's metric dicts (or a MetricTable: its arrays as they are); a design without a
+    metric, or with a non-finite one, has NaN."""
+    if isinstance(dicts, MetricTable):
+        return dicts.scalars()
     if dicts and all(map(dicts[0].keys().__eq__, map(dict.keys, dicts))):  # the common case: one key set
         groups = {tuple(dicts[0]): range(len(dicts))}
     else:

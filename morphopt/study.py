@@ -28,6 +28,7 @@ from tqdm.auto import tqdm
 
 from morphopt.evaluate import evaluate_dynamic, evaluate_kinematic
 from morphopt.families import load_family
+from morphopt.metric_table import MetricTable
 from morphopt.metrics import path_error
 from morphopt.optimizers import CMAES, OptunaSampler, RandomSearch
 from morphopt.robust import robust_evaluation, scenario_hooks
@@ -71,14 +72,29 @@ def _make_optimizer(spec: StudySpec, space):
 def objective_matrix(spec: StudySpec, evaluation) -> np.ndarray:
     """(designs, objectives) values to minimize: each metric, negated when maximized; inf for
     failed designs. A "path_error" objective compares the path of its point with its target (with
-    several such objectives, the metric is stored as path_error, path_error_1, ...)."""
+    several such objectives, the metric is stored as path_error, path_error_1, ...). Metrics held
+    as a MetricTable (a cluster's) are read column by column."""
+    failed = np.array([bool(f) for f in evaluation.failures], dtype=bool)
+    table = evaluation.metrics if isinstance(evaluation.metrics, MetricTable) else None
     columns = []
     for objective, name in zip(spec.objectives, objective_metric_names(spec)):
         if objective.metric == "path_error":
             target = np.asarray(objective.target, dtype=float)
-            for metrics, failure in zip(evaluation.metrics, evaluation.failures):
-                if not failure:
-                    metrics[name] = path_error(metrics["paths"][objective.point], target)
+            if table is not None:
+                ok = ~failed & table.path_rows
+                data, begin, end = table.paths[objective.point]
+                errors = np.full(len(failed), np.nan)
+                for i in np.flatnonzero(ok):
+                    errors[i] = path_error(data[begin[i]:end[i]], target)
+                table.set_column(name, errors, ok)
+            else:
+                for metrics, failure in zip(evaluation.metrics, evaluation.failures):
+                    if not failure:
+                        metrics[name] = path_error(metrics["paths"][objective.point], target)
+        if table is not None:
+            value = objective.sign * table.column(name)
+            columns.append(np.where(~failed & np.isfinite(value), value, math.inf))
+            continue
         column = []
         for metrics, failure in zip(evaluation.metrics, evaluation.failures):
             value = metrics.get(name, math.nan) if not failure else math.nan
@@ -135,6 +151,15 @@ def pareto_front(frame, spec: StudySpec):
 
 def apply_constraints(spec: StudySpec, evaluation) -> None:
     """Mark designs whose metrics leave the [constraints] bounds as failed, with the reason."""
+    if isinstance(evaluation.metrics, MetricTable):  # column by column; the first constraint broken is named
+        for name, (low, high) in spec.constraints.items():
+            value = evaluation.metrics.column(name)
+            with np.errstate(invalid="ignore"):
+                broken = ~((low <= value) & (value <= high))
+            for k in np.flatnonzero(broken):
+                if not evaluation.failures[k]:
+                    evaluation.failures[k] = f"constraint {name} in [{low:g}, {high:g}] violated: {value[k]:.6g}"
+        return
     for k, (metrics, failure) in enumerate(zip(evaluation.metrics, evaluation.failures)):
         if failure:
             continue
