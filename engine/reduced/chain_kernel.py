@@ -16,8 +16,8 @@ from engine.contacts import contact_direction
 from engine.linalg.lanes import block_sync, tile_set
 from engine.padmm import project_cone, rho_update
 from engine.reduced.chain_layout import KIND_REVOLUTE, KIND_ROOT, MAX_PREFIX, TILE_STEP, _tile_size
-from engine.reduced.chain_stages import (DIVERGED, DYNAMICS, EFFORT_LIMIT, VELOCITIES, ChainArrays, ChainWork,
-                                         add_children, advance, angle_low, apply_control, apply_forces, body_out,
+from engine.reduced.chain_stages import (DIVERGED, DYNAMICS, EFFORT_LIMIT, VELOCITIES, ChainArrays, ChainLoads,
+                                         ChainWork, NoLoads, add_children, advance, angle_low, apply_control, apply_forces, body_out,
                                          candidates_within, contact_factor, contact_residuals, factor_lanes,
                                          keep_angle_low, kinematics, left_here, loop_errors, loop_row_bias,
                                          loop_rows_of, own_terms, plane_candidates, project, solve_column, solve_lanes,
@@ -77,12 +77,13 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
     (stable for stiff drives): first order in dt wherever those matter, as is semi-implicit Euler."""
 
     per_contact = _tile_size(contacts // 3)  # the tiles of one entry per contact
+    Loads = ChainLoads if forces or control else NoLoads  # the loads argument's type (ChainModel.loads_for)
     tree_solve_column, tree_solve_vector = tree_solves(unroll)
     # tile_matmul: Warp's register-blocked scalar product (against cuBLASDx: benchmarks/results/README.md,
     # "Reduced closed chains: design notes")
     @wp.kernel(enable_backward=False, module="unique", cuda_max_registers=registers,
                module_options={"enable_mathdx_gemm": False})
-    def chain_step_body(m: ChainArrays, w: ChainWork, dt: float, baumgarte: float, iterations: int, max_speed: float,
+    def chain_step_body(m: ChainArrays, w: ChainWork, loads: Loads, dt: float, baumgarte: float, iterations: int, max_speed: float,
                         midpoint: int, record: int, margin: float, stabilization: float, eta: float, rho0: float,
                         adaptive: int, rho_interval: int, tolerance: float, relative_tolerance: float,
                         max_iterations: int, skip_floor: float, skip_floor_angular: float, working: int,
@@ -166,11 +167,11 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
             block_sync()
             if wp.static(forces):  # the force elements onto their bodies' own terms, one lane
                 if lane == 0:
-                    apply_forces(m, w, world)
+                    apply_forces(loads, w, world)
                 block_sync()
             if wp.static(control):  # a Control's body wrenches and joint efforts, one lane
                 if lane == 0:
-                    apply_control(m, w, world, body_f, joint_effort)
+                    apply_control(loads, w, world, body_f, joint_effort)
                 block_sync()
             if wp.static(stages):
                 stamp(w, world, lane, 1)

@@ -75,6 +75,13 @@ class ChainArrays:
     contact_capacity: wp.array(dtype=wp.int32)
     prefix: wp.array(dtype=wp.int32)  # leading entries that are a chain all others descend from (<= MAX_PREFIX)
     loop_inline: wp.array2d(dtype=wp.int32)  # 1: an inline loop (its rows' rates at its second anchor)
+
+
+@wp.struct
+class ChainLoads:
+    """What loads the chains besides gravity and drives, apart from ChainArrays so that a step kernel
+    without force elements or a Control takes NoLoads instead (smaller launch parameters)."""
+
     # force elements (apply_forces), F padded slots per world: engine.model's FORCE_* kind; the tree
     # entries of their two sides (-1: the world or a welded body); each side's frame in its body's
     # frame (the world's where the entry is -1): a spring's point, a joint's anchor (child, parent);
@@ -95,6 +102,12 @@ class ChainArrays:
     control_joint: wp.array3d(dtype=wp.int32)  # (W, J, 2)
     control_frame: wp.array2d(dtype=wp.transform)  # (W, J)
     control_axis: wp.array2d(dtype=wp.vec3)  # (W, J)
+
+
+@wp.struct
+class NoLoads:
+    """The loads argument of a step kernel compiled without force elements and Control."""
+    unused: int
 
 
 @wp.struct
@@ -686,7 +699,7 @@ def own_terms(m: ChainArrays, w: ChainWork, world: int, k: int, g: wp.vec3):
 
 
 @wp.func
-def side_frame(m: ChainArrays, w: ChainWork, world: int, f: int, side: int):
+def side_frame(m: ChainLoads, w: ChainWork, world: int, f: int, side: int):
     """Force slot f's frame of ``side`` in the world at the kinematics' poses."""
     e = m.force_entry[world, f, side]
     X = m.force_frame[world, f, side]
@@ -713,7 +726,7 @@ def push(w: ChainWork, world: int, e: int, f: wp.vec3, x: wp.vec3, t: wp.vec3):
 
 
 @wp.func
-def apply_forces(m: ChainArrays, w: ChainWork, world: int):
+def apply_forces(m: ChainLoads, w: ChainWork, world: int):
     """The force elements' wrenches added to their bodies' own terms (after own_terms, before the
     subtree sums; one lane, slot order), at the kinematics' poses and velocities: a spring-damper's
     tension k (L - L0) + c dL/dt along its points' line (tension_only: never a push), a joint
@@ -755,7 +768,7 @@ def apply_forces(m: ChainArrays, w: ChainWork, world: int):
 
 
 @wp.func
-def apply_control(m: ChainArrays, w: ChainWork, world: int, body_f: wp.array2d(dtype=wp.spatial_vector),
+def apply_control(m: ChainLoads, w: ChainWork, world: int, body_f: wp.array2d(dtype=wp.spatial_vector),
                   joint_effort: wp.array2d(dtype=float)):
     """A Control's wrenches added to the bodies' own terms (after own_terms, before the subtree sums;
     one lane) at the kinematics' poses: body_f[world, b] (force, torque; world frame) at spec body

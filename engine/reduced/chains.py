@@ -26,8 +26,8 @@ from engine.reduced.chain_kernel import CHAIN_BLOCK, MAX_REGISTERS, chain_step_k
 from engine.reduced.chain_layout import (KIND_ANGULAR, KIND_LINEAR, KIND_REVOLUTE, KIND_ROOT, MAX_CONTACTS, MAX_PREFIX,
                                          MAX_ROWS, ChainLayout, _capacity, _packed_rows, _packed_tile, _prefix, _tile_size,
                                          _transform, chain_layout)
-from engine.reduced.chain_stages import (STAGES, VELOCITIES, ChainArrays, ChainWork, body_out, candidates_within,
-                                         kinematics, plane_candidates)
+from engine.reduced.chain_stages import (STAGES, VELOCITIES, ChainArrays, ChainLoads, ChainWork, NoLoads, body_out,
+                                         candidates_within, kinematics, plane_candidates)
 from engine.spatial import quat_matrix
 from engine.spec import JointType, MechanismSpec
 
@@ -39,7 +39,9 @@ __all__ = ["CONTACT_RHO", "ChainControl", "ChainModel", "ChainState", "pack_chai
 # diagonal; later steps start from their world's last penalty. Why not the maximal plan's 1e-3:
 # benchmarks/results/README.md, "Reduced closed chains: design notes"
 CONTACT_RHO = 1.0
-# ChainArrays' fields of a Warp vector, matrix or transform type (the others: int32 or float)
+# ChainLoads' fields (the rest of pack_chains's arrays are ChainArrays')
+LOAD_FIELDS = frozenset(name for name in ChainLoads.vars)
+# ChainArrays' and ChainLoads' fields of a Warp vector, matrix or transform type (the others: int32 or float)
 ARRAY_TYPES = {"gravity": wp.vec3, "shape_X": wp.transform, "shape_size": wp.vec3, "ground_normal": wp.vec3,
                "axis": wp.vec3, "com": wp.vec3, "inertia": wp.mat33, "joint_parent": wp.transform,
                "joint_child": wp.transform, "loop_anchor": wp.transform, "loop_axis": wp.vec3, "loop_t1": wp.vec3,
@@ -61,8 +63,10 @@ class ChainModel:
     """A padded batch of closed chains in reduced coordinates (pack_chains)."""
 
     def __init__(self, layouts: list, arrays: ChainArrays, work: ChainWork, init: dict, config: SolverConfig,
-                 dt: float, device, capacity: int = 0):
+                 dt: float, device, capacity: int = 0, loads=None):
         self.layouts, self.arrays, self.work, self._init = layouts, arrays, work, init
+        self.loads = loads  # force elements and Control targets (a kernel with neither takes NoLoads)
+        self._no_loads = NoLoads()
         self.config, self.dt, self.device = config, dt, device
         self.num_worlds = len(layouts)
         self.max_rows = max(len(lay.rows) + len(lay.soft) for lay in layouts)
@@ -127,12 +131,14 @@ class ChainModel:
         passes = [(self.tile_working, 0)]
         if self.tile_working < self.tile_contacts:
             passes = [(self.tile_working, 1), (self.tile_contacts, 2)]
+        loadless = not self.forces and control is None  # the kernel takes NoLoads
         for tile, handover in passes:
             kernel = chain_step_kernel(self.coords, self.tile_rows, tile, self.tile_slots, self.max_registers,
                                        self.packed_size, bool(stages), self.unroll, handover, self.inline,
                                        self.forces, control is not None)
             wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
-                            inputs=[self.arrays, self.work, float(self.dt), float(c.baumgarte),
+                            inputs=[self.arrays, self.work, self._no_loads if loadless else self.loads,
+                                    float(self.dt), float(c.baumgarte),
                                     int(c.position_iterations), float(c.max_speed),
                                     int(c.integrator == Integrator.MOREAU_JEAN), int(record), float(c.contact_margin),
                                     float(c.contact_stabilization), float(c.tuning.eta), self.rho_init,
@@ -358,10 +364,10 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     layouts = [layouts[k] for k in kind_of]
     W = len(specs)
     dev = device
-    a = ChainArrays()
+    a, loads = ChainArrays(), ChainLoads()
     for name, value in h.items():
         dtype = ARRAY_TYPES.get(name, wp.int32 if value.dtype == np.int32 else float)
-        setattr(a, name, wp.array(value, dtype=dtype, device=dev))
+        setattr(loads if name in LOAD_FIELDS else a, name, wp.array(value, dtype=dtype, device=dev))
     k = ChainWork()
     for name, dtype in (("pose", wp.transform), ("centre", wp.vec3), ("lin", wp.vec3), ("axis", wp.vec3),
                         ("omega", wp.vec3), ("vel", wp.vec3), ("alpha", wp.vec3), ("acc", wp.vec3),
@@ -381,7 +387,7 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
     k.stage_clock = wp.zeros((1, 1), dtype=wp.int64, device=dev)  # ChainModel.step(stages=True) sizes it
     k.matrix = wp.zeros((1, 1, 1), dtype=float, device=dev)  # ChainModel.step(record=True) sizes them
     k.rows = wp.zeros((1, 1, 1), dtype=float, device=dev)
-    model = ChainModel(layouts, a, k, init, config, float(dt), device, int(h["contact_capacity"].max()))
+    model = ChainModel(layouts, a, k, init, config, float(dt), device, int(h["contact_capacity"].max()), loads)
     # body poses and velocities at the initial angles: one step's kinematics, no integration
     state = model.state()
     # blocks of one thread: kinematics' barriers must be reached by every thread of a block, and worlds differ in depth
