@@ -30,14 +30,23 @@ class MetricTable(Sequence):
 
     def __init__(self, names, values, present, paths=None, path_rows=None, extra=None):
         self.names = [str(n) for n in names]
-        self.values = np.asarray(values, dtype=np.float64).reshape(-1, len(self.names))
-        self.present = np.asarray(present, dtype=bool).reshape(self.values.shape)
+        # writable copies where the arrays came read-only (unpickled from Ray's object store)
+        self.values = np.require(np.asarray(values, dtype=np.float64), requirements=["W"])
+        self.present = np.require(np.asarray(present, dtype=bool), requirements=["W"])
+        if self.values.ndim != 2 or self.values.shape[1] != len(self.names) or self.present.shape != self.values.shape:
+            raise ValueError(f"MetricTable: values {self.values.shape} and present {self.present.shape} must be "
+                             f"(designs, {len(self.names)})")
         self.paths = dict(paths or {})
         n = len(self.values)
         self.path_rows = np.zeros(n, bool) if path_rows is None else np.asarray(path_rows, bool)
         self.extra = extra
         self._rows: dict[int, dict] = {}  # dicts made on request (kept, so edits to them persist)
         self._where = {name: j for j, name in enumerate(self.names)}
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self.values = np.require(self.values, requirements=["W"])  # Ray may hand back read-only buffers
+        self.present = np.require(self.present, requirements=["W"])
 
     @classmethod
     def from_dicts(cls, dicts: list) -> MetricTable:
@@ -47,16 +56,20 @@ class MetricTable(Sequence):
         groups: dict[tuple, list] = {}
         for i, d in enumerate(dicts):
             groups.setdefault(tuple(d), []).append(i)
-        names, kinds = [], {}
+        kinds = {}  # a key is a column where any group's first design has a number (or None) under it
         for keys, rows in groups.items():
             first = dicts[rows[0]]
             for k in keys:
                 value = first[k]
-                kind = "path" if k == PATHS and isinstance(value, dict) else (
-                    "number" if value is None or _is_number(value) else "other")
-                kinds.setdefault(k, kind)
-                if kinds[k] == "number" and k not in names:
-                    names.append(k)
+                if value is None or _is_number(value):
+                    kinds[k] = "number"
+                else:
+                    kinds.setdefault(k, "path" if k == PATHS and isinstance(value, dict) else "other")
+        for keys, rows in groups.items():  # (rare) a key whose first value is not a number: any later one?
+            for k in keys:
+                if kinds[k] == "other" and any(dicts[i][k] is None or _is_number(dicts[i][k]) for i in rows):
+                    kinds[k] = "number"
+        names = [k for k, kind in kinds.items() if kind == "number"]
         where = {name: j for j, name in enumerate(names)}
         values = np.full((n, len(names)), np.nan)
         present = np.zeros((n, len(names)), bool)
@@ -154,21 +167,48 @@ class MetricTable(Sequence):
         return row
 
     def column(self, name: str) -> np.ndarray:
-        """(N,) the metric ``name``, NaN where a design does not have it."""
+        """(N,) the metric ``name`` as floats, NaN where a design does not have it (a bool counts as
+        0 or 1, as it does in arithmetic on the dicts)."""
+        self._sync()
         j = self._where.get(name)
-        if j is None:
-            return np.full(len(self), np.nan)
-        return np.where(self.present[:, j], self.values[:, j], np.nan)
+        out = np.full(len(self), np.nan) if j is None else np.where(self.present[:, j], self.values[:, j], np.nan)
+        if self.extra is not None:
+            for i, d in enumerate(self.extra):
+                v = d.get(name)
+                if isinstance(v, (bool, np.bool_)) or (v is not None and _is_number(v)):
+                    out[i] = float(v)
+        return out
+
+    def _add_column(self, name: str) -> int:
+        j = self._where[name] = len(self.names)
+        self.names.append(name)
+        self.values = np.concatenate([self.values, np.full((len(self), 1), np.nan)], axis=1)
+        self.present = np.concatenate([self.present, np.zeros((len(self), 1), bool)], axis=1)
+        return j
+
+    def _sync(self) -> None:
+        """Take in the edits made through the dicts handed out by index (set, changed, deleted)."""
+        for i, row in self._rows.items():
+            for name, v in row.items():
+                if name != PATHS and (v is None or _is_number(v)) and name not in self._where:
+                    self._add_column(name)
+            for j, name in enumerate(self.names):
+                v = row.get(name, row)  # the row itself: absent
+                number = v is not row and (v is None or _is_number(v))
+                self.present[i, j] = number
+                self.values[i, j] = float(v) if number and v is not None else math.nan
+            other = {k: v for k, v in row.items() if k != PATHS and not (v is None or _is_number(v))}
+            if other or self.extra is not None:
+                self.extra = self.extra or [{} for _ in range(len(self))]
+                self.extra[i] = other
 
     def set_column(self, name: str, values, rows=None) -> None:
         """Set metric ``name`` to ``values`` for the designs in the boolean mask ``rows`` (all: None)."""
+        self._sync()
         rows = np.ones(len(self), bool) if rows is None else np.asarray(rows, bool)
         j = self._where.get(name)
         if j is None:
-            j = self._where[name] = len(self.names)
-            self.names.append(name)
-            self.values = np.concatenate([self.values, np.full((len(self), 1), np.nan)], axis=1)
-            self.present = np.concatenate([self.present, np.zeros((len(self), 1), bool)], axis=1)
+            j = self._add_column(name)
         values = np.broadcast_to(np.asarray(values, dtype=np.float64), (len(self),))
         self.values[rows, j] = values[rows]
         self.present[rows, j] = True
@@ -177,20 +217,12 @@ class MetricTable(Sequence):
                 row[name] = float(values[i])
 
     def scalars(self) -> tuple[list, np.ndarray]:
-        """(names, (N, M) float64) of the stored scalar metrics: NaN where absent or not finite (what
-        morphopt.storage.encode_metrics makes of the same dicts). Metrics set on a design's dict after
-        it was read by index are included."""
+        """(names, (N, M) float64) of the stored scalar metrics, the metrics some design has as a
+        number or None (not bools): NaN where absent or not finite (what
+        morphopt.storage.encode_metrics makes of the same dicts), edits made through the dicts
+        handed out by index included."""
+        self._sync()
         values = np.where(self.present, self.values, np.nan)
-        names = list(self.names)
-        for i, row in self._rows.items():  # edits made through dicts handed out
-            for name, v in row.items():
-                if name == PATHS or not (v is None or _is_number(v)):
-                    continue
-                if name not in self._where:
-                    self.set_column(name, np.nan, np.zeros(len(self), bool))
-                    values = np.concatenate([values, np.full((len(self), 1), np.nan)], axis=1)
-                    names = list(self.names)
-                values[i, self._where[name]] = math.nan if v is None else float(v)
         values[~np.isfinite(values)] = np.nan
-        keep = [j for j, name in enumerate(names) if np.any(self.present[:, j]) or np.any(np.isfinite(values[:, j]))]
-        return [names[j] for j in keep], values[:, keep]
+        keep = np.flatnonzero(self.present.any(axis=0))
+        return [self.names[j] for j in keep], values[:, keep]

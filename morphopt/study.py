@@ -81,8 +81,8 @@ def objective_matrix(spec: StudySpec, evaluation) -> np.ndarray:
         if objective.metric == "path_error":
             target = np.asarray(objective.target, dtype=float)
             if table is not None:
-                ok = ~failed & table.path_rows
-                data, begin, end = table.paths[objective.point]
+                data, begin, end = table.paths.get(objective.point, (None, np.full(len(failed), -1), None))
+                ok = ~failed & table.path_rows & (begin >= 0)
                 errors = np.full(len(failed), np.nan)
                 for i in np.flatnonzero(ok):
                     errors[i] = path_error(data[begin[i]:end[i]], target)

@@ -139,3 +139,43 @@ def test_edits_through_a_dict_are_stored():
     columns = _columns(names, matrix)
     assert columns["speed"][2] == 7.5
     assert columns["new_metric"][4] == 1.25 and np.isnan(columns["new_metric"][5])
+
+
+def test_a_shard_whose_designs_all_failed():
+    for dicts in ([], [{}, {}], [{"note": "n/a"}]):
+        table = MetricTable.from_dicts(dicts)
+        assert len(table) == len(dicts)
+        names, matrix = table.scalars()
+        assert names == [] and matrix.shape == (len(dicts), 0)
+    gathered = MetricTable.gather(3, [([0, 2], MetricTable.from_dicts([{}, {}])), ([1], MetricTable.from_dicts([{"x": 2.0}]))])
+    assert gathered[1] == {"x": 2.0} and gathered[0] == {} and np.isnan(gathered.column("x")[[0, 2]]).all()
+
+
+def test_edits_bools_and_missing_points_agree_with_the_dicts():
+    base = [{"x": 1.0, "closed": True, "paths": {"knee": np.zeros((4, 2))}}, {"x": 2.0, "closed": False}]
+    dicts, table = copy.deepcopy(base), MetricTable.from_dicts(copy.deepcopy(base))
+    for rows in (dicts, table):
+        rows[0]["x"] = 5.0  # an edit through the dict handed out
+        del rows[1]["x"]
+    failures = ["", ""]
+    target = np.zeros((4, 2))
+    spec = _spec([_objective("x", 1.0), _objective("closed", -1.0),
+                  _objective("path_error", 1.0, point="foot", target=target)])
+    by_dicts, by_table = Evaluation([{}] * 2, dicts, list(failures)), Evaluation([{}] * 2, table, list(failures))
+    apply_constraints(_spec([], {"closed": (1, 1)}), by_dicts)
+    apply_constraints(_spec([], {"closed": (1, 1)}), by_table)
+    assert by_table.failures == by_dicts.failures == ["", "constraint closed in [1, 1] violated: 0"]
+    ok = Evaluation([{}] * 2, table, ["", "failed"])
+    matrix = objective_matrix(_spec(spec.objectives[:2]), ok)
+    np.testing.assert_array_equal(matrix, [[5.0, -1.0], [np.inf, np.inf]])
+    assert np.isinf(objective_matrix(_spec(spec.objectives[2:]), ok)).all()  # no design has the point 'foot'
+    assert table.scalars()[0] == ["x"]  # bools are not stored
+    np.testing.assert_array_equal(table.scalars()[1][:, 0], [5.0, np.nan])
+
+
+def test_read_only_buffers_from_the_object_store():
+    buffers = []
+    blob = pickle.dumps(MetricTable.from_dicts([{"x": 1.0}, {"x": 2.0}]), protocol=5, buffer_callback=buffers.append)
+    table = pickle.loads(blob, buffers=[b.raw().toreadonly() for b in buffers])
+    table.set_column("x", 3.0)
+    np.testing.assert_array_equal(table.column("x"), [3.0, 3.0])
