@@ -199,7 +199,9 @@ LINKAGE_SWEEP = [
     dict(label="float32 state", dt_scale=1.0, config=dict(tuning=dict(compensated_state=False))),
     dict(label="dt x8", dt_scale=8.0),
     # the same linkages in reduced coordinates (engine.pack's TREE plan: engine.reduced.chains)
+    dict(label="reduced coordinates, dt x0.5", dt_scale=0.5, **TREE),
     dict(label="reduced coordinates", dt_scale=1.0, **TREE),
+    dict(label="reduced coordinates, dt x2", dt_scale=2.0, **TREE),
     dict(label="reduced coordinates, dt x4", dt_scale=4.0, **TREE),
 ]
 LINKAGE_VARIANTS = [dict(label="reduced coordinates", config={}, **TREE)]
