@@ -267,7 +267,7 @@ def run_scene(name: str, declared: Declared, args) -> dict:
               "throughput": [], "precision": [], "peers": [], "reference": None}
     dt = declared.dt
     worlds_list = declared.quick_worlds if quick else declared.throughput_worlds
-    if getattr(args, "worlds", None):  # the batch sizes asked for (variants and peers at the largest)
+    if getattr(args, "worlds", None):  # the batch sizes asked for (variants at the largest, peers at each)
         worlds_list = sorted(args.worlds)
     steps = 20 if quick else declared.throughput_steps
     chunk = 10 if steps >= 30 else max(1, steps // 4)
@@ -332,12 +332,14 @@ def run_scene(name: str, declared: Declared, args) -> dict:
         elif args.peers and declared.peers and peer_reason is None:
             result["peers"] += peer_precision(specs, scene, worlds, dt, duration, record_dt, reference, args)
     if args.peers and declared.peers and "throughput" in args.parts:
+        # the peers at every batch size asked for (--worlds), else at the scene's two largest
+        peer_worlds = worlds_list if getattr(args, "worlds", None) else worlds_list[-2:]
         if scene.usd is not None:
-            result["peers"] += newton_throughput(scene, worlds_list[-2:], dt, steps, args)
+            result["peers"] += newton_throughput(scene, peer_worlds, dt, steps, args)
         elif peer_reason is not None:
             result["peers"].append({"engine": "mujoco_warp", "error": peer_reason})
         else:
-            result["peers"] += peer_throughput(specs, worlds_list[-2:], dt, steps, args)
+            result["peers"] += peer_throughput(specs, peer_worlds, dt, steps, args)
     return result
 
 
@@ -610,7 +612,7 @@ def main(argv=None) -> int:
                              "settings' throughput still runs), e.g. 'reduced coordinates'")
     parser.add_argument("--worlds", nargs="+", type=int, default=None, metavar="N",
                         help="throughput batch sizes instead of the scene's (the variants run at the largest, the "
-                             "peers at the two largest)")
+                             "peers at each)")
     parser.add_argument("--assets", default=None, help="folder holding disneyresearch/dr_legs (DR Legs scenes)")
     parser.add_argument("--out", default=None, help="results folder (default benchmarks/results/<device>)")
     args = parser.parse_args(argv)
