@@ -17,12 +17,13 @@ from engine.pack import pack, pack_worlds
 from engine.plan import Coordinates, Plan
 from engine.rollout import Stepper, Trace, point_positions, rollout
 from engine.forces import BodyWrench, JointSpring, JointTorque, LinearSpring
-from engine.spec import Body, GroundPlane, Joint, JointDrive, JointType, MechanismSpec, Shape, ShapeType, TrackedPoint
+from engine.spec import (Body, GroundPlane, Joint, JointDrive, JointType, MechanismSpec, Relief, Shape, ShapeType,
+                         TrackedPoint)
 from engine.step import StageTimer, step
 
 __all__ = [
     "Body", "BodyWrench", "Control", "Coordinates", "GroundPlane", "Health", "Integrator", "Joint", "JointDrive",
-    "JointSpring", "JointTorque", "JointType", "LinearSpring", "MechanismSpec", "Model", "Plan", "Shape", "ShapeType",
+    "JointSpring", "JointTorque", "JointType", "LinearSpring", "MechanismSpec", "Model", "Plan", "Relief", "Shape", "ShapeType",
     "SolverConfig", "StageTimer", "State", "Stepper",
     "Trace", "TrackedPoint", "Tuning", "compute_metrics", "metrics_numpy", "pack", "pack_worlds",
     "point_positions", "rollout", "step",

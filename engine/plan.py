@@ -111,6 +111,8 @@ def _admits(kind: Coordinates, spec, ready: dict | None = None):
         if isinstance(made, ValueError):
             raise ValueError(str(made))
         return made
+    if _has_relief(spec):
+        raise ValueError(RELIEF_ONLY_TABULATED)
     if kind is Coordinates.TREE:
         from engine.pack import collision_pairs
         from engine.reduced.chain_layout import chain_layout
@@ -122,6 +124,24 @@ def _admits(kind: Coordinates, spec, ready: dict | None = None):
         _near_the_origin(spec)
         return chain_layout(spec)
     return None
+
+
+RELIEF_ONLY_TABULATED = ("its ground has relief (engine.spec.Relief), which only the tabulated plan simulates "
+                         "(floating-base mechanisms)")
+
+
+def _has_relief(spec) -> bool:
+    return spec.ground is not None and spec.ground.relief is not None
+
+
+def _maximal_admits(specs: list, refused: list, first: int = 0) -> None:
+    """ValueError naming the first world with ground relief (the maximal plan has none; ``first``:
+    the index of specs[0] in the batch), with why the tabulated plan refused it."""
+    for index, spec in enumerate(specs, start=first):
+        if _has_relief(spec):
+            why = next((r for k, r in refused if k is Coordinates.TABULATED), "")
+            raise ValueError(f"engine.pack: world {index} ({spec.name}): {RELIEF_ONLY_TABULATED}"
+                             + (f"; not tabulated: {why}" if why else ""))
 
 
 def _effort_limits_clear(spec) -> None:
@@ -192,6 +212,7 @@ def choose(specs: list, device, coordinates=None, contact_capacity: int | None =
             refused.append((kind, CAPACITY_NOT_TABULATED))
             continue
         if kind is Coordinates.MAXIMAL:
+            _maximal_admits(specs, refused)
             return Plan(kind, len(specs), str(device), forced=forced is not None, refused=refused), None
         layouts, seen = [], {}  # a batch often repeats one spec object: its layout is made once
         ready = _tabulated_ready(specs) if kind is Coordinates.TABULATED else None
@@ -238,6 +259,8 @@ def fastest(specs: list, contact_capacity: int | None = None) -> tuple[list, lis
                         refused.append((kind, f"world {index} ({spec.name}): {exc}"))
             seen[id(spec)] = found
         kind, layout = seen[id(spec)]
+        if kind is Coordinates.MAXIMAL and _has_relief(spec):
+            _maximal_admits([spec], refused, index)
         kinds.append(kind)
         layouts.append(layout)
     return kinds, layouts, refused

@@ -27,7 +27,7 @@ import numpy as np
 from engine.forces import FORCE_TYPES, BodyWrench, JointSpring, JointTorque, LinearSpring
 
 __all__ = ["Body", "BodyWrench", "GroundPlane", "Joint", "JointDrive", "JointSpring", "JointTorque", "JointType",
-           "LinearSpring", "MechanismSpec", "Shape", "ShapeType", "TrackedPoint"]
+           "LinearSpring", "MechanismSpec", "Relief", "Shape", "ShapeType", "TrackedPoint"]
 
 
 class JointType(enum.IntEnum):
@@ -561,13 +561,42 @@ _SIZES = {ShapeType.SPHERE: 1, ShapeType.CAPSULE: 2, ShapeType.BOX: 3, ShapeType
 
 
 @dataclass
+class Relief:
+    """Bumps on a ground plane z = offset: height offset + amplitude sin(2 pi x / wavelength + phase[0])
+    sin(2 pi y / wavelength + phase[1]) [m] (rough ground for walkers). A contact sees the ground as
+    the tangent plane of that surface below its point (normal from the height's gradient). Simulated
+    by the tabulated plan (floating-base walkers); engine.pack refuses it on the other plans."""
+
+    amplitude: float
+    wavelength: float = 0.5
+    phase: object = (0.0, 0.0)
+
+    def __post_init__(self):
+        self.amplitude = _scalar(self.amplitude, "ground relief: amplitude [m]", minimum=0.0)
+        self.wavelength = _scalar(self.wavelength, "ground relief: wavelength [m]", minimum=0.0)
+        if self.wavelength <= 0.0:
+            raise ValueError(f"ground relief: wavelength must be positive, got {self.wavelength}")
+        phase = _array(self.phase, "ground relief: phase [rad]").reshape(-1)
+        if phase.size != 2 or not np.all(np.isfinite(phase)):
+            raise ValueError(f"ground relief: phase needs two finite angles [rad], got {phase.tolist()}")
+        self.phase = phase
+
+    def height(self, x, y):
+        """The bumps' height above the plane at (x, y) [m] (NumPy)."""
+        k = 2.0 * np.pi / self.wavelength
+        return self.amplitude * np.sin(k * np.asarray(x) + self.phase[0]) * np.sin(k * np.asarray(y) + self.phase[1])
+
+
+@dataclass
 class GroundPlane:
-    """A static plane {x : normal . x = offset}; bodies stay on the side the normal points to."""
+    """A static plane {x : normal . x = offset}; bodies stay on the side the normal points to.
+    relief: bumps on it (Relief; a horizontal plane only), None: flat."""
 
     normal: object = (0.0, 0.0, 1.0)
     offset: float = 0.0
     friction: float = 0.8
     restitution: float = 0.0
+    relief: Relief | None = None
 
     def __post_init__(self):
         normal = _vector(self.normal, 3, "ground plane: normal")
@@ -579,6 +608,12 @@ class GroundPlane:
         self.restitution = _scalar(self.restitution, "ground plane: restitution", minimum=0.0)
         if self.restitution > 1.0:
             raise ValueError(f"ground plane: restitution must be <= 1, got {self.restitution}")
+        if self.relief is not None:
+            if not isinstance(self.relief, Relief):
+                raise ValueError(f"ground plane: relief must be an engine.spec.Relief, got {self.relief!r}")
+            if np.abs(self.normal - np.array([0.0, 0.0, 1.0])).max() > 1e-9:
+                raise ValueError("ground plane: relief needs a horizontal plane (normal (0, 0, 1)); tilt gravity "
+                                 "for a slope")
 
 
 @dataclass

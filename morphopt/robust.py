@@ -7,12 +7,14 @@ bounds), and for dynamic studies a multiplier of the ground's friction coefficie
 coefficient is the geometric mean of its shape's and the ground's), a payload (the fraction of the
 mass added to the body of the tracked point "torso", or of the first body), a ground slope (the
 gravity turned about y: positive is uphill towards +x), a multiplier of every drive's target
-speed and radial play in named revolute joints (with_clearance: the clearance-link model). The batch holds each design's nominal world and its K scenarios next to each other (on a
+speed, radial play in named revolute joints (with_clearance: the clearance-link model) and rough
+ground: bumps of a drawn amplitude on the ground (engine.spec.Relief, ROUGHNESS_WAVELENGTH, phases
+drawn per scenario; the mechanism lifted by the amplitude; simulated by the tabulated plan, the
+walkers'). The batch holds each design's nominal world and its K scenarios next to each other (on a
 cluster, shards of it: the scenarios travel as data and each worker applies its own); the
 study's value is an aggregate of the objective over the scenarios that did not fail (mean, std,
 quantile, CVaR, worst), a design fails when more than max_failure_share of its scenarios fail,
 and the nominal metrics are stored with the aggregates (per-scenario values on request).
-Rough ground is not modelled: the engine's grounds are planes.
 """
 
 from __future__ import annotations
@@ -69,20 +71,25 @@ class Robustness:
     payload: Distribution | None = None  # added fraction of the torso's mass
     slope: Distribution | None = None  # [deg]
     speed: Distribution | None = None  # multiplier of the drives' target speeds
+    roughness: Distribution | None = None  # the ground's bumps' amplitude [m] (engine.spec.Relief)
     store_scenarios: bool = False
     clearance: tuple | None = None  # (joint names, radius [m]): play in those joints (with_clearance)
 
 
 def draw(robust: Robustness, seed: int, generation: int) -> list[dict]:
     """The generation's K scenarios: dicts of parameter offsets ("offsets") and the world's
-    perturbations ("friction", "payload", "slope", "speed"), the same for every design."""
+    perturbations ("friction", "payload", "slope", "speed", "roughness" with "relief_phase"), the
+    same for every design."""
     rng = np.random.default_rng([int(seed), int(generation), 0x5CE4A])
     K = robust.samples
     offsets = {name: d.sample(rng, K) for name, d in sorted(robust.parameters.items())}
     world = {name: (getattr(robust, name).sample(rng, K) if getattr(robust, name) is not None else np.full(K, base))
-             for name, base in (("friction", 1.0), ("payload", 0.0), ("slope", 0.0), ("speed", 1.0))}
+             for name, base in (("friction", 1.0), ("payload", 0.0), ("slope", 0.0), ("speed", 1.0),
+                                ("roughness", 0.0))}
+    # the bumps' phases, drawn last (a study without roughness draws what it drew before)
+    phases = rng.uniform(0.0, 2.0 * math.pi, (K, 2)) if robust.roughness is not None else np.zeros((K, 2))
     return [{"offsets": {n: float(v[k]) for n, v in offsets.items()}, **{n: float(v[k]) for n, v in world.items()},
-             "clearance": robust.clearance} for k in range(K)]
+             "relief_phase": [float(x) for x in phases[k]], "clearance": robust.clearance} for k in range(K)]
 
 
 def expand(params: list, scenarios: list, space) -> list:
@@ -132,6 +139,13 @@ def scenario_hook(scenario: dict):
             g = np.asarray(spec.gravity, float)
             spec.gravity = np.array([g[0] * math.cos(a) + g[2] * math.sin(a), g[1],
                                      -g[0] * math.sin(a) + g[2] * math.cos(a)])
+        roughness = max(0.0, scenario.get("roughness", 0.0))  # (scenarios stored before roughness: none)
+        if roughness > 0.0 and spec.ground is not None:
+            from engine.spec import Relief
+            spec.ground = dataclasses.replace(spec.ground, relief=Relief(roughness, ROUGHNESS_WAVELENGTH,
+                                                                         scenario["relief_phase"]))
+            spec.bodies = [dataclasses.replace(b, position=np.asarray(b.position, float) + (0.0, 0.0, roughness))
+                           for b in spec.bodies]  # above the bumps' crests
         if scenario["speed"] != 1.0:
             spec.joints = [dataclasses.replace(j, drive=dataclasses.replace(
                 j.drive, target_velocity=j.drive.target_velocity * scenario["speed"])) if j.drive else j
@@ -201,7 +215,8 @@ def robust_evaluation(spec, robust: Robustness, space, params: list, generation:
     return Evaluation(list(params), metrics, reasons, evaluation.timings, evaluation.plan), np.array(aggregates)
 
 
-WORLD = ("friction", "payload", "slope", "speed")
+WORLD = ("friction", "payload", "slope", "speed", "roughness")
+ROUGHNESS_WAVELENGTH = 0.4  # [m] of the rough ground's bumps (about a walker's stride)
 TABLE_KEYS = {"samples", "aggregate", "level", "max_failure_share", "store_scenarios", "parameters", "clearance", *WORLD}
 
 
@@ -261,6 +276,9 @@ def robustness_from_table(table: dict, where: str, parameter_names, dynamic: boo
             raise ValueError(f"{where}: 'robustness.parameters.{name}' is not a numeric design parameter of the "
                              f"study (a tolerance is added to it); expected one of {sorted(parameter_names)}")
     world = {key: _distribution(table[key], key, where) for key in WORLD if key in table}
+    if "roughness" in world and world["roughness"].low < 0.0:
+        raise ValueError(f"{where}: 'robustness.roughness' is the bumps' amplitude [m]: give it a low bound >= 0 "
+                         f"(uniform = [low, high], or normal with low = 0), got {table['roughness']!r}")
     clearance = None
     if "clearance" in table:
         value = table["clearance"]
@@ -271,6 +289,9 @@ def robustness_from_table(table: dict, where: str, parameter_names, dynamic: boo
             raise ValueError(f"{where}: 'robustness.clearance' must be {{joints = [\"name\", ...], radius = R}} with "
                              f"0 < R <= 0.01 m (play in those undriven revolute joints), got {value!r}")
         clearance = (tuple(joints), float(radius))
+    if clearance and "roughness" in world:
+        raise ValueError(f"{where}: 'robustness.roughness' needs the tabulated plan, which a world with "
+                         f"'robustness.clearance' leaves (the clearance link is a loop the tables do not hold)")
     perturbs = sorted(world) + (["clearance"] if clearance else [])
     if perturbs and not dynamic:
         raise ValueError(f"{where}: 'robustness.{perturbs[0]}' perturbs the simulated world: a dynamic study's "

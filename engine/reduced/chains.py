@@ -332,6 +332,9 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
         h["contact_capacity"][w_] = _capacity(lay, contact_capacity)
         h["prefix"][w_] = _prefix(level)
         if spec.ground is not None:
+            if spec.ground.relief is not None:  # (engine.pack's plan refuses it first)
+                raise ValueError(f"mechanism '{spec.name}': its ground has relief, which only the tabulated plan "
+                                 f"simulates")
             h["ground_normal"][w_], h["ground_offset"][w_] = spec.ground.normal, spec.ground.offset
         for s, si in enumerate(lay.shapes):
             shape = spec.shapes[si]

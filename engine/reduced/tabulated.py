@@ -148,7 +148,7 @@ class TabulatedModel:
             "link_inertia": ((W, G * MAX_LINKS, 3, 3), wp.mat33), "drive": ((W, G, 3), wp.vec3),
             "group_shape": ((W, G, 4), wp.vec4), "base": ((W, 4), wp.vec4), "base_inertia": ((W, 3, 3), wp.mat33),
             "base_slot": ((W, BASE_SLOTS, 4), wp.vec4), "base_slot_mu": ((W, BASE_SLOTS), float),
-            "gravity": ((W, 3), wp.vec3), "position": ((W, 3), wp.vec3), "orientation": ((W, 4), wp.quat),
+            "gravity": ((W, 3), wp.vec3), "relief": ((W, 4), wp.vec4), "position": ((W, 3), wp.vec3), "orientation": ((W, 4), wp.quat),
             "velocity": ((W, 3), wp.vec3), "angular_velocity": ((W, 3), wp.vec3), "coord": ((W, G), float),
             "coord_rate": ((W, G), float), "group_joint": ((W, G), wp.int32), "point_count": (W, wp.int32),
             "point_group": ((W, P), wp.int32), "point_link": ((W, P), wp.int32),
@@ -168,6 +168,9 @@ class TabulatedModel:
                 h["base_slot"][w, k] = (*point, radius)
                 h["base_slot_mu"][w, k] = mu
             h["gravity"][w] = lay.gravity
+            relief = lay.spec.ground.relief if lay.spec.ground is not None else None
+            if relief is not None:
+                h["relief"][w] = (relief.amplitude, 2.0 * np.pi / relief.wavelength, *relief.phase)
             h["position"][w], h["orientation"][w] = lay.position, lay.orientation
             h["velocity"][w], h["angular_velocity"][w] = lay.velocity, lay.angular_velocity
             for g, chain in enumerate(lay.groups):
@@ -239,6 +242,8 @@ class TabulatedModel:
         self.force_arrays = pack_forces(layouts, B, J, d)  # (where a Control acts: on its first use)
         self._control_ready = False
         self.forces = any(lay.spec.forces for lay in layouts)
+        # the ground relief's code compiled into the step only where some world has relief
+        self.has_relief = any(lay.spec.ground is not None and lay.spec.ground.relief is not None for lay in layouts)
         self._no_body_f = wp.zeros((1, 1), dtype=wp.spatial_vector, device=d)
         self._no_effort = wp.zeros((1, 1), dtype=float, device=d)
 
@@ -304,7 +309,7 @@ class TabulatedModel:
         inputs = self._step_inputs()
         inputs += [self.force_arrays, self._no_body_f if control is None else control.body_f,
                    self._no_effort if control is None else control.joint_effort]
-        extra = (self.forces, control is not None)
+        extra = (self.forces, control is not None, self.has_relief)
         if self.tiled:
             kernel = step_kernel(True, "all", self.max_registers, self.midpoint, *extra)
             for _ in range(steps):
@@ -425,8 +430,9 @@ def describe(plan, model: TabulatedModel):
     contacts = any(lay.ground is not None and (lay.base_slots or any(c.shape for c in lay.groups))
                    for lay in model.layouts)
     plan.stages = {
-        "contact rows": (contacts, f"the shapes' {BASE_SLOTS} base slots and 2 per sub-chain against the ground"
-                         if contacts else "no ground or no shapes"),
+        "contact rows": (contacts, (f"the shapes' {BASE_SLOTS} base slots and 2 per sub-chain against the ground"
+                                    + (", on relief: its tangent plane at each contact point" if model.has_relief
+                                       else "")) if contacts else "no ground or no shapes"),
         "PADMM iterations": (True, "the drive rows and the contact triplets"),
         "limit rows": (False, "no joint limits (the layout refuses them)"),
         "position projection": (False, "no loop rows: the tables close the loops"),

@@ -82,7 +82,7 @@ class TabulatedWorlds:
     contact shape (radius, half length, planar angle on its link, friction; radius < 0: none); per
     link its mass and inertia (table frame); per world the base (mass, ground on, ground offset,
     unused), its inertia (state frame), its contact slots (point in the state frame, radius;
-    radius < 0: empty) with their friction, and gravity."""
+    radius < 0: empty) with their friction, gravity and the ground's relief."""
 
     samples: int
     table_links: wp.array(dtype=wp.int32)
@@ -105,6 +105,7 @@ class TabulatedWorlds:
     base_slot: wp.array2d(dtype=wp.vec4)
     base_slot_mu: wp.array2d(dtype=float)
     gravity: wp.array(dtype=wp.vec3)
+    relief: wp.array(dtype=wp.vec4)  # the ground's relief: amplitude, 2 pi / wavelength, phases (0: flat)
 
 
 @wp.struct

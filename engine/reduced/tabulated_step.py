@@ -328,7 +328,8 @@ def slot_point(worlds: TabulatedWorlds, state: TabulatedState, w: int, k: int, R
                axis: wp.vec3, mid: int, half: float):
     """Contact slot k's point below the ground's normal: its arm from the base's origin, its
     velocity per unit driving rate (a sub-chain's shape; zero on the base), its sub-chain (-1: the
-    base), friction and height above the ground (1e30: an empty slot, never within the margin).
+    base), friction, height above the ground (1e30: an empty slot, never within the margin) and
+    the radius of the shape below the point.
     mid != 0: the sub-chains at their angles advanced by half (dt / 2) times their rates (R and p
     are then the midpoint's)."""
     ground = worlds.base[w][2]
@@ -337,6 +338,7 @@ def slot_point(worlds: TabulatedWorlds, state: TabulatedState, w: int, k: int, R
     grp = int(-1)
     mu = float(0.0)
     dist = float(1.0e30)  # an empty slot: never within the margin
+    radius = float(0.0)
     if k < BASE_SLOTS:
         # a base point (a box corner, a sphere's or capsule end's centre) and the radius below it
         sp = worlds.base_slot[w, k]
@@ -344,6 +346,7 @@ def slot_point(worlds: TabulatedWorlds, state: TabulatedState, w: int, k: int, R
             arm = R * wp.vec3(sp[0], sp[1], sp[2]) + wp.vec3(0.0, 0.0, -sp[3])
             dist = p[2] + arm[2] - ground
             mu = worlds.base_slot_mu[w, k]
+            radius = sp[3]
     else:
         grp = (k - BASE_SLOTS) / 2
         end = float(1.0)
@@ -373,7 +376,37 @@ def slot_point(worlds: TabulatedWorlds, state: TabulatedState, w: int, k: int, R
             lin = plane(R, fv) + wp.cross(axis * phi1[2], down)
             dist = p[2] + arm[2] - ground
             mu = sh[3]
-    return arm, lin, grp, mu, dist
+            radius = sh[0]
+    return arm, lin, grp, mu, dist, radius
+
+
+@wp.func
+def relief_at(relief: wp.vec4, x: float, y: float):
+    """The relief's height above the plane and its unit normal at (x, y)."""
+    a, k = relief[0], relief[1]
+    sx = wp.sin(k * x + relief[2])
+    sy = wp.sin(k * y + relief[3])
+    n = wp.normalize(wp.vec3(-a * k * wp.cos(k * x + relief[2]) * sy, -a * k * sx * wp.cos(k * y + relief[3]), 1.0))
+    return a * sx * sy, n
+
+
+@wp.func
+def on_relief(relief: wp.vec4, p: wp.vec3, arm: wp.vec3, dist: float, radius: float):
+    """A contact slot over the ground's relief (engine.spec.Relief; relief = amplitude, 2 pi /
+    wavelength, phases): its arm, height and normal against the relief's tangent plane at the
+    contact point, where the normal through the shape's centre c = p + arm + radius z meets the
+    surface (one fixed-point step from the point below c; the centre then follows the surface's
+    offset curve, to second order in radius times curvature). The contact point's rate per
+    driving rate keeps its flat-ground value (a radius times the slope off)."""
+    up = wp.vec3(0.0, 0.0, 1.0)
+    if relief[0] == 0.0:
+        return arm, dist, up
+    c = p + arm + radius * up
+    h0, n0 = relief_at(relief, c[0], c[1])
+    h, n = relief_at(relief, c[0] - radius * n0[0], c[1] - radius * n0[1])
+    # the centre's distance from the tangent plane at the contact point, less the radius
+    height = radius * (n0[0] * n[0] + n0[1] * n[1]) + (dist + radius - h) * n[2] - radius
+    return arm + radius * (up - n), height, n
 
 
 @wp.func
@@ -494,16 +527,16 @@ def integrate_midpoint(state: TabulatedState, history: wp.array2d(dtype=float), 
 @wp.func
 def contact_rows(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=wp.vec4), slot_of: wp.array2d(dtype=wp.int32),
                  w: int, m: int, n: int, k: int, arm: wp.vec3, lin: wp.vec3, grp: int, mu: float, dist: float,
-                 uf: vecnv, dt: float, stabilization: float):
-    """Slot k's contact triplet (normal, then the tangents x and y) as rows m, m + 1, m + 2: their J,
-    free velocity (the normal's with the gap closed over the step, or the stabilization's share of
-    the penetration) and fields; returns the next row."""
+                 uf: vecnv, dt: float, stabilization: float, normal: wp.vec3, t1: wp.vec3, t2: wp.vec3):
+    """Slot k's contact triplet (normal, then the tangents t1 and t2; on flat ground z, x and y) as
+    rows m, m + 1, m + 2: their J, free velocity (the normal's with the gap closed over the step, or
+    the stabilization's share of the penetration) and fields; returns the next row."""
     for comp in range(3):
-        nrm = wp.vec3(0.0, 0.0, 1.0)
+        nrm = normal
         if comp == 1:
-            nrm = wp.vec3(1.0, 0.0, 0.0)
+            nrm = t1
         if comp == 2:
-            nrm = wp.vec3(0.0, 1.0, 0.0)
+            nrm = t2
         rxn = wp.cross(arm, nrm)
         for c in range(NV):
             J[w, m * NV + c] = 0.0
@@ -617,7 +650,7 @@ def warm_dual_pass(J: wp.array2d(dtype=float), rows: wp.array2d(dtype=wp.vec4), 
 
 @functools.cache
 def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None, midpoint: bool = False,
-                forces: bool = False, controlled: bool = False):
+                forces: bool = False, controlled: bool = False, relief: bool = False):
     """The step kernel: tiled (launch_tiled, one block of lanes per world, lanes sharing the
     PADMM rows) or one thread per world (wp.launch; no block operations). phase: the whole step
     ("all"), or its set-up (through the warm start, "setup") and the Woodbury factor, the PADMM
@@ -630,7 +663,8 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None, m
     contact impulse moved the last step's rates: left_here, history), and the integration ends at
     q+ = q_mid + dt/2 u+ (integrate_midpoint). No second pass of the dynamics. forces, controlled:
     the force elements' and a Control's generalized forces (tabulated_forces.applied_forces) join the
-    bias forces there, compiled in only where the batch has them."""
+    bias forces there, compiled in only where the batch has them. relief: some world's ground has
+    relief (on_relief; without, its code is compiled out)."""
 
     @wp.func
     def sync():
@@ -826,12 +860,19 @@ def step_kernel(tiled: bool, phase: str = "all", registers: int | None = None, m
                 count = int(0)
                 if worlds.base[w][1] > 0.0:
                     for k in range(BASE_SLOTS + 2 * L):
-                        arm, lin, grp, mu, dist = slot_point(worlds, state, w, k, R, p, axis,
-                                                             wp.static(int(midpoint)), half)
+                        arm, lin, grp, mu, dist, radius = slot_point(worlds, state, w, k, R, p, axis,
+                                                                     wp.static(int(midpoint)), half)
+                        normal = wp.vec3(0.0, 0.0, 1.0)
+                        t1 = wp.vec3(1.0, 0.0, 0.0)
+                        t2 = wp.vec3(0.0, 1.0, 0.0)
+                        if wp.static(relief):  # the relief's tangent plane below the slot
+                            arm, dist, normal = on_relief(worlds.relief[w], p, arm, dist, radius)
+                            t1 = wp.normalize(t1 - normal[0] * normal)
+                            t2 = wp.cross(normal, t1)
                         if dist < margin:
                             count += 1
                             m = contact_rows(J, rows, slot_of, w, m, n, k, arm, lin, grp, mu, dist, uf, dt,
-                                             stabilization)
+                                             stabilization, normal, t1, t2)
                 contacts_out[w] = count
                 for c in range(NV):
                     ufree[w, c] = uf[c]

@@ -10,10 +10,10 @@ import tempfile
 import numpy as np
 import pytest
 
-from morphopt.evaluate import evaluate_kinematic
+from morphopt.evaluate import evaluate_dynamic, evaluate_kinematic
 from morphopt.families import load_family
 from morphopt.robust import (Aggregate, Distribution, Robustness, aggregate, draw, expand, robust_evaluation,
-                             scenario_hook)
+                             scenario_hook, scenario_hooks)
 from morphopt.storage import read_designs
 from morphopt.study import objective_values, run_study
 from morphopt.study_spec import load_study_spec
@@ -101,6 +101,34 @@ def test_world_perturbations_change_the_walkers_spec_as_documented():
     assert spec.gravity[0] == 0.0  # the original is untouched
 
 
+def test_rough_ground_puts_walkers_on_bumps_and_leaves_the_other_draws_alone():
+    slope = Distribution("uniform", low=-5.0, high=5.0)
+    plain = draw(Robustness(samples=6, slope=slope), seed=3, generation=1)
+    rough_table = Robustness(samples=6, slope=slope, roughness=Distribution("uniform", low=0.0, high=0.02))
+    rough = draw(rough_table, seed=3, generation=1)
+    assert [s["slope"] for s in rough] == [s["slope"] for s in plain]  # drawn after them: a study keeps its draws
+    assert all(s["roughness"] == 0.0 for s in plain)
+    assert all(0.0 <= s["roughness"] <= 0.02 for s in rough) and len({s["roughness"] for s in rough}) == 6
+    assert rough == draw(rough_table, seed=3, generation=1)
+    walker = load_family("walker")
+    params = {**walker.space.default(), "legs_per_side": 3}
+    spec = walker.build_spec(params)
+    changed = scenario_hook(rough[0])(spec, params)
+    assert changed.ground.relief.amplitude == rough[0]["roughness"]
+    np.testing.assert_array_equal(changed.ground.relief.phase, rough[0]["relief_phase"])
+    lift = [b.position[2] - a.position[2] for a, b in zip(spec.bodies, changed.bodies)]
+    np.testing.assert_allclose(lift, rough[0]["roughness"])  # above the crests
+    assert spec.ground.relief is None  # the original is untouched
+    # simulated on the tabulated plan: the same design on flat and on rough ground walks differently
+    batch = [params, dict(params)]
+    evaluation = evaluate_dynamic(walker, batch, duration=1.3, dt=0.005, device="cpu",
+                                  spec_hook=scenario_hooks(batch, [None, rough[0]]))
+    assert not any(evaluation.failures)
+    assert "relief" in str(evaluation.plan)
+    speeds = [m["walking_speed"] for m in evaluation.metrics]
+    assert speeds[0] != speeds[1] and all(np.isfinite(speeds))
+
+
 ROBUST = """[study]
 name = "robust"
 family = "jansen_leg"
@@ -151,6 +179,7 @@ def test_a_kinematic_robust_study_stores_the_aggregate_and_the_nominal_metrics(t
     ("[robustness]\nsamples = 4\nslope = { uniform = [-5.0, 5.0] }\n", "perturbs the simulated world"),
     ("[robustness]\nsamples = 4\n[robustness.parameters]\na = { normal = [0, -1] }\n", "std >= 0"),
     ("[robustness]\nsamples = 4\nlevel = 1.5\n", "'robustness.level' must be in"),
+    ("[robustness]\nsamples = 4\nroughness = { uniform = [-0.01, 0.02] }\n", "'robustness.roughness' is the bumps'"),
 ])
 def test_the_robustness_table_is_checked_before_any_work(tmp_path, table, error):
     path = tmp_path / "q.toml"
