@@ -5,8 +5,9 @@
 
 Runs two walker studies with the same seed, population and simulation: one on flat ground with the
 nominal torso (nominal optimum), one with a ``[robustness]`` table of ``--samples`` scenarios per
-design (slopes uniform in +-5 degrees, payloads uniform in 0-30 % of the torso's mass) maximizing
-the worst speed among them. Then simulates both optima in one batch under ``--judge`` common
+design (slopes uniform in +-5 degrees, payloads uniform in 0-30 % of the torso's mass; with
+--roughness R also rough ground, bumps of amplitude uniform in [0, R] m) maximizing the worst
+speed among them. Then simulates both optima in one batch under ``--judge`` common
 scenarios drawn from the same distributions with another seed, and reports per optimum the nominal
 speed, the share of scenarios it falls in, and the mean and worst speed. Writes
 robust_walker_<device>.json and .csv (one row per design and scenario), and a histogram PNG when
@@ -59,6 +60,8 @@ legs_per_side = 3
         text += (f"[robustness]\nsamples = {args.samples}\naggregate = \"worst\"\nmax_failure_share = 0.5\n"
                  f"slope = {{ uniform = [{SLOPE.low}, {SLOPE.high}] }}\n"
                  f"payload = {{ uniform = [{PAYLOAD.low}, {PAYLOAD.high}] }}\n")
+        if args.roughness > 0.0:
+            text += f"roughness = {{ uniform = [0.0, {args.roughness}] }}\n"
     return text
 
 
@@ -71,11 +74,13 @@ def main(argv=None) -> None:
     parser.add_argument("--judge", type=int, default=128, help="common scenarios both optima are judged in")
     parser.add_argument("--duration", type=float, default=2.0)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--roughness", type=float, default=0.0, help="bumps' largest amplitude [m] (0: flat ground)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     work = pathlib.Path(tempfile.mkdtemp(prefix="robust_walker_"))  # the two studies' storage
     out = {"device": device_tag(args.device), "command": "python -m benchmarks.robust_walker " + " ".join(sys.argv[1:]),
-           **{k: getattr(args, k) for k in ("worlds", "generations", "samples", "judge", "duration", "seed")}}
+           **{k: getattr(args, k) for k in ("worlds", "generations", "samples", "judge", "duration", "seed",
+                                            "roughness")}}
     optima = {}
     for label, robust in (("nominal", False), ("robust", True)):
         path = work / f"walker_{label}.toml"
@@ -87,7 +92,9 @@ def main(argv=None) -> None:
                                   "best_params": result.best_params}
         print(json.dumps({label: out[f"{label}_search"]}), file=sys.stderr, flush=True)
     walker = load_family("walker")
-    scenarios = draw(Robustness(samples=args.judge, slope=SLOPE, payload=PAYLOAD), seed=2024, generation=0)
+    rough = Distribution("uniform", low=0.0, high=args.roughness) if args.roughness > 0.0 else None
+    scenarios = draw(Robustness(samples=args.judge, slope=SLOPE, payload=PAYLOAD, roughness=rough), seed=2024,
+                     generation=0)
     batch = expand([optima["nominal"], optima["robust"]], scenarios, walker.space)
     evaluation = evaluate_dynamic(walker, batch, duration=args.duration, dt=0.005, device=args.device,
                                   spec_hook=scenario_hooks(batch, [None, *scenarios] * 2))
@@ -103,17 +110,17 @@ def main(argv=None) -> None:
     print(json.dumps(out), flush=True)
     folder = pathlib.Path(args.out) if args.out else RESULTS / out["device"]
     folder.mkdir(parents=True, exist_ok=True)
-    stem = f"robust_walker_{out['device']}"
+    stem = f"robust_walker_{out['device']}" + ("_rough" if args.roughness > 0.0 else "")
     (folder / f"{stem}.json").write_text(json.dumps(out, indent=1))
     with open(folder / f"{stem}.csv", "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["optimum", "scenario", "slope_deg", "payload", "walking_speed", "failure"])
+        writer.writerow(["optimum", "scenario", "slope_deg", "payload", "roughness_m", "walking_speed", "failure"])
         for d, label in enumerate(("nominal", "robust")):
             for s in range(args.judge + 1):
                 scenario = None if s == 0 else scenarios[s - 1]
                 k = d * (args.judge + 1) + s
                 writer.writerow([label, s, scenario["slope"] if scenario else 0.0,
-                                 scenario["payload"] if scenario else 0.0,
+                                 scenario["payload"] if scenario else 0.0, scenario["roughness"] if scenario else 0.0,
                                  speeds[d, s], evaluation.failures[k] or ""])
     try:
         import matplotlib
@@ -125,7 +132,8 @@ def main(argv=None) -> None:
     for label, row in zip(("nominal optimum", "robust optimum"), speeds):
         kept = row[1:][np.isfinite(row[1:])]
         ax.hist(kept, bins=16, alpha=0.6, label=f"{label} ({100 * np.mean(~np.isfinite(row[1:])):.0f} % fell)")
-    ax.set_xlabel(f"walking speed over {args.judge} scenarios (slope +-5 deg, payload 0-30 %) [m/s]")
+    ax.set_xlabel(f"walking speed over {args.judge} scenarios (slope +-5 deg, payload 0-30 %"
+                  + (f", bumps up to {100 * args.roughness:g} cm" if args.roughness > 0.0 else "") + ") [m/s]")
     ax.set_ylabel("scenarios")
     ax.set_title(f"{out['device']}: {args.generations} generations of {args.worlds}, {args.samples} scenarios a design")
     ax.legend()
