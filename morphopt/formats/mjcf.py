@@ -242,6 +242,9 @@ def _build(spec: MechanismSpec, *, metadata: dict | None, mesh_files: dict[str, 
         raise ValueError(f"timestep must be positive and finite [s], got {timestep!r}")
     if integrator not in INTEGRATORS:
         raise ValueError(f"integrator must be one of {', '.join(INTEGRATORS)}, got {integrator!r}")
+    if spec.ground is not None and spec.ground.relief is not None:  # never dropped silently
+        raise ValueError(f"mechanism '{spec.name}': its ground has relief (engine.Relief), which MJCF "
+                         f"cannot hold; export the spec without it")
     if "world" in spec.body_index:
         raise ValueError("body 'world': the name is reserved in MJCF, rename the body")
     for name in mesh_files:

@@ -192,6 +192,9 @@ def write_urdf(spec: MechanismSpec, path, *, metadata: dict | None = None, meshe
     Returns the path. Raises ValueError when the spec has several roots (the world and floating
     bodies, or several floating bodies) or a body named "world".
     """
+    if spec.ground is not None and spec.ground.relief is not None:  # never dropped silently
+        raise ValueError(f"mechanism '{spec.name}': its ground has relief (engine.Relief), which URDF "
+                         f"cannot hold; export the spec without it")
     path = pathlib.Path(path)
     meshes = dict(meshes or {})
     if WORLD in spec.body_index:

@@ -125,6 +125,9 @@ def write_usd(spec: MechanismSpec, path, *, metadata: dict | None = None, meshes
     body in spec order), e.g. from record_motion(); written as time samples at ``fps``.
     Returns the path written.
     """
+    if spec.ground is not None and spec.ground.relief is not None:  # never dropped silently
+        raise ValueError(f"mechanism '{spec.name}': its ground has relief (engine.Relief), which USD "
+                         f"cannot hold; export the spec without it")
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     stage = Usd.Stage.CreateNew(str(path))
