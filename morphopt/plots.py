@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["plot_study", "study_figure"]
+__all__ = ["draw_design", "plot_study", "study_figure"]
 
 
 def _metric_label(name: str, frame) -> str:
@@ -121,6 +121,20 @@ def _draw_world(ax, family, params: dict, spec) -> None:
     ax.set_ylabel("z [m]")
 
 
+def draw_design(ax, family, params: dict, spec) -> str:
+    """One design on a matplotlib Axes as the module docstring says (a kinematic study's or a
+    linkage family's linkage in its plane, a dynamic study's world from the side), equal axes;
+    returns the view's words for a title ("" or " (initial pose, side view)")."""
+    if spec.mode == "kinematic" or not hasattr(family, "build_spec"):
+        _draw_linkage(ax, family, params, spec)
+        view = ""
+    else:
+        _draw_world(ax, family, params, spec)
+        view = " (initial pose, side view)"
+    ax.set_aspect("equal", adjustable="datalim")
+    return view
+
+
 def study_figure(frame, spec, family):
     """The matplotlib Figure of plot_study: convergence beside the best design (see the module
     docstring), and with several objectives the Pareto front of the first two."""
@@ -138,13 +152,7 @@ def study_figure(frame, spec, family):
         maximize = spec.direction == "maximize"
         best = feasible.loc[feasible["value"].idxmax() if maximize else feasible["value"].idxmin()]
         params = {name: _plain(best[name]) for name in family.space.names}
-        if spec.mode == "kinematic" or not hasattr(family, "build_spec"):
-            _draw_linkage(ax_design, family, params, spec)
-            view = ""
-        else:
-            _draw_world(ax_design, family, params, spec)
-            view = " (initial pose, side view)"
-        ax_design.set_aspect("equal", adjustable="datalim")
+        view = draw_design(ax_design, family, params, spec)
         label = "score" if spec.multi_objective else _metric_label(spec.metric, frame)
         ax_design.set_title(f"best design{view}: {label} = {best['value']:.4g}", fontsize=10)
         ax_design.legend(fontsize=8)

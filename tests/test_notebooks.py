@@ -17,7 +17,7 @@ FIGURES = {
     "four_bar_coupler_sweep": ["four_bar_path_error_map.png", "four_bar_best_worst_curves.png"],
     "jansen_sensitivity": ["jansen_one_at_a_time.png", "jansen_2d_maps.png"],
     "walker_topology_sweep": ["walker_pareto.png", "walker_best.gif"],
-    "robust_vs_nominal": ["robust_four_bar.png", "robust_walker.png"],
+    "robust_vs_nominal": ["robust_four_bar.png", "robust_walker.png", "robust_designs.png"],
 }
 
 

@@ -139,7 +139,7 @@ legs_per_side = 3
 """
 world = ("slope = { uniform = [-5.0, 5.0] }\npayload = { uniform = [0.0, 0.3] }\n"
          "friction = { uniform = [0.7, 1.2] }\n")
-_, walker_nominal = study("walker_nominal", walker_text.replace("NAME", "walker_nominal"))
+walker_spec, walker_nominal = study("walker_nominal", walker_text.replace("NAME", "walker_nominal"))
 _, walker_robust = study("walker_robust", walker_text.replace("NAME", "walker_robust")
                          + "[robustness]\nsamples = 4\naggregate = \"worst\"\nmax_failure_share = 0.5\n" + world)
 
@@ -165,3 +165,25 @@ ax.set_ylabel("scenarios")
 ax.legend()
 fig.tight_layout()
 fig.savefig(OUT / "robust_walker.png", dpi=110)
+
+# %% [markdown]
+# ## The four optima
+#
+# The four-bars in their plane with their coupler curves and the target; the walkers from the side
+# at their initial pose.
+
+# %%
+from morphopt.plots import draw_design  # noqa: E402
+
+fig, axes = plt.subplots(2, 2, figsize=(11, 9))
+for ax, (label, family, params, spec) in zip(axes.flat, (
+        ("four-bar, nominal optimum", four_bar, nominal, nominal_spec),
+        ("four-bar, robust optimum", four_bar, robust, robust_spec),
+        ("walker, nominal optimum", walker, walker_nominal, walker_spec),
+        ("walker, robust optimum", walker, walker_robust, walker_spec))):
+    view = draw_design(ax, family, params, spec)
+    ax.set_title(label + view, fontsize=10)
+    ax.grid(alpha=0.3)
+axes[0, 0].legend(fontsize=8)
+fig.tight_layout()
+fig.savefig(OUT / "robust_designs.png", dpi=110)
