@@ -2,6 +2,7 @@
 and 2 workers, same study and seed (the stored designs are checked equal).
 
     python -m benchmarks.cluster [--device cpu] [--generations 6] [--out DIR]
+    python -m benchmarks.cluster --device cuda --studies dynamic --workers 0 1 --dynamic-worlds 4096
 
 Runs a kinematic study (quickstart's Jansen leg, 256 designs a generation) and a small dynamic one
 (walkers, 64 a generation, 1.3 s simulated) each way, on one Ray instance started first; the
@@ -33,7 +34,7 @@ family = "jansen_leg"
 mode = "kinematic"
 seed = 0
 generations = {generations}
-worlds = 256
+worlds = {worlds}
 device = "{device}"
 [objective]
 metric = "foot_stride"
@@ -49,7 +50,7 @@ family = "walker"
 mode = "dynamic"
 seed = 0
 generations = {generations}
-worlds = 64
+worlds = {worlds}
 device = "{device}"
 [objective]
 metric = "walking_speed"
@@ -63,7 +64,7 @@ legs_per_side = 3
 }
 
 
-def measure(folder: pathlib.Path, kind: str, device: str, generations: int, workers: int) -> dict:
+def measure(folder: pathlib.Path, kind: str, device: str, generations: int, workers: int, worlds: int) -> dict:
     """Designs/s of generations 2 .. ``generations``: a run of 1 generation and a run of all, each
     from scratch with the same seed, the difference of their times (the workers' start and the
     kernels' compilation cancel)."""
@@ -71,7 +72,7 @@ def measure(folder: pathlib.Path, kind: str, device: str, generations: int, work
     for count in (1, generations):
         name = f"{kind}_{workers}_{count}"
         path = folder / f"{name}.toml"
-        path.write_text(STUDIES[kind].format(name=name, generations=count, device=device))
+        path.write_text(STUDIES[kind].format(name=name, generations=count, device=device, worlds=worlds))
         spec = load_study_spec(path)
         if workers:
             spec = spec.with_overrides(cluster="local", workers=workers)
@@ -89,18 +90,27 @@ def main(argv=None) -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--generations", type=int, default=6)
     parser.add_argument("--out", default=None)
+    parser.add_argument("--studies", nargs="+", choices=sorted(STUDIES), default=list(STUDIES))
+    parser.add_argument("--workers", nargs="+", type=int, default=[0, 1, 2],
+                        help="worker counts to run (0: this process); on CUDA one GPU per worker")
+    parser.add_argument("--kinematic-worlds", type=int, default=256)
+    parser.add_argument("--dynamic-worlds", type=int, default=64)
+    parser.add_argument("--num-cpus", type=int, default=2, help="CPUs the local Ray instance offers")
     args = parser.parse_args(argv)
     out = {"device": device_tag(args.device), "machine": platform.processor() or platform.machine(),
            "command": "python -m benchmarks.cluster " + " ".join(sys.argv[1:]), "studies": {}}
     import ray
 
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)  # one for all runs
+    ray.init(num_cpus=args.num_cpus, include_dashboard=False, log_to_driver=False,
+             configure_logging=False)  # one for all runs
+    worlds = {"kinematic": args.kinematic_worlds, "dynamic": args.dynamic_worlds}
     with tempfile.TemporaryDirectory() as folder:
-        for kind in STUDIES:
-            rows = [measure(pathlib.Path(folder), kind, args.device, args.generations, w) for w in (0, 1, 2)]
+        for kind in args.studies:
+            rows = [measure(pathlib.Path(folder), kind, args.device, args.generations, w, worlds[kind])
+                    for w in args.workers]
             same = all(np.array_equal(r["values"], rows[0]["values"], equal_nan=True) for r in rows)
-            base = rows[0]["designs_per_s"]
-            out["studies"][kind] = {"same_results": bool(same), "runs": [
+            base = rows[0]["designs_per_s"]  # the first worker count asked for (default 0: this process)
+            out["studies"][kind] = {"worlds": worlds[kind], "same_results": bool(same), "runs": [
                 {k: v for k, v in r.items() if k != "values"} | {"over_single_process": r["designs_per_s"] / base}
                 for r in rows]}
             print(json.dumps({kind: out["studies"][kind]}), flush=True)
