@@ -37,6 +37,7 @@ import csv
 import json
 import pathlib
 import platform
+import re
 import shlex
 import sys
 import time
@@ -527,6 +528,14 @@ def _throughput_panel(ax, result: dict, ours: list, variants: list, maximal: lis
     ax.legend(fontsize=7)
 
 
+def _series(label: str) -> str:
+    """The setting a work-precision point belongs to, its step size left out: "dt x2" and "default"
+    are the maximal plan's, "reduced coordinates, dt x4" the reduced one's, "MuJoCo Warp Euler, dt
+    x2" MuJoCo Warp's Euler."""
+    base = re.sub(r",? *dt x[0-9.]+$", "", label).strip()
+    return "maximal" if base in ("", "default") else base
+
+
 def plot(result: dict, path: pathlib.Path) -> None:
     import matplotlib
 
@@ -575,6 +584,8 @@ def plot(result: dict, path: pathlib.Path) -> None:
         groups = [("morphopt", result["precision"], "o", "C0")] + [
             (name, [r for r in peer_precision_rows if str(r.get("engine", "")).startswith(engine)], "s", color)
             for engine, name, color in (("mujoco_warp", "MuJoCo Warp", "C1"), ("kamino", "Kamino", "C2"))]
+        line_colors = iter(f"C{k}" for k in range(3, 10))
+        series_color = {}
         for ax, (key, unit) in zip(axes, errors):
             for name, rows, marker, color in groups:
                 rows = [r for r in rows if "error" not in r and r.get(key) is not None]
@@ -582,6 +593,20 @@ def plot(result: dict, path: pathlib.Path) -> None:
                     ax.loglog(r["wall_s_per_simulated_s"], max(r[key], 1e-9), marker, color=color,
                               label=name if k == 0 else None)
                     ax.annotate(r["label"], (r["wall_s_per_simulated_s"], max(r[key], 1e-9)), fontsize=6)
+                # a line through each step-size sweep of one setting (maximal, reduced coordinates, a peer's
+                # integrator): the work-precision curve
+                by_series = {}
+                for r in rows:
+                    by_series.setdefault(_series(r["label"]), []).append(r)
+                for series, points in by_series.items():
+                    if len(points) < 2:
+                        continue
+                    points.sort(key=lambda r: r["wall_s_per_simulated_s"])
+                    tag = f"{name}: {series}" if name == "morphopt" else series
+                    if tag not in series_color:
+                        series_color[tag] = next(line_colors, "0.5")
+                    ax.loglog([r["wall_s_per_simulated_s"] for r in points], [max(r[key], 1e-9) for r in points], "-",
+                              color=series_color[tag], alpha=0.7, lw=1.2, label=tag)
             ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # (labels of 2x .. 9x overlap)
             ax.set_xlabel(f"wall s per simulated s ({result['precision'][0].get('num_worlds', '')} worlds)")
             ax.set_ylabel(unit)

@@ -588,3 +588,10 @@ def test_walker_agreement_compares_the_same_walkers_in_both_plans(tmp_path, caps
     if result["feasible_both"]:
         assert 0.0 <= result["speed_diff_median_m_s"] <= result["speed_diff_p90_m_s"] < 1.0
     assert result["seconds"]["tabulated"] > 0.0 and result["seconds"]["maximal"] > 0.0
+
+
+def test_work_precision_points_are_grouped_into_step_size_sweeps():
+    from benchmarks.run import _series
+    assert [_series(label) for label in ("default", "dt x0.5", "dt x2", "reduced coordinates",
+                                         "reduced coordinates, dt x4", "MuJoCo Warp RK4, dt x2", "staged, dt x2")] == \
+        ["maximal", "maximal", "maximal", "reduced coordinates", "reduced coordinates", "MuJoCo Warp RK4", "staged"]
