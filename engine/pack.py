@@ -497,7 +497,8 @@ def pack_worlds(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
             h["shape_friction"][w, s_index] = shape.friction
             h["shape_restitution"][w, s_index] = shape.restitution
         if spec.ground is not None:
-            if spec.ground.relief is not None:  # (engine.pack's plan refuses it first)
+            if spec.ground.relief is not None and not measure_only:  # (engine.pack's plan refuses it first;
+                # a gauge measures joints and energy, never the ground)
                 raise ValueError(f"mechanism '{spec.name}': its ground has relief, which only the tabulated plan "
                                  f"simulates")
             h["ground_normal"][w] = spec.ground.normal

@@ -134,14 +134,17 @@ def _has_relief(spec) -> bool:
     return spec.ground is not None and spec.ground.relief is not None
 
 
-def _maximal_admits(specs: list, refused: list, first: int = 0) -> None:
+def _maximal_admits(specs: list, first: int = 0) -> None:
     """ValueError naming the first world with ground relief (the maximal plan has none; ``first``:
-    the index of specs[0] in the batch), with why the tabulated plan refused it."""
+    the index of specs[0] in the batch), with why the tabulated plan refuses that world."""
     for index, spec in enumerate(specs, start=first):
         if _has_relief(spec):
-            why = next((r for k, r in refused if k is Coordinates.TABULATED), "")
-            raise ValueError(f"engine.pack: world {index} ({spec.name}): {RELIEF_ONLY_TABULATED}"
-                             + (f"; not tabulated: {why}" if why else ""))
+            try:
+                _admits(Coordinates.TABULATED, spec)
+                why = "a tabulated plan was not allowed (a contact capacity, or coordinates forced)"
+            except ValueError as exc:
+                why = str(exc)
+            raise ValueError(f"engine.pack: world {index} ({spec.name}): {RELIEF_ONLY_TABULATED}; not tabulated: {why}")
 
 
 def _effort_limits_clear(spec) -> None:
@@ -212,7 +215,7 @@ def choose(specs: list, device, coordinates=None, contact_capacity: int | None =
             refused.append((kind, CAPACITY_NOT_TABULATED))
             continue
         if kind is Coordinates.MAXIMAL:
-            _maximal_admits(specs, refused)
+            _maximal_admits(specs)
             return Plan(kind, len(specs), str(device), forced=forced is not None, refused=refused), None
         layouts, seen = [], {}  # a batch often repeats one spec object: its layout is made once
         ready = _tabulated_ready(specs) if kind is Coordinates.TABULATED else None
@@ -260,7 +263,7 @@ def fastest(specs: list, contact_capacity: int | None = None) -> tuple[list, lis
             seen[id(spec)] = found
         kind, layout = seen[id(spec)]
         if kind is Coordinates.MAXIMAL and _has_relief(spec):
-            _maximal_admits([spec], refused, index)
+            _maximal_admits([spec], index)
         kinds.append(kind)
         layouts.append(layout)
     return kinds, layouts, refused

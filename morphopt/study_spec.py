@@ -537,6 +537,17 @@ def check_family_contract(spec: StudySpec, family, where: str | None = None) -> 
                     with_clearance(built, joint, robust.clearance[1])
                 except ValueError as exc:
                     raise ValueError(f"{where}: 'robustness.clearance': {exc}") from None
+        if robust.roughness is not None:  # rough ground needs the tabulated plan: the default design must fit it
+            from engine.plan import Coordinates, _admits
+            from morphopt.build import build_specs
+
+            built = build_specs(family, [{**spec.design_space(family).default(), **spec.fixed}], workers=1)[0]
+            if not isinstance(built, str):
+                try:
+                    _admits(Coordinates.TABULATED, built)
+                except ValueError as exc:
+                    raise ValueError(f"{where}: 'robustness.roughness': rough ground is simulated by the tabulated "
+                                     f"plan only, and the family's default design does not fit it ({exc})") from None
         if spec.multi_objective:
             raise ValueError(f"{where}: 'robustness' takes one objective: its aggregate is the study's value")
     try:

@@ -83,3 +83,15 @@ def test_relief_is_checked():
         Relief(0.01, 0.5, (0.0,))
     with pytest.raises(ValueError, match="horizontal"):
         GroundPlane(normal=(0.0, 0.1, 1.0), relief=Relief(0.01))
+
+
+def test_a_relief_batch_measures_its_joints_and_names_each_worlds_reason():
+    model = engine.pack([_ball(0.1, RELIEF)], "cpu", dt=0.001)
+    assert model.gauge is not None  # the joints' gauge packs without the ground
+    flat, bumpy = _ball(0.0, None), _ball(0.0, RELIEF)
+    flat.joints = [engine.Joint("pin", "revolute", None, "ball", parent_position=(0.0, 0.0, 0.2))]
+    bumpy.name = "bumpy"
+    bumpy.bodies = [engine.Body("wheel", 1.0, np.eye(3) * 1e-3, position=(0.0, 0.0, 0.1)), *bumpy.bodies]
+    bumpy.joints = [engine.Joint("axle", "revolute", "wheel", "ball")]
+    with pytest.raises(ValueError, match=r"world 1 \(bumpy\): its ground has relief.*not tabulated: (?!world 0)"):
+        engine.pack([flat, bumpy], "cpu", dt=0.001)

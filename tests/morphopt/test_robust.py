@@ -311,3 +311,13 @@ def test_a_robust_study_resumed_stores_what_an_uninterrupted_one_does(tmp_path):
     assert len(a) == len(b) == 24
     np.testing.assert_array_equal(a["value"].to_numpy(), b["value"].to_numpy())
     np.testing.assert_array_equal(a["metric_foot_stride_cvar"].to_numpy(), b["metric_foot_stride_cvar"].to_numpy())
+
+
+def test_roughness_on_a_family_the_tabulated_plan_cannot_take_is_refused_before_any_work(tmp_path):
+    path = tmp_path / "rough.toml"
+    path.write_text(ROBUST.split("[robustness]")[0].format().replace('mode = "kinematic"', 'mode = "dynamic"')
+                    .replace("[simulation]\nsamples = 90", "[simulation]\nduration = 1.3\ndt = 0.005")
+                    + "[robustness]\nsamples = 2\nroughness = { uniform = [0.0, 0.01] }\n")
+    with pytest.raises(ValueError, match=r"'robustness\.roughness': rough ground is simulated by the tabulated plan "
+                                         r"only.*needs a floating base"):
+        load_study_spec(path)
