@@ -564,8 +564,10 @@ _SIZES = {ShapeType.SPHERE: 1, ShapeType.CAPSULE: 2, ShapeType.BOX: 3, ShapeType
 class Relief:
     """Bumps on a ground plane z = offset: height offset + amplitude sin(2 pi x / wavelength + phase[0])
     sin(2 pi y / wavelength + phase[1]) [m] (rough ground for walkers). A contact sees the ground as
-    the tangent plane of that surface below its point (normal from the height's gradient). Simulated
-    by the tabulated plan (floating-base walkers); engine.pack refuses it on the other plans."""
+    the surface's tangent plane where the normal through its shape's centre meets it, so keep the
+    bumps gentle against the shapes: amplitude (2 pi / wavelength)^2 times a radius well below 1,
+    and a box's or capsule's faces touch only at their corners and end spheres. Simulated by the
+    tabulated plan (floating-base walkers); engine.pack refuses it on the other plans."""
 
     amplitude: float
     wavelength: float = 0.5
