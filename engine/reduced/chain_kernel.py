@@ -52,8 +52,8 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
     (the code of each role compiled only into its kernel). inline: some world has an inline loop
     (loop_rows_of; without, its code is compiled out). forces: some world has force elements
     (apply_forces; without, their code is compiled out). control: the step reads a Control's
-    body_f (W, B) and joint_effort (W, J), the kernel's last two inputs, every step (apply_control;
-    without, its code is compiled out and the two inputs are never read).
+    body_f (W, B) and joint_effort (W, J) every step (apply_control; without, its code is compiled
+    out). The loads argument is a ChainLoads where either is compiled in, else NoLoads.
 
     The step, one thread block per world (the lanes share each stage, a barrier between stages; on
     the CPU a block is one thread): (1) Moreau-Jean: q += dt/2 u first; (2) kinematics level by
@@ -89,8 +89,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                         max_iterations: int, skip_floor: float, skip_floor_angular: float, working: int,
                         q: wp.array2d(dtype=float), u: wp.array2d(dtype=float),
                         root: wp.array2d(dtype=wp.transform), body_q: wp.array2d(dtype=wp.transform),
-                        body_qd: wp.array2d(dtype=wp.spatial_vector),
-                        body_f: wp.array2d(dtype=wp.spatial_vector), joint_effort: wp.array2d(dtype=float)):
+                        body_qd: wp.array2d(dtype=wp.spatial_vector)):
         world, lane = wp.tid()
         lanes = wp.block_dim()
         if wp.static(handover == 2):  # the full-capacity kernel steps only the worlds the first one handed over
@@ -171,7 +170,7 @@ def chain_step_kernel(coords: int, rows: int, contacts: int = 0, slots: int = TI
                 block_sync()
             if wp.static(control):  # a Control's body wrenches and joint efforts, one lane
                 if lane == 0:
-                    apply_control(loads, w, world, body_f, joint_effort)
+                    apply_control(loads, w, world)
                 block_sync()
             if wp.static(stages):
                 stamp(w, world, lane, 1)

@@ -102,6 +102,9 @@ class ChainLoads:
     control_joint: wp.array3d(dtype=wp.int32)  # (W, J, 2)
     control_frame: wp.array2d(dtype=wp.transform)  # (W, J)
     control_axis: wp.array2d(dtype=wp.vec3)  # (W, J)
+    # the Control's own arrays (ChainModel.loads_for; (1, 1) zeros without one)
+    body_f: wp.array2d(dtype=wp.spatial_vector)  # (W, B) force, torque at each spec body's centre of mass
+    joint_effort: wp.array2d(dtype=float)  # (W, J)
 
 
 @wp.struct
@@ -768,8 +771,7 @@ def apply_forces(m: ChainLoads, w: ChainWork, world: int):
 
 
 @wp.func
-def apply_control(m: ChainLoads, w: ChainWork, world: int, body_f: wp.array2d(dtype=wp.spatial_vector),
-                  joint_effort: wp.array2d(dtype=float)):
+def apply_control(m: ChainLoads, w: ChainWork, world: int):
     """A Control's wrenches added to the bodies' own terms (after own_terms, before the subtree sums;
     one lane) at the kinematics' poses: body_f[world, b] (force, torque; world frame) at spec body
     b's centre of mass, and joint_effort[world, j] as the torque tau about spec joint j's world axis
@@ -779,7 +781,7 @@ def apply_control(m: ChainLoads, w: ChainWork, world: int, body_f: wp.array2d(dt
     for b in range(m.control_body.shape[1]):
         e = m.control_body[world, b]
         if e >= 0:
-            f = body_f[world, b]
+            f = m.body_f[world, b]
             push(w, world, e, wp.spatial_top(f), w.centre[world, e], wp.spatial_bottom(f))
     zero = wp.vec3()
     for j in range(m.control_joint.shape[1]):
@@ -789,7 +791,7 @@ def apply_control(m: ChainLoads, w: ChainWork, world: int, body_f: wp.array2d(dt
             X = m.control_frame[world, j]
             if ep >= 0:
                 X = wp.transform_multiply(w.pose[world, ep], X)
-            torque = joint_effort[world, j] * wp.quat_rotate(wp.transform_get_rotation(X), m.control_axis[world, j])
+            torque = m.joint_effort[world, j] * wp.quat_rotate(wp.transform_get_rotation(X), m.control_axis[world, j])
             push(w, world, ec, zero, zero, torque)
             push(w, world, ep, zero, zero, -torque)
 

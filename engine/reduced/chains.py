@@ -88,9 +88,28 @@ class ChainModel:
         self.forces = any(lay.spec.forces for lay in layouts)  # the force elements' code compiled in only where needed
         self.max_bodies = max(len(lay.spec.bodies) for lay in layouts)
         self.max_joints = max(1, max(len(lay.spec.joints) for lay in layouts))
-        # the kernel's Control inputs of a step without one (never read: its code is compiled out)
-        self._no_body_f = wp.zeros((1, 1), dtype=wp.spatial_vector, device=device)
-        self._no_effort = wp.zeros((1, 1), dtype=float, device=device)
+        # the loads' Control arrays of a step without one (never read: its code is compiled out)
+        if self.loads is not None:
+            self.loads.body_f = wp.zeros((1, 1), dtype=wp.spatial_vector, device=device)
+            self.loads.joint_effort = wp.zeros((1, 1), dtype=float, device=device)
+        self._loads_by_control: dict = {}  # id(control) -> (control, its ChainLoads)
+
+    def loads_for(self, control):
+        """The step kernel's loads argument: NoLoads without force elements and Control, else the
+        batch's ChainLoads with the Control's body_f and joint_effort (one struct per Control, made
+        on its first step)."""
+        if control is None:
+            return self.loads if self.forces else self._no_loads
+        kept = self._loads_by_control.get(id(control))
+        if kept is None or kept[0] is not control:
+            loads = ChainLoads()
+            for name in ChainLoads.vars:
+                setattr(loads, name, getattr(self.loads, name))
+            loads.body_f, loads.joint_effort = control.body_f, control.joint_effort
+            if len(self._loads_by_control) >= 8:  # (a batch meets few Controls; keep no old ones alive)
+                self._loads_by_control.clear()
+            kept = self._loads_by_control[id(control)] = (control, loads)
+        return kept[1]
 
     def control(self) -> "ChainControl":
         """A new ChainControl (zeros): body_f (W, B) and joint_effort (W, J) in spec order."""
@@ -131,14 +150,13 @@ class ChainModel:
         passes = [(self.tile_working, 0)]
         if self.tile_working < self.tile_contacts:
             passes = [(self.tile_working, 1), (self.tile_contacts, 2)]
-        loadless = not self.forces and control is None  # the kernel takes NoLoads
+        loads = self.loads_for(control)
         for tile, handover in passes:
             kernel = chain_step_kernel(self.coords, self.tile_rows, tile, self.tile_slots, self.max_registers,
                                        self.packed_size, bool(stages), self.unroll, handover, self.inline,
                                        self.forces, control is not None)
             wp.launch_tiled(kernel, dim=[self.num_worlds], block_dim=block, device=self.device,
-                            inputs=[self.arrays, self.work, self._no_loads if loadless else self.loads,
-                                    float(self.dt), float(c.baumgarte),
+                            inputs=[self.arrays, self.work, loads, float(self.dt), float(c.baumgarte),
                                     int(c.position_iterations), float(c.max_speed),
                                     int(c.integrator == Integrator.MOREAU_JEAN), int(record), float(c.contact_margin),
                                     float(c.contact_stabilization), float(c.tuning.eta), self.rho_init,
@@ -146,9 +164,7 @@ class ChainModel:
                                     float(c.tolerance), float(c.relative_tolerance), int(c.max_iterations),
                                     float(c.tuning.projection_skip_floor), float(c.tuning.projection_skip_floor_angular),
                                     tile // 3, state.q, state.u,
-                                    state.root, state.body_q, state.body_qd,
-                                    self._no_body_f if control is None else control.body_f,
-                                    self._no_effort if control is None else control.joint_effort])
+                                    state.root, state.body_q, state.body_qd])
 
     def stage_cycles(self) -> dict:
         """The last step(stages=True)'s clock cycles per stage (STAGES), the mean over the worlds that
