@@ -149,3 +149,20 @@ def test_rollout_takes_a_control_and_the_tree_control_checks_its_arrays():
     with pytest.raises(ValueError, match="drive targets from the specs"):  # its targets would not be read
         engine.rollout(model, model.state(), maximal.control(), 10, record_every=10)
     assert math.isfinite(float(trace.energy[-1, 0]))
+
+
+def test_two_controls_on_one_model_each_act_with_their_own_arrays():
+    """The step kernel reads a Control's arrays through a loads struct made per Control: alternating
+    two Controls gives each its own torque (tau t / I over the steps it was used)."""
+    tau, dt = 0.2, 1.0e-3
+    model = engine.pack([wheel_spec()], device=CPU, dt=dt, coordinates="tree")
+    forward = set_control(model.control(), effort={(0, 0): tau})
+    back = set_control(model.control(), effort={(0, 0): -0.5 * tau})
+    a, b = model.state(), model.state()
+    for k in range(200):
+        engine.step(model, a, b, forward if k % 2 == 0 else back)
+        a, b = b, a
+    spin = a.body_qd.numpy()[0, 0, 5]
+    np.testing.assert_allclose(spin, (tau - 0.5 * tau) / 0.05 * 100 * dt, rtol=1.0e-4)
+    engine.step(model, a, b, None)  # and without one: no torque at all
+    assert b.body_qd.numpy()[0, 0, 5] == pytest.approx(spin, rel=1e-6)
