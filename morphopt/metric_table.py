@@ -9,7 +9,9 @@ dicts of whatever else (bools, strings; usually none).
 
 from __future__ import annotations
 
+import itertools
 import math
+import operator
 from collections.abc import Sequence
 
 import numpy as np
@@ -19,6 +21,20 @@ PATHS = "paths"  # the metric holding a design's tracked-point paths: {point: (T
 
 def _is_number(value) -> bool:
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+
+
+def _number_block(dicts: list, rows: list, keys: list):
+    """(len(rows), len(keys)) float64 of those designs' values under those keys when all are
+    numbers (a bool among them reads as 0 or 1), else None (a None or anything else among them)."""
+    if not keys:
+        return None
+    getter = operator.itemgetter(*keys)
+    picked = [getter(dicts[i]) for i in rows] if len(keys) > 1 else [(dicts[i][keys[0]],) for i in rows]
+    try:
+        block = np.fromiter(itertools.chain.from_iterable(picked), np.float64, len(rows) * len(keys))
+    except (TypeError, ValueError):
+        return None
+    return block.reshape(len(rows), len(keys))
 
 
 class MetricTable(Sequence):
@@ -79,9 +95,14 @@ class MetricTable(Sequence):
         for keys, rows in groups.items():
             numeric = [k for k in keys if kinds[k] == "number"]
             cols = [where[k] for k in numeric]
-            for i in rows:
+            block = _number_block(dicts, rows, numeric)
+            if block is not None:  # the common case: numbers only, one array for the group
+                values[np.asarray(rows)[:, None], cols] = block
+                present[np.asarray(rows)[:, None], cols] = True
+            others = [k for k in keys if kinds[k] != "number"]
+            for i in (rows if block is None or others else ()):
                 d = dicts[i]
-                for k, j in zip(numeric, cols):
+                for k, j in zip(numeric if block is None else (), cols):
                     v = d[k]
                     if v is None or _is_number(v):
                         values[i, j] = math.nan if v is None else float(v)
@@ -89,8 +110,8 @@ class MetricTable(Sequence):
                     else:  # a later design has something else than a number under the key
                         extra = extra or [{} for _ in range(n)]
                         extra[i][k] = v
-                for k in keys:
-                    if kinds[k] != "number" and not (k == PATHS and isinstance(d[k], dict)):
+                for k in others:
+                    if not (k == PATHS and isinstance(d[k], dict)):
                         extra = extra or [{} for _ in range(n)]
                         extra[i][k] = d[k]
                 if isinstance(d.get(PATHS), dict):

@@ -26,7 +26,6 @@ import functools
 import itertools
 import json
 import math
-import operator
 import os
 import pathlib
 import re
@@ -248,50 +247,12 @@ def decode_params(layout: list, matrix: np.ndarray, extras: list) -> pd.DataFram
     return pd.DataFrame(columns)
 
 
-def _is_number(value) -> bool:
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
-
-
-def _scalar_or_nan(value) -> float:
-    return float(value) if _is_number(value) else math.nan
-
-
-def encode_metrics(dicts: list[dict]) -> tuple[list, np.ndarray]:
+def encode_metrics(dicts) -> tuple[list, np.ndarray]:
     """(names, (designs, names) float64) of the scalar metrics (numbers, not bools) of a
-    generation's metric dicts (or a MetricTable: its arrays as they are); a design without a
-    metric, or with a non-finite one, has NaN."""
-    if isinstance(dicts, MetricTable):
-        return dicts.scalars()
-    if dicts and all(map(dicts[0].keys().__eq__, map(dict.keys, dicts))):  # the common case: one key set
-        groups = {tuple(dicts[0]): range(len(dicts))}
-    else:
-        groups = {}
-        for i, d in enumerate(dicts):
-            groups.setdefault(tuple(d), []).append(i)
-    selected = {}
-    for keyset, rows in groups.items():
-        first = dicts[rows[0]]
-        selected[keyset] = [k for k in keyset if first[k] is None or _is_number(first[k])]
-    names = list(dict.fromkeys(k for keys in selected.values() for k in keys))
-    where = {name: j for j, name in enumerate(names)}
-    matrix = np.full((len(dicts), len(names)), np.nan)
-    for keyset, rows in groups.items():
-        keys = selected[keyset]
-        if not keys:
-            continue
-        getter = operator.itemgetter(*keys)
-        values = [getter(dicts[i]) for i in rows] if len(keys) > 1 else [(dicts[i][keys[0]],) for i in rows]
-        try:  # the values as one flat sequence of numbers
-            block = np.fromiter(itertools.chain.from_iterable(values), np.float64, len(values) * len(keys))
-            block = block.reshape(len(values), len(keys))
-        except (TypeError, ValueError):
-            try:  # None among them (a non-finite metric): NaN
-                block = np.array(values, dtype=np.float64)
-            except (TypeError, ValueError):  # a later design has something else than a number under a key
-                block = np.array([[_scalar_or_nan(v) for v in row] for row in values], dtype=np.float64)
-        matrix[np.asarray(rows)[:, None], [where[k] for k in keys]] = block
-    matrix[~np.isfinite(matrix)] = np.nan
-    return [str(name) for name in names], matrix
+    generation's metric dicts or MetricTable (morphopt.metric_table: a key is a column where any
+    design has a number under it); a design without a metric, or with a non-finite one, has NaN."""
+    table = dicts if isinstance(dicts, MetricTable) else MetricTable.from_dicts(dicts)
+    return table.scalars()
 
 
 def _row_bytes(matrix: np.ndarray) -> list[bytes]:
