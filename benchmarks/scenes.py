@@ -203,6 +203,11 @@ LINKAGE_SWEEP = [
     dict(label="reduced coordinates", dt_scale=1.0, **TREE),
     dict(label="reduced coordinates, dt x2", dt_scale=2.0, **TREE),
     dict(label="reduced coordinates, dt x4", dt_scale=4.0, **TREE),
+    # in their one coordinate (engine.pack's GROUNDED plan, the four-bar's automatic one: engine.reduced.grounded)
+    dict(label="grounded coordinates", dt_scale=1.0, coordinates="grounded"),
+    dict(label="grounded coordinates, dt x2", dt_scale=2.0, coordinates="grounded"),
+    dict(label="grounded coordinates, dt x4", dt_scale=4.0, coordinates="grounded"),
+    dict(label="grounded coordinates, dt x8", dt_scale=8.0, coordinates="grounded"),
 ]
 LINKAGE_VARIANTS = [dict(label="reduced coordinates", config={}, **TREE)]
 TIGHT = dict(tolerance=1e-9, relative_tolerance=0.0, max_iterations=300, position_iterations=4)

@@ -285,8 +285,8 @@ def pack(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | 
         config: SolverConfig (default settings when None).
         dt: time step of every world [s].
         contact_capacity: contacts kept per world and step (None: what the shapes can produce).
-        coordinates: None (automatic) or an engine.plan.Coordinates (or its value: "tabulated",
-            "tree", "maximal") to force, for benchmarks and tests; a world it does not fit raises
+        coordinates: None (automatic) or an engine.plan.Coordinates (or its value: "grounded",
+            "tabulated", "tree", "maximal") to force, for benchmarks and tests; a world it does not fit raises
             ValueError naming the world and the reason.
 
     Returns:
@@ -327,7 +327,12 @@ def _pack_planned(specs, plan, layouts, device, config, dt, contact_capacity):
         model = pack_worlds(specs, device, config=config, dt=dt, contact_capacity=contact_capacity)
         model.plan = describe_maximal(plan, model)
         return model
-    if plan.coordinates is Coordinates.TREE:
+    if plan.coordinates is Coordinates.GROUNDED:
+        from engine.reduced.grounded import pack_grounded
+        from engine.reduced.model import GroundedPlanModel
+        inner = pack_grounded(specs, device, dt=dt, max_speed=config.max_speed, layouts=layouts)
+        model = GroundedPlanModel(inner, specs, plan, config, dt, device)
+    elif plan.coordinates is Coordinates.TREE:
         from engine.reduced.chains import pack_chains
         from engine.reduced.model import TreeModel
         inner = pack_chains(specs, device, config=config, dt=dt, contact_capacity=contact_capacity, layouts=layouts)

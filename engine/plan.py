@@ -1,6 +1,7 @@
 """The plan: every choice engine.pack makes for a batch, and why, in one printable object.
 
-The coordinates, fastest first: TABULATED (a floating base carrying one-DoF closed sub-chains,
+The coordinates, fastest first: GROUNDED (a fixed-base planar linkage of mobility one: one
+coordinate per world, every link read from tables of it), TABULATED (a floating base carrying one-DoF closed sub-chains,
 each link a tabulated function of its sub-chain's driving angle: 6 + L coordinates per world),
 TREE (one angle per joint of a spanning tree, every other joint a loop closed by rows) and MAXIMAL
 (six coordinates per body, every joint its rows). ``fastest`` finds each world's fastest kind and
@@ -26,13 +27,14 @@ __all__ = ["Coordinates", "Plan", "choose"]
 class Coordinates(enum.Enum):
     """How a plan describes the worlds' configuration (fastest first)."""
 
+    GROUNDED = "grounded"  # fixed-base one-DoF planar linkage: its one coordinate, links read from tables
     TABULATED = "tabulated"  # floating base + one-DoF closed sub-chains read from tables of their driving angle
     TREE = "tree"  # spanning-tree joint angles (+ floating roots), loops closed by constraint rows
     MAXIMAL = "maximal"  # six coordinates per body, every joint a block of constraint rows
     MIXED = "mixed"  # groups of worlds, each in the fastest coordinates its worlds admit (engine.grouped)
 
 
-ORDER = (Coordinates.TABULATED, Coordinates.TREE, Coordinates.MAXIMAL)  # MIXED is no kind of its own
+ORDER = (Coordinates.GROUNDED, Coordinates.TABULATED, Coordinates.TREE, Coordinates.MAXIMAL)  # MIXED is no kind of its own
 # why a batch packed with a contact_capacity is not tabulated
 CAPACITY_NOT_TABULATED = ("contact_capacity was given: the tabulated path keeps one contact slot per shape point "
                           "of every world")
@@ -103,6 +105,9 @@ def _tabulated_ready(specs: list) -> dict:
 def _admits(kind: Coordinates, spec, ready: dict | None = None):
     """The kind's layout of ``spec`` (raises ValueError with the reason when it does not fit);
     ready: the batch's tabulated layouts (_tabulated_ready)."""
+    if kind is Coordinates.GROUNDED:
+        from engine.reduced.grounded import grounded_layout
+        return grounded_layout(spec)
     if kind is Coordinates.TABULATED:
         made = (ready or {}).get(id(spec))
         if made is None:
@@ -187,7 +192,7 @@ def _near_the_origin(spec) -> None:
 def _coerce(coordinates) -> Coordinates | None:
     if coordinates is Coordinates.MIXED or coordinates == "mixed":
         raise ValueError("engine.pack: coordinates 'mixed' is what the plan chooses for a batch whose worlds "
-                         "differ; force one of 'tabulated', 'tree' or 'maximal', or leave it None")
+                         "differ; force one of 'grounded', 'tabulated', 'tree' or 'maximal', or leave it None")
     if coordinates is None or isinstance(coordinates, Coordinates):
         return coordinates
     try:
@@ -376,7 +381,35 @@ def describe_reduced(plan: Plan, model) -> Plan:
         if any(np.isfinite(j.drive.effort_limit) for spec in model.specs for j in spec.joints if j.drive):
             plan.control += ("; effort limits checked, not enforced: a world whose drive passes its limit stops "
                              "there (health EFFORT_LIMIT)")
+    elif plan.coordinates is Coordinates.GROUNDED:
+        _describe_grounded(plan, model)
     else:
         from engine.reduced.tabulated import describe
         describe(plan, inner)
     return plan
+
+
+def _describe_grounded(plan: Plan, model) -> None:
+    """The GROUNDED plan's choices (engine.reduced.grounded)."""
+    inner = model.inner
+    tables, splines = inner.distinct
+    plan.analysis.append(f"one coordinate per world (a fixed-base linkage of mobility one); {tables} distinct link "
+                         f"table{'s' if tables != 1 else ''}, {splines} distinct mass and potential spline"
+                         f"{'s' if splines != 1 else ''}")
+    plan.kernel = "one launch per advance: every step of it for a world in one thread (the GROUNDED kernel)"
+    plan.linear_solver = "none: the mass matrix is one tabulated number M(q)"
+    plan.launch = "one thread per world"
+    plan.stages = {
+        "collision": (False, "no shapes over a ground"),
+        "PADMM iterations": (False, "no rows: the loops are closed by the tables"),
+        "limit rows": (False, "no joint limits"),
+        "position projection": (False, "nothing to project: every link is a function of the coordinate"),
+        "forces": (False, "none (force elements keep the tree plan)"),
+    }
+    plan.integrator = ("implicit midpoint in (q, M(q) q') in float64, iterated to 1e-14 rad; without drive damping "
+                       "three of them per step (triple jump, fourth order); the config's integrator does not apply")
+    plan.control = ("a Control's body_f and joint_effort at the step's midpoint (compiled in only when stepped with "
+                    "one), the specs' velocity drives implicit at the end rate and clamped to their effort limits")
+    plan.accuracy = (f"loops closed by construction (tables' Hermite splines, linear closure error "
+                     f"{inner.closure_error:.1e} m); the motion is the splines' Lagrangian system, symplectic (energy bounded), "
+                     f"fourth order in dt where no drive acts, first order where one does")

@@ -57,9 +57,10 @@ def test_benchmark_runner_quick_fourbar_writes_results_with_a_float64_reference(
     assert result["reference"]["engine"].startswith("mujoco C")
     assert {r["num_worlds"] for r in result["throughput"]} == {1, 8}
     plans = [(r["label"], r["num_worlds"], r["coordinates"]) for r in result["throughput"]]
-    assert plans[:4] == [("default", 1, "tree"), ("maximal", 1, "maximal"), ("default", 8, "tree"),
+    assert plans[:4] == [("default", 1, "grounded"), ("maximal", 1, "maximal"), ("default", 8, "grounded"),
                          ("maximal", 8, "maximal")]
-    assert all(r["coordinates"] == "maximal" for r in result["precision"] if "reduced" not in r["label"])
+    assert all(r["coordinates"] == "maximal" for r in result["precision"]
+               if "reduced" not in r["label"] and "grounded" not in r["label"])
     for row in result["throughput"] + result["precision"]:
         assert row["world_steps_per_s"] > 0 and row["diverged_worlds"] == 0
         assert row["loop_error_m"] < 1e-5 and row["energy_drift_rel"] < 1e-2

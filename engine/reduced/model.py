@@ -20,7 +20,7 @@ from engine.health import DIVERGED, EFFORT_LIMIT, JOINTS_OPEN, Health, far_flags
 from engine.metrics import compute_metrics
 from engine.plan import Plan
 
-__all__ = ["ReducedModel", "ReducedState", "TabulatedPlanModel", "TreeModel"]
+__all__ = ["GroundedPlanModel", "ReducedModel", "ReducedState", "TabulatedPlanModel", "TreeModel"]
 
 
 class ReducedState:
@@ -365,3 +365,47 @@ def pack_facts(specs: list) -> tuple:
         a, b = mass[parent], mass[child]
         np.maximum.at(ratio, np.array(world), np.maximum(a / b, b / a))
     return extent, ratio
+
+
+class GroundedPlanModel(ReducedModel):
+    """The GROUNDED plan: engine.reduced.grounded's GroundedModel (one launch per advance, however
+    many steps). It takes the tree plan's Control (body_f, joint_effort; drive targets from the
+    specs). Its body poses are read from the link tables' splines, and a Trace measures them
+    through the maximal gauge like the tree plan's."""
+
+    def state(self) -> ReducedState:
+        """A new state at the initial poses, every world running again."""
+        return ReducedState(self, self.inner.state())
+
+    def advance(self, state: ReducedState, steps: int, control=None) -> None:
+        self.inner.step(state.inner, steps, control)
+
+    def copy_state(self, source: ReducedState, target: ReducedState) -> None:
+        """Copy the coordinate, its rate and the last drive torque."""
+        for name in ("q", "v", "torque"):
+            wp.copy(getattr(target.inner, name), getattr(source.inner, name))
+
+    def _bodies(self, state: ReducedState) -> tuple:
+        return self.inner.bodies(state.inner)
+
+    def drive_torque(self, state: ReducedState) -> np.ndarray:
+        """The coordinate joint's drive torque of the last step [N m] (the implicit law, clamped)."""
+        out = np.zeros((self.num_worlds, self.max_joints), np.float32)
+        torque = state.inner.torque.numpy()
+        for w, lay in enumerate(self.inner.layouts):
+            if self.specs[w].joints[lay.coordinate].drive is not None:
+                out[w, lay.coordinate] = torque[w]
+        return out
+
+    def iterations(self) -> np.ndarray:
+        return np.zeros(self.num_worlds, np.int32)
+
+    def failure_codes(self) -> np.ndarray:
+        from engine.reduced.grounded import DIVERGED
+        return np.where(self.inner.stop.numpy() == DIVERGED, 1, 0)
+
+    def set_halted(self, halted: np.ndarray) -> None:
+        from engine.reduced.grounded import HALTED, RUNNING
+        codes = self.inner.stop.numpy()
+        codes[np.asarray(halted, bool) & (codes == RUNNING)] = HALTED
+        self.inner.stop.assign(codes)

@@ -30,19 +30,22 @@ def linkage_spec(name):
 
 
 @pytest.mark.parametrize("name", ["four_bar", "jansen_leg", "klann_leg", "watt_sixbar"])
-def test_linkages_from_to_spec_get_the_tree_plan(name):
+def test_linkages_from_to_spec_get_the_grounded_plan_and_the_tree_plan_when_forced(name):
     spec = linkage_spec(name)
     model = pack([spec, spec])
-    assert model.plan.coordinates is Coordinates.TREE, str(model.plan)
+    assert model.plan.coordinates is Coordinates.GROUNDED, str(model.plan)
     text = str(model.plan)
-    assert "tree coordinates (the fastest kind every world admits)" in text
-    assert "not tabulated:" in text  # fixed to the world: no floating base to carry sub-chains
+    assert "grounded coordinates (the fastest kind every world admits)" in text
+    assert "PADMM iterations: skipped (no rows" in text
+    tree = pack([spec, spec], coordinates="tree")
+    text = str(tree.plan)
+    assert "tree coordinates (forced by the caller)" in text
     assert "PADMM iterations: skipped (only bilateral rows" in text
 
 
-def test_engine_scene_fourbar_gets_the_tree_plan_and_maximal_when_forced():
+def test_engine_scene_fourbar_gets_the_grounded_plan_and_maximal_when_forced():
     spec = make_scene("fourbar").spec
-    assert pack([spec]).plan.coordinates is Coordinates.TREE
+    assert pack([spec]).plan.coordinates is Coordinates.GROUNDED
     forced = pack([spec], coordinates="maximal")
     assert forced.plan.coordinates is Coordinates.MAXIMAL and forced.plan.forced
     assert isinstance(forced, engine.Model)
@@ -79,14 +82,15 @@ def test_forcing_a_plan_that_does_not_fit_names_the_world_and_the_reason():
 
 
 def test_reduced_plans_keep_their_dt_and_check_a_control():
-    model = pack([make_scene("fourbar").spec])
-    state = model.state()
-    assert model.plan.coordinates is Coordinates.TREE
-    engine.step(model, state, state, control=model.control())  # body_f and joint_effort (test_tree_control)
-    with pytest.raises(ValueError, match="body_f"):
-        engine.step(model, state, state, control=object())
-    with pytest.raises(ValueError, match="dt it was packed with"):
-        rollout(model, state, None, 10, dt=0.5 * model.dt)
+    for coordinates in (None, "tree"):
+        model = pack([make_scene("fourbar").spec], coordinates=coordinates)
+        state = model.state()
+        assert model.plan.coordinates is (Coordinates.GROUNDED if coordinates is None else Coordinates.TREE)
+        engine.step(model, state, state, control=model.control())  # body_f and joint_effort (test_tree_control)
+        with pytest.raises(ValueError, match="body_f"):
+            engine.step(model, state, state, control=object())
+        with pytest.raises(ValueError, match="dt it was packed with"):
+            rollout(model, state, None, 10, dt=0.5 * model.dt)
     walker = load_family("walker")
     tabulated = pack([walker.build_spec(walker.space.default())])
     assert tabulated.plan.coordinates is Coordinates.TABULATED
@@ -99,17 +103,18 @@ def test_reduced_plans_keep_their_dt_and_check_a_control():
                                                           coordinates="maximal").control())
 
 
+@pytest.mark.parametrize("reduced", ["grounded", "tree"])
 @pytest.mark.parametrize("name", ["four_bar", "jansen_leg"])
-def test_tree_plan_trace_matches_the_maximal_plan(name):
-    """The same worlds planned TREE and forced MAXIMAL: tracked points within 1 mm over 0.5 s of a
-    driven crank, loops closed (measured by the same gauge) and the drive torques alike."""
+def test_reduced_plan_trace_matches_the_maximal_plan(name, reduced):
+    """The same worlds on a reduced plan and forced MAXIMAL: tracked points within 1 mm over 0.5 s of
+    a driven crank, loops closed (measured by the same gauge) and the drive torques alike."""
     spec = linkage_spec(name)
     dt, steps = 1e-3, 500
     traces = {}
-    for kind in (None, "maximal"):
+    for kind in (reduced, "maximal"):
         model = pack([spec], dt=dt, coordinates=kind)
         traces[model.plan.coordinates], _ = rollout(model, model.state(), None, steps, record_every=50)
-    tree, maximal = traces[Coordinates.TREE], traces[Coordinates.MAXIMAL]
+    tree, maximal = traces[Coordinates(reduced)], traces[Coordinates.MAXIMAL]
     assert tree.points.shape == maximal.points.shape
     assert np.abs(tree.points - maximal.points).max() < 1e-3
     assert tree.violation_linear.max() < 1e-5 and maximal.violation_linear.max() < 1e-5
@@ -166,10 +171,11 @@ def test_worlds_past_the_speed_guard_fail_with_the_reason():
     assert all(r.startswith("diverged") for r in trace.health.reasons())
 
 
-def test_a_motor_started_past_its_effort_limit_keeps_the_maximal_plan_which_enforces_it():
+def test_a_motor_started_past_its_effort_limit_gets_a_plan_that_enforces_it():
     """The tree plan checks effort limits without enforcing them: a velocity drive that starts from
-    rest against a low limit would stop its world at once, so the plan keeps such a world maximal;
-    the same linkage started at its drive's speed (as morphopt builds linkages) takes the tree plan."""
+    rest against a low limit would stop its world at once, so the tree plan refuses such a world
+    (the grounded plan, which clamps the drive, takes it; without it, maximal); the same arm started
+    at its drive's speed (as morphopt builds linkages) takes the tree plan."""
     from engine import Body, Joint, JointDrive, MechanismSpec, TrackedPoint
 
     def arm(spin):
@@ -178,14 +184,18 @@ def test_a_motor_started_past_its_effort_limit_keeps_the_maximal_plan_which_enfo
                       drive=JointDrive(damping=5.0, target_velocity=6.0, effort_limit=2.0))
         return MechanismSpec([body], [motor], [TrackedPoint("tip", "arm", (0.2, 0, 0))])
 
-    at_rest = pack([arm(0.0)])
-    assert at_rest.plan.coordinates is Coordinates.MAXIMAL
-    assert "joint 'motor': its drive starts past its effort limit (30 > 2 N m)" in str(at_rest.plan)
-    at_speed = pack([arm(6.0)])
-    assert at_speed.plan.coordinates is Coordinates.TREE
+    assert pack([arm(0.0)]).plan.coordinates is Coordinates.GROUNDED
+    with pytest.raises(ValueError, match=r"joint 'motor': its drive starts past its effort limit \(30 > 2 N m\)"):
+        pack([arm(0.0)], coordinates="tree")
+    at_speed = pack([arm(6.0)], coordinates="tree")
     assert "effort limits checked, not enforced" in str(at_speed.plan)
-    trace, _ = rollout(at_rest, at_rest.state(), None, 100, record_every=10)
-    assert trace.health.ok.all() and np.abs(trace.drive_torque[1:, 0, 0]).max() <= 2.0 + 1e-4
+    torques = []
+    for kind in ("grounded", "maximal"):
+        at_rest = pack([arm(0.0)], coordinates=kind)
+        trace, _ = rollout(at_rest, at_rest.state(), None, 100, record_every=10)
+        torques.append(trace.drive_torque[1:, 0, 0])
+        assert trace.health.ok.all() and np.abs(torques[-1]).max() <= 2.0 + 1e-4, (kind, torques[-1])
+    assert np.abs(torques[0] - torques[1]).max() < 0.01  # (at speed: the drive holds the arm against gravity)
 
 
 def test_pack_checks_its_arguments_whatever_the_plan():
@@ -205,10 +215,11 @@ def test_a_mechanism_far_from_the_origin_keeps_the_compensated_maximal_plan():
     from engine.scenes import shifted
 
     near, far = make_scene("fourbar").spec, shifted(make_scene("fourbar").spec, 500.0)
-    assert pack([near]).plan.coordinates is Coordinates.TREE
-    model = pack([far])
+    assert pack([near], coordinates="tree").plan.coordinates is Coordinates.TREE
+    model = pack([far], coordinates="maximal")
     assert model.plan.coordinates is Coordinates.MAXIMAL
-    assert "lies 500 m from the origin" in str(model.plan)
+    with pytest.raises(ValueError, match="lies 500 m from the origin"):
+        pack([far], coordinates="tree")
     trace, _ = rollout(model, model.state(), None, 200, record_every=50)
     assert trace.health.ok.all()
 
@@ -227,7 +238,7 @@ def test_dr_legs_gets_the_tree_plan(standing):
 
 
 def test_worlds_that_admit_different_coordinates_run_in_groups_each_as_alone():
-    """A batch of a walker, two four-bars and a box stack: three groups (tabulated, tree, maximal),
+    """A batch of a walker, two four-bars and a box stack: three groups (tabulated, grounded, maximal),
     the plan prints each; a grouped rollout gives every world the trace of its group's plan run
     alone (the worlds never interact), in the batch's world order; step and Stepper run it too."""
     walker = load_family("walker")
@@ -240,7 +251,7 @@ def test_worlds_that_admit_different_coordinates_run_in_groups_each_as_alone():
     text = str(model.plan)
     assert text.startswith("plan for 4 worlds on cpu: 3 groups")
     assert "group of 1 world: plan for 1 world on cpu: tabulated coordinates" in text
-    assert "group of 2 worlds: plan for 2 worlds on cpu: tree coordinates" in text
+    assert "group of 2 worlds: plan for 2 worlds on cpu: grounded coordinates" in text
     assert "group of 1 world: plan for 1 world on cpu: maximal coordinates" in text
     trace, final = rollout(model, model.state(), None, 40, record_every=10)
     assert trace.points.shape[:2] == (5, 4) and trace.point_names[1] == [p.name for p in walk.points]

@@ -1,4 +1,5 @@
-"""A slowly driven linkage built by morphopt.linkage.to_spec, stepped on the reduced (tree) plan,
+"""A slowly driven linkage built by morphopt.linkage.to_spec, stepped on the reduced plans (grounded,
+chosen by default, and tree),
 stays on its kinematics: every node's position at the crank angle the step reached, against
 morphopt.linkage.solve_at (the planar position solver, float64, independent of the engine)."""
 
@@ -21,14 +22,15 @@ def _with_every_node(linkage):
     return dataclasses.replace(linkage, points={**linkage.points, **extra})
 
 
+@pytest.mark.parametrize("coordinates", [None, "tree"])
 @pytest.mark.parametrize("name", ["jansen_leg", "klann_leg", "four_bar"])
-def test_a_slowly_driven_linkage_follows_its_kinematics_on_the_tree_plan(name):
+def test_a_slowly_driven_linkage_follows_its_kinematics_on_the_reduced_plans(name, coordinates):
     family = load_family(name)
     speed = 0.5  # [rad/s]: slow, a quarter turn in 3 s
     linkage = _with_every_node(family.generate(family.space.default(), crank_speed=speed))
     spec = to_spec(linkage)
-    model = engine.pack([spec], "cpu", dt=1e-3)
-    assert model.plan.coordinates == engine.Coordinates.TREE
+    model = engine.pack([spec], "cpu", dt=1e-3, coordinates=coordinates)
+    assert model.plan.coordinates == (engine.Coordinates.GROUNDED if coordinates is None else engine.Coordinates.TREE)
     state = model.state()
     crank = linkage.crank
     centre = np.asarray(linkage.ground[crank.center])
