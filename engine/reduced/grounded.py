@@ -301,9 +301,12 @@ def step_kernel(controlled: bool):
             if wp.static(controlled):
                 force += control_force(a, w, qm, body_f, joint_effort)
             pf = p + dt * force
-            # the velocity drive, implicit at the end rate pe / M, then clamped to its effort limit
-            pe = (pf + dt * dr[1] * dr[0]) / (wp.float64(1.0) + dt * dr[1] / M)
-            td = wp.clamp(dr[1] * (dr[0] - pe / M), -dr[2], dr[2])
+            # the velocity drive, implicit at the end rate pe / M(q_end), then clamped to its effort limit
+            Me = M
+            if dr[1] > wp.float64(0.0):
+                Me, dMe, dVe = dynamics(a, w, wp.float64(2.0) * qm - q)
+            pe = (pf + dt * dr[1] * dr[0]) / (wp.float64(1.0) + dt * dr[1] / Me)
+            td = wp.clamp(dr[1] * (dr[0] - pe / Me), -dr[2], dr[2])
             pe = pf + dt * td
             pm = wp.float64(0.5) * (p + pe)
             qm = q + half * pm / M
