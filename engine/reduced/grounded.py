@@ -245,6 +245,17 @@ def link_at(a: GroundedArrays, w: int, k: int, q: wp.float64):
 
 
 @wp.func
+def link_rate(a: GroundedArrays, w: int, k: int, q: wp.float64):
+    """Link k's angle rate per unit coordinate rate at q (its Hermite spline, as link_at reads it)."""
+    i0, i1, f = sample_of(q, a.samples)
+    t = a.table_of[w]
+    d0 = a.links1[t, i0, k]
+    d1 = a.links1[t, i1, k]
+    rate, slope = hermite(d0[2], a.links2[t, i0, k][2], d1[2], a.links2[t, i1, k][2], f, TWO_PI / wp.float64(a.samples))
+    return rate
+
+
+@wp.func
 def control_force(a: GroundedArrays, w: int, q: wp.float64, body_f: wp.array2d(dtype=wp.spatial_vector),
                   joint_effort: wp.array2d(dtype=float)):
     """The generalized force [N m] of a Control's body wrenches and joint efforts at q."""
@@ -265,11 +276,9 @@ def control_force(a: GroundedArrays, w: int, q: wp.float64, body_f: wp.array2d(d
             kc = a.joint_child[w, j]
             kp = a.joint_parent[w, j]
             if kc >= 0:
-                c, e, ang, r = link_at(a, w, kc, q)
-                rate += r
+                rate += link_rate(a, w, kc, q)
             if kp >= 0:
-                c, e, ang, r = link_at(a, w, kp, q)
-                rate -= r
+                rate -= link_rate(a, w, kp, q)
             out += wp.float64(joint_effort[w, j]) * sign * rate
     return out
 
@@ -283,13 +292,12 @@ def step_kernel(controlled: bool):
     would undo its damping)."""
 
     @wp.func
-    def midpoint(a: GroundedArrays, w: int, q: wp.float64, v: wp.float64, dt: wp.float64, dr: wp.vec3d,
-                 body_f: wp.array2d(dtype=wp.spatial_vector), joint_effort: wp.array2d(dtype=float)):
-        """One implicit-midpoint step of dt in (q, p = M q'): (q, q', drive torque) at its end."""
+    def midpoint(a: GroundedArrays, w: int, q: wp.float64, p: wp.float64, M0: wp.float64, dt: wp.float64,
+                 dr: wp.vec3d, body_f: wp.array2d(dtype=wp.spatial_vector), joint_effort: wp.array2d(dtype=float)):
+        """One implicit-midpoint step of dt in (q, p = M q') from q, p and M0 = M(q): (q, p, M(q), drive
+        torque) at its end."""
         half = wp.float64(0.5) * dt
-        M0, dM0, dV0 = dynamics(a, w, q)
-        p = M0 * v
-        qm = q + half * v
+        qm = q + half * p / M0
         pm = p
         pe = p
         td = wp.float64(0.0)
@@ -315,7 +323,7 @@ def step_kernel(controlled: bool):
         q1 = wp.float64(2.0) * qm - q
         q1 = q1 - TWO_PI * wp.floor(q1 / TWO_PI)
         M1, dM1, dV1 = dynamics(a, w, q1)
-        return q1, pe / M1, td
+        return q1, pe, M1, td
 
     @wp.kernel(enable_backward=False, module="unique")
     def grounded_step(a: GroundedArrays, q_: wp.array(dtype=wp.float64), v_: wp.array(dtype=wp.float64),
@@ -327,30 +335,33 @@ def step_kernel(controlled: bool):
             return
         dr = a.drive[w]
         q = q_[w]
-        v = v_[w]
+        M, dM, dV = dynamics(a, w, q)
+        p = M * v_[w]  # the momentum and M(q) carry over from one midpoint step to the next
         tau = torque[w]
         jump = dr[1] == wp.float64(0.0)
         for _ in range(steps):
             q1 = q
-            v1 = v
+            p1 = p
+            M1 = M
             td = wp.float64(0.0)
             if jump:
-                q1, v1, td = midpoint(a, w, q1, v1, JUMP_OUTER * dt, dr, body_f, joint_effort)
-                q1, v1, td = midpoint(a, w, q1, v1, JUMP_INNER * dt, dr, body_f, joint_effort)
-                q1, v1, td = midpoint(a, w, q1, v1, JUMP_OUTER * dt, dr, body_f, joint_effort)
+                q1, p1, M1, td = midpoint(a, w, q1, p1, M1, JUMP_OUTER * dt, dr, body_f, joint_effort)
+                q1, p1, M1, td = midpoint(a, w, q1, p1, M1, JUMP_INNER * dt, dr, body_f, joint_effort)
+                q1, p1, M1, td = midpoint(a, w, q1, p1, M1, JUMP_OUTER * dt, dr, body_f, joint_effort)
             else:
-                q1, v1, td = midpoint(a, w, q1, v1, dt, dr, body_f, joint_effort)
-            if not (wp.isfinite(q1) and wp.isfinite(v1)):
+                q1, p1, M1, td = midpoint(a, w, q1, p1, M1, dt, dr, body_f, joint_effort)
+            if not (wp.isfinite(q1) and wp.isfinite(p1) and wp.isfinite(M1)):
                 stop[w] = DIVERGED
                 break
             q = q1
-            v = v1
+            p = p1
+            M = M1
             tau = td
-            if wp.abs(v) * a.reach[w] >= max_speed:
+            if wp.abs(p / M) * a.reach[w] >= max_speed:
                 stop[w] = DIVERGED
                 break
         q_[w] = q
-        v_[w] = v
+        v_[w] = p / M
         torque[w] = tau
 
     return grounded_step
@@ -394,37 +405,43 @@ class GroundedModel:
         self.num_worlds = W
         self.max_bodies = max(1, max(len(l.spec.bodies) for l in layouts))
         self.max_joints = max(1, max(len(l.spec.joints) for l in layouts))
-        tables, energies, table_of, energy_of = {}, {}, np.zeros(W, np.int32), np.zeros(W, np.int32)
         K = max(len(l.tab.groups[0].bodies) for l in layouts)
         S = layouts[0].tab.groups[0].table.samples
-        h = dict(scale=np.zeros(W), origin=np.zeros((W, 3)), frame=np.zeros((W, 3, 3)), position=np.zeros((W, 3)),
-                 orientation=np.zeros((W, 4), np.float32), drive=np.zeros((W, 3)), reach=np.zeros(W),
-                 body_count=np.zeros(W, np.int32), body_link=np.zeros((W, self.max_bodies), np.int32),
-                 body_frame=np.tile(np.array([0, 0, 0, 1], np.float32), (W, self.max_bodies, 1)),
-                 joint_count=np.zeros(W, np.int32), joint_child=np.full((W, self.max_joints), -1, np.int32),
-                 joint_parent=np.full((W, self.max_joints), -1, np.int32), joint_sign=np.zeros((W, self.max_joints)))
-        q0, v0 = np.zeros(W), np.zeros(W)
+        # a batch often repeats one layout (one spec object): each distinct one is read once
+        distinct, of_world = {}, np.zeros(W, np.int64)
         for w, lay in enumerate(layouts):
+            of_world[w] = distinct.setdefault(id(lay), (len(distinct), lay))[0]
+        U = len(distinct)
+        h = dict(scale=np.zeros(U), origin=np.zeros((U, 3)), frame=np.zeros((U, 3, 3)), position=np.zeros((U, 3)),
+                 orientation=np.zeros((U, 4), np.float32), drive=np.zeros((U, 3)), reach=np.zeros(U),
+                 body_count=np.zeros(U, np.int32), body_link=np.zeros((U, self.max_bodies), np.int32),
+                 body_frame=np.tile(np.array([0, 0, 0, 1], np.float32), (U, self.max_bodies, 1)),
+                 joint_count=np.zeros(U, np.int32), joint_child=np.full((U, self.max_joints), -1, np.int32),
+                 joint_parent=np.full((U, self.max_joints), -1, np.int32), joint_sign=np.zeros((U, self.max_joints)),
+                 q0=np.zeros(U), v0=np.zeros(U), table_of=np.zeros(U, np.int32), energy_of=np.zeros(U, np.int32))
+        tables, energies = {}, {}
+        for u, lay in distinct.values():
             tab, g = lay.tab, lay.tab.groups[0]
-            table_of[w] = tables.setdefault(id(g.table), (len(tables), g.table))[0]
-            energy, h["reach"][w] = _world_tables(lay)
-            energy_of[w] = energies.setdefault(energy.tobytes(), (len(energies), energy))[0]
-            h["scale"][w], h["origin"][w] = g.scale, g.origin
-            h["frame"][w], h["position"][w] = quat_matrix(tab.orientation), tab.position
-            h["orientation"][w] = tab.orientation
-            h["drive"][w] = lay.drive
+            h["table_of"][u] = tables.setdefault(id(g.table), (len(tables), g.table))[0]
+            energy, h["reach"][u] = _world_tables(lay)
+            h["energy_of"][u] = energies.setdefault(energy.tobytes(), (len(energies), energy))[0]
+            h["scale"][u], h["origin"][u] = g.scale, g.origin
+            h["frame"][u], h["position"][u] = quat_matrix(tab.orientation), tab.position
+            h["orientation"][u] = tab.orientation
+            h["drive"][u] = lay.drive
             spec = lay.spec
-            h["body_count"][w] = len(spec.bodies)
+            h["body_count"][u] = len(spec.bodies)
             for b, (group, k, frame) in enumerate(tab.bodies[1:]):  # body 0 of the table's spec is the world
-                h["body_link"][w, b], h["body_frame"][w, b] = k, frame
+                h["body_link"][u, b], h["body_frame"][u, b] = k, frame
             link = {i - 1: k for k, i in enumerate(g.bodies)}
             index = spec.body_index
-            h["joint_count"][w] = len(spec.joints)
-            h["joint_sign"][w, :len(spec.joints)] = _joint_signs(lay)
+            h["joint_count"][u] = len(spec.joints)
+            h["joint_sign"][u, :len(spec.joints)] = _joint_signs(lay)
             for j, joint in enumerate(spec.joints):
-                h["joint_child"][w, j] = link[index[joint.child]]
-                h["joint_parent"][w, j] = -1 if joint.parent is None else link[index[joint.parent]]
-            q0[w], v0[w] = g.angle, g.rate
+                h["joint_child"][u, j] = link[index[joint.child]]
+                h["joint_parent"][u, j] = -1 if joint.parent is None else link[index[joint.parent]]
+            h["q0"][u], h["v0"][u] = g.angle, g.rate
+        h = {name: value[of_world] for name, value in h.items()}  # per world
         if len({t.samples for _, t in tables.values()}) != 1:
             raise ValueError("pack_grounded: the worlds' tables differ in samples per turn")
         links = [np.zeros((len(tables), S, K, 3)) for _ in range(3)]
@@ -434,16 +451,16 @@ class GroundedModel:
         a = GroundedArrays()
         a.samples = S
         a.energy = wp.array(np.stack([e for _, e in energies.values()]), dtype=wp.vec4d, device=self.device)
-        a.energy_of = wp.array(energy_of, dtype=wp.int32, device=self.device)
+        a.energy_of = wp.array(h["energy_of"], dtype=wp.int32, device=self.device)
         a.links0, a.links1, a.links2 = (wp.array(x, dtype=wp.vec3d, device=self.device) for x in links)
-        a.table_of = wp.array(table_of, dtype=wp.int32, device=self.device)
+        a.table_of = wp.array(h["table_of"], dtype=wp.int32, device=self.device)
         types = dict(scale=wp.float64, origin=wp.vec3d, frame=wp.mat33d, position=wp.vec3d, orientation=wp.quat,
                      drive=wp.vec3d, reach=wp.float64, body_count=wp.int32, body_link=wp.int32, body_frame=wp.quat,
                      joint_count=wp.int32, joint_child=wp.int32, joint_parent=wp.int32, joint_sign=wp.float64)
         for name, dtype in types.items():
             setattr(a, name, wp.array(h[name], dtype=dtype, device=self.device))
         self.arrays = a
-        self._start = (q0, v0)
+        self._start = (h["q0"], h["v0"])
         self.distinct = (len(tables), len(energies))
         self.closure_error = max(l.closure_error for l in layouts)
         self.stop = wp.zeros(W, dtype=wp.int32, device=self.device)

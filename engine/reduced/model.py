@@ -373,6 +373,12 @@ class GroundedPlanModel(ReducedModel):
     specs). Its body poses are read from the link tables' splines, and a Trace measures them
     through the maximal gauge like the tree plan's."""
 
+    def __init__(self, inner, specs, plan, config, dt, device):
+        super().__init__(inner, specs, plan, config, dt, device)
+        driven = [(w, lay.coordinate) for w, lay in enumerate(inner.layouts)
+                  if self.specs[w].joints[lay.coordinate].drive is not None]
+        self._driven = tuple(np.array(c, np.int64) for c in zip(*driven)) if driven else None  # (worlds, joints)
+
     def state(self) -> ReducedState:
         """A new state at the initial poses, every world running again."""
         return ReducedState(self, self.inner.state())
@@ -391,10 +397,9 @@ class GroundedPlanModel(ReducedModel):
     def drive_torque(self, state: ReducedState) -> np.ndarray:
         """The coordinate joint's drive torque of the last step [N m] (the implicit law, clamped)."""
         out = np.zeros((self.num_worlds, self.max_joints), np.float32)
-        torque = state.inner.torque.numpy()
-        for w, lay in enumerate(self.inner.layouts):
-            if self.specs[w].joints[lay.coordinate].drive is not None:
-                out[w, lay.coordinate] = torque[w]
+        if self._driven is not None:
+            worlds, joints = self._driven
+            out[worlds, joints] = state.inner.torque.numpy()[worlds]
         return out
 
     def iterations(self) -> np.ndarray:
