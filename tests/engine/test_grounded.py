@@ -129,3 +129,15 @@ def test_what_the_grounded_plan_cannot_model_keeps_another_plan_with_the_reason(
     assert f"not grounded: world 0 ({spec.name}): {why}" in str(model.plan)
     with pytest.raises(ValueError, match=r"coordinates 'grounded' do not fit world 0"):
         engine.pack([spec], device="cpu", dt=1e-3, coordinates="grounded")
+
+
+def test_a_batch_of_many_distinct_linkages_keeps_the_tree_plan_unless_forced():
+    """Unasked, more than GROUNDED_MAX_DISTINCT distinct specs (a study's generation of new designs)
+    keep the tree plan, whose pack builds no tables, and the plan says why; fewer take the grounded plan."""
+    from engine.plan import GROUNDED_MAX_DISTINCT
+
+    many = [fourbar(crank=0.08 + 1e-4 * k).spec for k in range(GROUNDED_MAX_DISTINCT + 1)]
+    model = engine.pack(many, device="cpu", dt=1e-3)
+    assert model.plan.coordinates is engine.Coordinates.TREE
+    assert f"not grounded: {GROUNDED_MAX_DISTINCT + 1} distinct specs in the batch" in str(model.plan)
+    assert engine.pack(many[:2] * 40, device="cpu", dt=1e-3).plan.coordinates is engine.Coordinates.GROUNDED
