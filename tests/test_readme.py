@@ -5,9 +5,10 @@ import re
 
 
 def test_readme_engine_example_runs(capsys):
-    """The engine quick start plans a 64-world batch of arms and four-bars in grounded coordinates
-    (one angle per world; the arms' motors start past their effort limit, which the grounded plan
-    enforces), keeps its joints closed, reports every world healthy and prints what it promises."""
+    """The engine quick start plans a 64-world mixed batch in two groups (the four-bars in tree
+    coordinates; the arms maximal, their motors starting past their effort limit, which only the
+    maximal plan enforces), keeps its joints closed, reports every world healthy and prints what
+    it promises."""
     text = (pathlib.Path(__file__).parents[1] / "README.md").read_text()
     code = re.search(r"## The engine in 20 lines\s*```python\n(.*?)```", text, re.S).group(1)
     namespace = {}
@@ -18,6 +19,6 @@ def test_readme_engine_example_runs(capsys):
     assert trace.health.ok.all()
     out = capsys.readouterr().out
     assert "(101, 64, 1, 3)" in out
-    assert "plan for 64 worlds on cpu: grounded coordinates" in out
-    torque = trace.drive_torque[1:, :32, 0]
-    assert abs(torque).max() <= 2.0 + 1e-4 and abs(torque[0]).min() > 1.99  # the motors at their limit at first
+    assert "plan for 64 worlds on cpu: 2 groups" in out
+    assert "group of 32 worlds: plan for 32 worlds on cpu: tree coordinates" in out
+    assert "joint 'motor': its drive starts past its effort limit" in out
