@@ -35,10 +35,8 @@ class Coordinates(enum.Enum):
 
 
 ORDER = (Coordinates.GROUNDED, Coordinates.TABULATED, Coordinates.TREE, Coordinates.MAXIMAL)  # MIXED is no kind of its own
-# unasked, the grounded plan takes a batch of at most this many distinct specs: each distinct linkage's table
-# takes about 40-75 ms of host time to build (388 distinct four-bar designs: 16.7 s against the tree plan's
-# 0.31 s pack, 2-core CPU; tables made together on stacked arrays were only 4x faster, not kept), more than
-# a short run of the tree plan costs, so a study's generation of new designs keeps the tree plan
+# unasked, the grounded plan takes a batch of at most this many distinct specs: a distinct linkage's table
+# costs 40-75 ms of host time (benchmarks/results/README.md, "The grounded plan")
 GROUNDED_MAX_DISTINCT = 16
 GROUNDED_TOO_MANY = ("{} distinct specs in the batch: building their tables (about 40 ms of host time each) "
                      f"would cost more than the tree plan's pack; the grounded plan is chosen for at most "
