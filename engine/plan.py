@@ -416,7 +416,9 @@ def _describe_grounded(plan: Plan, model) -> None:
         "PADMM iterations": (False, "no rows: the loops are closed by the tables"),
         "limit rows": (False, "no joint limits"),
         "position projection": (False, "nothing to project: every link is a function of the coordinate"),
-        "forces": (False, "none; force elements keep the tree plan"),
+        "forces": (any(spec.forces for spec in model.specs),
+                   "springs, dampers and loads tabulated over the turn as a generalized force and damping, at the "
+                   "step's midpoint" if any(spec.forces for spec in model.specs) else "none"),
     }
     plan.integrator = ("implicit midpoint in (q, M(q) q') in float64, iterated to 1e-14 rad; without drive damping "
                        "three of them per step (triple jump, fourth order); the config's integrator does not apply")

@@ -3,18 +3,19 @@
 A spec fits when every body hangs from the world through revolute and inline joints with parallel
 axes, the linkage has mobility one and its coordinate (the driven joint's angle, else the first
 revolute joint to the world) turns a full turn; no shapes over a ground, joint limits, armature,
-joint damping, position drives or force elements (those keep the tree plan). The world is read as
+joint damping, position drives or damped tension-only springs (those keep the tree plan). The world is read as
 the fixed base of one engine.reduced.tabulated_tables sub-chain, so every link is a tabulated
 function of q, and a world's motion is one scalar ODE
 
-    M(q) q'' + M'(q) q'^2 / 2 + V'(q) = tau_drive + tau_control.
+    M(q) q'' + M'(q) q'^2 / 2 = G(q) - D(q) q' + tau_drive + tau_control.
 
-M and V are tabulated over the turn in float64 with their exact derivatives and read as cubic
-Hermite splines whose own derivatives the step uses: the simulated system is the spline's
-Lagrangian system, within O(h^4) of the mechanism's (h: the sample spacing). The step is the
+M, the generalized force G of gravity and of the force elements' springs and constant loads, and
+their damping D are tabulated over the turn in float64 with their exact derivatives and read as
+cubic Hermite splines (the step uses M's spline's own derivative), within O(h^4) of the
+mechanism's (h: the sample spacing); in one coordinate every G(q) is conservative. The step is the
 implicit midpoint rule in (q, p = M q') (symplectic: bounded energy error, second order), the
-velocity drive implicit at the end rate and clamped to its effort limit (first order where it
-acts, as in the other plans). A Control's joint_effort and body_f act at the midpoint through
+damping at the step's mean momentum, the velocity drive implicit at the end rate and clamped to
+its effort limit (first order where they act, as in the other plans). A Control's joint_effort and body_f act at the midpoint through
 the links' tabulated Jacobians. Loop closure is exact by construction; the body poses a Trace
 measures are read from Hermite splines of the link tables (closure error about 1e-10 m).
 """
@@ -29,10 +30,10 @@ import numpy as np
 import warp as wp
 
 from engine.reduced.chains import ChainControl, check_control_arrays
-from engine.reduced.tabulated_layout import tabulated_layout
+from engine.reduced.tabulated_layout import _turn_angle, tabulated_layout
 from engine.spatial import quat_matrix
 from engine.spec import Body, JointDrive, JointType, MechanismSpec
-from engine.reduced.tabulated_tables import TABLE_SAMPLES
+from engine.reduced.tabulated_tables import TABLE_SAMPLES, wrap
 
 wp.set_module_options({"enable_backward": False})
 
@@ -52,12 +53,17 @@ JUMP_INNER = wp.constant(wp.float64(-(2.0 ** (1.0 / 3.0)) / (2.0 - 2.0 ** (1.0 /
 class GroundedLayout:
     """A spec read as one grounded sub-chain: tab (the TabulatedLayout of the spec on a fixed base
     named GROUND), coordinate (the spec index of the joint whose angle is q), drive (target
-    velocity [rad/s], damping [N m s/rad], effort limit [N m]; zeros and inf without a drive)."""
+    velocity [rad/s], damping [N m s/rad], effort limit [N m]; zeros and inf without a drive);
+    samples (S, 6) over the turn of M [kg m^2], M', the generalized force G [N m] of gravity and
+    the force elements' springs and loads, G', the force elements' damping D [N m s] and D';
+    reach: the largest speed of a link's centre per unit coordinate rate [m/rad]."""
 
     spec: MechanismSpec
     tab: object
     coordinate: int
     drive: tuple
+    samples: np.ndarray
+    reach: float
 
     @property
     def closure_error(self) -> float:
@@ -67,8 +73,6 @@ class GroundedLayout:
 
 def grounded_layout(spec: MechanismSpec, samples: int = TABLE_SAMPLES) -> GroundedLayout:
     """The spec as a grounded one-DoF linkage; ValueError with one line naming what does not fit."""
-    if spec.forces:
-        raise ValueError(f"force element '{spec.forces[0].name}': the grounded plan has no force elements")
     if spec.shapes and spec.ground is not None:
         raise ValueError(f"shape '{spec.shapes[0].name}' over a ground: the grounded plan has no contacts")
     world = [j for j in spec.joints if j.parent is None]
@@ -99,40 +103,161 @@ def grounded_layout(spec: MechanismSpec, samples: int = TABLE_SAMPLES) -> Ground
         if joint is pick and joint.drive is None:
             change["drive"] = JointDrive()  # marks the coordinate for the tables; acts as no drive
         joints.append(dataclasses.replace(joint, **change) if change else joint)
-    on_base = dataclasses.replace(spec, bodies=[base] + list(spec.bodies), joints=joints, shapes=[], ground=None)
+    on_base = dataclasses.replace(spec, bodies=[base] + list(spec.bodies), joints=joints, shapes=[], ground=None,
+                                  forces=[])
     tab = tabulated_layout(on_base, samples=samples)
     if tab.base != 0 or len(tab.groups) != 1:
         raise ValueError("its bodies do not form one linkage of mobility one on the world")
     drive = pick.drive
     values = (0.0, 0.0, math.inf) if drive is None else (drive.target_velocity, drive.damping, drive.effort_limit)
-    return GroundedLayout(spec, tab, spec.joints.index(pick), values)
+    table, reach = _generalized(spec, tab)
+    return GroundedLayout(spec, tab, spec.joints.index(pick), values, table, reach)
 
 
 # -- tables ----------------------------------------------------------------------------------------------
 
 
-def _world_tables(lay: GroundedLayout) -> tuple:
-    """(S, 4) float64 samples of (M, M', V, V') over the turn, and the reach: the largest speed of a
-    link's centre per unit coordinate rate [m/rad]."""
-    tab, g = lay.tab, lay.tab.groups[0]
-    t, s = g.table, g.scale
-    R = quat_matrix(tab.orientation)
-    gs = R.T @ np.asarray(tab.gravity, float)  # gravity in the state frame
+class _Links:
+    """The links of a grounded layout over the samples of a turn, in the state frame (float64): the
+    position of a point fixed in a link and its first two derivatives in q."""
+
+    def __init__(self, tab):
+        g = tab.groups[0]
+        t = g.table
+        self.s, self.o = g.scale, np.asarray(g.origin, float)
+        self.c0, self.c1, self.c2 = t.links, t.links_d1, t.links_d2
+        self.samples = len(self.c0)
+        self.R, self.P = quat_matrix(tab.orientation), np.asarray(tab.position, float)
+
+    def point(self, k: int, u) -> tuple:
+        """(S, 3) x3: a point at u (table frame, from the link's centre of mass) of link k, or with
+        k < 0 the world point u (world frame): position, first and second derivatives in q."""
+        S = self.samples
+        if k < 0:
+            p = np.broadcast_to(self.R.T @ (np.asarray(u, float) - self.P), (S, 3))
+            return p, np.zeros((S, 3)), np.zeros((S, 3))
+        x, d1, d2 = self.c0[:, k], self.c1[:, k], self.c2[:, k]
+        c, n = np.cos(x[:, 2]), np.sin(x[:, 2])
+        u = np.asarray(u, float)
+        turned = np.stack([c * u[0] - n * u[2], np.full(S, u[1]), n * u[0] + c * u[2]], axis=1)  # rot_minus_y
+        slope = np.stack([-n * u[0] - c * u[2], np.zeros(S), c * u[0] - n * u[2]], axis=1)  # its derivative in phi
+        plane = lambda v: self.s * np.stack([v[:, 0], np.zeros(S), v[:, 1]], axis=1)
+        p = self.o + plane(x) + turned
+        dp = plane(d1) + d1[:, 2:3] * slope
+        flat = turned.copy()
+        flat[:, 1] = 0.0  # d2/dphi2 of rot_minus_y(phi) u: minus its in-plane part
+        ddp = plane(d2) + d2[:, 2:3] * slope - (d1[:, 2:3] ** 2) * flat
+        return p, dp, ddp
+
+    def angle_at(self, k: int, q: float) -> float:
+        """Link k's planar angle at coordinate q (its Hermite spline, as the kernels read it; 0 for the world)."""
+        if k < 0:
+            return 0.0
+        step = 2.0 * math.pi / self.samples
+        u = (q / step) % self.samples
+        i0 = min(int(u), self.samples - 1)
+        i1, f = (i0 + 1) % self.samples, u - i0
+        y0, y1 = self.c0[i0, k, 2], self.c0[i0, k, 2] + wrap(self.c0[i1, k, 2] - self.c0[i0, k, 2])
+        d0, d1 = self.c1[i0, k, 2], self.c1[i1, k, 2]
+        return float((2 * f**3 - 3 * f**2 + 1) * y0 + (f**3 - 2 * f**2 + f) * step * d0 + (3 * f**2 - 2 * f**3) * y1
+                     + (f**3 - f**2) * step * d1)
+
+    def angle(self, k: int) -> tuple:
+        """(S,) x3: link k's planar angle (0 for the world) and its first two derivatives in q."""
+        if k < 0:
+            return (np.zeros(self.samples),) * 3
+        return self.c0[:, k, 2], self.c1[:, k, 2], self.c2[:, k, 2]
+
+
+def _generalized(spec: MechanismSpec, tab) -> tuple:
+    """(S, 6) samples of M, M', G, G', D, D' over the turn (see GroundedLayout) and the reach; raises
+    ValueError naming a force element the grounded plan does not take."""
+    from engine.forces import BodyWrench, JointSpring, JointTorque, LinearSpring
+
+    g, links = tab.groups[0], _Links(tab)
+    s, R = links.s, links.R
     m = np.asarray(g.link_mass, float)
     Iy = np.asarray(g.link_inertia, float)[:, 1, 1]  # about the plane normal (the table frame's y)
-    c0, c1, c2 = t.links, t.links_d1, t.links_d2
+    c1, c2 = links.c1, links.c2
     M = (m * s * s * (c1[..., 0] ** 2 + c1[..., 1] ** 2) + Iy * c1[..., 2] ** 2).sum(axis=1)
     dM = 2.0 * (m * s * s * (c1[..., 0] * c2[..., 0] + c1[..., 1] * c2[..., 1]) + Iy * c1[..., 2] * c2[..., 2]).sum(axis=1)
-    V = -(m * s * (gs[0] * c0[..., 0] + gs[2] * c0[..., 1])).sum(axis=1)
-    dV = -(m * s * (gs[0] * c1[..., 0] + gs[2] * c1[..., 1])).sum(axis=1)
+    gs = R.T @ np.asarray(tab.gravity, float)  # gravity in the state frame
+    G = (m * s * (gs[0] * c1[..., 0] + gs[2] * c1[..., 1])).sum(axis=1)
+    dG = (m * s * (gs[0] * c2[..., 0] + gs[2] * c2[..., 1])).sum(axis=1)
+    D, dD = np.zeros_like(M), np.zeros_like(M)
+    index = spec.body_index
+    where = {b - 1: (k, frame) for b, (_, k, frame) in enumerate(tab.bodies) if b > 0}  # spec body -> link, frame
+    link_of = lambda name: -1 if name is None else where[index[name]][0]
+
+    def body_point(name, point):
+        if name is None:
+            return links.point(-1, point)
+        k, frame = where[index[name]]
+        return links.point(k, quat_matrix(frame) @ (np.asarray(point, float) - spec.bodies[index[name]].com))
+
+    signs = _joint_signs_of(spec, R)
+    for item in spec.forces:
+        what = f"force element '{item.name}'"
+        if isinstance(item, LinearSpring):
+            if item.tension_only and item.damping > 0.0:
+                raise ValueError(f"{what}: a tension-only spring with damping is not in the grounded plan")
+            pa, da, dda = body_point(item.body_a, item.point_a)
+            pb, db, ddb = body_point(item.body_b, item.point_b)
+            d, dd, ddd = pa - pb, da - db, dda - ddb
+            length = np.sqrt((d * d).sum(axis=1))
+            if length.min() < 1e-9:
+                raise ValueError(f"{what}: its two points meet during the turn")
+            rate = (d * dd).sum(axis=1) / length
+            curve = ((dd * dd).sum(axis=1) + (d * ddd).sum(axis=1) - rate**2) / length
+            stretch = length - item.rest_length
+            on = (stretch > 0.0) if item.tension_only else np.ones_like(length, bool)
+            tension = np.where(on, item.stiffness * stretch, 0.0)
+            G -= tension * rate
+            dG -= np.where(on, item.stiffness * rate**2, 0.0) + tension * curve
+            D += item.damping * rate**2
+            dD += 2.0 * item.damping * rate * curve
+        elif isinstance(item, (JointSpring, JointTorque)):
+            j = next(i for i, joint in enumerate(spec.joints) if joint.name == item.joint)
+            if signs[j] == 0.0:
+                raise ValueError(f"{what}: its joint '{item.joint}' is not revolute")
+            joint = spec.joints[j]
+            ac, bc, cc = links.angle(link_of(joint.child))
+            ap, bp, cp = links.angle(link_of(joint.parent))
+            rate, curve = signs[j] * (bc - bp), signs[j] * (cc - cp)
+            if isinstance(item, JointTorque):
+                G += item.effort * rate
+                dG += item.effort * curve
+                continue
+            kc, kp, q0 = link_of(joint.child), link_of(joint.parent), g.angle
+            turned = (ac - links.angle_at(kc, q0)) - (ap - links.angle_at(kp, q0))
+            # (where the joint passes the far side of the rest position the force flips, as in the other plans;
+            # the spline spreads the flip over one sample interval)
+            off = wrap(_joint_angle(spec, joint) + signs[j] * wrap(turned) - item.rest_position)
+            G -= item.stiffness * off * rate
+            dG -= item.stiffness * (rate**2 + off * curve)
+            D += item.damping * rate**2
+            dD += 2.0 * item.damping * rate * curve
+        elif isinstance(item, BodyWrench):
+            k = link_of(item.body)
+            p, dp, ddp = links.point(k, (0.0, 0.0, 0.0))
+            a, b, c = links.angle(k)
+            f, torque = R.T @ item.force, R.T @ item.torque
+            G += dp @ f - torque[1] * b  # the link turns about -y of the state frame
+            dG += ddp @ f - torque[1] * c
+        else:
+            raise ValueError(f"{what}: a {type(item).__name__} is not in the grounded plan")
     reach = float(s * np.sqrt(c1[..., 0] ** 2 + c1[..., 1] ** 2).max())
-    return np.stack([M, dM, V, dV], axis=1), reach
+    return np.stack([M, dM, G, dG, D, dD], axis=1), reach
 
 
 def _joint_signs(lay: GroundedLayout) -> np.ndarray:
-    """Per spec joint +1 or -1: its axis along the state frame's -y (the planar angle's sense) or
-    against it; 0 for an inline joint (no joint effort acts on it)."""
-    spec, R = lay.spec, quat_matrix(lay.tab.orientation)
+    """_joint_signs_of a layout's spec."""
+    return _joint_signs_of(lay.spec, quat_matrix(lay.tab.orientation))
+
+
+def _joint_signs_of(spec: MechanismSpec, R: np.ndarray) -> np.ndarray:
+    """Per spec joint +1 or -1: its axis along the state frame's -y (R's second column negated: the
+    planar angle's sense) or against it; 0 for an inline joint (no joint effort acts on it)."""
     normal = -R[:, 1]
     index = spec.body_index
     out = np.zeros(len(spec.joints))
@@ -145,6 +270,15 @@ def _joint_signs(lay: GroundedLayout) -> np.ndarray:
     return out
 
 
+def _joint_angle(spec: MechanismSpec, joint) -> float:
+    """A revolute joint's coordinate [rad] at the spec's pose (as engine.joints measures it)."""
+    index = spec.body_index
+    parent = np.eye(3) if joint.parent is None else quat_matrix(spec.bodies[index[joint.parent]].orientation)
+    child = quat_matrix(spec.bodies[index[joint.child]].orientation)
+    rel = (parent @ quat_matrix(joint.parent_orientation)).T @ (child @ quat_matrix(joint.child_orientation))
+    return _turn_angle(rel, np.asarray(joint.axis, float))
+
+
 # -- device side -----------------------------------------------------------------------------------------
 
 
@@ -153,8 +287,10 @@ class GroundedArrays:
     """A batch's tables and per-world constants (see pack_grounded)."""
 
     samples: int
-    energy: wp.array2d(dtype=wp.vec4d)  # (U, S): M, M', V, V' per distinct world
+    energy: wp.array2d(dtype=wp.vec4d)  # (U, S): M, M', G, G' per distinct world
+    damping: wp.array2d(dtype=wp.vec2d)  # (U, S): D, D'
     energy_of: wp.array(dtype=wp.int32)  # (W,)
+    smooth: wp.array(dtype=wp.int32)  # (W,) 1: no drive damping, no force element damping (the triple jump)
     links0: wp.array3d(dtype=wp.vec3d)  # (T, S, K): unit-scale link centre (x, z) and angle
     links1: wp.array3d(dtype=wp.vec3d)  # their first derivatives in q
     links2: wp.array3d(dtype=wp.vec3d)  # second derivatives
@@ -206,15 +342,18 @@ def hermite(y0: wp.float64, d0: wp.float64, y1: wp.float64, d1: wp.float64, f: w
 
 @wp.func
 def dynamics(a: GroundedArrays, w: int, q: wp.float64):
-    """M(q), M'(q) and V'(q) of world w from its splines."""
+    """M(q), M'(q), G(q) and D(q) of world w from its splines."""
     i0, i1, f = sample_of(q, a.samples)
     t = a.energy_of[w]
     e0 = a.energy[t, i0]
     e1 = a.energy[t, i1]
     step = TWO_PI / wp.float64(a.samples)
     M, dM = hermite(e0[0], e0[1], e1[0], e1[1], f, step)
-    V, dV = hermite(e0[2], e0[3], e1[2], e1[3], f, step)
-    return M, dM, dV
+    G, dG = hermite(e0[2], e0[3], e1[2], e1[3], f, step)
+    d0 = a.damping[t, i0]
+    d1 = a.damping[t, i1]
+    D, dD = hermite(d0[0], d0[1], d1[0], d1[1], f, step)
+    return M, dM, G, D
 
 
 @wp.func
@@ -303,26 +442,28 @@ def step_kernel(controlled: bool):
         td = wp.float64(0.0)
         for _it in range(ITERATIONS):
             last = qm
-            M, dM, dV = dynamics(a, w, qm)
+            M, dM, G, D = dynamics(a, w, qm)
             vm = pm / M
-            force = wp.float64(0.5) * dM * vm * vm - dV
+            force = wp.float64(0.5) * dM * vm * vm + G
             if wp.static(controlled):
                 force += control_force(a, w, qm, body_f, joint_effort)
             pf = p + dt * force
-            # the velocity drive, implicit at the end rate pe / M(q_end), then clamped to its effort limit
+            # the force elements' damping at the step's mean momentum (trapezoidal), the velocity drive
+            # implicit at the end rate pe / M(q_end) and clamped to its effort limit
+            drag = dt * D / (wp.float64(2.0) * M)
             Me = M
             if dr[1] > wp.float64(0.0):
-                Me, dMe, dVe = dynamics(a, w, wp.float64(2.0) * qm - q)
-            pe = (pf + dt * dr[1] * dr[0]) / (wp.float64(1.0) + dt * dr[1] / Me)
+                Me, dMe, Ge, De = dynamics(a, w, wp.float64(2.0) * qm - q)
+            pe = (pf - drag * p + dt * dr[1] * dr[0]) / (wp.float64(1.0) + drag + dt * dr[1] / Me)
             td = wp.clamp(dr[1] * (dr[0] - pe / Me), -dr[2], dr[2])
-            pe = pf + dt * td
+            pe = (pf - drag * p + dt * td) / (wp.float64(1.0) + drag)
             pm = wp.float64(0.5) * (p + pe)
             qm = q + half * pm / M
             if wp.abs(qm - last) <= wp.float64(CONVERGED):
                 break
         q1 = wp.float64(2.0) * qm - q
         q1 = q1 - TWO_PI * wp.floor(q1 / TWO_PI)
-        M1, dM1, dV1 = dynamics(a, w, q1)
+        M1, dM1, G1, D1 = dynamics(a, w, q1)
         return q1, pe, M1, td
 
     @wp.kernel(enable_backward=False, module="unique")
@@ -335,10 +476,10 @@ def step_kernel(controlled: bool):
             return
         dr = a.drive[w]
         q = q_[w]
-        M, dM, dV = dynamics(a, w, q)
+        M, dM, G, D = dynamics(a, w, q)
         p = M * v_[w]  # the momentum and M(q) carry over from one midpoint step to the next
         tau = torque[w]
-        jump = dr[1] == wp.float64(0.0)
+        jump = a.smooth[w] != 0
         for _ in range(steps):
             q1 = q
             p1 = p
@@ -418,13 +559,15 @@ class GroundedModel:
                  body_frame=np.tile(np.array([0, 0, 0, 1], np.float32), (U, self.max_bodies, 1)),
                  joint_count=np.zeros(U, np.int32), joint_child=np.full((U, self.max_joints), -1, np.int32),
                  joint_parent=np.full((U, self.max_joints), -1, np.int32), joint_sign=np.zeros((U, self.max_joints)),
-                 q0=np.zeros(U), v0=np.zeros(U), table_of=np.zeros(U, np.int32), energy_of=np.zeros(U, np.int32))
+                 q0=np.zeros(U), v0=np.zeros(U), table_of=np.zeros(U, np.int32), energy_of=np.zeros(U, np.int32),
+                 smooth=np.zeros(U, np.int32))
         tables, energies = {}, {}
         for u, lay in distinct.values():
             tab, g = lay.tab, lay.tab.groups[0]
             h["table_of"][u] = tables.setdefault(id(g.table), (len(tables), g.table))[0]
-            energy, h["reach"][u] = _world_tables(lay)
-            h["energy_of"][u] = energies.setdefault(energy.tobytes(), (len(energies), energy))[0]
+            h["reach"][u] = lay.reach
+            h["energy_of"][u] = energies.setdefault(lay.samples.tobytes(), (len(energies), lay.samples))[0]
+            h["smooth"][u] = lay.drive[1] == 0.0 and not lay.samples[:, 4].any()
             h["scale"][u], h["origin"][u] = g.scale, g.origin
             h["frame"][u], h["position"][u] = quat_matrix(tab.orientation), tab.position
             h["orientation"][u] = tab.orientation
@@ -450,7 +593,10 @@ class GroundedModel:
             links[0][i, :, :n], links[1][i, :, :n], links[2][i, :, :n] = t.links, t.links_d1, t.links_d2
         a = GroundedArrays()
         a.samples = S
-        a.energy = wp.array(np.stack([e for _, e in energies.values()]), dtype=wp.vec4d, device=self.device)
+        samples = np.stack([e for _, e in energies.values()])
+        a.energy = wp.array(np.ascontiguousarray(samples[..., :4]), dtype=wp.vec4d, device=self.device)
+        a.damping = wp.array(np.ascontiguousarray(samples[..., 4:]), dtype=wp.vec2d, device=self.device)
+        a.smooth = wp.array(h["smooth"], dtype=wp.int32, device=self.device)
         a.energy_of = wp.array(h["energy_of"], dtype=wp.int32, device=self.device)
         a.links0, a.links1, a.links2 = (wp.array(x, dtype=wp.vec3d, device=self.device) for x in links)
         a.table_of = wp.array(h["table_of"], dtype=wp.int32, device=self.device)
