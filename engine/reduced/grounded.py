@@ -141,7 +141,9 @@ class _Links:
         u = np.asarray(u, float)
         turned = np.stack([c * u[0] - n * u[2], np.full(S, u[1]), n * u[0] + c * u[2]], axis=1)  # rot_minus_y
         slope = np.stack([-n * u[0] - c * u[2], np.zeros(S), c * u[0] - n * u[2]], axis=1)  # its derivative in phi
-        plane = lambda v: self.s * np.stack([v[:, 0], np.zeros(S), v[:, 1]], axis=1)
+        def plane(v):  # a table's (x, z) columns as state-frame vectors [m]
+            return self.s * np.stack([v[:, 0], np.zeros(S), v[:, 1]], axis=1)
+
         p = self.o + plane(x) + turned
         dp = plane(d1) + d1[:, 2:3] * slope
         flat = turned.copy()
@@ -187,7 +189,9 @@ def _generalized(spec: MechanismSpec, tab) -> tuple:
     D, dD = np.zeros_like(M), np.zeros_like(M)
     index = spec.body_index
     where = {b - 1: (k, frame) for b, (_, k, frame) in enumerate(tab.bodies) if b > 0}  # spec body -> link, frame
-    link_of = lambda name: -1 if name is None else where[index[name]][0]
+
+    def link_of(name):
+        return -1 if name is None else where[index[name]][0]
 
     def body_point(name, point):
         if name is None:
