@@ -35,12 +35,31 @@ class Coordinates(enum.Enum):
 
 
 ORDER = (Coordinates.GROUNDED, Coordinates.TABULATED, Coordinates.TREE, Coordinates.MAXIMAL)  # MIXED is no kind of its own
-# unasked, the grounded plan takes a batch of at most this many distinct specs: a distinct linkage's table
+# unasked, the grounded plan takes a batch of at most this many distinct linkage geometries: each one's table
 # costs 40-75 ms of host time (benchmarks/results/README.md, "The grounded plan")
 GROUNDED_MAX_DISTINCT = 16
-GROUNDED_TOO_MANY = ("{} distinct specs in the batch: building their tables (about 40 ms of host time each) "
-                     f"would cost more than the tree plan's pack; the grounded plan is chosen for at most "
+GROUNDED_TOO_MANY = ("{} distinct linkage geometries in the batch: building their tables (40-75 ms of host time "
+                     f"each) would cost more than the tree plan's pack; the grounded plan is chosen for at most "
                      f"{GROUNDED_MAX_DISTINCT} (force it with coordinates='grounded')")
+
+
+def _geometries(specs: list) -> int:
+    """How many distinct geometries (joint graph, joint frames, body poses and centres of mass, to 1e-9)
+    the batch's specs with a joint to the world have, counted up to GROUNDED_MAX_DISTINCT + 1: the
+    tables a grounded plan would build at most (masses, inertias, drives and force elements do not
+    change a table)."""
+    seen = set()
+    for spec in {id(s): s for s in specs}.values():
+        if not any(j.parent is None for j in spec.joints):
+            continue
+        numbers = [np.ravel(getattr(b, f)) for b in spec.bodies for f in ("position", "orientation", "com")]
+        numbers += [np.ravel(getattr(j, f)) for j in spec.joints
+                    for f in ("parent_position", "parent_orientation", "child_position", "child_orientation", "axis")]
+        graph = tuple((j.parent, j.child, j.type) for j in spec.joints)
+        seen.add((graph, np.round(np.concatenate(numbers).astype(float), 9).tobytes()))
+        if len(seen) > GROUNDED_MAX_DISTINCT:  # (past the limit the count no longer matters)
+            break
+    return len(seen)
 # why a batch packed with a contact_capacity is not tabulated
 CAPACITY_NOT_TABULATED = ("contact_capacity was given: the tabulated path keeps one contact slot per shape point "
                           "of every world")
@@ -252,7 +271,7 @@ def fastest(specs: list, contact_capacity: int | None = None) -> tuple[list, lis
     object analyses it once."""
     kinds, layouts, refused, seen, noted = [], [], [], {}, set()
     ready = _tabulated_ready(specs) if contact_capacity is None else None
-    distinct = len({id(spec) for spec in specs})
+    distinct = _geometries(specs)
     for index, spec in enumerate(specs):
         if id(spec) not in seen:
             found = None
@@ -263,7 +282,7 @@ def fastest(specs: list, contact_capacity: int | None = None) -> tuple[list, lis
                 if kind is Coordinates.GROUNDED and distinct > GROUNDED_MAX_DISTINCT:
                     if kind not in noted:
                         noted.add(kind)
-                        refused.append((kind, GROUNDED_TOO_MANY.format(distinct)))
+                        refused.append((kind, GROUNDED_TOO_MANY.format(f"more than {GROUNDED_MAX_DISTINCT}")))
                     continue
                 if kind is Coordinates.TABULATED and contact_capacity is not None:
                     if kind not in noted:

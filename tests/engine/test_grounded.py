@@ -134,15 +134,24 @@ def test_what_the_grounded_plan_cannot_model_keeps_another_plan_with_the_reason(
 
 
 def test_a_batch_of_many_distinct_linkages_keeps_the_tree_plan_unless_forced():
-    """Unasked, more than GROUNDED_MAX_DISTINCT distinct specs (a study's generation of new designs)
-    keep the tree plan, whose pack builds no tables, and the plan says why; fewer take the grounded plan."""
+    """Unasked, more than GROUNDED_MAX_DISTINCT distinct linkage geometries (a study's generation of
+    new designs) keep the tree plan, whose pack builds no tables, and the plan says why; as many
+    specs of one geometry that differ in masses and springs (one table) take the grounded plan."""
+    import dataclasses
+
     from engine.plan import GROUNDED_MAX_DISTINCT
 
-    many = [fourbar(crank=0.08 + 1e-4 * k).spec for k in range(GROUNDED_MAX_DISTINCT + 1)]
+    n = GROUNDED_MAX_DISTINCT + 1
+    many = [fourbar(crank=0.08 + 1e-4 * k).spec for k in range(n)]
     model = engine.pack(many, device="cpu", dt=1e-3)
     assert model.plan.coordinates is engine.Coordinates.TREE
-    assert f"not grounded: {GROUNDED_MAX_DISTINCT + 1} distinct specs in the batch" in str(model.plan)
-    assert engine.pack(many[:2] * 40, device="cpu", dt=1e-3).plan.coordinates is engine.Coordinates.GROUNDED
+    assert f"not grounded: more than {GROUNDED_MAX_DISTINCT} distinct linkage geometries in the batch" in str(model.plan)
+    one = fourbar().spec
+    varied = [dataclasses.replace(one, bodies=[dataclasses.replace(b, mass=b.mass * (1 + 0.01 * k)) for b in one.bodies],
+                                  forces=[JointSpring("spring", "ground_rocker", stiffness=0.1 * k)]) for k in range(n)]
+    model = engine.pack(varied, device="cpu", dt=1e-3)
+    assert model.plan.coordinates is engine.Coordinates.GROUNDED
+    assert f"1 distinct link table, {n} distinct mass and potential splines" in str(model.plan)
 
 
 def test_force_elements_act_as_on_the_maximal_plan():
