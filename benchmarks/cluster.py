@@ -6,8 +6,10 @@ and 2 workers, same study and seed (the stored designs are checked equal).
 
 Runs a kinematic study (quickstart's Jansen leg, 256 designs a generation) and a small dynamic one
 (walkers, 64 a generation, 1.3 s simulated) each way, on one Ray instance started first; the
-first generation (kernel compilation, the workers' start) is excluded from the rate. Prints one
-JSON line per study and writes cluster_<device>.json.
+first generation (kernel compilation, the workers' start) is excluded from the rate, and so from
+each run's milliseconds a design by stage (the workers' build, pack, simulate and metrics as their
+shards report them; a difference of two runs, so a stage that costs most in the first generation
+can come out below zero). Prints one JSON line per study and writes cluster_<device>.json.
 """
 
 from __future__ import annotations
@@ -68,7 +70,7 @@ def measure(folder: pathlib.Path, kind: str, device: str, generations: int, work
     """Designs/s of generations 2 .. ``generations``: a run of 1 generation and a run of all, each
     from scratch with the same seed, the difference of their times (the workers' start and the
     kernels' compilation cancel)."""
-    seconds, values = [], None
+    seconds, stages, values = [], [], None
     for count in (1, generations):
         name = f"{kind}_{workers}_{count}"
         path = folder / f"{name}.toml"
@@ -77,12 +79,15 @@ def measure(folder: pathlib.Path, kind: str, device: str, generations: int, work
         if workers:
             spec = spec.with_overrides(cluster="local", workers=workers)
         t = time.perf_counter()
-        run_study(spec, progress=False)
+        stages.append(run_study(spec, progress=False).stages)
         seconds.append(time.perf_counter() - t)
         values = read_designs(spec.storage_url, spec.name)["value"].to_numpy()
     designs = (generations - 1) * spec.worlds
+    # where a design's time goes (generations 2 ..: the two runs' difference), the workers' stages
+    # (build, pack, simulate, metrics) as the shards report them
+    per_design = {stage: round(1e3 * (stages[1][stage] - stages[0].get(stage, 0.0)) / designs, 4) for stage in stages[1]}
     return {"workers": workers, "designs_per_s": designs / (seconds[1] - seconds[0]), "first_generation_s": seconds[0],
-            "values": values}
+            "stage_ms_per_design": per_design, "values": values}
 
 
 def main(argv=None) -> None:
