@@ -4,6 +4,7 @@ DOP853, benchmarks.convergence.fourbar_reference), the maximal plan (other coord
 solver) under a Control, a pendulum's energy, a batch of distinct designs against each alone, and
 the refusals that keep other plans. CPU only."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -12,7 +13,7 @@ import pytest
 import engine
 from benchmarks.convergence import crank_run, fourbar_reference
 from engine import Body, Joint, MechanismSpec, TrackedPoint
-from engine.forces import BodyWrench, JointSpring, JointTorque, LinearSpring
+from engine.forces import JointSpring, LinearSpring
 from engine.scenes import fourbar
 from tests.engine.test_forces import loaded_fourbar
 from tests.engine.test_tree_control import run, set_control
@@ -114,8 +115,6 @@ def test_a_batch_of_distinct_linkages_runs_each_world_as_alone_and_swings_like_a
     ("floating", "no joint to the world"),
 ])
 def test_what_the_grounded_plan_cannot_model_keeps_another_plan_with_the_reason(change, why):
-    import dataclasses
-
     spec = fourbar().spec
     if change == "cable":
         spec = dataclasses.replace(spec, forces=[LinearSpring("cable", "coupler", body_b=None, point_b=(0.1, 0.0, 0.4),
@@ -137,8 +136,6 @@ def test_a_batch_of_many_distinct_linkages_keeps_the_tree_plan_unless_forced():
     """Unasked, more than GROUNDED_MAX_DISTINCT distinct linkage geometries (a study's generation of
     new designs) keep the tree plan, whose pack builds no tables, and the plan says why; as many
     specs of one geometry that differ in masses and springs (one table) take the grounded plan."""
-    import dataclasses
-
     from engine.plan import GROUNDED_MAX_DISTINCT
 
     n = GROUNDED_MAX_DISTINCT + 1
@@ -159,8 +156,6 @@ def test_force_elements_act_as_on_the_maximal_plan():
     damper on the loop joint, a wrench with a torque on the coupler, a joint torque on the crank),
     its cable undamped (a damped cable keeps the tree plan): grounded and maximal plans within 1e-4 m
     after 0.5 s, both moved by the forces by more than 1e-3 m."""
-    import dataclasses
-
     spec = loaded_fourbar()
     forces = [dataclasses.replace(f, damping=0.0) if f.name == "cable" else f for f in spec.forces]
     loaded = dataclasses.replace(spec, forces=forces)
@@ -175,22 +170,11 @@ def test_force_elements_act_as_on_the_maximal_plan():
 
 
 def _rod_on_a_spring(k: float, c: float) -> MechanismSpec:
-    """A rod (I about its pivot 2e-3 + 1 * 0.1^2) on a joint spring-damper, no gravity, released 0.4 rad
-    from its rest position 0.1 rad."""
-    spec = _pendulum(0.1, 0.0)
-    start = 0.5
-    rod = dataclasses_replace_orientation(spec.bodies[0], start)
-    return MechanismSpec([rod], spec.joints, spec.points, gravity=(0.0, 0.0, 0.0), name="sprung",
-                         forces=[JointSpring("spring", "pin", stiffness=k, damping=c, rest_position=0.1)])
-
-
-def dataclasses_replace_orientation(body, angle):
-    """``body`` (a rod of _pendulum, 0.1 m to its centre) turned to ``angle`` about the pin."""
-    import dataclasses
-
-    c, s = math.cos(angle), math.sin(angle)
-    return dataclasses.replace(body, position=(0.1 * c, 0.0, -0.1 * s),
-                               orientation=(0.0, -math.sin(-angle / 2), 0.0, math.cos(-angle / 2)))
+    """A rod (I about its pivot 2e-3 + 1 * 0.1^2) on a joint spring-damper, no gravity, released at
+    0.5 rad, 0.4 rad from its rest position 0.1 rad."""
+    spec = _pendulum(0.1, 0.5)
+    return dataclasses.replace(spec, gravity=(0.0, 0.0, 0.0), name="sprung",
+                               forces=[JointSpring("spring", "pin", stiffness=k, damping=c, rest_position=0.1)])
 
 
 def test_a_joint_spring_damper_rings_at_its_analytic_frequency_and_decay():
