@@ -18,6 +18,7 @@ import argparse
 import json
 import pathlib
 import platform
+import subprocess
 import sys
 import tempfile
 import time
@@ -28,6 +29,9 @@ from benchmarks.run import RESULTS, device_tag
 from morphopt.storage import read_designs
 from morphopt.study import run_study
 from morphopt.study_spec import load_study_spec
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
 
 STUDIES = {
     "kinematic": """[study]
@@ -66,28 +70,39 @@ legs_per_side = 3
 }
 
 
-def measure(folder: pathlib.Path, kind: str, device: str, generations: int, workers: int, worlds: int) -> dict:
+def measure(folder: pathlib.Path, kind: str, device: str, generations: int, workers: int, worlds: int,
+            address: str) -> dict:
     """Designs/s of generations 2 .. ``generations``: a run of 1 generation and a run of all, each
-    from scratch with the same seed, the difference of their times (the workers' start and the
-    kernels' compilation cancel)."""
+    from scratch with the same seed in a fresh process (as cold as a fresh Ray worker: no table or
+    structure the other run made is still cached), the difference of their times (the workers'
+    start and the kernels' compilation cancel)."""
     seconds, stages, values = [], [], None
     for count in (1, generations):
         name = f"{kind}_{workers}_{count}"
         path = folder / f"{name}.toml"
         path.write_text(STUDIES[kind].format(name=name, generations=count, device=device, worlds=worlds))
-        spec = load_study_spec(path)
-        if workers:
-            spec = spec.with_overrides(cluster="local", workers=workers)
-        t = time.perf_counter()
-        stages.append(run_study(spec, progress=False).stages)
-        seconds.append(time.perf_counter() - t)
-        values = read_designs(spec.storage_url, spec.name)["value"].to_numpy()
-    designs = (generations - 1) * spec.worlds
+        done = subprocess.run([sys.executable, "-m", "benchmarks.cluster", "--one", str(path), str(workers), address],
+                              stdout=subprocess.PIPE, check=True, cwd=ROOT)
+        run = json.loads(done.stdout.decode().strip().splitlines()[-1])
+        seconds.append(run["seconds"])
+        stages.append(run["stages"])
+        values = read_designs(load_study_spec(path).storage_url, name)["value"].to_numpy()
+    designs = (generations - 1) * worlds
     # where a design's time goes (generations 2 ..: the two runs' difference), the workers' stages
     # (build, pack, simulate, metrics) as the shards report them
     per_design = {stage: round(1e3 * (stages[1][stage] - stages[0].get(stage, 0.0)) / designs, 4) for stage in stages[1]}
     return {"workers": workers, "designs_per_s": designs / (seconds[1] - seconds[0]), "first_generation_s": seconds[0],
             "stage_ms_per_design": per_design, "values": values}
+
+
+def _one(path: str, workers: int, address: str) -> None:
+    """One run of measure's, in this (fresh) process: prints {"seconds", "stages"} as JSON."""
+    spec = load_study_spec(path)
+    if workers:
+        spec = spec.with_overrides(cluster=address, workers=workers)
+    t = time.perf_counter()
+    stages = run_study(spec, progress=False).stages
+    print(json.dumps({"seconds": time.perf_counter() - t, "stages": stages}), flush=True)
 
 
 def main(argv=None) -> None:
@@ -101,17 +116,21 @@ def main(argv=None) -> None:
     parser.add_argument("--kinematic-worlds", type=int, default=256)
     parser.add_argument("--dynamic-worlds", type=int, default=64)
     parser.add_argument("--num-cpus", type=int, default=2, help="CPUs the local Ray instance offers")
+    parser.add_argument("--one", nargs=3, default=None, help=argparse.SUPPRESS)  # measure's fresh process
     args = parser.parse_args(argv)
+    if args.one:
+        return _one(args.one[0], int(args.one[1]), args.one[2])
     out = {"device": device_tag(args.device), "machine": platform.processor() or platform.machine(),
            "command": "python -m benchmarks.cluster " + " ".join(sys.argv[1:]), "studies": {}}
     import ray
 
     ray.init(num_cpus=args.num_cpus, include_dashboard=False, log_to_driver=False,
              configure_logging=False)  # one for all runs
+    address = ray.get_runtime_context().gcs_address
     worlds = {"kinematic": args.kinematic_worlds, "dynamic": args.dynamic_worlds}
     with tempfile.TemporaryDirectory() as folder:
         for kind in args.studies:
-            rows = [measure(pathlib.Path(folder), kind, args.device, args.generations, w, worlds[kind])
+            rows = [measure(pathlib.Path(folder), kind, args.device, args.generations, w, worlds[kind], address)
                     for w in args.workers]
             same = all(np.array_equal(r["values"], rows[0]["values"], equal_nan=True) for r in rows)
             base = rows[0]["designs_per_s"]  # the first worker count asked for (default 0: this process)
