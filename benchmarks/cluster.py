@@ -1,11 +1,11 @@
-"""The cluster path's cost: designs/s of a study run in this process and on a local Ray cluster of 1
+"""The cluster path's cost: designs/s of a study run in one process and on a local Ray cluster of 1
 and 2 workers, same study and seed (the stored designs are checked equal).
 
     python -m benchmarks.cluster [--device cpu] [--generations 6] [--out DIR]
     python -m benchmarks.cluster --device cuda --studies dynamic --workers 0 1 --dynamic-worlds 4096
 
 Runs a kinematic study (quickstart's Jansen leg, 256 designs a generation) and a small dynamic one
-(walkers, 64 a generation, 1.3 s simulated) each way, on one Ray instance started first; the
+(walkers, 64 a generation, 1.3 s simulated) each way, on one Ray instance started first, every run in a fresh process; the
 first generation (kernel compilation, the workers' start) is excluded from the rate, and so from
 each run's milliseconds a design by stage (the workers' build, pack, simulate and metrics as their
 shards report them; a difference of two runs, so a stage that costs most in the first generation

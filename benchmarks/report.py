@@ -24,8 +24,7 @@ END = "<!-- end of status table -->"
 
 # scene -> the files (under benchmarks/results) of its latest measurements, newest first
 CURRENT = {
-    "fourbar": ["h200/fourbar_reduced_4096_peers.json", "h100/fourbar_reduced_peers.json",
-                "h100/fourbar_precision_aligned.json"],
+    "fourbar": ["h100/fourbar_grounded_peers.json", "h100/fourbar_precision_aligned.json"],
     "mixed": ["h100/mixed_compensated.json", "h100/mixed_precision_aligned.json"],
     "drlegs_hanging": ["h200/drlegs_hanging_check_peers.json", "h100/drlegs_hanging_reduced_peers.json",
                        "h100/drlegs_hanging_reduced_precision.json",
