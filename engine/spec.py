@@ -778,11 +778,12 @@ def _column(values: list):
     return "v", values
 
 
-def _unpacked_column(column) -> list:
-    if column[0] == "f":
-        return column[1].tolist()
-    if column[0] == "a":
-        return list(column[1])  # rows: views of one array
+def _unpacked_column(column, numbers: np.ndarray) -> list:
+    if column[0] == "f":  # ("f", start, stop) in the spec's numbers
+        return numbers[column[1]:column[2]].tolist()
+    if column[0] == "a":  # ("a", start, shape of the stacked rows) in the spec's numbers
+        shape = column[2]
+        return list(numbers[column[1]:column[1] + math.prod(shape)].reshape(shape))  # rows: views of one array
     if column[0] == "e":
         return [column[1](v) for v in column[2].tolist()]
     return column[1]
@@ -790,10 +791,12 @@ def _unpacked_column(column) -> list:
 
 def _packed_spec(spec: MechanismSpec):
     """(arguments of _unpacked_spec) for a spec whose items are plain Body, Joint, TrackedPoint
-    and Shape instances holding their fields only, in field order; else None."""
+    and Shape instances holding their fields only, in field order; else None. Every float and
+    float-array column goes into one float64 array of the spec (one array to rebuild, not one a
+    column: unpickling cost half as much)."""
     if tuple(spec.__dict__) != _SPEC_FIELDS:
         return None
-    lists = []
+    lists, parts, size = [], [], 0
     for attr, cls in _ITEM_KINDS.items():
         items = getattr(spec, attr)
         fields = _FIELDS_OF[cls]
@@ -801,15 +804,24 @@ def _packed_spec(spec: MechanismSpec):
                 any(tuple(item.__dict__) != fields for item in items):
             return None
         rows = [tuple(item.__dict__.values()) for item in items]
-        lists.append((len(items), [_column(list(values)) for values in zip(*rows)] if items else []))
+        columns = []
+        for values in zip(*rows) if items else ():
+            column = _column(list(values))
+            if column[0] in ("f", "a"):
+                array = column[1]
+                parts.append(array.reshape(-1))
+                column = ("f", size, size + array.size) if column[0] == "f" else ("a", size, array.shape)
+                size += array.size
+            columns.append(column)
+        lists.append((len(items), columns))
     rest = tuple(getattr(spec, f) for f in _SPEC_FIELDS if f not in _ITEM_KINDS)
-    return (rest, *lists)
+    return (rest, np.concatenate(parts) if parts else np.zeros(0), *lists)
 
 
 _GRAVITY_AND_REST = tuple(f for f in _SPEC_FIELDS if f not in _ITEM_KINDS)
 
 
-def _unpacked_spec(rest, *lists) -> MechanismSpec:
+def _unpacked_spec(rest, numbers, *lists) -> MechanismSpec:
     """The MechanismSpec _packed_spec packed (its items rebuilt without their checks: they held
     these values)."""
     new = object.__new__
@@ -817,7 +829,7 @@ def _unpacked_spec(rest, *lists) -> MechanismSpec:
     for (attr, cls), (count, columns) in zip(_ITEM_KINDS.items(), lists):
         fields = _FIELDS_OF[cls]
         items = []
-        for row in zip(*map(_unpacked_column, columns)) if count else ():
+        for row in zip(*(_unpacked_column(column, numbers) for column in columns)) if count else ():
             item = new(cls)
             item.__dict__.update(zip(fields, row))
             items.append(item)
