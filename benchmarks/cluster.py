@@ -3,13 +3,14 @@ and 2 workers, same study and seed (the stored designs are checked equal).
 
     python -m benchmarks.cluster [--device cpu] [--generations 6] [--out DIR]
     python -m benchmarks.cluster --device cuda --studies dynamic --workers 0 1 --dynamic-worlds 4096
+    python -m benchmarks.cluster --device cuda --studies dynamic --workers 0 2 --gpus-per-worker 0.5
 
 Runs a kinematic study (quickstart's Jansen leg, 256 designs a generation) and a small dynamic one
-(walkers, 64 a generation, 1.3 s simulated) each way, on one Ray instance started first, every run in a fresh process; the
-first generation (kernel compilation, the workers' start) is excluded from the rate, and so from
-each run's milliseconds a design by stage (the workers' build, pack, simulate and metrics as their
-shards report them; a difference of two runs, so a stage that costs most in the first generation
-can come out below zero). Prints one JSON line per study and writes cluster_<device>.json.
+(walkers, 64 a generation, 1.3 s simulated) each way, on one Ray instance started first, every
+run in a fresh process; the first generation (kernel compilation, the workers' start) is
+excluded from the rate, and so from each run's milliseconds a design by stage (the workers'
+build, pack, simulate and metrics as their shards report them). --gpus-per-worker 0.5
+puts two workers on each GPU. Prints one JSON line per study and writes cluster_<device>.json.
 """
 
 from __future__ import annotations
@@ -21,7 +22,6 @@ import platform
 import subprocess
 import sys
 import tempfile
-import time
 
 import numpy as np
 
@@ -71,38 +71,36 @@ legs_per_side = 3
 
 
 def measure(folder: pathlib.Path, kind: str, device: str, generations: int, workers: int, worlds: int,
-            address: str) -> dict:
-    """Designs/s of generations 2 .. ``generations``: a run of 1 generation and a run of all, each
-    from scratch with the same seed in a fresh process (as cold as a fresh Ray worker: no table or
-    structure the other run made is still cached), the difference of their times (the workers'
-    start and the kernels' compilation cancel)."""
-    seconds, stages, values = [], [], None
-    for count in (1, generations):
-        name = f"{kind}_{workers}_{count}"
-        path = folder / f"{name}.toml"
-        path.write_text(STUDIES[kind].format(name=name, generations=count, device=device, worlds=worlds))
-        done = subprocess.run([sys.executable, "-m", "benchmarks.cluster", "--one", str(path), str(workers), address],
-                              stdout=subprocess.PIPE, check=True, cwd=ROOT)
-        run = json.loads(done.stdout.decode().strip().splitlines()[-1])
-        seconds.append(run["seconds"])
-        stages.append(run["stages"])
-        values = read_designs(load_study_spec(path).storage_url, name)["value"].to_numpy()
+            address: str, share: float = 1.0) -> dict:
+    """Designs/s of generations 2 .. ``generations`` of one run from scratch in a fresh process (as
+    cold as a fresh Ray worker), timed from the end of the first generation (the workers' start and
+    the kernels' compilation fall in it), with that span's milliseconds a design by stage."""
+    name = f"{kind}_{workers}"
+    path = folder / f"{name}.toml"
+    path.write_text(STUDIES[kind].format(name=name, generations=generations, device=device, worlds=worlds))
+    done = subprocess.run([sys.executable, "-m", "benchmarks.cluster", "--one", str(path), str(workers), address,
+                           str(share)], stdout=subprocess.PIPE, check=True, cwd=ROOT)
+    marks = json.loads(done.stdout.decode().strip().splitlines()[-1])  # per generation: (seconds, stages)
+    (first, first_stages), (last, last_stages) = marks[0], marks[-1]
     designs = (generations - 1) * worlds
-    # where a design's time goes (generations 2 ..: the two runs' difference), the workers' stages
-    # (build, pack, simulate, metrics) as the shards report them
-    per_design = {stage: round(1e3 * (stages[1][stage] - stages[0].get(stage, 0.0)) / designs, 4) for stage in stages[1]}
-    return {"workers": workers, "designs_per_s": designs / (seconds[1] - seconds[0]), "first_generation_s": seconds[0],
+    # the workers' stages (build, pack, simulate, metrics) as the shards report them
+    per_design = {stage: round(1e3 * (last_stages[stage] - first_stages.get(stage, 0.0)) / designs, 4)
+                  for stage in last_stages}
+    values = read_designs(load_study_spec(path).storage_url, name)["value"].to_numpy()
+    return {"workers": workers, "gpus_per_worker": share if workers and device.startswith("cuda") else None,
+            "designs_per_s": designs / (last - first), "first_generation_s": first,
             "stage_ms_per_design": per_design, "values": values}
 
 
-def _one(path: str, workers: int, address: str) -> None:
-    """One run of measure's, in this (fresh) process: prints {"seconds", "stages"} as JSON."""
+def _one(path: str, workers: int, address: str, share: float) -> None:
+    """measure's run, in this (fresh) process: prints [seconds so far, stages so far] per generation as JSON."""
     spec = load_study_spec(path)
     if workers:
-        spec = spec.with_overrides(cluster=address, workers=workers)
-    t = time.perf_counter()
-    stages = run_study(spec, progress=False).stages
-    print(json.dumps({"seconds": time.perf_counter() - t, "stages": stages}), flush=True)
+        spec = spec.with_overrides(cluster=address, workers=workers,
+                                   gpus_per_worker=share if spec.device.startswith("cuda") else None)
+    marks = []
+    run_study(spec, progress=False, on_generation=lambda generation, seconds, stages: marks.append((seconds, stages)))
+    print(json.dumps(marks), flush=True)
 
 
 def main(argv=None) -> None:
@@ -116,10 +114,12 @@ def main(argv=None) -> None:
     parser.add_argument("--kinematic-worlds", type=int, default=256)
     parser.add_argument("--dynamic-worlds", type=int, default=64)
     parser.add_argument("--num-cpus", type=int, default=2, help="CPUs the local Ray instance offers")
-    parser.add_argument("--one", nargs=3, default=None, help=argparse.SUPPRESS)  # measure's fresh process
+    parser.add_argument("--gpus-per-worker", type=float, default=1.0,
+                        help="a CUDA study's share of a GPU per worker (0.5: two workers on each GPU)")
+    parser.add_argument("--one", nargs=4, default=None, help=argparse.SUPPRESS)  # measure's fresh process
     args = parser.parse_args(argv)
     if args.one:
-        return _one(args.one[0], int(args.one[1]), args.one[2])
+        return _one(args.one[0], int(args.one[1]), args.one[2], float(args.one[3]))
     out = {"device": device_tag(args.device), "machine": platform.processor() or platform.machine(),
            "command": "python -m benchmarks.cluster " + " ".join(sys.argv[1:]), "studies": {}}
     import ray
@@ -130,7 +130,8 @@ def main(argv=None) -> None:
     worlds = {"kinematic": args.kinematic_worlds, "dynamic": args.dynamic_worlds}
     with tempfile.TemporaryDirectory() as folder:
         for kind in args.studies:
-            rows = [measure(pathlib.Path(folder), kind, args.device, args.generations, w, worlds[kind], address)
+            rows = [measure(pathlib.Path(folder), kind, args.device, args.generations, w, worlds[kind], address,
+                            args.gpus_per_worker)
                     for w in args.workers]
             same = all(np.array_equal(r["values"], rows[0]["values"], equal_nan=True) for r in rows)
             base = rows[0]["designs_per_s"]  # the first worker count asked for (default 0: this process)

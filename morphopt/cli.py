@@ -98,7 +98,8 @@ def _study_spec(args):
 
         command = getattr(args, "study_command", None)
         spec = stored_spec(spec, say=command == "resume" and getattr(args, "generations", None) is None)
-    overrides = {k: getattr(args, k, None) for k in ("device", "worlds", "generations", "seed", "cluster", "workers")}
+    overrides = {k: getattr(args, k, None)
+                 for k in ("device", "worlds", "generations", "seed", "cluster", "workers", "gpus_per_worker")}
     return spec.with_overrides(**overrides)
 
 
@@ -280,6 +281,9 @@ def build_parser() -> argparse.ArgumentParser:
                                   "belongs to) or host:port (pip install \"morphopt[cluster]\")")
             sub.add_argument("--workers", type=_positive(int),
                              help="Ray workers (default: one per GPU of a CUDA study, else one per CPU core)")
+            sub.add_argument("--gpus-per-worker", type=float, metavar="SHARE",
+                             help="a CUDA study's share of a GPU per worker, in (0, 1] (default 1; 0.5: two workers "
+                                  "on each GPU, which a worker's host side can leave half idle)")
             sub.add_argument("--steal", action="store_true",
                              help="take the study over from a writer that is gone (its lease is not yet stale)")
         if name == "show":

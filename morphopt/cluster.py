@@ -1,7 +1,9 @@
 """A study's evaluations spread over a Ray cluster (``pip install "morphopt[cluster]"``).
 
 The coordinator (run_study) keeps the optimizer and the storage; ClusterEvaluator keeps one
-long-lived Ray actor per worker (a GPU each on a CUDA study, else a group of CPU cores), so every
+long-lived Ray actor per worker (a GPU each on a CUDA study, or a share of one: a worker's host
+side, building and packing, takes longer than its GPU time, so two workers can keep one GPU
+busier; else a group of CPU cores), so every
 worker compiles its kernels once and keeps them warm between generations. A generation is split
 into one shard per worker, designs grouped by their categorical parameters (their topology) so
 each shard's padded batch stays tight; shards come back as arrays (morphopt.metric_table), in order, so the study is the same
@@ -102,22 +104,24 @@ class WorkerStats:
 class ClusterEvaluator:
     """Evaluates a study's generations on ``workers`` Ray actors. address: "local" (a Ray instance
     started here, ended by close()), "auto" (the running cluster this machine belongs to) or a Ray
-    address; shard_timeout [s]: 0 chooses max(SHARD_TIMEOUT_MIN, SHARD_TIMEOUT_FACTOR x the
+    address; gpus_per_worker: a CUDA study's share of a GPU per worker, in (0, 1] (0.5: two workers
+    on each GPU); shard_timeout [s]: 0 chooses max(SHARD_TIMEOUT_MIN, SHARD_TIMEOUT_FACTOR x the
     generation's median shard time)."""
 
-    def __init__(self, spec, space, *, address: str, workers: int = 0, shard_timeout: float = 0.0, log=None):
+    def __init__(self, spec, space, *, address: str, workers: int = 0, gpus_per_worker: float = 1.0,
+                 shard_timeout: float = 0.0, log=None):
         ray = _ray()
         self.ray, self.spec, self.log = ray, spec, log or (lambda line: print(line, file=sys.stderr))
         cuda = spec.device.startswith("cuda")
         self._started = False
         try:
-            self._start(ray, spec, space, address, workers, shard_timeout, cuda)
+            self._start(ray, spec, space, address, workers, gpus_per_worker if cuda else 0.0, shard_timeout, cuda)
         except BaseException:
             if self._started:  # a Ray instance this evaluator started does not outlive its failure
                 ray.shutdown()
             raise
 
-    def _start(self, ray, spec, space, address, workers, shard_timeout, cuda) -> None:
+    def _start(self, ray, spec, space, address, workers, share, shard_timeout, cuda) -> None:
         if not ray.is_initialized():
             if address == "local":
                 cpus = max(1, workers or os.cpu_count() or 1)
@@ -126,15 +130,18 @@ class ClusterEvaluator:
             else:
                 ray.init(address=address, log_to_driver=False, configure_logging=False)
         resources = ray.cluster_resources()
-        if workers <= 0:
-            workers = int(resources.get("GPU", 0)) if cuda else int(resources.get("CPU", 1))
-        if workers <= 0:
+        gpus = int(resources.get("GPU", 0))
+        if cuda and gpus <= 0:
             raise ValueError(f"{spec.path}: 'study.device' is {spec.device!r} but the Ray cluster at {address!r} "
                              f"has no GPU")
-        have = int(resources.get("GPU", 0)) if cuda else int(resources.get("CPU", 1))
+        # workers that fit: each GPU holds whole shares (the float's rounding forgiven), else CPU cores
+        have = gpus * int(1.0 / share + 1e-9) if cuda else int(resources.get("CPU", 1))
+        if workers <= 0:
+            workers = have
         if workers > have:  # an actor that can never be placed would time out and be replaced forever
             raise ValueError(f"{spec.path}: {workers} workers asked for, the Ray cluster at {address!r} has "
-                             f"{have} {'GPUs' if cuda else 'CPUs'}")
+                             + (f"{gpus} GPUs, room for {have} workers at {share:g} GPU each" if cuda
+                                else f"{have} CPUs"))
         self.workers = workers
         self.cpus = 0 if cuda else max(1, have // workers)
         if spec.mode == "kinematic":  # (an actor sees its one GPU as cuda:0)
@@ -144,7 +151,7 @@ class ClusterEvaluator:
             kwargs = dict(duration=spec.duration, dt=spec.dt, device="cuda" if cuda else spec.device,
                           crank_speed=spec.crank_speed, config=spec.solver_config())
         self._args = (spec.family, spec.mode, kwargs)
-        self._actor_class = ray.remote(num_cpus=self.cpus, num_gpus=1 if cuda else 0)(_Worker)
+        self._actor_class = ray.remote(num_cpus=self.cpus, num_gpus=share if cuda else 0)(_Worker)
         self.actors = [self._new_actor() for _ in range(workers)]
         self.stats = [WorkerStats() for _ in range(workers)]
         self.shard_timeout = float(shard_timeout)

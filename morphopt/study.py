@@ -21,6 +21,7 @@ import math
 import pathlib
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -180,7 +181,8 @@ def _check_device(spec: StudySpec) -> None:
 
 
 RUN_OVERRIDES = ("device", "worlds", "generations", "seed")  # what `study run` may override on the command line
-RESUME_CHANGES = ("device", "generations", "cluster", "workers", "shard_timeout")  # may differ between runs
+# may differ between runs
+RESUME_CHANGES = ("device", "generations", "cluster", "workers", "gpus_per_worker", "shard_timeout")
 
 
 def study_settings(spec: StudySpec) -> dict:
@@ -361,14 +363,17 @@ def _checkpoint_blob(spec: StudySpec, space, optimizer, generation: int) -> byte
 
 
 def run_study(spec: StudySpec, *, resume: bool = False, fresh: bool = False, steal: bool = False,
-              trust_checkpoint: bool = False, progress: bool = True) -> StudyResult:
+              trust_checkpoint: bool = False, progress: bool = True,
+              on_generation: Callable | None = None) -> StudyResult:
     """Run (or resume) a study; returns the best design found.
 
     A run on a study that has stored results refuses unless ``fresh`` (the earlier results are
     moved aside as '<name>.before-<time>' in the transaction of the first new generation) or
     ``resume``. ``steal`` takes the study's lease from another writer (one that is gone);
     ``trust_checkpoint`` rebuilds the optimizer of a study stored by an earlier morphopt (a pickled
-    checkpoint, never unpickled) from its stored designs."""
+    checkpoint, never unpickled) from its stored designs. on_generation(generation, seconds, stages),
+    if given, is called once each generation is stored: the run's seconds so far and its seconds by
+    stage so far (StudyResult.stages), e.g. to time generations after the first."""
     family = load_family(spec.family)
     space = spec.design_space(family)
     check_family_contract(spec, family)
@@ -383,7 +388,7 @@ def run_study(spec: StudySpec, *, resume: bool = False, fresh: bool = False, ste
     storage.acquire(settings, steal=steal)
     try:  # under the lease, the same checks again: what they read can no longer change
         plan = _plan(spec, space, storage, resume, fresh, trust_checkpoint, digest)
-        return _generations(spec, family, space, storage, plan, settings, progress)
+        return _generations(spec, family, space, storage, plan, settings, progress, on_generation)
     finally:
         storage.release()
 
@@ -432,7 +437,7 @@ def _batch_evaluator(spec: StudySpec, family, steps, cluster):
     return evaluate
 
 
-def _generations(spec, family, space, storage, info, settings, progress) -> StudyResult:
+def _generations(spec, family, space, storage, info, settings, progress, on_generation=None) -> StudyResult:
     """The ask -> evaluate -> tell -> store loop of run_study, under the study's lease."""
     archive = backfill = None
     if info["found"] is not None:
@@ -453,7 +458,7 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
         from morphopt.cluster import ClusterEvaluator
 
         cluster = ClusterEvaluator(spec, space, address=spec.cluster, workers=spec.workers,
-                                   shard_timeout=spec.shard_timeout, log=lambda line: tqdm.write(line, file=sys.stderr))
+                                   gpus_per_worker=spec.gpus_per_worker, shard_timeout=spec.shard_timeout, log=lambda line: tqdm.write(line, file=sys.stderr))
         tqdm.write(f"{spec.name}: {cluster.workers} Ray workers at {spec.cluster!r}", file=sys.stderr)
     stages = {}
     announce_compile(Kernels.KINEMATIC if spec.mode == "kinematic" else Kernels.DYNAMIC, spec.device)
@@ -524,6 +529,8 @@ def _generations(spec, family, space, storage, info, settings, progress) -> Stud
                 bar.start_t += compiled
                 bar.last_print_t += compiled
             bar.update(1)
+            if on_generation is not None:
+                on_generation(generation, seconds, dict(stages))
             rate = optimizer.evaluations / max(seconds - compiling, 1e-9)
             best = sign * optimizer.best_value if math.isfinite(optimizer.best_value) else float("nan")
             shown = f"{rate:,.0f}" if rate >= 100 else f"{rate:.3g}"

@@ -25,8 +25,10 @@
     [fixed]       per parameter: a value held fixed
     [constraints] per metric: [low, high]; a design outside fails with the reason (TOML has inf)
     [cluster]     address (a Ray cluster: "local", "auto" or host:port; morphopt.cluster), workers
-                  (0: one per GPU, or per CPU core), shard_timeout [s] (0: ten times the median
-                  shard, at least 60 s); the results are the same as without a cluster
+                  (0: one per GPU, or per CPU core), gpus_per_worker (a CUDA study's share of a
+                  GPU per worker, in (0, 1]: 0.5 puts two workers on each GPU), shard_timeout [s]
+                  (0: ten times the median shard, at least 60 s); the results are the same as
+                  without a cluster
 
 ``family`` is either the name of a family (a plain identifier such as "four_bar": a module in
 ./designs/ or a built-in one) or an explicit path to a .py file (relative paths are taken from
@@ -89,7 +91,7 @@ SECTIONS = {
     "space": None,
     "fixed": None,
     "constraints": None,
-    "cluster": {"address": str, "workers": int, "shard_timeout": float},
+    "cluster": {"address": str, "workers": int, "gpus_per_worker": float, "shard_timeout": float},
     "robustness": None,
 }
 REQUIRED = {"study": ("name", "family")}
@@ -167,6 +169,7 @@ class StudySpec:
     solver: dict = field(default_factory=dict)
     cluster: str = ""  # a Ray address ("local", "auto", host:port); "": this process evaluates
     workers: int = 0  # Ray workers (0: one per GPU of a CUDA study, else one per CPU core)
+    gpus_per_worker: float = 1.0  # a CUDA study's share of a GPU per Ray worker (0.5: two workers a GPU)
     shard_timeout: float = 0.0  # [s] before a worker's shard runs again elsewhere (0: morphopt.cluster's rule)
     robustness: dict = field(default_factory=dict)  # the [robustness] table as written (morphopt.robust)
 
@@ -415,6 +418,9 @@ def _check_values(spec: StudySpec, where: str) -> None:
         ("study.generations", spec.generations >= 1, "an integer >= 1"),
         ("study.worlds", spec.worlds >= 2, "an integer >= 2"),
         ("cluster.workers", 0 <= spec.workers <= 4096, "an integer in 0 .. 4096 (0: one per GPU or CPU core)"),
+        ("cluster.gpus_per_worker", 0.0 < spec.gpus_per_worker <= 1.0 and
+         (spec.gpus_per_worker == 1.0 or spec.device.startswith("cuda")),
+         "a share of a GPU in (0, 1], other than 1 only on a CUDA study (study.device = 'cuda')"),
         ("cluster.shard_timeout", 0.0 <= spec.shard_timeout <= 86400.0 and math.isfinite(spec.shard_timeout),
          "0 (the automatic timeout) or seconds up to a day"),
         ("cluster.address", spec.cluster == "" or spec.cluster.strip() == spec.cluster != "",

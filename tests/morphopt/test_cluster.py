@@ -216,3 +216,33 @@ def test_postgres_refuses_a_second_coordinator_while_the_first_completes(tmp_pat
     assert outcome["result"].evaluations == 30 * first.worlds
     assert sizes <= {0}, sizes
     assert len(read_designs(postgres_url, "shared")) == 30 * first.worlds
+
+
+def test_workers_share_a_gpu_by_the_study_s_share(tmp_path):
+    """On a Ray instance that declares one GPU, a CUDA study at 0.5 GPU a worker places two actors,
+    each holding half the GPU (the multi-GPU path's arithmetic, checked where no GPU is); a third
+    worker is refused before any actor starts, naming the room there is."""
+    import ray
+
+    from morphopt.cluster import ClusterEvaluator
+    from morphopt.families import load_family
+
+    spec = study(tmp_path, KINEMATIC.replace('device = "cpu"', 'device = "cuda"'), "shared",
+                 gpus_per_worker=0.5)
+    space = spec.design_space(load_family(spec.family))
+    ray.init(num_cpus=2, num_gpus=1, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    try:
+        evaluator = ClusterEvaluator(spec, space, address="auto", gpus_per_worker=0.5)
+        try:
+            assert evaluator.workers == 2
+            assert len({ray.get(actor.pid.remote()) for actor in evaluator.actors}) == 2  # both placed, both alive
+            assert ray.available_resources().get("GPU", 0.0) == pytest.approx(0.0)  # the GPU taken by two halves
+        finally:
+            evaluator.close()
+        with pytest.raises(ValueError, match=r"3 workers asked for.*1 GPUs, room for 2 workers at 0\.5 GPU each"):
+            ClusterEvaluator(spec, space, address="auto", workers=3, gpus_per_worker=0.5)
+        whole = ClusterEvaluator(spec, space, address="auto", gpus_per_worker=1.0)
+        assert whole.workers == 1
+        whole.close()
+    finally:
+        ray.shutdown()

@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 
 from morphopt.cli import main
-from morphopt.storage import StudyStorage
+from morphopt.storage import StudyStorage, read_designs
 from morphopt.study import run_study
 from morphopt.study_spec import load_study_spec
 from toyfamily import TOY_FAMILY
@@ -45,6 +45,22 @@ def test_study_converges_to_the_known_optimum(tmp_path):
     assert abs(result.best_params["r"] - 0.05) < 1e-3
     assert abs(result.best_value - 0.1) < 2e-3
     assert result.evaluations == 12 * 8
+
+
+def test_on_generation_reports_each_stored_generation_with_its_time_and_stages(tmp_path):
+    """on_generation sees every generation once, in order, after it is stored (the storage already
+    holds it), with the run's seconds and stage seconds so far; the last call's are the result's."""
+    spec = load_study_spec(toy_study(tmp_path, generations=3))
+    calls = []
+
+    def seen(generation, seconds, stages):
+        stored = read_designs(spec.storage_url, spec.name)
+        calls.append((generation, seconds, stages, int(stored["generation"].max())))
+
+    result = run_study(spec, progress=False, on_generation=seen)
+    assert [c[0] for c in calls] == [0, 1, 2] and [c[3] for c in calls] == [0, 1, 2]
+    assert 0.0 < calls[0][1] < calls[1][1] < calls[2][1]
+    assert calls[-1][2] == result.stages and calls[0][2]["kinematics"] < calls[-1][2]["kinematics"]
 
 
 PARETO = """
