@@ -150,7 +150,8 @@ def main(argv=None) -> None:
             one = next((r["designs_per_s"] for r in rows if r["workers"] == 1), None)
             out["studies"][kind] = {"worlds": worlds[kind], "same_results": bool(same), "runs": [
                 {k: v for k, v in r.items() if k != "values"} | {"over_single_process": r["designs_per_s"] / base}
-                | ({"efficiency": r["designs_per_s"] / (r["workers"] * one)} if one and r["workers"] and not r.get("killed") else {})
+                | ({"efficiency": r["designs_per_s"] / (r["workers"] * one)}
+                   if one and r["workers"] and not r.get("killed") else {})
                 for r in rows]}
             print(json.dumps({kind: out["studies"][kind]}), flush=True)
     folder = pathlib.Path(args.out) if args.out else RESULTS / out["device"]
