@@ -123,15 +123,27 @@ def _family_file(family) -> str | None:
 
 
 def build_specs(family, params: Sequence[dict], *, crank_speed: float | None = None,
-                workers: int | None = None) -> list:
+                workers: int | None = None, share: bool = False) -> list:
     """Spec or failure reason ("cannot be built: ...") per design, in the order of ``params``.
 
     workers: None picks default_workers() for batches of PARALLEL_MIN_DESIGNS or more and builds
     smaller ones here; 1 builds here; more uses that many worker processes for any batch. A family
     that was not loaded from a file (load_family) is always built here. If the pool breaks (a
-    worker killed), the batch is built here instead.
+    worker killed), the batch is built here instead. share: designs of equal parameters (a robust
+    study's scenario worlds of one design) are built once and share one spec object, which the
+    caller must then not change in place.
     """
     params = list(params)
+    if share:
+        first, where = {}, []  # per design the index of the first equal design among the unique ones
+        for p in params:
+            where.append(first.setdefault(_design_key(p), len(first)))
+        if len(first) < len(params):
+            unique = [None] * len(first)
+            for p, k in zip(params, where):
+                unique[k] = unique[k] if unique[k] is not None else p
+            built = build_specs(family, unique, crank_speed=crank_speed, workers=workers)
+            return [built[k] for k in where]
     path = _family_file(family)
     if workers is None:
         workers = default_workers() if len(params) >= PARALLEL_MIN_DESIGNS else 1
@@ -152,6 +164,11 @@ def build_specs(family, params: Sequence[dict], *, crank_speed: float | None = N
         except BrokenProcessPool:
             _pools.pop(int(workers), None)
             return _build_each(family, params, crank_speed)
+
+
+def _design_key(params: dict) -> tuple:
+    """Equal for designs of equal parameter values (names and exact reprs, in any key order)."""
+    return tuple(sorted((name, type(value).__name__, repr(value)) for name, value in params.items()))
 
 
 @contextlib.contextmanager

@@ -324,7 +324,9 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     last three quarters of the run: walking_speed [m/s], heading_drift (sideways per forward
     distance) and energy_per_distance [J/m] of the motors.
     crank_speed [rad/s] overrides the design's (linkage families default to 2 pi).
-    spec_hook(spec, params) may add shapes, ground or change the spec before packing.
+    spec_hook(spec, params) may add shapes, ground or change the spec before packing; a hook whose
+    ``copies`` attribute is true promises to return a changed copy rather than change the spec in
+    place, and designs of equal parameters are then built once (as they are without a hook).
     A world the engine flags (engine.health, Trace.health) fails with the engine's reason: its state
     turned non-finite, its joints came apart by more than loop_tolerance [m] at a record (a torn
     mechanism, which can still be finite and even "walk" fast; None: the config's
@@ -356,7 +358,9 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     if loop_tolerance is not None:  # the engine's joint check is the one test of torn mechanisms
         config = dataclasses.replace(config or SolverConfig(), health_joint_tolerance=float(loop_tolerance))
     t0 = time.perf_counter()
-    built = build_specs(family, params, crank_speed=crank_speed, workers=workers)
+    # equal designs built once where the hook, if any, changes copies only (morphopt.robust's hooks)
+    built = build_specs(family, params, crank_speed=crank_speed, workers=workers,
+                        share=spec_hook is None or getattr(spec_hook, "copies", False))
     if spec_hook:
         built = [spec if isinstance(spec, str) else spec_hook(spec, p) for p, spec in zip(params, built)]
     evaluation, specs, owners = _built(params, built, t0)

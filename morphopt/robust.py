@@ -115,7 +115,12 @@ def scenario_hooks(params: list, scenarios: list):
     """One spec_hook for a batch: each world's scenario (scenarios[i] for params[i]; None: nominal)
     applied to its spec, found by the identity of its params dict."""
     by_world = {id(p): scenario_hook(s) for p, s in zip(params, scenarios) if s is not None}
-    return lambda spec, p: by_world[id(p)](spec, p) if id(p) in by_world else spec
+
+    def hook(spec, p):
+        return by_world[id(p)](spec, p) if id(p) in by_world else spec
+
+    hook.copies = True  # scenario_hook changes a copy: a design's worlds may share its one built spec
+    return hook
 
 
 def scenario_hook(scenario: dict):

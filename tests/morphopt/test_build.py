@@ -48,3 +48,33 @@ def test_a_family_without_a_file_is_built_here_and_bad_worker_counts_are_refused
     for bad in (0, -1, 1.5, True):
         with pytest.raises(ValueError, match="workers must be a positive integer"):
             build_specs(four_bar, [four_bar.space.default()], workers=bad)
+
+
+def test_equal_designs_share_one_built_spec_only_when_asked():
+    """share=True builds each distinct design once (the same values in any key order are one
+    design) and hands its one spec, or its one failure reason, to every equal design; the specs
+    pack to what building each design alone gives."""
+    family = load_family("walker")
+    a, b = family.space.sample(np.random.default_rng(7), 2)
+    bad = {**a, "scale": 1.0e9}
+    params = [a, b, dict(reversed(list(a.items()))), bad, {**a}, dict(bad)]
+    calls = []
+    original = family.build_specs
+
+    def counting(designs, crank_speed=None):
+        calls.append(len(designs))
+        return original(designs, crank_speed=crank_speed)
+
+    family.build_specs = counting
+    try:
+        shared = build_specs(family, params, workers=1, share=True)
+        assert calls == [2]  # a and b; bad fails its check before any build
+        alone = build_specs(family, params, workers=1)
+    finally:
+        family.build_specs = original
+    assert shared[0] is shared[2] is shared[4] and shared[1] is not shared[0]
+    assert isinstance(shared[3], str) and shared[3] == shared[5] == alone[3]
+    assert len({id(s) for s in alone}) == len(alone)  # not asked: one object a design
+    x, y = _packed([s for s in shared if not isinstance(s, str)]), _packed([s for s in alone if not isinstance(s, str)])
+    for name in x:
+        assert np.array_equal(x[name], y[name]), name

@@ -5,6 +5,7 @@ walker's spec; a kinematic robust study end to end and the [robustness] table's 
 
 import math
 import pathlib
+import pickle
 import tempfile
 
 import numpy as np
@@ -321,3 +322,42 @@ def test_roughness_on_a_family_the_tabulated_plan_cannot_take_is_refused_before_
     with pytest.raises(ValueError, match=r"'robustness\.roughness': rough ground is simulated by the tabulated plan "
                                          r"only.*needs a floating base"):
         load_study_spec(path)
+
+
+def test_a_design_s_scenario_worlds_share_its_built_spec_and_a_hook_that_changes_in_place_gets_its_own():
+    """evaluate_dynamic builds equal designs once where the hook changes copies only
+    (scenario_hooks): the same metrics, to the last bit, as with every world built on its own;
+    a hook without that promise that changes its spec in place touches its own world only."""
+    walker = load_family("walker")
+    design = {**walker.space.default(), "legs_per_side": 1}
+    scenarios = [{"offsets": {}, "friction": 0.7, "payload": 0.2, "slope": 3.0, "speed": 1.0},
+                 {"offsets": {}, "friction": 1.0, "payload": 0.0, "slope": -4.0, "speed": 1.1}]
+    batch = [dict(design) for _ in range(3)]
+    hook = scenario_hooks(batch, [None, *scenarios])
+    assert hook.copies
+
+    def unshared(spec, p):  # the same changes, without the promise: every world built on its own
+        return hook(spec, p)
+
+    kwargs = dict(duration=0.1, dt=5e-3, record_every=5)
+    shared = evaluate_dynamic(walker, batch, spec_hook=hook, **kwargs)
+    each = evaluate_dynamic(walker, batch, spec_hook=unshared, **kwargs)
+    assert shared.failures == each.failures == ["", "", ""]
+    assert all(_same_metrics(x, y) for x, y in zip(shared.metrics, each.metrics))
+    assert shared.metrics[1]["walking_speed"] != shared.metrics[2]["walking_speed"]
+
+    def heavier_in_place(spec, p):
+        if p is batch[1]:
+            for body in spec.bodies:
+                body.mass *= 3.0
+        return spec
+
+    heavy = evaluate_dynamic(walker, batch, spec_hook=heavier_in_place, **kwargs)
+    plain = evaluate_dynamic(walker, batch[:1], **kwargs)
+    assert _same_metrics(heavy.metrics[0], plain.metrics[0]) and _same_metrics(heavy.metrics[2], plain.metrics[0])
+    assert not _same_metrics(heavy.metrics[1], plain.metrics[0])
+
+
+def _same_metrics(a: dict, b: dict) -> bool:
+    """Two designs' metric dicts equal to the last bit (keys, order, every number and array)."""
+    return pickle.dumps(a) == pickle.dumps(b)
