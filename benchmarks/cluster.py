@@ -86,7 +86,8 @@ def measure(folder: pathlib.Path, kind: str, device: str, generations: int, work
     path.write_text(STUDIES[kind].format(name=name, generations=generations, device=device, worlds=worlds))
     done = subprocess.run([sys.executable, "-m", "benchmarks.cluster", "--one", str(path), str(workers), address,
                            str(share)], stdout=subprocess.PIPE, check=True, cwd=ROOT,
-                          env={**os.environ, **({"MORPHOPT_TEST_KILL_WORKER": "1:0"} if kill else {})})
+                          env={**{k: v for k, v in os.environ.items() if k != "MORPHOPT_TEST_KILL_WORKER"},
+                               **({"MORPHOPT_TEST_KILL_WORKER": "1:0"} if kill else {})})
     marks = json.loads(done.stdout.decode().strip().splitlines()[-1])  # per generation: (seconds, stages)
     (first, first_stages), (last, last_stages) = marks[0], marks[-1]
     designs = (generations - 1) * worlds
@@ -127,6 +128,8 @@ def main(argv=None) -> None:
                         help="also run the most workers asked for with worker 0 killed mid-generation")
     parser.add_argument("--one", nargs=4, default=None, help=argparse.SUPPRESS)  # measure's fresh process
     args = parser.parse_args(argv)
+    if args.generations < 2:
+        parser.error("--generations must be at least 2 (the first one is not timed)")
     if args.one:
         return _one(args.one[0], int(args.one[1]), args.one[2], float(args.one[3]))
     out = {"device": device_tag(args.device), "machine": platform.processor() or platform.machine(),

@@ -167,8 +167,11 @@ def build_specs(family, params: Sequence[dict], *, crank_speed: float | None = N
 
 
 def _design_key(params: dict) -> tuple:
-    """Equal for designs of equal parameter values (names and exact reprs, in any key order)."""
-    return tuple(sorted((name, type(value).__name__, repr(value)) for name, value in params.items()))
+    """Equal for designs of equal parameter values (names and exact reprs, arrays by their bytes, in
+    any key order)."""
+    return tuple(sorted((name, type(value).__name__,
+                         (value.dtype.str, value.shape, value.tobytes()) if isinstance(value, np.ndarray)
+                         else repr(value)) for name, value in params.items()))
 
 
 @contextlib.contextmanager

@@ -29,6 +29,7 @@ __all__ = ["ClusterEvaluator", "WorkerStats", "shards"]
 
 SHARD_TIMEOUT_MIN = 60.0  # [s] the least a shard is waited for (compiling kernels takes tens of seconds)
 SHARD_TIMEOUT_FACTOR = 10.0  # a shard slower than this many times the generation's median is re-run elsewhere
+MAX_DEFAULT_WORKERS = 4096  # workers started when the study names none (as many as fit, at most this)
 SHARD_ATTEMPTS = 3  # a shard whose worker died or stalled this many times stops the study (a design that kills it)
 
 
@@ -135,9 +136,11 @@ class ClusterEvaluator:
             raise ValueError(f"{spec.path}: 'study.device' is {spec.device!r} but the Ray cluster at {address!r} "
                              f"has no GPU")
         # workers that fit: each GPU holds whole shares (the float's rounding forgiven), else CPU cores
-        have = gpus * int(1.0 / share + 1e-9) if cuda else int(resources.get("CPU", 1))
+        have = gpus * int(1.0 / share + 1e-9) if cuda else int(resources.get("CPU", 0))
+        if have <= 0:
+            raise ValueError(f"{spec.path}: the Ray cluster at {address!r} has no whole CPU for a worker")
         if workers <= 0:
-            workers = have
+            workers = min(have, MAX_DEFAULT_WORKERS)
         if workers > have:  # an actor that can never be placed would time out and be replaced forever
             raise ValueError(f"{spec.path}: {workers} workers asked for, the Ray cluster at {address!r} has "
                              + (f"{gpus} GPUs, room for {have} workers at {share:g} GPU each" if cuda

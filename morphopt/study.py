@@ -372,8 +372,9 @@ def run_study(spec: StudySpec, *, resume: bool = False, fresh: bool = False, ste
     ``resume``. ``steal`` takes the study's lease from another writer (one that is gone);
     ``trust_checkpoint`` rebuilds the optimizer of a study stored by an earlier morphopt (a pickled
     checkpoint, never unpickled) from its stored designs. on_generation(generation, seconds, stages),
-    if given, is called once each generation is stored: the run's seconds so far and its seconds by
-    stage so far (StudyResult.stages), e.g. to time generations after the first."""
+    if given, is called once each generation is stored: the study's seconds so far (a resumed
+    study's earlier runs included) and this run's seconds by stage so far (StudyResult.stages),
+    e.g. to time generations after the first."""
     family = load_family(spec.family)
     space = spec.design_space(family)
     check_family_contract(spec, family)

@@ -95,6 +95,7 @@ SECTIONS = {
     "robustness": None,
 }
 REQUIRED = {"study": ("name", "family")}
+MIN_GPU_SHARE = 1e-4  # the finest fraction of a GPU Ray places
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,199}")  # a study name is also its default file name
 DEVICE_PATTERN = re.compile(r"cpu|cuda(:[0-9]+)?")
 REMOVED_KEYS = {  # keys of earlier study files, and what took their place
@@ -169,7 +170,7 @@ class StudySpec:
     solver: dict = field(default_factory=dict)
     cluster: str = ""  # a Ray address ("local", "auto", host:port); "": this process evaluates
     workers: int = 0  # Ray workers (0: one per GPU of a CUDA study, else one per CPU core)
-    gpus_per_worker: float = 1.0  # a CUDA study's share of a GPU per Ray worker (0.5: two workers a GPU)
+    gpus_per_worker: float = 1.0  # a CUDA study's share of a GPU per Ray worker (0.5: two workers a GPU; CPU: unused)
     shard_timeout: float = 0.0  # [s] before a worker's shard runs again elsewhere (0: morphopt.cluster's rule)
     robustness: dict = field(default_factory=dict)  # the [robustness] table as written (morphopt.robust)
 
@@ -418,9 +419,8 @@ def _check_values(spec: StudySpec, where: str) -> None:
         ("study.generations", spec.generations >= 1, "an integer >= 1"),
         ("study.worlds", spec.worlds >= 2, "an integer >= 2"),
         ("cluster.workers", 0 <= spec.workers <= 4096, "an integer in 0 .. 4096 (0: one per GPU or CPU core)"),
-        ("cluster.gpus_per_worker", 0.0 < spec.gpus_per_worker <= 1.0 and
-         (spec.gpus_per_worker == 1.0 or spec.device.startswith("cuda")),
-         "a share of a GPU in (0, 1], other than 1 only on a CUDA study (study.device = 'cuda')"),
+        ("cluster.gpus_per_worker", MIN_GPU_SHARE <= spec.gpus_per_worker <= 1.0,
+         f"a share of a GPU in [{MIN_GPU_SHARE:g}, 1] (a CUDA study's; a CPU study's workers take CPU cores)"),
         ("cluster.shard_timeout", 0.0 <= spec.shard_timeout <= 86400.0 and math.isfinite(spec.shard_timeout),
          "0 (the automatic timeout) or seconds up to a day"),
         ("cluster.address", spec.cluster == "" or spec.cluster.strip() == spec.cluster != "",

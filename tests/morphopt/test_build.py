@@ -78,3 +78,12 @@ def test_equal_designs_share_one_built_spec_only_when_asked():
     x, y = _packed([s for s in shared if not isinstance(s, str)]), _packed([s for s in alone if not isinstance(s, str)])
     for name in x:
         assert np.array_equal(x[name], y[name]), name
+
+
+def test_design_keys_tell_arrays_apart_by_every_bit():
+    from morphopt.build import _design_key
+
+    a = {"x": np.array([1.0, 2.0]), "n": 3}
+    assert _design_key(a) == _design_key({"n": 3, "x": np.array([1.0, 2.0])})
+    assert _design_key(a) != _design_key({"x": np.array([1.0, 2.0 + 1e-12]), "n": 3})  # repr would round these
+    assert _design_key({"b": True}) != _design_key({"b": 1}) and _design_key({"v": 0.0}) != _design_key({"v": -0.0})

@@ -246,3 +246,12 @@ def test_workers_share_a_gpu_by_the_study_s_share(tmp_path):
         whole.close()
     finally:
         ray.shutdown()
+    ray.init(num_cpus=0, num_gpus=0, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    try:  # a head that offers no CPU (its workers not joined yet): said, not a division by zero
+        cpu = study(tmp_path, KINEMATIC, "no_cpu")
+        with pytest.raises(ValueError, match="has no whole CPU for a worker"):
+            ClusterEvaluator(cpu, space, address="auto")
+        with pytest.raises(ValueError, match="has no GPU"):
+            ClusterEvaluator(spec, space, address="auto", gpus_per_worker=0.5)
+    finally:
+        ray.shutdown()
