@@ -28,17 +28,18 @@ MAX_CONTACTS = BASE_SLOTS + 2 * MAX_GROUPS  # slot k < 8: base point k; 8 + 2 g 
 MAX_ROWS = wp.constant(MAX_GROUPS + 3 * MAX_CONTACTS)
 TWO_PI = wp.constant(2.0 * math.pi)
 # the tiled step's registers per thread on CUDA: at 64 an SM holds 32 worlds, at the compiler's 255
-# only 8; a batch past 32 worlds per SM steps a thread per world (tiled_max_worlds). Measured:
-# benchmarks/results/README.md, "Tabulated sub-chains: design notes".
+# only 8; a batch past TILED_ROUNDS rounds of 32 worlds per SM steps a thread per world
+# (tiled_max_worlds). Measured: benchmarks/results/README.md, "Tabulated sub-chains: design notes".
 TILED_REGISTERS = 64
 TILED_WORLDS_PER_SM = 32
+TILED_ROUNDS = 1.5
 
 
 def tiled_max_worlds(device) -> int:
-    """The most worlds ``device`` steps tiled (a block of lanes per world): one round of
+    """The most worlds ``device`` steps tiled (a block of lanes per world): TILED_ROUNDS rounds of
     TILED_WORLDS_PER_SM worlds on each of its SMs; 0 on the CPU."""
     device = wp.get_device(device)
-    return TILED_WORLDS_PER_SM * device.sm_count if device.is_cuda else 0
+    return int(TILED_ROUNDS * TILED_WORLDS_PER_SM * device.sm_count) if device.is_cuda else 0
 
 
 ROW_VECS = wp.constant(3)  # vec4 per row in the rows' scratch (see row_at)
