@@ -26,7 +26,8 @@ import warp as wp
 
 from engine.config import TABULATED_RHO, Integrator, SolverConfig
 from engine.reduced.tabulated_kernel import (BASE_SLOTS, DIVERGED_FAST, DIVERGED_NONFINITE, KINV_VECS, MAX_GROUPS,
-                                             MAX_LINKS, MAX_ROWS, NV, ROW_VECS, TILED_REGISTERS, TabulatedState,
+                                             MAX_LINKS, MAX_ROWS, NV, ROW_VECS, TILED_REGISTERS, TILED_ROUNDS,
+                                             TILED_WORLDS_PER_SM, TabulatedState,
                                              TabulatedWorlds, body_poses, freeze_worlds, link_pose, rot_minus_y,
                                              tiled_max_worlds)
 from engine.reduced.chains import ChainControl, check_control_arrays
@@ -417,13 +418,18 @@ def describe(plan, model: TabulatedModel):
     plan.analysis.append(f"largest world: {6 + max(groups)} coordinates (base pose and {max(groups)} driving "
                          f"coordinates); {sum(groups)} sub-chains read from {len(tables)} table"
                          f"{'s' if len(tables) != 1 else ''} of {model.samples} samples per turn")
+    limit = tiled_max_worlds(model.device)
+    chosen = model.config.tuning.tabulated_tiled is None
+    why = (f" ({model.num_worlds} worlds: tiled up to {limit:,} on this GPU, {TILED_ROUNDS:g} rounds of "
+           f"{TILED_WORLDS_PER_SM} worlds on each of its {model.device.sm_count} SMs, the faster side of the "
+           f"measured switch)" if cuda and chosen else " (forced by Tuning.tabulated_tiled)" if not chosen else "")
     if model.tiled:
         plan.kernel = "fused: the whole step in one launch, a block of lanes per world (tiled)"
-        plan.launch = f"one block of {model.lanes} lane{'s' if model.lanes != 1 else ''} per world"
+        plan.launch = f"one block of {model.lanes} lane{'s' if model.lanes != 1 else ''} per world" + why
         plan.registers = model.max_registers if cuda else None
     else:
         plan.kernel = "two launches per step (set-up through the warm start; factor, PADMM, integration)"
-        plan.launch = "one thread per world"
+        plan.launch = "one thread per world" + why
         plan.registers = None
     plan.linear_solver = ("Cholesky of the (6 + L)-square mass matrix; PADMM solves by the Woodbury identity "
                           "(a factor of M + J^T S^-1 J, never of the rows' Delassus matrix)")
