@@ -596,3 +596,18 @@ def test_work_precision_points_are_grouped_into_step_size_sweeps():
     assert [_series(label) for label in ("default", "dt x0.5", "dt x2", "reduced coordinates",
                                          "reduced coordinates, dt x4", "MuJoCo Warp RK4, dt x2", "staged, dt x2")] == \
         ["maximal", "maximal", "maximal", "reduced coordinates", "reduced coordinates", "MuJoCo Warp RK4", "staged"]
+
+
+def test_tabulated_launch_times_both_kernels_at_each_batch_and_plots(tmp_path, capsys):
+    """Both of the tabulated plan's kernels at every batch size asked for (on the CPU the tiled one
+    is a block of one thread), one JSON line each, and the files."""
+    from benchmarks.tabulated_launch import main
+
+    main(["--device", "cpu", "--designs", "3", "--worlds", "4", "6", "--steps", "2", "--out", str(tmp_path)])
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    assert [(r["worlds"], r["tiled"]) for r in rows] == [(4, True), (4, False), (6, True), (6, False)]
+    assert all(r["ms_per_step"] > 0.0 for r in rows)
+    saved = json.loads((tmp_path / "tabulated_launch_cpu.json").read_text())
+    assert saved["tiled_max_worlds"] == 0 and saved["designs"] == 3 and len(saved["rows"]) == 4
+    assert (tmp_path / "tabulated_launch_cpu.png").stat().st_size > 0
+    assert (tmp_path / "tabulated_launch_cpu.csv").read_text().count("\n") == 5

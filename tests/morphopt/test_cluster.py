@@ -255,3 +255,23 @@ def test_workers_share_a_gpu_by_the_study_s_share(tmp_path):
             ClusterEvaluator(spec, space, address="auto", gpus_per_worker=0.5)
     finally:
         ray.shutdown()
+
+
+def test_the_cluster_benchmark_times_fresh_runs_and_a_killed_worker(tmp_path):
+    """benchmarks.cluster end to end on the CPU: one process, one worker and a run whose worker is
+    killed mid-study, each in a fresh process, store the same study; the rates, their ratios and
+    the plot come out."""
+    import json
+
+    done = subprocess.run([sys.executable, "-m", "benchmarks.cluster", "--studies", "kinematic", "--workers", "0", "1",
+                           "--generations", "3", "--kinematic-worlds", "24", "--kill", "--out", str(tmp_path)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    study = json.loads((tmp_path / "cluster_cpu.json").read_text())["studies"]["kinematic"]
+    assert study["same_results"] is True
+    runs = study["runs"]
+    assert [(r["workers"], bool(r.get("killed"))) for r in runs] == [(0, False), (1, False), (1, True)]
+    assert all(r["designs_per_s"] > 0.0 for r in runs) and runs[1]["efficiency"] == 1.0
+    assert runs[0]["over_single_process"] == 1.0 and "kinematics" in runs[0]["stage_ms_per_design"]
+    assert "replaced 1x" in done.stderr
+    assert (tmp_path / "cluster_cpu.png").stat().st_size > 0
