@@ -135,13 +135,13 @@ def build_specs(family, params: Sequence[dict], *, crank_speed: float | None = N
     """
     params = list(params)
     if share:
-        first, where = {}, []  # per design the index of the first equal design among the unique ones
+        first, unique, where = {}, [], []  # per design its index among the distinct designs
         for p in params:
-            where.append(first.setdefault(_design_key(p), len(first)))
-        if len(first) < len(params):
-            unique = [None] * len(first)
-            for p, k in zip(params, where):
-                unique[k] = unique[k] if unique[k] is not None else p
+            k = first.setdefault(_design_key(p), len(unique))
+            if k == len(unique):
+                unique.append(p)
+            where.append(k)
+        if len(unique) < len(params):
             built = build_specs(family, unique, crank_speed=crank_speed, workers=workers)
             return [built[k] for k in where]
     path = _family_file(family)

@@ -282,7 +282,7 @@ def build_parser() -> argparse.ArgumentParser:
             sub.add_argument("--workers", type=_positive(int),
                              help="Ray workers (default: one per GPU of a CUDA study, else one per CPU core)")
             sub.add_argument("--gpus-per-worker", type=float, metavar="SHARE",
-                             help="a CUDA study's share of a GPU per worker, in (0, 1] (default 1; 0.5: two workers "
+                             help="a CUDA study's share of a GPU per worker, 0.0001 to 1 (default 1; 0.5: two workers "
                                   "on each GPU, which a worker's host side can leave half idle)")
             sub.add_argument("--steal", action="store_true",
                              help="take the study over from a writer that is gone (its lease is not yet stale)")

@@ -24,12 +24,12 @@ import numpy as np
 
 from morphopt.evaluate import Evaluation
 from morphopt.metric_table import MetricTable
+from morphopt.study_spec import MAX_WORKERS
 
 __all__ = ["ClusterEvaluator", "WorkerStats", "shards"]
 
 SHARD_TIMEOUT_MIN = 60.0  # [s] the least a shard is waited for (compiling kernels takes tens of seconds)
 SHARD_TIMEOUT_FACTOR = 10.0  # a shard slower than this many times the generation's median is re-run elsewhere
-MAX_DEFAULT_WORKERS = 4096  # workers started when the study names none (as many as fit, at most this)
 SHARD_ATTEMPTS = 3  # a shard whose worker died or stalled this many times stops the study (a design that kills it)
 
 
@@ -105,7 +105,7 @@ class WorkerStats:
 class ClusterEvaluator:
     """Evaluates a study's generations on ``workers`` Ray actors. address: "local" (a Ray instance
     started here, ended by close()), "auto" (the running cluster this machine belongs to) or a Ray
-    address; gpus_per_worker: a CUDA study's share of a GPU per worker, in (0, 1] (0.5: two workers
+    address; gpus_per_worker: a CUDA study's share of a GPU per worker, 0.0001 to 1 (0.5: two workers
     on each GPU); shard_timeout [s]: 0 chooses max(SHARD_TIMEOUT_MIN, SHARD_TIMEOUT_FACTOR x the
     generation's median shard time)."""
 
@@ -140,7 +140,7 @@ class ClusterEvaluator:
         if have <= 0:
             raise ValueError(f"{spec.path}: the Ray cluster at {address!r} has no whole CPU for a worker")
         if workers <= 0:
-            workers = min(have, MAX_DEFAULT_WORKERS)
+            workers = min(have, MAX_WORKERS)  # as many as fit
         if workers > have:  # an actor that can never be placed would time out and be replaced forever
             raise ValueError(f"{spec.path}: {workers} workers asked for, the Ray cluster at {address!r} has "
                              + (f"{gpus} GPUs, room for {have} workers at {share:g} GPU each" if cuda

@@ -459,7 +459,8 @@ def _generations(spec, family, space, storage, info, settings, progress, on_gene
         from morphopt.cluster import ClusterEvaluator
 
         cluster = ClusterEvaluator(spec, space, address=spec.cluster, workers=spec.workers,
-                                   gpus_per_worker=spec.gpus_per_worker, shard_timeout=spec.shard_timeout, log=lambda line: tqdm.write(line, file=sys.stderr))
+                                   gpus_per_worker=spec.gpus_per_worker, shard_timeout=spec.shard_timeout,
+                                   log=lambda line: tqdm.write(line, file=sys.stderr))
         tqdm.write(f"{spec.name}: {cluster.workers} Ray workers at {spec.cluster!r}", file=sys.stderr)
     stages = {}
     announce_compile(Kernels.KINEMATIC if spec.mode == "kinematic" else Kernels.DYNAMIC, spec.device)

@@ -26,7 +26,7 @@
     [constraints] per metric: [low, high]; a design outside fails with the reason (TOML has inf)
     [cluster]     address (a Ray cluster: "local", "auto" or host:port; morphopt.cluster), workers
                   (0: one per GPU, or per CPU core), gpus_per_worker (a CUDA study's share of a
-                  GPU per worker, in (0, 1]: 0.5 puts two workers on each GPU), shard_timeout [s]
+                  GPU per worker, 0.0001 to 1: 0.5 puts two workers on each GPU), shard_timeout [s]
                   (0: ten times the median shard, at least 60 s); the results are the same as
                   without a cluster
 
@@ -96,6 +96,7 @@ SECTIONS = {
 }
 REQUIRED = {"study": ("name", "family")}
 MIN_GPU_SHARE = 1e-4  # the finest fraction of a GPU Ray places
+MAX_WORKERS = 4096  # Ray workers a study may ask for (and the most started when it names none)
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,199}")  # a study name is also its default file name
 DEVICE_PATTERN = re.compile(r"cpu|cuda(:[0-9]+)?")
 REMOVED_KEYS = {  # keys of earlier study files, and what took their place
@@ -418,7 +419,8 @@ def _check_values(spec: StudySpec, where: str) -> None:
         ("optimizer.restart_strategy", spec.restart_strategy in ("ipop", "bipop"), "'ipop' or 'bipop'"),
         ("study.generations", spec.generations >= 1, "an integer >= 1"),
         ("study.worlds", spec.worlds >= 2, "an integer >= 2"),
-        ("cluster.workers", 0 <= spec.workers <= 4096, "an integer in 0 .. 4096 (0: one per GPU or CPU core)"),
+        ("cluster.workers", 0 <= spec.workers <= MAX_WORKERS,
+         f"an integer in 0 .. {MAX_WORKERS} (0: one per GPU or CPU core)"),
         ("cluster.gpus_per_worker", MIN_GPU_SHARE <= spec.gpus_per_worker <= 1.0,
          f"a share of a GPU in [{MIN_GPU_SHARE:g}, 1] (a CUDA study's; a CPU study's workers take CPU cores)"),
         ("cluster.shard_timeout", 0.0 <= spec.shard_timeout <= 86400.0 and math.isfinite(spec.shard_timeout),

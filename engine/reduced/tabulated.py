@@ -418,11 +418,14 @@ def describe(plan, model: TabulatedModel):
     plan.analysis.append(f"largest world: {6 + max(groups)} coordinates (base pose and {max(groups)} driving "
                          f"coordinates); {sum(groups)} sub-chains read from {len(tables)} table"
                          f"{'s' if len(tables) != 1 else ''} of {model.samples} samples per turn")
-    limit = tiled_max_worlds(model.device)
-    chosen = model.config.tuning.tabulated_tiled is None
-    why = (f" ({model.num_worlds} worlds: tiled up to {limit:,} on this GPU, {TILED_ROUNDS:g} rounds of "
-           f"{TILED_WORLDS_PER_SM} worlds on each of its {model.device.sm_count} SMs, the faster side of the "
-           f"measured switch)" if cuda and chosen else " (forced by Tuning.tabulated_tiled)" if not chosen else "")
+    if model.config.tuning.tabulated_tiled is not None:
+        why = " (forced by Tuning.tabulated_tiled)"
+    elif cuda:
+        why = (f" ({model.num_worlds} worlds: tiled up to {tiled_max_worlds(model.device):,} on this GPU, "
+               f"{TILED_ROUNDS:g} rounds of {TILED_WORLDS_PER_SM} worlds on each of its {model.device.sm_count} "
+               f"SMs, the faster side of the measured switch)")
+    else:
+        why = ""
     if model.tiled:
         plan.kernel = "fused: the whole step in one launch, a block of lanes per world (tiled)"
         plan.launch = f"one block of {model.lanes} lane{'s' if model.lanes != 1 else ''} per world" + why
