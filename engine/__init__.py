@@ -14,7 +14,7 @@ from engine.health import Health
 from engine.metrics import compute_metrics, metrics_numpy
 from engine.model import Control, Model, State
 from engine.pack import pack, pack_worlds
-from engine.plan import Coordinates, Plan
+from engine.plan import Coordinates, Plan, prepare
 from engine.rollout import Stepper, Trace, point_positions, rollout
 from engine.forces import BodyWrench, JointSpring, JointTorque, LinearSpring
 from engine.spec import (Body, GroundPlane, Joint, JointDrive, JointType, MechanismSpec, Relief, Shape, ShapeType,
@@ -26,5 +26,5 @@ __all__ = [
     "JointSpring", "JointTorque", "JointType", "LinearSpring", "MechanismSpec", "Model", "Plan", "Relief", "Shape", "ShapeType",
     "SolverConfig", "StageTimer", "State", "Stepper",
     "Trace", "TrackedPoint", "Tuning", "compute_metrics", "metrics_numpy", "pack", "pack_worlds",
-    "point_positions", "rollout", "step",
+    "point_positions", "prepare", "rollout", "step",
 ]

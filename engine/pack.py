@@ -275,7 +275,7 @@ def force_summary(specs: Sequence[MechanismSpec]) -> str:
 
 
 def pack(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | None = None, dt: float = 1.0e-3,
-         contact_capacity: int | None = None, coordinates=None):
+         contact_capacity: int | None = None, coordinates=None, prepared=None):
     """Pack one world per spec into a batch on ``device``, in the coordinates and kernels the plan
     chooses (engine.plan; ``print(model.plan)`` says which and why).
 
@@ -288,6 +288,8 @@ def pack(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | 
         coordinates: None (automatic) or an engine.plan.Coordinates (or its value: "grounded",
             "tabulated", "tree", "maximal") to force, for benchmarks and tests; a world it does not fit raises
             ValueError naming the world and the reason.
+        prepared: engine.prepare(specs) made ahead (in the processes that built the specs), for
+            these specs unchanged since; None: the analysis runs here.
 
     Returns:
         the packed model for engine.step / engine.Stepper / engine.rollout: an engine.Model for
@@ -297,10 +299,12 @@ def pack(specs: Sequence[MechanismSpec], device=None, *, config: SolverConfig | 
     """
     specs, config = _checked_arguments("pack", specs, config, dt, contact_capacity, "a positive number of seconds")
     device = wp.get_device(device)
+    if prepared is not None and len(prepared) != len(specs):
+        raise ValueError(f"engine.pack: prepared has {len(prepared)} entries for {len(specs)} specs")
     if coordinates is not None:
-        plan, layouts = choose(specs, device, coordinates, contact_capacity)
+        plan, layouts = choose(specs, device, coordinates, contact_capacity, prepared)
         return _pack_planned(specs, plan, layouts, device, config, dt, contact_capacity)
-    kinds, layouts, refused = fastest(specs, contact_capacity)
+    kinds, layouts, refused = fastest(specs, contact_capacity, prepared)
     order = [kind for kind in ORDER if kind in kinds]
     if len(order) == 1:
         plan = Plan(order[0], len(specs), str(device), refused=refused)

@@ -21,7 +21,7 @@ import numpy as np
 from engine.config import Integrator
 from engine.spatial import rotate
 
-__all__ = ["Coordinates", "Plan", "choose"]
+__all__ = ["Coordinates", "Plan", "choose", "prepare"]
 
 
 class Coordinates(enum.Enum):
@@ -117,14 +117,33 @@ class Plan:
         return "\n".join(lines)
 
 
-def _tabulated_ready(specs: list) -> dict:
+def _tabulated_ready(specs: list, prepared=None) -> dict:
     """The tabulated layouts of the batch's distinct specs, analysed together (a generation's
     walkers share their topology: engine.reduced.tabulated_layout.tabulated_layouts, equal to one
-    analysis per spec): id(spec) -> its TabulatedLayout or the ValueError that refuses it."""
+    analysis per spec): id(spec) -> its TabulatedLayout or the ValueError that refuses it.
+    prepared: per spec what engine.prepare gave for it, or None."""
     from engine.reduced.tabulated_layout import tabulated_layouts
 
-    unique = list({id(s): s for s in specs}.values())
-    return {id(s): made for s, made in zip(unique, tabulated_layouts(unique))}
+    unique = {}
+    for i, s in enumerate(specs):
+        unique.setdefault(id(s), (s, None if prepared is None else prepared[i]))
+    distinct = list(unique.values())
+    analyses = None if prepared is None else [p for _, p in distinct]
+    made = tabulated_layouts([s for s, _ in distinct], analyses=analyses)
+    return {id(s): m for (s, _), m in zip(distinct, made)}
+
+
+def prepare(specs) -> list:
+    """What engine.pack works out from each spec alone, made ahead: per spec a small picklable
+    entry for ``engine.pack(specs, prepared=...)``. A process that builds specs for another to
+    pack (morphopt.build's workers) makes it beside them, so that the packing process, the one
+    that holds the GPU, spends its time on what only it can do. Today it holds the tabulated
+    plan's per-spec analysis (engine.reduced.tabulated_layout.tabulated_analyses); pack checks each
+    entry against its spec's structure and analyses a spec whose entry does not match itself.
+    Valid only while the specs stay as they were."""
+    from engine.reduced.tabulated_layout import tabulated_analyses
+
+    return tabulated_analyses(specs)
 
 
 def _admits(kind: Coordinates, spec, ready: dict | None = None):
@@ -228,7 +247,8 @@ def _coerce(coordinates) -> Coordinates | None:
                          f"got {coordinates!r}") from None
 
 
-def choose(specs: list, device, coordinates=None, contact_capacity: int | None = None) -> tuple[Plan, list | None]:
+def choose(specs: list, device, coordinates=None, contact_capacity: int | None = None,
+           prepared=None) -> tuple[Plan, list | None]:
     """The coordinates of a batch and their per-world layouts (None for MAXIMAL).
 
     Tries the kinds fastest first and keeps the first that every world admits; a world that
@@ -248,7 +268,7 @@ def choose(specs: list, device, coordinates=None, contact_capacity: int | None =
             _maximal_admits(specs)
             return Plan(kind, len(specs), str(device), forced=forced is not None, refused=refused), None
         layouts, seen = [], {}  # a batch often repeats one spec object: its layout is made once
-        ready = _tabulated_ready(specs) if kind is Coordinates.TABULATED else None
+        ready = _tabulated_ready(specs, prepared) if kind is Coordinates.TABULATED else None
         for index, spec in enumerate(specs):
             try:
                 if id(spec) not in seen:
@@ -265,12 +285,12 @@ def choose(specs: list, device, coordinates=None, contact_capacity: int | None =
     raise AssertionError("unreachable: MAXIMAL admits every world")
 
 
-def fastest(specs: list, contact_capacity: int | None = None) -> tuple[list, list, list]:
+def fastest(specs: list, contact_capacity: int | None = None, prepared=None) -> tuple[list, list, list]:
     """Per world the fastest kind it admits, its layout there, and the refusals on the way
     ((kind, 'world i (name): reason'), the first world per kind). A batch repeating one spec
     object analyses it once."""
     kinds, layouts, refused, seen, noted = [], [], [], {}, set()
-    ready = _tabulated_ready(specs) if contact_capacity is None else None
+    ready = _tabulated_ready(specs, prepared) if contact_capacity is None else None
     distinct = _geometries(specs)
     for index, spec in enumerate(specs):
         if id(spec) not in seen:

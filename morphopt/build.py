@@ -7,6 +7,10 @@ a generation in one solve). ``build_specs`` hands large batches to worker proces
 but one), which load the family from its file and send the specs back pickled (a MechanismSpec
 pickles as columns); the specs are the same to the last bit as the ones built here.
 
+``build_prepared`` also has the workers make engine.prepare of their specs (the per-spec part of
+engine.pack's analysis), so that the process that packs and simulates, the one that holds the GPU,
+only receives it.
+
 Workers start through a fork server that preloads this module (never by forking a process that may
 hold a CUDA context, and never re-running the user's script); the pool is made on first use and
 kept for the next generations.
@@ -29,8 +33,8 @@ import numpy as np
 from morphopt.families import load_family
 from morphopt.linkage import to_spec
 
-__all__ = ["LINKAGE_CRANK_SPEED", "PARALLEL_MIN_DESIGNS", "build_spec", "build_specs", "crank_speed_of",
-           "default_workers"]
+__all__ = ["LINKAGE_CRANK_SPEED", "PARALLEL_MIN_DESIGNS", "build_prepared", "build_spec", "build_specs",
+           "crank_speed_of", "default_workers"]
 
 LINKAGE_CRANK_SPEED = 2.0 * np.pi  # [rad/s] a linkage family's drive when the study sets no crank_speed
 PARALLEL_MIN_DESIGNS = 256  # smaller batches build faster here than a pool sends them back
@@ -93,9 +97,17 @@ def _family_at(path: str, stamp: float):
     return load_family(path)
 
 
-def _build_chunk(path: str, stamp: float, params: list, crank_speed) -> list:
-    """Worker side: the family from its file, then _build_each."""
-    return _build_each(_family_at(path, stamp), params, crank_speed)
+def _build_chunk(path: str, stamp: float, params: list, crank_speed, prepare: bool = False):
+    """Worker side: the family from its file, then _build_each; with ``prepare``, the built list
+    and engine.prepare of its specs (None for a design that failed)."""
+    built = _build_each(_family_at(path, stamp), params, crank_speed)
+    if not prepare:
+        return built
+    from engine import prepare as engine_prepare
+
+    specs = [spec for spec in built if not isinstance(spec, str)]
+    made = iter(engine_prepare(specs))
+    return built, [None if isinstance(spec, str) else next(made) for spec in built]
 
 
 def _pool(workers: int) -> ProcessPoolExecutor:
@@ -133,6 +145,15 @@ def build_specs(family, params: Sequence[dict], *, crank_speed: float | None = N
     study's scenario worlds of one design) are built once and share one spec object, which the
     caller must then not change in place.
     """
+    return build_prepared(family, params, crank_speed=crank_speed, workers=workers, share=share, prepare=False)[0]
+
+
+def build_prepared(family, params: Sequence[dict], *, crank_speed: float | None = None,
+                   workers: int | None = None, share: bool = False, prepare: bool = True) -> tuple[list, list | None]:
+    """build_specs' list, and per design engine.prepare of its spec where worker processes built
+    it (None for a design that failed; the whole list None where the batch was built here, which
+    leaves the analysis to engine.pack). For ``engine.pack(specs, prepared=...)`` while the specs
+    stay as built (a spec_hook that changes them must not pass it on)."""
     params = list(params)
     if share:
         first, unique, where = {}, [], []  # per design its index among the distinct designs
@@ -142,8 +163,9 @@ def build_specs(family, params: Sequence[dict], *, crank_speed: float | None = N
                 unique.append(p)
             where.append(k)
         if len(unique) < len(params):
-            built = build_specs(family, unique, crank_speed=crank_speed, workers=workers)
-            return [built[k] for k in where]
+            built, prepared = build_prepared(family, unique, crank_speed=crank_speed, workers=workers,
+                                             prepare=prepare)
+            return [built[k] for k in where], None if prepared is None else [prepared[k] for k in where]
     path = _family_file(family)
     if workers is None:
         workers = default_workers() if len(params) >= PARALLEL_MIN_DESIGNS else 1
@@ -154,16 +176,20 @@ def build_specs(family, params: Sequence[dict], *, crank_speed: float | None = N
     # none of them is garbage yet.
     with _no_collection():
         if workers == 1 or path is None or len(params) < 2:
-            return _build_each(family, params, crank_speed)
+            return _build_each(family, params, crank_speed), None
         stamp = os.path.getmtime(path)
         chunks = [list(c) for c in np.array_split(np.arange(len(params)), min(len(params), 4 * workers)) if len(c)]
         pool = _pool(int(workers))
         try:
-            futures = [pool.submit(_build_chunk, path, stamp, [params[i] for i in c], crank_speed) for c in chunks]
-            return [spec for future in futures for spec in future.result()]
+            futures = [pool.submit(_build_chunk, path, stamp, [params[i] for i in c], crank_speed, prepare)
+                       for c in chunks]
+            results = [future.result() for future in futures]
         except BrokenProcessPool:
             _pools.pop(int(workers), None)
-            return _build_each(family, params, crank_speed)
+            return _build_each(family, params, crank_speed), None
+        if not prepare:
+            return [spec for built in results for spec in built], None
+        return [spec for built, _ in results for spec in built], [p for _, made in results for p in made]
 
 
 def _design_key(params: dict) -> tuple:

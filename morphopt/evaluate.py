@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from morphopt.build import build_specs
+from morphopt.build import build_prepared
 from morphopt.design_space import Float
 from morphopt.linkage import Linkage
 from morphopt.linkage.kinematics import crank_turn_failure, placement_name
@@ -359,15 +359,18 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
         config = dataclasses.replace(config or SolverConfig(), health_joint_tolerance=float(loop_tolerance))
     t0 = time.perf_counter()
     # equal designs built once where the hook, if any, changes copies only (morphopt.robust's hooks)
-    built = build_specs(family, params, crank_speed=crank_speed, workers=workers,
-                        share=spec_hook is None or getattr(spec_hook, "copies", False))
+    # (the build workers also make the per-spec part of engine.pack's analysis, unless a hook changes the specs)
+    built, prepared = build_prepared(family, params, crank_speed=crank_speed, workers=workers,
+                                     share=spec_hook is None or getattr(spec_hook, "copies", False),
+                                     prepare=spec_hook is None)
     if spec_hook:
         built = [spec if isinstance(spec, str) else spec_hook(spec, p) for p, spec in zip(params, built)]
     evaluation, specs, owners = _built(params, built, t0)
     if not specs:
         return evaluation
     t1 = time.perf_counter()
-    model = pack(specs, device=device, dt=dt, config=config, coordinates=coordinates)
+    model = pack(specs, device=device, dt=dt, config=config, coordinates=coordinates,
+                 prepared=None if prepared is None else [prepared[i] for i in owners])
     evaluation.plan = model.plan
     t2 = time.perf_counter()
 

@@ -24,7 +24,9 @@ Nothing here knows a mechanism's anatomy: contact slots come from shapes
 
 from __future__ import annotations
 
+import contextlib
 import gc
+import hashlib
 import math
 import operator
 from dataclasses import dataclass, field
@@ -37,8 +39,8 @@ from engine.reduced.tabulated_tables import (NEWTON_TOLERANCE, START_TOLERANCE, 
 from engine.spatial import cross, quat_matrix
 from engine.spec import JointType, MechanismSpec, ShapeType
 
-__all__ = ["BASE_SLOTS", "MAX_GROUPS", "MAX_LINKS", "SubChain", "TabulatedLayout", "tabulated_layout",
-           "tabulated_layouts"]
+__all__ = ["BASE_SLOTS", "MAX_GROUPS", "MAX_LINKS", "SubChain", "TabulatedLayout", "tabulated_analyses",
+           "tabulated_layout", "tabulated_layouts"]
 
 MAX_GROUPS = 8  # sub-chains per world (the kernel's generalized velocities: 6 + MAX_GROUPS)
 MAX_LINKS = 8  # bodies per sub-chain
@@ -452,34 +454,92 @@ def _structure(spec: MechanismSpec, key: tuple | None = None) -> _Structure | No
     return structure
 
 
-def tabulated_layouts(specs, *, samples: int = TABLE_SAMPLES) -> list:
+def tabulated_layouts(specs, *, samples: int = TABLE_SAMPLES, analyses=None) -> list:
     """tabulated_layout of every spec, analysed together: per spec its TabulatedLayout, or the
     ValueError tabulated_layout raises for it (returned, not raised). Specs of one structure key
     (a study's walkers of one topology: the same bodies, joint graph and shapes in other
     dimensions) share one structural analysis and go through the array path as one batch, every
     number by the operations of a spec alone; then, in the order of ``specs``, each spec's tables
     are looked up (or made) and a spec the array path left goes item by item, as one call per spec
-    would. Equal to tabulated_layout of each spec in turn, to the last bit."""
+    would. Equal to tabulated_layout of each spec in turn, to the last bit.
+
+    analyses: per spec what tabulated_analyses gave for it, perhaps in another process (None
+    entries, and entries of another structure, sample count or body masses, are analysed here);
+    the caller vouches that the specs have not changed since."""
+    with _collector_off():
+        return _layouts_together(list(specs), samples, analyses)
+
+
+def tabulated_analyses(specs, *, samples: int = TABLE_SAMPLES) -> list:
+    """The array path's part of tabulated_layouts, per spec (everything but the tables, which are
+    looked up in the packing process's cache): what a process that built the specs can work out
+    beside them and send with them (morphopt.build's workers), so that the packing process only
+    reads tables and fills arrays. Each entry is small, picklable and tied to its spec's structure
+    and body masses."""
+    specs = list(specs)
+    out = [None] * len(specs)
+    with _collector_off():
+        for key, indices in _by_structure(specs).items():
+            structure, digest = _structure(specs[indices[0]], key), _digest(key)
+            made = _pending_layouts([specs[i] for i in indices], structure, samples) if structure else \
+                [None] * len(indices)
+            for i, numbers in zip(indices, made):
+                out[i] = (digest, samples, _masses(specs[i]), numbers)
+    return out
+
+
+@contextlib.contextmanager
+def _collector_off():
+    """A block without the cyclic garbage collector: thousands of new objects, none of them
+    garbage, would only set it off again and again."""
     collecting = gc.isenabled()
-    gc.disable()  # thousands of new objects, none of them garbage: the collector would only slow it down
+    gc.disable()
     try:
-        return _layouts_together(list(specs), samples)
+        yield
     finally:
         if collecting:
             gc.enable()
 
 
-def _layouts_together(specs: list, samples: int) -> list:
-    """tabulated_layouts' work (the collector off)."""
+def _by_structure(specs: list) -> dict:
+    """Structure key -> the indices of the specs of that structure, in order."""
     groups = {}
     for i, spec in enumerate(specs):
         groups.setdefault(_structure_key(spec), []).append(i)
+    return groups
+
+
+def _masses(spec: MechanismSpec) -> tuple:
+    """The bodies' masses: with the structure, what ties an analysis to its spec (a slip of the
+    order of a batch's specs shows in them; they do not prove a spec unchanged)."""
+    return tuple(map(_MASS, spec.bodies))
+
+
+_MASS = operator.attrgetter("mass")
+
+
+def _digest(key: tuple) -> bytes:
+    """A structure key's digest, the same in every process (str hashes are salted per process)."""
+    return hashlib.blake2b(repr(key).encode(), digest_size=16).digest()
+
+
+def _layouts_together(specs: list, samples: int, analyses=None) -> list:
+    """tabulated_layouts' work (the collector off)."""
     pending, structures = [None] * len(specs), [None] * len(specs)
-    for key, indices in groups.items():
+    for key, indices in _by_structure(specs).items():
         structure = _structure(specs[indices[0]], key)
         if structure is None:
             continue
-        for i, numbers in zip(indices, _pending_layouts([specs[i] for i in indices], structure, samples)):
+        left = indices
+        if analyses is not None:
+            digest, left = _digest(key), []
+            for i in indices:
+                given = analyses[i]
+                if given is not None and given[0] == digest and given[1] == samples and given[2] == _masses(specs[i]):
+                    pending[i], structures[i] = given[3], structure
+                else:
+                    left.append(i)
+        for i, numbers in zip(left, _pending_layouts([specs[i] for i in left], structure, samples) if left else ()):
             pending[i], structures[i] = numbers, structure
     # the tables cached now, for every sub-chain of one key at once (cached_table's first match)
     by_key = {}

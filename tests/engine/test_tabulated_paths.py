@@ -212,3 +212,54 @@ def test_layouts_analysed_together_equal_each_alone():
     assert together == alone
     errors = [o for o in together if isinstance(o, str)]
     assert len(errors) == 3 and "has limits" in errors[0] and "turns about" in errors[1], errors
+
+
+def test_analyses_made_elsewhere_give_the_same_layouts():
+    """tabulated_analyses made in another process (here: a pickle round trip, as morphopt.build's
+    workers send them) and handed to tabulated_layouts give every spec the layout it gets without
+    them, to the last bit, for the mixed batch's specs too (the item-by-item ones and the refused
+    ones); entries that belong to another spec of the same structure (the batch's order slipped),
+    another sample count, or another structure are not used, and the result is still the same."""
+    import pickle
+
+    rng = np.random.default_rng(9)
+    same = [WALKER.build_spec({**p, "leg_family": "jansen_leg", "legs_per_side": 2}) for p in WALKER.space.sample(rng, 6)]
+    limited = WALKER.build_spec(WALKER.space.default())
+    limited.joints[5].limit_upper = 1.0
+    specs = same + [WALKER.build_spec(p) for p in _walkers()[:4]] + [_four_bar(), limited]
+    analyses = pickle.loads(pickle.dumps(layout_module.tabulated_analyses(specs)))
+    assert len(analyses) == len(specs) and analyses[-1][3] is None  # limited: left to the item-by-item path
+    baseline = _outcomes(specs, together=True)
+    tables_module._TABLES.clear()
+    given = layout_module.tabulated_layouts(specs, analyses=analyses)
+    assert [f"{type(m).__name__}: {m}" if isinstance(m, Exception) else _with_tables(_leaves(m), given)
+            for m in given] == baseline
+
+    calls = []
+    original = layout_module._pending_layouts
+
+    def counting(batch, st, samples):
+        calls.append(len(batch))
+        return original(batch, st, samples)
+
+    layout_module._pending_layouts = counting
+    try:
+        layout_module.tabulated_layouts(same, analyses=analyses[:len(same)])
+        assert calls == []  # every entry used
+        slipped = analyses[1:len(same)] + analyses[:1]
+        assert _leaves_of(layout_module.tabulated_layouts(same, analyses=slipped)) == _leaves_of(
+            layout_module.tabulated_layouts(same))
+        assert calls[0] == len(same)  # no entry matched its spec's masses: all analysed here
+        calls.clear()
+        other = [(d, s + 1, m, n) for d, s, m, n in analyses[:len(same)]]
+        layout_module.tabulated_layouts(same, analyses=other)
+        assert calls == [len(same)]
+        calls.clear()
+        layout_module.tabulated_layouts(same[:2], analyses=[analyses[len(same)], None])  # another structure, none
+        assert calls == [2]
+    finally:
+        layout_module._pending_layouts = original
+
+
+def _leaves_of(layouts):
+    return [_leaves(m) for m in layouts]

@@ -87,3 +87,47 @@ def test_design_keys_tell_arrays_apart_by_every_bit():
     assert _design_key(a) == _design_key({"n": 3, "x": np.array([1.0, 2.0])})
     assert _design_key(a) != _design_key({"x": np.array([1.0, 2.0 + 1e-12]), "n": 3})  # repr would round these
     assert _design_key({"b": True}) != _design_key({"b": 1}) and _design_key({"v": 0.0}) != _design_key({"v": -0.0})
+
+
+def test_worker_processes_prepare_the_pack_and_the_evaluation_is_the_same(monkeypatch):
+    """build_prepared's workers also make engine.prepare of their specs (None for a design that
+    failed; no list at all where the batch was built here); packing with it gives the worlds the
+    same motion to the last bit, and evaluate_dynamic, which passes it on, the same metrics."""
+    import pickle
+
+    import engine
+    from morphopt.build import build_prepared
+    from morphopt.evaluate import evaluate_dynamic
+
+    family = load_family("walker")
+    params = family.space.sample(np.random.default_rng(11), 4)
+    params.insert(1, {**params[0], "scale": 1.0e9})
+    built, prepared = build_prepared(family, params, workers=2)
+    assert len(prepared) == len(params) and prepared[1] is None and isinstance(built[1], str)
+    assert build_prepared(family, params, workers=1)[1] is None
+    specs = [s for s in built if not isinstance(s, str)]
+    entries = [p for p in prepared if p is not None]
+    assert all(p is not None for p in entries) and len(entries) == len(specs)
+    with pytest.raises(ValueError, match="prepared has 3 entries for 4 specs"):
+        engine.pack(specs, device="cpu", dt=5e-3, prepared=entries[:3])
+    from engine.reduced import tabulated_layout
+
+    analyse = tabulated_layout._pending_layouts
+    runs = []
+    for given in (None, entries, pickle.loads(pickle.dumps(entries))):
+        if given is not None:  # every entry is used: nothing is analysed again here
+            monkeypatch.setattr(tabulated_layout, "_pending_layouts", None)
+        model = engine.pack(specs, device="cpu", dt=5e-3, prepared=given)
+        monkeypatch.setattr(tabulated_layout, "_pending_layouts", analyse)
+        assert model.plan.coordinates is engine.Coordinates.TABULATED
+        trace, final = engine.rollout(model, model.state(), None, 20, record_every=10)
+        runs.append((trace.points, final.body_q.numpy()))
+    for points, body_q in runs[1:]:
+        assert np.array_equal(points, runs[0][0]) and np.array_equal(body_q, runs[0][1])
+
+    kwargs = dict(duration=0.1, dt=5e-3, device="cpu")
+    here, pooled = evaluate_dynamic(family, params, workers=1, **kwargs), evaluate_dynamic(family, params, workers=2,
+                                                                                         **kwargs)
+    assert here.failures == pooled.failures and here.failures[1]
+    for a, b in zip(here.metrics, pooled.metrics):
+        assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a if k != "paths")
