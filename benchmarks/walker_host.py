@@ -3,6 +3,7 @@
     python benchmarks/walker_host.py --designs 256 --repeats 3
     python benchmarks/walker_host.py --root OTHER_CHECKOUT --designs 256   # an older commit, same script
     python benchmarks/walker_host.py --designs 256 --profile walker.prof   # cProfile of one timed generation
+    python benchmarks/walker_host.py --designs 1024 --workers 2 --duration 0.05   # the host's share alone
 
 Evaluates generations of ``--designs`` walkers of studies/walker.toml's family as ``morphopt study
 run`` does (morphopt.evaluate.evaluate_dynamic with the study's duration, dt, crank speed and
@@ -11,7 +12,10 @@ first generation compiles the kernels and fills the engine's caches, as a study'
 generation does; each timed generation then draws new designs (a new seed), as a study's later
 generations do. Prints one JSON object: per generation the stage seconds (wall), designs per
 second and per CPU second of this process (the evaluation runs on one core: on a shared machine
-the CPU time moves less with the load than the wall time), and their medians. ``--root`` imports engine and morphopt from another checkout (its own
+the CPU time moves less with the load than the wall time), and their medians. ``--duration``
+shortens the simulated time (the study's by default): with a few steps, this process's CPU time
+is the host work a GPU run waits on (receiving the built specs, packing, metrics), and
+``--workers`` above 1 builds in worker processes as a GPU machine's cores do. ``--root`` imports engine and morphopt from another checkout (its own
 studies/walker.toml), so that the commit before a change measures itself with this script.
 """
 
@@ -46,10 +50,11 @@ def _designs(study, family, count: int, seed: int) -> list:
     return [{**p, **study.fixed} for p in space.sample(np.random.default_rng(seed), count)]
 
 
-def _evaluate(study, family, params, workers=None):
+def _evaluate(study, family, params, workers=None, duration=None):
     from morphopt.evaluate import evaluate_dynamic
 
-    kwargs = dict(duration=study.duration, dt=study.dt, device=study.device, crank_speed=study.crank_speed,
+    kwargs = dict(duration=study.duration if duration is None else duration, dt=study.dt, device=study.device,
+                  crank_speed=study.crank_speed,
                   config=study.solver_config())
     if workers is not None:  # build processes (None: evaluate_dynamic's choice, one per core on a GPU machine)
         kwargs["workers"] = workers
@@ -68,6 +73,7 @@ def main(argv=None) -> int:
     parser.add_argument("--workers", type=int, default=None,
                         help="processes that build the specs (default: evaluate_dynamic's; a GPU machine's 16 cores "
                              "use 15, whose specs come back pickled)")
+    parser.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the study's)")
     args = parser.parse_args(argv)
     root = pathlib.Path(args.root).resolve()
     sys.path.insert(0, str(root))
@@ -81,7 +87,7 @@ def main(argv=None) -> int:
     quiet_warp()
     study = load_study_spec(root / "studies" / "walker.toml").with_overrides(device=args.device)
     family = load_family(study.family)
-    warm = _evaluate(study, family, _designs(study, family, args.designs, 1000), args.workers)
+    warm = _evaluate(study, family, _designs(study, family, args.designs, 1000), args.workers, args.duration)
     runs = []
     for repeat in range(args.repeats):
         params = _designs(study, family, args.designs, repeat)
@@ -91,7 +97,7 @@ def main(argv=None) -> int:
             profiler = cProfile.Profile()
             profiler.enable()
         start, cpu = time.perf_counter(), time.process_time()
-        evaluation = _evaluate(study, family, params, args.workers)
+        evaluation = _evaluate(study, family, params, args.workers, args.duration)
         seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
         if profiler is not None:
             profiler.disable()
@@ -103,7 +109,7 @@ def main(argv=None) -> int:
     stages = sorted({k for run in runs for k in run["stages"]})
     report = {
         "commit": _commit(root), "device": args.device, "designs": args.designs, "repeats": args.repeats,
-        "workers": args.workers,
+        "workers": args.workers, "duration": study.duration if args.duration is None else args.duration,
         "plan": None if getattr(warm, "plan", None) is None else warm.plan.coordinates.value,
         "designs_per_s": statistics.median(run["designs_per_s"] for run in runs),
         "designs_per_cpu_s": statistics.median(run["designs_per_cpu_s"] for run in runs),
