@@ -38,6 +38,9 @@ __all__ = ["LINKAGE_CRANK_SPEED", "PARALLEL_MIN_DESIGNS", "build_prepared", "bui
 
 LINKAGE_CRANK_SPEED = 2.0 * np.pi  # [rad/s] a linkage family's drive when the study sets no crank_speed
 PARALLEL_MIN_DESIGNS = 256  # smaller batches build faster here than a pool sends them back
+# engine.prepare costs a worker about as much as it saves the packing process (0.3 ms a walker, 2-core CPU):
+# worth it from this many workers on (benchmarks/results/README.md, "The build workers prepare the pack")
+PREPARE_MIN_WORKERS = 3
 _pools: dict[int, ProcessPoolExecutor] = {}
 
 
@@ -150,9 +153,9 @@ def build_specs(family, params: Sequence[dict], *, crank_speed: float | None = N
 
 def build_prepared(family, params: Sequence[dict], *, crank_speed: float | None = None,
                    workers: int | None = None, share: bool = False, prepare: bool = True) -> tuple[list, list | None]:
-    """build_specs' list, and per design engine.prepare of its spec where worker processes built
-    it (None for a design that failed; the whole list None where the batch was built here, which
-    leaves the analysis to engine.pack). For ``engine.pack(specs, prepared=...)`` while the specs
+    """build_specs' list, and per design engine.prepare of its spec where PREPARE_MIN_WORKERS or
+    more worker processes built it (None for a design that failed; the whole list None where the
+    batch was built here or by fewer workers, which leaves the analysis to engine.pack). For ``engine.pack(specs, prepared=...)`` while the specs
     stay as built (a spec_hook that changes them must not pass it on)."""
     params = list(params)
     if share:
@@ -178,6 +181,7 @@ def build_prepared(family, params: Sequence[dict], *, crank_speed: float | None 
         if workers == 1 or path is None or len(params) < 2:
             return _build_each(family, params, crank_speed), None
         stamp = os.path.getmtime(path)
+        prepare = prepare and workers >= PREPARE_MIN_WORKERS
         chunks = [list(c) for c in np.array_split(np.arange(len(params)), min(len(params), 4 * workers)) if len(c)]
         pool = _pool(int(workers))
         try:

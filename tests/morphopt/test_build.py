@@ -90,8 +90,8 @@ def test_design_keys_tell_arrays_apart_by_every_bit():
 
 
 def test_worker_processes_prepare_the_pack_and_the_evaluation_is_the_same(monkeypatch):
-    """build_prepared's workers also make engine.prepare of their specs (None for a design that
-    failed; no list at all where the batch was built here); packing with it gives the worlds the
+    """build_prepared's workers (three or more) also make engine.prepare of their specs (None for a
+    design that failed; no list at all where the batch was built here or by two); packing with it gives the worlds the
     same motion to the last bit, and evaluate_dynamic, which passes it on, the same metrics."""
     import pickle
 
@@ -102,9 +102,9 @@ def test_worker_processes_prepare_the_pack_and_the_evaluation_is_the_same(monkey
     family = load_family("walker")
     params = family.space.sample(np.random.default_rng(11), 4)
     params.insert(1, {**params[0], "scale": 1.0e9})
-    built, prepared = build_prepared(family, params, workers=2)
+    built, prepared = build_prepared(family, params, workers=3)
     assert len(prepared) == len(params) and prepared[1] is None and isinstance(built[1], str)
-    assert build_prepared(family, params, workers=1)[1] is None
+    assert build_prepared(family, params, workers=1)[1] is None and build_prepared(family, params, workers=2)[1] is None
     specs = [s for s in built if not isinstance(s, str)]
     entries = [p for p in prepared if p is not None]
     assert all(p is not None for p in entries) and len(entries) == len(specs)
@@ -126,7 +126,7 @@ def test_worker_processes_prepare_the_pack_and_the_evaluation_is_the_same(monkey
         assert np.array_equal(points, runs[0][0]) and np.array_equal(body_q, runs[0][1])
 
     kwargs = dict(duration=0.1, dt=5e-3, device="cpu")
-    here, pooled = evaluate_dynamic(family, params, workers=1, **kwargs), evaluate_dynamic(family, params, workers=2,
+    here, pooled = evaluate_dynamic(family, params, workers=1, **kwargs), evaluate_dynamic(family, params, workers=3,
                                                                                          **kwargs)
     assert here.failures == pooled.failures and here.failures[1]
     for a, b in zip(here.metrics, pooled.metrics):
