@@ -12,8 +12,10 @@ engine.pack's analysis), so that the process that packs and simulates, the one t
 only receives it.
 
 Workers start through a fork server that preloads this module (never by forking a process that may
-hold a CUDA context, and never re-running the user's script); the pool is made on first use and
-kept for the next generations.
+hold a CUDA context); as with any spawned process, a worker imports the user's main script first
+(as ``__mp_main__``), so a script's work belongs under ``if __name__ == "__main__":``. A pool that
+breaks (a worker killed, or a script without that guard) is dropped with a warning and the batch
+is built here. The pool is made on first use and kept for the next generations.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import functools
 import gc
 import multiprocessing
 import os
+import warnings
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -109,7 +112,10 @@ def _build_chunk(path: str, stamp: float, params: list, crank_speed, prepare: bo
     from engine import prepare as engine_prepare
 
     specs = [spec for spec in built if not isinstance(spec, str)]
-    made = iter(engine_prepare(specs))
+    try:
+        made = iter(engine_prepare(specs))
+    except Exception:  # noqa: BLE001 - only a head start: the packing process analyses these specs itself
+        return built, [None] * len(built)
     return built, [None if isinstance(spec, str) else next(made) for spec in built]
 
 
@@ -188,8 +194,11 @@ def build_prepared(family, params: Sequence[dict], *, crank_speed: float | None 
             futures = [pool.submit(_build_chunk, path, stamp, [params[i] for i in c], crank_speed, prepare)
                        for c in chunks]
             results = [future.result() for future in futures]
-        except BrokenProcessPool:
+        except BrokenProcessPool as exc:
             _pools.pop(int(workers), None)
+            warnings.warn(f"morphopt.build: the build processes broke ({exc}); building this batch here. A script "
+                          f"that builds designs needs its work under if __name__ == '__main__':",
+                          RuntimeWarning, stacklevel=2)
             return _build_each(family, params, crank_speed), None
         if not prepare:
             return [spec for built in results for spec in built], None

@@ -359,10 +359,12 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
         config = dataclasses.replace(config or SolverConfig(), health_joint_tolerance=float(loop_tolerance))
     t0 = time.perf_counter()
     # equal designs built once where the hook, if any, changes copies only (morphopt.robust's hooks)
-    # (the build workers also make the per-spec part of engine.pack's analysis, unless a hook changes the specs)
+    # the build workers also make the per-spec part of engine.pack's analysis where the plan may use it
+    # and no hook changes the specs
     built, prepared = build_prepared(family, params, crank_speed=crank_speed, workers=workers,
                                      share=spec_hook is None or getattr(spec_hook, "copies", False),
-                                     prepare=spec_hook is None)
+                                     prepare=spec_hook is None and getattr(coordinates, "value", coordinates)
+                                     in (None, "tabulated"))
     if spec_hook:
         built = [spec if isinstance(spec, str) else spec_hook(spec, p) for p, spec in zip(params, built)]
     evaluation, specs, owners = _built(params, built, t0)

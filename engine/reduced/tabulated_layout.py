@@ -464,7 +464,8 @@ def tabulated_layouts(specs, *, samples: int = TABLE_SAMPLES, analyses=None) -> 
     would. Equal to tabulated_layout of each spec in turn, to the last bit.
 
     analyses: per spec what tabulated_analyses gave for it, perhaps in another process (None
-    entries, and entries of another structure, sample count or body masses, are analysed here);
+    entries, and entries of another structure, sample count, body masses or positions, are
+    analysed here);
     the caller vouches that the specs have not changed since."""
     with _collector_off():
         return _layouts_together(list(specs), samples, analyses)
@@ -474,8 +475,8 @@ def tabulated_analyses(specs, *, samples: int = TABLE_SAMPLES) -> list:
     """The array path's part of tabulated_layouts, per spec (everything but the tables, which are
     looked up in the packing process's cache): what a process that built the specs can work out
     beside them and send with them (morphopt.build's workers), so that the packing process only
-    reads tables and fills arrays. Each entry is small, picklable and tied to its spec's structure
-    and body masses."""
+    reads tables and fills arrays. Each entry is small, picklable and tied to its spec's structure,
+    body masses and body positions."""
     specs = list(specs)
     out = [None] * len(specs)
     with _collector_off():
@@ -510,9 +511,10 @@ def _by_structure(specs: list) -> dict:
 
 
 def _masses(spec: MechanismSpec) -> tuple:
-    """The bodies' masses: with the structure, what ties an analysis to its spec (a slip of the
-    order of a batch's specs shows in them; they do not prove a spec unchanged)."""
-    return tuple(map(_MASS, spec.bodies))
+    """The bodies' masses and positions: with the structure, what ties an analysis to its spec (a
+    slip of the order of a batch's specs shows in them; they do not prove a spec unchanged)."""
+    bodies = spec.bodies
+    return tuple(map(_MASS, bodies)), b"".join(np.asarray(b.position, float).tobytes() for b in bodies)
 
 
 _MASS = operator.attrgetter("mass")

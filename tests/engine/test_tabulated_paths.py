@@ -251,6 +251,12 @@ def test_analyses_made_elsewhere_give_the_same_layouts():
             layout_module.tabulated_layouts(same))
         assert calls[0] == len(same)  # no entry matched its spec's masses: all analysed here
         calls.clear()
+        import copy
+        moved = copy.deepcopy(same[0])  # the same masses, one body elsewhere
+        moved.bodies[0].position = moved.bodies[0].position + np.array([1e-3, 0.0, 0.0])
+        layout_module.tabulated_layouts([moved], analyses=analyses[:1])
+        assert calls == [1]
+        calls.clear()
         other = [(d, s + 1, m, n) for d, s, m, n in analyses[:len(same)]]
         layout_module.tabulated_layouts(same, analyses=other)
         assert calls == [len(same)]

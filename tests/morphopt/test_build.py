@@ -106,8 +106,8 @@ def test_worker_processes_prepare_the_pack_and_the_evaluation_is_the_same(monkey
     assert len(prepared) == len(params) and prepared[1] is None and isinstance(built[1], str)
     assert build_prepared(family, params, workers=1)[1] is None and build_prepared(family, params, workers=2)[1] is None
     specs = [s for s in built if not isinstance(s, str)]
-    entries = [p for p in prepared if p is not None]
-    assert all(p is not None for p in entries) and len(entries) == len(specs)
+    entries = [p for p, spec in zip(prepared, built) if not isinstance(spec, str)]
+    assert len(entries) == len(specs) and all(p is not None for p in entries)
     with pytest.raises(ValueError, match="prepared has 3 entries for 4 specs"):
         engine.pack(specs, device="cpu", dt=5e-3, prepared=entries[:3])
     from engine.reduced import tabulated_layout
@@ -126,8 +126,13 @@ def test_worker_processes_prepare_the_pack_and_the_evaluation_is_the_same(monkey
         assert np.array_equal(points, runs[0][0]) and np.array_equal(body_q, runs[0][1])
 
     kwargs = dict(duration=0.1, dt=5e-3, device="cpu")
-    here, pooled = evaluate_dynamic(family, params, workers=1, **kwargs), evaluate_dynamic(family, params, workers=3,
-                                                                                         **kwargs)
-    assert here.failures == pooled.failures and here.failures[1]
+    params.append(dict(params[2]))  # a design twice: built once, its one entry handed to both worlds
+    here = evaluate_dynamic(family, params, workers=1, **kwargs)
+    monkeypatch.setattr(tabulated_layout, "_pending_layouts", None)  # here; the workers keep theirs
+    pooled = evaluate_dynamic(family, params, workers=3, **kwargs)
+    monkeypatch.setattr(tabulated_layout, "_pending_layouts", analyse)
+    assert here.failures == pooled.failures and here.failures[1] and pooled.plan.coordinates.value == "tabulated"
     for a, b in zip(here.metrics, pooled.metrics):
         assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a if k != "paths")
+        assert a.get("paths", {}).keys() == b.get("paths", {}).keys()
+        assert all(np.array_equal(a["paths"][n], b["paths"][n]) for n in a.get("paths", {}))
