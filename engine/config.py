@@ -22,7 +22,8 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-__all__ = ["MAXIMAL_RHO", "TABULATED_RHO", "Integrator", "SolverConfig", "Tuning"]
+__all__ = ["MAXIMAL_RHO", "TABULATED_RHO", "Integrator", "LinearSolver", "ProjectionPattern", "SolverConfig",
+           "SparseOrdering", "StepKernel", "Tuning"]
 
 # the maximal plan's starting ADMM penalty (Tuning.rho None): its rows are joint rows, whose soft
 # modes a small penalty leaves fast (engine.padmm)
@@ -37,6 +38,41 @@ class Integrator(enum.Enum):
 
     SEMI_IMPLICIT_EULER = "euler"  # velocities implicit in the reactions, poses explicit
     MOREAU_JEAN = "moreau"  # half pose step, dynamics at the midpoint, half pose step
+
+
+# Tuning's closed choices: string enums, so that a knob is given and compared as its string too
+
+
+class LinearSolver(enum.StrEnum):
+    """The maximal plan's linear solver (Tuning.linear_solver)."""
+
+    AUTO = "auto"  # dense where the padded rows fit engine.pack.MAX_DENSE_ROWS, else sparse
+    DENSE = "dense"  # a Cholesky tile per world
+    SPARSE = "sparse"  # LDL^T on the matrix's pattern, one schedule per topology
+
+
+class StepKernel(enum.StrEnum):
+    """The maximal plan's step kernels (Tuning.step_kernel)."""
+
+    AUTO = "auto"  # fused where it fits
+    FUSED = "fused"  # one launch per step (engine.fused)
+    STAGED = "staged"  # one kernel per stage (engine.step)
+
+
+class ProjectionPattern(enum.StrEnum):
+    """Whether the sparse projection factors the bilateral rows on a pattern of their own
+    (Tuning.sparse_projection_pattern)."""
+
+    AUTO = "auto"
+    ALWAYS = "always"
+    NEVER = "never"
+
+
+class SparseOrdering(enum.StrEnum):
+    """The sparse factor's elimination order (Tuning.sparse_ordering)."""
+
+    MINIMUM_DEGREE = "minimum_degree"
+    SHALLOW = "shallow"  # per topology, the shortest estimated schedule
 
 
 def _finite(value) -> bool:
@@ -131,11 +167,11 @@ class Tuning:
     projection_velocity_floor: float = 1.0e-7
     projection_skip_floor: float = 1.0e-7
     projection_skip_floor_angular: float = 1.0e-6
-    linear_solver: str = "auto"
-    step_kernel: str = "auto"
+    linear_solver: LinearSolver = LinearSolver.AUTO
+    step_kernel: StepKernel = StepKernel.AUTO
     sparse_body_nodes: bool = True
-    sparse_projection_pattern: str = "auto"
-    sparse_ordering: str = "minimum_degree"
+    sparse_projection_pattern: ProjectionPattern = ProjectionPattern.AUTO
+    sparse_ordering: SparseOrdering = SparseOrdering.MINIMUM_DEGREE
     compensated_state: bool = True
     fused_block: int | None = None
     fused_registers: int | None = None
@@ -150,13 +186,14 @@ class Tuning:
         if isinstance(self.sparse_projection_pattern, bool):
             choice = "always" if self.sparse_projection_pattern else "never"
             object.__setattr__(self, "sparse_projection_pattern", choice)
-        for name, choices in (("step_kernel", ("auto", "fused", "staged")),
-                              ("sparse_projection_pattern", ("auto", "always", "never")),
-                              ("sparse_ordering", ("minimum_degree", "shallow")),
-                              ("linear_solver", ("auto", "dense", "sparse"))):
-            if getattr(self, name) not in choices:
+        for name, kind in (("step_kernel", StepKernel), ("sparse_projection_pattern", ProjectionPattern),
+                           ("sparse_ordering", SparseOrdering), ("linear_solver", LinearSolver)):
+            value = getattr(self, name)
+            if not isinstance(value, str) or value not in kind._value2member_map_:
+                choices = [member.value for member in kind]
                 expected = ", ".join(repr(c) for c in choices[:-1]) + f" or {choices[-1]!r}"
-                raise ValueError(f"Tuning.{name}: expected {expected}, got {getattr(self, name)!r}")
+                raise ValueError(f"Tuning.{name}: expected {expected}, got {value!r}")
+            object.__setattr__(self, name, kind(value))
         if self.rho is not None and not (_finite(self.rho) and self.rho > 0.0):
             raise ValueError(f"Tuning.rho: expected None (the plan's own) or a positive number, got {self.rho!r}")
         for name, low in (("fused_block", 1), ("fused_registers", 0), ("fused_sharing", 0), ("tree_registers", 0),

@@ -305,7 +305,8 @@ def load_study_spec(path) -> StudySpec:
 
 
 # the kind of value a [solver] or [solver.tuning] key takes, by the first word of its field's annotation
-_KINDS = {"bool": bool, "int": int, "float": float, "str": str, "Integrator": str}
+_KINDS = {"bool": bool, "int": int, "float": float, "str": str, "Integrator": str,  # enums are given by value
+          "LinearSolver": str, "StepKernel": str, "ProjectionPattern": str, "SparseOrdering": str}
 
 
 def _solver_keys(table: dict, cls, prefix: str, where: str) -> None:
@@ -331,7 +332,8 @@ def _solver_keys(table: dict, cls, prefix: str, where: str) -> None:
             ok = True
         if not ok:
             default = fields[key].default
-            like = "left out: the plan's choice" if default is None else f"like the default {default!r}"
+            like = "left out: the plan's choice" if default is None else \
+                f"like the default {getattr(default, 'value', default)!r}"
             raise ValueError(f"{where}: '{prefix}.{key}' must be {kind.__name__} ({like}), got {value!r}")
 
 

@@ -110,6 +110,22 @@ def test_values_are_checked_in_both_classes():
     assert Tuning(sparse_projection_pattern=True).sparse_projection_pattern == "always"
 
 
+def test_the_closed_choices_are_enums_given_by_value():
+    """Tuning's closed choices become their enum members whether given by value or as members, and
+    still compare, print and hash as their strings (code and study files give them as strings);
+    anything else is refused with the choices named."""
+    from engine.config import LinearSolver, ProjectionPattern, SparseOrdering, StepKernel
+
+    tuning = Tuning(linear_solver="sparse", step_kernel=StepKernel.STAGED, sparse_ordering="shallow")
+    assert tuning.linear_solver is LinearSolver.SPARSE and tuning.step_kernel is StepKernel.STAGED
+    assert tuning.sparse_ordering is SparseOrdering.SHALLOW and Tuning().sparse_projection_pattern is ProjectionPattern.AUTO
+    assert tuning.linear_solver == "sparse" and f"{tuning.step_kernel}" == "staged" and {"sparse": 1}[tuning.linear_solver]
+    assert Tuning(linear_solver="sparse") == Tuning(linear_solver=LinearSolver.SPARSE)
+    for bad in (1, None, "SPARSE", LinearSolver.SPARSE.name):
+        with pytest.raises(ValueError, match="Tuning.linear_solver: expected 'auto', 'dense' or 'sparse'"):
+            Tuning(linear_solver=bad)
+
+
 def _walker():
     from morphopt.families import load_family
 
