@@ -37,7 +37,7 @@ from morphopt.families import load_family
 from morphopt.linkage import to_spec
 
 __all__ = ["LINKAGE_CRANK_SPEED", "PARALLEL_MIN_DESIGNS", "build_prepared", "build_spec", "build_specs",
-           "crank_speed_of", "default_workers"]
+           "crank_speed_of", "default_workers", "no_collection"]
 
 LINKAGE_CRANK_SPEED = 2.0 * np.pi  # [rad/s] a linkage family's drive when the study sets no crank_speed
 PARALLEL_MIN_DESIGNS = 256  # smaller batches build faster here than a pool sends them back
@@ -183,7 +183,7 @@ def build_prepared(family, params: Sequence[dict], *, crank_speed: float | None 
     # Making (or unpickling) thousands of small objects sets off the cyclic garbage collector again
     # and again (2/3 of the time of receiving a generation's specs, a fifth of building them here):
     # none of them is garbage yet.
-    with _no_collection():
+    with no_collection():
         if workers == 1 or path is None or len(params) < 2:
             return _build_each(family, params, crank_speed), None
         stamp = os.path.getmtime(path)
@@ -214,7 +214,7 @@ def _design_key(params: dict) -> tuple:
 
 
 @contextlib.contextmanager
-def _no_collection():
+def no_collection():
     """A block without the cyclic garbage collector (as it was before: on or off) afterwards."""
     collecting = gc.isenabled()
     gc.disable()

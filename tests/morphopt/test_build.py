@@ -136,3 +136,28 @@ def test_worker_processes_prepare_the_pack_and_the_evaluation_is_the_same(monkey
         assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a if k != "paths")
         assert a.get("paths", {}).keys() == b.get("paths", {}).keys()
         assert all(np.array_equal(a["paths"][n], b["paths"][n]) for n in a.get("paths", {}))
+
+
+def test_the_evaluation_runs_without_the_collector_and_restores_it():
+    """evaluate_dynamic pauses the cyclic garbage collector while it runs (its progress callback
+    sees it off) and leaves it as it found it, on or off, also when it raises."""
+    import gc
+
+    from morphopt.evaluate import evaluate_dynamic
+
+    family = load_family("walker")
+    seen = []
+    progress = lambda *state: seen.append(gc.isenabled())  # noqa: E731
+    was = gc.isenabled()
+    try:
+        gc.enable()
+        evaluate_dynamic(family, [family.space.default()], duration=0.05, dt=5e-3, progress=progress)
+        assert seen and not any(seen) and gc.isenabled()
+        with pytest.raises(ValueError):
+            evaluate_dynamic(family, [family.space.default()], duration=0.05, dt=-1.0)
+        assert gc.isenabled()
+        gc.disable()
+        evaluate_dynamic(family, [family.space.default()], duration=0.05, dt=5e-3)
+        assert not gc.isenabled()
+    finally:
+        (gc.enable if was else gc.disable)()
