@@ -140,7 +140,8 @@ def test_worker_processes_prepare_the_pack_and_the_evaluation_is_the_same(monkey
 
 def test_the_evaluation_runs_without_the_collector_and_restores_it():
     """evaluate_dynamic pauses the cyclic garbage collector while it runs (its progress callback
-    sees it off) and leaves it as it found it, on or off, also when it raises."""
+    sees it off) and leaves it as it found it, on or off, also when it raises; evaluate_kinematic
+    pauses it too (its family's generate sees it off)."""
     import gc
 
     from morphopt.evaluate import evaluate_dynamic
@@ -159,5 +160,21 @@ def test_the_evaluation_runs_without_the_collector_and_restores_it():
         gc.disable()
         evaluate_dynamic(family, [family.space.default()], duration=0.05, dt=5e-3)
         assert not gc.isenabled()
+        gc.enable()
+        from morphopt.evaluate import evaluate_kinematic
+        legs = load_family("jansen_leg")
+        checked = []
+        original = legs.generate
+
+        def generate(*args, **kwargs):
+            checked.append(gc.isenabled())
+            return original(*args, **kwargs)
+
+        legs.generate = generate
+        try:
+            assert list(evaluate_kinematic(legs, [legs.space.default()] * 2).feasible) == [True, True]
+        finally:
+            legs.generate = original
+        assert checked and not any(checked) and gc.isenabled()
     finally:
         (gc.enable if was else gc.disable)()
