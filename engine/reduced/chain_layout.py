@@ -13,7 +13,7 @@ import numpy as np
 import warp as wp
 
 from engine.collide import PLANE_CONTACTS
-from engine.spatial import quat_matrix
+from engine.spatial import cross3, quat_matrix
 from engine.spec import JointType, MechanismSpec
 
 __all__ = ["ChainLayout", "KIND_ANGULAR", "KIND_LINEAR", "KIND_REVOLUTE", "KIND_ROOT", "MAX_CONTACTS", "MAX_COORDS",
@@ -36,14 +36,14 @@ MAX_PACKED = 4096  # entries of the packed mass matrix (a shared tile; MAX_COORD
 
 
 def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
-    return quat_matrix(np.r_[np.sin(angle / 2) * axis, np.cos(angle / 2)])
+    return quat_matrix((*(np.sin(angle / 2) * axis), np.cos(angle / 2)))
 
 
 def _perpendiculars(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     e = np.eye(3)[int(np.argmin(np.abs(axis)))]
-    t1 = np.cross(axis, e)
+    t1 = cross3(axis, e)
     t1 /= np.linalg.norm(t1)
-    return t1, np.cross(axis, t1)
+    return t1, cross3(axis, t1)
 
 
 @dataclass
@@ -116,14 +116,14 @@ class ChainLayout:
                     lin[k] = e
                 else:
                     axis[k] = e
-                    lin[k] = np.cross(c, e)
+                    lin[k] = cross3(c, e)
                 continue
             par = int(self.parent[k])
             Rp, pp = (np.eye(3), np.zeros(3)) if par < 0 else (R[par], p[par])
             Rj = Rp @ self.parent_R[k]
             point = pp + Rp @ self.parent_p[k]
             axis[k] = Rj @ self.axis[k]
-            lin[k] = np.cross(point, axis[k])
+            lin[k] = cross3(point, axis[k])
             Rq = Rj @ _axis_angle(self.axis[k], q[k])
             R[k] = Rq @ self.child_R[k]
             p[k] = point + Rq @ self.child_p[k]
@@ -155,12 +155,12 @@ class ChainLayout:
                 if part < 3:
                     phi[r] = d @ (xb - xa)
                 else:
-                    phi[r] = d @ np.cross(ax_a, ax_b)
+                    phi[r] = d @ cross3(ax_a, ax_b)
                 # an inline loop's rates at its second anchor on both bodies: its rows' directions turn with
                 # the first body while the anchors part along the axis (a revolute loop's anchors coincide)
                 for sign, body, x in ((1.0, b, xb), (-1.0, a, xb if li in inline else xa)):
                     for j in (self.ancestors(body) if body >= 0 else []):
-                        col = np.cross(axis[j], x) + lin[j] if part < 3 else axis[j]
+                        col = cross3(axis[j], x) + lin[j] if part < 3 else axis[j]
                         G[r, j] += sign * (d @ col)
         return G, phi
 
@@ -510,4 +510,4 @@ def _transform(R: np.ndarray, p: np.ndarray) -> np.ndarray:
         q[j] = (R[j, i] + R[i, j]) / s
         q[k] = (R[k, i] + R[i, k]) / s
         q[3] = (R[k, j] - R[j, k]) / s
-    return np.r_[p, q / np.linalg.norm(q)]
+    return np.concatenate((p, q / np.linalg.norm(q)))

@@ -330,7 +330,8 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
             h["mass"][w_, k] = body.mass
             h["inertia"][w_, k] = body.inertia
             if kind == KIND_ROOT:
-                init["root"][w_, k] = np.r_[lay.parent_p[k] + lay.parent_R[k] @ np.asarray(body.com), body.orientation]
+                init["root"][w_, k] = np.concatenate((lay.parent_p[k] + lay.parent_R[k] @ np.asarray(body.com),
+                                                       body.orientation))
                 continue
             joint = spec.joints[lay.joint[k]]
             h["armature"][w_, k] = joint.armature
@@ -356,7 +357,7 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
             shape = spec.shapes[si]
             h["shape_entry"][w_, s] = tree_index[spec.body_index[shape.body]]
             h["shape_type"][w_, s] = int(shape.type)
-            h["shape_X"][w_, s] = np.r_[shape.position, shape.orientation]
+            h["shape_X"][w_, s] = np.concatenate((shape.position, shape.orientation))
             h["shape_size"][w_, s] = shape.size
             h["shape_mu"][w_, s] = math.sqrt(shape.friction * spec.ground.friction)
         for li in range(len(lay.loops)):
@@ -376,7 +377,7 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
             h["row_compliance"][w_, r], h["row_keep"][w_, r] = 1.0 / gain, joint.armature / gain
         for i, body in enumerate(spec.bodies):
             R = quat_matrix(body.orientation)
-            init["body_q"][w_, i] = np.r_[np.asarray(body.position) + R @ np.asarray(body.com), body.orientation]
+            init["body_q"][w_, i] = np.concatenate((np.asarray(body.position) + R @ np.asarray(body.com), body.orientation))
     # every world from its distinct spec's rows
     h = {k: v[kind_of] for k, v in h.items()}
     init = {k: v[kind_of] for k, v in init.items()}
