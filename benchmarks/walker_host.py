@@ -4,6 +4,7 @@
     python benchmarks/walker_host.py --root OTHER_CHECKOUT --designs 256   # an older commit, same script
     python benchmarks/walker_host.py --designs 256 --profile walker.prof   # cProfile of one timed generation
     python benchmarks/walker_host.py --designs 1024 --workers 2 --duration 0.05   # the host's share alone
+    python benchmarks/walker_host.py --study jansen_stride.toml --designs 2048      # another dynamic study
 
 Evaluates generations of ``--designs`` walkers of studies/walker.toml's family as ``morphopt study
 run`` does (morphopt.evaluate.evaluate_dynamic with the study's duration, dt, crank speed and
@@ -74,6 +75,8 @@ def main(argv=None) -> int:
                         help="processes that build the specs (default: evaluate_dynamic's; a GPU machine's 16 cores "
                              "use 15, whose specs come back pickled)")
     parser.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the study's)")
+    parser.add_argument("--study", default="walker.toml",
+                        help="a dynamic study file of the checkout's studies/ folder (jansen_stride.toml: the tree plan)")
     args = parser.parse_args(argv)
     root = pathlib.Path(args.root).resolve()
     sys.path.insert(0, str(root))
@@ -85,7 +88,7 @@ def main(argv=None) -> int:
     from morphopt.warp_setup import quiet_warp
 
     quiet_warp()
-    study = load_study_spec(root / "studies" / "walker.toml").with_overrides(device=args.device)
+    study = load_study_spec(root / "studies" / args.study).with_overrides(device=args.device)
     family = load_family(study.family)
     warm = _evaluate(study, family, _designs(study, family, args.designs, 1000), args.workers, args.duration)
     runs = []
@@ -109,7 +112,7 @@ def main(argv=None) -> int:
     stages = sorted({k for run in runs for k in run["stages"]})
     report = {
         "commit": _commit(root), "device": args.device, "designs": args.designs, "repeats": args.repeats,
-        "workers": args.workers, "duration": study.duration if args.duration is None else args.duration,
+        "study": args.study, "workers": args.workers, "duration": study.duration if args.duration is None else args.duration,
         "plan": None if getattr(warm, "plan", None) is None else warm.plan.coordinates.value,
         "designs_per_s": statistics.median(run["designs_per_s"] for run in runs),
         "designs_per_cpu_s": statistics.median(run["designs_per_cpu_s"] for run in runs),
