@@ -13,6 +13,7 @@ in what the path decided: kernel, linear solver, stages, launch shape, register 
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 from dataclasses import dataclass, field
 
@@ -126,7 +127,7 @@ def _tabulated_ready(specs: list, prepared=None) -> dict:
 
     unique = {}
     for i, s in enumerate(specs):
-        unique.setdefault(id(s), (s, None if prepared is None else prepared[i]))
+        unique.setdefault(id(s), (s, None if prepared is None or prepared[i] is None else prepared[i][0]))
     distinct = list(unique.values())
     analyses = None if prepared is None else [p for _, p in distinct]
     made = tabulated_layouts([s for s, _ in distinct], analyses=analyses)
@@ -137,18 +138,34 @@ def prepare(specs) -> list:
     """What engine.pack works out from each spec alone, made ahead: per spec a small picklable
     entry for ``engine.pack(specs, prepared=...)``. A process that builds specs for another to
     pack (morphopt.build's workers) makes it beside them, so that the packing process, the one
-    that holds the GPU, spends its time on what only it can do. Today it holds the tabulated
-    plan's per-spec analysis (engine.reduced.tabulated_layout.tabulated_analyses); pack checks each
-    entry against its spec's structure and analyses a spec whose entry does not match itself.
-    Valid only while the specs stay as they were."""
+    that holds the GPU, spends its time on what only it can do. An entry holds the tabulated
+    plan's per-spec analysis (engine.reduced.tabulated_layout.tabulated_analyses) and, for a spec
+    that plan does not take as it is, the tree plan's layout (chain_layout); pack checks each
+    against its spec's structure, body masses and positions, and analyses a spec whose entry
+    does not match itself. Valid only while the specs stay as they were."""
     from engine.reduced.tabulated_layout import tabulated_analyses
 
-    return tabulated_analyses(specs)
+    specs = list(specs)
+    return [(entry, _tree_ahead(spec) if entry is None or entry[3] is None else None)
+            for spec, entry in zip(specs, tabulated_analyses(specs))]
 
 
-def _admits(kind: Coordinates, spec, ready: dict | None = None):
+def _tree_ahead(spec):
+    """(the spec's tie, its chain_layout without the spec) or None where the tree plan refuses it."""
+    from engine.reduced.chain_layout import chain_layout
+    from engine.reduced.tabulated_layout import spec_tie
+
+    try:
+        layout = chain_layout(spec)
+    except ValueError:
+        return None
+    return spec_tie(spec), dataclasses.replace(layout, spec=None)
+
+
+def _admits(kind: Coordinates, spec, ready: dict | None = None, tree=None):
     """The kind's layout of ``spec`` (raises ValueError with the reason when it does not fit);
-    ready: the batch's tabulated layouts (_tabulated_ready)."""
+    ready: the batch's tabulated layouts (_tabulated_ready); tree: the spec's tree entry of
+    engine.prepare, or None."""
     if kind is Coordinates.GROUNDED:
         from engine.reduced.grounded import grounded_layout
         return grounded_layout(spec)
@@ -171,6 +188,10 @@ def _admits(kind: Coordinates, spec, ready: dict | None = None):
                                  f"the tree path has ground contacts only (give them a common collision group)")
         _effort_limits_clear(spec)
         _near_the_origin(spec)
+        if tree is not None:
+            from engine.reduced.tabulated_layout import spec_tie
+            if tree[0] == spec_tie(spec):
+                return dataclasses.replace(tree[1], spec=spec)
         return chain_layout(spec)
     return None
 
@@ -272,7 +293,7 @@ def choose(specs: list, device, coordinates=None, contact_capacity: int | None =
         for index, spec in enumerate(specs):
             try:
                 if id(spec) not in seen:
-                    seen[id(spec)] = _admits(kind, spec, ready)
+                    seen[id(spec)] = _admits(kind, spec, ready, _tree_entry(prepared, index))
                 layouts.append(seen[id(spec)])
             except ValueError as exc:
                 reason = f"world {index} ({spec.name}): {exc}"
@@ -283,6 +304,10 @@ def choose(specs: list, device, coordinates=None, contact_capacity: int | None =
         else:
             return Plan(kind, len(specs), str(device), forced=forced is not None, refused=refused), layouts
     raise AssertionError("unreachable: MAXIMAL admits every world")
+
+
+def _tree_entry(prepared, index: int):
+    return None if prepared is None or prepared[index] is None else prepared[index][1]
 
 
 def fastest(specs: list, contact_capacity: int | None = None, prepared=None) -> tuple[list, list, list]:
@@ -310,7 +335,7 @@ def fastest(specs: list, contact_capacity: int | None = None, prepared=None) -> 
                         refused.append((kind, CAPACITY_NOT_TABULATED))
                     continue
                 try:
-                    found = (kind, _admits(kind, spec, ready))
+                    found = (kind, _admits(kind, spec, ready, _tree_entry(prepared, index)))
                     break
                 except ValueError as exc:
                     if kind not in noted:

@@ -379,7 +379,7 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     built, prepared = build_prepared(family, params, crank_speed=crank_speed, workers=workers,
                                      share=spec_hook is None or getattr(spec_hook, "copies", False),
                                      prepare=spec_hook is None and getattr(coordinates, "value", coordinates)
-                                     in (None, "tabulated"))
+                                     in (None, "tabulated", "tree"))
     if spec_hook:
         built = [spec if isinstance(spec, str) else spec_hook(spec, p) for p, spec in zip(params, built)]
     evaluation, specs, owners = _built(params, built, t0)

@@ -510,6 +510,12 @@ def _by_structure(specs: list) -> dict:
     return groups
 
 
+def spec_tie(spec: MechanismSpec) -> tuple:
+    """What ties an analysis made elsewhere to its spec: its structure's digest, body masses and
+    positions (engine.prepare's entries; they do not prove a spec unchanged)."""
+    return _digest(_structure_key(spec)), _masses(spec)
+
+
 def _masses(spec: MechanismSpec) -> tuple:
     """The bodies' masses and positions: with the structure, what ties an analysis to its spec (a
     slip of the order of a batch's specs shows in them; they do not prove a spec unchanged)."""

@@ -178,3 +178,32 @@ def test_the_evaluation_runs_without_the_collector_and_restores_it():
         assert checked and not any(checked) and gc.isenabled()
     finally:
         (gc.enable if was else gc.disable)()
+
+
+def test_worker_processes_prepare_the_tree_plan_of_linkages(monkeypatch):
+    """For linkages (the tree plan: a joint to the world, more geometries than the grounded plan
+    takes unasked), build_prepared's workers make each spec's chain_layout; packing with them
+    makes none here and gives the same motion to the last bit; an entry moved to another spec of
+    the same structure is not used."""
+    import engine
+    from engine.reduced import chain_layout as chain_layout_module
+    from morphopt.build import build_prepared
+
+    family = load_family("jansen_leg")
+    params = family.space.sample(np.random.default_rng(4), 40)
+    built, prepared = build_prepared(family, params, workers=3, crank_speed=3.0)
+    index = [i for i, spec in enumerate(built) if not isinstance(spec, str)]
+    specs, entries = [built[i] for i in index], [prepared[i] for i in index]
+    assert len(specs) >= 17 and all(entry[1] is not None and entry[1][1].spec is None for entry in entries)
+    here = engine.pack(specs, device="cpu", dt=1e-3)
+    making = chain_layout_module.chain_layout
+    monkeypatch.setattr(chain_layout_module, "chain_layout", None)  # nothing made here
+    given = engine.pack(specs, device="cpu", dt=1e-3, prepared=entries)
+    monkeypatch.setattr(chain_layout_module, "chain_layout", making)
+    assert here.plan.coordinates is given.plan.coordinates is engine.Coordinates.TREE
+    runs = [engine.rollout(model, model.state(), None, 30, record_every=10)[0].points for model in (here, given)]
+    assert np.array_equal(runs[0], runs[1])
+    calls = []
+    monkeypatch.setattr(chain_layout_module, "chain_layout", lambda spec: calls.append(spec) or making(spec))
+    engine.pack(specs[:2], device="cpu", dt=1e-3, prepared=entries[1:3], coordinates="tree")
+    assert calls == specs[:2]  # each entry belongs to the next spec: both made here
