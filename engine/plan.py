@@ -157,7 +157,7 @@ def _tree_ahead(spec):
 
     try:
         layout = chain_layout(spec)
-    except ValueError:
+    except Exception:  # noqa: BLE001 - a head start only: engine.pack analyses this spec itself, and says why
         return None
     return spec_tie(spec), dataclasses.replace(layout, spec=None)
 
