@@ -16,8 +16,9 @@ second and per CPU second of this process (the evaluation runs on one core: on a
 the CPU time moves less with the load than the wall time), and their medians. ``--duration``
 shortens the simulated time (the study's by default): with a few steps, this process's CPU time
 is the host work a GPU run waits on (receiving the built specs, packing, metrics), and
-``--workers`` above 1 builds in worker processes as a GPU machine's cores do. ``--root`` imports engine and morphopt from another checkout (its own
-studies/walker.toml), so that the commit before a change measures itself with this script.
+``--workers`` above 1 builds in worker processes as a GPU machine's cores do. ``--root`` imports
+engine and morphopt from another checkout (and its own study files), so that the commit before a
+change measures itself with this script.
 """
 
 from __future__ import annotations
@@ -76,7 +77,8 @@ def main(argv=None) -> int:
                              "use 15, whose specs come back pickled)")
     parser.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the study's)")
     parser.add_argument("--study", default="walker.toml",
-                        help="a dynamic study file of the checkout's studies/ folder (jansen_stride.toml: the tree plan)")
+                        help="a dynamic study file of the checkout's studies/ folder "
+                             "(jansen_stride.toml: the tree plan)")
     args = parser.parse_args(argv)
     root = pathlib.Path(args.root).resolve()
     sys.path.insert(0, str(root))
@@ -112,7 +114,8 @@ def main(argv=None) -> int:
     stages = sorted({k for run in runs for k in run["stages"]})
     report = {
         "commit": _commit(root), "device": args.device, "designs": args.designs, "repeats": args.repeats,
-        "study": args.study, "workers": args.workers, "duration": study.duration if args.duration is None else args.duration,
+        "study": args.study, "workers": args.workers,
+        "duration": study.duration if args.duration is None else args.duration,
         "plan": None if getattr(warm, "plan", None) is None else warm.plan.coordinates.value,
         "designs_per_s": statistics.median(run["designs_per_s"] for run in runs),
         "designs_per_cpu_s": statistics.median(run["designs_per_cpu_s"] for run in runs),

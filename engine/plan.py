@@ -146,7 +146,7 @@ def prepare(specs) -> list:
     from engine.reduced.tabulated_layout import tabulated_analyses
 
     specs = list(specs)
-    return [(entry, _tree_ahead(spec) if entry is None or entry[3] is None else None)
+    return [(entry, _tree_ahead(spec) if entry is None or entry[2] is None else None)
             for spec, entry in zip(specs, tabulated_analyses(specs))]
 
 

@@ -161,8 +161,9 @@ def build_prepared(family, params: Sequence[dict], *, crank_speed: float | None 
                    workers: int | None = None, share: bool = False, prepare: bool = True) -> tuple[list, list | None]:
     """build_specs' list, and per design engine.prepare of its spec where PREPARE_MIN_WORKERS or
     more worker processes built it (None for a design that failed; the whole list None where the
-    batch was built here or by fewer workers, which leaves the analysis to engine.pack). For ``engine.pack(specs, prepared=...)`` while the specs
-    stay as built (a spec_hook that changes them must not pass it on)."""
+    batch was built here or by fewer workers, which leaves the analysis to engine.pack). For
+    ``engine.pack(specs, prepared=...)`` while the specs stay as built (a spec_hook that changes
+    them must not pass it on)."""
     params = list(params)
     if share:
         first, unique, where = {}, [], []  # per design its index among the distinct designs

@@ -388,7 +388,6 @@ def evaluate_dynamic(family, params: Sequence[dict], *, duration: float, dt: flo
     t1 = time.perf_counter()
     model = pack(specs, device=device, dt=dt, config=config, coordinates=coordinates,
                  prepared=None if prepared is None else [prepared[i] for i in owners])
-    del prepared  # thousands of objects the collector would otherwise walk during the run and the metrics
     evaluation.plan = model.plan
     t2 = time.perf_counter()
 

@@ -377,7 +377,8 @@ def pack_chains(specs: Sequence[MechanismSpec], device=None, *, config: SolverCo
             h["row_compliance"][w_, r], h["row_keep"][w_, r] = 1.0 / gain, joint.armature / gain
         for i, body in enumerate(spec.bodies):
             R = quat_matrix(body.orientation)
-            init["body_q"][w_, i] = np.concatenate((np.asarray(body.position) + R @ np.asarray(body.com), body.orientation))
+            init["body_q"][w_, i] = np.concatenate((np.asarray(body.position) + R @ np.asarray(body.com),
+                                                     body.orientation))
     # every world from its distinct spec's rows
     h = {k: v[kind_of] for k, v in h.items()}
     init = {k: v[kind_of] for k, v in init.items()}

@@ -464,9 +464,8 @@ def tabulated_layouts(specs, *, samples: int = TABLE_SAMPLES, analyses=None) -> 
     would. Equal to tabulated_layout of each spec in turn, to the last bit.
 
     analyses: per spec what tabulated_analyses gave for it, perhaps in another process (None
-    entries, and entries of another structure, sample count, body masses or positions, are
-    analysed here);
-    the caller vouches that the specs have not changed since."""
+    entries, and entries whose spec_tie or sample count differ, are analysed here); the caller
+    vouches that the specs have not changed since."""
     with _collector_off():
         return _layouts_together(list(specs), samples, analyses)
 
@@ -475,8 +474,8 @@ def tabulated_analyses(specs, *, samples: int = TABLE_SAMPLES) -> list:
     """The array path's part of tabulated_layouts, per spec (everything but the tables, which are
     looked up in the packing process's cache): what a process that built the specs can work out
     beside them and send with them (morphopt.build's workers), so that the packing process only
-    reads tables and fills arrays. Each entry is small, picklable and tied to its spec's structure,
-    body masses and body positions."""
+    reads tables and fills arrays. Each entry, (spec_tie, samples, numbers), is small and
+    picklable."""
     specs = list(specs)
     out = [None] * len(specs)
     with _collector_off():
@@ -485,7 +484,7 @@ def tabulated_analyses(specs, *, samples: int = TABLE_SAMPLES) -> list:
             made = _pending_layouts([specs[i] for i in indices], structure, samples) if structure else \
                 [None] * len(indices)
             for i, numbers in zip(indices, made):
-                out[i] = (digest, samples, _masses(specs[i]), numbers)
+                out[i] = ((digest, _body_numbers(specs[i])), samples, numbers)
     return out
 
 
@@ -513,12 +512,11 @@ def _by_structure(specs: list) -> dict:
 def spec_tie(spec: MechanismSpec) -> tuple:
     """What ties an analysis made elsewhere to its spec: its structure's digest, body masses and
     positions (engine.prepare's entries; they do not prove a spec unchanged)."""
-    return _digest(_structure_key(spec)), _masses(spec)
+    return _digest(_structure_key(spec)), _body_numbers(spec)
 
 
-def _masses(spec: MechanismSpec) -> tuple:
-    """The bodies' masses and positions: with the structure, what ties an analysis to its spec (a
-    slip of the order of a batch's specs shows in them; they do not prove a spec unchanged)."""
+def _body_numbers(spec: MechanismSpec) -> tuple:
+    """The bodies' masses and positions (spec_tie's numbers)."""
     bodies = spec.bodies
     return tuple(map(_MASS, bodies)), b"".join(np.asarray(b.position, float).tobytes() for b in bodies)
 
@@ -543,8 +541,8 @@ def _layouts_together(specs: list, samples: int, analyses=None) -> list:
             digest, left = _digest(key), []
             for i in indices:
                 given = analyses[i]
-                if given is not None and given[0] == digest and given[1] == samples and given[2] == _masses(specs[i]):
-                    pending[i], structures[i] = given[3], structure
+                if given is not None and given[1] == samples and given[0] == (digest, _body_numbers(specs[i])):
+                    pending[i], structures[i] = given[2], structure
                 else:
                     left.append(i)
         for i, numbers in zip(left, _pending_layouts([specs[i] for i in left], structure, samples) if left else ()):

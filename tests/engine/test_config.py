@@ -118,8 +118,10 @@ def test_the_closed_choices_are_enums_given_by_value():
 
     tuning = Tuning(linear_solver="sparse", step_kernel=StepKernel.STAGED, sparse_ordering="shallow")
     assert tuning.linear_solver is LinearSolver.SPARSE and tuning.step_kernel is StepKernel.STAGED
-    assert tuning.sparse_ordering is SparseOrdering.SHALLOW and Tuning().sparse_projection_pattern is ProjectionPattern.AUTO
-    assert tuning.linear_solver == "sparse" and f"{tuning.step_kernel}" == "staged" and {"sparse": 1}[tuning.linear_solver]
+    assert tuning.sparse_ordering is SparseOrdering.SHALLOW
+    assert Tuning().sparse_projection_pattern is ProjectionPattern.AUTO
+    assert tuning.linear_solver == "sparse" and f"{tuning.step_kernel}" == "staged"
+    assert {"sparse": 1}[tuning.linear_solver] == 1
     assert Tuning(linear_solver="sparse") == Tuning(linear_solver=LinearSolver.SPARSE)
     for bad in (1, None, "SPARSE", LinearSolver.SPARSE.name):
         with pytest.raises(ValueError, match="Tuning.linear_solver: expected 'auto', 'dense' or 'sparse'"):

@@ -223,12 +223,13 @@ def test_analyses_made_elsewhere_give_the_same_layouts():
     import pickle
 
     rng = np.random.default_rng(9)
-    same = [WALKER.build_spec({**p, "leg_family": "jansen_leg", "legs_per_side": 2}) for p in WALKER.space.sample(rng, 6)]
+    same = [WALKER.build_spec({**p, "leg_family": "jansen_leg", "legs_per_side": 2})
+            for p in WALKER.space.sample(rng, 6)]
     limited = WALKER.build_spec(WALKER.space.default())
     limited.joints[5].limit_upper = 1.0
     specs = same + [WALKER.build_spec(p) for p in _walkers()[:4]] + [_four_bar(), limited]
     analyses = pickle.loads(pickle.dumps(layout_module.tabulated_analyses(specs)))
-    assert len(analyses) == len(specs) and analyses[-1][3] is None  # limited: left to the item-by-item path
+    assert len(analyses) == len(specs) and analyses[-1][2] is None  # limited: left to the item-by-item path
     baseline = _outcomes(specs, together=True)
     tables_module._TABLES.clear()
     given = layout_module.tabulated_layouts(specs, analyses=analyses)
@@ -257,7 +258,7 @@ def test_analyses_made_elsewhere_give_the_same_layouts():
         layout_module.tabulated_layouts([moved], analyses=analyses[:1])
         assert calls == [1]
         calls.clear()
-        other = [(d, s + 1, m, n) for d, s, m, n in analyses[:len(same)]]
+        other = [(tie, s + 1, n) for tie, s, n in analyses[:len(same)]]
         layout_module.tabulated_layouts(same, analyses=other)
         assert calls == [len(same)]
         calls.clear()
